@@ -1,0 +1,70 @@
+"""Entry point of the ``sfmloc`` console script: the one place that configures logging."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+
+from .. import __version__
+from ..errors import SfmlocError
+
+# Subcommand modules, in the order `sfmloc --help` lists them.
+COMMANDS = [
+    "synth",
+]
+
+log = logging.getLogger("sfmloc")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="sfmloc",
+        description=(
+            "Real-time image-based 6-DOF camera localization against Structure-from-Motion maps "
+            "(Lim, Sinha, Cohen, Uyttendaele, CVPR 2012). Build a map bundle from an SfM model, "
+            "serve it, and stream frames to get poses back."
+        ),
+        epilog="Run 'sfmloc COMMAND --help' for the options of one command.",
+    )
+    parser.add_argument("--version", action="version", version=f"sfmloc {__version__}")
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-vv for debug)")
+    parser.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name in COMMANDS:
+        module = importlib.import_module(f".{name}", __package__)
+        module.add_parser(sub)
+    return parser
+
+
+def configure_logging(verbose: int, quiet: bool) -> None:
+    level = logging.WARNING if quiet else (logging.DEBUG if verbose >= 2 else logging.INFO)
+    logging.basicConfig(
+        level=level,
+        format="%(asctime)s %(levelname)-7s %(name)s: %(message)s",
+        datefmt="%H:%M:%S",
+        stream=sys.stderr,
+    )
+    if verbose < 1:
+        # Library chatter stays at WARNING unless asked for.
+        for noisy in ("zenoh", "grpc"):
+            logging.getLogger(noisy).setLevel(logging.WARNING)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    configure_logging(args.verbose, args.quiet)
+    try:
+        return int(args.func(args) or 0)
+    except SfmlocError as exc:
+        log.error("%s", exc)
+        return 2
+    except KeyboardInterrupt:
+        log.warning("interrupted")
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
