@@ -1,0 +1,228 @@
+"""Rotation-invariant DAISY (T2-8a-2r6s) from resampled oriented patches, and its PCA.
+
+Paper Section 2: "At each keypoint, its orientation is computed by finding a peak in the
+gradient orientation histogram, and a rotation invariant T2-8a-2r6s-32d DAISY descriptor is
+computed from a resampled patch" (Winder, Hua, Brown, "Picking the best DAISY", 2009):
+
+- T2-8: per pixel, rectified gradients along 0/90 and 45/135 degrees,
+  ``max(+-g, 0)`` for the four directions: 8 non-negative channels;
+- S 2r6s: Gaussian pooling in 13 regions, a centre and two rings of six (the outer ring
+  rotated by 30 degrees so it fills the gaps of the inner one): 13 x 8 = 104 dimensions;
+- N: unit length, clip at 0.2, unit length again (SIFT-style robust normalization);
+- PCA to 32 dimensions (``Pca``), fitted by the builder and stored in the bundle so the server
+  applies exactly the same projection.
+
+We never run a dense whole-image DAISY: every descriptor is computed from a small patch
+resampled around its keypoint in one ``cv2.remap`` call for all keypoints, so the cost is
+proportional to the number of keypoints (OpenCV's DAISY precomputes the whole image on every
+call, 6-30 ms whatever the keypoint count). Patch geometry is in pixels of the image the
+keypoints come from; the builder runs it on every pyramid level, so the support scales with
+the level.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from ..cameras import PIXEL_CENTER_OFFSET
+
+RAW_DIM = 104
+
+
+@dataclass(frozen=True)
+class DaisyParams:
+    grid: int = 20  # patch samples per side
+    spacing: float = 1.6  # pixels between patch samples
+    ring_radii: tuple[float, float] = (4.0, 9.0)  # pixels
+    sigmas: tuple[float, float, float] = (2.0, 2.5, 3.5)  # centre, ring 1, ring 2 (pixels)
+    clip: float = 0.2
+    # Orientation: 36-bin histogram of gradient orientations in a Gaussian window.
+    ori_bins: int = 36
+    ori_grid: int = 13
+    ori_spacing: float = 1.5
+    ori_sigma: float = 4.5
+    pre_smooth: float = 0.8  # Gaussian sigma applied before sampling (anti-aliasing)
+
+    @property
+    def support_radius(self) -> float:
+        """Pixels from the keypoint that the descriptor and orientation read."""
+        half = (self.grid + 1) / 2 * self.spacing * np.sqrt(2)
+        ori_half = (self.ori_grid + 1) / 2 * self.ori_spacing * np.sqrt(2)
+        return float(max(half, ori_half)) + 1.0
+
+
+@dataclass
+class DaisyExtractor:
+    """Orientation + raw DAISY (104-d) for keypoints of one image; ``Pca`` reduces to 32-d."""
+
+    params: DaisyParams = field(default_factory=DaisyParams)
+
+    def __post_init__(self) -> None:
+        p = self.params
+        # Descriptor patch: (grid+2)^2 samples so central differences leave grid^2.
+        g = p.grid + 2
+        c = (np.arange(g) - (g - 1) / 2.0) * p.spacing
+        gx, gy = np.meshgrid(c, c)
+        self._grid_xy = np.stack([gx.ravel(), gy.ravel()], axis=1).astype(np.float32)  # (g*g, 2)
+        self._pool = _pooling_matrix(p).astype(np.float32)  # (13, grid*grid)
+        # Orientation window.
+        go = p.ori_grid + 2
+        co = (np.arange(go) - (go - 1) / 2.0) * p.ori_spacing
+        ox, oy = np.meshgrid(co, co)
+        self._ori_xy = np.stack([ox.ravel(), oy.ravel()], axis=1).astype(np.float32)
+        inner = (np.arange(p.ori_grid) - (p.ori_grid - 1) / 2.0) * p.ori_spacing
+        ix, iy = np.meshgrid(inner, inner)
+        self._ori_weight = np.exp(-(ix**2 + iy**2) / (2 * p.ori_sigma**2)).astype(np.float32).ravel()
+
+    # ------------------------------------------------------------------ public
+    def prepare(self, gray: np.ndarray) -> np.ndarray:
+        """The image the extractor samples from (float32, lightly smoothed). Compute once per
+        image and pass it to ``orientations`` and ``describe``."""
+        img = gray.astype(np.float32)
+        if self.params.pre_smooth > 0:
+            img = cv2.GaussianBlur(img, (0, 0), self.params.pre_smooth)
+        return img
+
+    def orientations(self, prepared: np.ndarray, xy: np.ndarray) -> np.ndarray:
+        """Dominant gradient orientation (radians) at each keypoint: the peak of a smoothed
+        36-bin histogram of gradient orientations weighted by magnitude and a Gaussian window,
+        refined by a parabola through the peak bin and its neighbours."""
+        n = len(xy)
+        if n == 0:
+            return np.zeros(0, np.float32)
+        p = self.params
+        go = p.ori_grid + 2
+        patches = self._sample(prepared, xy, np.zeros(n, np.float32), self._ori_xy, go)
+        dx = 0.5 * (patches[:, 1:-1, 2:] - patches[:, 1:-1, :-2])
+        dy = 0.5 * (patches[:, 2:, 1:-1] - patches[:, :-2, 1:-1])
+        mag = np.sqrt(dx * dx + dy * dy).reshape(n, -1) * self._ori_weight
+        ang = np.arctan2(dy, dx).reshape(n, -1)
+        nb = p.ori_bins
+        b = np.floor((ang + np.pi) / (2 * np.pi) * nb).astype(np.int64) % nb
+        hist = np.bincount((b + nb * np.arange(n)[:, None]).ravel(), weights=mag.ravel(), minlength=n * nb)
+        hist = hist.reshape(n, nb)
+        # Circular smoothing [1 4 6 4 1] / 16.
+        hist = (
+            6 * hist
+            + 4 * (np.roll(hist, 1, axis=1) + np.roll(hist, -1, axis=1))
+            + (np.roll(hist, 2, axis=1) + np.roll(hist, -2, axis=1))
+        ) / 16.0
+        k = np.argmax(hist, axis=1)
+        rows = np.arange(n)
+        l, c, r = hist[rows, (k - 1) % nb], hist[rows, k], hist[rows, (k + 1) % nb]
+        den = l - 2 * c + r
+        off = np.where(den < 0, 0.5 * (l - r) / np.where(den < 0, den, -1.0), 0.0)
+        theta = (k + 0.5 + off) / nb * 2 * np.pi - np.pi
+        return theta.astype(np.float32)
+
+    def describe(self, prepared: np.ndarray, xy: np.ndarray, theta: np.ndarray) -> np.ndarray:
+        """Raw 104-d DAISY descriptors (float32, unit length) of keypoints with orientations."""
+        n = len(xy)
+        if n == 0:
+            return np.zeros((0, RAW_DIM), np.float32)
+        p = self.params
+        g = p.grid + 2
+        patches = self._sample(prepared, xy, theta, self._grid_xy, g)
+        gx = 0.5 * (patches[:, 1:-1, 2:] - patches[:, 1:-1, :-2])
+        gy = 0.5 * (patches[:, 2:, 1:-1] - patches[:, :-2, 1:-1])
+        s = np.float32(np.sqrt(0.5))
+        d1 = (gx + gy) * s
+        d2 = (gy - gx) * s
+        m = p.grid * p.grid
+        feats = np.empty((8, n, m), np.float32)
+        for i, comp in enumerate((gx, gy, d1, d2)):
+            comp = comp.reshape(n, m)
+            np.maximum(comp, 0, out=feats[2 * i])
+            np.maximum(-comp, 0, out=feats[2 * i + 1])
+        # Pool: (13, m) @ (m, 8n) -> (13, 8, n) -> (n, 13, 8)
+        pooled = self._pool @ feats.transpose(2, 0, 1).reshape(m, 8 * n)
+        desc = pooled.reshape(13, 8, n).transpose(2, 0, 1).reshape(n, RAW_DIM)
+        return _normalize_clip(desc, p.clip)
+
+    def compute(self, gray: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Orientations and raw descriptors in one call (``prepare`` done here)."""
+        prepared = self.prepare(gray)
+        theta = self.orientations(prepared, xy)
+        return theta, self.describe(prepared, xy, theta)
+
+    # ------------------------------------------------------------------ internals
+    def _sample(
+        self, img: np.ndarray, xy: np.ndarray, theta: np.ndarray, offsets: np.ndarray, side: int
+    ) -> np.ndarray:
+        """Bilinear samples (N, side, side) of ``img`` on ``offsets`` rotated by ``theta`` around
+        each keypoint, all in one remap."""
+        n = len(xy)
+        c, s = np.cos(theta).astype(np.float32), np.sin(theta).astype(np.float32)
+        ox, oy = offsets[:, 0], offsets[:, 1]
+        # Keypoint in array-index coordinates.
+        kx = (xy[:, 0] - PIXEL_CENTER_OFFSET).astype(np.float32)[:, None]
+        ky = (xy[:, 1] - PIXEL_CENTER_OFFSET).astype(np.float32)[:, None]
+        mx = kx + c[:, None] * ox - s[:, None] * oy
+        my = ky + s[:, None] * ox + c[:, None] * oy
+        mx = mx.reshape(n * side, side)
+        my = my.reshape(n * side, side)
+        out = cv2.remap(img, mx, my, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT_101)
+        return out.reshape(n, side, side)
+
+
+def _pooling_matrix(p: DaisyParams) -> np.ndarray:
+    """(13, grid^2) normalized Gaussian weights of the DAISY regions over the patch samples."""
+    c = (np.arange(p.grid) - (p.grid - 1) / 2.0) * p.spacing
+    gx, gy = np.meshgrid(c, c)
+    pts = np.stack([gx.ravel(), gy.ravel()], axis=1)
+    centers = [(0.0, 0.0, p.sigmas[0])]
+    for ring, (radius, sigma, phase) in enumerate(
+        ((p.ring_radii[0], p.sigmas[1], 0.0), (p.ring_radii[1], p.sigmas[2], np.pi / 6))
+    ):
+        for k in range(6):
+            a = phase + k * np.pi / 3
+            centers.append((radius * np.cos(a), radius * np.sin(a), sigma))
+    W = np.empty((len(centers), len(pts)))
+    for i, (cx, cy, sg) in enumerate(centers):
+        w = np.exp(-((pts[:, 0] - cx) ** 2 + (pts[:, 1] - cy) ** 2) / (2 * sg * sg))
+        W[i] = w / w.sum()
+    return W
+
+
+def _normalize_clip(desc: np.ndarray, clip: float) -> np.ndarray:
+    norm = np.linalg.norm(desc, axis=1, keepdims=True)
+    desc = desc / np.maximum(norm, 1e-12)
+    np.minimum(desc, clip, out=desc)
+    norm = np.linalg.norm(desc, axis=1, keepdims=True)
+    return (desc / np.maximum(norm, 1e-12)).astype(np.float32)
+
+
+@dataclass
+class Pca:
+    """PCA projection of raw descriptors: ``(d - mean) @ basis`` (basis columns are the
+    principal directions, in decreasing variance)."""
+
+    mean: np.ndarray  # (RAW_DIM,) float32
+    basis: np.ndarray  # (RAW_DIM, dim) float32
+
+    @classmethod
+    def fit(cls, raw: np.ndarray, dim: int = 32, max_samples: int = 200_000, seed: int = 0) -> "Pca":
+        raw = np.asarray(raw, dtype=np.float64)
+        if len(raw) < dim + 1:
+            raise ValueError(f"PCA to {dim} dimensions needs more than {dim} descriptors, got {len(raw)}")
+        if len(raw) > max_samples:
+            raw = raw[np.random.default_rng(seed).choice(len(raw), max_samples, replace=False)]
+        mean = raw.mean(axis=0)
+        cov = np.cov(raw - mean, rowvar=False)
+        evals, evecs = np.linalg.eigh(cov)
+        order = np.argsort(evals)[::-1][:dim]
+        basis = evecs[:, order]
+        # Deterministic sign: largest-magnitude entry of each component positive.
+        signs = np.sign(basis[np.argmax(np.abs(basis), axis=0), np.arange(dim)])
+        basis = basis * signs
+        return cls(mean.astype(np.float32), basis.astype(np.float32))
+
+    @property
+    def dim(self) -> int:
+        return int(self.basis.shape[1])
+
+    def project(self, raw: np.ndarray) -> np.ndarray:
+        return ((raw - self.mean) @ self.basis).astype(np.float32)

@@ -1,0 +1,26 @@
+"""Shared fixtures. BLAS/OpenMP are pinned to one thread before numpy loads (as the engine
+runs), so tests behave the same on a 2-core CI machine as here."""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("MKL_NUM_THREADS", "1")
+
+from pathlib import Path  # noqa: E402
+
+import pytest  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_DATA = REPO.parent / "shared" / "data"
+REDKITCHEN = SHARED_DATA / "redkitchen-seq01"
+
+
+@pytest.fixture(scope="session")
+def redkitchen() -> Path:
+    """The real 7-Scenes redkitchen frames, read in place (never copied into the repo)."""
+    if not (REDKITCHEN / "pgt_sfm_seq01.txt").is_file():
+        pytest.skip(f"real data not present: {REDKITCHEN} (7-Scenes redkitchen seq-01 is read from ../shared/data)")
+    return REDKITCHEN
