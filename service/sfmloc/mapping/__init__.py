@@ -1,0 +1,6 @@
+"""The offline map builder: SfM model -> multi-scale DAISY descriptors per 3D point, camera
+clusters, ANN index, lookup tables -> one versioned map bundle (paper Sections 2 and 2.3).
+
+One module per stage: ``sfm`` (inputs -> reconstruction), ``descriptors`` (pyramids, Harris,
+DAISY, assignment to 3D points), ``clusters`` (overlapping view clustering), ``index`` (ANN),
+``bundle`` (format, atomic writing, loading, verification), ``build`` (the pipeline)."""

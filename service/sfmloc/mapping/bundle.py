@@ -1,0 +1,497 @@
+"""The map bundle: one versioned folder the server loads and memory-maps.
+
+Layout of ``maps/NAME/``::
+
+    manifest.json        pydantic ``Manifest``: format, version, build id, counts, builder
+                         parameters, cameras, image names, and for every array its file,
+                         dtype, shape and SHA-256
+    <array>.npy          plain .npy arrays (no pickle), loadable with memory mapping
+
+Arrays (P points, D descriptors, I images, L clusters, C cameras):
+
+=======================  ============  =====================================================
+name                     shape, dtype  meaning
+=======================  ============  =====================================================
+points_xyz               (P,3) f8      3D points, world frame of the SfM model
+point_ids                (P,) i8       the source model's point3D ids
+point_rgb                (P,3) u1      colours (for viewers)
+descriptors              (D,32) f2     PCA-32 DAISY descriptors, sorted by image
+desc_point               (D,) i4       descriptor -> point row
+desc_image               (D,) i4       descriptor -> image row
+desc_level               (D,) u1       pyramid level it was extracted at
+desc_xy                  (D,2) f4      keypoint in the image (original pixels, COLMAP conv.)
+image_desc_ptr           (I+1,) i8     image i owns descriptors [ptr[i], ptr[i+1])
+image_cam_from_world     (I,7) f8      qw qx qy qz tx ty tz (cam_from_world)
+image_camera             (I,) i4       image -> camera row (``manifest.cameras``)
+image_points_ptr/_idx    CSR           image -> points it sees (its SfM track entries)
+cluster_images_ptr/_idx  CSR           cluster -> images (overlapping clusters)
+point_clusters_ptr/_idx  CSR           point -> clusters it belongs to
+pca_mean                 (104,) f4     raw DAISY mean
+pca_basis                (104,32) f4   PCA basis: desc = (raw - mean) @ basis
+index_faiss              (B,) u1       the faiss index over ``descriptors`` (ids = rows)
+=======================  ============  =====================================================
+
+Writing is atomic: everything goes to a hidden temporary folder next to the target, is
+flushed to disk, and is then swapped into place (an atomic directory exchange where the OS has
+one), so a failed or cancelled build leaves nothing behind and an existing bundle of the same
+name stays intact until the new one is complete.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import hashlib
+import json
+import os
+import re
+import shutil
+import time
+import uuid
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, ValidationError
+
+from .. import __version__
+from ..cameras import Camera
+from ..errors import BundleError, InputError
+from ..features.daisy import RAW_DIM, Pca
+from ..transforms import Rigid3d
+from .index import DescriptorIndex
+
+BUNDLE_FORMAT = "sfmloc-map-bundle"
+BUNDLE_VERSION = 1
+MANIFEST = "manifest.json"
+NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+
+# name -> (dtype, number of dimensions); shapes are checked against the counts on load.
+ARRAY_SPECS: dict[str, tuple[str, int]] = {
+    "points_xyz": ("<f8", 2),
+    "point_ids": ("<i8", 1),
+    "point_rgb": ("|u1", 2),
+    "descriptors": ("<f2", 2),
+    "desc_point": ("<i4", 1),
+    "desc_image": ("<i4", 1),
+    "desc_level": ("|u1", 1),
+    "desc_xy": ("<f4", 2),
+    "image_desc_ptr": ("<i8", 1),
+    "image_cam_from_world": ("<f8", 2),
+    "image_camera": ("<i4", 1),
+    "image_points_ptr": ("<i8", 1),
+    "image_points_idx": ("<i4", 1),
+    "cluster_images_ptr": ("<i8", 1),
+    "cluster_images_idx": ("<i4", 1),
+    "point_clusters_ptr": ("<i8", 1),
+    "point_clusters_idx": ("<i4", 1),
+    "pca_mean": ("<f4", 1),
+    "pca_basis": ("<f4", 2),
+    "index_faiss": ("|u1", 1),
+}
+
+
+def validate_name(name: str) -> str:
+    """Map names appear in file paths and Zenoh key expressions: keep them plain."""
+    if not NAME_RE.match(name or ""):
+        raise InputError(
+            f"invalid map name {name!r}: use 1-64 letters, digits, '_', '-' or '.', starting with a letter or digit"
+        )
+    return name
+
+
+class ArrayEntry(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    file: str
+    dtype: str
+    shape: list[int]
+    sha256: str
+    bytes: int
+
+
+class Counts(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    points: int
+    descriptors: int
+    images: int
+    cameras: int
+    clusters: int
+    observations: int  # image -> point visibility entries
+
+
+class Manifest(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    format: str = BUNDLE_FORMAT
+    version: int = BUNDLE_VERSION
+    name: str
+    build_id: str
+    created_utc: str
+    sfmloc_version: str = __version__
+    source: dict[str, Any] = {}
+    params: dict[str, Any] = {}
+    timings_s: dict[str, float] = {}
+    counts: Counts
+    index: dict[str, Any] = {}
+    cameras: list[dict[str, Any]]
+    image_names: list[str]
+    arrays: dict[str, ArrayEntry]
+
+
+@dataclass
+class MapData:
+    """Everything a bundle holds, in memory (what the builder assembles)."""
+
+    points_xyz: np.ndarray
+    point_ids: np.ndarray
+    point_rgb: np.ndarray
+    descriptors: np.ndarray
+    desc_point: np.ndarray
+    desc_image: np.ndarray
+    desc_level: np.ndarray
+    desc_xy: np.ndarray
+    image_desc_ptr: np.ndarray
+    image_cam_from_world: np.ndarray
+    image_camera: np.ndarray
+    image_points_ptr: np.ndarray
+    image_points_idx: np.ndarray
+    cluster_images_ptr: np.ndarray
+    cluster_images_idx: np.ndarray
+    point_clusters_ptr: np.ndarray
+    point_clusters_idx: np.ndarray
+    pca_mean: np.ndarray
+    pca_basis: np.ndarray
+    index_faiss: np.ndarray
+    cameras: list[Camera] = field(default_factory=list)
+    image_names: list[str] = field(default_factory=list)
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        return {name: getattr(self, name) for name in ARRAY_SPECS}
+
+    def counts(self) -> Counts:
+        return Counts(
+            points=len(self.points_xyz),
+            descriptors=len(self.descriptors),
+            images=len(self.image_names),
+            cameras=len(self.cameras),
+            clusters=len(self.cluster_images_ptr) - 1,
+            observations=len(self.image_points_idx),
+        )
+
+
+# ============================================================================ writing
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _fsync_dir(path: Path) -> None:
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def write_bundle(
+    data: MapData,
+    out_dir: str | Path,
+    name: str,
+    *,
+    source: dict[str, Any] | None = None,
+    params: dict[str, Any] | None = None,
+    timings_s: dict[str, float] | None = None,
+    index_info: dict[str, Any] | None = None,
+) -> Path:
+    """Write ``data`` as ``out_dir/name`` atomically and return the bundle's path."""
+    validate_name(name)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    final = out_dir / name
+    tmp = out_dir / f".{name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+    tmp.mkdir()
+    try:
+        entries: dict[str, ArrayEntry] = {}
+        for aname, (dtype, ndim) in ARRAY_SPECS.items():
+            arr = np.ascontiguousarray(getattr(data, aname), dtype=np.dtype(dtype))
+            if arr.ndim != ndim:
+                raise BundleError(f"array {aname} must have {ndim} dimensions, has shape {arr.shape}")
+            path = tmp / f"{aname}.npy"
+            with open(path, "wb") as f:
+                np.save(f, arr, allow_pickle=False)
+                f.flush()
+                os.fsync(f.fileno())
+            entries[aname] = ArrayEntry(
+                file=path.name, dtype=arr.dtype.str, shape=list(arr.shape), sha256=_sha256(path),
+                bytes=path.stat().st_size,
+            )
+        manifest = Manifest(
+            name=name,
+            build_id=time.strftime("%Y%m%dT%H%M%SZ", time.gmtime()) + "-" + uuid.uuid4().hex[:8],
+            created_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+            source=source or {},
+            params=params or {},
+            timings_s=timings_s or {},
+            counts=data.counts(),
+            index=index_info or {},
+            cameras=[c.to_dict() for c in data.cameras],
+            image_names=list(data.image_names),
+            arrays=entries,
+        )
+        with open(tmp / MANIFEST, "w") as f:
+            f.write(manifest.model_dump_json(indent=2))
+            f.flush()
+            os.fsync(f.fileno())
+        _fsync_dir(tmp)
+        _swap_into_place(tmp, final)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return final
+
+
+_RENAME_EXCHANGE = 2
+
+
+def _swap_into_place(tmp: Path, final: Path) -> None:
+    """Move ``tmp`` to ``final``; an existing ``final`` is replaced in one atomic exchange
+    (Linux ``renameat2(RENAME_EXCHANGE)``) or, where that is unavailable, by two renames."""
+    if not final.exists():
+        os.rename(tmp, final)
+        _fsync_dir(final.parent)
+        return
+    if _rename_exchange(tmp, final):
+        shutil.rmtree(tmp, ignore_errors=True)  # now holds the old bundle
+        _fsync_dir(final.parent)
+        return
+    old = final.parent / f".{final.name}.old-{uuid.uuid4().hex[:8]}"
+    os.rename(final, old)
+    os.rename(tmp, final)
+    shutil.rmtree(old, ignore_errors=True)
+    _fsync_dir(final.parent)
+
+
+def _rename_exchange(a: Path, b: Path) -> bool:
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+        fn = libc.renameat2
+    except (OSError, AttributeError):
+        return False
+    AT_FDCWD = -100
+    fn.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
+    rc = fn(AT_FDCWD, os.fsencode(a), AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE)
+    return rc == 0
+
+
+# ============================================================================ reading
+def read_manifest(path: str | Path) -> Manifest:
+    path = Path(path)
+    mpath = path / MANIFEST
+    if not path.is_dir():
+        raise BundleError(f"no map bundle at {path}: not a folder")
+    if not mpath.is_file():
+        raise BundleError(f"{path} is not a map bundle: {MANIFEST} is missing")
+    try:
+        raw = json.loads(mpath.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise BundleError(f"{mpath}: unreadable manifest ({exc})") from None
+    if raw.get("format") != BUNDLE_FORMAT:
+        raise BundleError(f"{mpath}: not an sfmloc map bundle (format {raw.get('format')!r})")
+    if raw.get("version") != BUNDLE_VERSION:
+        raise BundleError(
+            f"{mpath}: bundle version {raw.get('version')} is not supported by sfmloc {__version__} "
+            f"(expects version {BUNDLE_VERSION}); rebuild the map"
+        )
+    try:
+        return Manifest.model_validate(raw)
+    except ValidationError as exc:
+        raise BundleError(f"{mpath}: invalid manifest:\n{exc}") from None
+
+
+def verify_bundle(path: str | Path, checksums: bool = True) -> list[str]:
+    """Every problem found in the bundle at ``path`` (empty when it is intact)."""
+    path = Path(path)
+    try:
+        manifest = read_manifest(path)
+    except BundleError as exc:
+        return [str(exc)]
+    problems = []
+    for aname, (dtype, ndim) in ARRAY_SPECS.items():
+        entry = manifest.arrays.get(aname)
+        if entry is None:
+            problems.append(f"array {aname} is not in the manifest")
+            continue
+        apath = path / entry.file
+        if not apath.is_file():
+            problems.append(f"{apath.name}: missing")
+            continue
+        if apath.stat().st_size != entry.bytes:
+            problems.append(f"{apath.name}: size {apath.stat().st_size} B, manifest says {entry.bytes} B")
+            continue
+        if checksums and _sha256(apath) != entry.sha256:
+            problems.append(f"{apath.name}: checksum mismatch (corrupt)")
+            continue
+        try:
+            arr = np.load(apath, mmap_mode="r", allow_pickle=False)
+        except Exception as exc:  # noqa: BLE001 - any failure to parse the .npy is corruption
+            problems.append(f"{apath.name}: unreadable .npy ({exc})")
+            continue
+        if arr.dtype.str != np.dtype(dtype).str or list(arr.shape) != entry.shape or arr.ndim != ndim:
+            problems.append(f"{apath.name}: dtype/shape {arr.dtype.str}{list(arr.shape)} do not match the manifest")
+    return problems
+
+
+class MapBundle:
+    """A loaded bundle: memory-mapped arrays, the PCA, the deserialized ANN index, and the
+    lookups the engine needs. Read-only and safe to share between threads."""
+
+    def __init__(self, path: str | Path, *, verify: bool = True, nprobe: int | None = None) -> None:
+        self.path = Path(path)
+        self.manifest = read_manifest(self.path)
+        if verify:
+            problems = verify_bundle(self.path, checksums=True)
+            if problems:
+                raise BundleError(f"map bundle {self.path} is corrupt: " + "; ".join(problems))
+        a: dict[str, np.ndarray] = {}
+        for aname in ARRAY_SPECS:
+            entry = self.manifest.arrays.get(aname)
+            if entry is None:
+                raise BundleError(f"map bundle {self.path}: array {aname} missing from the manifest")
+            try:
+                a[aname] = np.load(self.path / entry.file, mmap_mode="r", allow_pickle=False)
+            except Exception as exc:  # noqa: BLE001
+                raise BundleError(f"map bundle {self.path}: cannot load {entry.file} ({exc})") from None
+        self._a = a
+        self.name = self.manifest.name
+        self.build_id = self.manifest.build_id
+        self.cameras = [Camera.from_dict(c) for c in self.manifest.cameras]
+        self.image_names = list(self.manifest.image_names)
+        self._check_consistency()
+        self.points_xyz = np.asarray(a["points_xyz"])
+        self.desc_point = np.asarray(a["desc_point"])
+        self.desc_image = np.asarray(a["desc_image"])
+        self.image_desc_ptr = np.asarray(a["image_desc_ptr"])
+        self.image_points_ptr = np.asarray(a["image_points_ptr"])
+        self.image_points_idx = np.asarray(a["image_points_idx"])
+        self.cluster_images_ptr = np.asarray(a["cluster_images_ptr"])
+        self.cluster_images_idx = np.asarray(a["cluster_images_idx"])
+        self.point_clusters_ptr = np.asarray(a["point_clusters_ptr"])
+        self.point_clusters_idx = np.asarray(a["point_clusters_idx"])
+        self.image_camera = np.asarray(a["image_camera"])
+        self.pca = Pca(np.array(a["pca_mean"]), np.array(a["pca_basis"]))
+        try:
+            self.index = DescriptorIndex.deserialize(
+                np.asarray(a["index_faiss"]), nprobe or int(self.manifest.index.get("nprobe", 16))
+            )
+        except Exception as exc:  # noqa: BLE001 - faiss raises RuntimeError on garbage
+            raise BundleError(f"map bundle {self.path}: the ANN index does not load ({exc})") from None
+        if self.index.ntotal != len(self.desc_point):
+            raise BundleError(
+                f"map bundle {self.path}: index holds {self.index.ntotal} descriptors, bundle has {len(self.desc_point)}"
+            )
+        q = np.asarray(a["image_cam_from_world"])
+        self.image_cam_from_world = [Rigid3d.from_quat_wxyz(r[:4], r[4:]) for r in q]
+
+    # ------------------------------------------------------------------ accessors
+    def array(self, name: str) -> np.ndarray:
+        return self._a[name]
+
+    @property
+    def n_points(self) -> int:
+        return len(self.points_xyz)
+
+    @property
+    def n_descriptors(self) -> int:
+        return len(self.desc_point)
+
+    @property
+    def n_images(self) -> int:
+        return len(self.image_names)
+
+    @property
+    def n_clusters(self) -> int:
+        return len(self.cluster_images_ptr) - 1
+
+    def image_points(self, i: int) -> np.ndarray:
+        return self.image_points_idx[self.image_points_ptr[i] : self.image_points_ptr[i + 1]]
+
+    def cluster_images(self, c: int) -> np.ndarray:
+        return self.cluster_images_idx[self.cluster_images_ptr[c] : self.cluster_images_ptr[c + 1]]
+
+    def point_clusters(self, p: int) -> np.ndarray:
+        return self.point_clusters_idx[self.point_clusters_ptr[p] : self.point_clusters_ptr[p + 1]]
+
+    def memory_bytes(self) -> int:
+        """Bytes of the arrays the engine touches plus the index (what stays resident)."""
+        skip = {"index_faiss", "descriptors"}  # the index holds its own copy of both
+        return sum(int(v.nbytes) for k, v in self._a.items() if k not in skip) + self.index.memory_bytes()
+
+    def summary(self) -> dict[str, Any]:
+        c = self.manifest.counts
+        return {
+            "name": self.name,
+            "path": str(self.path),
+            "build_id": self.build_id,
+            "created_utc": self.manifest.created_utc,
+            "points": c.points,
+            "descriptors": c.descriptors,
+            "descriptors_per_point": round(c.descriptors / max(1, c.points), 2),
+            "images": c.images,
+            "cameras": c.cameras,
+            "clusters": c.clusters,
+            "observations": c.observations,
+            "index": {"kind": self.index.kind, "nlist": self.index.nlist, "nprobe": self.index.nprobe},
+            "memory_mb": round(self.memory_bytes() / 1e6, 1),
+            "disk_mb": round(sum(e.bytes for e in self.manifest.arrays.values()) / 1e6, 1),
+            "source": self.manifest.source,
+            "params": self.manifest.params,
+            "timings_s": self.manifest.timings_s,
+        }
+
+    def _check_consistency(self) -> None:
+        a, c = self._a, self.manifest.counts
+        P, D, I, L = c.points, c.descriptors, c.images, c.clusters
+        expect = {
+            "points_xyz": (P, 3), "point_ids": (P,), "point_rgb": (P, 3), "descriptors": (D, None),
+            "desc_point": (D,), "desc_image": (D,), "desc_level": (D,), "desc_xy": (D, 2),
+            "image_desc_ptr": (I + 1,), "image_cam_from_world": (I, 7), "image_camera": (I,),
+            "image_points_ptr": (I + 1,), "cluster_images_ptr": (L + 1,), "point_clusters_ptr": (P + 1,),
+            "pca_mean": (RAW_DIM,), "pca_basis": (RAW_DIM, None),
+        }
+        for aname, shape in expect.items():
+            got = a[aname].shape
+            if len(got) != len(shape) or any(s is not None and s != g for s, g in zip(shape, got)):
+                raise BundleError(f"map bundle {self.path}: {aname} has shape {got}, expected {shape}")
+        if len(self.image_names) != I or len(self.manifest.cameras) != c.cameras:
+            raise BundleError(f"map bundle {self.path}: manifest image/camera lists do not match its counts")
+        if a["descriptors"].shape[1] != a["pca_basis"].shape[1]:
+            raise BundleError(f"map bundle {self.path}: descriptor and PCA dimensions differ")
+        for ptr_name, idx_name, n_target in (
+            ("image_points_ptr", "image_points_idx", P),
+            ("cluster_images_ptr", "cluster_images_idx", I),
+            ("point_clusters_ptr", "point_clusters_idx", L),
+        ):
+            ptr, idx = np.asarray(a[ptr_name]), np.asarray(a[idx_name])
+            if ptr[0] != 0 or ptr[-1] != len(idx) or np.any(np.diff(ptr) < 0):
+                raise BundleError(f"map bundle {self.path}: {ptr_name} is not a valid offset array")
+            if len(idx) and (idx.min() < 0 or idx.max() >= n_target):
+                raise BundleError(f"map bundle {self.path}: {idx_name} refers outside 0..{n_target - 1}")
+        for name, n_target in (("desc_point", P), ("desc_image", I), ("image_camera", c.cameras)):
+            v = np.asarray(a[name])
+            if len(v) and (v.min() < 0 or v.max() >= n_target):
+                raise BundleError(f"map bundle {self.path}: {name} refers outside 0..{n_target - 1}")
+        ptr = np.asarray(a["image_desc_ptr"])
+        if ptr[0] != 0 or ptr[-1] != D or np.any(np.diff(ptr) < 0):
+            raise BundleError(f"map bundle {self.path}: image_desc_ptr is not a valid offset array")
+
+
+def load_bundle(path: str | Path, verify: bool = True) -> MapBundle:
+    return MapBundle(path, verify=verify)

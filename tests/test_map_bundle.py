@@ -1,0 +1,222 @@
+"""ANN index, camera clusters and the bundle format (atomic writes, verification, loading)."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sfmloc.cameras import Camera
+from sfmloc.errors import BundleError, InputError
+from sfmloc.mapping.bundle import MapBundle, MapData, read_manifest, verify_bundle, write_bundle
+from sfmloc.mapping.clusters import ClusterConf, cluster_images
+from sfmloc.mapping.index import DescriptorIndex, IndexConf, bitmap_from_ranges
+
+
+# ----------------------------------------------------------------------------- index
+def clustered_data(n=20000, d=32, seed=0):
+    rng = np.random.default_rng(seed)
+    centers = rng.standard_normal((200, d)) * 3
+    x = centers[rng.integers(0, 200, n)] + rng.standard_normal((n, d))
+    return x.astype(np.float32)
+
+
+def exact_knn(db, q, k):
+    d = ((q[:, None, :] - db[None]) ** 2).sum(-1)
+    return np.argsort(d, axis=1)[:, :k]
+
+
+@pytest.mark.parametrize("kind", ["ivf-sq8", "ivf-flat", "flat"])
+def test_index_recall_at_50(kind):
+    db = clustered_data()
+    q = db[:200] + 0.05 * np.random.default_rng(1).standard_normal((200, 32)).astype(np.float32)
+    ix = DescriptorIndex.build(db, IndexConf(kind=kind, nprobe=16))
+    D, I = ix.search(q, 50)
+    gt = exact_knn(db, q, 50)
+    recall = np.mean([len(set(a) & set(b)) / 50 for a, b in zip(I, gt)])
+    assert recall > (0.99 if kind == "flat" else 0.8), recall
+    assert np.mean(I[:, 0] == np.arange(200)) > 0.95  # the perturbed point itself first
+    assert np.all(np.diff(D, axis=1) >= -1e-5)  # sorted
+    # distances are Euclidean (not squared)
+    d0 = np.linalg.norm(q[0] - db[I[0, 0]])
+    assert abs(D[0, 0] - d0) < 0.05 * max(d0, 0.1) + 0.02
+
+
+def test_index_restricted_search_only_returns_allowed_ids():
+    db = clustered_data()
+    ix = DescriptorIndex.build(db)
+    bm = bitmap_from_ranges(len(db), np.array([1000, 5000]), np.array([2000, 5500]))
+    D, I = ix.search(db[:50], 20, allowed=bm)
+    got = I[I >= 0]
+    assert len(got) > 0
+    assert np.all(((got >= 1000) & (got < 2000)) | ((got >= 5000) & (got < 5500)))
+    # An allowed query point finds itself.
+    D, I = ix.search(db[1500:1510], 1, allowed=bm)
+    assert np.all(I[:, 0] == np.arange(1500, 1510))
+
+
+def test_index_serialization_round_trip():
+    db = clustered_data(5000)
+    ix = DescriptorIndex.build(db)
+    back = DescriptorIndex.deserialize(ix.serialize(), nprobe=ix.nprobe)
+    assert back.kind == ix.kind and back.ntotal == 5000 and back.nlist == ix.nlist
+    a = ix.search(db[:30], 10)[1]
+    b = back.search(db[:30], 10)[1]
+    assert np.array_equal(a, b)
+
+
+# ----------------------------------------------------------------------------- clusters
+def corridor_visibility(n_images=40, pts_per_image=200, overlap=0.6, seed=0):
+    """Images along a corridor: image i sees a window of points shared with its neighbours."""
+    step = int(pts_per_image * (1 - overlap))
+    return [np.arange(i * step, i * step + pts_per_image) for i in range(n_images)], (n_images - 1) * step + pts_per_image
+
+
+def test_clusters_partition_grow_and_cover():
+    image_points, n_points = corridor_visibility()
+    conf = ClusterConf(max_size=6, growth=0.5)
+    cl = cluster_images(image_points, n_points, conf)
+    covered = np.unique(np.concatenate(cl.images))
+    assert np.array_equal(covered, np.arange(40))  # every image in some cluster
+    assert all(len(c) <= 6 + 3 for c in cl.images)
+    assert 40 / 6 <= len(cl) <= 40  # about n / max_size parts
+    # Clusters are contiguous stretches of the corridor (covisibility respected).
+    for c in cl.images:
+        assert c.max() - c.min() < 2 * len(c)
+    # Growth made them overlap.
+    sizes = sum(len(c) for c in cl.images)
+    assert sizes > 40
+    # Point membership: every point seen by some image belongs to a cluster holding one of them.
+    ptr, idx = cl.point_clusters(image_points, n_points)
+    assert len(ptr) == n_points + 1
+    for p in (0, 123, n_points - 1):
+        clusters_of_p = set(idx[ptr[p]:ptr[p + 1]].tolist())
+        viewers = {i for i, pts in enumerate(image_points) if p in set(pts.tolist())}
+        expected = {c for c, imgs in enumerate(cl.images) if viewers & set(imgs.tolist())}
+        assert clusters_of_p == expected
+
+
+def test_clusters_split_disconnected_components():
+    a, na = corridor_visibility(8)
+    b = [p + na for p in a]
+    cl = cluster_images(a + b, 2 * na, ClusterConf(max_size=20))
+    for c in cl.images:
+        assert np.all(c < 8) or np.all(c >= 8)
+
+
+# ----------------------------------------------------------------------------- bundle
+def small_map(seed=0, n_images=6, n_points=300, per_point=4) -> MapData:
+    rng = np.random.default_rng(seed)
+    pts = rng.uniform(-2, 2, (n_points, 3))
+    desc = rng.standard_normal((n_points * per_point, 32)).astype(np.float16)
+    desc_image = np.sort(rng.integers(0, n_images, len(desc))).astype(np.int32)
+    ptr = np.searchsorted(desc_image, np.arange(n_images + 1)).astype(np.int64)
+    image_points = [np.unique(rng.integers(0, n_points, 80)) for _ in range(n_images)]
+    ip_ptr = np.concatenate([[0], np.cumsum([len(p) for p in image_points])])
+    cl = cluster_images(image_points, n_points, ClusterConf(max_size=3))
+    pc_ptr, pc_idx = cl.point_clusters(image_points, n_points)
+    ci_ptr = np.concatenate([[0], np.cumsum([len(c) for c in cl.images])])
+    ix = DescriptorIndex.build(desc.astype(np.float32))
+    return MapData(
+        points_xyz=pts, point_ids=np.arange(n_points) + 1, point_rgb=np.zeros((n_points, 3), np.uint8),
+        descriptors=desc, desc_point=rng.integers(0, n_points, len(desc)).astype(np.int32),
+        desc_image=desc_image, desc_level=np.zeros(len(desc), np.uint8),
+        desc_xy=rng.uniform(0, 100, (len(desc), 2)).astype(np.float32), image_desc_ptr=ptr,
+        image_cam_from_world=np.tile([1.0, 0, 0, 0, 0, 0, 0], (n_images, 1)),
+        image_camera=np.zeros(n_images, np.int32), image_points_ptr=ip_ptr.astype(np.int64),
+        image_points_idx=np.concatenate(image_points).astype(np.int32), cluster_images_ptr=ci_ptr.astype(np.int64),
+        cluster_images_idx=np.concatenate(cl.images).astype(np.int32), point_clusters_ptr=pc_ptr,
+        point_clusters_idx=pc_idx, pca_mean=np.zeros(104, np.float32),
+        pca_basis=np.eye(104, 32, dtype=np.float32), index_faiss=ix.serialize(),
+        cameras=[Camera.pinhole(640, 480, 500, 500, 320, 240)], image_names=[f"im{i}.png" for i in range(n_images)],
+    )
+
+
+def test_bundle_round_trip(tmp_path):
+    data = small_map()
+    path = write_bundle(data, tmp_path, "lab", params={"tau": 2.0})
+    assert path == tmp_path / "lab"
+    assert verify_bundle(path) == []
+    b = MapBundle(path)
+    assert b.name == "lab" and b.n_points == 300 and b.n_descriptors == 1200 and b.n_images == 6
+    assert np.array_equal(np.asarray(b.array("descriptors")), data.descriptors)
+    assert np.array_equal(b.desc_point, data.desc_point)
+    assert b.cameras == data.cameras and b.image_names == data.image_names
+    assert b.manifest.params == {"tau": 2.0}
+    # arrays are memory-mapped, not copied
+    assert isinstance(b.array("descriptors"), np.memmap)
+    # the index answers for the stored descriptors
+    D, I = b.index.search(data.descriptors[:5].astype(np.float32), 1)
+    assert np.array_equal(I[:, 0], np.arange(5))
+    # no pickle anywhere: every array loads with allow_pickle=False
+    for entry in b.manifest.arrays.values():
+        np.load(path / entry.file, allow_pickle=False)
+
+
+def test_bundle_detects_corruption(tmp_path):
+    path = write_bundle(small_map(), tmp_path, "lab")
+    f = path / "desc_point.npy"
+    raw = bytearray(f.read_bytes())
+    raw[-3] ^= 0xFF
+    f.write_bytes(bytes(raw))
+    problems = verify_bundle(path)
+    assert any("desc_point.npy" in p and "checksum" in p for p in problems)
+    with pytest.raises(BundleError, match="desc_point"):
+        MapBundle(path)
+
+
+def test_bundle_detects_missing_truncated_and_bad_manifest(tmp_path):
+    path = write_bundle(small_map(), tmp_path, "lab")
+    (path / "pca_basis.npy").unlink()
+    assert any("pca_basis.npy: missing" in p for p in verify_bundle(path))
+    path = write_bundle(small_map(), tmp_path, "lab2")
+    f = path / "points_xyz.npy"
+    f.write_bytes(f.read_bytes()[:-16])
+    assert any("points_xyz.npy" in p for p in verify_bundle(path))
+    path = write_bundle(small_map(), tmp_path, "lab3")
+    m = json.loads((path / "manifest.json").read_text())
+    m["version"] = 99
+    (path / "manifest.json").write_text(json.dumps(m))
+    with pytest.raises(BundleError, match="version 99"):
+        MapBundle(path)
+    (path / "manifest.json").write_text("{not json")
+    with pytest.raises(BundleError, match="unreadable manifest"):
+        read_manifest(path)
+    with pytest.raises(BundleError, match="not a folder"):
+        MapBundle(tmp_path / "nothing-here")
+
+
+def test_bundle_inconsistent_lookup_is_rejected(tmp_path):
+    data = small_map()
+    data.desc_point = data.desc_point.copy()
+    data.desc_point[7] = 10_000  # refers past the last point
+    path = write_bundle(data, tmp_path, "bad")
+    assert verify_bundle(path) == []  # checksums are fine: it was written like that
+    with pytest.raises(BundleError, match="desc_point refers outside"):
+        MapBundle(path)
+
+
+def test_bundle_replace_is_atomic_and_failures_leave_nothing(tmp_path):
+    first = write_bundle(small_map(0), tmp_path, "lab")
+    old_id = read_manifest(first).build_id
+    # A failing write (an array of the wrong rank) leaves the old bundle intact, no temp dirs.
+    bad = small_map(1)
+    bad.points_xyz = bad.points_xyz.ravel()
+    with pytest.raises(BundleError):
+        write_bundle(bad, tmp_path, "lab")
+    assert read_manifest(first).build_id == old_id and verify_bundle(first) == []
+    assert sorted(os.listdir(tmp_path)) == ["lab"]
+    # A successful rebuild replaces it, again with no leftovers.
+    write_bundle(small_map(2), tmp_path, "lab")
+    assert read_manifest(tmp_path / "lab").build_id != old_id
+    assert verify_bundle(tmp_path / "lab") == []
+    assert sorted(os.listdir(tmp_path)) == ["lab"]
+
+
+@pytest.mark.parametrize("name", ["", "a/b", "../x", "with space", "star*", "-lead", "x" * 65])
+def test_bundle_rejects_bad_names(tmp_path, name):
+    with pytest.raises(InputError, match="invalid map name"):
+        write_bundle(small_map(), tmp_path, name)
