@@ -283,7 +283,7 @@ class _Reader:
         self.pos = 0
 
     def take(self, fmt: str):
-        size = struct.calcsize(fmt)
+        size = struct.calcsize("<" + fmt)  # packed little-endian, as unpacked below (no native padding)
         if self.pos + size > len(self.data):
             raise ModelFormatError(f"{self.path}: truncated at byte {self.pos}")
         vals = struct.unpack_from("<" + fmt, self.data, self.pos)
