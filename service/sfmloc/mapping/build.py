@@ -1,0 +1,286 @@
+"""The builder pipeline: an SfM reconstruction -> a map bundle (paper Section 2.3).
+
+Stages, each reported through ``progress(stage, fraction, message)``:
+
+``sfm``          the input: a COLMAP model, images + known poses (triangulated with pycolmap),
+                 or images only (full SfM with pycolmap) -> a reconstruction
+``descriptors``  per image: Gaussian pyramid, Harris in every level, oriented DAISY at corners
+                 within tau of a projected 3D point of the image
+``pca``          PCA of the raw descriptors to 32 dimensions
+``clusters``     overlapping camera clusters for place recognition
+``index``        the ANN index over all descriptors
+``write``        the bundle, atomically
+
+``main(conf, name, out_dir, ...)`` returns the bundle's path. Configuration is a pydantic
+``BuildConf``; named ``PRESETS`` are merged over the defaults (hloc style).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from ..cameras import Camera
+from ..config import StrictModel, merge_presets
+from ..errors import BuildCancelled, BuildError, ImageDecodeError
+from ..features.daisy import DaisyExtractor, Pca
+from ..io.colmap import Reconstruction
+from .bundle import MapData, validate_name, write_bundle
+from .clusters import ClusterConf, cluster_images
+from .descriptors import DescriptorConf, extract_image_descriptors
+from .index import DescriptorIndex, IndexConf
+
+log = logging.getLogger(__name__)
+
+Progress = Callable[[str, float, str], None]
+CancelCheck = Callable[[], bool]
+
+
+class BuildConf(StrictModel):
+    descriptors: DescriptorConf = DescriptorConf()
+    clusters: ClusterConf = ClusterConf()
+    index: IndexConf = IndexConf()
+    pca_dim: int = 32
+
+
+PRESETS: dict[str, dict[str, Any]] = {
+    # The paper's settings.
+    "default": {},
+    # Fewer pyramid levels and corners: quicker builds for large image sets.
+    "fast": {"descriptors": {"octaves": 1, "max_corners_per_level": 3000}},
+    # More descriptors per point: also sample above the original resolution (helps when the
+    # live camera gets closer to surfaces than the mapping images did).
+    "dense": {"descriptors": {"up_levels": 2}},
+}
+
+
+def preset(name: str) -> BuildConf:
+    if name not in PRESETS:
+        raise BuildError(f"unknown preset {name!r}; choose from {', '.join(PRESETS)}", stage="config")
+    return merge_presets(BuildConf(), **PRESETS[name])
+
+
+def _noop(stage: str, fraction: float, message: str) -> None:
+    pass
+
+
+def load_gray(path: Path, camera: Camera) -> np.ndarray:
+    """An image as uint8 grayscale, checked against its camera's size."""
+    if not path.is_file():
+        raise ImageDecodeError(f"image {path} is missing")
+    data = np.fromfile(str(path), dtype=np.uint8)
+    img = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE) if data.size else None
+    if img is None:
+        raise ImageDecodeError(f"image {path} cannot be decoded")
+    if img.shape != (camera.height, camera.width):
+        raise ImageDecodeError(
+            f"image {path} is {img.shape[1]}x{img.shape[0]}, its camera says {camera.width}x{camera.height}"
+        )
+    return img
+
+
+def assemble(
+    rec: Reconstruction,
+    image_dir: Path,
+    conf: BuildConf,
+    progress: Progress = _noop,
+    should_cancel: CancelCheck | None = None,
+) -> tuple[MapData, dict[str, float], dict[str, Any]]:
+    """Descriptors, PCA, clusters and index for a reconstruction -> ``MapData``."""
+    timings: dict[str, float] = {}
+    if not rec.points3D:
+        raise BuildError("the reconstruction has no 3D points", stage="sfm")
+    # Stable row order: points by id, images by name (so bundles are deterministic).
+    point_ids = np.array(sorted(rec.points3D), dtype=np.int64)
+    row_of_point = {int(pid): r for r, pid in enumerate(point_ids)}
+    points_xyz = np.stack([rec.points3D[int(p)].xyz for p in point_ids])
+    point_rgb = np.stack([rec.points3D[int(p)].rgb for p in point_ids]).astype(np.uint8)
+    images = sorted(rec.images.values(), key=lambda im: im.name)
+    cam_ids = sorted(rec.cameras)
+    cam_row = {cid: r for r, cid in enumerate(cam_ids)}
+    cameras = [rec.cameras[cid] for cid in cam_ids]
+
+    # Visibility from the SfM tracks.
+    image_points: list[np.ndarray] = []
+    for im in images:
+        ids = im.point3D_ids[im.point3D_ids >= 0]
+        rows = np.array(sorted({row_of_point[int(p)] for p in ids if int(p) in row_of_point}), dtype=np.int64)
+        image_points.append(rows)
+
+    # ---- descriptors
+    t0 = time.perf_counter()
+    extractor = DaisyExtractor()
+    raws, dpoint, dimage, dlevel, dxy = [], [], [], [], []
+    n_corners = 0
+    for i, im in enumerate(images):
+        if should_cancel and should_cancel():
+            raise BuildCancelled("cancelled", stage="descriptors")
+        cam = rec.cameras[im.camera_id]
+        gray = load_gray(image_dir / im.name, cam)
+        pts = image_points[i]
+        d = extract_image_descriptors(gray, cam, im.cam_from_world, points_xyz[pts], conf.descriptors, extractor)
+        raws.append(d.raw)
+        dpoint.append(pts[d.point_index].astype(np.int32))
+        dimage.append(np.full(len(d.raw), i, np.int32))
+        dlevel.append(d.level)
+        dxy.append(d.xy)
+        n_corners += d.n_corners
+        progress("descriptors", (i + 1) / len(images), f"{im.name}: {len(d.raw)} descriptors")
+    raw = np.concatenate(raws)
+    if len(raw) == 0:
+        raise BuildError(
+            "no descriptors: no Harris corner lies within tau of a projected 3D point in any image "
+            "(are the poses and the camera right?)",
+            stage="descriptors",
+        )
+    timings["descriptors"] = time.perf_counter() - t0
+    image_desc_ptr = np.zeros(len(images) + 1, np.int64)
+    image_desc_ptr[1:] = np.cumsum([len(r) for r in raws])
+
+    # ---- PCA
+    t0 = time.perf_counter()
+    progress("pca", 0.0, f"PCA of {len(raw)} descriptors to {conf.pca_dim} dimensions")
+    try:
+        pca = Pca.fit(raw, dim=conf.pca_dim)
+    except ValueError as exc:
+        raise BuildError(str(exc), stage="pca") from None
+    desc = pca.project(raw).astype(np.float16)
+    timings["pca"] = time.perf_counter() - t0
+    progress("pca", 1.0, "done")
+
+    # ---- clusters
+    t0 = time.perf_counter()
+    progress("clusters", 0.0, f"clustering {len(images)} images")
+    clusters = cluster_images(image_points, len(point_ids), conf.clusters)
+    pc_ptr, pc_idx = clusters.point_clusters(image_points, len(point_ids))
+    ci_ptr = np.zeros(len(clusters) + 1, np.int64)
+    ci_ptr[1:] = np.cumsum([len(c) for c in clusters.images])
+    ci_idx = np.concatenate(clusters.images).astype(np.int32) if len(clusters) else np.zeros(0, np.int32)
+    timings["clusters"] = time.perf_counter() - t0
+    progress("clusters", 1.0, f"{len(clusters)} clusters")
+
+    # ---- index (built from exactly the stored float16 values)
+    t0 = time.perf_counter()
+    progress("index", 0.0, f"indexing {len(desc)} descriptors")
+    index = DescriptorIndex.build(desc.astype(np.float32), conf.index)
+    timings["index"] = time.perf_counter() - t0
+    progress("index", 1.0, f"{index.kind}, {index.nlist} lists")
+
+    ip_ptr = np.zeros(len(images) + 1, np.int64)
+    ip_ptr[1:] = np.cumsum([len(p) for p in image_points])
+    data = MapData(
+        points_xyz=points_xyz,
+        point_ids=point_ids,
+        point_rgb=point_rgb,
+        descriptors=desc,
+        desc_point=np.concatenate(dpoint),
+        desc_image=np.concatenate(dimage),
+        desc_level=np.concatenate(dlevel),
+        desc_xy=np.concatenate(dxy),
+        image_desc_ptr=image_desc_ptr,
+        image_cam_from_world=np.stack(
+            [np.concatenate([im.cam_from_world.quat_wxyz, im.cam_from_world.translation]) for im in images]
+        ),
+        image_camera=np.array([cam_row[im.camera_id] for im in images], np.int32),
+        image_points_ptr=ip_ptr,
+        image_points_idx=np.concatenate(image_points).astype(np.int32),
+        cluster_images_ptr=ci_ptr,
+        cluster_images_idx=ci_idx,
+        point_clusters_ptr=pc_ptr,
+        point_clusters_idx=pc_idx,
+        pca_mean=pca.mean,
+        pca_basis=pca.basis,
+        index_faiss=index.serialize(),
+        cameras=cameras,
+        image_names=[im.name for im in images],
+    )
+    info = {"kind": index.kind, "nlist": index.nlist, "nprobe": index.nprobe, "corners_detected": n_corners}
+    return data, timings, info
+
+
+def main(
+    conf: BuildConf,
+    name: str,
+    out_dir: str | Path,
+    *,
+    colmap: str | Path | None = None,
+    images: str | Path | None = None,
+    poses: str | Path | None = None,
+    camera: str | Camera | None = None,
+    sfm_conf: Any = None,
+    workdir: str | Path | None = None,
+    progress: Progress | None = None,
+    should_cancel: CancelCheck | None = None,
+) -> Path:
+    """Build the bundle ``out_dir/name`` from one of the three inputs; return its path.
+
+    - ``colmap`` + ``images``: a COLMAP sparse model (text or binary) and its image folder;
+    - ``images`` + ``poses`` + ``camera``: posed images, points triangulated with pycolmap;
+    - ``images`` (+ optional ``camera``): full SfM with pycolmap first.
+    """
+    from . import sfm  # pycolmap is only needed here
+
+    validate_name(name)
+    user_progress = progress or _noop
+    stage = ["input"]  # the stage running now, to name it in errors
+
+    def progress(st: str, fraction: float, message: str) -> None:
+        stage[0] = st
+        user_progress(st, fraction, message)
+
+    if images is None:
+        raise BuildError("an image folder is required (--images)", stage="input")
+    image_dir = Path(images)
+    if not image_dir.is_dir():
+        raise BuildError(f"image folder {image_dir} does not exist", stage="input")
+    cam = Camera.parse(camera) if isinstance(camera, (str, Path)) else camera
+    timings: dict[str, float] = {}
+    t_all = time.perf_counter()
+    t0 = t_all
+    try:
+        if colmap is not None:
+            if poses is not None:
+                raise BuildError("give either --colmap or --poses, not both", stage="input")
+            source = {"kind": "colmap", "model": str(colmap), "images": str(image_dir)}
+            progress("sfm", 0.0, f"reading COLMAP model {colmap}")
+            rec = sfm.load_colmap_input(colmap, image_dir)
+        elif poses is not None:
+            if cam is None:
+                raise BuildError("--poses needs --camera (camera.json or 'MODEL w h params...')", stage="input")
+            source = {"kind": "known-poses", "poses": str(poses), "images": str(image_dir), "camera": cam.to_dict()}
+            rec = sfm.triangulate_known_poses(
+                image_dir, poses, cam, conf=sfm_conf, workdir=workdir, progress=progress, should_cancel=should_cancel
+            )
+        else:
+            source = {"kind": "images-only", "images": str(image_dir)}
+            rec = sfm.reconstruct_images_only(
+                image_dir, cam, conf=sfm_conf, workdir=workdir, progress=progress, should_cancel=should_cancel
+            )
+        progress("sfm", 1.0, rec.summary())
+        timings["sfm"] = time.perf_counter() - t0
+        log.info("reconstruction: %s", rec.summary())
+        data, t_stages, index_info = assemble(rec, image_dir, conf, progress, should_cancel)
+        timings.update(t_stages)
+        if should_cancel and should_cancel():
+            raise BuildCancelled("cancelled", stage="write")
+        t0 = time.perf_counter()
+        progress("write", 0.0, f"writing {Path(out_dir) / name}")
+        params = conf.model_dump()
+        if sfm_conf is not None and hasattr(sfm_conf, "model_dump"):
+            params["sfm"] = sfm_conf.model_dump()
+        timings["write"] = time.perf_counter() - t0
+        timings["total"] = time.perf_counter() - t_all
+        path = write_bundle(
+            data, out_dir, name, source=source, params=params, timings_s=timings, index_info=index_info
+        )
+        progress("write", 1.0, str(path))
+        return path
+    except OSError as exc:
+        # A full disk, permissions, ...: name the file and the stage.
+        raise BuildError(f"{exc.strerror or exc} ({exc.filename or out_dir})", stage=stage[0]) from None
