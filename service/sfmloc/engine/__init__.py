@@ -1,0 +1,14 @@
+"""The online localization engine: the paper's Algorithm 1 for one camera.
+
+Plain numpy/OpenCV/scipy/filterpy; no transport imports. The data flow of one frame follows the
+files: ``frame`` (validation) -> ``tracker`` (Harris + BRIEF, TRACK-2D, ADD-GOOD-FEATURES)
+-> ``track_table`` -> ``matching`` (global and guided 2D-to-3D matching) -> ``pose``
+(P3P RANSAC + refinement) -> ``motion_filter`` (Kalman) -> ``localizer`` (Algorithm 1, the
+``FrameResult``).
+"""
+
+from .config import EngineConf
+from .localizer import Localizer, relocalize
+from .types import FrameResult, Status
+
+__all__ = ["EngineConf", "FrameResult", "Localizer", "Status", "relocalize"]

@@ -1,0 +1,425 @@
+"""Algorithm 1 of the paper, LOCALIZE-FRAME(f, T, M), for one camera, and single-image
+relocalization.
+
+Per frame::
+
+    KALMAN-FILTER-PREDICT
+    K   <- EXTRACT-KEYPOINTS(f)                 Harris (gamma * previous max) + BRIEF
+    eta <- TRACK-2D(f, K, T)                    windows around predicted positions
+    if eta < kappa1: ADD-GOOD-FEATURES(f, K, T) pending keypoints where none are tracked
+    C1  <- verified 2D-3D matches in T
+    if |C1| > kappa2:
+        P <- ESTIMATE-POSE(C1)                  P3P RANSAC + LM refinement
+        if MATCHES-PENDING(T): GUIDED-MATCHING(f, T, P, M)   one batch of 100-150
+    else:
+        GLOBAL-MATCHING(f, T, M)                relocalize
+    C2  <- verified matches in T
+    if |C2| > kappa2 and C1 != C2: P <- ESTIMATE-POSE(C2)
+    KALMAN-FILTER-UPDATE(P)
+
+Two details the paper leaves open, decided here: when the pose from C1 fails (fewer than
+``min_inliers`` inliers), its matches are discarded and the frame relocalizes at once (the
+paper's rule "relocalize when fewer than kappa2 matches remain", applied after the failure);
+matches that are outliers to the frame's pose lose their 3D point and become pending again.
+Stored one-to-many hypotheses of tracked keypoints are re-verified against every new pose.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+
+from ..cameras import Camera
+from ..features.daisy import DaisyExtractor
+from ..features.harris import detect_corners
+from ..mapping.bundle import MapBundle
+from ..transforms import Rigid3d
+from .config import EngineConf
+from .frame import to_gray
+from .matching import global_matching, guided_matching, verify_hypotheses
+from .motion_filter import PoseFilter
+from .pose import PoseEstimate, estimate_pose, estimate_pose_one_to_many, project
+from .track_table import TrackTable
+from .tracker import Keypoints, extract_keypoints, free_candidates, track_2d
+from .types import FrameResult, Status
+
+log = logging.getLogger(__name__)
+
+
+class _Timer:
+    def __init__(self) -> None:
+        self.t0 = time.perf_counter()
+        self.last = self.t0
+        self.ms: dict[str, float] = {}
+
+    def lap(self, name: str) -> None:
+        now = time.perf_counter()
+        self.ms[name] = self.ms.get(name, 0.0) + (now - self.last) * 1e3
+        self.last = now
+
+    def total(self) -> dict[str, float]:
+        self.ms["total"] = (time.perf_counter() - self.t0) * 1e3
+        return self.ms
+
+
+def describe(extractor: DaisyExtractor, bundle: MapBundle, gray_prepared: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """PCA-32 DAISY at keypoints of a frame (same descriptor and projection as the bundle)."""
+    theta = extractor.orientations(gray_prepared, xy)
+    return bundle.pca.project(extractor.describe(gray_prepared, xy, theta))
+
+
+class Localizer:
+    """Per-client localization state: track table, Kalman filter, adaptive threshold.
+
+    ``localize(frame, stamp)`` processes one video frame (uint8 gray or BGR of the camera's
+    size; ``stamp`` in seconds) and returns a ``FrameResult``. Not thread-safe: one frame at a
+    time per instance. The bundle is shared read-only between instances.
+    """
+
+    def __init__(self, bundle: MapBundle, camera: Camera, conf: EngineConf | None = None) -> None:
+        self.bundle = bundle
+        self.camera = camera
+        self.conf = conf or EngineConf()
+        self.K = camera.K
+        self.extractor = DaisyExtractor()
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget tracks and motion: the next frame relocalizes."""
+        c = self.conf
+        self.table = TrackTable.empty(c.max_hypotheses)
+        self.filter = PoseFilter(c.accel_noise, c.angular_accel_noise, c.position_noise, c.orientation_noise)
+        self.prev_max_response: float | None = None
+        self.next_track_id = 0
+        self.last_stamp: float | None = None
+        self.frames = 0
+        self.scope_points = np.zeros(0, np.int64)  # 3D points matched in the last posed frame
+
+    # ------------------------------------------------------------------ helpers
+    def _undistort(self, xy: np.ndarray) -> np.ndarray:
+        return self.camera.undistort_points(xy) if self.camera.is_distorted else xy
+
+    def _predict_positions(self, pred: Rigid3d | None) -> np.ndarray:
+        """Where each tracked keypoint should be in the new frame."""
+        T = self.table
+        xy = T.xy.copy()
+        if pred is None or len(T) == 0:
+            return xy
+        rows = np.nonzero(T.point >= 0)[0]
+        if len(rows) == 0:
+            return xy
+        uv, z = self.camera.project(pred, self.bundle.points_xyz[T.point[rows]])
+        ok = (z > 0) & np.all(np.isfinite(uv), axis=1)
+        rows, uv = rows[ok], uv[ok]
+        if len(rows) == 0:
+            return xy
+        shift = np.median(uv - T.xy[rows], axis=0)
+        xy += shift  # keypoints without a 3D point follow the median image motion
+        xy[rows] = uv
+        return xy
+
+    def _new_ids(self, n: int) -> np.ndarray:
+        ids = np.arange(self.next_track_id, self.next_track_id + n, dtype=np.int64)
+        self.next_track_id += n
+        return ids
+
+    def _estimate_from_table(self) -> PoseEstimate | None:
+        rows, pts = self.table.matches()
+        if len(rows) <= self.conf.kappa2:
+            return None
+        c = self.conf
+        est = estimate_pose(
+            self._undistort(self.table.xy[rows]),
+            self.bundle.points_xyz[pts],
+            self.K,
+            threshold=c.ransac_threshold_px,
+            refine_threshold=c.refine_threshold_px,
+            min_inliers=c.min_inliers,
+            confidence=c.ransac_confidence,
+            max_iterations=c.ransac_max_iterations,
+        )
+        if est is None:
+            # The tracked matches are no longer consistent: drop them (relocalize).
+            self.table.point[rows] = -1
+            self.table.pending[rows] = True
+            return None
+        outl = rows[~est.inlier_mask]
+        self.table.point[outl] = -1
+        self.table.pending[outl] = True
+        return est
+
+    # ------------------------------------------------------------------ algorithm 1
+    def localize(self, frame: np.ndarray, stamp: float) -> FrameResult:
+        c = self.conf
+        timer = _Timer()
+        gray = to_gray(frame, self.camera)
+        if self.last_stamp is not None and (stamp - self.last_stamp > c.max_frame_gap_s or stamp < self.last_stamp):
+            self.reset()  # a long gap (or time going back): motion and tracks are stale
+        pred = self.filter.predict(stamp)
+        self.last_stamp = stamp
+        self.frames += 1
+        timer.lap("filter")
+
+        thr = c.gamma * self.prev_max_response if self.prev_max_response else None
+        kps = extract_keypoints(gray, thr, c)
+        if kps.max_response > 0:
+            self.prev_max_response = kps.max_response
+        timer.lap("keypoints")
+
+        # TRACK-2D
+        T = self.table
+        m = track_2d(T, self._predict_positions(pred), kps, c)
+        tracked = m >= 0
+        T.keep(tracked)
+        m = m[tracked]
+        T.xy = kps.xy[m]
+        T.brief = kps.brief[m]
+        T.age += 1
+        eta = len(T)
+        if eta < c.kappa1 or T.n_3d() < c.refill_3d:  # ADD-GOOD-FEATURES
+            free = free_candidates(T.xy, kps, m, c.add_min_distance_px)
+            room = max(0, c.max_tracks - len(T))
+            if len(free) > room:
+                free = free[np.argsort(-kps.response[free], kind="stable")[:room]]
+                free.sort()
+            T.append(self._new_ids(len(free)), kps.xy[free], kps.brief[free])
+        timer.lap("track")
+
+        n_c1 = T.n_3d()
+        c1_ids = set(T.track_id[T.point >= 0].tolist())
+        matching = "none"
+        est: PoseEstimate | None = None
+        relocalized = False
+        prepared = None
+        if n_c1 > c.kappa2:
+            est = self._estimate_from_table()
+            timer.lap("pose")
+            if est is not None:
+                self._reverify(est.cam_from_world)
+                pending = np.nonzero(T.pending & (T.point < 0) & (T.age >= 1))[0][: c.batch_max]
+                if len(pending):
+                    prepared = self.extractor.prepare(gray)
+                    self._guided(prepared, pending, est.cam_from_world)
+                    matching = "guided"
+                    timer.lap("guided")
+        if est is None and pred is not None and c.prior_recovery and len(self.scope_points):
+            prepared = prepared if prepared is not None else self.extractor.prepare(gray)
+            est = self._recover(prepared, kps, pred)
+            if est is not None:
+                matching = "guided"
+            timer.lap("guided")
+        if est is None:
+            prepared = prepared if prepared is not None else self.extractor.prepare(gray)
+            est = self._global(prepared, kps)
+            matching = "global"
+            relocalized = est is not None
+            timer.lap("global")
+        c2_ids = set(T.track_id[T.point >= 0].tolist())
+        if len(c2_ids) > c.kappa2 and c2_ids != c1_ids and not relocalized:
+            est2 = self._estimate_from_table()
+            if est2 is not None:
+                est = est2
+            timer.lap("pose")
+
+        # KALMAN-FILTER-UPDATE
+        filtered = None
+        if est is not None:
+            self.scope_points = T.point[T.point >= 0].copy()
+            if relocalized or not self.filter.initialized:
+                self.filter.reset(est.cam_from_world, stamp)
+                filtered = est.cam_from_world
+            else:
+                filtered = self.filter.update(est.cam_from_world)
+        timer.lap("filter")
+        status = Status.LOST if est is None else (Status.RELOCALIZED if relocalized else Status.TRACKING)
+        return FrameResult(
+            status=status,
+            stamp=stamp,
+            cam_from_world=None if est is None else est.cam_from_world,
+            filtered_cam_from_world=filtered,
+            inliers=0 if est is None else est.num_inliers,
+            detected=len(kps),
+            tracked=eta,
+            tracked_3d=T.n_3d(),
+            matching=matching,
+            timings_ms=timer.total(),
+            message="" if est is not None else "not enough 2D-3D matches for a pose",
+        )
+
+    def _reverify(self, pose: Rigid3d) -> None:
+        """Stored hypotheses of unmatched tracked keypoints, checked against the new pose."""
+        T = self.table
+        rows = np.nonzero((T.point < 0) & (T.hyp[:, 0] >= 0))[0]
+        if len(rows) == 0:
+            return
+        out = T.point[rows].copy()
+        verified = verify_hypotheses(
+            T.hyp[rows], self._undistort(T.xy[rows]), self.bundle.points_xyz, pose, self.K,
+            self.conf.guided_threshold_px, out,
+        )
+        T.point[rows] = out
+        T.pending[rows[verified]] = False
+
+    def _guided(self, prepared: np.ndarray, rows: np.ndarray, pose: Rigid3d) -> None:
+        T = self.table
+        desc = describe(self.extractor, self.bundle, prepared, T.xy[rows])
+        gm = guided_matching(
+            desc, self._undistort(T.xy[rows]), self.bundle, T.point[T.point >= 0], pose, self.K, self.conf
+        )
+        T.point[rows] = gm.point
+        T.hyp[rows] = gm.hyp
+        T.pending[rows] = False
+
+    def _restart_table(self, kps: Keypoints) -> TrackTable:
+        """A fresh track table from the frame's strongest keypoints (after tracking failed)."""
+        c = self.conf
+        sel = np.arange(len(kps))
+        if len(sel) > c.global_max_keypoints:
+            sel = np.sort(np.argsort(-kps.response, kind="stable")[: c.global_max_keypoints])
+        T = TrackTable.empty(c.max_hypotheses)
+        T.append(self._new_ids(len(sel)), kps.xy[sel], kps.brief[sel])
+        T.pending[:] = False
+        return T
+
+    def _recover(self, prepared: np.ndarray, kps: Keypoints, pred: Rigid3d) -> PoseEstimate | None:
+        """Tracking lost its 2D-3D matches but the motion filter still predicts the pose:
+        guided matching of all the frame's keypoints, scoped by the images that saw the last
+        matched points and verified against the prediction with a loose threshold, then a
+        regular pose. Much cheaper than global matching, which remains the fallback."""
+        c = self.conf
+        T = self._restart_table(kps)
+        if len(T) < c.min_inliers:
+            return None
+        xy_u = self._undistort(T.xy)
+        desc = describe(self.extractor, self.bundle, prepared, T.xy)
+        loose = c.model_copy(update={"guided_threshold_px": c.prior_threshold_px})
+        gm = guided_matching(desc, xy_u, self.bundle, self.scope_points, pred, self.K, loose)
+        q = np.nonzero(gm.point >= 0)[0]
+        if len(q) < c.min_inliers:
+            return None
+        est = estimate_pose(
+            xy_u[q], self.bundle.points_xyz[gm.point[q]], self.K,
+            threshold=c.ransac_threshold_px, refine_threshold=c.refine_threshold_px,
+            min_inliers=c.min_inliers, confidence=c.ransac_confidence, max_iterations=c.ransac_max_iterations,
+        )
+        if est is None:
+            return None
+        T.hyp = gm.hyp
+        T.point[q[est.inlier_mask]] = gm.point[q[est.inlier_mask]]
+        T.pending = T.point < 0
+        self.table = T
+        self._reverify(est.cam_from_world)
+        return est
+
+    def _global(self, prepared: np.ndarray, kps: Keypoints) -> PoseEstimate | None:
+        """GLOBAL-MATCHING on the frame's keypoints; the track table restarts from them."""
+        c = self.conf
+        T = self._restart_table(kps)
+        self.table = T
+        if len(T) < c.min_inliers:
+            return None
+        xy_u = self._undistort(T.xy)
+        desc = describe(self.extractor, self.bundle, prepared, T.xy)
+        res = _pose_from_global(desc, xy_u, self.bundle, self.K, c)
+        if res is None:
+            return None
+        est, q, p, hyp = res
+        T.hyp = hyp
+        T.point[q] = p
+        # Keypoints the global search could not match stay pending: guided matching, scoped by
+        # the new pose, gets another try at them over the next frames.
+        T.pending = T.point < 0
+        return est
+
+
+def _pose_from_global(
+    desc: np.ndarray, xy_u: np.ndarray, bundle: MapBundle, K: np.ndarray, conf: EngineConf
+) -> tuple[PoseEstimate, np.ndarray, np.ndarray, np.ndarray] | None:
+    """Global matching + one-to-many RANSAC: (pose, inlier keypoints, their points, hypotheses)."""
+    gm = global_matching(desc, bundle, conf)
+    if len(gm.set1_q) < 3:
+        return None
+    H = conf.max_hypotheses
+    hyp = np.full((len(desc), H), -1, np.int64)
+    if len(gm.set2_q):
+        rank = np.arange(len(gm.set2_q)) - np.searchsorted(gm.set2_q, gm.set2_q)
+        hyp[gm.set2_q, rank] = gm.set2_p
+    X = bundle.points_xyz
+    res = estimate_pose_one_to_many(
+        xy_u[gm.set1_q], X[gm.set1_p], gm.set2_q, xy_u[gm.set2_q], X[gm.set2_p], K,
+        threshold=conf.ransac_threshold_px,
+        refine_threshold=conf.refine_threshold_px,
+        min_inliers=conf.min_inliers,
+        confidence=conf.ransac_confidence,
+        max_iterations=conf.ransac_max_iterations,
+    )
+    if res is None:
+        return None
+    est, chosen = res
+    return est, gm.set2_q[chosen], gm.set2_p[chosen], hyp
+
+
+def relocalize(
+    image: np.ndarray,
+    camera: Camera,
+    bundle: MapBundle,
+    conf: EngineConf | None = None,
+    prior: Rigid3d | None = None,
+) -> FrameResult:
+    """Localize a single image from scratch (stateless). With a ``prior`` (cam_from_world),
+    the search is scoped to the database images that see the points the prior sees, and
+    matches are verified against it, as in guided matching; without a pose from the scoped
+    search it falls back to global matching."""
+    conf = conf or EngineConf()
+    timer = _Timer()
+    gray = to_gray(image, camera)
+    corners = detect_corners(
+        gray, rel_threshold=conf.gamma, max_corners=conf.global_max_keypoints, border=conf.mu // 2
+    )
+    timer.lap("keypoints")
+    result = FrameResult(Status.LOST, 0.0, detected=len(corners), matching="global")
+    if len(corners) < conf.min_inliers:
+        result.timings_ms = timer.total()
+        result.message = f"only {len(corners)} keypoints in the image"
+        return result
+    extractor = DaisyExtractor()
+    prepared = extractor.prepare(gray)
+    xy_u = camera.undistort_points(corners.xy) if camera.is_distorted else corners.xy
+    desc = describe(extractor, bundle, prepared, corners.xy)
+    K = camera.K
+    est = None
+    if prior is not None:
+        est = _pose_near_prior(desc, xy_u, bundle, K, conf, prior)
+    if est is None:
+        res = _pose_from_global(desc, xy_u, bundle, K, conf)
+        est = None if res is None else res[0]
+    timer.lap("global")
+    if est is not None:
+        result.status = Status.RELOCALIZED
+        result.cam_from_world = est.cam_from_world
+        result.inliers = est.num_inliers
+    else:
+        result.message = "no pose: too few consistent 2D-3D matches"
+    result.timings_ms = timer.total()
+    return result
+
+
+def _pose_near_prior(desc, xy_u, bundle: MapBundle, K, conf: EngineConf, prior: Rigid3d) -> PoseEstimate | None:
+    """Matches scoped by the points visible from the prior, verified against it with a loose
+    threshold (the prior is approximate), then a regular RANSAC pose."""
+    uv, z = project(prior, K, bundle.points_xyz)
+    w, h = 2 * K[0, 2], 2 * K[1, 2]
+    visible = np.nonzero((z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h))[0]
+    if len(visible) < conf.min_inliers:
+        return None
+    gm = guided_matching(desc, xy_u, bundle, visible, prior, K, conf.model_copy(update={"guided_threshold_px": 40.0}))
+    q = np.nonzero(gm.point >= 0)[0]
+    if len(q) < conf.min_inliers:
+        return None
+    return estimate_pose(
+        xy_u[q], bundle.points_xyz[gm.point[q]], K,
+        threshold=conf.ransac_threshold_px, refine_threshold=conf.refine_threshold_px,
+        min_inliers=conf.min_inliers, confidence=conf.ransac_confidence, max_iterations=conf.ransac_max_iterations,
+    )

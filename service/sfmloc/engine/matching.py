@@ -1,0 +1,222 @@
+"""2D-to-3D matching against the map (paper Sections 2.1 and 2.2).
+
+``global_matching``: k-ANN over all map descriptors; every neighbour within sigma times the
+nearest distance votes, with strength s_i0 / s_ij, for every cluster its 3D point belongs to
+(by default each query votes once per cluster, with its strongest neighbour there: see
+``EngineConf.vote``);
+clusters scoring at least beta times the best select the database images S; neighbours outside
+S are dropped; per keypoint, 3D point strengths are the summed strengths of their descriptors;
+set 1 holds each keypoint's best point when the best two pass the ratio test (0.75), set 2 every
+point whose strength is within that ratio of the best (one-to-many).
+
+``guided_matching``: the scope is the top-30 database images by number of already-matched 3D
+points they see; the k-ANN search is restricted to their descriptors (faiss rejects the others
+before computing distances); the same strengths give one-to-many hypotheses, which are verified
+geometrically against the pose from the known matches.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..mapping.bundle import MapBundle
+from ..mapping.index import bitmap_from_ranges
+from .config import EngineConf
+from .pose import reprojection_errors
+from ..transforms import Rigid3d
+
+
+@dataclass
+class PointCandidates:
+    """Per query keypoint, its 3D points by decreasing strength (CSR: ``ptr``, ``point``,
+    ``strength``)."""
+
+    ptr: np.ndarray  # (Q+1,)
+    point: np.ndarray
+    strength: np.ndarray
+
+    def best(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(query ids with any candidate, best strength, second-best strength or 0)."""
+        n = np.diff(self.ptr)
+        q = np.nonzero(n > 0)[0]
+        s1 = self.strength[self.ptr[q]]
+        s2 = np.where(n[q] > 1, self.strength[np.minimum(self.ptr[q] + 1, len(self.strength) - 1)], 0.0)
+        return q, s1, s2
+
+
+def neighbour_strengths(D: np.ndarray, I: np.ndarray, sigma: float) -> np.ndarray:
+    """s_i0 / s_ij for neighbours within sigma * s_i0 (0 elsewhere, and for missing ones)."""
+    s0 = np.maximum(D[:, :1], 1e-6)
+    valid = (I >= 0) & np.isfinite(D) & (D < sigma * s0)
+    w = np.zeros(D.shape, np.float64)
+    w[valid] = (s0 / np.maximum(D, 1e-6))[valid]
+    return w
+
+
+def point_candidates(I: np.ndarray, w: np.ndarray, desc_point: np.ndarray) -> PointCandidates:
+    """Sum descriptor strengths per (query, 3D point); sort each query's points by strength."""
+    q_idx, j_idx = np.nonzero(w > 0)
+    nq = len(I)
+    if len(q_idx) == 0:
+        return PointCandidates(np.zeros(nq + 1, np.int64), np.zeros(0, np.int64), np.zeros(0))
+    pts = desc_point[I[q_idx, j_idx]].astype(np.int64)
+    ws = w[q_idx, j_idx]
+    order = np.lexsort((pts, q_idx))
+    q_s, p_s, w_s = q_idx[order], pts[order], ws[order]
+    new = np.ones(len(q_s), bool)
+    new[1:] = (q_s[1:] != q_s[:-1]) | (p_s[1:] != p_s[:-1])
+    starts = np.nonzero(new)[0]
+    sums = np.add.reduceat(w_s, starts)
+    uq, up = q_s[starts], p_s[starts]
+    order = np.lexsort((-sums, uq))
+    uq, up, sums = uq[order], up[order], sums[order]
+    ptr = np.zeros(nq + 1, np.int64)
+    np.add.at(ptr, uq + 1, 1)
+    return PointCandidates(np.cumsum(ptr), up, sums)
+
+
+def match_sets(cands: PointCandidates, ratio: float, max_hyp: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Set 1 (query, point) passing the ratio test; set 2 (query, point) one-to-many."""
+    q, s1, s2 = cands.best()
+    pass1 = s2 < ratio * s1
+    set1_q = q[pass1]
+    set1_p = cands.point[cands.ptr[set1_q]]
+    # set 2: per query, points with strength >= ratio * best, at most max_hyp
+    n = np.diff(cands.ptr)
+    owner = np.repeat(np.arange(len(n)), n)
+    rank = np.arange(len(owner)) - cands.ptr[owner]
+    best = np.zeros(len(n))
+    best[q] = s1
+    keep = (cands.strength >= ratio * best[owner]) & (rank < max_hyp)
+    return set1_q, set1_p, owner[keep], cands.point[keep]
+
+
+@dataclass
+class GlobalMatches:
+    set1_q: np.ndarray
+    set1_p: np.ndarray
+    set2_q: np.ndarray
+    set2_p: np.ndarray
+    clusters: np.ndarray  # selected clusters
+    n_images: int  # |S|
+
+
+def global_matching(desc: np.ndarray, bundle: MapBundle, conf: EngineConf) -> GlobalMatches:
+    D, I = bundle.index.search(desc, conf.k, nprobe=conf.nprobe)
+    w = neighbour_strengths(D, I, conf.sigma)
+    qi, ji = np.nonzero(w > 0)
+    pts = bundle.desc_point[I[qi, ji]]
+    ws = w[qi, ji]
+    # cluster votes: each neighbour votes for every cluster of its 3D point
+    ptr = bundle.point_clusters_ptr
+    cnt = ptr[pts + 1] - ptr[pts]
+    total = int(cnt.sum())
+    empty = np.zeros(0, np.int64)
+    if total == 0:
+        return GlobalMatches(empty, empty, empty, empty, empty, 0)
+    offs = np.arange(total) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+    clus = bundle.point_clusters_idx[np.repeat(ptr[pts], cnt) + offs]
+    votes = np.repeat(ws, cnt)
+    if conf.vote == "max":
+        # One vote per (query, cluster), with the query's strongest neighbour in it.
+        key = np.repeat(qi, cnt) * bundle.n_clusters + clus
+        o = np.lexsort((-votes, key))
+        key, votes = key[o], votes[o]
+        first = np.ones(len(key), bool)
+        first[1:] = key[1:] != key[:-1]
+        clus, votes = key[first] % bundle.n_clusters, votes[first]
+    scores = np.bincount(clus, weights=votes, minlength=bundle.n_clusters)
+    selected = np.nonzero(scores >= conf.beta * scores.max())[0]
+    in_s = np.zeros(bundle.n_images, bool)
+    for c in selected:
+        in_s[bundle.cluster_images(int(c))] = True
+    # keep neighbours whose descriptor comes from an image in S
+    w = np.where(in_s[bundle.desc_image[np.maximum(I, 0)]] & (I >= 0), w, 0.0)
+    cands = point_candidates(I, w, bundle.desc_point)
+    s1q, s1p, s2q, s2p = match_sets(cands, conf.ratio, conf.max_hypotheses)
+    return GlobalMatches(s1q, s1p, s2q, s2p, selected, int(in_s.sum()))
+
+
+def scope_images(bundle: MapBundle, matched_points: np.ndarray, top: int) -> np.ndarray:
+    """The ``top`` database images seeing the most of ``matched_points`` (at least one)."""
+    pi_ptr, pi_idx = bundle.point_images()
+    p = matched_points
+    cnt = pi_ptr[p + 1] - pi_ptr[p]
+    total = int(cnt.sum())
+    if total == 0:
+        return np.zeros(0, np.int64)
+    offs = np.arange(total) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+    imgs = pi_idx[np.repeat(pi_ptr[p], cnt) + offs]
+    counts = np.bincount(imgs, minlength=bundle.n_images)
+    order = np.argsort(-counts, kind="stable")[:top]
+    return order[counts[order] > 0]
+
+
+@dataclass
+class GuidedMatches:
+    point: np.ndarray  # (B,) verified point per query or -1
+    hyp: np.ndarray  # (B, H) hypotheses, -1 padded
+    n_images: int
+
+
+def guided_matching(
+    desc: np.ndarray,
+    xy_u: np.ndarray,
+    bundle: MapBundle,
+    matched_points: np.ndarray,
+    cam_from_world: Rigid3d,
+    K: np.ndarray,
+    conf: EngineConf,
+) -> GuidedMatches:
+    """Match a batch of keypoints (descriptors ``desc``, undistorted positions ``xy_u``) within
+    the scope of the already-matched points, verify against ``cam_from_world``."""
+    nq = len(desc)
+    H = conf.max_hypotheses
+    out = GuidedMatches(np.full(nq, -1, np.int64), np.full((nq, H), -1, np.int64), 0)
+    imgs = scope_images(bundle, matched_points, conf.top_images)
+    if nq == 0 or len(imgs) == 0:
+        return out
+    out.n_images = len(imgs)
+    ptr = bundle.image_desc_ptr
+    allowed = bitmap_from_ranges(bundle.n_descriptors, ptr[imgs], ptr[imgs + 1])
+    D, I = bundle.index.search(desc, conf.k, allowed=allowed, nprobe=conf.nprobe)
+    w = neighbour_strengths(D, I, conf.sigma)
+    cands = point_candidates(I, w, bundle.desc_point)
+    _, _, q2, p2 = match_sets(cands, conf.ratio, H)
+    if len(q2) == 0:
+        return out
+    # hypotheses table
+    rank = np.arange(len(q2)) - np.searchsorted(q2, q2)
+    out.hyp[q2, rank] = p2
+    verify_hypotheses(out.hyp, xy_u, bundle.points_xyz, cam_from_world, K, conf.guided_threshold_px, out.point)
+    return out
+
+
+def verify_hypotheses(
+    hyp: np.ndarray,
+    xy_u: np.ndarray,
+    points_xyz: np.ndarray,
+    cam_from_world: Rigid3d,
+    K: np.ndarray,
+    threshold: float,
+    out_point: np.ndarray,
+) -> np.ndarray:
+    """For each row, the hypothesis reprojecting closest to ``xy_u`` within ``threshold`` is
+    written to ``out_point`` (rows without one keep their value). Returns rows verified."""
+    rows, cols = np.nonzero(hyp >= 0)
+    if len(rows) == 0:
+        return np.zeros(0, np.int64)
+    pts = hyp[rows, cols]
+    err = reprojection_errors(cam_from_world, K, xy_u[rows], points_xyz[pts])
+    ok = err < threshold
+    rows, pts, err = rows[ok], pts[ok], err[ok]
+    if len(rows) == 0:
+        return np.zeros(0, np.int64)
+    order = np.lexsort((err, rows))
+    rows, pts = rows[order], pts[order]
+    first = np.ones(len(rows), bool)
+    first[1:] = rows[1:] != rows[:-1]
+    out_point[rows[first]] = pts[first]
+    return rows[first]

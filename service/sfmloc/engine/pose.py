@@ -1,0 +1,223 @@
+"""Camera pose from 2D-3D matches (paper Section 3.3): P3P inside RANSAC, then nonlinear
+least-squares refinement on the inliers; rejected under ``min_inliers`` inliers.
+
+Image points here are *undistorted* pixel coordinates (the camera's pinhole part ``K``), so
+the geometry is the same for every camera model.
+
+Two estimators, both returning None or a ``PoseEstimate`` with inlier statistics:
+
+- ``estimate_pose``: one 3D point per keypoint (the track table's verified matches). OpenCV's
+  RANSAC with P3P minimal solutions, then Levenberg-Marquardt on the inliers.
+- ``estimate_pose_one_to_many``: the global-matching case. Hypotheses are generated from the
+  ratio-test matches (set 1) and verified against the one-to-many matches (set 2): a keypoint
+  counts as an inlier when any of its 3D hypotheses reprojects within the threshold (paper
+  Section 2.1). Hypotheses are scored in batches, vectorized.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ..transforms import Rigid3d
+
+
+@dataclass
+class PoseEstimate:
+    cam_from_world: Rigid3d
+    inlier_mask: np.ndarray  # over the correspondences given to the estimator
+    num_inliers: int
+    mean_error_px: float
+
+
+def project(cam_from_world: Rigid3d, K: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Undistorted pixel projections (N, 2) and depths (N,)."""
+    pc = X @ cam_from_world.rotation.T + cam_from_world.translation
+    z = pc[:, 2]
+    zs = np.where(z > 1e-9, z, 1e-9)
+    u = K[0, 0] * pc[:, 0] / zs + K[0, 2]
+    v = K[1, 1] * pc[:, 1] / zs + K[1, 2]
+    return np.stack([u, v], axis=1), z
+
+
+def reprojection_errors(cam_from_world: Rigid3d, K: np.ndarray, xy: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """Pixel errors; points behind the camera get infinity."""
+    uv, z = project(cam_from_world, K, X)
+    err = np.linalg.norm(uv - xy, axis=1)
+    err[z <= 1e-6] = np.inf
+    return err
+
+
+def _rigid(rvec: np.ndarray, tvec: np.ndarray) -> Rigid3d:
+    R, _ = cv2.Rodrigues(np.asarray(rvec, dtype=np.float64).reshape(3, 1))
+    return Rigid3d(R, np.asarray(tvec, dtype=np.float64).reshape(3))
+
+
+def refine(
+    cam_from_world: Rigid3d, K: np.ndarray, xy: np.ndarray, X: np.ndarray, threshold: float, rounds: int = 2
+) -> tuple[Rigid3d, np.ndarray]:
+    """Levenberg-Marquardt on the inliers (reprojection error < threshold), re-selecting
+    inliers after each round. Returns the pose and the final inlier mask."""
+    pose = cam_from_world
+    mask = reprojection_errors(pose, K, xy, X) < threshold
+    for _ in range(rounds):
+        if mask.sum() < 4:
+            break
+        rvec, _ = cv2.Rodrigues(pose.rotation)
+        rvec, tvec = cv2.solvePnPRefineLM(
+            X[mask].astype(np.float64), xy[mask].astype(np.float64), K, None, rvec, pose.translation.reshape(3, 1).copy()
+        )
+        pose = _rigid(rvec, tvec)
+        new_mask = reprojection_errors(pose, K, xy, X) < threshold
+        if np.array_equal(new_mask, mask):
+            break
+        mask = new_mask
+    return pose, mask
+
+
+def estimate_pose(
+    xy: np.ndarray,
+    X: np.ndarray,
+    K: np.ndarray,
+    *,
+    threshold: float = 4.0,
+    refine_threshold: float = 3.0,
+    min_inliers: int = 10,
+    confidence: float = 0.999,
+    max_iterations: int = 1000,
+) -> PoseEstimate | None:
+    """Pose from one-to-one matches (undistorted pixels ``xy`` (N,2), world points ``X`` (N,3))."""
+    n = len(xy)
+    if n < max(4, min_inliers):
+        return None
+    ok, rvec, tvec, inl = cv2.solvePnPRansac(
+        X.astype(np.float64),
+        xy.astype(np.float64),
+        K,
+        None,
+        iterationsCount=max_iterations,
+        reprojectionError=threshold,
+        confidence=confidence,
+        flags=cv2.SOLVEPNP_AP3P,
+    )
+    if not ok or inl is None or len(inl) < min_inliers:
+        return None
+    pose, mask = refine(_rigid(rvec, tvec), K, xy, X, refine_threshold)
+    return _finish(pose, mask, K, xy, X, min_inliers)
+
+
+def _finish(pose: Rigid3d, mask: np.ndarray, K, xy, X, min_inliers: int) -> PoseEstimate | None:
+    n_in = int(mask.sum())
+    if n_in < min_inliers or not pose.is_finite():
+        return None
+    err = reprojection_errors(pose, K, xy[mask], X[mask])
+    return PoseEstimate(pose, mask, n_in, float(err.mean()) if n_in else float("inf"))
+
+
+def estimate_pose_one_to_many(
+    hyp_xy: np.ndarray,
+    hyp_X: np.ndarray,
+    ver_kp: np.ndarray,
+    ver_xy: np.ndarray,
+    ver_X: np.ndarray,
+    K: np.ndarray,
+    *,
+    threshold: float = 4.0,
+    refine_threshold: float = 3.0,
+    min_inliers: int = 10,
+    confidence: float = 0.999,
+    max_iterations: int = 1000,
+    batch: int = 16,
+    seed: int = 0,
+) -> tuple[PoseEstimate, np.ndarray] | None:
+    """RANSAC over set 1 (``hyp_xy``, ``hyp_X``: one match per keypoint) verified on set 2
+    (``ver_kp``: keypoint id of each one-to-many pair, ``ver_xy``, ``ver_X``).
+
+    Returns the pose and, per set-2 pair, whether it is the inlier chosen for its keypoint
+    (at most one per keypoint: the closest reprojection)."""
+    n1 = len(hyp_xy)
+    if n1 < 3 or len(ver_kp) < min_inliers:
+        return None
+    rng = np.random.default_rng(seed)
+    _, kp_dense = np.unique(ver_kp, return_inverse=True)
+    n_kp = int(kp_dense.max()) + 1
+    obj = hyp_X.astype(np.float64)
+    img = hyp_xy.astype(np.float64)
+    best_score, best_pose = 0, None
+    needed = max_iterations
+    thr2 = threshold * threshold
+    it = 0
+    while it < min(needed, max_iterations):
+        Rs, ts = [], []
+        for _ in range(batch):
+            it += 1
+            s = rng.choice(n1, 3, replace=False)
+            try:
+                n_sol, rvecs, tvecs = cv2.solveP3P(obj[s], img[s], K, None, flags=cv2.SOLVEPNP_P3P)
+            except cv2.error:
+                continue
+            for r, t in zip(rvecs[:n_sol], tvecs[:n_sol]):
+                R, _ = cv2.Rodrigues(r)
+                Rs.append(R)
+                ts.append(t.reshape(3))
+        if not Rs:
+            continue
+        B = len(Rs)
+        R = np.stack(Rs)  # (B, 3, 3)
+        T = np.stack(ts)  # (B, 3)
+        # One GEMM for all hypotheses: (M, 3) @ (3, 3B) -> (M, B, 3)
+        pc = (ver_X @ R.reshape(3 * B, 3).T).reshape(-1, B, 3) + T[None]
+        z = pc[..., 2]
+        zs = np.where(z > 1e-9, z, 1e-9)
+        du = K[0, 0] * pc[..., 0] / zs + (K[0, 2] - ver_xy[:, 0:1])
+        dv = K[1, 1] * pc[..., 1] / zs + (K[1, 2] - ver_xy[:, 1:2])
+        inl = (du * du + dv * dv < thr2) & (z > 1e-6)  # (M, B)
+        # distinct keypoints with at least one inlier hypothesis
+        hit = np.zeros((B, n_kp), bool)
+        m_idx, b_idx = np.nonzero(inl)
+        hit[b_idx, kp_dense[m_idx]] = True
+        scores = hit.sum(axis=1)
+        b = int(np.argmax(scores))
+        if scores[b] > best_score:
+            best_score = int(scores[b])
+            best_pose = Rigid3d(R[b], T[b])
+            # Adaptive stop from the inlier ratio of the set samples are drawn from.
+            e1 = reprojection_errors(best_pose, K, hyp_xy, hyp_X)
+            w = float(np.mean(e1 < threshold))
+            if w >= 1.0:
+                needed = it
+            elif w > 0:
+                needed = int(math.ceil(math.log(1.0 - confidence) / math.log(1.0 - w**3)))
+    if best_pose is None or best_score < min_inliers:
+        return None
+    # One-to-one correspondences: for each keypoint its closest inlier hypothesis; refine on
+    # them, re-choosing the closest hypothesis after refinement.
+    pose = best_pose
+    for _ in range(2):
+        chosen = _closest_per_keypoint(pose, K, kp_dense, ver_xy, ver_X, threshold)
+        if chosen.sum() < 4:
+            return None
+        pose, mask = refine(pose, K, ver_xy[chosen], ver_X[chosen], refine_threshold)
+    chosen = _closest_per_keypoint(pose, K, kp_dense, ver_xy, ver_X, refine_threshold)
+    est = _finish(pose, chosen[chosen], K, ver_xy[chosen], ver_X[chosen], min_inliers)
+    if est is None:
+        return None
+    est.inlier_mask = chosen
+    return est, chosen
+
+
+def _closest_per_keypoint(pose, K, kp_dense, xy, X, threshold) -> np.ndarray:
+    err = reprojection_errors(pose, K, xy, X)
+    ok = err < threshold
+    chosen = np.zeros(len(xy), bool)
+    if not ok.any():
+        return chosen
+    idx = np.nonzero(ok)[0]
+    order = idx[np.lexsort((err[idx], kp_dense[idx]))]
+    first = np.ones(len(order), bool)
+    first[1:] = kp_dense[order[1:]] != kp_dense[order[:-1]]
+    chosen[order[first]] = True
+    return chosen

@@ -1,0 +1,134 @@
+"""Keypoint extraction and frame-to-frame tracking (paper Section 3.1: EXTRACT-KEYPOINTS,
+TRACK-2D, ADD-GOOD-FEATURES).
+
+Each tracked keypoint is compared with every candidate keypoint of the new frame inside a
+rho x rho window around its *predicted* position (the projection of its 3D point with the
+Kalman prediction when it has one, else its previous position moved by the median motion of
+those that do), by Hamming distance of 256-bit BRIEF descriptors; the best candidate is
+accepted when best / second-best < psi. No geometric verification here: RANSAC handles
+outliers. Candidate search uses a grid of rho-sized cells so that each keypoint looks at exactly
+the 2x2 cells its window overlaps, all vectorized.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..features.brief import compute_brief, smooth_for_brief
+from ..features.harris import detect_corners
+from .config import EngineConf
+from .track_table import TrackTable
+
+
+@dataclass
+class Keypoints:
+    xy: np.ndarray  # (M, 2) COLMAP convention
+    response: np.ndarray  # (M,)
+    brief: np.ndarray  # (M, 4) uint64
+    max_response: float
+
+    def __len__(self) -> int:
+        return len(self.xy)
+
+
+def extract_keypoints(gray: np.ndarray, threshold: float | None, conf: EngineConf) -> Keypoints:
+    """Harris corners above ``threshold`` (gamma times the previous frame's maximum; None on
+    the first frame: gamma times this frame's) with BRIEF descriptors."""
+    border = conf.mu // 2
+    corners = detect_corners(
+        gray,
+        threshold=threshold,
+        rel_threshold=conf.gamma,
+        max_corners=conf.max_keypoints,
+        border=border,
+    )
+    smoothed = smooth_for_brief(gray)
+    brief = compute_brief(smoothed, corners.xy, conf.mu)
+    return Keypoints(corners.xy, corners.response, brief, corners.max_response)
+
+
+def window_pairs(pred: np.ndarray, cand: np.ndarray, half: float) -> tuple[np.ndarray, np.ndarray]:
+    """All (i, j) with candidate j inside the square window of half-size ``half`` around
+    ``pred[i]``. Candidates are bucketed in cells of size 2*half, so a window overlaps exactly
+    2x2 cells."""
+    if len(pred) == 0 or len(cand) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    cell = 2.0 * half
+    cx = np.floor(cand[:, 0] / cell).astype(np.int64)
+    cy = np.floor(cand[:, 1] / cell).astype(np.int64)
+    x0, y0 = min(cx.min(), int(np.floor((pred[:, 0].min() - half) / cell))), min(
+        cy.min(), int(np.floor((pred[:, 1].min() - half) / cell))
+    )
+    ncols = max(cx.max(), int(np.floor((pred[:, 0].max() + half) / cell))) - x0 + 2
+    cid = (cy - y0) * ncols + (cx - x0)
+    order = np.argsort(cid, kind="stable")
+    sorted_cid = cid[order]
+    # the 2x2 cells of each window
+    wx = np.floor((pred[:, 0] - half) / cell).astype(np.int64) - x0
+    wy = np.floor((pred[:, 1] - half) / cell).astype(np.int64) - y0
+    cells = np.stack([wy * ncols + wx, wy * ncols + wx + 1, (wy + 1) * ncols + wx, (wy + 1) * ncols + wx + 1], 1)
+    start = np.searchsorted(sorted_cid, cells, side="left")
+    end = np.searchsorted(sorted_cid, cells, side="right")
+    lens = (end - start).ravel()
+    total = int(lens.sum())
+    if total == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    owner = np.repeat(np.repeat(np.arange(len(pred)), 4), lens)
+    offs = np.arange(total) - np.repeat(np.cumsum(lens) - lens, lens)
+    j = order[np.repeat(start.ravel(), lens) + offs]
+    d = np.abs(cand[j] - pred[owner])
+    inside = (d[:, 0] <= half) & (d[:, 1] <= half)
+    return owner[inside], j[inside]
+
+
+def track_2d(table: TrackTable, pred_xy: np.ndarray, kps: Keypoints, conf: EngineConf) -> np.ndarray:
+    """TRACK-2D: for each row of ``table``, the index of its match among ``kps`` or -1.
+
+    A candidate claimed by several tracks goes to the closest one (in Hamming distance); the
+    others are lost, so identities stay unique."""
+    n = len(table)
+    match = np.full(n, -1, np.int64)
+    if n == 0 or len(kps) == 0:
+        return match
+    ti, cj = window_pairs(pred_xy, kps.xy, conf.rho / 2.0)
+    if len(ti) == 0:
+        return match
+    dist = np.bitwise_count(table.brief[ti] ^ kps.brief[cj]).sum(axis=1, dtype=np.int32)
+    order = np.lexsort((dist, ti))
+    ti, cj, dist = ti[order], cj[order], dist[order]
+    first = np.ones(len(ti), bool)
+    first[1:] = ti[1:] != ti[:-1]
+    best_pos = np.nonzero(first)[0]
+    has_second = np.zeros(len(best_pos), bool)
+    second = np.full(len(best_pos), np.iinfo(np.int32).max, np.int64)
+    nxt = best_pos + 1
+    ok = nxt < len(ti)
+    ok[ok] &= ti[nxt[ok]] == ti[best_pos[ok]]
+    has_second[ok] = True
+    second[ok] = dist[nxt[ok]]
+    best = dist[best_pos].astype(np.int64)
+    accept = (best <= conf.max_hamming) & (~has_second | (best < conf.psi * second))
+    rows, cands, bdist = ti[best_pos][accept], cj[best_pos][accept], best[accept]
+    # unique candidates: the closest track wins
+    o = np.lexsort((bdist, cands))
+    rows, cands = rows[o], cands[o]
+    uniq = np.ones(len(cands), bool)
+    uniq[1:] = cands[1:] != cands[:-1]
+    match[rows[uniq]] = cands[uniq]
+    return match
+
+
+def free_candidates(tracked_xy: np.ndarray, kps: Keypoints, used: np.ndarray, min_dist: float) -> np.ndarray:
+    """ADD-GOOD-FEATURES: indices of candidates not used by a track and not within
+    ``min_dist`` of a tracked keypoint (regions where there are no tracked keypoints)."""
+    free = np.ones(len(kps), bool)
+    free[used[used >= 0]] = False
+    if len(tracked_xy) and free.any():
+        ti, cj = window_pairs(kps.xy[free], tracked_xy, min_dist)
+        blocked = np.zeros(int(free.sum()), bool)
+        blocked[ti] = True
+        idx = np.nonzero(free)[0]
+        free[idx[blocked]] = False
+    return np.nonzero(free)[0]
