@@ -13,6 +13,7 @@ from ..errors import SfmlocError
 # Subcommand modules, in the order `sfmloc --help` lists them.
 COMMANDS = [
     "synth",
+    "replay",
 ]
 
 log = logging.getLogger("sfmloc")

@@ -1,0 +1,2 @@
+"""Evaluation: replaying recorded sequences through the engine, matching ground truth, error
+statistics (shared by ``sfmloc replay`` and ``sfmloc bench``)."""
