@@ -13,6 +13,8 @@ from ..errors import SfmlocError
 # Subcommand modules, in the order `sfmloc --help` lists them.
 COMMANDS = [
     "synth",
+    "build",
+    "map",
     "replay",
 ]
 
@@ -47,9 +49,10 @@ def configure_logging(verbose: int, quiet: bool) -> None:
         datefmt="%H:%M:%S",
         stream=sys.stderr,
     )
-    if verbose < 1:
-        # Library chatter stays at WARNING unless asked for.
-        for noisy in ("zenoh", "grpc"):
+    if verbose < 2:
+        # Third-party chatter (faiss announces its CPU variant at INFO) stays at WARNING
+        # unless debugging.
+        for noisy in ("zenoh", "grpc", "faiss", "faiss.loader"):
             logging.getLogger(noisy).setLevel(logging.WARNING)
 
 

@@ -214,6 +214,7 @@ def main(
     poses: str | Path | None = None,
     camera: str | Camera | None = None,
     sfm_conf: Any = None,
+    stride: int = 1,
     workdir: str | Path | None = None,
     progress: Progress | None = None,
     should_cancel: CancelCheck | None = None,
@@ -223,6 +224,8 @@ def main(
     - ``colmap`` + ``images``: a COLMAP sparse model (text or binary) and its image folder;
     - ``images`` + ``poses`` + ``camera``: posed images, points triangulated with pycolmap;
     - ``images`` (+ optional ``camera``): full SfM with pycolmap first.
+
+    ``stride`` keeps every n-th posed image (or image) for the last two inputs.
     """
     from . import sfm  # pycolmap is only needed here
 
@@ -249,18 +252,23 @@ def main(
                 raise BuildError("give either --colmap or --poses, not both", stage="input")
             source = {"kind": "colmap", "model": str(colmap), "images": str(image_dir)}
             progress("sfm", 0.0, f"reading COLMAP model {colmap}")
-            rec = sfm.load_colmap_input(colmap, image_dir)
+            rec = sfm.load_colmap_input(colmap, image_dir, conf=sfm_conf, progress=progress, should_cancel=should_cancel)
         elif poses is not None:
             if cam is None:
                 raise BuildError("--poses needs --camera (camera.json or 'MODEL w h params...')", stage="input")
-            source = {"kind": "known-poses", "poses": str(poses), "images": str(image_dir), "camera": cam.to_dict()}
+            source = {
+                "kind": "known-poses", "poses": str(poses), "images": str(image_dir), "camera": cam.to_dict(),
+                "stride": stride,
+            }
             rec = sfm.triangulate_known_poses(
-                image_dir, poses, cam, conf=sfm_conf, workdir=workdir, progress=progress, should_cancel=should_cancel
+                image_dir, poses, cam, conf=sfm_conf, workdir=workdir, progress=progress,
+                should_cancel=should_cancel, stride=stride,
             )
         else:
-            source = {"kind": "images-only", "images": str(image_dir)}
+            source = {"kind": "images-only", "images": str(image_dir), "stride": stride}
             rec = sfm.reconstruct_images_only(
-                image_dir, cam, conf=sfm_conf, workdir=workdir, progress=progress, should_cancel=should_cancel
+                image_dir, cam, conf=sfm_conf, workdir=workdir, progress=progress,
+                should_cancel=should_cancel, stride=stride,
             )
         progress("sfm", 1.0, rec.summary())
         timings["sfm"] = time.perf_counter() - t0
