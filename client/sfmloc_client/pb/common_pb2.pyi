@@ -74,7 +74,7 @@ class FrameCounts(_message.Message):
     def __init__(self, detected: _Optional[int] = ..., tracked: _Optional[int] = ..., tracked_3d: _Optional[int] = ...) -> None: ...
 
 class PoseEstimate(_message.Message):
-    __slots__ = ("status", "cam_from_world", "world_from_cam", "filtered_cam_from_world", "filtered_world_from_cam", "inliers", "latency_ms", "counts", "matching")
+    __slots__ = ("status", "cam_from_world", "world_from_cam", "filtered_cam_from_world", "filtered_world_from_cam", "inliers", "latency_ms", "counts", "matching", "message")
     STATUS_FIELD_NUMBER: _ClassVar[int]
     CAM_FROM_WORLD_FIELD_NUMBER: _ClassVar[int]
     WORLD_FROM_CAM_FIELD_NUMBER: _ClassVar[int]
@@ -84,6 +84,7 @@ class PoseEstimate(_message.Message):
     LATENCY_MS_FIELD_NUMBER: _ClassVar[int]
     COUNTS_FIELD_NUMBER: _ClassVar[int]
     MATCHING_FIELD_NUMBER: _ClassVar[int]
+    MESSAGE_FIELD_NUMBER: _ClassVar[int]
     status: LocalizationStatus
     cam_from_world: Rigid3d
     world_from_cam: Rigid3d
@@ -93,4 +94,5 @@ class PoseEstimate(_message.Message):
     latency_ms: float
     counts: FrameCounts
     matching: str
-    def __init__(self, status: _Optional[_Union[LocalizationStatus, str]] = ..., cam_from_world: _Optional[_Union[Rigid3d, _Mapping]] = ..., world_from_cam: _Optional[_Union[Rigid3d, _Mapping]] = ..., filtered_cam_from_world: _Optional[_Union[Rigid3d, _Mapping]] = ..., filtered_world_from_cam: _Optional[_Union[Rigid3d, _Mapping]] = ..., inliers: _Optional[int] = ..., latency_ms: _Optional[float] = ..., counts: _Optional[_Union[FrameCounts, _Mapping]] = ..., matching: _Optional[str] = ...) -> None: ...
+    message: str
+    def __init__(self, status: _Optional[_Union[LocalizationStatus, str]] = ..., cam_from_world: _Optional[_Union[Rigid3d, _Mapping]] = ..., world_from_cam: _Optional[_Union[Rigid3d, _Mapping]] = ..., filtered_cam_from_world: _Optional[_Union[Rigid3d, _Mapping]] = ..., filtered_world_from_cam: _Optional[_Union[Rigid3d, _Mapping]] = ..., inliers: _Optional[int] = ..., latency_ms: _Optional[float] = ..., counts: _Optional[_Union[FrameCounts, _Mapping]] = ..., matching: _Optional[str] = ..., message: _Optional[str] = ...) -> None: ...

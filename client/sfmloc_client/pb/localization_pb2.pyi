@@ -42,18 +42,22 @@ class StreamFrame(_message.Message):
     def __init__(self, map: _Optional[str] = ..., client_id: _Optional[str] = ..., seq: _Optional[int] = ..., stamp_ns: _Optional[int] = ..., camera: _Optional[_Union[_common_pb2.Camera, _Mapping]] = ..., image: _Optional[_Union[_common_pb2.Image, _Mapping]] = ...) -> None: ...
 
 class PoseUpdate(_message.Message):
-    __slots__ = ("seq", "stamp_ns", "pose", "dropped", "client_id")
+    __slots__ = ("seq", "stamp_ns", "pose", "dropped", "client_id", "error_code", "error_message")
     SEQ_FIELD_NUMBER: _ClassVar[int]
     STAMP_NS_FIELD_NUMBER: _ClassVar[int]
     POSE_FIELD_NUMBER: _ClassVar[int]
     DROPPED_FIELD_NUMBER: _ClassVar[int]
     CLIENT_ID_FIELD_NUMBER: _ClassVar[int]
+    ERROR_CODE_FIELD_NUMBER: _ClassVar[int]
+    ERROR_MESSAGE_FIELD_NUMBER: _ClassVar[int]
     seq: int
     stamp_ns: int
     pose: _common_pb2.PoseEstimate
     dropped: int
     client_id: str
-    def __init__(self, seq: _Optional[int] = ..., stamp_ns: _Optional[int] = ..., pose: _Optional[_Union[_common_pb2.PoseEstimate, _Mapping]] = ..., dropped: _Optional[int] = ..., client_id: _Optional[str] = ...) -> None: ...
+    error_code: str
+    error_message: str
+    def __init__(self, seq: _Optional[int] = ..., stamp_ns: _Optional[int] = ..., pose: _Optional[_Union[_common_pb2.PoseEstimate, _Mapping]] = ..., dropped: _Optional[int] = ..., client_id: _Optional[str] = ..., error_code: _Optional[str] = ..., error_message: _Optional[str] = ...) -> None: ...
 
 class MapInfo(_message.Message):
     __slots__ = ("name", "path", "build_id", "points", "descriptors", "images", "clusters", "memory_mb", "sessions", "loaded_utc")
