@@ -217,6 +217,16 @@ def select_images(names: list[str], image_names: Sequence[str] | None, stride: i
     return names[::stride]
 
 
+def check_names(names: Sequence[str], image_dir: Path) -> None:
+    """COLMAP's pair lists are whitespace-separated: such names cannot be matched."""
+    spaced = [n for n in names if any(c.isspace() for c in n)]
+    if spaced:
+        raise InputError(
+            f"[input] {len(spaced)} image name(s) in {image_dir} contain whitespace, which COLMAP's pair "
+            f"lists cannot hold, e.g. {spaced[0]!r}; rename them"
+        )
+
+
 def image_size(path: Path) -> tuple[int, int]:
     """(width, height) of an image file, decoding it; ``ImageDecodeError`` naming the file."""
     try:

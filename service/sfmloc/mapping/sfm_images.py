@@ -26,8 +26,8 @@ from .sfm_common import (
     Reporter,
     SfmConf,
     check_images,
+    check_names,
     extract_features,
-    image_size,
     incremental_options,
     list_images,
     log,
@@ -88,6 +88,7 @@ def reconstruct_images_only(
     image_dir = Path(image_dir)
     cam = None if camera is None else (camera if isinstance(camera, Camera) else Camera.parse(camera))
     names = select_images(list_images(image_dir), image_names, stride, image_dir)
+    check_names(names, image_dir)
     if len(names) < 2:
         raise BuildError(f"need at least two images for SfM, found {len(names)} in {image_dir}", stage="input")
     with quiet_colmap():
@@ -99,8 +100,6 @@ def reconstruct_images_only(
         else:
             pcam = _guess_camera(image_dir / names[0])
             size = (int(pcam.width), int(pcam.height))
-            if not conf.check_images:
-                size = image_size(image_dir / names[0])
             what = f"the first image ({names[0]})"
         check_images(image_dir, names, lambda _n: size, conf, rep, what=what)
         pycolmap.set_random_seed(conf.seed)

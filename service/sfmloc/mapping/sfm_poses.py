@@ -47,6 +47,7 @@ from .sfm_common import (
     Reporter,
     SfmConf,
     check_images,
+    check_names,
     extract_features,
     incremental_options,
     list_images,
@@ -234,6 +235,7 @@ def triangulate_known_poses(
     if len(matched) < 2:
         raise InputError(f"[input] need at least two posed images to triangulate, got {len(matched)} from {image_dir}")
     names = [n for n, _ in matched]
+    check_names(names, image_dir)
     pose_of = dict(matched)
     rep.report("input", 0.0, f"{len(names)} posed images, camera {cam.to_string()}")
     with quiet_colmap():
