@@ -283,7 +283,9 @@ def mapping_views(scene: Scene | RoomLayout, n: int, seed: int = 0) -> list[Rigi
     area = np.array([np.linalg.norm(q.u_axis) * np.linalg.norm(q.v_axis) for q in quads])
     is_box = np.array([q.recipe[:1] == ("box",) for q in quads])
     weight = np.where(is_box, np.maximum(area, 0.3) * 3.0, area)
-    weight[[i for i, q in enumerate(quads) if q.recipe[:1] in (("floor",), ("ceiling",))]] *= 0.25
+    # Floor and ceiling are large but less useful to a camera that mostly looks ahead.
+    weight[[i for i, q in enumerate(quads) if q.recipe[:1] == ("floor",)]] *= 0.25
+    weight[[i for i, q in enumerate(quads) if q.recipe[:1] == ("ceiling",)]] *= 0.1
     # Faces no camera can see well: downward faces (table bottom) and faces against a wall.
     for i, q in enumerate(quads):
         if q.normal[2] < -0.5 and q.recipe[0] != "ceiling":
