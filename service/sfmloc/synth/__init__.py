@@ -15,7 +15,7 @@ Modules (one stage each)::
     config      SynthConf (+ SceneConf, RenderConf, VisibilityConf, TrajectoryConf), presets
     textures    procedural textures and corner verification
     scene       Scene.room(seed), faces, layout, features, raycast
-    render      render(scene, camera, cam_from_world) -> (bgr, depth), render_full, render_geometry
+    renderer    render(scene, camera, cam_from_world) -> (bgr, depth), render_full, render_geometry
     visibility  visible_points(scene, camera, cam_from_world) -> Observations
     trajectory  make_trajectory(kind, n_frames, seed, scene) -> [cam_from_world], mapping_views
     model       build_reconstruction(scene, camera, poses, names) -> Reconstruction
@@ -33,7 +33,7 @@ Typical use::
 
 from .config import SynthConf, preset
 from .model import build_reconstruction
-from .render import Rendering, render, render_full, render_geometry
+from .renderer import Rendering, render, render_full, render_geometry
 from .scene import Scene, raycast, room_layout
 from .trajectory import check_trajectory, look_at, make_trajectory, mapping_views, pose_from_angles
 from .visibility import Observations, visible_points

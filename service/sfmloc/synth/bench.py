@@ -17,7 +17,7 @@ def bench(kind: str = "walk", frames: int = 300, seed: int = 0, width: int = 640
           **render_kw) -> dict:
     from ..cameras import Camera
     from .config import RenderConf
-    from .render import render
+    from .renderer import render
     from .scene import Scene
     from .trajectory import make_trajectory
 

@@ -43,7 +43,7 @@ from ..io.colmap import write_model
 from ..io.poses import write_colmap_list, write_tum
 from .config import SynthConf
 from .model import build_reconstruction
-from .render import render_full
+from .renderer import render_full
 from .scene import Scene
 from .trajectory import check_trajectory, make_trajectory, mapping_views
 from .visibility import visible_points

@@ -308,10 +308,16 @@ def render_full(scene: Scene, camera: Camera, cam_from_world: Rigid3d, *, noise_
                 continue
             r0, r1, c0, c1 = r[0], r[-1] + 1, c[0], c[-1] + 1
             sub = _warp(levels, G, band, x0 + c0, y0 + r0, c1 - c0, r1 - r0)
-            wh = w_hi[r0:r1, c0:c1]
-            if band < top and wh.max() > 0:
-                upper = _warp(levels, G, band + 1, x0 + c0, y0 + r0, c1 - c0, r1 - r0)
-                sub = cv2.blendLinear(sub, upper, np.ascontiguousarray(1.0 - wh), np.ascontiguousarray(wh))
+            if band < top:
+                # Blend with the next level only where the weight says so (a strip of the band).
+                mb = m[r0:r1, c0:c1] & (w_hi[r0:r1, c0:c1] > 0)
+                br, bc = np.flatnonzero(mb.any(axis=1)), np.flatnonzero(mb.any(axis=0))
+                if len(br):
+                    a0, a1, b0, b1 = br[0], br[-1] + 1, bc[0], bc[-1] + 1
+                    wh = w_hi[r0 + a0 : r0 + a1, c0 + b0 : c0 + b1]
+                    upper = _warp(levels, G, band + 1, x0 + c0 + b0, y0 + r0 + a0, b1 - b0, a1 - a0)
+                    sub[a0:a1, b0:b1] = cv2.blendLinear(np.ascontiguousarray(sub[a0:a1, b0:b1]), upper,
+                                                        np.ascontiguousarray(1.0 - wh), np.ascontiguousarray(wh))
             cv2.copyTo(sub, m[r0:r1, c0:c1].view(np.uint8), dst[r0:r1, c0:c1])
     if conf.blur_sigma > 0:
         out = cv2.GaussianBlur(out, (0, 0), conf.blur_sigma, borderType=cv2.BORDER_REPLICATE)

@@ -26,7 +26,7 @@ import numpy as np
 from ..cameras import Camera
 from ..transforms import Rigid3d
 from .config import RenderConf, VisibilityConf
-from .render import render_geometry
+from .renderer import render_geometry
 from .scene import Scene, raycast
 
 
