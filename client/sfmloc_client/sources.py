@@ -1,0 +1,108 @@
+"""Frame sources for streaming: numpy arrays, an image folder, a video file or a camera index.
+
+Every source yields ``SourceFrame``s. Image folders can pass already-encoded files through
+untouched (``passthrough="jpeg"`` sends ``.jpg`` files as they are: no decode, no re-encode).
+OpenCV is imported only for folders that need decoding, videos and cameras.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .errors import ClientError
+
+IMAGE_SUFFIXES = {".jpg": "jpeg", ".jpeg": "jpeg", ".png": "png", ".bmp": None, ".tif": None, ".tiff": None}
+
+
+@dataclass
+class SourceFrame:
+    image: np.ndarray | None = None  # uint8 HxW or HxWx3 (BGR); None when ``data`` is set
+    data: bytes | None = None  # already-encoded bytes (passthrough)
+    encoding: str | None = None  # encoding of ``data``
+    stamp_ns: int | None = None  # the source's own timestamp, when it has one
+    name: str = ""
+
+
+def _cv2() -> Any:
+    import cv2
+
+    return cv2
+
+
+def list_images(folder: str | Path, pattern: str = "*") -> list[Path]:
+    folder = Path(folder)
+    files = [
+        p for p in sorted(folder.iterdir())
+        if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES and fnmatch.fnmatch(p.name, pattern)
+    ]
+    if not files:
+        raise ClientError(f"no images matching {pattern!r} in {folder}")
+    return files
+
+
+def folder_frames(folder: str | Path, *, pattern: str = "*", passthrough: str | None = None, gray: bool = False) -> Iterator[SourceFrame]:
+    """Images of a folder in name order. With ``passthrough`` ("jpeg" or "png"), files already
+    in that encoding are sent as they are."""
+    for p in list_images(folder, pattern):
+        if passthrough and IMAGE_SUFFIXES[p.suffix.lower()] == passthrough:
+            yield SourceFrame(data=p.read_bytes(), encoding=passthrough, name=p.name)
+            continue
+        cv2 = _cv2()
+        img = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR)
+        if img is None:
+            raise ClientError(f"cannot read image {p}")
+        yield SourceFrame(image=img, name=p.name)
+
+
+def video_frames(source: str | int, *, gray: bool = False) -> Iterator[SourceFrame]:
+    """Frames of a video file or a camera (an integer index), until the source ends."""
+    cv2 = _cv2()
+    cap = cv2.VideoCapture(source)
+    if not cap.isOpened():
+        raise ClientError(f"cannot open video source {source!r}")
+    try:
+        k = 0
+        while True:
+            ok, img = cap.read()
+            if not ok:
+                break
+            if gray and img.ndim == 3:
+                img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+            pos_ms = cap.get(cv2.CAP_PROP_POS_MSEC) if isinstance(source, str) else 0.0
+            stamp = int(pos_ms * 1e6) if pos_ms and pos_ms > 0 else None
+            yield SourceFrame(image=img, stamp_ns=stamp, name=f"{k:06d}")
+            k += 1
+    finally:
+        cap.release()
+
+
+def array_frames(frames: Iterable[np.ndarray]) -> Iterator[SourceFrame]:
+    for k, img in enumerate(frames):
+        yield SourceFrame(image=np.asarray(img), name=f"{k:06d}")
+
+
+def open_source(source: Any, *, pattern: str = "*", passthrough: str | None = None, gray: bool = False) -> Iterator[SourceFrame]:
+    """Frames of ``source``: a numpy array stack (N, H, W[, 3]) or an iterable of arrays, an
+    image folder, a video file, or a camera index (an int or a string of digits)."""
+    if isinstance(source, np.ndarray):
+        if source.ndim not in (3, 4):
+            raise ClientError(f"a numpy source must be a stack (N, H, W[, 3]), got shape {source.shape}")
+        return array_frames(source)
+    if isinstance(source, int) or (isinstance(source, str) and source.isdigit()):
+        return video_frames(int(source), gray=gray)
+    if isinstance(source, (str, Path)):
+        p = Path(source)
+        if p.is_dir():
+            return folder_frames(p, pattern=pattern, passthrough=passthrough, gray=gray)
+        if p.is_file():
+            return video_frames(str(p), gray=gray)
+        raise ClientError(f"source {source} is neither a folder, a video file nor a camera index")
+    if isinstance(source, Iterable):
+        return array_frames(source)
+    raise ClientError(f"unsupported frame source {type(source).__name__}")
