@@ -1,7 +1,7 @@
 """One exception root for everything sfmloc raises on purpose.
 
 Callers catch ``SfmlocError`` to handle any expected failure; the transport layer maps
-each subclass to a status code in one table (``sfmloc.transport.status``).
+each subclass to a status code in one table (``sfmloc.server.status``).
 """
 
 from __future__ import annotations
@@ -53,6 +53,14 @@ class MapNotFoundError(SfmlocError):
 
 class OverloadError(SfmlocError):
     """The server is at capacity and rejects new work."""
+
+
+class SessionNotFoundError(SfmlocError):
+    """No localization session matches (it ended, expired or never existed)."""
+
+
+class UnavailableError(SfmlocError):
+    """The server cannot do this now (shutting down, a worker restarting); retry later."""
 
 
 class MessageError(InputError):

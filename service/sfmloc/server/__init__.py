@@ -1,0 +1,19 @@
+"""The localization server: Zenoh and gRPC front-ends over a pool of engine workers.
+
+One responsibility per module::
+
+    config       ServerConfig (flags < environment SFMLOC_... < file < defaults)
+    status       the one table: exception -> gRPC status code (also the Zenoh error codes)
+    logfmt       structured log lines (key=value or JSON), set up by entry points only
+    metrics      Prometheus text metrics and their HTTP endpoint
+    workers      the worker pool: processes (or threads) each holding the maps and the
+                 Localizers of the sessions assigned to it
+    maps         the map registry: load / replace / unload bundles on every worker
+    sessions     per-client sessions, latest-frame-only intake, idle expiry
+    zenoh_io     Zenoh: frames in, poses out, liveliness token, info queryable, builder maps
+    grpc_service the gRPC Localization service, health and reflection
+    app          wiring, start-up, graceful shutdown; ``ServerThread`` for tests and tools
+    bench        ``sfmloc bench-transport``
+
+Nothing here is imported by the engine; only this package talks Zenoh and gRPC.
+"""

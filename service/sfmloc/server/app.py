@@ -1,0 +1,346 @@
+"""The server: wiring, start-up order, graceful shutdown.
+
+Processes and threads
+=====================
+- the main process runs the asyncio loop (gRPC, grpc.aio), Zenoh's callbacks (on Zenoh's
+  threads: decode + hand over, no engine work), two pump threads per worker (pipe writer and
+  reader: results are published from the reader), the idle-session reaper and the metrics
+  HTTP thread;
+- ``workers`` engine processes (default: one per core), each single-threaded (OpenCV, BLAS,
+  OpenMP and faiss pinned to one thread) and holding every map; a session is bound to one
+  worker, where its Localizer lives, and each frame runs start to end on that worker.
+
+Start-up: metrics -> workers -> Zenoh session (info queryable) -> gRPC (health NOT_SERVING)
+-> maps loaded on every worker -> Zenoh frame intake + liveliness token -> health SERVING.
+
+Shutdown (SIGTERM/SIGINT, or ``stop()``): health NOT_SERVING, Zenoh intake and token withdrawn,
+gRPC stops accepting calls; frames in the workers finish (within ``grace_s``) and their poses
+go out; then the Zenoh session is closed, the workers stopped, and the process exits 0.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import signal
+import socket
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any
+
+from sfmloc_client.wire import MapAnnouncement, ServerInfo, check_name
+
+from .. import __version__
+from ..errors import ConfigError
+from .config import ServerConfig
+from .logfmt import event
+from .maps import MapEntry, MapRegistry
+from .metrics import MetricsServer, ServerMetrics
+from .sessions import SessionManager
+from .workers import WorkerPool
+
+log = logging.getLogger(__name__)
+
+
+def default_server_id() -> str:
+    host = "".join(c if c.isalnum() or c in "-_." else "-" for c in socket.gethostname())[:40] or "host"
+    return f"{host}-{os.getpid()}"
+
+
+class Server:
+    """One localization server. ``await start()``, ``await stop()``; or ``run_server`` for the
+    CLI and ``ServerThread`` for tests and tools."""
+
+    def __init__(self, conf: ServerConfig) -> None:
+        self.conf = conf
+        self.server_id = check_name(conf.server_id or default_server_id(), "server id")
+        self.metrics = ServerMetrics()
+        n = conf.workers or os.cpu_count() or 1
+        self.pool = WorkerPool(
+            n, conf.worker_kind, conf.engine.model_dump_json(),
+            on_result=self._on_result, on_lost=self._on_worker_lost,
+            log_level=logging.getLogger().getEffectiveLevel(), log_format=conf.log_format,
+            max_pending_relocalize=conf.max_pending_relocalize,
+        )
+        self.registry = MapRegistry(self.pool)
+        self.sessions = SessionManager(
+            self.pool, self.registry, self.metrics, server_id=self.server_id,
+            max_sessions=conf.max_sessions, idle_timeout_s=conf.idle_timeout_s,
+        )
+        self.metrics.gauges(
+            sessions=self.sessions.counts_by_map,
+            maps=lambda: {(e.name, e.build_id): 1.0 for e in self.registry.list()},
+            busy=lambda: {(str(i),): float(v) for i, v in enumerate(self.pool.inflight())},
+        )
+        self.executor = ThreadPoolExecutor(conf.grpc.threads, thread_name_prefix="sfmloc-blocking")
+        self.zenoh: Any = None
+        self.grpc: Any = None
+        self.health: Any = None
+        self.grpc_port: int | None = None
+        self.metrics_server: MetricsServer | None = None
+        self.ready = False
+        self._stopped = asyncio.Event()
+        self._reaper_stop = threading.Event()
+        self._reaper: threading.Thread | None = None
+        self._load_started = time.monotonic()
+        self._rate = (time.monotonic(), 0.0, [0.0] * n)  # for the load figures of ServerInfo
+
+    # ------------------------------------------------------------------ wiring
+    def _on_result(self, msg: dict[str, Any]) -> None:
+        self.sessions.on_result(msg)
+
+    def _on_worker_lost(self, index: int) -> None:
+        self.metrics.worker_restarts.inc()
+        self.sessions.on_worker_lost(index)
+
+    def load_map(self, path: str, name: str | None = None) -> MapEntry:
+        try:
+            entry = self.registry.load(path, name)
+        except Exception:
+            self.metrics.map_loads.inc("failed")
+            raise
+        self.metrics.map_loads.inc("ok")
+        return entry
+
+    def unload_map(self, name: str) -> int:
+        self.registry.unload(name)
+        return self.sessions.close_map(name)
+
+    def _on_announcement(self, ann: MapAnnouncement) -> None:
+        current = self.registry.find(ann.name)
+        if current is not None and current.build_id == ann.build_id:
+            return
+        event(log, logging.INFO, "map_announced", map=ann.name, build_id=ann.build_id, path=ann.path)
+        try:
+            self.load_map(ann.path, ann.name)
+        except Exception as exc:  # noqa: BLE001 - keep serving the current map
+            event(log, logging.ERROR, "map_announced_load_failed", map=ann.name, path=ann.path, error=str(exc))
+
+    def info(self) -> ServerInfo:
+        now = time.monotonic()
+        t_prev, frames_prev, busy_prev = self._rate
+        frames = sum(s.processed for s in self.sessions.list())
+        busy = self.pool.busy_ms()
+        dt = max(1e-3, now - t_prev)
+        if dt > 1.0:
+            self._rate = (now, float(frames), busy)
+        return ServerInfo(
+            server_id=self.server_id, version=__version__,
+            grpc="" if self.grpc_port is None else f"{self.conf.grpc.address.rsplit(':', 1)[0]}:{self.grpc_port}",
+            maps=[e.summary() for e in self.registry.list()],
+            sessions=len(self.sessions), workers=self.pool.n,
+            load={
+                "frames_per_s": max(0.0, (frames - frames_prev) / dt),
+                "busy": min(1.0, sum(b - p for b, p in zip(busy, busy_prev)) / 1e3 / dt / max(1, self.pool.n)),
+                "inflight": float(sum(self.pool.inflight())),
+            },
+            ready=self.ready,
+        )
+
+    # ------------------------------------------------------------------ lifecycle
+    async def start(self, load_maps: bool = True) -> None:
+        loop = asyncio.get_running_loop()
+        c = self.conf
+        if c.metrics_port is not None:
+            self.metrics_server = MetricsServer(self.metrics.registry, c.metrics_host, c.metrics_port, lambda: self.ready)
+            self.metrics_server.start()
+        t0 = time.perf_counter()
+        await loop.run_in_executor(self.executor, self.pool.start)
+        event(log, logging.INFO, "workers_started", workers=self.pool.n, kind=c.worker_kind,
+              ms=round((time.perf_counter() - t0) * 1e3))
+        if c.zenoh.enabled:
+            from .zenoh_io import ZenohFrontend
+
+            self.zenoh = ZenohFrontend(c, self.sessions, self.server_id, self.info, self._on_announcement)
+            await loop.run_in_executor(self.executor, self.zenoh.open)
+        if c.grpc.address:
+            from grpc_health.v1 import health_pb2
+
+            from .grpc_service import SERVICE_NAME, make_grpc_server
+
+            self.grpc, self.health, self.grpc_port = make_grpc_server(self)
+            for svc in ("", SERVICE_NAME):
+                await self.health.set(svc, health_pb2.HealthCheckResponse.NOT_SERVING)
+            await self.grpc.start()
+            event(log, logging.INFO, "grpc_listening", address=c.grpc.address, port=self.grpc_port)
+        self._reaper = threading.Thread(target=self._reap, name="sfmloc-reaper", daemon=True)
+        self._reaper.start()
+        if load_maps:
+            await self.load_initial_maps()
+
+    async def load_initial_maps(self) -> None:
+        """Load every bundle in ``conf.maps``, then accept frames and report SERVING."""
+        loop = asyncio.get_running_loop()
+        loaded, failed = await loop.run_in_executor(self.executor, self.registry.load_dir, self.conf.maps)
+        for _ in loaded:
+            self.metrics.map_loads.inc("ok")
+        for _ in failed:
+            self.metrics.map_loads.inc("failed")
+        await self.mark_ready()
+        event(log, logging.INFO, "server_ready", server_id=self.server_id, maps=[e.name for e in loaded],
+              failed=len(failed), grpc_port=self.grpc_port, workers=self.pool.n)
+
+    async def mark_ready(self) -> None:
+        if self.zenoh is not None:
+            self.zenoh.start_intake()
+        if self.health is not None:
+            from grpc_health.v1 import health_pb2
+
+            from .grpc_service import SERVICE_NAME
+
+            for svc in ("", SERVICE_NAME):
+                await self.health.set(svc, health_pb2.HealthCheckResponse.SERVING)
+        self.ready = True
+
+    def _reap(self) -> None:
+        while not self._reaper_stop.wait(min(1.0, self.conf.idle_timeout_s / 4)):
+            try:
+                self.sessions.expire_idle()
+            except Exception:  # noqa: BLE001
+                log.exception("idle-session reaper failed")
+
+    async def stop(self, grace: float | None = None) -> None:
+        """Graceful shutdown (idempotent)."""
+        if self._stopped.is_set():
+            return
+        grace = self.conf.grace_s if grace is None else grace
+        loop = asyncio.get_running_loop()
+        t0 = time.perf_counter()
+        event(log, logging.INFO, "server_stopping", grace_s=grace, sessions=len(self.sessions))
+        self.ready = False
+        if self.health is not None:
+            await self.health.enter_graceful_shutdown()  # everything NOT_SERVING
+        if self.zenoh is not None:
+            self.zenoh.stop_intake()
+        self.sessions.draining = True
+        grpc_stop = asyncio.ensure_future(self.grpc.stop(grace)) if self.grpc is not None else None
+        finished = await loop.run_in_executor(None, self.sessions.wait_idle, grace)
+        if not finished:
+            log.warning("frames still in the workers after %.1f s: stopping anyway", grace)
+        if grpc_stop is not None:
+            await grpc_stop
+        for s in self.sessions.list():
+            self.sessions.close(s, "shutdown")
+        self._reaper_stop.set()
+        if self.zenoh is not None:
+            await loop.run_in_executor(None, self.zenoh.close)
+        await loop.run_in_executor(None, self.pool.stop)
+        if self.metrics_server is not None:
+            self.metrics_server.stop()
+        self.executor.shutdown(wait=False, cancel_futures=True)
+        self._stopped.set()
+        event(log, logging.INFO, "server_stopped", ms=round((time.perf_counter() - t0) * 1e3))
+
+    async def wait_stopped(self) -> None:
+        await self._stopped.wait()
+
+
+async def _serve(conf: ServerConfig) -> int:
+    server = Server(conf)
+    loop = asyncio.get_running_loop()
+    stop = asyncio.Event()
+    signals = 0
+
+    def on_signal(signum: int) -> None:
+        nonlocal signals
+        signals += 1
+        if signals > 1:
+            log.warning("second signal: exiting now")
+            os._exit(1)
+        event(log, logging.INFO, "signal", signal=signal.Signals(signum).name)
+        stop.set()
+
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(sig, on_signal, sig)
+    try:
+        starting = asyncio.ensure_future(server.start())
+        stopper = asyncio.ensure_future(stop.wait())
+        done, _ = await asyncio.wait({starting, stopper}, return_when=asyncio.FIRST_COMPLETED)
+        if starting in done:
+            starting.result()  # raise start-up errors
+            await stop.wait()
+        else:
+            starting.cancel()
+    finally:
+        await server.stop()
+    return 0
+
+
+def run_server(conf: ServerConfig) -> int:
+    """Serve until SIGTERM/SIGINT; returns the exit code (0 after a graceful shutdown)."""
+    if conf.workers < 0:
+        raise ConfigError("workers must be >= 0")
+    return asyncio.run(_serve(conf))
+
+
+class ServerThread:
+    """A server on a background thread with its own event loop (tests, the demo, benchmarks)::
+
+        with ServerThread(conf) as srv:     # returns once SERVING
+            srv.grpc_port, srv.server.registry ...
+    """
+
+    def __init__(self, conf: ServerConfig, load_maps: bool = True) -> None:
+        self.conf = conf
+        self.load_maps = load_maps
+        self.server: Server | None = None
+        self.loop: asyncio.AbstractEventLoop | None = None
+        self._thread = threading.Thread(target=self._run, name="sfmloc-server", daemon=True)
+        self._started = threading.Event()
+        self._error: BaseException | None = None
+        self._done = threading.Event()
+
+    def _run(self) -> None:
+        self.loop = asyncio.new_event_loop()
+        asyncio.set_event_loop(self.loop)
+        try:
+            self.server = Server(self.conf)
+            self.loop.run_until_complete(self.server.start(load_maps=self.load_maps))
+        except BaseException as exc:  # noqa: BLE001 - handed to start()
+            self._error = exc
+            self._started.set()
+            if self.server is not None:
+                try:
+                    self.loop.run_until_complete(self.server.stop(0))
+                except Exception:  # noqa: BLE001
+                    pass
+            self.loop.close()
+            self._done.set()
+            return
+        self._started.set()
+        try:
+            self.loop.run_until_complete(self.server.wait_stopped())
+        finally:
+            self.loop.close()
+            self._done.set()
+
+    def start(self, timeout: float = 120.0) -> "ServerThread":
+        self._thread.start()
+        if not self._started.wait(timeout):
+            raise TimeoutError("the server did not start in time")
+        if self._error is not None:
+            raise self._error
+        return self
+
+    def call(self, coro: Any, timeout: float = 60.0) -> Any:
+        """Run a coroutine on the server's loop (e.g. ``srv.call(srv.server.load_initial_maps())``)."""
+        assert self.loop is not None
+        return asyncio.run_coroutine_threadsafe(coro, self.loop).result(timeout)
+
+    def stop(self, grace: float | None = None, timeout: float = 60.0) -> None:
+        if self.server is not None and self.loop is not None and not self._done.is_set():
+            self.call(self.server.stop(grace), timeout)
+        self._done.wait(timeout)
+        self._thread.join(timeout)
+
+    @property
+    def grpc_port(self) -> int | None:
+        return None if self.server is None else self.server.grpc_port
+
+    def __enter__(self) -> "ServerThread":
+        return self.start()
+
+    def __exit__(self, *exc: Any) -> None:
+        self.stop()

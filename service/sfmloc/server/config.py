@@ -1,0 +1,56 @@
+"""``ServerConfig``: defaults < ``--config FILE`` (JSON/TOML) < ``SFMLOC_...`` environment <
+command-line flags (``sfmloc.config.load_config``). Nested sections use ``__`` in the
+environment: ``SFMLOC_ZENOH__MODE=client``, ``SFMLOC_GRPC__ADDRESS=0.0.0.0:50051``,
+``SFMLOC_ENGINE__K=64``."""
+
+from __future__ import annotations
+
+from typing import Literal, Optional
+
+from pydantic import Field
+
+from ..config import StrictModel
+from ..engine.config import EngineConf
+
+
+class ZenohConf(StrictModel):
+    enabled: bool = True
+    mode: Literal["peer", "client", "router"] = "peer"
+    listen: list[str] = []  # e.g. tcp/0.0.0.0:7447
+    connect: list[str] = []
+    # Multicast scouting (zenoh's default: on); off = explicit endpoints only.
+    multicast: bool = True
+    config_file: Optional[str] = None  # a zenoh JSON5 config; the settings above go over it
+    # Reply NOT_FOUND to frames for maps this server does not host. Turn off when several
+    # servers share a Zenoh network, each hosting different maps.
+    reply_unknown_maps: bool = True
+
+
+class GrpcConf(StrictModel):
+    # host:port; port 0 picks a free one; "" disables gRPC.
+    address: str = "0.0.0.0:50051"
+    # Requests and responses larger than this are refused with RESOURCE_EXHAUSTED.
+    max_message_mb: float = Field(16.0, gt=0)
+    threads: int = Field(4, ge=1)  # executor for blocking calls (LoadMap)
+
+
+class ServerConfig(StrictModel):
+    maps: str = "maps"  # every bundle folder in here is loaded at start
+    server_id: str = ""  # default: <hostname>-<pid>
+    # Engine workers; 0 = one per core. "process" (default) or "thread" (measurements only:
+    # the GIL serializes the engine's Python-level work, see the report in app.py).
+    workers: int = Field(0, ge=0)
+    worker_kind: Literal["process", "thread"] = "process"
+    idle_timeout_s: float = Field(30.0, gt=0)  # a Zenoh session without frames this long ends
+    max_sessions: int = Field(256, ge=1)
+    # Zenoh frame envelopes larger than this are refused (RESOURCE_EXHAUSTED).
+    max_frame_bytes: int = Field(16 * 1024 * 1024, ge=1024)
+    max_pending_relocalize: int = Field(16, ge=1)  # queued single-image requests, all workers
+    follow_builder: bool = False  # load bundles the builder announces on sfmloc/maps/*
+    grace_s: float = Field(5.0, ge=0)  # shutdown: time for in-flight frames and calls
+    metrics_port: Optional[int] = Field(None, ge=0, le=65535)
+    metrics_host: str = "0.0.0.0"
+    log_format: Literal["kv", "json"] = "kv"
+    engine: EngineConf = EngineConf()
+    zenoh: ZenohConf = ZenohConf()
+    grpc: GrpcConf = GrpcConf()

@@ -1,0 +1,251 @@
+"""The gRPC ``sfmloc.v1.Localization`` service (grpc.aio), with health and reflection.
+
+Handlers validate requests on the event loop (cheap) and hand the engine work to the worker
+pool, awaiting its futures; blocking registry calls (LoadMap) run in an executor. Every
+failure ends the call with the status ``status.STATUS_TABLE`` gives it. Per-frame failures of
+a ``StreamLocalize`` stream (a corrupt image) come back as a LOST ``PoseUpdate`` with
+``error_code``/``error_message`` and the stream goes on; failures of the stream itself (unknown
+map, first frame without camera) end it with their status.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import functools
+import logging
+import time
+import uuid
+from collections.abc import AsyncIterator, Awaitable, Callable
+from typing import TYPE_CHECKING, Any
+
+import grpc
+from grpc_health.v1 import health_pb2, health_pb2_grpc
+from grpc_health.v1.health import aio as health_aio
+from grpc_reflection.v1alpha import reflection
+from sfmloc_client.convert import (
+    camera_from_pb,
+    image_from_pb,
+    pose_to_estimate_pb,
+    pose_to_update_pb,
+    transform_from_pb,
+)
+from sfmloc_client.errors import WireError
+from sfmloc_client.pb import localization_pb2 as pb
+from sfmloc_client.pb import localization_pb2_grpc as pb_grpc
+from sfmloc_client.wire import Frame, PoseMessage, check_name
+
+from ..cameras import Camera
+from ..errors import InputError, MessageError, SessionNotFoundError
+from .logfmt import event
+from .sessions import pose_from_result
+from .status import abort, error_info
+
+if TYPE_CHECKING:
+    from .app import Server
+
+log = logging.getLogger(__name__)
+
+SERVICE_NAME = pb.DESCRIPTOR.services_by_name["Localization"].full_name
+
+
+def _unary(fn: Callable[..., Awaitable[Any]]) -> Callable[..., Awaitable[Any]]:
+    """Map any exception of a unary handler to its status (one table, ``status.py``)."""
+
+    @functools.wraps(fn)
+    async def wrapper(self: "LocalizationService", request: Any, context: grpc.aio.ServicerContext) -> Any:
+        try:
+            return await fn(self, request, context)
+        except asyncio.CancelledError:
+            raise
+        except Exception as exc:  # noqa: BLE001
+            if type(exc).__name__ == "AbortError":  # context.abort() already chose the status
+                raise
+            event(log, logging.INFO, "rpc_failed", method=fn.__name__, code=error_info(exc).code, error=str(exc))
+            await abort(context, exc)
+
+    return wrapper
+
+
+class _StreamSink:
+    """Poses of a gRPC stream session: onto the stream's asyncio queue, from any thread."""
+
+    def __init__(self, loop: asyncio.AbstractEventLoop, q: "asyncio.Queue[Any]") -> None:
+        self.loop, self.q = loop, q
+
+    def send(self, pose: PoseMessage) -> None:
+        self.loop.call_soon_threadsafe(self.q.put_nowait, pose)
+
+    def close(self) -> None:
+        pass
+
+
+def _map_info(server: "Server", e: Any) -> pb.MapInfo:
+    n = sum(1 for s in server.sessions.list(e.name))
+    return pb.MapInfo(name=e.name, path=e.path, build_id=e.build_id, points=e.points, descriptors=e.descriptors,
+                      images=e.images, clusters=e.clusters, memory_mb=e.memory_mb, sessions=n, loaded_utc=e.loaded_utc)
+
+
+class LocalizationService(pb_grpc.LocalizationServicer):
+    def __init__(self, server: "Server") -> None:
+        self.server = server
+
+    # ------------------------------------------------------------------ single images
+    @_unary
+    async def Relocalize(self, request: pb.RelocalizeRequest, context: grpc.aio.ServicerContext) -> pb.RelocalizeResponse:
+        t0 = time.perf_counter()
+        srv = self.server
+        entry = srv.registry.get(request.map)
+        cam = camera_from_pb(request.camera)
+        Camera(cam.model, cam.width, cam.height, list(cam.params))  # CameraModelError
+        enc, data = image_from_pb(request.image, cam)
+        prior = None
+        if request.HasField("prior_cam_from_world"):
+            p = transform_from_pb(request.prior_cam_from_world, True)
+            assert p is not None
+            prior = [list(p.quat_xyzw), list(p.t)]
+        msg = {"map": entry.name, "gen": entry.generation, "camera": [cam.model, cam.width, cam.height, list(cam.params)],
+               "enc": enc, "prior": prior}
+        result = await asyncio.wrap_future(srv.pool.relocalize(msg, bytes(data)))
+        res = result["res"]
+        pose = pose_from_result({"seq": None, "res": res}, map_name=entry.name, build_id=entry.build_id,
+                                server_id=srv.server_id, latency_ms=(time.perf_counter() - t0) * 1e3)
+        srv.metrics.relocalize.inc(entry.name, res["status"])
+        srv.metrics.relocalize_latency.observe(entry.name, value=pose.latency_ms / 1e3)
+        return pb.RelocalizeResponse(pose=pose_to_estimate_pb(pose))
+
+    # ------------------------------------------------------------------ streams
+    async def StreamLocalize(
+        self, request_iterator: AsyncIterator[pb.StreamFrame], context: grpc.aio.ServicerContext
+    ) -> AsyncIterator[pb.PoseUpdate]:
+        srv = self.server
+        loop = asyncio.get_running_loop()
+        q: asyncio.Queue[Any] = asyncio.Queue()
+        state: dict[str, Any] = {"session": None, "map": "", "client": "", "camera": None}
+        stream_id = uuid.uuid4().hex[:8]
+
+        async def read() -> None:
+            try:
+                async for req in request_iterator:
+                    t_recv = time.perf_counter()
+                    first = state["session"] is None
+                    if first:
+                        # Stream-level checks: failing them ends the stream.
+                        if not req.map:
+                            raise MessageError("the first frame of a stream must name the map")
+                        srv.registry.get(req.map)
+                        state["map"] = req.map
+                        state["client"] = check_name(req.client_id, "client id") if req.client_id else f"grpc-{stream_id}"
+                        if not req.HasField("camera"):
+                            raise MessageError("the first frame of a stream must carry the camera")
+                    try:
+                        if req.map and req.map != state["map"]:
+                            raise MessageError(f"a stream stays on one map ({state['map']!r}), this frame names {req.map!r}")
+                        if req.HasField("camera"):
+                            state["camera"] = camera_from_pb(req.camera)
+                        cam = state["camera"]
+                        enc, data = image_from_pb(req.image, cam)
+                        frame = Frame(req.seq, req.stamp_ns or time.time_ns(), cam, enc, data)
+                        s = srv.sessions.submit(state["map"], state["client"], "grpc", frame, t_recv,
+                                                make_sink=lambda: _StreamSink(loop, q), key_suffix=f":{stream_id}")
+                        state["session"] = s
+                    except (WireError, InputError) as exc:
+                        if first and state["session"] is None and not isinstance(exc, WireError):
+                            raise
+                        srv.sessions.count_error(state["map"], exc)
+                        q.put_nowait(srv.sessions.error_pose(state["map"], state["client"], req.seq, req.stamp_ns, exc))
+                # The client is done sending: let the last frames finish, then end the stream.
+                s = state["session"]
+                if s is not None:
+                    await loop.run_in_executor(None, srv.sessions.wait_idle, srv.conf.grace_s + 30.0, [s])
+                q.put_nowait(None)
+            except asyncio.CancelledError:
+                raise
+            except Exception as exc:  # noqa: BLE001
+                q.put_nowait(exc)
+
+        reader = asyncio.create_task(read())
+        try:
+            while True:
+                item = await q.get()
+                if item is None:
+                    return
+                if isinstance(item, BaseException):
+                    event(log, logging.INFO, "stream_failed", client=state["client"], map=state["map"],
+                          code=error_info(item).code, error=str(item))
+                    await abort(context, item)
+                yield pose_to_update_pb(item)
+        finally:
+            reader.cancel()
+            if state["session"] is not None:
+                srv.sessions.close(state["session"], "stream_end")
+
+    # ------------------------------------------------------------------ maps
+    @_unary
+    async def ListMaps(self, request: pb.ListMapsRequest, context: grpc.aio.ServicerContext) -> pb.ListMapsResponse:
+        return pb.ListMapsResponse(maps=[_map_info(self.server, e) for e in self.server.registry.list()])
+
+    @_unary
+    async def GetMap(self, request: pb.GetMapRequest, context: grpc.aio.ServicerContext) -> pb.MapInfo:
+        return _map_info(self.server, self.server.registry.get(request.name))
+
+    @_unary
+    async def LoadMap(self, request: pb.LoadMapRequest, context: grpc.aio.ServicerContext) -> pb.MapInfo:
+        if not request.path:
+            raise MessageError("LoadMap needs the path of a bundle folder on the server")
+        loop = asyncio.get_running_loop()
+        entry = await loop.run_in_executor(self.server.executor, self.server.load_map, request.path, request.name or None)
+        return _map_info(self.server, entry)
+
+    @_unary
+    async def UnloadMap(self, request: pb.UnloadMapRequest, context: grpc.aio.ServicerContext) -> pb.UnloadMapResponse:
+        closed = self.server.unload_map(request.name)
+        return pb.UnloadMapResponse(unloaded=True, sessions_closed=closed)
+
+    # ------------------------------------------------------------------ sessions
+    @_unary
+    async def ListSessions(self, request: pb.ListSessionsRequest, context: grpc.aio.ServicerContext) -> pb.ListSessionsResponse:
+        from sfmloc_client.convert import STATUS_TO_PB
+
+        now = time.monotonic()
+        out = []
+        for s in self.server.sessions.list(request.map):
+            out.append(pb.SessionInfo(
+                client_id=s.client_id, map=s.map, transport=s.transport, frames=s.frames, localized=s.localized,
+                dropped=s.dropped, last_latency_ms=s.last_latency_ms, mean_latency_ms=s.mean_latency_ms,
+                status=STATUS_TO_PB.get(s.last_status, 0), idle_s=max(0.0, now - s.last_seen),
+            ))
+        return pb.ListSessionsResponse(sessions=out)
+
+    @_unary
+    async def ResetSession(self, request: pb.ResetSessionRequest, context: grpc.aio.ServicerContext) -> pb.ResetSessionResponse:
+        if not request.client_id:
+            raise MessageError("ResetSession needs a client_id")
+        if not self.server.sessions.reset(request.client_id, request.map):
+            raise SessionNotFoundError(
+                f"no session of client {request.client_id!r}" + (f" on map {request.map!r}" if request.map else "")
+            )
+        return pb.ResetSessionResponse(reset=True)
+
+
+def make_grpc_server(server: "Server") -> tuple[grpc.aio.Server, health_aio.HealthServicer, int]:
+    """The grpc.aio server with our service, health (NOT_SERVING until maps are loaded) and
+    reflection; returns (server, health servicer, bound port)."""
+    n = int(server.conf.grpc.max_message_mb * 1024 * 1024)
+    g = grpc.aio.server(options=[
+        ("grpc.max_receive_message_length", n),
+        ("grpc.max_send_message_length", n),
+        ("grpc.so_reuseport", 0),
+    ])
+    pb_grpc.add_LocalizationServicer_to_server(LocalizationService(server), g)
+    health = health_aio.HealthServicer()
+    health_pb2_grpc.add_HealthServicer_to_server(health, g)
+    reflection.enable_server_reflection(
+        (SERVICE_NAME, health_pb2.DESCRIPTOR.services_by_name["Health"].full_name, reflection.SERVICE_NAME), g
+    )
+    port = g.add_insecure_port(server.conf.grpc.address)
+    if port == 0:
+        raise OSError(f"cannot listen for gRPC on {server.conf.grpc.address}")
+    return g, health, port
+
+
+__all__ = ["LocalizationService", "SERVICE_NAME", "make_grpc_server"]

@@ -1,0 +1,134 @@
+"""The map registry: which maps the server hosts, loaded on every worker.
+
+A map is identified by name; each load gets a new *generation*. Loading is: verify the bundle
+once here (manifest, checksums, shapes), load it on every worker (memory-mapped arrays, the
+faiss index deserialized, lookups precomputed), then swap the registry entry in one step.
+Until the swap, frames keep going to the previous generation; after it, the next frame of each
+session goes to the new one and its worker starts a fresh ``Localizer`` there (a frame in
+flight on the old map finishes on it). The old generation is then dropped from the workers.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from ..errors import BundleError, MapNotFoundError
+from ..mapping.bundle import MANIFEST, read_manifest, validate_name, verify_bundle
+from .logfmt import event
+from .workers import WorkerPool
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class MapEntry:
+    name: str
+    path: str
+    build_id: str
+    generation: int
+    points: int
+    descriptors: int
+    images: int
+    clusters: int
+    memory_mb: float
+    loaded_utc: str
+
+    def summary(self) -> dict[str, Any]:
+        return {"name": self.name, "build_id": self.build_id, "points": self.points, "images": self.images,
+                "memory_mb": self.memory_mb, "path": self.path}
+
+
+class MapRegistry:
+    def __init__(self, pool: WorkerPool, on_change: Callable[[str, MapEntry | None, MapEntry | None], None] | None = None) -> None:
+        self.pool = pool
+        self.on_change = on_change or (lambda name, old, new: None)
+        self._maps: dict[str, MapEntry] = {}
+        self._lock = threading.Lock()  # guards _maps (reads are a dict lookup)
+        self._load_locks: dict[str, threading.Lock] = {}  # one load at a time per name
+        self._gen = 0
+
+    def get(self, name: str) -> MapEntry:
+        entry = self._maps.get(name)
+        if entry is None:
+            raise MapNotFoundError(f"map {name!r} is not loaded on this server" + self._hint())
+        return entry
+
+    def _hint(self) -> str:
+        names = sorted(self._maps)
+        return f" (loaded: {', '.join(names)})" if names else " (no maps are loaded)"
+
+    def find(self, name: str) -> MapEntry | None:
+        return self._maps.get(name)
+
+    def list(self) -> list[MapEntry]:
+        with self._lock:
+            return sorted(self._maps.values(), key=lambda e: e.name)
+
+    def load(self, path: str | Path, name: str | None = None) -> MapEntry:
+        """Load (or atomically replace) the bundle at ``path`` as ``name`` (default: the
+        bundle's own name). Raises ``BundleError`` for a missing or corrupt bundle."""
+        path = Path(path).resolve()
+        manifest = read_manifest(path)
+        name = validate_name(name or manifest.name)
+        with self._lock:
+            lock = self._load_locks.setdefault(name, threading.Lock())
+        with lock:
+            t0 = time.perf_counter()
+            problems = verify_bundle(path, checksums=True)
+            if problems:
+                raise BundleError(f"map bundle {path} is corrupt: " + "; ".join(problems))
+            with self._lock:
+                self._gen += 1
+                gen = self._gen
+            summary = self.pool.load_map(name, gen, str(path), manifest.build_id)
+            entry = MapEntry(
+                name=name, path=str(path), build_id=manifest.build_id, generation=gen,
+                points=int(summary["points"]), descriptors=int(summary["descriptors"]),
+                images=int(summary["images"]), clusters=int(summary["clusters"]),
+                memory_mb=float(summary["memory_mb"]),
+                loaded_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+            )
+            with self._lock:
+                old = self._maps.get(name)
+                self._maps[name] = entry  # the swap: new frames go to the new generation
+            if old is not None:
+                self.pool.drop_map(name, old.generation)
+            event(log, logging.INFO, "map_replaced" if old else "map_loaded", map=name, build_id=entry.build_id,
+                  generation=gen, points=entry.points, memory_mb=entry.memory_mb,
+                  ms=round((time.perf_counter() - t0) * 1e3, 1), path=str(path))
+            self.on_change(name, old, entry)
+            return entry
+
+    def unload(self, name: str) -> MapEntry:
+        with self._lock:
+            entry = self._maps.pop(name, None)
+        if entry is None:
+            raise MapNotFoundError(f"map {name!r} is not loaded on this server" + self._hint())
+        self.pool.drop_map(name, entry.generation)
+        event(log, logging.INFO, "map_unloaded", map=name, build_id=entry.build_id)
+        self.on_change(name, entry, None)
+        return entry
+
+    def load_dir(self, folder: str | Path) -> tuple[list[MapEntry], list[str]]:
+        """Every bundle directly inside ``folder`` (hidden and temporary folders skipped).
+        A broken bundle is reported and skipped: the others still load."""
+        folder = Path(folder)
+        loaded, failed = [], []
+        if not folder.is_dir():
+            log.warning("maps folder %s does not exist: starting without maps", folder)
+            return loaded, failed
+        for p in sorted(folder.iterdir()):
+            if p.name.startswith(".") or not p.is_dir() or not (p / MANIFEST).is_file():
+                continue
+            try:
+                loaded.append(self.load(p))
+            except Exception as exc:  # noqa: BLE001 - one bad bundle must not keep the others out
+                event(log, logging.ERROR, "map_load_failed", path=str(p), error=str(exc))
+                failed.append(f"{p}: {exc}")
+        return loaded, failed

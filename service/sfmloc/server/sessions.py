@@ -1,0 +1,366 @@
+"""Per-client sessions and the latest-frame-only intake.
+
+A session is created on a client's first frame (key: map, client id, transport) and is bound
+to one worker, where its ``Localizer`` (track table, motion filter) lives. At most one frame
+per session is in a worker at any time, and at most one more waits here: a frame that arrives
+while another is waiting replaces it, and the replaced one is counted as dropped. So a client
+sending faster than it can be served gets the freshest frame processed next, never a growing
+queue, and other clients' frames never wait behind its backlog.
+
+Poses go back through the session's *sink* (a Zenoh publisher, or a gRPC stream's queue).
+Zenoh sessions end after ``idle_timeout_s`` without frames; gRPC sessions end with their stream.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+from sfmloc_client.wire import ErrorInfo, Frame, PoseMessage, Transform
+
+from ..cameras import Camera
+from ..errors import OverloadError
+from .logfmt import event
+from .maps import MapRegistry
+from .metrics import ServerMetrics
+from .status import error_from_wire, error_info
+from .workers import WorkerPool
+
+log = logging.getLogger(__name__)
+
+
+class Sink(Protocol):
+    def send(self, pose: PoseMessage) -> None: ...
+
+    def close(self) -> None: ...
+
+
+@dataclass
+class _Pending:
+    frame: Frame
+    t_recv: float  # time.perf_counter() at receipt
+
+
+@dataclass
+class Session:
+    sid: int
+    map: str
+    client_id: str
+    transport: str  # "zenoh" or "grpc"
+    key: tuple[str, str, str]
+    worker: int
+    sink: Sink
+    created: float = field(default_factory=time.monotonic)
+    last_seen: float = field(default_factory=time.monotonic)
+    frames: int = 0  # received
+    processed: int = 0
+    localized: int = 0
+    dropped: int = 0
+    errors: int = 0
+    last_latency_ms: float = 0.0
+    latency_sum_ms: float = 0.0
+    last_status: str = ""
+    busy: bool = False  # a frame of this session is in its worker
+    pending: _Pending | None = None
+    camera: Any = None  # the last CameraSpec seen (validated once, not per frame)
+    inflight_t_recv: dict[int, float] = field(default_factory=dict)  # seq -> receipt time
+    closed: bool = False
+
+    @property
+    def mean_latency_ms(self) -> float:
+        return self.latency_sum_ms / self.processed if self.processed else 0.0
+
+
+class SessionManager:
+    def __init__(
+        self,
+        pool: WorkerPool,
+        registry: MapRegistry,
+        metrics: ServerMetrics,
+        *,
+        server_id: str,
+        max_sessions: int = 256,
+        idle_timeout_s: float = 30.0,
+    ) -> None:
+        self.pool = pool
+        self.registry = registry
+        self.metrics = metrics
+        self.server_id = server_id
+        self.max_sessions = max_sessions
+        self.idle_timeout_s = idle_timeout_s
+        self._lock = threading.Lock()
+        self._by_key: dict[tuple[str, str, str], Session] = {}
+        self._by_sid: dict[int, Session] = {}
+        self._sid = itertools.count(1)
+        self._idle = threading.Condition(self._lock)  # notified when a session stops being busy
+        self.draining = False  # shutting down: no new frames, no more pending dispatches
+
+    # ------------------------------------------------------------------ intake
+    def submit(
+        self,
+        map_name: str,
+        client_id: str,
+        transport: str,
+        frame: Frame,
+        t_recv: float,
+        make_sink: Callable[[], Sink],
+        key_suffix: str = "",
+    ) -> Session:
+        """Hand a validated frame to its session (created on first use). Raises for what the
+        client must hear about before any engine work: unknown map, bad camera, overload."""
+        self.metrics.frames_in.inc(map_name, transport)
+        if self.draining:
+            from ..errors import UnavailableError
+
+            raise UnavailableError("the server is shutting down")
+        entry = self.registry.get(map_name)  # MapNotFoundError
+        key = (map_name, client_id, transport + key_suffix)
+        with self._lock:
+            s = self._by_key.get(key)
+            if s is None:
+                s = self._open(key, map_name, client_id, transport, make_sink)
+            s.last_seen = time.monotonic()
+            s.frames += 1
+        if s.camera != frame.camera:
+            Camera(frame.camera.model, frame.camera.width, frame.camera.height, list(frame.camera.params))  # CameraModelError
+            s.camera = frame.camera
+        with self._lock:
+            if s.closed:
+                return s
+            if s.busy:
+                if s.pending is not None:
+                    s.dropped += 1
+                    self.metrics.frames_dropped.inc(map_name)
+                s.pending = _Pending(frame, t_recv)
+                return s
+            s.busy = True
+            s.inflight_t_recv[frame.seq] = t_recv
+        self._dispatch(s, frame, entry.generation)
+        return s
+
+    def _open(self, key: tuple[str, str, str], map_name: str, client_id: str, transport: str,
+              make_sink: Callable[[], Sink]) -> Session:
+        if len(self._by_key) >= self.max_sessions:
+            raise OverloadError(f"the server is at its limit of {self.max_sessions} sessions; retry later")
+        per_worker = [0] * self.pool.n
+        for other in self._by_sid.values():
+            per_worker[other.worker] += 1
+        inflight = self.pool.inflight()
+        worker = min(range(self.pool.n), key=lambda i: (per_worker[i], inflight[i], i))
+        s = Session(next(self._sid), map_name, client_id, transport, key, worker, make_sink())
+        self._by_key[key] = s
+        self._by_sid[s.sid] = s
+        self.metrics.sessions_opened.inc(map_name, transport)
+        event(log, logging.INFO, "session_open", map=map_name, client=client_id, transport=transport,
+              sid=s.sid, worker=worker)
+        return s
+
+    def _dispatch(self, s: Session, frame: Frame, gen: int) -> None:
+        c = frame.camera
+        msg = {"sid": s.sid, "map": s.map, "gen": gen, "seq": frame.seq, "stamp_ns": frame.stamp_ns,
+               "camera": [c.model, c.width, c.height, list(c.params)], "enc": frame.encoding}
+        self.pool.submit_frame(s.worker, msg, bytes(frame.data))
+
+    # ------------------------------------------------------------------ results
+    def on_result(self, msg: dict[str, Any]) -> None:
+        """A worker finished a frame (called on the pool's pump thread)."""
+        now = time.perf_counter()
+        nxt: _Pending | None = None
+        with self._lock:
+            s = self._by_sid.get(msg["sid"])
+            if s is None:
+                return  # closed meanwhile
+            t_recv = s.inflight_t_recv.pop(msg["seq"], now)
+            s.busy = False
+            if s.pending is not None:
+                nxt, s.pending = s.pending, None
+                if self.draining or s.closed:
+                    s.dropped += 1
+                    self.metrics.frames_dropped.inc(s.map)
+                    nxt = None
+                else:
+                    s.busy = True
+                    s.inflight_t_recv[nxt.frame.seq] = nxt.t_recv
+            latency_ms = (now - t_recv) * 1e3
+            s.processed += 1
+            s.last_latency_ms = latency_ms
+            s.latency_sum_ms += latency_ms
+            res = msg.get("res")
+            if res is not None:
+                s.last_status = res["status"]
+                s.localized += res["status"] != "LOST"
+            else:
+                s.errors += 1
+                s.last_status = "LOST"
+            dropped = s.dropped
+            if not s.busy:
+                self._idle.notify_all()
+        if nxt is not None:
+            entry = self.registry.find(s.map)
+            if entry is None:
+                self._reject_pending(s, nxt)
+            else:
+                self._dispatch(s, nxt.frame, entry.generation)
+        pose = self._pose(s, msg, latency_ms, dropped)
+        if res is not None:
+            self.metrics.frames_done.inc(s.map, res["status"])
+            self.metrics.engine_latency.observe(s.map, value=res["engine_ms"] / 1e3)
+        else:
+            self.metrics.frame_errors.inc(s.map, pose.error.code if pose.error else "INTERNAL")
+        self.metrics.latency.observe(s.map, value=latency_ms / 1e3)
+        self._send(s, pose)
+
+    def _reject_pending(self, s: Session, p: _Pending) -> None:
+        from ..errors import MapNotFoundError
+
+        with self._lock:
+            s.busy = False
+            s.inflight_t_recv.pop(p.frame.seq, None)
+            self._idle.notify_all()
+        self._send(s, self.error_pose(s.map, s.client_id, p.frame.seq, p.frame.stamp_ns,
+                                      MapNotFoundError(f"map {s.map!r} was unloaded"), dropped=s.dropped))
+
+    def _send(self, s: Session, pose: PoseMessage) -> None:
+        try:
+            s.sink.send(pose)
+        except Exception as exc:  # noqa: BLE001 - a broken sink ends that session only
+            event(log, logging.WARNING, "sink_failed", map=s.map, client=s.client_id, error=str(exc))
+
+    def _pose(self, s: Session, msg: dict[str, Any], latency_ms: float, dropped: int) -> PoseMessage:
+        entry = self.registry.find(s.map)
+        build_id = entry.build_id if entry is not None and entry.generation == msg.get("gen") else ""
+        return pose_from_result(msg, map_name=s.map, client_id=s.client_id, build_id=build_id,
+                                server_id=self.server_id, latency_ms=latency_ms, dropped=dropped)
+
+    def error_pose(self, map_name: str, client_id: str, seq: int | None, stamp_ns: int, exc: BaseException,
+                   dropped: int = 0) -> PoseMessage:
+        info: ErrorInfo = error_info(exc)
+        return PoseMessage(seq=seq, stamp_ns=stamp_ns, status="LOST", map=map_name, client_id=client_id,
+                           server_id=self.server_id, dropped=dropped, message=info.message, error=info)
+
+    def count_error(self, map_name: str, exc: BaseException) -> None:
+        self.metrics.frame_errors.inc(map_name, error_info(exc).code)
+
+    # ------------------------------------------------------------------ management
+    def close(self, s: Session, reason: str) -> None:
+        with self._lock:
+            if s.closed:
+                return
+            s.closed = True
+            self._by_key.pop(s.key, None)
+            self._by_sid.pop(s.sid, None)
+            self._idle.notify_all()
+        self.pool.close_session(s.worker, s.sid)
+        try:
+            s.sink.close()
+        except Exception:  # noqa: BLE001
+            pass
+        self.metrics.sessions_closed.inc(s.map, reason)
+        event(log, logging.INFO, "session_close", map=s.map, client=s.client_id, transport=s.transport,
+              sid=s.sid, reason=reason, frames=s.frames, processed=s.processed, localized=s.localized,
+              dropped=s.dropped, errors=s.errors, mean_latency_ms=round(s.mean_latency_ms, 2))
+
+    def close_map(self, map_name: str, reason: str = "map_unloaded") -> int:
+        with self._lock:
+            victims = [s for s in self._by_sid.values() if s.map == map_name]
+        for s in victims:
+            self.close(s, reason)
+        return len(victims)
+
+    def reset(self, client_id: str, map_name: str = "") -> bool:
+        with self._lock:
+            hits = [s for s in self._by_sid.values() if s.client_id == client_id and (not map_name or s.map == map_name)]
+        for s in hits:
+            self.pool.reset_session(s.worker, s.sid)
+            event(log, logging.INFO, "session_reset", map=s.map, client=s.client_id, sid=s.sid)
+        return bool(hits)
+
+    def list(self, map_name: str = "") -> list[Session]:
+        with self._lock:
+            return sorted((s for s in self._by_sid.values() if not map_name or s.map == map_name),
+                          key=lambda s: (s.map, s.client_id, s.sid))
+
+    def expire_idle(self, now: float | None = None) -> int:
+        """End Zenoh sessions without frames for ``idle_timeout_s`` (gRPC ones end with their
+        stream)."""
+        now = time.monotonic() if now is None else now
+        with self._lock:
+            idle = [s for s in self._by_sid.values()
+                    if s.transport == "zenoh" and not s.busy and now - s.last_seen > self.idle_timeout_s]
+        for s in idle:
+            self.close(s, "idle")
+        return len(idle)
+
+    def on_worker_lost(self, worker: int) -> None:
+        """A worker was restarted: its sessions lost their state and in-flight frames."""
+        from ..errors import UnavailableError
+
+        with self._lock:
+            hit = [s for s in self._by_sid.values() if s.worker == worker]
+            lost = []
+            for s in hit:
+                lost += [(s, seq) for seq in s.inflight_t_recv]
+                s.inflight_t_recv.clear()
+                s.busy, s.pending = False, None
+            self._idle.notify_all()
+        for s, seq in lost:
+            self._send(s, self.error_pose(s.map, s.client_id, seq, 0,
+                                          UnavailableError("the worker processing this frame died; it was restarted")))
+
+    def wait_idle(self, timeout: float, sessions: list[Session] | None = None) -> bool:
+        """Wait until no session (or none of ``sessions``) has a frame in a worker."""
+        deadline = time.monotonic() + timeout
+        with self._lock:
+            while True:
+                pool = sessions if sessions is not None else list(self._by_sid.values())
+                if not any(s.busy for s in pool):
+                    return True
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                self._idle.wait(left)
+
+    def counts_by_map(self) -> dict[tuple[str, ...], float]:
+        out: dict[tuple[str, ...], float] = {}
+        with self._lock:
+            for s in self._by_sid.values():
+                k = (s.map, s.transport)
+                out[k] = out.get(k, 0) + 1
+        return out
+
+    def __len__(self) -> int:
+        return len(self._by_sid)
+
+
+def pose_from_result(
+    msg: dict[str, Any], *, map_name: str, client_id: str = "", build_id: str = "", server_id: str = "",
+    latency_ms: float = 0.0, dropped: int = 0,
+) -> PoseMessage:
+    """A worker's result (or error) for one frame or image as a ``PoseMessage``."""
+    p = PoseMessage(
+        seq=msg.get("seq"), stamp_ns=msg.get("stamp_ns", 0), status="LOST", latency_ms=latency_ms, dropped=dropped,
+        map=map_name, client_id=client_id, build_id=build_id, server_id=server_id,
+    )
+    res = msg.get("res")
+    if res is None:
+        p.error = error_info(error_from_wire(msg.get("error") or {}))
+        p.message = p.error.message
+        return p
+
+    def tf(v: list[float] | None) -> Transform | None:
+        return None if v is None else Transform(tuple(v[:4]), tuple(v[4:]))  # type: ignore[arg-type]
+
+    p.status = res["status"]
+    p.cam_from_world, p.world_from_cam = tf(res["cfw"]), tf(res["wfc"])
+    p.filtered_cam_from_world, p.filtered_world_from_cam = tf(res["fcfw"]), tf(res["fwfc"])
+    p.inliers = res["inliers"]
+    p.engine_ms = res["engine_ms"]
+    p.counts = {"detected": res["detected"], "tracked": res["tracked"], "tracked_3d": res["tracked_3d"]}
+    p.matching = res["matching"]
+    p.message = res["message"]
+    return p

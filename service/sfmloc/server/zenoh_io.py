@@ -1,0 +1,189 @@
+"""The Zenoh front-end: frames in, poses out, discovery, builder announcements.
+
+- ``sfmloc/*/*/frame`` (one subscriber): envelopes are decoded and validated here
+  (``sfmloc_client.wire.decode_frame``) and handed to the session manager; the callback does
+  no engine work and never blocks on a worker.
+- ``sfmloc/<map>/<client>/pose``: one publisher per session, priority REAL_TIME, express
+  (no batching delay), congestion control DROP (a pose that cannot go out now is superseded
+  by the next one; the server never blocks on a slow client). Error replies go the same way.
+- liveliness token ``sfmloc/servers/<id>`` (declared once maps are loaded) and queryable
+  ``sfmloc/servers/<id>/info`` (``ServerInfo``: maps, sessions, load).
+- with ``follow_builder``: ``sfmloc/maps/*`` announcements load the announced bundle.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any
+
+import zenoh
+from sfmloc_client.errors import WireError
+from sfmloc_client.wire import (
+    FRAME_KEYEXPR,
+    MAPS_KEYEXPR,
+    MapAnnouncement,
+    PoseMessage,
+    ServerInfo,
+    check_name,
+    decode_frame,
+    decode_map_announcement,
+    encode_pose,
+    encode_server_info,
+    parse_frame_key,
+    peek_seq,
+    server_info_key,
+    server_token_key,
+)
+from sfmloc_client.zconfig import make_zenoh_config
+
+from ..errors import ConfigError, MapNotFoundError, UnavailableError
+from .config import ServerConfig
+from .logfmt import event
+from .sessions import SessionManager
+
+log = logging.getLogger(__name__)
+
+POSE_QOS = {
+    "priority": zenoh.Priority.REAL_TIME,
+    "express": True,
+    "congestion_control": zenoh.CongestionControl.DROP,
+}
+
+
+class ZenohPoseSink:
+    """A session's pose publisher."""
+
+    def __init__(self, z: zenoh.Session, key: str) -> None:
+        self._pub = z.declare_publisher(key, **POSE_QOS)
+
+    def send(self, pose: PoseMessage) -> None:
+        self._pub.put(encode_pose(pose))
+
+    def close(self) -> None:
+        try:
+            self._pub.undeclare()
+        except Exception:  # noqa: BLE001 - the Zenoh session may be closed already
+            pass
+
+
+class ZenohFrontend:
+    def __init__(
+        self,
+        conf: ServerConfig,
+        sessions: SessionManager,
+        server_id: str,
+        info: Callable[[], ServerInfo],
+        on_announcement: Callable[[MapAnnouncement], None] | None = None,
+    ) -> None:
+        self.conf = conf
+        self.sessions = sessions
+        self.server_id = server_id
+        self.info = info
+        self.on_announcement = on_announcement
+        self.z: zenoh.Session | None = None
+        self._frame_sub: Any = None
+        self._token: Any = None
+        self._others: list[Any] = []
+        # Announcements load maps, which blocks on the workers: never on Zenoh's thread.
+        self._loader = ThreadPoolExecutor(1, thread_name_prefix="sfmloc-announce")
+
+    def open(self) -> None:
+        zc = self.conf.zenoh
+        try:
+            zconf = make_zenoh_config(zc.mode, zc.listen, zc.connect, multicast=zc.multicast, config_file=zc.config_file)
+        except Exception as exc:  # noqa: BLE001 - zenoh raises ZError/ValueError on bad settings
+            raise ConfigError(f"invalid Zenoh configuration: {exc}") from None
+        try:
+            self.z = zenoh.open(zconf)
+        except Exception as exc:  # noqa: BLE001 - e.g. the listen port is taken
+            raise UnavailableError(f"cannot open the Zenoh session: {exc}") from None
+        self._others.append(self.z.declare_queryable(server_info_key(self.server_id), self._on_info_query))
+        if self.conf.follow_builder and self.on_announcement is not None:
+            self._others.append(self.z.declare_subscriber(MAPS_KEYEXPR, self._on_announcement))
+        event(log, logging.INFO, "zenoh_open", zid=str(self.z.zid()), mode=zc.mode, listen=zc.listen,
+              connect=zc.connect, multicast=zc.multicast)
+
+    def start_intake(self) -> None:
+        """Accept frames and become discoverable (once the maps are loaded)."""
+        assert self.z is not None
+        self._frame_sub = self.z.declare_subscriber(FRAME_KEYEXPR, self._on_frame)
+        self._token = self.z.liveliness().declare_token(server_token_key(self.server_id))
+
+    def stop_intake(self) -> None:
+        for obj in (self._frame_sub, self._token):
+            if obj is not None:
+                try:
+                    obj.undeclare()
+                except Exception:  # noqa: BLE001
+                    pass
+        self._frame_sub = self._token = None
+
+    def close(self) -> None:
+        self.stop_intake()
+        self._loader.shutdown(wait=False, cancel_futures=True)
+        for obj in self._others:
+            try:
+                obj.undeclare()
+            except Exception:  # noqa: BLE001
+                pass
+        self._others.clear()
+        if self.z is not None:
+            self.z.close()  # an open session would keep the process from exiting
+            self.z = None
+
+    # ------------------------------------------------------------------ frames
+    def _on_frame(self, sample: zenoh.Sample) -> None:
+        t_recv = time.perf_counter()
+        key = str(sample.key_expr)
+        try:
+            map_name, client_id = parse_frame_key(key)
+        except WireError:
+            return  # cannot happen with our key expression; nothing to answer to
+        payload = sample.payload.to_bytes()
+        try:
+            check_name(map_name, "map name")
+            check_name(client_id, "client id")
+            frame = decode_frame(payload, self.conf.max_frame_bytes)
+            self.sessions.submit(
+                map_name, client_id, "zenoh", frame, t_recv,
+                make_sink=lambda: ZenohPoseSink(self.z, f"sfmloc/{map_name}/{client_id}/pose"),
+            )
+        except MapNotFoundError as exc:
+            self.sessions.count_error(map_name, exc)
+            if self.conf.zenoh.reply_unknown_maps:
+                self._reply_error(map_name, client_id, payload, exc)
+        except Exception as exc:  # noqa: BLE001 - every failure is answered, none is fatal
+            self.sessions.count_error(map_name, exc)
+            self._reply_error(map_name, client_id, payload, exc)
+
+    def _reply_error(self, map_name: str, client_id: str, payload: bytes, exc: BaseException) -> None:
+        seq = peek_seq(payload) if len(payload) <= self.conf.max_frame_bytes else None
+        pose = self.sessions.error_pose(map_name, client_id, seq, 0, exc)
+        event(log, logging.INFO, "frame_rejected", map=map_name, client=client_id, seq=seq,
+              code=pose.error.code if pose.error else "", error=pose.message)
+        if self.z is None:
+            return
+        try:
+            # The frame key matched sfmloc/*/*/frame, so its pose key is a valid key too.
+            self.z.put(f"sfmloc/{map_name}/{client_id}/pose", encode_pose(pose), **POSE_QOS)
+        except Exception as e:  # noqa: BLE001
+            log.warning("cannot publish an error reply to %s/%s: %s", map_name, client_id, e)
+
+    # ------------------------------------------------------------------ discovery, builder
+    def _on_info_query(self, query: zenoh.Query) -> None:
+        try:
+            query.reply(server_info_key(self.server_id), encode_server_info(self.info()))
+        except Exception as exc:  # noqa: BLE001
+            log.warning("info query failed: %s", exc)
+
+    def _on_announcement(self, sample: zenoh.Sample) -> None:
+        try:
+            ann = decode_map_announcement(sample.payload.to_bytes())
+        except WireError as exc:
+            event(log, logging.WARNING, "announcement_invalid", key=str(sample.key_expr), error=str(exc))
+            return
+        assert self.on_announcement is not None
+        self._loader.submit(self.on_announcement, ann)
