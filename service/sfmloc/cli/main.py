@@ -16,6 +16,12 @@ COMMANDS = [
     "build",
     "map",
     "replay",
+    "serve",
+    "stream",
+    "relocalize",
+    "maps",
+    "sessions",
+    "servers",
 ]
 
 log = logging.getLogger("sfmloc")

@@ -1,0 +1,60 @@
+"""sfmloc maps: list, show, load and unload the maps of a running server (gRPC)."""
+
+from __future__ import annotations
+
+import argparse
+
+from ._clientopts import add_grpc_option
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("maps", help="list/show/load/unload the maps of a running server",
+                       description="Manage the maps a running server hosts (gRPC). Loading a map that is "
+                                   "already loaded replaces it atomically: live sessions relocalize on the new one.")
+    ms = p.add_subparsers(dest="maps_command", metavar="ACTION", required=True)
+    a = ms.add_parser("list", help="maps loaded on the server")
+    add_grpc_option(a)
+    a = ms.add_parser("show", help="details of one map")
+    a.add_argument("name")
+    add_grpc_option(a)
+    a = ms.add_parser("load", help="load (or replace) a bundle folder on the server's machine")
+    a.add_argument("path", help="bundle folder, as the server sees it")
+    a.add_argument("--name", default="", help="name to serve it under (default: the bundle's own)")
+    add_grpc_option(a)
+    a = ms.add_parser("unload", help="unload a map (its sessions end)")
+    a.add_argument("name")
+    add_grpc_option(a)
+    p.set_defaults(func=run)
+
+
+def _row(m) -> str:  # noqa: ANN001 - a MapInfo message
+    return (f"{m.name:<20} {m.build_id:<28} {m.points:>8} {m.descriptors:>11} {m.images:>6} "
+            f"{m.memory_mb:>8.1f} {m.sessions:>8}  {m.path}")
+
+
+def run(args: argparse.Namespace) -> int:
+    from sfmloc_client import LocalizationClient, RemoteError
+
+    from ..errors import InputError
+
+    try:
+        with LocalizationClient(args.grpc, timeout=args.timeout) as c:
+            if args.maps_command == "list":
+                maps = c.list_maps()
+                print(f"{'name':<20} {'build_id':<28} {'points':>8} {'descriptors':>11} {'images':>6} "
+                      f"{'mem MB':>8} {'sessions':>8}  path")
+                for m in maps:
+                    print(_row(m))
+                if not maps:
+                    print("(no maps loaded)")
+            elif args.maps_command == "show":
+                print(c.get_map(args.name))
+            elif args.maps_command == "load":
+                m = c.load_map(args.path, args.name, timeout=args.timeout)
+                print(f"loaded {m.name} (build {m.build_id}, {m.points} points, {m.memory_mb:.1f} MB)")
+            else:
+                r = c.unload_map(args.name)
+                print(f"unloaded {args.name} ({r.sessions_closed} sessions closed)")
+    except RemoteError as exc:
+        raise InputError(str(exc)) from None
+    return 0

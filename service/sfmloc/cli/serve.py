@@ -1,0 +1,107 @@
+"""sfmloc serve: the localization server (Zenoh + gRPC)."""
+
+from __future__ import annotations
+
+import argparse
+import textwrap
+
+HELP = "serve maps: poses for frame streams (Zenoh, gRPC) and single images (gRPC)"
+
+DESCRIPTION = textwrap.dedent(
+    """\
+    Load every map bundle in --maps and localize frames against them.
+
+    Zenoh: clients publish frames on sfmloc/<map>/<client>/frame (msgpack envelope, see
+    sfmloc_client.wire) and receive poses on sfmloc/<map>/<client>/pose. Each client gets
+    its own session (track table, motion filter) on one worker; frames that arrive while
+    one is being processed are dropped, newest kept. The server announces itself with a
+    liveliness token sfmloc/servers/<id> and answers sfmloc/servers/<id>/info.
+
+    gRPC (sfmloc.v1.Localization at --grpc): Relocalize, StreamLocalize, ListMaps, GetMap,
+    LoadMap, UnloadMap, ListSessions, ResetSession, plus grpc.health.v1 (SERVING once the
+    maps are loaded) and reflection.
+
+    Settings: flags > environment (SFMLOC_WORKERS, SFMLOC_ZENOH__MODE, SFMLOC_GRPC__ADDRESS,
+    SFMLOC_ENGINE__K, ...) > --config FILE (JSON or TOML, the ServerConfig fields) > defaults.
+    Logs: one line per event on stderr, key=value (or --log-format json).
+    SIGTERM/SIGINT: stop accepting, finish in-flight frames (grace period), exit 0.
+    """
+)
+
+EPILOG = textwrap.dedent(
+    """\
+    examples:
+      sfmloc serve --maps maps/ --zenoh-listen tcp/0.0.0.0:7447 --grpc 0.0.0.0:50051
+      sfmloc serve --maps maps/ --zenoh-mode client --zenoh-connect tcp/router:7447 --metrics-port 9100
+    """
+)
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("serve", help=HELP, description=DESCRIPTION, epilog=EPILOG,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--maps", metavar="DIR", help="folder of map bundles loaded at start (default: maps)")
+    p.add_argument("--grpc", metavar="HOST:PORT", help="gRPC address (default 0.0.0.0:50051; port 0 = any; 'off' disables)")
+    p.add_argument("--zenoh-mode", choices=["peer", "client", "router"], help="Zenoh mode (default peer)")
+    p.add_argument("--zenoh-listen", metavar="ENDPOINT", action="append", help="Zenoh listen endpoint, e.g. tcp/0.0.0.0:7447 (repeatable)")
+    p.add_argument("--zenoh-connect", metavar="ENDPOINT", action="append", help="Zenoh endpoint to connect to (repeatable)")
+    p.add_argument("--zenoh-config", metavar="FILE", help="a Zenoh JSON5 config file; the flags above go over it")
+    p.add_argument("--no-multicast", action="store_true", help="no Zenoh multicast scouting (explicit endpoints only)")
+    p.add_argument("--no-zenoh", action="store_true", help="gRPC only")
+    p.add_argument("--workers", type=int, metavar="N", help="engine worker processes (default: one per core)")
+    p.add_argument("--worker-kind", choices=["process", "thread"], help=argparse.SUPPRESS)
+    p.add_argument("--idle-timeout", type=float, metavar="S", help="end a Zenoh session after S seconds without frames (default 30)")
+    p.add_argument("--follow-builder", action="store_true", help="load bundles the builder announces on sfmloc/maps/*")
+    p.add_argument("--metrics-port", type=int, metavar="N", help="serve Prometheus metrics on http://0.0.0.0:N/metrics")
+    p.add_argument("--server-id", metavar="ID", help="id in sfmloc/servers/<id> (default <hostname>-<pid>)")
+    p.add_argument("--max-message-mb", type=float, metavar="MB", help="largest gRPC message and Zenoh frame (default 16)")
+    p.add_argument("--log-format", choices=["kv", "json"], help="log line format (default kv)")
+    p.add_argument("--config", metavar="FILE", help="ServerConfig as JSON or TOML")
+    p.set_defaults(func=run)
+
+
+def overrides_from_args(args: argparse.Namespace) -> dict:
+    """Only what was given on the command line (so that it wins over file and environment)."""
+    o: dict = {"maps": args.maps, "workers": args.workers, "worker_kind": args.worker_kind,
+               "idle_timeout_s": args.idle_timeout, "metrics_port": args.metrics_port,
+               "server_id": args.server_id, "log_format": args.log_format}
+    if args.follow_builder:
+        o["follow_builder"] = True
+    z: dict = {}
+    if args.zenoh_mode:
+        z["mode"] = args.zenoh_mode
+    if args.zenoh_listen:
+        z["listen"] = args.zenoh_listen
+    if args.zenoh_connect:
+        z["connect"] = args.zenoh_connect
+    if args.zenoh_config:
+        z["config_file"] = args.zenoh_config
+    if args.no_multicast:
+        z["multicast"] = False
+    if args.no_zenoh:
+        z["enabled"] = False
+    if z:
+        o["zenoh"] = z
+    g: dict = {}
+    if args.grpc is not None:
+        g["address"] = "" if args.grpc.lower() in ("off", "none", "") else args.grpc
+    if args.max_message_mb is not None:
+        g["max_message_mb"] = args.max_message_mb
+        o["max_frame_bytes"] = int(args.max_message_mb * 1024 * 1024)
+    if g:
+        o["grpc"] = g
+    return o
+
+
+def run(args: argparse.Namespace) -> int:
+    import logging
+
+    from ..config import load_config
+    from ..server.app import run_server
+    from ..server.config import ServerConfig
+    from ..server.logfmt import setup_logging
+
+    conf = load_config(ServerConfig, args.config, overrides=overrides_from_args(args))
+    level = logging.WARNING if args.quiet else (logging.DEBUG if args.verbose >= 2 else logging.INFO)
+    setup_logging(conf.log_format, level)  # the server's own structured format
+    return run_server(conf)

@@ -1,0 +1,137 @@
+"""sfmloc stream: stream a video to a server over Zenoh and record the trajectory."""
+
+from __future__ import annotations
+
+import argparse
+import textwrap
+
+from ._clientopts import add_zenoh_options, camera_spec, default_client_id, zenoh_config
+
+DESCRIPTION = textwrap.dedent(
+    """\
+    Publish frames of SOURCE on sfmloc/<map>/<client>/frame and receive their poses on
+    sfmloc/<map>/<client>/pose. Live status (rate, latency, status) goes to stderr; with
+    --out the trajectory is written in TUM format (timestamp tx ty tz qx qy qz qw,
+    world_from_cam, localized frames only).
+
+    Pacing: --fps N sends at N frames/s (the server drops frames it cannot keep up with,
+    newest kept); without --fps the next frame goes out when the previous pose is back.
+    Exits 0 once the source is exhausted and the last pose arrived (or --timeout passed)
+    and at least one pose came back, 1 otherwise.
+    """
+)
+
+EPILOG = textwrap.dedent(
+    """\
+    examples:
+      sfmloc stream --map lab --source frames/ --camera camera.json --fps 30 --out lab.tum
+      sfmloc stream --map lab --source 0 --camera "PINHOLE 640 480 525 525 320 240" --zenoh-connect tcp/server:7447
+    """
+)
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("stream", help="stream frames over Zenoh, print live status, write a TUM trajectory",
+                       description=DESCRIPTION, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--map", required=True, help="map name on the server")
+    p.add_argument("--source", required=True, metavar="PATH|DEVICE", help="image folder, video file or camera index")
+    p.add_argument("--camera", required=True, metavar="CAMERA", help="camera.json or 'MODEL w h params...'")
+    p.add_argument("--fps", type=float, metavar="N", help="send rate (default: as fast as poses come back)")
+    p.add_argument("--client-id", metavar="ID", help="client id (default <hostname>-<pid>)")
+    p.add_argument("--out", metavar="FILE.tum", help="write the trajectory (TUM, world_from_cam)")
+    p.add_argument("--filtered", action="store_true", help="write the Kalman-filtered poses to --out")
+    p.add_argument("--encoding", choices=["jpeg", "png", "gray8", "bgr8"], default="jpeg",
+                   help="how frames are sent (default jpeg; .jpg files are sent as they are)")
+    p.add_argument("--pattern", default="*", metavar="GLOB", help="file names to take from a folder (default *)")
+    p.add_argument("--max-frames", type=int, metavar="N", help="stop after N frames")
+    p.add_argument("--timeout", type=float, default=5.0, metavar="S", help="wait this long for the last pose (default 5)")
+    p.add_argument("--wait-server", type=float, default=10.0, metavar="S", help="wait this long for a server (default 10)")
+    add_zenoh_options(p)
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    import sys
+    import threading
+    import time
+
+    import numpy as np
+    import zenoh
+    from sfmloc_client import FrameStreamer, PoseMessage, PoseSubscriber, TumWriter, open_source
+
+    cam = camera_spec(args.camera)
+    client_id = args.client_id or default_client_id()
+    tty = sys.stderr.isatty()
+    sent_at: dict[int, float] = {}
+    rtt: list[float] = []
+    server_ms: list[float] = []
+    statuses: dict[str, int] = {}
+    lock = threading.Lock()
+    writer = TumWriter(args.out, filtered=args.filtered) if args.out else None
+    state = {"last": None, "errors": 0, "dropped": 0, "t_status": 0.0, "sent": 0, "t0": time.monotonic()}
+
+    def status_line(final: bool = False) -> None:
+        with lock:
+            n = sum(statuses.values())
+            el = max(1e-6, time.monotonic() - state["t0"])
+            p50 = float(np.median(rtt[-100:])) if rtt else float("nan")
+            last = state["last"]
+        line = (f"sent {state['sent']} poses {n} ({', '.join(f'{k} {v}' for k, v in sorted(statuses.items()))}) "
+                f"{n / el:5.1f} Hz  round trip p50 {p50:5.1f} ms  dropped {state['dropped']}  "
+                f"last {last.status if last else '-'}")
+        if last is not None and last.error is not None:
+            line += f" [{last.error.code}: {last.error.message}]"
+        if tty and not final:
+            sys.stderr.write("\r" + line[:160].ljust(160))
+        else:
+            sys.stderr.write(("\r" if tty else "") + line + "\n")
+        sys.stderr.flush()
+
+    def on_pose(p: PoseMessage) -> None:
+        now = time.monotonic()
+        with lock:
+            if p.seq is not None and p.seq in sent_at:
+                rtt.append((now - sent_at.pop(p.seq)) * 1e3)
+            server_ms.append(p.latency_ms)
+            statuses[p.status] = statuses.get(p.status, 0) + 1
+            state["errors"] += p.error is not None
+            state["dropped"] = max(state["dropped"], p.dropped)
+            state["last"] = p
+            if writer is not None:
+                writer.write(p)
+        if now - state["t_status"] > 0.5:
+            state["t_status"] = now
+            status_line()
+
+    def on_sent(seq: int, _fr: object) -> None:
+        with lock:
+            sent_at[seq] = time.monotonic()
+            state["sent"] += 1
+
+    with zenoh.open(zenoh_config(args)) as z:
+        with PoseSubscriber(z, args.map, client_id, callback=on_pose) as poses, \
+                FrameStreamer(z, args.map, client_id, cam, encoding=args.encoding) as fs:
+            if not fs.wait_for_server(args.wait_server):
+                sys.stderr.write(f"no server subscribes to {fs.key} after {args.wait_server:.0f} s "
+                                 "(is one running, reachable with --zenoh-connect, hosting this map?)\n")
+                return 1
+            state["t0"] = time.monotonic()
+            source = open_source(args.source, pattern=args.pattern,
+                                 passthrough=args.encoding if args.encoding in ("jpeg", "png") else None)
+            stats = fs.run(source, fps=args.fps, lockstep=args.fps is None, poses=poses,
+                           pose_timeout=args.timeout, max_frames=args.max_frames, on_sent=on_sent)
+            if stats.sent:
+                poses.wait_for(stats.last_seq, args.timeout)
+            received = poses.received
+    if writer is not None:
+        writer.close()
+    status_line(final=True)
+    summary = f"{received} poses received for {stats.sent} frames sent ({stats.rate_hz:.1f} frames/s"
+    if server_ms:
+        summary += (f"; server dropped {state['dropped']} stale, {state['errors']} errors; server latency "
+                    f"p50 {np.median(server_ms):.1f} ms p99 {np.percentile(server_ms, 99):.1f} ms")
+    if rtt:
+        summary += f"; round trip p50 {np.median(rtt):.1f} ms"
+    summary += ")" + (f"; {writer.count} poses written to {args.out}" if writer else "")
+    print(summary)
+    return 0 if received > 0 else 1
