@@ -309,29 +309,44 @@ def test_no_occluded_point_in_a_track_and_visible_points_present(scene, camera, 
         n_occluded += len(occluded)
         assert not in_track[occluded].any(), "an occluded point is in a track"
         assert np.all(np.isin(obs.point_idx, cand[hit < 0])), "a track point is occluded, off-image or back-facing"
+        # Around a track point, every pixel centre within the margin sees the point's face.
+        k = conf.occlusion_margin_px
+        grid = np.array([[di, dj] for dj in range(-k, k + 1) for di in range(-k, k + 1)]) + 0.5
+
+        def first_faces(idx):
+            px = (np.floor(xy[idx])[:, None, :] + grid[None]).reshape(-1, 2)
+            d = np.column_stack([(px - camera.K[:2, 2]) / camera.K[0, 0], np.ones(len(px))]) @ T.rotation
+            return raycast_independent(scene, T.center, d, np.inf)[0].reshape(len(idx), -1)
+
+        def sizes_of(idx):
+            faces = [scene.faces[i] for i in F.face[idx]]
+            u = np.stack([f.u_axis / np.linalg.norm(f.u_axis) for f in faces])
+            v = np.stack([f.v_axis / np.linalg.norm(f.v_axis) for f in faces])
+            ends = np.stack([F.xyz[idx] + F.radius[idx, None] * w for w in (u, -u, v, -v)], axis=1)
+            p = camera.project(T, ends.reshape(-1, 3))[0].reshape(-1, 4, 2)
+            return np.min(np.linalg.norm(p - xy[idx, None], axis=2), axis=1)
+
+        tp = obs.point_idx
+        assert len(tp) > 0
+        assert np.all(first_faces(tp) == F.face[tp, None]), "a silhouette crosses a track point"
+        assert np.all(camera.in_image(xy[tp], conf.margin_px))
+        cos_t = np.einsum("ij,ij->i", to_cam[tp], normals[tp]) / dist[tp]
+        assert np.all(cos_t >= np.cos(np.radians(conf.max_obliquity_deg)) - 1e-12)
+        assert np.all(sizes_of(tp) >= conf.min_feature_px - 1e-9)
+        np.testing.assert_allclose(obs.xy, xy[tp], atol=1e-9)
         # Clearly visible points (independent test, margins on every threshold) must be present.
         clear = cand[hit < 0]
         cos_o = np.einsum("ij,ij->i", to_cam[clear], normals[clear]) / dist[clear]
         keep = (cos_o > np.cos(np.radians(conf.max_obliquity_deg - 3))) & camera.in_image(xy[clear], conf.margin_px + 1)
         clear = clear[keep]
-        sizes = []
-        for fi in clear:
-            f = scene.faces[F.face[fi]]
-            u = f.u_axis / np.linalg.norm(f.u_axis)
-            v = f.v_axis / np.linalg.norm(f.v_axis)
-            p = camera.project(T, F.xyz[fi] + F.radius[fi] * np.stack([u, -u, v, -v]))[0]
-            sizes.append(np.min(np.linalg.norm(p - xy[fi], axis=1)))
-        clear = clear[np.array(sizes) > conf.min_feature_px + 0.5] if len(clear) else clear
-        k = conf.occlusion_margin_px
-        for fi in clear:
-            # Every pixel centre around the projection must see the point's face first.
-            ci, cj = np.floor(xy[fi]).astype(int)
-            px = np.array([[ci + di + 0.5, cj + dj + 0.5] for dj in range(-k, k + 1) for di in range(-k, k + 1)])
-            d = np.column_stack([(px - camera.K[:2, 2]) / camera.K[0, 0], np.ones(len(px))]) @ T.rotation
-            h, _ = raycast_independent(scene, T.center, d, np.inf)
-            if np.all(h == F.face[fi]):
-                n_required += 1
-                assert in_track[fi], f"clearly visible point {fi} is missing"
+        if len(clear) == 0:
+            continue
+        clear = clear[sizes_of(clear) > conf.min_feature_px + 0.5]
+        # Every pixel centre around the projection must see the point's face first.
+        required = clear[np.all(first_faces(clear) == F.face[clear, None], axis=1)]
+        n_required += len(required)
+        missing = required[~in_track[required]]
+        assert len(missing) == 0, f"clearly visible points {missing[:5]} are missing"
     assert n_occluded >= 200 and n_required >= 200
 
 
