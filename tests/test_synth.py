@@ -161,7 +161,8 @@ def raycast_independent(scene, origin, dirs, t_max):
         e1, e2 = c[1] - c[0], c[3] - c[0]
         a = (P - c[0]) @ e1 / (e1 @ e1)
         b = (P - c[0]) @ e2 / (e2 @ e2)
-        ok = (np.abs(den) > 1e-12) & (t > 1e-9) & (t < best * (1 - 1e-9)) & (a >= 0) & (a <= 1) & (b >= 0) & (b <= 1)
+        inside = (a >= 0) & (a <= 1) & (b >= 0) & (b <= 1)
+        ok = (np.abs(den) > 1e-12) & (t > 1e-9) & (t < best * (1 - 1e-9)) & inside
         best[ok] = t[ok]
         hit[ok] = f.index
     return hit, best
@@ -272,10 +273,13 @@ def test_track_points_show_their_face_and_texture(scene, camera, mapping):
             for a, b in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
                 # The middle of each quadrant shows that quadrant's texture colour, shaded.
                 st = np.array([s + a * rad / 2, t + b * rad / 2])
-                tex = f.texture[int(st[1]) - 1 : int(st[1]) + 1, int(st[0]) - 1 : int(st[0]) + 1].reshape(-1, 3).mean(0)
+                ts, tt = int(st[0]), int(st[1])
+                tex = f.texture[tt - 1 : tt + 1, ts - 1 : ts + 1].reshape(-1, 3).mean(0)
                 p = camera.project(T, f.world_from_tex(st[None]))[0][0]
                 pi, pj = int(p[0]), int(p[1])
-                if not (2 <= pi < 638 and 2 <= pj < 478) or np.any(r.face_id[pj - 2 : pj + 3, pi - 2 : pi + 3] != f.index):
+                if not (2 <= pi < 638 and 2 <= pj < 478):
+                    continue
+                if np.any(r.face_id[pj - 2 : pj + 3, pi - 2 : pi + 3] != f.index):
                     continue
                 seen = smooth[pj, pi]
                 assert np.all(np.abs(seen - tex * f.shade) < 12), (seen, tex * f.shade)
@@ -337,7 +341,8 @@ def test_no_occluded_point_in_a_track_and_visible_points_present(scene, camera, 
         # Clearly visible points (independent test, margins on every threshold) must be present.
         clear = cand[hit < 0]
         cos_o = np.einsum("ij,ij->i", to_cam[clear], normals[clear]) / dist[clear]
-        keep = (cos_o > np.cos(np.radians(conf.max_obliquity_deg - 3))) & camera.in_image(xy[clear], conf.margin_px + 1)
+        keep = (cos_o > np.cos(np.radians(conf.max_obliquity_deg - 3)))
+        keep &= camera.in_image(xy[clear], conf.margin_px + 1)
         clear = clear[keep]
         if len(clear) == 0:
             continue
@@ -359,7 +364,8 @@ def test_tracks_reference_exact_projections(scene, camera, mapping):
         for iid, idx in zip(p.track_image_ids, p.track_point2D_idxs):
             im = rec.images[int(iid)]
             assert im.point3D_ids[idx] == pid
-            np.testing.assert_allclose(im.points2D[idx], camera.project(poses[iid - 1], p.xyz[None])[0][0], atol=1e-9)
+            expected = camera.project(poses[iid - 1], p.xyz[None])[0][0]
+            np.testing.assert_allclose(im.points2D[idx], expected, atol=1e-9)
             n_obs += 1
     assert n_obs == sum(len(im.point3D_ids) for im in rec.images.values())
     assert len(rec.points3D) > 300
@@ -379,7 +385,8 @@ def test_deterministic_for_a_seed_and_different_across_seeds(scene, camera):
     assert all(np.array_equal(a.texture, b.texture) for a, b in zip(scene.faces, again.faces))
     np.testing.assert_array_equal(scene.features.xyz, again.features.xyz)
     T = mapping_views(scene, 2, seed=0)[1]
-    assert all(np.array_equal(a.matrix(), b.matrix()) for a, b in zip(mapping_views(again, 2, 0), mapping_views(scene, 2, 0)))
+    pairs = zip(mapping_views(again, 2, 0), mapping_views(scene, 2, 0))
+    assert all(np.array_equal(a.matrix(), b.matrix()) for a, b in pairs)
     b1, d1 = render(scene, camera, T, noise_seed=7)
     b2, d2 = render(again, camera, T, noise_seed=7)
     assert np.array_equal(b1, b2) and np.array_equal(d1, d2)

@@ -259,7 +259,8 @@ def _depth_from_inv(inv: np.ndarray) -> np.ndarray:
 
 
 def render_full(scene: Scene, camera: Camera, cam_from_world: Rigid3d, *, noise_sigma: float | None = None,
-                noise_seed: int | tuple | list | np.random.Generator = 0, conf: RenderConf | None = None) -> Rendering:
+                noise_seed: int | tuple | list | np.random.Generator = 0,
+                conf: RenderConf | None = None) -> Rendering:
     """Colour, depth and face ids of the view ``cam_from_world``."""
     conf = conf or RenderConf()
     sigma = conf.noise_sigma if noise_sigma is None else float(noise_sigma)

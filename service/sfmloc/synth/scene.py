@@ -144,7 +144,8 @@ class Box:
         ex, ey = self.axes
         hx, hy = self.size[0] / 2, self.size[1] / 2
         c = np.asarray(self.center)
-        return np.stack([c - hx * ex - hy * ey, c + hx * ex - hy * ey, c + hx * ex + hy * ey, c - hx * ex + hy * ey])
+        return np.stack([c - hx * ex - hy * ey, c + hx * ex - hy * ey,
+                         c + hx * ex + hy * ey, c - hx * ex + hy * ey])
 
     def distance_xy(self, pts: np.ndarray) -> np.ndarray:
         """Horizontal distance of points (N, 2) to the footprint (0 inside)."""
@@ -185,7 +186,8 @@ class Track:
     def point(self, theta: np.ndarray, rho: np.ndarray) -> np.ndarray:
         theta, rho = np.asarray(theta, np.float64), np.asarray(rho, np.float64)
         a, b = self.semi_axes
-        return np.stack([self.center[0] + rho * a * np.cos(theta), self.center[1] + rho * b * np.sin(theta)], axis=-1)
+        x = self.center[0] + rho * a * np.cos(theta)
+        return np.stack([x, self.center[1] + rho * b * np.sin(theta)], axis=-1)
 
 
 @dataclass(frozen=True)
@@ -193,11 +195,6 @@ class RoomLayout:
     size: tuple[float, float, float]
     boxes: tuple[Box, ...]
     track: Track
-
-    @property
-    def obstacles(self) -> tuple[Box, ...]:
-        """Boxes a camera must keep clear of (legs and stacked boxes lie in others' footprints)."""
-        return self.boxes
 
     def wall_distance(self, xy: np.ndarray) -> np.ndarray:
         p = np.asarray(xy, np.float64).reshape(-1, 2)
@@ -269,7 +266,8 @@ def room_layout(seed: int, conf: SceneConf | None = None) -> RoomLayout:
         u = np.linspace(-0.5, 0.5, max(2, int(b.size[0] / res)))
         v = np.linspace(-0.5, 0.5, max(2, int(b.size[1] / res)))
         uu, vv = np.meshgrid(u, v)
-        pts = np.asarray(b.center) + (uu.ravel()[:, None] * b.size[0]) * ex + (vv.ravel()[:, None] * b.size[1]) * ey
+        pts = (np.asarray(b.center) + (uu.ravel()[:, None] * b.size[0]) * ex
+               + (vv.ravel()[:, None] * b.size[1]) * ey)
         i = np.clip((pts[:, 0] / res).astype(int), 0, dist.shape[1] - 1)
         j = np.clip((pts[:, 1] / res).astype(int), 0, dist.shape[0] - 1)
         return bool(np.all(dist[j, i] >= track.clearance + res))
@@ -290,7 +288,8 @@ def room_layout(seed: int, conf: SceneConf | None = None) -> RoomLayout:
             if np.any(o.distance_xy(fp) < sep) or np.any(b.distance_xy(o.footprint()) < sep):
                 return False
             # Footprints can cross without corners inside each other; test the centres too.
-            if o.distance_xy(np.asarray(b.center)[None])[0] < sep or b.distance_xy(np.asarray(o.center)[None])[0] < sep:
+            if (o.distance_xy(np.asarray(b.center)[None])[0] < sep
+                    or b.distance_xy(np.asarray(o.center)[None])[0] < sep):
                 return False
         return True
 
@@ -322,7 +321,8 @@ def room_layout(seed: int, conf: SceneConf | None = None) -> RoomLayout:
             ex, ey = top.axes
             for k, (a, b) in enumerate([(-1, -1), (1, -1), (1, 1), (-1, 1)]):
                 c = np.asarray(top.center) + a * (sx / 2 - 0.06) * ex + b * (sy / 2 - 0.06) * ey
-                placed.append(Box(f"table_leg{k}", "table_leg", (float(c[0]), float(c[1])), (0.05, 0.05, 0.72), yaw))
+                placed.append(Box(f"table_leg{k}", "table_leg", (float(c[0]), float(c[1])),
+                                  (0.05, 0.05, 0.72), yaw))
         elif kind == "shelf":
             def make_shelf() -> Box:
                 sx, sy, sz = rng.uniform(1.2, 1.8), 0.3, rng.uniform(1.6, 2.0)
@@ -360,7 +360,8 @@ def room_layout(seed: int, conf: SceneConf | None = None) -> RoomLayout:
                     sx, sy = rng.uniform(0.3, 0.8) * base.size[0], rng.uniform(0.3, 0.8) * base.size[1]
                     yaw = base.yaw + np.radians(rng.uniform(-20, 20))
                     c = np.asarray(base.center) + rng.uniform(-0.1, 0.1, 2)
-                    b = Box(f"box{n}", "crate", (float(c[0]), float(c[1])), (sx, sy, rng.uniform(0.25, 0.45)), yaw, base.z1)
+                    b = Box(f"box{n}", "crate", (float(c[0]), float(c[1])),
+                            (sx, sy, rng.uniform(0.25, 0.45)), yaw, base.z1)
                     if np.all(base.distance_xy(b.footprint()) == 0.0):
                         placed.append(b)
                         break
@@ -368,10 +369,13 @@ def room_layout(seed: int, conf: SceneConf | None = None) -> RoomLayout:
             for _ in range(100):
                 sx, sy, sz = rng.uniform(0.3, 0.45), rng.uniform(0.25, 0.35), rng.uniform(0.25, 0.4)
                 c = np.asarray(table.center) + rng.uniform(-0.25, 0.25, 2) * np.array([1, 0.3])
-                b = Box(f"box{n}", "crate", (float(c[0]), float(c[1])), (sx, sy, sz), table.yaw + np.radians(rng.uniform(-30, 30)))
+                yaw = table.yaw + np.radians(rng.uniform(-30, 30))
+                b = Box(f"box{n}", "crate", (float(c[0]), float(c[1])), (sx, sy, sz), yaw)
                 legs = [o for o in placed if o.kind == "table_leg"]
                 if np.all(table.distance_xy(b.footprint()) == 0.0) and all(
-                    np.all(o.distance_xy(b.footprint()) > 0.05) and b.distance_xy(np.asarray(o.center)[None])[0] > 0.05 for o in legs
+                    np.all(o.distance_xy(b.footprint()) > 0.05)
+                    and b.distance_xy(np.asarray(o.center)[None])[0] > 0.05
+                    for o in legs
                 ):
                     placed.append(b)
                     break
@@ -429,7 +433,7 @@ def _shade(normal: np.ndarray, rng: np.random.Generator) -> float:
 
 
 def _build_room(seed: int, conf: SceneConf, layout: RoomLayout) -> Scene:
-    L, W, H = layout.size
+    L, W, _ = layout.size
     p = conf.texel_size
     shared = np.random.default_rng([seed, 2])
     posters = tx.make_poster_designs(shared, p)

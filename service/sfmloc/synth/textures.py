@@ -42,7 +42,8 @@ def random_color(rng: np.random.Generator, s: tuple[float, float] = (0.15, 0.75)
 def jitter(c: Color, rng: np.random.Generator, amount: float) -> Color:
     """Vary mostly the brightness (a common offset), slightly the hue."""
     common = rng.uniform(-amount, amount)
-    return tuple(int(np.clip(x + common + rng.uniform(-amount, amount) / 4, 12, 243)) for x in c)  # type: ignore[return-value]
+    out = tuple(int(np.clip(x + common + rng.uniform(-amount, amount) / 4, 12, 243)) for x in c)
+    return out  # type: ignore[return-value]
 
 
 def gray_of(c: Color) -> float:
@@ -509,10 +510,12 @@ def compose_wall(width_m: float, height_m: float, rng: np.random.Generator, texe
             for hgt in (1.25, 1.65, 2.05):
                 top = row(hgt)
                 books(cv, x, min(W, x + ew), top, cv.t(0.3), rng)
-                cv.rect(x - cv.t(0.02), top, min(W, x + ew + cv.t(0.02)), top + cv.t(0.025), jitter((50, 80, 120), rng, 15))
+                cv.rect(x - cv.t(0.02), top, min(W, x + ew + cv.t(0.02)), top + cv.t(0.025),
+                        jitter((50, 80, 120), rng, 15))
         elif kind == "tiles":
             ew = cv.t(rng.uniform(1.0, 1.8))
-            colors = [jitter((215, 215, 210), rng, 8), jitter(random_color(rng, s=(0.3, 0.6), v=(0.4, 0.7)), rng, 4)]
+            colors = [jitter((215, 215, 210), rng, 8),
+                      jitter(random_color(rng, s=(0.3, 0.6), v=(0.4, 0.7)), rng, 4)]
             tile = rng.choice([0.1, 0.15, 0.2])
             checker = bool(rng.random() < 0.4)
             tiles(cv, x, row(1.6), min(W, x + ew), row(0.9), rng, tile, 0.0 if checker else 0.006,
@@ -559,14 +562,16 @@ def _wall_low_band(cv: Canvas, rng: np.random.Generator, row) -> None:
                 cv.rect(sx, top + cv.t(0.03), sx + slat // 2, bot - cv.t(0.03), tuple(int(c * 0.7) for c in body))
         elif kind == "tiles":
             colors = [jitter((200, 205, 205), rng, 10), jitter(random_color(rng, v=(0.3, 0.6)), rng, 5)]
-            tiles(cv, x, row(0.8), x1, row(0.1), rng, rng.choice([0.1, 0.15]), 0.0, colors, (0, 0, 0), checker=True)
+            tiles(cv, x, row(0.8), x1, row(0.1), rng, rng.choice([0.1, 0.15]), 0.0, colors, (0, 0, 0),
+                  checker=True)
         elif kind == "frames":
             fx = x
             while fx < x1 - cv.t(0.3):
                 fw, fh = cv.t(rng.uniform(0.2, 0.35)), cv.t(rng.uniform(0.2, 0.4))
                 top = row(rng.uniform(0.55, 0.8))
                 cv.rect(fx, top, fx + fw, top + fh, jitter((200, 60, 60), rng, 40))
-                mondrian(cv, fx + cv.t(0.02), top + cv.t(0.02), fx + fw - cv.t(0.02), top + fh - cv.t(0.02), rng, 10,
+                m = cv.t(0.02)
+                mondrian(cv, fx + m, top + m, fx + fw - m, top + fh - m, rng, 10,
                          min_m=0.03)
                 fx += fw + cv.t(rng.uniform(0.05, 0.15))
         x = x1 + cv.t(rng.uniform(0.0, 0.3))
@@ -576,7 +581,8 @@ def _wall_high_band(cv: Canvas, rng: np.random.Generator, row) -> None:
     """Banners, small frames, vents and storage shelves between 2.25 and 2.9 m."""
     x = cv.t(rng.uniform(0.0, 0.3))
     while x < cv.w - cv.t(0.3):
-        kind = rng.choice(["banner", "frames", "vent", "storage", "clock", "bare"], p=[0.25, 0.2, 0.15, 0.2, 0.1, 0.1])
+        kind = rng.choice(["banner", "frames", "vent", "storage", "clock", "bare"],
+                          p=[0.25, 0.2, 0.15, 0.2, 0.1, 0.1])
         if kind == "banner":
             ew = cv.t(rng.uniform(0.8, 2.0))
             top = row(rng.uniform(2.75, 2.85))
@@ -632,7 +638,8 @@ def _wall_high_band(cv: Canvas, rng: np.random.Generator, row) -> None:
 
 
 def compose_floor(width_m: float, depth_m: float, rng: np.random.Generator, texel: float,
-                  grain: float, rug: tuple[float, float, float, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
+                  grain: float, rug: tuple[float, float, float, float] | None = None
+                  ) -> tuple[np.ndarray, np.ndarray]:
     """Checkerboard-like tiles (repeated pattern) and a patterned rug at ``rug`` (x0, y0, x1, y1 m)."""
     cv = Canvas(int(round(width_m / texel)), int(round(depth_m / texel)), (128, 128, 128), texel)
     a = jitter((170, 180, 185), rng, 15)
@@ -682,7 +689,8 @@ def compose_ceiling(width_m: float, depth_m: float, rng: np.random.Generator, te
             else:  # vent
                 for k in range(5):
                     d = cv.t(0.05) * k
-                    cv.rect(x0 + d, y0 + d, x0 + T - g - d, y0 + T - g - d, (90, 90, 90) if k % 2 else (200, 200, 205))
+                    cv.rect(x0 + d, y0 + d, x0 + T - g - d, y0 + T - g - d,
+                            (90, 90, 90) if k % 2 else (200, 200, 205))
     img = cv.finish(rng, grain)
     return img, cv.corners()
 
@@ -701,7 +709,8 @@ def compose_box_face(kind: str, role: str, width_m: float, height_m: float, rng:
         else:
             _wood(cv, rng)
             if role == "top":
-                mondrian(cv, cv.t(0.02), cv.t(0.02), W - cv.t(0.02), H - cv.t(0.02), rng, 6, min_m=0.05, max_frac=0.4)
+                m = cv.t(0.02)
+                mondrian(cv, m, m, W - m, H - m, rng, 6, min_m=0.05, max_frac=0.4)
             else:
                 _stickers(cv, rng, labels, 2)
     elif kind == "cabinet":
@@ -745,7 +754,8 @@ def make_labels(rng: np.random.Generator, texel: float, n: int = 3) -> list[Canv
         bx = cv.w - cv.t(0.06)
         for k in range(10):  # a barcode-ish block
             if rng.random() < 0.6:
-                cv.rect(bx + k * bars * 2, cv.h - cv.t(0.05), bx + k * bars * 2 + bars, cv.h - cv.t(0.01), (20, 20, 20))
+                x = bx + k * bars * 2
+                cv.rect(x, cv.h - cv.t(0.05), x + bars, cv.h - cv.t(0.01), (20, 20, 20))
         out.append(cv)
     return out
 
@@ -796,7 +806,8 @@ def _cabinet_front(cv: Canvas, rng: np.random.Generator) -> None:
         if rng.random() < 0.5:
             lx, ly = x0 + cv.t(0.05), gap + cv.t(0.08)
             cv.rect(lx, ly, min(x1 - cv.t(0.05), lx + cv.t(0.2)), ly + cv.t(0.1), (240, 240, 240))
-            text_lines(cv, lx + 2, ly + 2, min(x1 - cv.t(0.05), lx + cv.t(0.2)) - 2, ly + cv.t(0.1) - 2, rng, 0.012, (20, 20, 20))
+            lx1 = min(x1 - cv.t(0.05), lx + cv.t(0.2))
+            text_lines(cv, lx + 2, ly + 2, lx1 - 2, ly + cv.t(0.1) - 2, rng, 0.012, (20, 20, 20))
     for d in range(n_drawers):
         y0 = top_doors + d * drawer_h + gap
         cv.rect(gap, y0, W - gap, y0 + drawer_h - 2 * gap, jitter(panel, rng, 6))
@@ -822,4 +833,5 @@ def _desk_clutter(cv: Canvas, rng: np.random.Generator) -> None:
             for i in range(12):
                 kx, ky = x + cv.t(0.025) + i * (k + 2), y + cv.t(0.03) + j * (k + 2)
                 cv.rect(kx, ky, kx + k, ky + k, (120, 120, 125))
-        cv.rect(x + lw // 2 - cv.t(0.05), y + lh - cv.t(0.08), x + lw // 2 + cv.t(0.05), y + lh - cv.t(0.02), (80, 80, 85))
+        cx = x + lw // 2  # touchpad
+        cv.rect(cx - cv.t(0.05), y + lh - cv.t(0.08), cx + cv.t(0.05), y + lh - cv.t(0.02), (80, 80, 85))
