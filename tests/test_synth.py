@@ -413,8 +413,8 @@ def test_noise_free_render_and_camera_checks(scene, camera):
 def test_trajectories_stay_in_free_space(seed):
     layout = room_layout(seed)
     L, W, H = layout.size
-    for kind in ("walk", "flight", "orbit"):
-        poses = make_trajectory(kind, 600, seed, layout)
+    for kind, extra in (("walk", {}), ("flight", {}), ("orbit", {}), ("orbit", {"look": "outward"})):
+        poses = make_trajectory(kind, 600, seed, layout, **extra)
         assert len(poses) == 600
         assert check_trajectory(layout, poses) == []
         C = np.stack([p.center for p in poses])

@@ -52,6 +52,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="video motion: walk (a person at ~1.2 m/s, eyes at ~1.5 m), flight (quadrotor with "
                         "fast yaw bursts up to ~120 deg/s), orbit (circle around the room centre looking "
                         "inward) (default walk)")
+    p.add_argument("--orbit-look", choices=["inward", "outward"], default=None,
+                   help="for --trajectory orbit: look at the room centre or at the walls (default inward)")
     p.add_argument("--frames", type=int, default=None, metavar="N", help="video frames at 30 Hz (default 300)")
     p.add_argument("--seed", type=int, default=None, metavar="S",
                    help="seed of the room layout, textures, paths and noise (default 0)")
@@ -78,7 +80,8 @@ def run(args: argparse.Namespace) -> int:
                        ("focal", args.focal), ("mapping_views", args.mapping_views)):
         if value is not None:
             changes[key] = value
-    traj = {k: v for k, v in (("kind", args.trajectory), ("n_frames", args.frames)) if v is not None}
+    traj = {k: v for k, v in (("kind", args.trajectory), ("n_frames", args.frames),
+                              ("orbit_look", args.orbit_look)) if v is not None}
     if traj:
         changes["trajectory"] = traj
     if args.noise is not None:

@@ -17,7 +17,7 @@ def bench(kind: str = "walk", frames: int = 300, seed: int = 0, width: int = 640
           **render_kw) -> dict:
     from ..cameras import Camera
     from .config import RenderConf
-    from .renderer import render
+    from .renderer import prepare, render
     from .scene import Scene
     from .trajectory import make_trajectory
 
@@ -26,7 +26,8 @@ def bench(kind: str = "walk", frames: int = 300, seed: int = 0, width: int = 640
     camera = Camera.pinhole(width, height, f, f, width / 2, height / 2)
     poses = make_trajectory(kind, frames, seed, scene)
     conf = RenderConf(**render_kw)
-    render(scene, camera, poses[0], conf=conf)  # builds the mipmaps
+    prepare(scene)  # mipmaps
+    render(scene, camera, poses[0], conf=conf)  # warm-up
     times = []
     cpu0 = time.process_time()
     for i, pose in enumerate(poses):

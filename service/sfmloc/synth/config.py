@@ -68,6 +68,8 @@ class TrajectoryConf(StrictModel):
     kind: TrajectoryKind = "walk"
     n_frames: int = Field(300, ge=1)
     fps: float = Field(30.0, gt=0.0)
+    # Where the orbit looks: at the room centre (and the walls beyond) or at the nearer walls.
+    orbit_look: Literal["inward", "outward"] = "inward"
 
 
 class SynthConf(StrictModel):

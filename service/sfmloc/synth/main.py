@@ -43,7 +43,7 @@ from ..io.colmap import write_model
 from ..io.poses import write_colmap_list, write_tum
 from .config import SynthConf
 from .model import build_reconstruction
-from .renderer import render_full
+from .renderer import prepare, render_full
 from .scene import Scene
 from .trajectory import check_trajectory, make_trajectory, mapping_views
 from .visibility import visible_points
@@ -116,7 +116,9 @@ def run(conf: SynthConf, out: str | Path, overwrite: bool = False) -> SynthResul
     """Render and write the data set for ``conf`` to ``out``."""
     t_start = time.perf_counter()
     out = Path(out)
-    if out.exists() and (not out.is_dir() or any(out.iterdir())) and not overwrite:
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out} is a file, not a folder")
+    if out.exists() and any(out.iterdir()) and not overwrite:
         raise InputError(f"{out} exists and is not empty; choose another OUT or pass --overwrite")
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.parent / f".{out.name}.partial-{os.getpid()}"
@@ -151,6 +153,7 @@ def _generate(conf: SynthConf, root: Path, result: SynthResult) -> None:
     scene = Scene.room(conf.seed, conf.scene)
     log.info("%s (%.1f s)", scene.summary(), time.perf_counter() - t0)
     camera = make_camera(conf)
+    prepare(scene)  # mipmaps, outside the timed renders
 
     # Mapping views and their exact model.
     map_poses = mapping_views(scene, conf.mapping_views, conf.seed)
@@ -175,7 +178,8 @@ def _generate(conf: SynthConf, root: Path, result: SynthResult) -> None:
 
     # The video.
     tconf = conf.trajectory
-    poses = make_trajectory(tconf.kind, tconf.n_frames, conf.seed, scene, fps=tconf.fps)
+    extra = {"look": tconf.orbit_look} if tconf.kind == "orbit" else {}
+    poses = make_trajectory(tconf.kind, tconf.n_frames, conf.seed, scene, fps=tconf.fps, **extra)
     problems = check_trajectory(scene.layout, poses)
     if problems:  # generation keeps clear of these; report rather than fail if a custom room is odd
         result.notes += problems[:3]

@@ -235,7 +235,10 @@ def _flight_yaw(layout: RoomLayout, P: np.ndarray, rng: np.random.Generator, fps
     return yaw
 
 
-def orbit(layout: RoomLayout, n_frames: int, seed: int, fps: float = 30.0, look: str = "inward") -> list[Rigid3d]:
+def orbit(layout: RoomLayout, n_frames: int, seed: int, fps: float = 30.0,
+          look: str = "inward") -> list[Rigid3d]:
+    if look not in ("inward", "outward"):
+        raise ValueError(f"orbit look must be 'inward' or 'outward', got {look!r}")
     rng = np.random.default_rng([seed, _SEED_TAGS["orbit"]])
     t = np.arange(n_frames) / fps
     R = layout.track.orbit_radius
@@ -253,7 +256,8 @@ def make_trajectory(kind: str, n_frames: int, seed: int = 0, scene: Scene | Room
                     fps: float = 30.0, **kwargs) -> list[Rigid3d]:
     """``cam_from_world`` of ``n_frames`` frames at ``fps`` of a ``walk``, ``flight`` or ``orbit``.
 
-    ``scene`` (a ``Scene`` or its ``RoomLayout``) defaults to the room of ``seed``.
+    ``scene`` (a ``Scene`` or its ``RoomLayout``) defaults to the room of ``seed``; an orbit
+    takes ``look="inward"`` (default) or ``"outward"``.
     """
     layout = _layout_of(scene, seed)
     if n_frames < 1:
