@@ -374,7 +374,7 @@ def test_tracks_reference_exact_projections(scene, camera, mapping):
 # --------------------------------------------------------------------------- scene and images
 def test_walls_have_hundreds_of_harris_corners(scene, camera):
     L, W, _ = scene.size
-    for eye, target in (((L / 2, 2.3, 1.5), (L / 2, 0.0, 1.4)), ((5.3, W / 2, 1.5), (L, W / 2, 1.4))):
+    for eye, target in (((L / 2, 1.5, 1.5), (L / 2, 0.0, 1.4)), ((5.5, W / 2, 1.5), (L, W / 2, 1.4))):
         bgr, _ = render(scene, camera, look_at(eye, target))
         c = cv2.goodFeaturesToTrack(cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY), 3000, 0.01, 5, useHarrisDetector=True)
         assert len(c) >= 200
