@@ -24,6 +24,7 @@ from sfmloc.errors import BuildCancelled, BuildError, CameraModelError, ImageDec
 from sfmloc.io.colmap import Reconstruction, read_model, write_model
 from sfmloc.io.poses import read_poses, write_colmap_list, write_tum
 from sfmloc.mapping import sfm
+from sfmloc.mapping.sfm_common import opencv_sift
 from sfmloc.transforms import Rigid3d
 
 REDKITCHEN = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "redkitchen-seq01"
@@ -203,7 +204,7 @@ def test_known_poses_progress_and_workdir_cleanup(corner_scene, tmp_path):
         corner_scene["images"],
         corner_scene["pose_file"],
         CAM,
-        sfm.sfm_conf("fast", min_track_length=2),
+        sfm.sfm_conf("fast", min_track_length=2, sift_backend="pycolmap"),  # the chunked extractor
         workdir=work,
         progress=lambda st, f, msg: events.append((st, f, msg)),
         image_names=corner_scene["names"][:4],
@@ -267,6 +268,54 @@ def test_known_poses_in_the_synthetic_room(tmp_path):
     rel = np.abs(t_hit - dist) / dist
     assert np.median(rel) < 0.02  # ~0.5% measured: 2.5 cm at 4.5 m with 1.7 cm pixels
     assert np.mean(rel < 0.05) > 0.8
+
+
+def _blobs(rng: np.random.Generator, w: int, h: int, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """Gaussian blobs at known sub-pixel centres (COLMAP convention), sampled at pixel centres."""
+    u, v = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    img = np.full((h, w), 60.0)
+    centres: list[tuple[float, float]] = []
+    while len(centres) < 25:
+        c = rng.uniform(20 * scale, [w - 20 * scale, h - 20 * scale])
+        if all(np.hypot(*(c - o)) > 25 * scale for o in centres):
+            centres.append((float(c[0]), float(c[1])))
+            sigma = rng.uniform(2.0, 4.0) * scale
+            img += 150 * np.exp(-((u - c[0]) ** 2 + (v - c[1]) ** 2) / (2 * sigma**2))
+    return np.clip(img, 0, 255).astype(np.uint8), np.array(centres)
+
+
+def _mean_offset(found: np.ndarray, centres: np.ndarray, radius: float) -> tuple[int, np.ndarray]:
+    d = np.linalg.norm(found[None, :, :] - centres[:, None, :], axis=2)
+    j = d.argmin(axis=1)
+    ok = d[np.arange(len(centres)), j] < radius
+    return int(ok.sum()), (found[j[ok]] - centres[ok]).mean(axis=0)
+
+
+@pytest.mark.parametrize("backend", ["opencv", "pycolmap"])
+def test_sift_keypoints_are_in_colmap_pixel_convention(backend):
+    """Blob centres come back unbiased (a 0.25 or 0.5 px convention slip would show)."""
+    gray, centres = _blobs(np.random.default_rng(1), 320, 240)
+    conf = sfm.SfmConf()
+    if backend == "opencv":
+        kp, desc = opencv_sift(gray, conf)
+        assert desc.dtype == np.uint8 and desc.shape == (len(kp), 128)
+        norms = np.linalg.norm(desc.astype(np.float64), axis=1)
+        assert np.all(np.abs(norms - 512) < 12)  # RootSIFT at COLMAP's uint8 scale
+        xy = kp[:, :2]
+    else:
+        ex = pycolmap.FeatureExtractor.create(pycolmap.FeatureExtractionOptions(), pycolmap.Device.cpu)
+        xy = pycolmap.keypoints_to_matrix(ex.extract_from_uint8_array(gray)[0])[:, :2]
+    n, off = _mean_offset(xy.astype(np.float64), centres, 1.5)
+    assert n >= 15
+    assert np.all(np.abs(off) < 0.08), off
+
+
+def test_opencv_sift_downscales_large_images_into_original_coordinates():
+    gray, centres = _blobs(np.random.default_rng(2), 640, 480, scale=2.0)
+    kp, _ = opencv_sift(gray, sfm.sfm_conf(max_image_size=320))
+    n, off = _mean_offset(kp[:, :2].astype(np.float64), centres, 3.0)
+    assert n >= 15
+    assert np.all(np.abs(off) < 0.16), off
 
 
 # --------------------------------------------------------------------------- images only

@@ -10,6 +10,7 @@ poses after a similarity alignment (the SfM frame is arbitrary).
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import os
 import time
@@ -77,13 +78,18 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--count", type=int, default=100, help="number of frames")
     p.add_argument("--mode", choices=["poses", "images", "both"], default="both")
     p.add_argument("--preset", default="default", choices=list(sfm.SFM_PRESETS))
+    p.add_argument("--backend", choices=["opencv", "pycolmap"], default=None, help="SIFT extractor (default: the preset's)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=JSON", help="override an SfmConf field")
     p.add_argument("--threads", type=int, default=-1)
     p.add_argument("-v", "--verbose", action="store_true")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(name)s: %(message)s")
     poses = args.poses or args.data / "pgt_sfm_seq01.txt"
     names = [f"frame-{i:06d}.color.jpg" for i in range(0, args.stride * args.count, args.stride)]
-    conf = sfm.sfm_conf(args.preset, num_threads=args.threads)
+    overrides = {k: json.loads(v) for k, v in (kv.split("=", 1) for kv in args.set)}
+    if args.backend:
+        overrides["sift_backend"] = args.backend
+    conf = sfm.sfm_conf(args.preset, num_threads=args.threads, **overrides)
     camera = None if args.camera.lower() == "none" else args.camera
     for mode in (["poses", "images"] if args.mode == "both" else [args.mode]):
         run_one(mode, args.data, names, conf, camera, poses)

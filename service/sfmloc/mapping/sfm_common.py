@@ -42,15 +42,18 @@ class SfmConf(StrictModel):
     """Parameters of the SfM front-end (known-poses triangulation and images-only SfM).
 
     Defaults were chosen on 100 redkitchen frames (every 10th of seq-01, 640x480) on a
-    2-core machine; see ``docs``/the module docstrings of ``sfm_poses`` and ``sfm_images``.
+    2-core machine (table above ``SFM_PRESETS``; module docstrings of ``sfm_poses`` and
+    ``sfm_images``) and checked against exact geometry on synthetic scenes (the tests).
     """
 
-    # SIFT (pycolmap, CPU)
+    # SIFT (CPU): OpenCV's (~3x less CPU per image) or pycolmap's own, both into COLMAP's database
+    sift_backend: Literal["opencv", "pycolmap"] = "opencv"
     max_features: int = Field(4000, ge=64, description="max SIFT features per image")
     first_octave: int = Field(
-        -1, ge=-1, le=2, description="-1 upsamples 2x first: ~3x the features on VGA images, ~3x slower"
+        -1, ge=-1, le=2, description="pycolmap: -1 upsamples 2x first: ~3x the features on VGA, ~3x slower"
     )
-    peak_threshold: float = Field(0.02 / 3, gt=0, description="SIFT DoG peak threshold (COLMAP default 0.0067)")
+    peak_threshold: float = Field(0.02 / 3, gt=0, description="pycolmap SIFT DoG peak threshold (COLMAP default)")
+    contrast_threshold: float = Field(0.015, gt=0, description="OpenCV SIFT contrastThreshold (OpenCV default 0.04)")
     max_image_size: int = Field(1600, ge=64, description="images larger than this are downscaled for SIFT")
     # matching
     max_ratio: float = Field(0.8, gt=0, le=1, description="Lowe ratio test")
@@ -76,13 +79,22 @@ class SfmConf(StrictModel):
     keep_workdir: bool = False
 
 
+# Known-poses path on 100 redkitchen frames (every 10th of seq-01, VGA), CPU seconds of the
+# whole stage (wall time is about half on an idle 2-core machine):
+#   default   OpenCV SIFT, contrast 0.015, k=5      ~21 CPU-s  ~11.0k points  0.71 px  track 5.5
+#   fast      OpenCV SIFT, contrast 0.03, 2000, k=4 ~13 CPU-s   ~7.3k points  0.69 px  track 5.5
+#   accurate  pycolmap SIFT, 8192 features, k=8     ~40 CPU-s  ~10.5k points  0.81 px  track 6.6
+# (pycolmap SIFT with the default pairs: ~34 CPU-s, 10.2k points, 0.72 px.)
 SFM_PRESETS: dict[str, dict[str, Any]] = {
-    # Measured on 100 redkitchen frames (2 cores): ~11k points, 0.74 px, ~16 s.
     "default": {},
-    # No 2x upsampling, a lower peak threshold: ~2.5x faster SIFT, ~25% fewer points.
-    "fast": {"first_octave": 0, "peak_threshold": 0.004, "pair_neighbors": 4},
-    # More features and more pairs: longer tracks, about twice the time.
-    "accurate": {"max_features": 8192, "pair_neighbors": 8, "pair_sequential": 3, "sequential_overlap": 8},
+    "fast": {"contrast_threshold": 0.03, "max_features": 2000, "pair_neighbors": 4},
+    "accurate": {
+        "sift_backend": "pycolmap",
+        "max_features": 8192,
+        "pair_neighbors": 8,
+        "pair_sequential": 3,
+        "sequential_overlap": 8,
+    },
 }
 
 
@@ -291,11 +303,110 @@ def extract_features(
     conf: SfmConf,
     rep: Reporter,
 ) -> dict[str, int]:
-    """SIFT features of ``names`` into a new database, all sharing ``camera``.
+    """SIFT features of ``names`` into a new COLMAP database, all sharing ``camera``;
+    returns name -> database image id. ``conf.sift_backend`` picks the extractor."""
+    if conf.sift_backend == "opencv":
+        ids = _extract_opencv(database_path, image_dir, names, camera, conf, rep)
+    else:
+        ids = _extract_pycolmap(database_path, image_dir, names, camera, conf, rep)
+    db = pycolmap.Database.open(database_path)
+    try:
+        counts = {nm: db.num_keypoints_for_image(ids[nm]) for nm in names}
+    finally:
+        db.close()
+    empty = [nm for nm, c in counts.items() if c == 0]
+    if empty:
+        log.warning(
+            "%d image(s) have no SIFT features (blank or textureless?): %s", len(empty), ", ".join(empty[:5])
+        )
+    total = sum(counts.values())
+    rep.report("features", 1.0, f"{total} SIFT features, {total / max(1, len(names)):.0f} per image")
+    return ids
 
-    Returns name -> database image id. Runs pycolmap's extractor in chunks so progress and
-    cancellation happen per chunk; the camera is written first and reused by every chunk.
-    """
+
+# OpenCV's SIFT upsamples the image 2x first and reports ``upsampled_index / 2``: in COLMAP's
+# convention a keypoint is at ``pt + 0.25`` (not ``+ 0.5``); measured on Gaussian blobs at
+# known positions, where pycolmap's SIFT is unbiased (tests/test_mapping_sfm.py).
+OPENCV_SIFT_OFFSET = 0.25
+
+
+def opencv_sift(gray: np.ndarray, conf: SfmConf) -> tuple[np.ndarray, np.ndarray]:
+    """OpenCV SIFT as COLMAP stores it: (N, 6) float32 keypoints ``x y a11 a12 a21 a22`` in
+    COLMAP's pixel convention and (N, 128) uint8 RootSIFT descriptors (L1, sqrt, x512).
+    Images larger than ``conf.max_image_size`` are downscaled first (coordinates are not)."""
+    scale = 1.0
+    h, w = gray.shape[:2]
+    if max(h, w) > conf.max_image_size:
+        scale = conf.max_image_size / max(h, w)
+        gray = cv2.resize(gray, (max(1, round(w * scale)), max(1, round(h * scale))), interpolation=cv2.INTER_AREA)
+    sift = cv2.SIFT_create(nfeatures=conf.max_features, contrastThreshold=conf.contrast_threshold)
+    kps, desc = sift.detectAndCompute(gray, None)
+    if desc is None or not kps:
+        return np.zeros((0, 6), np.float32), np.zeros((0, 128), np.uint8)
+    xy = (np.array([k.pt for k in kps], np.float64) + OPENCV_SIFT_OFFSET) / scale
+    size = np.array([k.size for k in kps], np.float64) / (2.0 * scale)
+    ang = -np.radians([k.angle for k in kps])  # OpenCV: degrees, counter-clockwise in a y-down image
+    c, s = size * np.cos(ang), size * np.sin(ang)
+    kp = np.stack([xy[:, 0], xy[:, 1], c, -s, s, c], axis=1).astype(np.float32)
+    d = desc.astype(np.float32)
+    d /= np.maximum(d.sum(axis=1, keepdims=True), 1e-12)
+    d = np.minimum(np.round(512.0 * np.sqrt(d)), 255).astype(np.uint8)
+    return kp, d
+
+
+def _read_gray(path: Path) -> np.ndarray:
+    data = np.fromfile(str(path), dtype=np.uint8)
+    img = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE) if data.size else None
+    if img is None:
+        raise ImageDecodeError(f"[features] cannot decode image {path}")
+    return img
+
+
+def _extract_opencv(
+    database_path: Path, image_dir: Path, names: Sequence[str], camera: pycolmap.Camera, conf: SfmConf, rep: Reporter
+) -> dict[str, int]:
+    """OpenCV SIFT in a thread pool (it releases the GIL); the database is written here, in
+    pycolmap 4's layout: one camera, its trivial rig, one frame per image."""
+    n = len(names)
+    rep.report("features", 0.0, f"SIFT (OpenCV) on {n} images")
+    db = pycolmap.Database.open(database_path)
+    ids: dict[str, int] = {}
+    try:
+        camera_id = db.write_camera(camera)
+        sensor = pycolmap.sensor_t(type=pycolmap.SensorType.CAMERA, id=camera_id)
+        rig = pycolmap.Rig()
+        rig.add_ref_sensor(sensor)
+        rig_id = db.write_rig(rig)
+        with ThreadPoolExecutor(max_workers=num_threads(conf)) as pool:
+            futures = [pool.submit(lambda nm: opencv_sift(_read_gray(image_dir / nm), conf), nm) for nm in names]
+            try:
+                for i, (name, fut) in enumerate(zip(names, futures)):
+                    kp, desc = fut.result()
+                    image_id = db.write_image(pycolmap.Image(name=name, camera_id=camera_id))
+                    frame = pycolmap.Frame()
+                    frame.rig_id = rig_id
+                    frame.add_data_id(pycolmap.data_t(sensor_id=sensor, id=image_id))
+                    db.write_frame(frame)
+                    db.write_keypoints(image_id, kp)
+                    db.write_descriptors(image_id, pycolmap.FeatureDescriptors(pycolmap.FeatureExtractorType.SIFT, desc))
+                    ids[name] = int(image_id)
+                    rep.check("features")
+                    if (i + 1) % 10 == 0 or i + 1 == n:
+                        rep.report("features", (i + 1) / n, f"SIFT {i + 1}/{n} images")
+            except BaseException:
+                for f in futures:
+                    f.cancel()
+                raise
+    finally:
+        db.close()
+    return ids
+
+
+def _extract_pycolmap(
+    database_path: Path, image_dir: Path, names: Sequence[str], camera: pycolmap.Camera, conf: SfmConf, rep: Reporter
+) -> dict[str, int]:
+    """pycolmap's extractor, run in chunks so progress and cancellation happen per chunk; the
+    camera is written first and reused by every chunk."""
     db = pycolmap.Database.open(database_path)
     try:
         camera_id = db.write_camera(camera)
@@ -336,16 +447,8 @@ def extract_features(
                 + ", ".join(missing[:5])
                 + (" ..." if len(missing) > 5 else "")
             )
-        counts = {nm: db.num_keypoints_for_image(ids[nm]) for nm in names}
     finally:
         db.close()
-    empty = [nm for nm, c in counts.items() if c == 0]
-    if empty:
-        log.warning(
-            "%d image(s) have no SIFT features (blank or textureless?): %s", len(empty), ", ".join(empty[:5])
-        )
-    total = sum(counts.values())
-    rep.report("features", 1.0, f"{total} SIFT features, {total / max(1, n):.0f} per image")
     return ids
 
 
