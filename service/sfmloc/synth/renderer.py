@@ -254,7 +254,7 @@ def _rasterize(scene: Scene, camera: Camera, cam_from_world: Rigid3d, near: floa
         if not m.any():
             continue
         np.copyto(inv_sub, sub_inv, where=m)
-        fid[j0 : j1 + 1, i0 : i1 + 1][m] = face.index
+        np.copyto(fid[j0 : j1 + 1, i0 : i1 + 1], face.index, where=m, casting="unsafe")
         drawn.append((face, (i0, i1, j0, j1)))
     return inv, fid, drawn
 
