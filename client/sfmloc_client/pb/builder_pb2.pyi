@@ -52,7 +52,7 @@ class ImagesOnlyInput(_message.Message):
     def __init__(self, image_dir: _Optional[str] = ..., camera: _Optional[_Union[_common_pb2.Camera, _Mapping]] = ..., matching: _Optional[str] = ...) -> None: ...
 
 class SubmitBuildRequest(_message.Message):
-    __slots__ = ("name", "out_dir", "colmap", "posed_images", "images_only", "preset", "config_json")
+    __slots__ = ("name", "out_dir", "colmap", "posed_images", "images_only", "preset", "config_json", "stride")
     NAME_FIELD_NUMBER: _ClassVar[int]
     OUT_DIR_FIELD_NUMBER: _ClassVar[int]
     COLMAP_FIELD_NUMBER: _ClassVar[int]
@@ -60,6 +60,7 @@ class SubmitBuildRequest(_message.Message):
     IMAGES_ONLY_FIELD_NUMBER: _ClassVar[int]
     PRESET_FIELD_NUMBER: _ClassVar[int]
     CONFIG_JSON_FIELD_NUMBER: _ClassVar[int]
+    STRIDE_FIELD_NUMBER: _ClassVar[int]
     name: str
     out_dir: str
     colmap: ColmapInput
@@ -67,7 +68,8 @@ class SubmitBuildRequest(_message.Message):
     images_only: ImagesOnlyInput
     preset: str
     config_json: str
-    def __init__(self, name: _Optional[str] = ..., out_dir: _Optional[str] = ..., colmap: _Optional[_Union[ColmapInput, _Mapping]] = ..., posed_images: _Optional[_Union[PosedImagesInput, _Mapping]] = ..., images_only: _Optional[_Union[ImagesOnlyInput, _Mapping]] = ..., preset: _Optional[str] = ..., config_json: _Optional[str] = ...) -> None: ...
+    stride: int
+    def __init__(self, name: _Optional[str] = ..., out_dir: _Optional[str] = ..., colmap: _Optional[_Union[ColmapInput, _Mapping]] = ..., posed_images: _Optional[_Union[PosedImagesInput, _Mapping]] = ..., images_only: _Optional[_Union[ImagesOnlyInput, _Mapping]] = ..., preset: _Optional[str] = ..., config_json: _Optional[str] = ..., stride: _Optional[int] = ...) -> None: ...
 
 class SubmitBuildResponse(_message.Message):
     __slots__ = ("job_id",)

@@ -15,6 +15,7 @@ COMMANDS = [
     "synth",
     "build",
     "map",
+    "builder",
     "replay",
     "serve",
     "stream",

@@ -1,0 +1,115 @@
+"""``sfmloc builder serve``: the MapBuilder gRPC service, health and reflection, and Zenoh
+announcements of finished bundles (``sfmloc/maps/<name>``: ``{name, build_id, path}``)."""
+
+from __future__ import annotations
+
+import logging
+import signal
+import threading
+from concurrent import futures
+from pathlib import Path
+
+import grpc
+from grpc_health.v1 import health, health_pb2, health_pb2_grpc
+from grpc_reflection.v1alpha import reflection
+from pydantic import Field
+from sfmloc_client.pb import builder_pb2, builder_pb2_grpc
+from sfmloc_client.wire import MapAnnouncement, encode_map_announcement, map_announce_key
+from sfmloc_client.zconfig import make_zenoh_config
+
+from ..config import StrictModel
+from .grpc_service import MapBuilderServicer
+from .jobs import Job, JobManager
+
+log = logging.getLogger(__name__)
+
+SERVICE_NAME = builder_pb2.DESCRIPTOR.services_by_name["MapBuilder"].full_name
+
+
+class BuilderConfig(StrictModel):
+    out: str = Field("maps", description="default folder for bundles")
+    grpc: str = Field("127.0.0.1:50052", description="gRPC listen address HOST:PORT")
+    max_concurrent: int = Field(1, ge=1, description="builds running at once (one process each)")
+    workdir: str | None = Field(None, description="parent of per-job work folders (default: OUT/.work)")
+    cancel_grace_s: float = Field(10.0, gt=0, description="seconds a cancelled build may take to stop")
+    announce: bool = True
+    zenoh_mode: str = "peer"
+    zenoh_listen: list[str] = []
+    zenoh_connect: list[str] = []
+    zenoh_multicast: bool | None = None
+    zenoh_config: str | None = None
+    max_message_mb: int = 4
+
+
+class BuilderService:
+    """Owns the job manager, the gRPC server and the Zenoh session; ``start``/``stop``."""
+
+    def __init__(self, config: BuilderConfig) -> None:
+        self.config = config
+        self.session = None
+        self._zenoh_lock = threading.Lock()
+        self.jobs = JobManager(
+            config.out, config.workdir, config.max_concurrent, config.cancel_grace_s, on_success=self._announce
+        )
+        self.server: grpc.Server | None = None
+        self.port: int | None = None
+        self.health = health.HealthServicer()
+
+    def _announce(self, job: Job) -> None:
+        if self.session is None:
+            return
+        ann = MapAnnouncement(job.spec.name, job.build_id, str(Path(job.bundle_path).resolve()))
+        with self._zenoh_lock:
+            self.session.put(map_announce_key(job.spec.name), encode_map_announcement(ann))
+        log.info("announced %s (build %s) on %s", job.spec.name, job.build_id, map_announce_key(job.spec.name))
+
+    def start(self) -> int:
+        c = self.config
+        if c.announce:
+            import zenoh
+
+            zconf = make_zenoh_config(c.zenoh_mode, c.zenoh_listen, c.zenoh_connect, c.zenoh_multicast, c.zenoh_config)
+            self.session = zenoh.open(zconf)
+        limit = c.max_message_mb * 1024 * 1024
+        self.server = grpc.server(
+            futures.ThreadPoolExecutor(max_workers=16),
+            options=[("grpc.max_receive_message_length", limit), ("grpc.max_send_message_length", limit)],
+        )
+        builder_pb2_grpc.add_MapBuilderServicer_to_server(MapBuilderServicer(self.jobs, c.out), self.server)
+        health_pb2_grpc.add_HealthServicer_to_server(self.health, self.server)
+        reflection.enable_server_reflection(
+            (SERVICE_NAME, health.SERVICE_NAME, reflection.SERVICE_NAME), self.server
+        )
+        self.port = self.server.add_insecure_port(c.grpc)
+        if not self.port:
+            raise OSError(f"cannot listen on {c.grpc}")
+        self.server.start()
+        self.health.set("", health_pb2.HealthCheckResponse.SERVING)
+        self.health.set(SERVICE_NAME, health_pb2.HealthCheckResponse.SERVING)
+        log.info("builder serving on %s (port %d), bundles in %s", c.grpc, self.port, c.out)
+        return self.port
+
+    def stop(self, grace: float = 5.0) -> None:
+        self.health.enter_graceful_shutdown()
+        if self.server is not None:
+            self.server.stop(grace).wait()
+        self.jobs.close(cancel_running=True, timeout=self.config.cancel_grace_s + 10)
+        if self.session is not None:
+            self.session.close()
+            self.session = None
+
+
+def serve(config: BuilderConfig) -> int:
+    """Run until SIGTERM/SIGINT: then stop taking requests, cancel running builds, close Zenoh."""
+    svc = BuilderService(config)
+    stop = threading.Event()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: stop.set())
+    svc.start()
+    print(f"sfmloc builder: gRPC {config.grpc} (port {svc.port}), bundles in {config.out}", flush=True)
+    try:
+        stop.wait()
+    finally:
+        log.info("shutting down")
+        svc.stop()
+    return 0
