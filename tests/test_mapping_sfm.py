@@ -237,6 +237,27 @@ def test_cancel_stops_the_build_and_cleans_up(corner_scene, tmp_path):
     assert not any(work.iterdir())
 
 
+def test_cancel_interrupts_a_running_pycolmap_stage(corner_scene, tmp_path):
+    """Cancelled while incremental mapping runs (in its worker thread): stops, cleans up."""
+    work = tmp_path / "work"
+    state = {"mapping": False, "calls": 0}
+
+    def progress(stage: str, fraction: float, message: str) -> None:
+        state["mapping"] |= stage == "mapping"
+
+    def should_cancel() -> bool:
+        if state["mapping"]:
+            state["calls"] += 1
+        return state["calls"] >= 2  # the 1st call is the check before the stage starts
+
+    with pytest.raises(BuildCancelled) as err:
+        sfm.reconstruct_images_only(
+            corner_scene["images"], CAM, workdir=work, progress=progress, should_cancel=should_cancel
+        )
+    assert err.value.stage == "mapping"
+    assert not any(work.iterdir())
+
+
 def test_keep_workdir_keeps_the_database(corner_scene, tmp_path):
     conf = sfm.sfm_conf("fast", keep_workdir=True, min_track_length=2)
     sfm.triangulate_known_poses(

@@ -148,12 +148,17 @@ class Reporter:
         else:
             th = threading.Thread(target=target, name=f"pycolmap-{stage}", daemon=True)
             th.start()
-            while th.is_alive():
-                th.join(0.05)
-                if th.is_alive() and self.should_cancel():
-                    token.cancel()
-                    th.join()
-                    raise BuildCancelled("cancelled", stage=stage)
+            try:
+                while th.is_alive():
+                    th.join(0.05)
+                    if th.is_alive() and self.should_cancel():
+                        raise BuildCancelled("cancelled", stage=stage)
+            except BaseException:
+                # Cancelled, Ctrl-C or a failing check: stop pycolmap before the work
+                # directory it writes to is removed.
+                token.cancel()
+                th.join()
+                raise
         exc = out.get("error")
         if exc is not None:
             if isinstance(exc, InterruptedError) or token.is_cancelled():
