@@ -27,7 +27,6 @@ from sfmloc.mapping import sfm
 from sfmloc.mapping.sfm_common import opencv_sift
 from sfmloc.transforms import Rigid3d
 
-REDKITCHEN = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "redkitchen-seq01"
 CAM = Camera.pinhole(320, 240, 250.0, 250.0, 160.0, 120.0)
 N_VIEWS = 8
 
@@ -603,12 +602,11 @@ def test_colmap_input_unsupported_camera_model(corner_scene, known_poses_rec, tm
 
 # --------------------------------------------------------------------------- real frames
 @pytest.mark.realdata
-def test_known_poses_on_redkitchen_frames():
-    if not (REDKITCHEN / "pgt_sfm_seq01.txt").is_file():
-        pytest.skip(f"real data not present: {REDKITCHEN} (7-Scenes redkitchen seq-01 is read from ../shared/data)")
+def test_known_poses_on_redkitchen_frames(redkitchen):
+    """20 real frames (every 10th), read in place from ../shared/data (skipped when absent)."""
     names = [f"frame-{i:06d}.color.jpg" for i in range(0, 200, 10)]
     cam = "PINHOLE 640 480 525.505 525.505 320 240"
-    rec = sfm.triangulate_known_poses(REDKITCHEN, REDKITCHEN / "pgt_sfm_seq01.txt", cam, image_names=names)
+    rec = sfm.triangulate_known_poses(redkitchen, redkitchen / "pgt_sfm_seq01.txt", cam, image_names=names)
     rec.check()
     st = sfm.reconstruction_stats(rec)
     assert st["images"] == 20
@@ -616,7 +614,8 @@ def test_known_poses_on_redkitchen_frames():
     assert st["mean_track_length"] >= 3.0
     assert st["mean_reproj_error_px"] < 1.5
     assert np.median(_reproj_errors(rec)) < 1.5
-    gt = {k.rsplit("/", 1)[-1].replace(".png", ".jpg"): T for k, T in read_poses(REDKITCHEN / "pgt_sfm_seq01.txt").by_key().items()}
+    gt_by_key = read_poses(redkitchen / "pgt_sfm_seq01.txt").by_key()  # seq-01/frame-000000.color.png
+    gt = {k.rsplit("/", 1)[-1].replace(".png", ".jpg"): T for k, T in gt_by_key.items()}
     for im in rec.images.values():
         np.testing.assert_allclose(im.cam_from_world.matrix(), gt[im.name].matrix(), atol=1e-12)
     # points are in front of the cameras that see them, at indoor distances (metres)
