@@ -1,0 +1,171 @@
+"""Helpers for the server and client tests: a small synthetic world (rendered with
+``sfmloc.synth``, its map built from the exact COLMAP model), free ports, Zenoh configs, and
+servers on background threads. Everything is real: Zenoh sessions in peer mode on loopback
+with multicast scouting off, gRPC on loopback, worker processes.
+
+The world is built once per test session (cached by pytest's base temp folder), since both
+test_server*.py and test_client*.py use it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import socket
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+WIDTH, HEIGHT = 640, 480
+N_MAPPING, N_FRAMES = 40, 60
+_lock = threading.Lock()
+_worlds: dict[Path, "World"] = {}
+
+
+@dataclass
+class World:
+    root: Path
+    maps_dir: Path  # holds "room" and "room2" (the same scene under two names)
+    spare_dir: Path  # other builds: "room" rebuilt (a new build_id), a corrupt copy
+    camera_spec: str  # "PINHOLE w h fx fy cx cy"
+    frames: list[Path]  # the video, PNG
+    gt_cam_from_world: list[Any]  # Rigid3d per frame
+    png: list[bytes] = field(default_factory=list)
+    gray: list[np.ndarray] = field(default_factory=list)
+
+    @property
+    def room_rebuilt(self) -> Path:
+        return self.spare_dir / "rebuilt" / "room"
+
+    @property
+    def corrupt(self) -> Path:
+        return self.spare_dir / "corrupt" / "room"
+
+
+def build_world(base: Path) -> World:
+    """Render the scene, build the bundles (cached per base folder)."""
+    with _lock:
+        if base in _worlds:
+            return _worlds[base]
+        import cv2
+
+        from sfmloc.cameras import Camera
+        from sfmloc.io.colmap import read_model
+        from sfmloc.io.poses import read_poses
+        from sfmloc.mapping.build import BuildConf, assemble
+        from sfmloc.mapping.bundle import write_bundle
+        from sfmloc.synth import preset
+        from sfmloc.synth.main import run
+
+        root = base / "sfmloc-world"
+        conf = preset("small", width=WIDTH, height=HEIGHT, mapping_views=N_MAPPING, trajectory={"n_frames": N_FRAMES})
+        run(conf, root / "synth", overwrite=True)
+        rec = read_model(root / "synth" / "sparse")
+        data, timings, info = assemble(rec, root / "synth" / "images", BuildConf())
+        maps_dir, spare = root / "maps", root / "spare"
+        for name in ("room", "room2"):
+            write_bundle(data, maps_dir, name, timings_s=timings, index_info=info)
+        write_bundle(data, spare / "rebuilt", "room", timings_s=timings, index_info=info)
+        corrupt = write_bundle(data, spare / "corrupt", "room", timings_s=timings, index_info=info)
+        with open(corrupt / "points_xyz.npy", "r+b") as f:  # flip bytes: checksum mismatch
+            f.seek(200)
+            f.write(b"\x00\xff" * 16)
+        cam = Camera.from_json(root / "synth" / "camera.json")
+        frames = sorted((root / "synth" / "video").glob("frame-*.png"))
+        gt = read_poses(root / "synth" / "video_poses.txt").by_stem()
+        world = World(
+            root=root, maps_dir=maps_dir, spare_dir=spare,
+            camera_spec=f"PINHOLE {cam.width} {cam.height} " + " ".join(repr(float(p)) for p in cam.params),
+            frames=frames, gt_cam_from_world=[gt[f.stem] for f in frames],
+            png=[f.read_bytes() for f in frames],
+            gray=[cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) for f in frames],
+        )
+        _worlds[base] = world
+        return world
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def zenoh_endpoint() -> str:
+    return f"tcp/127.0.0.1:{free_port()}"
+
+
+def server_config(world: World, zenoh_listen: str, **changes: Any) -> Any:
+    from sfmloc.config import merge_presets
+    from sfmloc.server.config import ServerConfig
+
+    base = ServerConfig(
+        maps=str(world.maps_dir), workers=1, worker_kind="thread", idle_timeout_s=60.0,
+        zenoh={"listen": [zenoh_listen], "multicast": False},
+        grpc={"address": "127.0.0.1:0", "max_message_mb": 4.0},
+        max_frame_bytes=4 * 1024 * 1024, grace_s=10.0,
+    )
+    return merge_presets(base, **changes) if changes else base
+
+
+def client_zenoh(endpoint: str) -> Any:
+    import zenoh
+
+    from sfmloc_client import make_zenoh_config
+
+    return zenoh.open(make_zenoh_config("peer", connect=[endpoint], multicast=False))
+
+
+def camera(world: World) -> Any:
+    from sfmloc_client import CameraSpec
+
+    return CameraSpec.parse(world.camera_spec)
+
+
+def wait_until(pred: Any, timeout: float = 30.0, every: float = 0.02) -> bool:
+    """Poll ``pred`` until true; the tests assert on the outcome, never on the time taken."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if pred():
+            return True
+        time.sleep(every)
+    return bool(pred())
+
+
+def stream_lockstep(z: Any, map_name: str, client_id: str, world: World, n: int | None = None,
+                    encoding: str = "png", timeout: float = 30.0) -> list[Any]:
+    """Stream the video frame by frame (each after the previous pose) and return the poses."""
+    from sfmloc_client import FrameStreamer, PoseSubscriber, SourceFrame
+
+    frames = world.png[: n or len(world.png)]
+    got: list[Any] = []
+    with PoseSubscriber(z, map_name, client_id, callback=got.append) as poses, \
+            FrameStreamer(z, map_name, client_id, camera(world), encoding=encoding) as fs:
+        assert fs.wait_for_server(timeout), "no server subscribed to the frames"
+        src = [SourceFrame(data=d, encoding="png", stamp_ns=int(k * 1e9 / 30)) for k, d in enumerate(frames)]
+        stats = fs.run(src, lockstep=True, poses=poses, pose_timeout=timeout)
+        poses.wait_for(stats.last_seq, timeout)
+    return got
+
+
+def position_errors(world: World, poses: list[Any]) -> np.ndarray:
+    """Camera-centre errors (m) of localized poses against the exact ground truth."""
+    errs = []
+    for p in poses:
+        if p.localized and p.seq is not None:
+            gt = world.gt_cam_from_world[p.seq].inverse().translation
+            errs.append(float(np.linalg.norm(np.asarray(p.world_from_cam.t) - gt)))
+    return np.array(errs)
+
+
+@contextlib.contextmanager
+def running_server(conf: Any, load_maps: bool = True):
+    from sfmloc.server.app import ServerThread
+
+    srv = ServerThread(conf, load_maps=load_maps).start()
+    try:
+        yield srv
+    finally:
+        srv.stop()

@@ -1,0 +1,427 @@
+"""The localization server end to end: real Zenoh sessions (peer mode, loopback, multicast
+scouting off), real gRPC on loopback, real worker processes, a synthetic world with exact
+ground truth (see server_helpers). No mocks; no assertion on how long anything takes."""
+
+from __future__ import annotations
+
+import asyncio
+import queue
+import threading
+import urllib.request
+
+import grpc
+import msgpack
+import numpy as np
+import pytest
+import zenoh
+from server_helpers import (
+    build_world,
+    camera,
+    client_zenoh,
+    free_port,
+    position_errors,
+    running_server,
+    server_config,
+    stream_lockstep,
+    wait_until,
+    zenoh_endpoint,
+)
+from sfmloc_client import (
+    CameraSpec,
+    Frame,
+    FrameStreamer,
+    LocalizationClient,
+    MapAnnouncement,
+    PoseSubscriber,
+    RemoteError,
+    SourceFrame,
+    encode_frame,
+    encode_map_announcement,
+    query_servers,
+)
+from sfmloc_client.discovery import list_server_ids
+from sfmloc_client.wire import frame_key, map_announce_key
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory):
+    return build_world(tmp_path_factory.getbasetemp())
+
+
+@pytest.fixture(scope="module")
+def zep():
+    return zenoh_endpoint()
+
+
+@pytest.fixture(scope="module")
+def srv(world, zep):
+    """The server most tests share: two worker processes, both maps, following the builder."""
+    conf = server_config(world, zep, workers=2, worker_kind="process", follow_builder=True,
+                         metrics_port=free_port(), server_id="test-server")
+    with running_server(conf) as s:
+        yield s
+
+
+@pytest.fixture(scope="module")
+def grpc_client(srv):
+    with LocalizationClient(f"127.0.0.1:{srv.grpc_port}", timeout=60) as c:
+        yield c
+
+
+@pytest.fixture()
+def z(zep, srv):
+    with client_zenoh(zep) as session:
+        yield session
+
+
+# ----------------------------------------------------------------------------- streaming
+def test_stream_receives_a_pose_for_every_frame_with_its_seq(world, z):
+    poses = stream_lockstep(z, "room", "walker", world)
+    assert [p.seq for p in poses] == list(range(len(world.png)))
+    assert all(p.error is None and p.map == "room" and p.client_id == "walker" for p in poses)
+    localized = [p for p in poses if p.localized]
+    assert len(localized) >= 0.9 * len(poses)
+    assert np.median(position_errors(world, poses)) < 0.05  # metres, exact ground truth
+    assert poses[0].status == "RELOCALIZED" or not poses[0].localized  # a new session starts from scratch
+    assert any(p.status == "TRACKING" for p in poses)
+    assert all(p.latency_ms >= p.engine_ms > 0 for p in localized)
+
+
+def test_two_clients_on_two_maps_at_once(world, z):
+    results: dict[str, list] = {}
+
+    def client(map_name: str, cid: str) -> None:
+        results[map_name] = stream_lockstep(z, map_name, cid, world, n=40)
+
+    threads = [threading.Thread(target=client, args=("room", "a")), threading.Thread(target=client, args=("room2", "b"))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(120)
+    for map_name, cid in (("room", "a"), ("room2", "b")):
+        poses = results[map_name]
+        assert [p.seq for p in poses] == list(range(40)), map_name
+        assert {(p.map, p.client_id) for p in poses} == {(map_name, cid)}
+        assert sum(p.localized for p in poses) >= 36
+        assert np.median(position_errors(world, poses)) < 0.05
+
+
+def test_latest_frame_only_intake_drops_and_counts_stale_frames(world, z, grpc_client):
+    """A burst far faster than the engine: stale frames are dropped (never queued), counted,
+    reported in the poses and in ListSessions, and the newest frame is always processed."""
+    got: list = []
+    n = 40
+    with PoseSubscriber(z, "room", "burst", callback=got.append) as poses, \
+            FrameStreamer(z, "room", "burst", camera(world), congestion="block") as fs:
+        assert fs.wait_for_server(30)
+        for k in range(n):  # back to back: ~microseconds apart, each frame takes milliseconds
+            fs.publish(data=world.png[k], encoding="png", stamp_ns=int(k * 1e9 / 30))
+        assert poses.wait_for(n - 1, 60)
+    seqs = [p.seq for p in got]
+    assert seqs == sorted(seqs) and seqs[-1] == n - 1  # in order, and the newest frame made it
+    dropped = got[-1].dropped
+    assert dropped > 0
+    assert len(got) + dropped == n  # every frame either processed or counted as dropped
+    session = next(s for s in grpc_client.list_sessions("room") if s.client_id == "burst")
+    assert session.dropped == dropped and session.frames == n
+
+
+def test_grpc_stream_localize_with_a_corrupt_frame_in_the_middle(world, grpc_client):
+    """StreamLocalize in lockstep (each frame after the previous pose): every frame gets its
+    pose; the corrupt one a LOST update with an error code, and the stream goes on."""
+    frames = list(world.png[:20])
+    frames[10] = b"\x89PNG\r\n\x1a\n" + b"garbage" * 50  # corrupt PNG
+    acks: queue.Queue = queue.Queue()
+
+    def requests():
+        for d in frames:
+            yield SourceFrame(data=d, encoding="png")
+            acks.get(timeout=60)
+
+    poses = []
+    for p in grpc_client.stream(requests(), "room", camera(world), client_id="grpc-walker", encoding="png"):
+        poses.append(p)
+        acks.put(p.seq)
+    assert [p.seq for p in poses] == list(range(20))
+    bad = poses[10]
+    assert bad.status == "LOST" and bad.error is not None and bad.error.code == "INVALID_ARGUMENT"
+    assert "cannot be decoded" in bad.error.message
+    assert all(p.error is None and p.client_id == "grpc-walker" for p in poses if p.seq != 10)
+    assert sum(p.localized for p in poses) >= 17
+    assert np.median(position_errors(world, poses)) < 0.05
+
+
+def test_grpc_stream_burst_drops_stale_frames_and_ends_with_the_last(world, grpc_client):
+    poses = list(grpc_client.stream((SourceFrame(data=d, encoding="png") for d in world.png[:30]), "room",
+                                    camera(world), encoding="png"))
+    seqs = [p.seq for p in poses]
+    assert seqs == sorted(seqs) and seqs[-1] == 29
+    assert len(poses) + poses[-1].dropped == 30
+    assert poses[0].client_id.startswith("grpc-")  # assigned by the server
+
+
+def test_grpc_stream_on_an_unknown_map_ends_with_not_found(world, grpc_client):
+    with pytest.raises(RemoteError) as e:
+        list(grpc_client.stream(iter(world.png[:2]), "no-such-map", camera(world), encoding="png"))
+    assert e.value.code == "NOT_FOUND" and "no-such-map" in e.value.message
+
+
+# ----------------------------------------------------------------------------- bad input
+def _raw_put(z: zenoh.Session, key: str, payload: bytes) -> None:
+    z.put(key, payload)
+
+
+def test_bad_frames_get_clear_errors_while_a_good_client_keeps_getting_poses(world, z, srv):
+    good: list = []
+    errors: dict[str, list] = {}
+    cam = camera(world)
+    cases = {
+        "garbage": b"\x00\x01not msgpack at all",
+        "not-a-map": msgpack.packb([1, 2, 3]),
+        "missing-key": msgpack.packb({"seq": 3, "stamp_ns": 0, "encoding": "png", "data": b"x"}),
+        "bad-encoding": msgpack.packb({"seq": 4, "stamp_ns": 0, "camera": cam.to_wire(), "encoding": "webp", "data": b"x"}),
+        "wrong-size": msgpack.packb({"seq": 5, "stamp_ns": 0, "camera": cam.to_wire(), "encoding": "gray8",
+                                     "data": b"\x00" * 10000}),
+        "corrupt-jpeg": encode_frame(Frame(6, 0, cam, "jpeg", b"\xff\xd8\xff\xe0" + bytes(range(256)) * 8)),
+        "other-size-png": encode_frame(Frame(7, 0, CameraSpec("PINHOLE", 320, 240, (262.5, 262.5, 160, 120)), "png", world.png[0])),
+        "bad-camera": msgpack.packb({"seq": 8, "stamp_ns": 0, "camera": {"model": "PINHOLE", "width": 640, "height": 480,
+                                     "params": [-5.0, 525.0, 320.0, 240.0]}, "encoding": "png", "data": world.png[0]}),
+        "oversized": msgpack.packb({"seq": 9, "stamp_ns": 0, "camera": cam.to_wire(), "encoding": "png",
+                                    "data": b"\x00" * (srv.conf.max_frame_bytes + 10)}),
+    }
+    expected = {
+        "garbage": ("INVALID_ARGUMENT", None, "msgpack"),
+        "not-a-map": ("INVALID_ARGUMENT", None, "map"),
+        "missing-key": ("INVALID_ARGUMENT", 3, "camera"),
+        "bad-encoding": ("INVALID_ARGUMENT", 4, "encoding"),
+        "wrong-size": ("INVALID_ARGUMENT", 5, "bytes"),
+        "corrupt-jpeg": ("INVALID_ARGUMENT", 6, "cannot be decoded"),
+        "other-size-png": ("INVALID_ARGUMENT", 7, "320x240"),
+        "bad-camera": ("INVALID_ARGUMENT", 8, "focal"),
+        "oversized": ("RESOURCE_EXHAUSTED", None, "exceeds the limit"),
+    }
+    subs = []
+    for cid in cases:
+        errors[cid] = []
+        subs.append(PoseSubscriber(z, "room", cid, callback=errors[cid].append))
+    unknown: list = []
+    subs.append(PoseSubscriber(z, "atlantis", "lost", callback=unknown.append))
+    stop = threading.Event()
+
+    def good_client() -> None:
+        good.extend(stream_lockstep(z, "room", "good", world, n=30))
+        stop.set()
+
+    t = threading.Thread(target=good_client)
+    t.start()
+    try:
+        with FrameStreamer(z, "room", "probe", cam) as probe:
+            assert probe.wait_for_server(30)
+        for cid, payload in cases.items():
+            _raw_put(z, frame_key("room", cid), payload)
+        with FrameStreamer(z, "atlantis", "lost", cam) as fs:
+            fs.publish(data=world.png[0], encoding="png")
+        assert wait_until(lambda: all(errors[c] for c in cases) and unknown, 60)
+        t.join(120)
+    finally:
+        stop.set()
+        for s in subs:
+            s.close()
+    for cid, (code, seq, words) in expected.items():
+        p = errors[cid][0]
+        assert p.status == "LOST" and p.error is not None, cid
+        assert p.error.code == code, (cid, p.error)
+        assert p.seq == seq, (cid, p.seq)
+        assert words in p.error.message, (cid, p.error.message)
+    assert unknown[0].error.code == "NOT_FOUND" and "atlantis" in unknown[0].error.message
+    assert [p.seq for p in good] == list(range(30)) and all(p.error is None for p in good)
+    assert sum(p.localized for p in good) >= 27
+
+
+# ----------------------------------------------------------------------------- gRPC
+def test_relocalize_single_images(world, grpc_client):
+    cam = camera(world)
+    errs = []
+    for k in (5, 25, 45):
+        pose = grpc_client.relocalize(world.png[k], "room", cam, encoding="png")
+        assert pose.status == "RELOCALIZED" and pose.inliers >= 10
+        gt = world.gt_cam_from_world[k].inverse().translation
+        errs.append(np.linalg.norm(np.asarray(pose.world_from_cam.t) - gt))
+    assert np.median(errs) < 0.05
+    # raw gray8 works too, and a prior is accepted
+    pose = grpc_client.relocalize(world.gray[30], "room", cam, encoding="gray8")
+    assert pose.localized
+    near = grpc_client.relocalize(world.png[30], "room", cam, encoding="png", prior=pose.cam_from_world)
+    assert near.localized
+
+
+@pytest.mark.parametrize(
+    "case, code",
+    [("unknown-map", "NOT_FOUND"), ("corrupt-jpeg", "INVALID_ARGUMENT"), ("bad-camera", "INVALID_ARGUMENT"),
+     ("wrong-raw-size", "INVALID_ARGUMENT"), ("no-encoding", "INVALID_ARGUMENT"), ("oversized", "RESOURCE_EXHAUSTED")],
+)
+def test_relocalize_errors_map_to_status_codes(world, grpc_client, case, code):
+    from sfmloc_client.grpc_client import relocalize_request
+    from sfmloc_client.pb import common_pb2
+
+    cam = camera(world)
+    req = relocalize_request(world.png[0], "room", cam, encoding="png")
+    if case == "unknown-map":
+        req.map = "atlantis"
+    elif case == "corrupt-jpeg":
+        req.image.encoding, req.image.data = common_pb2.IMAGE_ENCODING_JPEG, b"\xff\xd8\xff" + b"\x17" * 5000
+    elif case == "bad-camera":
+        req.camera.model = "FISHEYE_9000"
+    elif case == "wrong-raw-size":
+        req.image.encoding, req.image.data = common_pb2.IMAGE_ENCODING_GRAY8, b"\x00" * 1234
+    elif case == "no-encoding":
+        req.image.encoding = common_pb2.IMAGE_ENCODING_UNSPECIFIED
+    elif case == "oversized":
+        req.image.data = b"\x00" * (5 * 1024 * 1024)  # the test server takes 4 MB
+    with pytest.raises(grpc.RpcError) as e:
+        grpc_client.stub.Relocalize(req, timeout=60)
+    assert e.value.code().name == code
+    assert e.value.details()  # a message that says what is wrong
+    if case == "oversized":
+        assert "larger than max" in e.value.details() or "exceeds" in e.value.details()
+
+
+def test_async_client(world, srv):
+    from sfmloc_client import AsyncLocalizationClient
+
+    async def main() -> tuple:
+        async with AsyncLocalizationClient(f"127.0.0.1:{srv.grpc_port}") as c:
+            maps = await c.list_maps()
+            pose = await c.relocalize(world.png[12], "room", camera(world), encoding="png")
+            health = await c.health()
+            return maps, pose, health
+
+    maps, pose, health = asyncio.run(main())
+    assert {m.name for m in maps} >= {"room", "room2"}
+    assert pose.localized and health == "SERVING"
+
+
+# ----------------------------------------------------------------------------- maps
+def test_map_replaced_under_a_live_stream(world, z, grpc_client):
+    old = grpc_client.get_map("room").build_id
+    poses: list = []
+    cam = camera(world)
+    with PoseSubscriber(z, "room", "replace", callback=poses.append) as sub, \
+            FrameStreamer(z, "room", "replace", cam) as fs:
+        assert fs.wait_for_server(30)
+        for k in range(50):
+            seq = fs.publish(data=world.png[k], encoding="png", stamp_ns=int(k * 1e9 / 30))
+            assert sub.wait_for(seq, 60)
+            if k == 20:
+                info = grpc_client.load_map(str(world.room_rebuilt), "room")  # replaces "room"
+                assert info.build_id != old
+    new = grpc_client.get_map("room").build_id
+    assert new != old and new == info.build_id
+    assert [p.seq for p in poses] == list(range(50)) and all(p.error is None for p in poses)
+    builds = [p.build_id for p in poses]
+    switch = builds.index(new)
+    assert switch == 21 and set(builds[:switch]) == {old} and set(builds[switch:]) == {new}  # one clean switch
+    assert poses[switch].status in ("RELOCALIZED", "LOST")  # a fresh Localizer on the new map
+    assert sum(p.localized for p in poses[switch:]) >= len(poses[switch:]) - 3
+
+
+def test_unload_load_and_corrupt_bundles(world, z, grpc_client):
+    r = grpc_client.unload_map("room2")
+    assert r.unloaded
+    assert "room2" not in {m.name for m in grpc_client.list_maps()}
+    with pytest.raises(RemoteError) as e:
+        grpc_client.get_map("room2")
+    assert e.value.code == "NOT_FOUND"
+    with pytest.raises(RemoteError) as e:
+        grpc_client.unload_map("room2")
+    assert e.value.code == "NOT_FOUND"
+    with pytest.raises(RemoteError) as e:
+        grpc_client.load_map(str(world.corrupt), "room2")
+    assert e.value.code == "FAILED_PRECONDITION" and "corrupt" in e.value.message
+    with pytest.raises(RemoteError) as e:
+        grpc_client.load_map(str(world.root / "nothing-here"))
+    assert e.value.code == "FAILED_PRECONDITION"
+    with pytest.raises(RemoteError) as e:
+        grpc_client.load_map(str(world.maps_dir / "room2"), "bad name!")
+    assert e.value.code == "INVALID_ARGUMENT"
+    m = grpc_client.load_map(str(world.maps_dir / "room2"))
+    assert m.name == "room2" and m.points > 0 and m.memory_mb > 0
+    assert [p.seq for p in stream_lockstep(z, "room2", "after-reload", world, n=5)] == list(range(5))
+
+
+def test_follow_builder_announcement_loads_the_map(world, z, grpc_client):
+    ann = MapAnnouncement("room3", "whatever-build", str(world.maps_dir / "room2"))
+    z.put(map_announce_key("room3"), encode_map_announcement(ann))
+    assert wait_until(lambda: "room3" in {m.name for m in grpc_client.list_maps()}, 60)
+    assert grpc_client.get_map("room3").points == grpc_client.get_map("room2").points
+    z.put(map_announce_key("bad"), b"\x00garbage")  # ignored, logged
+    grpc_client.unload_map("room3")
+
+
+# ----------------------------------------------------------------------------- sessions
+def test_list_and_reset_sessions(world, z, grpc_client):
+    poses = stream_lockstep(z, "room", "resettable", world, n=10)
+    assert poses[-1].status == "TRACKING"
+    s = [s for s in grpc_client.list_sessions("room") if s.client_id == "resettable"]
+    assert len(s) == 1 and s[0].transport == "zenoh" and s[0].frames == 10 and s[0].localized >= 9
+    assert grpc_client.reset_session("resettable", "room")
+    got: list = []
+    with PoseSubscriber(z, "room", "resettable", callback=got.append) as sub, \
+            FrameStreamer(z, "room", "resettable", camera(world)) as fs:
+        fs.publish(data=world.png[10], encoding="png", seq=10, stamp_ns=int(10 * 1e9 / 30))
+        assert sub.wait_for(10, 60)
+    assert got[0].status in ("RELOCALIZED", "LOST")  # forgot its tracks: global matching again
+    with pytest.raises(RemoteError) as e:
+        grpc_client.reset_session("nobody")
+    assert e.value.code == "NOT_FOUND"
+
+
+# ----------------------------------------------------------------------------- discovery, metrics
+def test_discovery_token_and_info(z, srv):
+    assert "test-server" in list_server_ids(z)
+    infos = query_servers(z, timeout=5)
+    info = next(i for i in infos if i.server_id == "test-server")
+    assert info.ready and info.workers == 2 and info.grpc.endswith(str(srv.grpc_port))
+    assert {"room", "room2"} <= {m["name"] for m in info.maps}
+
+
+def test_metrics_endpoint(world, z, srv):
+    stream_lockstep(z, "room", "metered", world, n=5)
+    port = srv.conf.metrics_port
+    text = urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=10).read().decode()
+    assert 'sfmloc_frames_received_total{map="room",transport="zenoh"}' in text
+    assert 'sfmloc_frame_latency_seconds_bucket{map="room",le="+Inf"}' in text
+    assert "# TYPE sfmloc_frame_latency_seconds histogram" in text
+    assert 'sfmloc_sessions{map="room",transport="zenoh"}' in text
+    assert 'sfmloc_maps_loaded{map="room"' in text
+    count = next(float(line.split()[-1]) for line in text.splitlines()
+                 if line.startswith('sfmloc_frame_latency_seconds_count{map="room"}'))
+    assert count >= 5
+    assert urllib.request.urlopen(f"http://127.0.0.1:{port}/healthz", timeout=10).status == 200
+
+
+def test_health_and_reflection(srv, grpc_client):
+    from grpc_reflection.v1alpha import reflection_pb2, reflection_pb2_grpc
+
+    assert grpc_client.health() == "SERVING"
+    assert grpc_client.health("sfmloc.v1.Localization") == "SERVING"
+    stub = reflection_pb2_grpc.ServerReflectionStub(grpc_client.channel)
+    resp = next(stub.ServerReflectionInfo(iter([reflection_pb2.ServerReflectionRequest(list_services="")]), timeout=10))
+    names = {s.name for s in resp.list_services_response.service}
+    assert {"sfmloc.v1.Localization", "grpc.health.v1.Health"} <= names
+
+
+def test_a_crashed_worker_is_restarted_and_other_clients_carry_on(world, z, srv):
+    import os
+    import signal
+
+    before = stream_lockstep(z, "room", "survivor", world, n=5)
+    assert before[-1].localized
+    pool = srv.server.pool
+    victim = pool.workers[0]
+    pid = victim.pid
+    os.kill(pid, signal.SIGKILL)
+    assert wait_until(lambda: pool.workers[0].pid not in (0, pid) and pool.restarts >= 1, 120)
+    after = stream_lockstep(z, "room", "survivor", world, n=10)
+    assert [p.seq for p in after] == list(range(10))
+    assert sum(p.localized for p in after) >= 8

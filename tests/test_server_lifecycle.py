@@ -1,0 +1,247 @@
+"""Server start-up, idle expiry and shutdown; configuration, the status table, log lines."""
+
+from __future__ import annotations
+
+import io
+import json
+import logging
+import os
+import signal
+import subprocess
+import sys
+import threading
+
+import grpc
+import pytest
+from server_helpers import (
+    build_world,
+    camera,
+    client_zenoh,
+    free_port,
+    running_server,
+    server_config,
+    stream_lockstep,
+    wait_until,
+    zenoh_endpoint,
+)
+from sfmloc_client import LocalizationClient
+from sfmloc_client.discovery import list_server_ids
+
+from sfmloc import errors as E
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory):
+    return build_world(tmp_path_factory.getbasetemp())
+
+
+# ----------------------------------------------------------------------------- start-up
+@pytest.fixture(scope="module")
+def late(world):
+    """A server started without its maps (loaded by the first test), short idle timeout."""
+    ep = zenoh_endpoint()
+    conf = server_config(world, ep, idle_timeout_s=0.5, server_id="late-server")
+    with running_server(conf, load_maps=False) as srv:
+        yield srv, ep
+
+
+def _ensure_loaded(srv) -> None:
+    if not srv.server.ready:
+        srv.call(srv.server.load_initial_maps())
+
+
+def test_health_is_serving_only_after_the_maps_are_loaded(late):
+    srv, ep = late
+    with LocalizationClient(f"127.0.0.1:{srv.grpc_port}") as c, client_zenoh(ep) as z:
+        assert c.health() == "NOT_SERVING"
+        assert c.health("sfmloc.v1.Localization") == "NOT_SERVING"
+        assert c.list_maps() == []
+        assert "late-server" not in list_server_ids(z, timeout=1)  # not discoverable yet
+        srv.call(srv.server.load_initial_maps())
+        assert c.health() == "SERVING" and c.health("sfmloc.v1.Localization") == "SERVING"
+        assert {m.name for m in c.list_maps()} == {"room", "room2"}
+        assert wait_until(lambda: "late-server" in list_server_ids(z, timeout=1), 30)
+
+
+def test_an_idle_session_expires(world, late):
+    srv, ep = late
+    _ensure_loaded(srv)
+    with client_zenoh(ep) as z, LocalizationClient(f"127.0.0.1:{srv.grpc_port}") as c:
+        first = stream_lockstep(z, "room", "sleepy", world, n=3)
+        assert [p.seq for p in first] == [0, 1, 2]
+        assert wait_until(lambda: not any(s.client_id == "sleepy" for s in c.list_sessions()), 30)
+        assert srv.server.metrics.sessions_closed.get("room", "idle") >= 1
+        again = stream_lockstep(z, "room", "sleepy", world, n=2)  # a new session: from scratch
+        assert again[0].status in ("RELOCALIZED", "LOST")
+        assert srv.server.metrics.sessions_opened.get("room", "zenoh") >= 2
+
+
+# ----------------------------------------------------------------------------- shutdown
+def test_stop_finishes_in_flight_relocalizations(world):
+    from sfmloc.server.app import ServerThread
+
+    s = ServerThread(server_config(world, zenoh_endpoint(), workers=1, worker_kind="process")).start()
+    results: list = []
+
+    def call(k: int) -> None:
+        with LocalizationClient(f"127.0.0.1:{s.grpc_port}") as c:
+            try:
+                results.append(c.relocalize(world.png[k], "room", camera(world), encoding="png"))
+            except Exception as exc:  # noqa: BLE001 - recorded and asserted on
+                results.append(exc)
+
+    threads = [threading.Thread(target=call, args=(k,)) for k in (3, 13, 23, 33)]
+    try:
+        for t in threads:
+            t.start()
+        # every call has reached the server: queued or running in its worker, or answered
+        assert wait_until(lambda: sum(s.server.pool.inflight()) + len(results) >= 4, 60)
+        assert len(results) < 4  # some are still in the worker when the server stops
+    finally:
+        s.stop(grace=60)  # graceful: the requests queued or running are answered first
+    for t in threads:
+        t.join(60)
+    assert len(results) == 4
+    assert all(not isinstance(r, Exception) and r.status == "RELOCALIZED" for r in results), results
+    assert s.server.zenoh.z is None  # its Zenoh session was closed
+    assert all(not h.runner.is_alive() for h in s.server.pool.workers)
+
+
+def _children(pid: int) -> list[int]:
+    out = []
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            try:
+                with open(f"/proc/{d}/stat") as f:
+                    if int(f.read().rsplit(")", 1)[1].split()[1]) == pid:
+                        out.append(int(d))
+            except (OSError, ValueError, IndexError):
+                pass
+    return out
+
+
+def _gone(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] == "Z"
+    except OSError:
+        return True
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_cli_server_shuts_down_gracefully_on_signals(world, sig):
+    ep, gport = zenoh_endpoint(), free_port()
+    cmd = [sys.executable, "-m", "sfmloc", "serve", "--maps", str(world.maps_dir), "--zenoh-listen", ep,
+           "--no-multicast", "--grpc", f"127.0.0.1:{gport}", "--workers", "1", "--server-id", "cli-server"]
+    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True)
+    try:
+        with LocalizationClient(f"127.0.0.1:{gport}") as c:
+            assert c.wait_ready(120)
+        with client_zenoh(ep) as z:
+            poses = stream_lockstep(z, "room", "till-the-end", world, n=5)
+            assert [p.seq for p in poses] == list(range(5))
+        workers = _children(proc.pid)
+        assert workers  # the engine worker process
+        proc.send_signal(sig)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, err[-3000:]
+    assert "event=server_stopped" in err and f"signal={signal.Signals(sig).name}" in err
+    assert "Traceback" not in err
+    assert wait_until(lambda: all(_gone(w) for w in workers), 30)
+
+
+# ----------------------------------------------------------------------------- configuration
+def test_config_precedence_defaults_file_environment_flags(tmp_path):
+    from sfmloc.cli.main import build_parser
+    from sfmloc.cli.serve import overrides_from_args
+    from sfmloc.config import load_config
+    from sfmloc.server.config import ServerConfig
+
+    f = tmp_path / "server.json"
+    f.write_text(json.dumps({"workers": 2, "idle_timeout_s": 5, "zenoh": {"mode": "client", "connect": ["tcp/a:1"]},
+                             "engine": {"k": 40}}))
+    env = {"SFMLOC_WORKERS": "3", "SFMLOC_ZENOH__MODE": "router", "SFMLOC_ENGINE__K": "45"}
+    args = build_parser().parse_args(["serve", "--workers", "4", "--zenoh-listen", "tcp/0.0.0.0:7447",
+                                      "--grpc", "127.0.0.1:0", "--no-multicast"])
+    conf = load_config(ServerConfig, f, environ=env, overrides=overrides_from_args(args))
+    assert conf.workers == 4  # flag > env > file
+    assert conf.zenoh.mode == "router"  # env > file
+    assert conf.zenoh.connect == ["tcp/a:1"] and conf.zenoh.listen == ["tcp/0.0.0.0:7447"]
+    assert conf.zenoh.multicast is False and conf.grpc.address == "127.0.0.1:0"
+    assert conf.idle_timeout_s == 5 and conf.engine.k == 45
+    assert conf.maps == "maps" and conf.worker_kind == "process"  # defaults
+    with pytest.raises(E.ConfigError) as e:
+        load_config(ServerConfig, None, environ={"SFMLOC_WORKERZ": "1", "SFMLOC_WORKERS": "many"})
+    assert "workers" in str(e.value)
+
+
+# ----------------------------------------------------------------------------- status table
+@pytest.mark.parametrize(
+    "exc, code",
+    [
+        (E.MapNotFoundError("x"), "NOT_FOUND"),
+        (E.SessionNotFoundError("x"), "NOT_FOUND"),
+        (E.ImageDecodeError("x"), "INVALID_ARGUMENT"),
+        (E.CameraModelError("x"), "INVALID_ARGUMENT"),
+        (E.MessageError("x"), "INVALID_ARGUMENT"),
+        (E.OverloadError("x"), "RESOURCE_EXHAUSTED"),
+        (E.BundleError("x"), "FAILED_PRECONDITION"),
+        (E.UnavailableError("x"), "UNAVAILABLE"),
+        (E.SfmlocError("x"), "INTERNAL"),
+        (ZeroDivisionError("x"), "INTERNAL"),
+    ],
+)
+def test_status_table_and_worker_error_round_trip(exc, code):
+    from sfmloc_client.errors import ImageDataError, MessageTooLargeError, WireError
+
+    from sfmloc.server.status import error_from_wire, error_info, error_to_wire, status_of
+
+    assert status_of(exc) == getattr(grpc.StatusCode, code)
+    back = error_from_wire(error_to_wire(exc))  # how errors cross the worker boundary
+    assert status_of(back).name == code and error_info(back).code == code
+    assert str(exc) in str(back)
+    assert status_of(MessageTooLargeError("big")).name == "RESOURCE_EXHAUSTED"
+    assert status_of(ImageDataError("bad")).name == status_of(WireError("bad")).name == "INVALID_ARGUMENT"
+
+
+def test_log_lines_key_value_and_json():
+    from sfmloc.server.logfmt import JsonFormatter, KeyValueFormatter, event
+
+    log = logging.getLogger("sfmloc.test.logfmt")
+    log.propagate = False
+    log.setLevel(logging.INFO)
+    for fmt, check in ((KeyValueFormatter(), "kv"), (JsonFormatter(), "json")):
+        buf = io.StringIO()
+        h = logging.StreamHandler(buf)
+        h.setFormatter(fmt)
+        log.addHandler(h)
+        event(log, logging.INFO, "session_open", map="room", client="a b", worker=1)
+        log.info("plain %s", "message")
+        log.removeHandler(h)
+        lines = buf.getvalue().splitlines()
+        if check == "kv":
+            assert "level=info" in lines[0] and "event=session_open" in lines[0]
+            assert 'client="a b"' in lines[0] and "worker=1" in lines[0]
+            assert 'msg="plain message"' in lines[1]
+        else:
+            d = json.loads(lines[0])
+            assert d["event"] == "session_open" and d["client"] == "a b" and d["worker"] == 1
+            assert json.loads(lines[1])["msg"] == "plain message"
+
+
+def test_prometheus_text_format():
+    from sfmloc.server.metrics import ServerMetrics
+
+    m = ServerMetrics()
+    m.frames_in.inc('we"ird', "zenoh")
+    m.latency.observe("room", value=0.004)
+    m.latency.observe("room", value=0.5)
+    text = m.registry.render()
+    assert 'sfmloc_frames_received_total{map="we\\"ird",transport="zenoh"} 1' in text
+    assert 'sfmloc_frame_latency_seconds_bucket{map="room",le="0.005"} 1' in text
+    assert 'sfmloc_frame_latency_seconds_bucket{map="room",le="+Inf"} 2' in text
+    assert 'sfmloc_frame_latency_seconds_count{map="room"} 2' in text
