@@ -43,6 +43,12 @@ class EngineConf(StrictModel):
     # below). Off: the paper's behaviour (global matching whenever matches run out).
     prior_recovery: bool = True
     prior_threshold_px: float = 20.0
+    # A tracked pose farther from the motion prediction than the camera can move in the frame
+    # interval is rejected (the frame then recovers or relocalizes instead of reporting it).
+    max_speed_mps: float = 5.0
+    max_angular_speed_rps: float = 6.0  # ~340 deg/s: beyond a quadrotor's fast yaw
+    jump_tolerance_m: float = 0.10
+    jump_tolerance_deg: float = 5.0
     max_keypoints: int = 1500  # strongest Harris corners kept per frame (bounds the latency)
     max_tracks: int = 1000  # track table capacity
     max_hamming: int = 80  # a track match must also be this close (of 256 bits)

@@ -35,7 +35,7 @@ from ..cameras import Camera
 from ..features.daisy import DaisyExtractor
 from ..features.harris import detect_corners
 from ..mapping.bundle import MapBundle
-from ..transforms import Rigid3d
+from ..transforms import Rigid3d, rotation_angle_deg
 from .config import EngineConf
 from .frame import to_gray
 from .matching import global_matching, guided_matching, verify_hypotheses
@@ -125,7 +125,19 @@ class Localizer:
         self.next_track_id += n
         return ids
 
-    def _estimate_from_table(self) -> PoseEstimate | None:
+    def _plausible(self, pose: Rigid3d, pred: Rigid3d | None, dt: float) -> bool:
+        """A tracked pose may not jump farther from the prediction than the camera can move."""
+        if pred is None:
+            return True
+        c = self.conf
+        dpos = float(np.linalg.norm(pose.center - pred.center))
+        drot = np.radians(rotation_angle_deg(pose.rotation, pred.rotation))
+        slack = max(dt, 1.0 / 30.0)
+        return dpos <= c.max_speed_mps * slack + c.jump_tolerance_m and drot <= c.max_angular_speed_rps * slack + np.radians(
+            c.jump_tolerance_deg
+        )
+
+    def _estimate_from_table(self, pred: Rigid3d | None = None, dt: float = 0.0) -> PoseEstimate | None:
         rows, pts = self.table.matches()
         if len(rows) <= self.conf.kappa2:
             return None
@@ -139,7 +151,13 @@ class Localizer:
             min_inliers=c.min_inliers,
             confidence=c.ransac_confidence,
             max_iterations=c.ransac_max_iterations,
+            prior=pred,
         )
+        if est is not None and not self._plausible(est.cam_from_world, pred, dt):
+            log.debug("rejected a pose %.2f m / %.1f deg from the prediction",
+                      np.linalg.norm(est.cam_from_world.center - pred.center),
+                      rotation_angle_deg(est.cam_from_world.rotation, pred.rotation))
+            est = None
         if est is None:
             # The tracked matches are no longer consistent: drop them (relocalize).
             self.table.point[rows] = -1
@@ -157,6 +175,7 @@ class Localizer:
         gray = to_gray(frame, self.camera)
         if self.last_stamp is not None and (stamp - self.last_stamp > c.max_frame_gap_s or stamp < self.last_stamp):
             self.reset()  # a long gap (or time going back): motion and tracks are stale
+        dt = 0.0 if self.last_stamp is None else stamp - self.last_stamp
         pred = self.filter.predict(stamp)
         self.last_stamp = stamp
         self.frames += 1
@@ -194,7 +213,7 @@ class Localizer:
         relocalized = False
         prepared = None
         if n_c1 > c.kappa2:
-            est = self._estimate_from_table()
+            est = self._estimate_from_table(pred, dt)
             timer.lap("pose")
             if est is not None:
                 self._reverify(est.cam_from_world)
@@ -218,7 +237,7 @@ class Localizer:
             timer.lap("global")
         c2_ids = set(T.track_id[T.point >= 0].tolist())
         if len(c2_ids) > c.kappa2 and c2_ids != c1_ids and not relocalized:
-            est2 = self._estimate_from_table()
+            est2 = self._estimate_from_table(pred, dt)
             if est2 is not None:
                 est = est2
             timer.lap("pose")

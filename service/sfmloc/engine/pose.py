@@ -88,11 +88,21 @@ def estimate_pose(
     min_inliers: int = 10,
     confidence: float = 0.999,
     max_iterations: int = 1000,
+    prior: Rigid3d | None = None,
+    prior_tie: float = 0.9,
 ) -> PoseEstimate | None:
-    """Pose from one-to-one matches (undistorted pixels ``xy`` (N,2), world points ``X`` (N,3))."""
+    """Pose from one-to-one matches (undistorted pixels ``xy`` (N,2), world points ``X`` (N,3)).
+
+    With a ``prior`` (the motion filter's prediction), LM refinement started from the prior is
+    a second hypothesis beside RANSAC's: when the matches lie on one distant plane the pose has
+    a two-fold (mirror) ambiguity that no minimal solver resolves, and both solutions explain
+    the points almost equally well. The prior's solution wins unless RANSAC's has clearly more
+    inliers (``prior_tie``: the prior's count must reach that fraction of RANSAC's).
+    """
     n = len(xy)
     if n < max(4, min_inliers):
         return None
+    candidates: list[PoseEstimate] = []
     ok, rvec, tvec, inl = cv2.solvePnPRansac(
         X.astype(np.float64),
         xy.astype(np.float64),
@@ -103,10 +113,22 @@ def estimate_pose(
         confidence=confidence,
         flags=cv2.SOLVEPNP_AP3P,
     )
-    if not ok or inl is None or len(inl) < min_inliers:
+    ransac = None
+    if ok and inl is not None and len(inl) >= min_inliers:
+        pose, mask = refine(_rigid(rvec, tvec), K, xy, X, refine_threshold)
+        ransac = _finish(pose, mask, K, xy, X, min_inliers)
+    from_prior = None
+    if prior is not None and prior.is_finite():
+        # Select inliers with the looser RANSAC threshold first: the prior is a prediction.
+        pose, _ = refine(prior, K, xy, X, threshold, rounds=1)
+        pose, mask = refine(pose, K, xy, X, refine_threshold)
+        from_prior = _finish(pose, mask, K, xy, X, min_inliers)
+    candidates = [c for c in (ransac, from_prior) if c is not None]
+    if not candidates:
         return None
-    pose, mask = refine(_rigid(rvec, tvec), K, xy, X, refine_threshold)
-    return _finish(pose, mask, K, xy, X, min_inliers)
+    if ransac is not None and from_prior is not None:
+        return from_prior if from_prior.num_inliers >= prior_tie * ransac.num_inliers else ransac
+    return candidates[0]
 
 
 def _finish(pose: Rigid3d, mask: np.ndarray, K, xy, X, min_inliers: int) -> PoseEstimate | None:
