@@ -377,6 +377,9 @@ def _pose_from_global(
     if res is None:
         return None
     est, chosen = res
+    # Among hundreds of candidate matches, ten that agree can be chance: demand a fraction too.
+    if est.num_inliers < conf.global_min_inlier_ratio * len(gm.set1_q):
+        return None
     return est, gm.set2_q[chosen], gm.set2_p[chosen], hyp
 
 
