@@ -30,7 +30,7 @@ class BuilderConfig(StrictModel):
     out: str = Field("maps", description="default folder for bundles")
     grpc: str = Field("127.0.0.1:50052", description="gRPC listen address HOST:PORT")
     max_concurrent: int = Field(1, ge=1, description="builds running at once (one process each)")
-    workdir: str | None = Field(None, description="parent of per-job work folders (default: OUT/.work)")
+    workdir: str | None = Field(None, description="parent of per-job work folders (default: a temporary folder)")
     cancel_grace_s: float = Field(10.0, gt=0, description="seconds a cancelled build may take to stop")
     announce: bool = True
     zenoh_mode: str = "peer"

@@ -16,6 +16,7 @@ import multiprocessing as mp
 import multiprocessing.connection
 import os
 import shutil
+import tempfile
 import threading
 import time
 import uuid
@@ -198,7 +199,9 @@ class JobManager:
         history: int = 200,
     ) -> None:
         self.default_out_dir = Path(default_out_dir)
-        self.work_root = Path(work_root) if work_root else None
+        # SfM work folders (COLMAP databases, ...) live outside the maps folder by default.
+        self._own_work_root = work_root is None
+        self.work_root = Path(work_root) if work_root else Path(tempfile.mkdtemp(prefix="sfmloc-builder-"))
         self.max_concurrent = max(1, max_concurrent)
         self.cancel_grace_s = cancel_grace_s
         self.on_success = on_success
@@ -282,6 +285,8 @@ class JobManager:
                     job.cancel_event.set()
             self._cond.notify_all()
         self._thread.join(timeout)
+        if self._own_work_root:
+            shutil.rmtree(self.work_root, ignore_errors=True)
 
     # ------------------------------------------------------------------ internals
     def _emit(self, job: Job) -> None:
@@ -306,8 +311,7 @@ class JobManager:
     def _start(self, job: Job) -> None:
         parent, child = self._ctx.Pipe(duplex=False)
         job.cancel_event = self._ctx.Event()
-        root = self.work_root or Path(job.spec.out_dir) / ".work"
-        job.workdir = str(root / f"job-{job.job_id}")
+        job.workdir = str(self.work_root / f"job-{job.job_id}")
         Path(job.workdir).mkdir(parents=True, exist_ok=True)
         spec_bytes = msgpack.packb(job.spec.__dict__)
         proc = self._ctx.Process(
@@ -411,12 +415,6 @@ class JobManager:
         """Remove the job's work folder and any bundle temp folder its process left."""
         if job.workdir:
             shutil.rmtree(job.workdir, ignore_errors=True)
-            parent = Path(job.workdir).parent
-            if parent.name == ".work":
-                try:
-                    parent.rmdir()  # only when empty
-                except OSError:
-                    pass
         pid = job.process.pid if job.process is not None else None
         if pid is not None and job.state is not JobState.SUCCEEDED:
             out = Path(job.spec.out_dir)

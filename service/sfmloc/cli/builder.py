@@ -23,7 +23,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--out", help="default folder for bundles (default: maps)")
     s.add_argument("--grpc", help="listen address HOST:PORT (default 127.0.0.1:50052)")
     s.add_argument("--max-concurrent", type=int, help="builds at once, one process each (default 1)")
-    s.add_argument("--workdir", help="parent of per-job work folders (default: OUT/.work)")
+    s.add_argument("--workdir", help="parent of per-job SfM work folders (default: a temporary folder)")
     s.add_argument("--zenoh-mode", choices=["peer", "client", "router"], help="Zenoh mode (default peer)")
     s.add_argument("--zenoh-listen", action="append", default=[], metavar="ENDPOINT", help="Zenoh listen endpoint (repeatable)")
     s.add_argument("--zenoh-connect", action="append", default=[], metavar="ENDPOINT", help="Zenoh connect endpoint (repeatable)")

@@ -40,6 +40,7 @@ name stays intact until the new one is complete.
 from __future__ import annotations
 
 import ctypes
+import errno
 import ctypes.util
 import hashlib
 import json
@@ -216,6 +217,15 @@ def write_bundle(
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     final = out_dir / name
+    # A full disk is named up front rather than discovered half-way.
+    needed = sum(np.asarray(getattr(data, a)).nbytes for a in ARRAY_SPECS) + (1 << 20)
+    free = shutil.disk_usage(out_dir).free
+    if free < needed:
+        raise OSError(
+            errno.ENOSPC,
+            f"No space left on device: the bundle needs {needed / 1e6:.1f} MB, {free / 1e6:.1f} MB free",
+            str(out_dir),
+        )
     tmp = out_dir / f".{name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}"
     tmp.mkdir()
     try:
@@ -225,10 +235,16 @@ def write_bundle(
             if arr.ndim != ndim:
                 raise BundleError(f"array {aname} must have {ndim} dimensions, has shape {arr.shape}")
             path = tmp / f"{aname}.npy"
-            with open(path, "wb") as f:
-                np.save(f, arr, allow_pickle=False)
-                f.flush()
-                os.fsync(f.fileno())
+            try:
+                with open(path, "wb") as f:
+                    np.save(f, arr, allow_pickle=False)
+                    f.flush()
+                    os.fsync(f.fileno())
+            except OSError as exc:
+                if exc.errno is None and "requested and" in str(exc):
+                    # numpy reports a short write without an errno: the disk filled up.
+                    raise OSError(errno.ENOSPC, f"No space left on device ({exc})", str(path)) from None
+                raise
             entries[aname] = ArrayEntry(
                 file=path.name, dtype=arr.dtype.str, shape=list(arr.shape), sha256=_sha256(path),
                 bytes=path.stat().st_size,

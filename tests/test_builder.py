@@ -1,0 +1,280 @@
+"""The map builder: descriptors assigned to the right 3D points (exact ground truth), the
+builder service over real gRPC and Zenoh (progress, announcement, cancel, a killed worker), and
+bad input (clear errors, non-zero exit, no partial bundle)."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import grpc
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+from server_helpers import build_world, free_port, wait_until, zenoh_endpoint
+
+from sfmloc.cameras import Camera
+from sfmloc.mapping.bundle import MapBundle, verify_bundle
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory):
+    return build_world(tmp_path_factory.getbasetemp())
+
+
+# ----------------------------------------------------------------------------- assignment
+def test_descriptors_are_assigned_to_the_right_3d_points(world):
+    """Back-project each descriptor's keypoint through the exact depth map: the nearest texture
+    feature of the whole scene (not only the model's points) must be the point it was assigned
+    to. Catches pixel-convention and pyramid-scale errors, keypoints on occluders, and corners
+    assigned to a neighbouring point."""
+    from sfmloc.synth import Scene, SynthConf, render_geometry
+
+    conf = SynthConf.model_validate(json.loads((world.root / "synth" / "scene.json").read_text())["config"])
+    scene = Scene.room(conf.seed, conf.scene)
+    bundle = MapBundle(world.maps_dir / "room")
+    cam = Camera.parse(world.camera_spec)
+    features = cKDTree(scene.features.xyz)
+    desc_xy = np.asarray(bundle.array("desc_xy"), np.float64)
+    correct = total = 0
+    for i in range(0, bundle.n_images, 4):
+        pose = bundle.image_cam_from_world[i]
+        depth, _ = render_geometry(scene, cam, pose)
+        lo, hi = bundle.image_desc_ptr[i], bundle.image_desc_ptr[i + 1]
+        xy = desc_xy[lo:hi]
+        z = depth[np.clip(np.floor(xy[:, 1]).astype(int), 0, cam.height - 1),
+                  np.clip(np.floor(xy[:, 0]).astype(int), 0, cam.width - 1)]
+        xc = np.hstack([cam.cam_from_img(xy) * z[:, None], z[:, None]])
+        surface = pose.inverse().apply(xc)
+        _, nearest = features.query(surface)
+        assigned = bundle.points_xyz[bundle.desc_point[lo:hi]]
+        ok = np.linalg.norm(scene.features.xyz[nearest] - assigned, axis=1) < 1e-6
+        correct += int(ok.sum())
+        total += len(ok)
+    assert total > 2000
+    assert correct / total >= 0.95, correct / total
+
+
+def test_bundle_lookups_are_consistent(world):
+    b = MapBundle(world.maps_dir / "room")
+    # descriptors are sorted by image; each descriptor's point is seen by its image
+    assert np.all(np.diff(b.desc_image) >= 0)
+    for i in range(0, b.n_images, 7):
+        lo, hi = b.image_desc_ptr[i], b.image_desc_ptr[i + 1]
+        assert np.all(b.desc_image[lo:hi] == i)
+        assert np.all(np.isin(b.desc_point[lo:hi], b.image_points(i)))
+    # every cluster an image's points belong to contains... each point's clusters hold one of its views
+    pi_ptr, pi_idx = b.point_images()
+    for p in range(0, b.n_points, 97):
+        views = set(pi_idx[pi_ptr[p]:pi_ptr[p + 1]].tolist())
+        for c in b.point_clusters(p):
+            assert views & set(b.cluster_images(int(c)).tolist())
+    assert b.manifest.counts.descriptors / b.manifest.counts.points > 3  # many descriptors per point
+
+
+# ----------------------------------------------------------------------------- service
+@pytest.fixture(scope="module")
+def builder(tmp_path_factory):
+    from sfmloc.builder_service.app import BuilderConfig, BuilderService
+
+    out = tmp_path_factory.mktemp("builder-out")
+    ep = zenoh_endpoint()
+    conf = BuilderConfig(out=str(out), grpc=f"127.0.0.1:{free_port()}", zenoh_listen=[ep], zenoh_multicast=False,
+                         cancel_grace_s=5.0)
+    svc = BuilderService(conf)
+    svc.start()
+    yield svc, ep, out
+    svc.stop()
+
+
+def _stub(svc):
+    from sfmloc_client.pb import builder_pb2_grpc
+
+    ch = grpc.insecure_channel(f"127.0.0.1:{svc.port}")
+    return ch, builder_pb2_grpc.MapBuilderStub(ch)
+
+
+def _colmap_request(world, name, **kw):
+    from sfmloc_client.pb import builder_pb2 as pb
+
+    return pb.SubmitBuildRequest(
+        name=name, colmap=pb.ColmapInput(model_dir=str(world.root / "synth" / "sparse"),
+                                         image_dir=str(world.root / "synth" / "images")), **kw)
+
+
+def test_submit_watch_and_zenoh_announcement(world, builder):
+    import zenoh
+    from sfmloc_client import make_zenoh_config
+    from sfmloc_client.pb import builder_pb2 as pb
+    from sfmloc_client.wire import decode_map_announcement
+
+    svc, ep, out = builder
+    announced = []
+    with zenoh.open(make_zenoh_config("peer", connect=[ep], multicast=False)) as z:
+        sub = z.declare_subscriber("sfmloc/maps/*", lambda s: announced.append(decode_map_announcement(s.payload.to_bytes())))
+        time.sleep(0.5)  # let the subscription reach the builder's session
+        ch, stub = _stub(svc)
+        with ch:
+            job_id = stub.SubmitBuild(_colmap_request(world, "synthroom")).job_id
+            events = list(stub.WatchBuild(pb.WatchBuildRequest(job_id=job_id)))
+            job = stub.GetBuild(pb.GetBuildRequest(job_id=job_id))
+            listed = {j.job_id for j in stub.ListBuilds(pb.ListBuildsRequest()).jobs}
+        assert wait_until(lambda: announced, timeout=20)
+        sub.undeclare()
+    stages = [e.stage for e in events]
+    for stage in ("descriptors", "pca", "clusters", "index", "write"):
+        assert stage in stages
+    assert events[-1].state == pb.BUILD_STATE_SUCCEEDED
+    fr = [e.fraction for e in events if e.stage == "descriptors"]
+    assert fr == sorted(fr) and fr[-1] == 1.0
+    assert job.state == pb.BUILD_STATE_SUCCEEDED and job_id in listed
+    path = Path(events[-1].bundle_path)
+    assert path == out / "synthroom" and verify_bundle(path) == []
+    a = announced[-1]
+    assert a.name == "synthroom" and Path(a.path) == path.resolve()
+    assert a.build_id == MapBundle(path).build_id
+    # nothing but bundles in the maps folder once the worker is reaped
+    assert wait_until(lambda: sorted(p.name for p in out.iterdir() if p.name.startswith(".")) == [], 20)
+    assert wait_until(lambda: not any(svc.jobs.work_root.iterdir()), 20)
+
+
+def test_cancel_leaves_no_bundle(world, builder, tmp_path):
+    from sfmloc_client.pb import builder_pb2 as pb
+
+    svc, _, out = builder
+    ch, stub = _stub(svc)
+    with ch:
+        job_id = stub.SubmitBuild(_colmap_request(world, "cancelled")).job_id
+        wait_until(lambda: stub.GetBuild(pb.GetBuildRequest(job_id=job_id)).state == pb.BUILD_STATE_RUNNING, 30)
+        assert stub.CancelBuild(pb.CancelBuildRequest(job_id=job_id)).cancelled
+        events = list(stub.WatchBuild(pb.WatchBuildRequest(job_id=job_id)))
+        assert events[-1].state == pb.BUILD_STATE_CANCELLED
+        assert not stub.CancelBuild(pb.CancelBuildRequest(job_id=job_id)).cancelled  # already ended
+        with pytest.raises(grpc.RpcError) as e:
+            stub.GetBuild(pb.GetBuildRequest(job_id="nope"))
+        assert e.value.code() == grpc.StatusCode.NOT_FOUND
+    assert wait_until(lambda: not any(p.name.startswith(".cancelled.tmp") for p in out.iterdir()), 20)
+    assert not (out / "cancelled").exists()
+
+
+def test_a_killed_build_worker_does_not_take_the_service_down(world, builder):
+    from sfmloc_client.pb import builder_pb2 as pb
+
+    svc, _, out = builder
+    ch, stub = _stub(svc)
+    with ch:
+        job_id = stub.SubmitBuild(_colmap_request(world, "crashing")).job_id
+        assert wait_until(lambda: svc.jobs.get(job_id).process is not None and svc.jobs.get(job_id).process.pid, 30)
+        os.kill(svc.jobs.get(job_id).process.pid, signal.SIGKILL)  # as the OOM killer would
+        events = list(stub.WatchBuild(pb.WatchBuildRequest(job_id=job_id)))
+        assert events[-1].state == pb.BUILD_STATE_FAILED
+        assert "died" in events[-1].error and "-9" in events[-1].error
+        # the service carries on: the next build succeeds
+        job2 = stub.SubmitBuild(_colmap_request(world, "after-crash")).job_id
+        last = list(stub.WatchBuild(pb.WatchBuildRequest(job_id=job2)))[-1]
+        assert last.state == pb.BUILD_STATE_SUCCEEDED
+    assert not (out / "crashing").exists()
+
+
+@pytest.mark.parametrize("mutate, words", [
+    (lambda r: r.colmap.__setattr__("image_dir", "/nonexistent/images"), "image_dir"),
+    (lambda r: r.__setattr__("name", "bad/name"), "invalid map name"),
+    (lambda r: r.__setattr__("config_json", "{oops"), "config_json"),
+])
+def test_bad_submissions_are_invalid_argument(world, builder, mutate, words):
+    svc, _, _ = builder
+    req = _colmap_request(world, "x")
+    mutate(req)
+    ch, stub = _stub(svc)
+    with ch, pytest.raises(grpc.RpcError) as e:
+        stub.SubmitBuild(req)
+    assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT and words in e.value.details()
+
+
+# ----------------------------------------------------------------------------- bad input, CLI
+def run_cli(*args):
+    return subprocess.run([sys.executable, "-m", "sfmloc", *args], capture_output=True, text=True, timeout=300)
+
+
+def test_cli_build_with_a_missing_image_fails_clearly_and_leaves_nothing(world, tmp_path):
+    images = tmp_path / "images"
+    shutil.copytree(world.root / "synth" / "images", images)
+    victim = sorted(images.iterdir())[3]
+    victim.unlink()
+    out = tmp_path / "maps"
+    r = run_cli("build", "room", "--out", str(out), "--colmap", str(world.root / "synth" / "sparse"),
+                "--images", str(images))
+    assert r.returncode != 0
+    assert victim.name in r.stderr and "Traceback" not in r.stderr
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_cli_build_with_an_unreadable_image_fails_clearly(world, tmp_path):
+    images = tmp_path / "images"
+    shutil.copytree(world.root / "synth" / "images", images)
+    victim = sorted(images.iterdir())[5]
+    victim.write_bytes(b"\x89PNG\r\n\x1a\n garbage")
+    out = tmp_path / "maps"
+    r = run_cli("build", "room", "--out", str(out), "--colmap", str(world.root / "synth" / "sparse"),
+                "--images", str(images))
+    assert r.returncode != 0 and victim.name in r.stderr
+    assert not (out / "room").exists()
+
+
+def test_cli_build_keeps_an_existing_bundle_when_a_rebuild_fails(world, tmp_path):
+    out = tmp_path / "maps"
+    shutil.copytree(world.maps_dir / "room", out / "room")
+    before = MapBundle(out / "room").build_id
+    r = run_cli("build", "room", "--out", str(out), "--colmap", str(tmp_path / "no-model"),
+                "--images", str(world.root / "synth" / "images"))
+    assert r.returncode != 0 and "no-model" in r.stderr
+    assert MapBundle(out / "room").build_id == before and verify_bundle(out / "room") == []
+    assert sorted(p.name for p in out.iterdir()) == ["room"]
+
+
+def _small_tmpfs(path: Path, size: str) -> bool:
+    if os.geteuid() != 0 or shutil.which("mount") is None:
+        return False
+    path.mkdir(parents=True, exist_ok=True)
+    return subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(path)],
+                          capture_output=True).returncode == 0
+
+
+def test_a_full_disk_is_a_write_error_and_leaves_nothing(world, tmp_path):
+    from sfmloc.errors import BuildError
+    from sfmloc.mapping.build import BuildConf, main
+
+    disk = tmp_path / "tiny"
+    if not _small_tmpfs(disk, "4m"):
+        pytest.skip("needs root and mount to create a 1 MB tmpfs (a real full disk)")
+    try:
+        with pytest.raises(BuildError) as e:
+            main(BuildConf(), "room", disk, colmap=world.root / "synth" / "sparse", images=world.root / "synth" / "images")
+        assert e.value.stage == "write"
+        assert "No space left on device" in str(e.value) and str(disk) in str(e.value)
+        assert list(disk.iterdir()) == []
+    finally:
+        subprocess.run(["umount", str(disk)], capture_output=True)
+
+
+def test_zero_descriptors_is_a_descriptor_stage_error(world, tmp_path):
+    """Poses that do not fit the images: no corner lies near any projected point."""
+    from sfmloc.errors import BuildError
+    from sfmloc.io.colmap import read_model, write_model
+    from sfmloc.mapping.build import BuildConf, main
+    from sfmloc.transforms import Rigid3d
+
+    rec = read_model(world.root / "synth" / "sparse")
+    for im in rec.images.values():  # every camera moved 100 m away: nothing projects in view
+        im.cam_from_world = Rigid3d(im.cam_from_world.rotation, im.cam_from_world.translation + [0, 0, -100.0])
+    write_model(rec, tmp_path / "model", ".txt")
+    with pytest.raises(BuildError) as e:
+        main(BuildConf(), "room", tmp_path / "maps", colmap=tmp_path / "model", images=world.root / "synth" / "images")
+    assert e.value.stage == "descriptors"
+    assert not (tmp_path / "maps" / "room").exists()
