@@ -77,6 +77,7 @@ class FrameStreamer:
         self.encoding = encoding
         self.jpeg_quality = jpeg_quality
         self.next_seq = 0
+        self.last_put_time = 0.0
         self._pub = session.declare_publisher(
             self.key,
             priority=zenoh.Priority.DATA_HIGH,
@@ -119,7 +120,11 @@ class FrameStreamer:
         seq = self.next_seq if seq is None else int(seq)
         self.next_seq = seq + 1
         stamp_ns = time.time_ns() if stamp_ns is None else int(stamp_ns)
-        self._pub.put(encode_frame(Frame(seq, stamp_ns, self.camera, encoding, data)))
+        payload = encode_frame(Frame(seq, stamp_ns, self.camera, encoding, data))
+        # When the frame went out (perf_counter): a large frame reaches the server before
+        # put() returns, so latency is measured from here, not from after publish().
+        self.last_put_time = time.perf_counter()
+        self._pub.put(payload)
         return seq
 
     def run(
@@ -131,7 +136,7 @@ class FrameStreamer:
         poses: PoseSubscriber | None = None,
         pose_timeout: float = 2.0,
         max_frames: int | None = None,
-        on_sent: Callable[[int, SourceFrame], None] | None = None,
+        on_sent: Callable[[int, SourceFrame, float], None] | None = None,
         should_stop: Callable[[], bool] | None = None,
     ) -> StreamStats:
         """Stream ``source`` (anything ``open_source`` takes, or an iterable of ``SourceFrame``).
@@ -139,6 +144,8 @@ class FrameStreamer:
         ``fps``: send at this rate (None: as fast as possible, or in lockstep); ``lockstep``:
         wait for each frame's pose (needs ``poses``; a pose that does not come within
         ``pose_timeout`` is given up on). Stamps are the send time unless the source has its own.
+        ``on_sent(seq, frame, t_put)`` is called after each frame, ``t_put`` being the
+        ``time.perf_counter()`` at which it went out (for latency measurements).
         """
         if lockstep and poses is None:
             raise ValueError("lockstep streaming needs a PoseSubscriber (poses=...)")
@@ -163,7 +170,7 @@ class FrameStreamer:
             stats.sent += 1
             stats.last_seq = seq
             if on_sent is not None:
-                on_sent(seq, fr)
+                on_sent(seq, fr, self.last_put_time)
             if lockstep:
                 assert poses is not None
                 if not poses.wait_for(seq, pose_timeout):

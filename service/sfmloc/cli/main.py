@@ -23,6 +23,8 @@ COMMANDS = [
     "maps",
     "sessions",
     "servers",
+    "bench_transport",
+    "demo",
 ]
 
 log = logging.getLogger("sfmloc")

@@ -89,9 +89,10 @@ def run(args: argparse.Namespace) -> int:
 
     def on_pose(p: PoseMessage) -> None:
         now = time.monotonic()
+        t_now = time.perf_counter()
         with lock:
             if p.seq is not None and p.seq in sent_at:
-                rtt.append((now - sent_at.pop(p.seq)) * 1e3)
+                rtt.append((t_now - sent_at.pop(p.seq)) * 1e3)
             server_ms.append(p.latency_ms)
             statuses[p.status] = statuses.get(p.status, 0) + 1
             state["errors"] += p.error is not None
@@ -103,9 +104,9 @@ def run(args: argparse.Namespace) -> int:
             state["t_status"] = now
             status_line()
 
-    def on_sent(seq: int, _fr: object) -> None:
+    def on_sent(seq: int, _fr: object, t_put: float) -> None:
         with lock:
-            sent_at[seq] = time.monotonic()
+            sent_at[seq] = t_put
             state["sent"] += 1
 
     with zenoh.open(zenoh_config(args)) as z:

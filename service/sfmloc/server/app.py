@@ -25,6 +25,8 @@ import logging
 import os
 import signal
 import socket
+import subprocess
+import sys
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -341,6 +343,54 @@ class ServerThread:
 
     def __enter__(self) -> "ServerThread":
         return self.start()
+
+    def __exit__(self, *exc: Any) -> None:
+        self.stop()
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class ServerProcess:
+    """``sfmloc serve`` in a subprocess on free loopback ports (the demo, benchmarks)::
+
+        with ServerProcess(maps_dir, workers=2) as srv:   # returns once SERVING
+            srv.endpoint (Zenoh), srv.grpc (host:port)
+    """
+
+    def __init__(self, maps: str | os.PathLike, workers: int = 0, kind: str = "process", quiet: bool = True) -> None:
+        self.endpoint = f"tcp/127.0.0.1:{free_port()}"
+        self.grpc = f"127.0.0.1:{free_port()}"
+        cmd = [sys.executable, "-m", "sfmloc", *(["-q"] if quiet else []), "serve", "--maps", str(maps),
+               "--zenoh-listen", self.endpoint, "--no-multicast", "--grpc", self.grpc,
+               "--workers", str(workers), "--worker-kind", kind]
+        self.proc = subprocess.Popen(cmd)
+
+    def __enter__(self) -> "ServerProcess":
+        from sfmloc_client import LocalizationClient
+
+        from ..errors import UnavailableError
+
+        with LocalizationClient(self.grpc) as c:
+            if not c.wait_ready(180):
+                self.proc.kill()
+                self.proc.wait()
+                raise UnavailableError(f"the server did not become ready (exit code {self.proc.returncode})")
+        return self
+
+    def stop(self, timeout: float = 60.0) -> int | None:
+        """SIGTERM (graceful shutdown); the exit code (0 after a clean stop)."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        return self.proc.returncode
 
     def __exit__(self, *exc: Any) -> None:
         self.stop()

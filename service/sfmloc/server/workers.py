@@ -47,6 +47,7 @@ from .status import error_from_wire, error_to_wire
 log = logging.getLogger(__name__)
 
 # One thread per worker for BLAS/OpenMP; inherited by spawned workers before numpy loads.
+SOCKET_BUFFER = 4 * 1024 * 1024
 THREAD_ENV = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS")
 
 
@@ -348,6 +349,9 @@ class WorkerPool:
 
     def _spawn(self, i: int) -> WorkerHandle:
         ours, theirs = socket.socketpair()
+        for sock in (ours, theirs):  # a whole frame fits: one write, one read, fewer wake-ups
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SOCKET_BUFFER)
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, SOCKET_BUFFER)
         if self.kind == "process":
             # A fresh interpreter (not multiprocessing's spawn): it does not re-import the
             # caller's __main__, nothing is pickled, and the one-thread environment is in place

@@ -1,0 +1,342 @@
+"""``sfmloc bench-transport``: what the transport costs, and how the server scales.
+
+Sections (``--only``, comma-separated; all by default):
+
+``wire``      frame envelope (image inside the msgpack map) vs Zenoh attachment (header in the
+              attachment, image as the payload): encode + decode time, and the loopback
+              publish -> subscriber-decoded time, at the frames' size.
+``overhead``  end to end over Zenoh on loopback (frame published -> pose received) against the
+              in-process engine on the same frames (one thread): p50 and per-frame overhead
+              (round trip minus the engine time the server reports), raw gray8 and JPEG.
+``clients``   N clients (own Zenoh session each) at R Hz for D seconds, each streaming the
+              frames from its own starting point: per client frames sent / poses back /
+              dropped, latency p50 and p99.
+``workers``   the same with thread workers instead of processes (why processes).
+
+The server runs as a subprocess (``sfmloc serve``) so that the benchmark's own client threads
+do not share its interpreter. Other processes on the machine add noise: the load average is
+printed with the results.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .app import ServerProcess
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _pct(v: list[float], q: float) -> float:
+    return float(np.percentile(v, q)) if len(v) else float("nan")
+
+
+@dataclass
+class BenchInput:
+    maps: Path
+    map_name: str
+    frames: list[Path]
+    camera: str  # "MODEL w h params..."
+    jpeg: list[bytes] = field(default_factory=list)
+    gray: list[np.ndarray] = field(default_factory=list)
+
+    def load(self, n: int) -> None:
+        import cv2
+
+        self.jpeg = [p.read_bytes() for p in self.frames[:n]]
+        self.gray = [cv2.imdecode(np.frombuffer(b, np.uint8), cv2.IMREAD_GRAYSCALE) for b in self.jpeg]
+
+
+def _zenoh(endpoint: str) -> Any:
+    import zenoh
+    from sfmloc_client import make_zenoh_config
+
+    return zenoh.open(make_zenoh_config("peer", connect=[endpoint], multicast=False))
+
+
+# ============================================================================ wire
+def bench_wire(inp: BenchInput, n: int = 300) -> dict[str, Any]:
+    import msgpack
+    import zenoh
+    from sfmloc_client import CameraSpec, Frame, decode_frame, encode_frame, make_zenoh_config
+
+    cam = CameraSpec.parse(inp.camera)
+    out: dict[str, Any] = {}
+    for enc, data in (("gray8", inp.gray[0].tobytes()), ("jpeg", inp.jpeg[0])):
+        t_env, t_att = [], []
+        for k in range(n):
+            t0 = time.perf_counter()
+            decode_frame(encode_frame(Frame(k, k, cam, enc, data)))
+            t1 = time.perf_counter()
+            header = msgpack.packb({"seq": k, "stamp_ns": k, "camera": cam.to_wire(), "encoding": enc})
+            h = msgpack.unpackb(header)
+            CameraSpec.from_wire(h["camera"])
+            payload = bytes(data)
+            t2 = time.perf_counter()
+            assert payload
+            t_env.append((t1 - t0) * 1e6)
+            t_att.append((t2 - t1) * 1e6)
+        out[f"{enc}_bytes"] = len(data)
+        out[f"{enc}_envelope_codec_us_p50"] = _pct(t_env, 50)
+        out[f"{enc}_attachment_codec_us_p50"] = _pct(t_att, 50)
+
+        # Loopback: publish -> decoded in the subscriber's callback.
+        ep = f"tcp/127.0.0.1:{_free_port()}"
+        with zenoh.open(make_zenoh_config("peer", listen=[ep], multicast=False)) as a, \
+                zenoh.open(make_zenoh_config("peer", connect=[ep], multicast=False)) as b:
+            got: dict[int, float] = {}
+            ev = threading.Event()
+
+            def on_env(s: Any) -> None:
+                f = decode_frame(s.payload.to_bytes())
+                got[f.seq] = time.perf_counter()
+                ev.set()
+
+            def on_att(s: Any) -> None:
+                h = msgpack.unpackb(s.attachment.to_bytes())
+                CameraSpec.from_wire(h["camera"])
+                s.payload.to_bytes()
+                got[h["seq"]] = time.perf_counter()
+                ev.set()
+
+            for mode, cb in (("envelope", on_env), ("attachment", on_att)):
+                sub = a.declare_subscriber(f"bench/{mode}", cb)
+                pub = b.declare_publisher(f"bench/{mode}", express=True, congestion_control=zenoh.CongestionControl.BLOCK)
+                time.sleep(0.3)
+                lat = []
+                for k in range(n):
+                    ev.clear()
+                    t0 = time.perf_counter()
+                    if mode == "envelope":
+                        pub.put(encode_frame(Frame(k, k, cam, enc, data)))
+                    else:
+                        pub.put(data, attachment=msgpack.packb({"seq": k, "stamp_ns": k, "camera": cam.to_wire(), "encoding": enc}))
+                    if ev.wait(5) and k in got:
+                        lat.append((got[k] - t0) * 1e3)
+                out[f"{enc}_{mode}_loopback_ms_p50"] = _pct(lat, 50)
+                out[f"{enc}_{mode}_loopback_ms_p99"] = _pct(lat, 99)
+                sub.undeclare()
+                pub.undeclare()
+                got.clear()
+    return out
+
+
+# ============================================================================ overhead
+def bench_overhead(inp: BenchInput, n: int) -> dict[str, Any]:
+    import cv2
+    import faiss
+    from sfmloc_client import CameraSpec, FrameStreamer, PoseSubscriber, encode_image
+
+    from ..cameras import Camera
+    from ..engine import Localizer
+    from ..mapping.bundle import MapBundle
+
+    cv2.setNumThreads(1)
+    faiss.omp_set_num_threads(1)
+    out: dict[str, Any] = {}
+    # In-process engine, one thread, decoded frames.
+    cam = Camera.parse(inp.camera)
+    bundle = MapBundle(inp.maps / inp.map_name)
+    loc = Localizer(bundle, cam)
+    eng = []
+    for k, g in enumerate(inp.gray[:n]):
+        t0 = time.perf_counter()
+        loc.localize(g, k / 30.0)
+        eng.append((time.perf_counter() - t0) * 1e3)
+    out["inprocess_engine_ms_p50"] = _pct(eng[5:], 50)
+    out["inprocess_engine_ms_p99"] = _pct(eng[5:], 99)
+
+    spec = CameraSpec.parse(inp.camera)
+    with ServerProcess(inp.maps, workers=1) as srv, _zenoh(srv.endpoint) as z:
+        for enc in ("gray8", "jpeg"):
+            payloads = [encode_image(g, "gray8") for g in inp.gray[:n]] if enc == "gray8" else inp.jpeg[:n]
+            cid = f"bench-{enc}"
+            recv: dict[int, tuple[float, Any]] = {}
+            cond = threading.Condition()
+
+            def on_pose(p: Any) -> None:
+                with cond:
+                    recv[p.seq] = (time.perf_counter(), p)
+                    cond.notify_all()
+
+            rtt, per_frame, server_lat, engine = [], [], [], []
+            with PoseSubscriber(z, inp.map_name, cid, callback=on_pose), FrameStreamer(z, inp.map_name, cid, spec) as fs:
+                fs.wait_for_server(30)
+                for k, data in enumerate(payloads):
+                    t0 = time.perf_counter()
+                    fs.publish(data=data, encoding=enc, seq=k, stamp_ns=int(k * 1e9 / 30))
+                    with cond:
+                        cond.wait_for(lambda: k in recv, 10)
+                    if k not in recv or k < 5:
+                        continue
+                    t1, p = recv[k]
+                    rtt.append((t1 - t0) * 1e3)
+                    per_frame.append((t1 - t0) * 1e3 - p.engine_ms)
+                    server_lat.append(p.latency_ms)
+                    engine.append(p.engine_ms)
+            out[f"{enc}_e2e_ms_p50"] = _pct(rtt, 50)
+            out[f"{enc}_e2e_ms_p99"] = _pct(rtt, 99)
+            out[f"{enc}_server_engine_ms_p50"] = _pct(engine, 50)
+            out[f"{enc}_overhead_ms_p50"] = _pct(per_frame, 50)  # round trip - engine, per frame
+            out[f"{enc}_overhead_ms_p90"] = _pct(per_frame, 90)
+            out[f"{enc}_e2e_minus_inprocess_p50_ms"] = out[f"{enc}_e2e_ms_p50"] - out["inprocess_engine_ms_p50"]
+    return out
+
+
+# ============================================================================ clients
+def bench_clients(inp: BenchInput, clients: int, rate: float, duration: float, workers: int, kind: str) -> dict[str, Any]:
+    from sfmloc_client import CameraSpec, FrameStreamer, PoseSubscriber
+
+    spec = CameraSpec.parse(inp.camera)
+    n_frames = int(rate * duration)
+    results: list[dict[str, Any]] = [{} for _ in range(clients)]
+    load0 = os.getloadavg()[0]
+    with ServerProcess(inp.maps, workers=workers, kind=kind) as srv:
+        barrier = threading.Barrier(clients)
+
+        def client(i: int) -> None:
+            cid = f"bench-client-{i}"
+            sent_at: dict[int, float] = {}
+            lat: list[float] = []
+            server_lat: list[float] = []
+            engine: list[float] = []
+            last: dict[str, Any] = {"dropped": 0, "errors": 0, "received": 0}
+            lock = threading.Lock()
+
+            def on_pose(p: Any) -> None:
+                now = time.perf_counter()
+                with lock:
+                    last["received"] += 1
+                    last["dropped"] = max(last["dropped"], p.dropped)
+                    last["errors"] += p.error is not None
+                    if p.seq in sent_at:
+                        lat.append((now - sent_at[p.seq]) * 1e3)
+                        server_lat.append(p.latency_ms)
+                        engine.append(p.engine_ms)
+
+            offset = (i * len(inp.jpeg)) // clients
+            with _zenoh(srv.endpoint) as z, PoseSubscriber(z, inp.map_name, cid, callback=on_pose) as poses, \
+                    FrameStreamer(z, inp.map_name, cid, spec) as fs:
+                fs.wait_for_server(30)
+                # Warm-up: the first frame relocalizes; the measurement starts tracking.
+                fs.publish(data=inp.jpeg[offset], encoding="jpeg", seq=0)
+                poses.wait_for(0, 30)
+                with lock:
+                    last.update(received=0, dropped=0)
+                base_dropped = poses.last.dropped if poses.last else 0
+                barrier.wait()
+                t_start = time.perf_counter()
+                for k in range(1, n_frames + 1):
+                    t_due = t_start + (k - 1) / rate
+                    delay = t_due - time.perf_counter()
+                    if delay > 0:
+                        time.sleep(delay)
+                    data = inp.jpeg[(offset + k) % len(inp.jpeg)]
+                    with lock:
+                        sent_at[k] = time.perf_counter()
+                    fs.publish(data=data, encoding="jpeg", seq=k)
+                poses.wait_for(n_frames, 10)
+                elapsed = time.perf_counter() - t_start
+            with lock:
+                received = last["received"]
+                results[i] = {
+                    "client": cid, "sent": n_frames, "received": received,
+                    "dropped_by_server": last["dropped"] - base_dropped,
+                    "lost": n_frames - received, "drop_pct": 100.0 * (n_frames - received) / n_frames,
+                    "errors": last["errors"], "rate_hz": n_frames / elapsed,
+                    "latency_ms_p50": _pct(lat, 50), "latency_ms_p99": _pct(lat, 99),
+                    "server_latency_ms_p50": _pct(server_lat, 50), "server_latency_ms_p99": _pct(server_lat, 99),
+                    "engine_ms_p50": _pct(engine, 50), "engine_ms_mean": float(np.mean(engine)) if engine else float("nan"),
+                    "localized": sum(1 for _ in engine),
+                }
+
+        threads = [threading.Thread(target=client, args=(i,)) for i in range(clients)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+    return {"workers": workers, "kind": kind, "clients": results, "load_before": load0, "load_after": os.getloadavg()[0]}
+
+
+# ============================================================================ report
+def _print_table(title: str, rows: list[tuple[str, str]]) -> None:
+    print(f"\n== {title}")
+    w = max(len(k) for k, _ in rows)
+    for k, v in rows:
+        print(f"  {k:<{w}}  {v}")
+
+
+def run(args: Any) -> int:
+    from ..cameras import Camera
+    from ..errors import InputError
+
+    frames_dir = Path(args.frames)
+    if not frames_dir.is_dir():
+        raise InputError(f"frames folder {frames_dir} does not exist (--frames)")
+    frames = sorted(p for p in frames_dir.iterdir() if p.suffix.lower() in (".jpg", ".jpeg"))
+    if not frames:
+        raise InputError(f"no JPEG frames in {frames_dir}")
+    maps = Path(args.maps)
+    if not (maps / args.map / "manifest.json").is_file():
+        raise InputError(f"no map bundle {maps / args.map} (--maps DIR --map NAME; build one with `sfmloc build`)")
+    Camera.parse(args.camera)
+    inp = BenchInput(maps, args.map, frames, args.camera)
+    only = set(args.only.split(",")) if args.only else {"wire", "overhead", "clients", "workers"}
+    inp.load(max(args.n, int(args.rate * args.duration) + 10) if only & {"clients", "workers"} else args.n)
+    report: dict[str, Any] = {"load_average": os.getloadavg(), "cpus": os.cpu_count()}
+    print(f"sfmloc bench-transport: {len(inp.jpeg)} frames of {frames_dir}, map {maps / args.map}, "
+          f"{os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f}")
+    if "wire" in only:
+        w = report["wire"] = bench_wire(inp, n=min(300, args.n * 2))
+        rows = []
+        for enc in ("gray8", "jpeg"):
+            rows += [
+                (f"{enc} frame", f"{w[f'{enc}_bytes']} bytes"),
+                (f"{enc} envelope encode+decode", f"{w[f'{enc}_envelope_codec_us_p50']:.1f} us p50"),
+                (f"{enc} attachment encode+decode", f"{w[f'{enc}_attachment_codec_us_p50']:.1f} us p50"),
+                (f"{enc} loopback envelope", f"{w[f'{enc}_envelope_loopback_ms_p50']:.3f} ms p50, {w[f'{enc}_envelope_loopback_ms_p99']:.3f} p99"),
+                (f"{enc} loopback attachment", f"{w[f'{enc}_attachment_loopback_ms_p50']:.3f} ms p50, {w[f'{enc}_attachment_loopback_ms_p99']:.3f} p99"),
+            ]
+        _print_table("wire: envelope vs attachment (publish -> decoded in the subscriber)", rows)
+    if "overhead" in only:
+        o = report["overhead"] = bench_overhead(inp, args.n)
+        rows = [("in-process engine", f"{o['inprocess_engine_ms_p50']:.2f} ms p50, {o['inprocess_engine_ms_p99']:.2f} p99")]
+        for enc in ("gray8", "jpeg"):
+            rows += [
+                (f"{enc} end to end (publish -> pose)", f"{o[f'{enc}_e2e_ms_p50']:.2f} ms p50, {o[f'{enc}_e2e_ms_p99']:.2f} p99"),
+                (f"{enc} engine in the server", f"{o[f'{enc}_server_engine_ms_p50']:.2f} ms p50"),
+                (f"{enc} overhead per frame (e2e - engine)", f"{o[f'{enc}_overhead_ms_p50']:.2f} ms p50, {o[f'{enc}_overhead_ms_p90']:.2f} p90"),
+                (f"{enc} e2e p50 - in-process p50", f"{o[f'{enc}_e2e_minus_inprocess_p50_ms']:.2f} ms"),
+            ]
+        _print_table(f"overhead: Zenoh loopback vs in-process engine ({args.n} frames, lockstep, 1 worker)", rows)
+    for section, kind in (("clients", "process"), ("workers", "thread")):
+        if section not in only:
+            continue
+        c = report[section] = bench_clients(inp, args.clients, args.rate, args.duration, args.workers or (os.cpu_count() or 1), kind)
+        rows = []
+        for r in c["clients"]:
+            rows.append((r["client"], f"sent {r['sent']} poses {r['received']} dropped {r['drop_pct']:.2f}% "
+                                      f"({r['dropped_by_server']} stale) errors {r['errors']}  latency p50 "
+                                      f"{r['latency_ms_p50']:.1f} ms p99 {r['latency_ms_p99']:.1f} ms  "
+                                      f"(server p50 {r['server_latency_ms_p50']:.1f} p99 {r['server_latency_ms_p99']:.1f}, "
+                                      f"engine p50 {r['engine_ms_p50']:.1f} mean {r['engine_ms_mean']:.1f})"))
+        worst = max(r["drop_pct"] for r in c["clients"])
+        rows.append(("worst drop", f"{worst:.2f}%  (load average {c['load_before']:.2f} -> {c['load_after']:.2f})"))
+        _print_table(f"{args.clients} clients x {args.rate:g} Hz x {args.duration:g} s, {c['workers']} {kind} workers", rows)
+    if args.json:
+        Path(args.json).write_text(json.dumps(report, indent=2, default=float))
+        print(f"\nwrote {args.json}")
+    return 0
