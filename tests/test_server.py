@@ -129,13 +129,14 @@ def test_latest_frame_only_intake_drops_and_counts_stale_frames(world, z, grpc_c
 def test_grpc_stream_localize_with_a_corrupt_frame_in_the_middle(world, grpc_client):
     """StreamLocalize in lockstep (each frame after the previous pose): every frame gets its
     pose; the corrupt one a LOST update with an error code, and the stream goes on."""
-    frames = list(world.png[:20])
-    frames[10] = b"\x89PNG\r\n\x1a\n" + b"garbage" * 50  # corrupt PNG
+    frames = [SourceFrame(data=d, encoding="png") for d in world.png[:20]]
+    frames[10] = SourceFrame(data=b"\x89PNG\r\n\x1a\n" + b"garbage" * 50, encoding="png")  # corrupt PNG
+    frames[15] = SourceFrame(data=b"\x00" * 1000, encoding="gray8")  # not 640x480
     acks: queue.Queue = queue.Queue()
 
     def requests():
-        for d in frames:
-            yield SourceFrame(data=d, encoding="png")
+        for f in frames:
+            yield f
             acks.get(timeout=60)
 
     poses = []
@@ -146,7 +147,8 @@ def test_grpc_stream_localize_with_a_corrupt_frame_in_the_middle(world, grpc_cli
     bad = poses[10]
     assert bad.status == "LOST" and bad.error is not None and bad.error.code == "INVALID_ARGUMENT"
     assert "cannot be decoded" in bad.error.message
-    assert all(p.error is None and p.client_id == "grpc-walker" for p in poses if p.seq != 10)
+    assert poses[15].error.code == "INVALID_ARGUMENT" and "1000 bytes" in poses[15].error.message
+    assert all(p.error is None and p.client_id == "grpc-walker" for p in poses if p.seq not in (10, 15))
     assert sum(p.localized for p in poses) >= 17
     assert np.median(position_errors(world, poses)) < 0.05
 
@@ -160,10 +162,14 @@ def test_grpc_stream_burst_drops_stale_frames_and_ends_with_the_last(world, grpc
     assert poses[0].client_id.startswith("grpc-")  # assigned by the server
 
 
-def test_grpc_stream_on_an_unknown_map_ends_with_not_found(world, grpc_client):
+def test_grpc_stream_on_an_unknown_map_or_without_camera_ends_with_its_status(world, grpc_client):
     with pytest.raises(RemoteError) as e:
         list(grpc_client.stream(iter(world.png[:2]), "no-such-map", camera(world), encoding="png"))
     assert e.value.code == "NOT_FOUND" and "no-such-map" in e.value.message
+    bad_cam = CameraSpec("PINHOLE", 640, 480, (-1.0, 525.0, 320.0, 240.0))
+    with pytest.raises(RemoteError) as e:
+        list(grpc_client.stream(iter(world.png[:2]), "room", bad_cam, encoding="png"))
+    assert e.value.code == "INVALID_ARGUMENT" and "focal" in e.value.message
 
 
 # ----------------------------------------------------------------------------- bad input

@@ -53,10 +53,13 @@ Transforms are ``tgt_from_src`` (``x_tgt = R(quat_xyzw) x_src + t``), unit quate
 
 Why one envelope
 ================
-The alternative (header as a Zenoh attachment, image as the payload) saves one copy of the
-image on each side; measured with ``sfmloc bench-transport --only wire`` at 640x480 it is
-worth a few microseconds against a ~0.2 ms loopback hop and a ~10 ms engine step, while one
-self-contained message is simpler to record, replay and bridge (storages, other languages).
+The alternative (header as a Zenoh attachment, image as the payload) saves copying the image
+into and out of the msgpack map. Measured on loopback at 640x480 (``sfmloc bench-transport
+--only wire``): encode + decode 29 us (envelope) vs 6 us (attachment) for a raw gray8 frame
+(307 kB), 12 vs 6 us for a JPEG (53 kB); publish -> decoded in the subscriber 0.17 vs 0.13 ms
+(gray8) and 0.08 vs 0.08 ms (JPEG) at p50. Some 40 us against a ~10 ms engine step is not
+worth two-part messages: one self-contained message is simpler to validate, record, replay
+and bridge (storages keep payloads; other languages need only msgpack).
 """
 
 from __future__ import annotations

@@ -17,6 +17,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
             Benchmarks of the localization server on this machine (loopback):
               wire      frame envelope vs Zenoh attachment (codec and loopback time)
               overhead  frame published -> pose received, against the in-process engine
+              engine    Localizers flat out in threads vs processes (no transport)
               clients   N clients at R Hz (own Zenoh session each), process workers:
                         frames dropped per client, latency p50/p99
               workers   the same with thread workers (the GIL comparison)
@@ -29,8 +30,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--map", default="redkitchen", help="map name (default redkitchen)")
     p.add_argument("--frames", default=str(_SHARED), help="folder of JPEG frames (default ../shared/data/redkitchen-seq01)")
     p.add_argument("--camera", default="PINHOLE 640 480 525.505 525.505 320 240", help="camera of the frames")
-    p.add_argument("--only", default="", help="comma-separated sections: wire,overhead,clients,workers (default all)")
-    p.add_argument("--n", type=int, default=200, help="frames for the overhead section (default 200)")
+    p.add_argument("--only", default="", help="comma-separated sections: wire,overhead,engine,clients,workers (default all)")
+    p.add_argument("--n", type=int, default=200, help="frames for the overhead and engine sections (default 200)")
     p.add_argument("--clients", type=int, default=4, help="clients (default 4)")
     p.add_argument("--rate", type=float, default=30.0, help="frames per second per client (default 30)")
     p.add_argument("--duration", type=float, default=20.0, help="seconds per client run (default 20)")

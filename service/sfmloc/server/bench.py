@@ -271,6 +271,64 @@ def bench_clients(inp: BenchInput, clients: int, rate: float, duration: float, w
     return {"workers": workers, "kind": kind, "clients": results, "load_before": load0, "load_after": os.getloadavg()[0]}
 
 
+# ============================================================================ engine scaling
+def _engine_job(maps: str, map_name: str, frames: list[str], camera: str, start_at: float = 0.0) -> tuple[float, float, list[float]]:
+    """Localize ``frames`` in sequence (one Localizer): (start, end) wall times and per-frame
+    engine milliseconds. Runs in a worker thread or process; all start at ``start_at`` (wall
+    time), after their imports and loading."""
+    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(var, "1")
+    import cv2
+    import faiss
+
+    from ..cameras import Camera
+    from ..engine import Localizer
+    from ..mapping.bundle import MapBundle
+
+    cv2.setNumThreads(1)
+    faiss.omp_set_num_threads(1)
+    loc = Localizer(MapBundle(Path(maps) / map_name, verify=False), Camera.parse(camera))
+    imgs = [cv2.imread(f, cv2.IMREAD_GRAYSCALE) for f in frames]
+    loc.localize(imgs[0], 0.0)  # the first frame relocalizes: not part of the steady state
+    time.sleep(max(0.0, start_at - time.time()))
+    lat = []
+    t0 = time.time()
+    for k, img in enumerate(imgs[1:], 1):
+        t = time.perf_counter()
+        loc.localize(img, k / 30.0)
+        lat.append((time.perf_counter() - t) * 1e3)
+    return t0, time.time(), lat
+
+
+def bench_engine(inp: BenchInput, parallel: int, n: int) -> dict[str, Any]:
+    """``parallel`` Localizers flat out on their own frame sequences: one at a time, then in
+    threads, then in processes. Aggregate frames/s shows what the GIL costs."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
+
+    step = max(1, len(inp.frames) // parallel)
+    jobs = [[str(p) for p in (inp.frames[i * step:] + inp.frames)[:n]] for i in range(parallel)]
+    args = (str(inp.maps), inp.map_name)
+    out: dict[str, Any] = {"parallel": parallel, "frames_each": n - 1}
+    t0, t1, lat = _engine_job(*args, jobs[0], inp.camera)
+    out["single_fps"] = len(lat) / (t1 - t0)
+    out["single_ms_p50"] = _pct(lat, 50)
+    for kind in ("thread", "process"):
+        if kind == "thread":
+            ex: Any = ThreadPoolExecutor(parallel)
+        else:
+            ex = ProcessPoolExecutor(parallel, mp_context=mp.get_context("spawn"))
+        start_at = time.time() + 15.0  # time for the processes to import and load
+        with ex:
+            res = list(ex.map(_engine_job, *zip(*[(*args, j, inp.camera, start_at) for j in jobs])))
+        start, end = min(r[0] for r in res), max(r[1] for r in res)
+        lats = [x for r in res for x in r[2]]
+        out[f"{kind}_fps"] = len(lats) / (end - start)
+        out[f"{kind}_ms_p50"] = _pct(lats, 50)
+        out[f"{kind}_speedup"] = out[f"{kind}_fps"] / out["single_fps"]
+    return out
+
+
 # ============================================================================ report
 def _print_table(title: str, rows: list[tuple[str, str]]) -> None:
     print(f"\n== {title}")
@@ -294,7 +352,7 @@ def run(args: Any) -> int:
         raise InputError(f"no map bundle {maps / args.map} (--maps DIR --map NAME; build one with `sfmloc build`)")
     Camera.parse(args.camera)
     inp = BenchInput(maps, args.map, frames, args.camera)
-    only = set(args.only.split(",")) if args.only else {"wire", "overhead", "clients", "workers"}
+    only = set(args.only.split(",")) if args.only else {"wire", "overhead", "engine", "clients", "workers"}
     inp.load(max(args.n, int(args.rate * args.duration) + 10) if only & {"clients", "workers"} else args.n)
     report: dict[str, Any] = {"load_average": os.getloadavg(), "cpus": os.cpu_count()}
     print(f"sfmloc bench-transport: {len(inp.jpeg)} frames of {frames_dir}, map {maps / args.map}, "
@@ -322,6 +380,13 @@ def run(args: Any) -> int:
                 (f"{enc} e2e p50 - in-process p50", f"{o[f'{enc}_e2e_minus_inprocess_p50_ms']:.2f} ms"),
             ]
         _print_table(f"overhead: Zenoh loopback vs in-process engine ({args.n} frames, lockstep, 1 worker)", rows)
+    if "engine" in only:
+        e = report["engine"] = bench_engine(inp, args.workers or (os.cpu_count() or 1), args.n)
+        rows = [("1 Localizer", f"{e['single_fps']:.1f} frames/s, {e['single_ms_p50']:.1f} ms p50")]
+        for kind in ("thread", "process"):
+            rows.append((f"{e['parallel']} Localizers in {kind}s",
+                         f"{e[f'{kind}_fps']:.1f} frames/s ({e[f'{kind}_speedup']:.2f}x), {e[f'{kind}_ms_p50']:.1f} ms p50 per frame"))
+        _print_table(f"engine scaling: Localizers flat out, {e['frames_each']} frames each (no transport)", rows)
     for section, kind in (("clients", "process"), ("workers", "thread")):
         if section not in only:
             continue

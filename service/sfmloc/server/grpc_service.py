@@ -79,6 +79,14 @@ class _StreamSink:
         pass
 
 
+def _checked_camera(msg: Any) -> Any:
+    """The request's camera as a ``CameraSpec``, validated like the engine's (WireError or
+    CameraModelError: INVALID_ARGUMENT)."""
+    cam = camera_from_pb(msg)
+    Camera(cam.model, cam.width, cam.height, list(cam.params))
+    return cam
+
+
 def _map_info(server: "Server", e: Any) -> pb.MapInfo:
     n = sum(1 for s in server.sessions.list(e.name))
     return pb.MapInfo(name=e.name, path=e.path, build_id=e.build_id, points=e.points, descriptors=e.descriptors,
@@ -95,8 +103,7 @@ class LocalizationService(pb_grpc.LocalizationServicer):
         t0 = time.perf_counter()
         srv = self.server
         entry = srv.registry.get(request.map)
-        cam = camera_from_pb(request.camera)
-        Camera(cam.model, cam.width, cam.height, list(cam.params))  # CameraModelError
+        cam = _checked_camera(request.camera)
         enc, data = image_from_pb(request.image, cam)
         prior = None
         if request.HasField("prior_cam_from_world"):
@@ -137,20 +144,19 @@ class LocalizationService(pb_grpc.LocalizationServicer):
                         state["client"] = check_name(req.client_id, "client id") if req.client_id else f"grpc-{stream_id}"
                         if not req.HasField("camera"):
                             raise MessageError("the first frame of a stream must carry the camera")
+                        state["camera"] = _checked_camera(req.camera)  # no camera, no stream
                     try:
                         if req.map and req.map != state["map"]:
                             raise MessageError(f"a stream stays on one map ({state['map']!r}), this frame names {req.map!r}")
-                        if req.HasField("camera"):
-                            state["camera"] = camera_from_pb(req.camera)
+                        if req.HasField("camera") and not first:
+                            state["camera"] = _checked_camera(req.camera)
                         cam = state["camera"]
                         enc, data = image_from_pb(req.image, cam)
                         frame = Frame(req.seq, req.stamp_ns or time.time_ns(), cam, enc, data)
                         s = srv.sessions.submit(state["map"], state["client"], "grpc", frame, t_recv,
                                                 make_sink=lambda: _StreamSink(loop, q), key_suffix=f":{stream_id}")
                         state["session"] = s
-                    except (WireError, InputError) as exc:
-                        if first and state["session"] is None and not isinstance(exc, WireError):
-                            raise
+                    except (WireError, InputError) as exc:  # this frame only: the stream goes on
                         srv.sessions.count_error(state["map"], exc)
                         q.put_nowait(srv.sessions.error_pose(state["map"], state["client"], req.seq, req.stamp_ns, exc))
                 # The client is done sending: let the last frames finish, then end the stream.

@@ -33,6 +33,8 @@ from .workers import WorkerPool
 
 log = logging.getLogger(__name__)
 
+UNKNOWN_MAP = "(not loaded)"  # metrics label of frames for maps this server does not host
+
 
 class Sink(Protocol):
     def send(self, pose: PoseMessage) -> None: ...
@@ -113,12 +115,12 @@ class SessionManager:
     ) -> Session:
         """Hand a validated frame to its session (created on first use). Raises for what the
         client must hear about before any engine work: unknown map, bad camera, overload."""
-        self.metrics.frames_in.inc(map_name, transport)
         if self.draining:
             from ..errors import UnavailableError
 
             raise UnavailableError("the server is shutting down")
         entry = self.registry.get(map_name)  # MapNotFoundError
+        self.metrics.frames_in.inc(map_name, transport)
         key = (map_name, client_id, transport + key_suffix)
         with self._lock:
             s = self._by_key.get(key)
@@ -244,7 +246,10 @@ class SessionManager:
                            server_id=self.server_id, dropped=dropped, message=info.message, error=info)
 
     def count_error(self, map_name: str, exc: BaseException) -> None:
-        self.metrics.frame_errors.inc(map_name, error_info(exc).code)
+        # Names of maps we do not host come from clients: one label for all of them, so that
+        # garbage cannot grow the metrics without bound.
+        label = map_name if self.registry.find(map_name) is not None else UNKNOWN_MAP
+        self.metrics.frame_errors.inc(label, error_info(exc).code)
 
     # ------------------------------------------------------------------ management
     def close(self, s: Session, reason: str) -> None:
