@@ -237,7 +237,8 @@ class Localizer:
             timer.lap("global")
         c2_ids = set(T.track_id[T.point >= 0].tolist())
         if len(c2_ids) > c.kappa2 and c2_ids != c1_ids and not relocalized:
-            est2 = self._estimate_from_table(pred, dt)
+            # The new matches were verified against this frame's pose: it is the better prior.
+            est2 = self._estimate_from_table(est.cam_from_world if est is not None else pred, dt)
             if est2 is not None:
                 est = est2
             timer.lap("pose")
@@ -316,12 +317,13 @@ class Localizer:
         loose = c.model_copy(update={"guided_threshold_px": c.prior_threshold_px})
         gm = guided_matching(desc, xy_u, self.bundle, self.scope_points, pred, self.K, loose)
         q = np.nonzero(gm.point >= 0)[0]
-        if len(q) < c.min_inliers:
+        if len(q) < c.recover_min_inliers:
             return None
         est = estimate_pose(
             xy_u[q], self.bundle.points_xyz[gm.point[q]], self.K,
             threshold=c.ransac_threshold_px, refine_threshold=c.refine_threshold_px,
-            min_inliers=c.min_inliers, confidence=c.ransac_confidence, max_iterations=c.ransac_max_iterations,
+            min_inliers=c.recover_min_inliers, confidence=c.ransac_confidence,
+            max_iterations=c.ransac_max_iterations,
         )
         if est is None:
             return None

@@ -90,6 +90,7 @@ def estimate_pose(
     max_iterations: int = 1000,
     prior: Rigid3d | None = None,
     prior_tie: float = 0.9,
+    prior_accept: float = 0.8,
 ) -> PoseEstimate | None:
     """Pose from one-to-one matches (undistorted pixels ``xy`` (N,2), world points ``X`` (N,3)).
 
@@ -97,12 +98,21 @@ def estimate_pose(
     a second hypothesis beside RANSAC's: when the matches lie on one distant plane the pose has
     a two-fold (mirror) ambiguity that no minimal solver resolves, and both solutions explain
     the points almost equally well. The prior's solution wins unless RANSAC's has clearly more
-    inliers (``prior_tie``: the prior's count must reach that fraction of RANSAC's).
+    inliers (``prior_tie``: the prior's count must reach that fraction of RANSAC's). When the
+    prior's solution already explains ``prior_accept`` of all matches, RANSAC is skipped: the
+    common tracking case, where matches were verified against the previous pose.
     """
     n = len(xy)
     if n < max(4, min_inliers):
         return None
-    candidates: list[PoseEstimate] = []
+    from_prior = None
+    if prior is not None and prior.is_finite():
+        # Select inliers with the looser RANSAC threshold first: the prior is a prediction.
+        pose, _ = refine(prior, K, xy, X, threshold, rounds=1)
+        pose, mask = refine(pose, K, xy, X, refine_threshold)
+        from_prior = _finish(pose, mask, K, xy, X, min_inliers)
+        if from_prior is not None and from_prior.num_inliers >= prior_accept * n:
+            return from_prior
     ok, rvec, tvec, inl = cv2.solvePnPRansac(
         X.astype(np.float64),
         xy.astype(np.float64),
@@ -117,12 +127,6 @@ def estimate_pose(
     if ok and inl is not None and len(inl) >= min_inliers:
         pose, mask = refine(_rigid(rvec, tvec), K, xy, X, refine_threshold)
         ransac = _finish(pose, mask, K, xy, X, min_inliers)
-    from_prior = None
-    if prior is not None and prior.is_finite():
-        # Select inliers with the looser RANSAC threshold first: the prior is a prediction.
-        pose, _ = refine(prior, K, xy, X, threshold, rounds=1)
-        pose, mask = refine(pose, K, xy, X, refine_threshold)
-        from_prior = _finish(pose, mask, K, xy, X, min_inliers)
     candidates = [c for c in (ransac, from_prior) if c is not None]
     if not candidates:
         return None
