@@ -36,6 +36,7 @@ from sfmloc_client import (
     RemoteError,
     SourceFrame,
     encode_frame,
+    encode_image,
     encode_map_announcement,
     query_servers,
 )
@@ -194,6 +195,9 @@ def test_bad_frames_get_clear_errors_while_a_good_client_keeps_getting_poses(wor
                                      "params": [-5.0, 525.0, 320.0, 240.0]}, "encoding": "png", "data": world.png[0]}),
         "oversized": msgpack.packb({"seq": 9, "stamp_ns": 0, "camera": cam.to_wire(), "encoding": "png",
                                     "data": b"\x00" * (srv.conf.max_frame_bytes + 10)}),
+        "huge-camera": encode_frame(Frame(10, 0, CameraSpec("PINHOLE", 8000, 8000, (5e3, 5e3, 4e3, 4e3)), "png", world.png[0])),
+        # a decompression bomb: 14 kB of PNG that would decode to 9000 x 9000 pixels
+        "bomb": encode_frame(Frame(11, 0, cam, "png", encode_image(np.zeros((9000, 9000), np.uint8), "png"))),
     }
     expected = {
         "garbage": ("INVALID_ARGUMENT", None, "msgpack"),
@@ -205,6 +209,8 @@ def test_bad_frames_get_clear_errors_while_a_good_client_keeps_getting_poses(wor
         "other-size-png": ("INVALID_ARGUMENT", 7, "320x240"),
         "bad-camera": ("INVALID_ARGUMENT", 8, "focal"),
         "oversized": ("RESOURCE_EXHAUSTED", None, "exceeds the limit"),
+        "huge-camera": ("RESOURCE_EXHAUSTED", 10, "exceeds this server's limit"),
+        "bomb": ("INVALID_ARGUMENT", 11, "larger than the decoder allows"),
     }
     subs = []
     for cid in cases:
@@ -223,11 +229,18 @@ def test_bad_frames_get_clear_errors_while_a_good_client_keeps_getting_poses(wor
     try:
         with FrameStreamer(z, "room", "probe", cam) as probe:
             assert probe.wait_for_server(30)
-        for cid, payload in cases.items():
-            _raw_put(z, frame_key("room", cid), payload)
-        with FrameStreamer(z, "atlantis", "lost", cam) as fs:
-            fs.publish(data=world.png[0], encoding="png")
-        assert wait_until(lambda: all(errors[c] for c in cases) and unknown, 60)
+
+        def send_unanswered() -> bool:
+            # Re-send until answered: the server may learn of a pose subscriber declared just
+            # now after its frame (declarations and express data travel separately).
+            for cid, payload in cases.items():
+                if not errors[cid]:
+                    _raw_put(z, frame_key("room", cid), payload)
+            if not unknown:
+                _raw_put(z, frame_key("atlantis", "lost"), encode_frame(Frame(0, 0, cam, "png", world.png[0])))
+            return wait_until(lambda: all(errors[c] for c in cases) and bool(unknown), 1.0)
+
+        assert wait_until(send_unanswered, 60, every=0.0), [c for c in cases if not errors[c]]
         t.join(120)
     finally:
         stop.set()

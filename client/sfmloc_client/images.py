@@ -59,7 +59,11 @@ def decode_image(encoding: str, data: bytes | bytearray | memoryview, width: int
         raise WireError(f"encoding must be one of {', '.join(ENCODINGS)}, got {encoding!r}")
     cv2 = _cv2()
     buf = np.frombuffer(data, np.uint8)
-    img = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_UNCHANGED) if buf.size else None
+    try:
+        img = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_UNCHANGED) if buf.size else None
+    except cv2.error as exc:  # e.g. larger than OPENCV_IO_MAX_IMAGE_PIXELS allows
+        reason = "larger than the decoder allows" if "MAX_IMAGE_PIXELS" in str(exc) else str(exc).strip().splitlines()[-1]
+        raise ImageDataError(f"the {encoding} data ({len(data)} bytes) cannot be decoded: {reason}") from None
     if img is None:
         raise ImageDataError(f"the {encoding} data ({len(data)} bytes) cannot be decoded (corrupt or not {encoding})")
     if img.shape[:2] != (height, width):

@@ -63,16 +63,7 @@ class PoseSubscriber:
             except Exception:  # noqa: BLE001 - a user callback must not kill Zenoh's thread
                 log.exception("pose callback failed")
             return
-        assert self._queue is not None
-        while True:
-            try:
-                self._queue.put_nowait(pose)
-                return
-            except queue.Full:
-                try:
-                    self._queue.get_nowait()
-                except queue.Empty:
-                    pass
+        self._put(pose)
 
     def wait_for(self, seq: int, timeout: float | None = None) -> bool:
         """Wait until a pose with ``seq`` or a later one has arrived; False on timeout."""
@@ -111,7 +102,20 @@ class PoseSubscriber:
         with self._cond:
             self._cond.notify_all()
         if self._queue is not None:
-            self._queue.put(None)
+            self._put(None)  # wakes an iterator up: the end
+
+    def _put(self, item: PoseMessage | None) -> None:
+        """Queue ``item``; when full, the oldest pose makes room (never blocks Zenoh)."""
+        assert self._queue is not None
+        while True:
+            try:
+                self._queue.put_nowait(item)
+                return
+            except queue.Full:
+                try:
+                    self._queue.get_nowait()
+                except queue.Empty:
+                    pass
 
     def __enter__(self) -> "PoseSubscriber":
         return self

@@ -64,12 +64,13 @@ class Server:
             n, conf.worker_kind, conf.engine.model_dump_json(),
             on_result=self._on_result, on_lost=self._on_worker_lost,
             log_level=logging.getLogger().getEffectiveLevel(), log_format=conf.log_format,
-            max_pending_relocalize=conf.max_pending_relocalize,
+            max_pending_relocalize=conf.max_pending_relocalize, max_image_pixels=conf.max_image_pixels,
         )
         self.registry = MapRegistry(self.pool)
         self.sessions = SessionManager(
             self.pool, self.registry, self.metrics, server_id=self.server_id,
             max_sessions=conf.max_sessions, idle_timeout_s=conf.idle_timeout_s,
+            max_image_pixels=conf.max_image_pixels,
         )
         self.metrics.gauges(
             sessions=self.sessions.counts_by_map,
@@ -130,7 +131,7 @@ class Server:
             self._rate = (now, float(frames), busy)
         return ServerInfo(
             server_id=self.server_id, version=__version__,
-            grpc="" if self.grpc_port is None else f"{self.conf.grpc.address.rsplit(':', 1)[0]}:{self.grpc_port}",
+            grpc=self._grpc_address(),
             maps=[e.summary() for e in self.registry.list()],
             sessions=len(self.sessions), workers=self.pool.n,
             load={
@@ -140,6 +141,15 @@ class Server:
             },
             ready=self.ready,
         )
+
+    def _grpc_address(self) -> str:
+        """Where clients reach our gRPC (a wildcard listen address becomes the host name)."""
+        if self.grpc_port is None:
+            return ""
+        host = self.conf.grpc.address.rsplit(":", 1)[0]
+        if host in ("", "0.0.0.0", "[::]", "::"):
+            host = socket.gethostname()
+        return f"{host}:{self.grpc_port}"
 
     # ------------------------------------------------------------------ lifecycle
     async def start(self, load_maps: bool = True) -> None:

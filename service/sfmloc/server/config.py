@@ -46,6 +46,9 @@ class ServerConfig(StrictModel):
     # Zenoh frame envelopes larger than this are refused (RESOURCE_EXHAUSTED).
     max_frame_bytes: int = Field(16 * 1024 * 1024, ge=1024)
     max_pending_relocalize: int = Field(16, ge=1)  # queued single-image requests, all workers
+    # Largest camera (width x height) accepted; also caps what OpenCV decodes in a worker, so a
+    # small JPEG claiming a huge image cannot exhaust its memory.
+    max_image_pixels: int = Field(4096 * 4096, ge=1)
     follow_builder: bool = False  # load bundles the builder announces on sfmloc/maps/*
     grace_s: float = Field(5.0, ge=0)  # shutdown: time for in-flight frames and calls
     metrics_port: Optional[int] = Field(None, ge=0, le=65535)

@@ -34,10 +34,9 @@ from sfmloc_client.pb import localization_pb2 as pb
 from sfmloc_client.pb import localization_pb2_grpc as pb_grpc
 from sfmloc_client.wire import Frame, PoseMessage, check_name
 
-from ..cameras import Camera
 from ..errors import InputError, MessageError, SessionNotFoundError
 from .logfmt import event
-from .sessions import pose_from_result
+from .sessions import pose_from_result, validate_camera
 from .status import abort, error_info
 
 if TYPE_CHECKING:
@@ -79,11 +78,11 @@ class _StreamSink:
         pass
 
 
-def _checked_camera(msg: Any) -> Any:
+def _checked_camera(msg: Any, max_pixels: int) -> Any:
     """The request's camera as a ``CameraSpec``, validated like the engine's (WireError or
-    CameraModelError: INVALID_ARGUMENT)."""
+    CameraModelError: INVALID_ARGUMENT; too large: RESOURCE_EXHAUSTED)."""
     cam = camera_from_pb(msg)
-    Camera(cam.model, cam.width, cam.height, list(cam.params))
+    validate_camera(cam, max_pixels)
     return cam
 
 
@@ -103,7 +102,7 @@ class LocalizationService(pb_grpc.LocalizationServicer):
         t0 = time.perf_counter()
         srv = self.server
         entry = srv.registry.get(request.map)
-        cam = _checked_camera(request.camera)
+        cam = _checked_camera(request.camera, srv.conf.max_image_pixels)
         enc, data = image_from_pb(request.image, cam)
         prior = None
         if request.HasField("prior_cam_from_world"):
@@ -144,12 +143,12 @@ class LocalizationService(pb_grpc.LocalizationServicer):
                         state["client"] = check_name(req.client_id, "client id") if req.client_id else f"grpc-{stream_id}"
                         if not req.HasField("camera"):
                             raise MessageError("the first frame of a stream must carry the camera")
-                        state["camera"] = _checked_camera(req.camera)  # no camera, no stream
+                        state["camera"] = _checked_camera(req.camera, srv.conf.max_image_pixels)  # no camera, no stream
                     try:
                         if req.map and req.map != state["map"]:
                             raise MessageError(f"a stream stays on one map ({state['map']!r}), this frame names {req.map!r}")
                         if req.HasField("camera") and not first:
-                            state["camera"] = _checked_camera(req.camera)
+                            state["camera"] = _checked_camera(req.camera, srv.conf.max_image_pixels)
                         cam = state["camera"]
                         enc, data = image_from_pb(req.image, cam)
                         frame = Frame(req.seq, req.stamp_ns or time.time_ns(), cam, enc, data)

@@ -88,6 +88,7 @@ class SessionManager:
         server_id: str,
         max_sessions: int = 256,
         idle_timeout_s: float = 30.0,
+        max_image_pixels: int = 4096 * 4096,
     ) -> None:
         self.pool = pool
         self.registry = registry
@@ -95,6 +96,7 @@ class SessionManager:
         self.server_id = server_id
         self.max_sessions = max_sessions
         self.idle_timeout_s = idle_timeout_s
+        self.max_image_pixels = max_image_pixels
         self._lock = threading.Lock()
         self._by_key: dict[tuple[str, str, str], Session] = {}
         self._by_sid: dict[int, Session] = {}
@@ -129,7 +131,7 @@ class SessionManager:
             s.last_seen = time.monotonic()
             s.frames += 1
         if s.camera != frame.camera:
-            Camera(frame.camera.model, frame.camera.width, frame.camera.height, list(frame.camera.params))  # CameraModelError
+            validate_camera(frame.camera, self.max_image_pixels)
             s.camera = frame.camera
         with self._lock:
             if s.closed:
@@ -369,3 +371,15 @@ def pose_from_result(
     p.matching = res["matching"]
     p.message = res["message"]
     return p
+
+
+def validate_camera(cam: Any, max_pixels: int) -> Camera:
+    """A client's ``CameraSpec`` checked as the engine will use it (``CameraModelError``), and
+    against the server's image size limit (``MessageTooLargeError``)."""
+    from sfmloc_client.errors import MessageTooLargeError
+
+    if cam.width * cam.height > max_pixels:
+        raise MessageTooLargeError(
+            f"a {cam.width}x{cam.height} camera exceeds this server's limit of {max_pixels} pixels per image"
+        )
+    return Camera(cam.model, cam.width, cam.height, list(cam.params))

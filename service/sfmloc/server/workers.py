@@ -319,6 +319,7 @@ class WorkerPool:
         log_level: int = logging.INFO,
         log_format: str = "kv",
         max_pending_relocalize: int = 16,
+        max_image_pixels: int = 4096 * 4096,
     ) -> None:
         self.n = n
         self.kind = kind
@@ -327,6 +328,7 @@ class WorkerPool:
         self.on_lost = on_lost or (lambda i: None)
         self.log_level, self.log_format = log_level, log_format
         self.max_pending_relocalize = max_pending_relocalize
+        self.max_image_pixels = max_image_pixels
         self.workers: list[WorkerHandle] = []
         self._lock = threading.Lock()
         self._req = itertools.count(1)
@@ -357,6 +359,9 @@ class WorkerPool:
             # caller's __main__, nothing is pickled, and the one-thread environment is in place
             # before numpy loads.
             env = dict(os.environ, **{var: "1" for var in THREAD_ENV})
+            # OpenCV refuses to decode larger images (decompression bombs: a small JPEG that
+            # claims a huge size would otherwise be decoded before its size is checked).
+            env["OPENCV_IO_MAX_IMAGE_PIXELS"] = str(self.max_image_pixels)
             fd = theirs.fileno()
             cmd = [sys.executable, "-m", "sfmloc.server.workers", "--fd", str(fd), "--index", str(i),
                    "--log-level", str(self.log_level), "--log-format", self.log_format,
