@@ -72,6 +72,9 @@ class SfmConf(StrictModel):
     min_tri_angle_deg: float = Field(1.5, gt=0, description="deg; COLMAP's filter_min_tri_angle")
     # images only: intrinsics refinement when a camera is given (always refined otherwise)
     refine_given_intrinsics: bool = False
+    global_ba_ratio: float = Field(
+        1.4, ge=1.0, description="images only: global BA when the model grew by this factor (COLMAP 1.1)"
+    )
     # execution
     num_threads: int = Field(-1, description="-1: all cores")
     seed: int = Field(0, ge=0, description="random seed of RANSAC and the mapper")

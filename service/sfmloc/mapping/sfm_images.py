@@ -5,7 +5,10 @@ aligned): poses estimated against it are in that frame too. Steps: SIFT; pairs i
 (``sequential``: each image with the next ``sequential_overlap`` images and, with
 ``quadratic_overlap``, the next 2^k; no loop detection, which would need a vocabulary tree)
 or all pairs (``exhaustive``); matching and verification; incremental mapping; the largest
-model (most registered images) is kept. With a given camera the intrinsics stay fixed
+model (most registered images) is kept. Global bundle adjustment runs when the model has
+grown by ``global_ba_ratio`` (1.4; COLMAP's 1.1 took 16 instead of 11 CPU-s of mapping on 100
+redkitchen frames for the same camera centres, 0.7 cm median from the known poses after a
+similarity). With a given camera the intrinsics stay fixed
 (``refine_given_intrinsics`` to refine them); without one, a SIMPLE_RADIAL camera is guessed
 from the first image (EXIF focal length, else 1.2 x the larger side) and refined.
 """
@@ -119,6 +122,10 @@ def reconstruct_images_only(
             opts.ba_refine_focal_length = not fixed
             opts.ba_refine_extra_params = not fixed
             opts.ba_refine_principal_point = False
+            # Global BA less often (COLMAP: every 10% growth): a third less mapping time on
+            # 100 redkitchen frames, same poses (final global BA still runs).
+            opts.ba_global_frames_ratio = conf.global_ba_ratio
+            opts.ba_global_points_ratio = conf.global_ba_ratio
             n_reg = [0]
 
             def next_image() -> None:
