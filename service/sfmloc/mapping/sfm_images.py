@@ -15,6 +15,7 @@ from the first image (EXIF focal length, else 1.2 x the larger side) and refined
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -152,9 +153,10 @@ def reconstruct_images_only(
                 )
             best = max(models.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()))
             if len(models) > 1:
-                log.warning(
-                    "SfM split into %d models; keeping the largest (%d of %d images)",
-                    len(models), best.num_reg_images(), len(names),
+                log.log(
+                    logging.WARNING if best.num_reg_images() < len(names) else logging.INFO,
+                    "SfM made %d models (%s images); keeping the largest",
+                    len(models), "+".join(str(m.num_reg_images()) for m in models.values()),
                 )
             rec = reconstruction_from_pycolmap(best)
     dropped = filter_points(rec, conf.min_track_length, conf.max_reproj_error)
