@@ -486,6 +486,24 @@ def test_tum_poses_match_numeric_stems_then_order(tmp_path):
         sfm.match_poses_to_images(poses, ["a.png", "b.png"], f)
 
 
+def test_known_poses_from_a_tum_trajectory(corner_scene, tmp_path):
+    """TUM RGB-D layout end to end: timestamp file names, world_from_cam poses."""
+    img = tmp_path / "rgb"
+    img.mkdir()
+    stamps = [1305031102.175304 + 0.1 * k for k in range(4)]
+    for k, ts in enumerate(stamps):
+        shutil.copy(corner_scene["images"] / corner_scene["names"][k], img / f"{ts:.6f}.png")
+    world_from_cam = [T.inverse() for T in corner_scene["poses"][:4]]
+    f = write_tum(tmp_path / "groundtruth.txt", [ts + 0.004 for ts in stamps], world_from_cam)
+    rec = sfm.triangulate_known_poses(img, f, CAM, sfm.sfm_conf("fast", min_track_length=2))
+    assert len(rec.images) == 4 and len(rec.points3D) > 100
+    for im in rec.images.values():
+        k = [f"{ts:.6f}.png" for ts in stamps].index(im.name)
+        np.testing.assert_allclose(im.cam_from_world.center, corner_scene["poses"][k].center, atol=1e-6)
+    d = corner_scene["scene"].distance(np.array([p.xyz for p in rec.points3D.values()]))
+    assert np.median(d) < 0.01
+
+
 # --------------------------------------------------------------------------- bad input
 def _copy_images(corner_scene, dst: Path, k: int = 3) -> list[str]:
     dst.mkdir(parents=True, exist_ok=True)
