@@ -167,8 +167,9 @@ def reconstruct_images_only(
     if n_unreg:
         log.warning("%d of %d images could not be registered and are left out", n_unreg, len(names))
     msg = (
-        f"{len(rec.images)}/{len(names)} images registered, {st['points3D']} points (dropped {dropped} "
-        f"with track < {conf.min_track_length}), mean track {st['mean_track_length']:.2f}, "
+        f"{len(rec.images)}/{len(names)} images registered, {st['points3D']} points (dropped {dropped}: "
+        f"track < {conf.min_track_length} or error > {conf.max_reproj_error:g} px), "
+        f"mean track {st['mean_track_length']:.2f}, "
         f"mean error {st['mean_reproj_error_px']:.2f} px; arbitrary SfM frame and scale"
     )
     log.info("images-only SfM: %s", msg)

@@ -280,8 +280,8 @@ def triangulate_known_poses(
             stage="triangulate",
         )
     msg = (
-        f"{st['points3D']} points (dropped {dropped} with track < {conf.min_track_length}), "
-        f"mean track {st['mean_track_length']:.2f}, mean error {st['mean_reproj_error_px']:.2f} px"
+        f"{st['points3D']} points (dropped {dropped}: track < {conf.min_track_length} or error > "
+        f"{conf.max_reproj_error:g} px), mean track {st['mean_track_length']:.2f}, mean error {st['mean_reproj_error_px']:.2f} px"
     )
     log.info("known-poses triangulation: %s", msg)
     rep.report("triangulate", 1.0, msg)
