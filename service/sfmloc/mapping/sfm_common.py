@@ -248,7 +248,8 @@ def check_names(names: Sequence[str], image_dir: Path) -> None:
 
 
 def image_size(path: Path) -> tuple[int, int]:
-    """(width, height) of an image file, decoding it; ``ImageDecodeError`` naming the file."""
+    """(width, height) of an image file as stored (no EXIF rotation, as COLMAP), decoding it;
+    ``ImageDecodeError`` naming the file."""
     try:
         data = np.fromfile(str(path), dtype=np.uint8)
     except OSError as exc:
@@ -275,17 +276,22 @@ def check_images(
     rep.report("input", 0.0, f"checking {len(names)} images in {image_dir}")
     with ThreadPoolExecutor(max_workers=num_threads(conf)) as pool:
         futures = [(n, pool.submit(image_size, image_dir / n)) for n in names]
-        for i, (name, fut) in enumerate(futures):
-            sizes[name] = fut.result()
-            want = expected_size(name)
-            if want is not None and sizes[name] != tuple(want):
-                w, h = sizes[name]
-                raise ImageDecodeError(
-                    f"[input] image {image_dir / name} is {w}x{h} but {what} is {want[0]}x{want[1]}"
-                )
-            if (i + 1) % 50 == 0:
-                rep.check("input")
-                rep.report("input", (i + 1) / len(names), f"checked {i + 1}/{len(names)} images")
+        try:
+            for i, (name, fut) in enumerate(futures):
+                sizes[name] = fut.result()
+                want = expected_size(name)
+                if want is not None and sizes[name] != tuple(want):
+                    w, h = sizes[name]
+                    raise ImageDecodeError(
+                        f"[input] image {image_dir / name} is {w}x{h} but {what} is {want[0]}x{want[1]}"
+                    )
+                if (i + 1) % 50 == 0:
+                    rep.check("input")
+                    rep.report("input", (i + 1) / len(names), f"checked {i + 1}/{len(names)} images")
+        except BaseException:
+            for _, f in futures:  # fail now, not after decoding the rest
+                f.cancel()
+            raise
     rep.report("input", 1.0, f"{len(names)} images readable")
     return sizes
 
@@ -363,8 +369,9 @@ def opencv_sift(gray: np.ndarray, conf: SfmConf) -> tuple[np.ndarray, np.ndarray
 
 
 def _read_gray(path: Path) -> np.ndarray:
+    """The stored pixels, as COLMAP reads them: no EXIF rotation (OpenCV applies it by default)."""
     data = np.fromfile(str(path), dtype=np.uint8)
-    img = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE) if data.size else None
+    img = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION) if data.size else None
     if img is None:
         raise ImageDecodeError(f"[features] cannot decode image {path}")
     return img
