@@ -36,11 +36,18 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--rate", type=float, default=30.0, help="frames per second per client (default 30)")
     p.add_argument("--duration", type=float, default=20.0, help="seconds per client run (default 20)")
     p.add_argument("--workers", type=int, default=0, help="server workers (default: one per core)")
+    p.add_argument("--repeat", type=int, default=3, help="engine section: runs per mode, the best is kept (default 3)")
     p.add_argument("--json", metavar="FILE", help="also write the numbers as JSON")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    import os
+
+    # The in-process measurements must run like a server worker: one BLAS/OpenMP thread, set
+    # before numpy loads (the benchmark module imports it).
+    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ[var] = "1"
     from ..server.bench import run as bench
 
     return bench(args)

@@ -300,31 +300,43 @@ def _engine_job(maps: str, map_name: str, frames: list[str], camera: str, start_
     return t0, time.time(), lat
 
 
-def bench_engine(inp: BenchInput, parallel: int, n: int) -> dict[str, Any]:
-    """``parallel`` Localizers flat out on their own frame sequences: one at a time, then in
-    threads, then in processes. Aggregate frames/s shows what the GIL costs."""
+def bench_engine(inp: BenchInput, parallel: int, n: int, repeat: int = 3) -> dict[str, Any]:
+    """``parallel`` Localizers flat out on their own frame sequences: one alone, then in
+    threads, then in processes; aggregate frames/s shows what the GIL costs. Each mode runs
+    ``repeat`` times, interleaved, and keeps its best run: other processes on the machine only
+    ever slow a run down, so the best run is the least disturbed one."""
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 
     step = max(1, len(inp.frames) // parallel)
     jobs = [[str(p) for p in (inp.frames[i * step:] + inp.frames)[:n]] for i in range(parallel)]
     args = (str(inp.maps), inp.map_name)
-    out: dict[str, Any] = {"parallel": parallel, "frames_each": n - 1}
-    t0, t1, lat = _engine_job(*args, jobs[0], inp.camera)
-    out["single_fps"] = len(lat) / (t1 - t0)
-    out["single_ms_p50"] = _pct(lat, 50)
+    best: dict[str, tuple[float, float]] = {}  # mode -> (frames/s, p50 ms)
+    runs: dict[str, list[float]] = {"single": [], "thread": [], "process": []}
+    for _ in range(repeat):
+        t0, t1, lat = _engine_job(*args, jobs[0], inp.camera)
+        runs["single"].append(len(lat) / (t1 - t0))
+        if runs["single"][-1] >= best.get("single", (0.0, 0.0))[0]:
+            best["single"] = (runs["single"][-1], _pct(lat, 50))
+        for kind in ("thread", "process"):
+            if kind == "thread":
+                ex: Any = ThreadPoolExecutor(parallel)
+                start_at = time.time() + 1.0
+            else:
+                ex = ProcessPoolExecutor(parallel, mp_context=mp.get_context("spawn"))
+                start_at = time.time() + 8.0  # time for the processes to import and load
+            with ex:
+                res = list(ex.map(_engine_job, *zip(*[(*args, j, inp.camera, start_at) for j in jobs])))
+            start, end = min(r[0] for r in res), max(r[1] for r in res)
+            lats = [x for r in res for x in r[2]]
+            fps = len(lats) / (end - start)
+            runs[kind].append(fps)
+            if fps >= best.get(kind, (0.0, 0.0))[0]:
+                best[kind] = (fps, _pct(lats, 50))
+    out: dict[str, Any] = {"parallel": parallel, "frames_each": n - 1, "repeat": repeat, "runs_fps": runs}
+    for mode, (fps, p50) in best.items():
+        out[f"{mode}_fps"], out[f"{mode}_ms_p50"] = fps, p50
     for kind in ("thread", "process"):
-        if kind == "thread":
-            ex: Any = ThreadPoolExecutor(parallel)
-        else:
-            ex = ProcessPoolExecutor(parallel, mp_context=mp.get_context("spawn"))
-        start_at = time.time() + 15.0  # time for the processes to import and load
-        with ex:
-            res = list(ex.map(_engine_job, *zip(*[(*args, j, inp.camera, start_at) for j in jobs])))
-        start, end = min(r[0] for r in res), max(r[1] for r in res)
-        lats = [x for r in res for x in r[2]]
-        out[f"{kind}_fps"] = len(lats) / (end - start)
-        out[f"{kind}_ms_p50"] = _pct(lats, 50)
         out[f"{kind}_speedup"] = out[f"{kind}_fps"] / out["single_fps"]
     return out
 
@@ -381,12 +393,13 @@ def run(args: Any) -> int:
             ]
         _print_table(f"overhead: Zenoh loopback vs in-process engine ({args.n} frames, lockstep, 1 worker)", rows)
     if "engine" in only:
-        e = report["engine"] = bench_engine(inp, args.workers or (os.cpu_count() or 1), args.n)
+        e = report["engine"] = bench_engine(inp, args.workers or (os.cpu_count() or 1), args.n, args.repeat)
         rows = [("1 Localizer", f"{e['single_fps']:.1f} frames/s, {e['single_ms_p50']:.1f} ms p50")]
         for kind in ("thread", "process"):
             rows.append((f"{e['parallel']} Localizers in {kind}s",
                          f"{e[f'{kind}_fps']:.1f} frames/s ({e[f'{kind}_speedup']:.2f}x), {e[f'{kind}_ms_p50']:.1f} ms p50 per frame"))
-        _print_table(f"engine scaling: Localizers flat out, {e['frames_each']} frames each (no transport)", rows)
+        rows.append(("all runs (frames/s)", "; ".join(f"{k} " + ", ".join(f"{v:.0f}" for v in vs) for k, vs in e["runs_fps"].items())))
+        _print_table(f"engine scaling: Localizers flat out, {e['frames_each']} frames each, best of {e['repeat']} (no transport)", rows)
     for section, kind in (("clients", "process"), ("workers", "thread")):
         if section not in only:
             continue

@@ -34,7 +34,7 @@ from sfmloc_client.pb import localization_pb2 as pb
 from sfmloc_client.pb import localization_pb2_grpc as pb_grpc
 from sfmloc_client.wire import Frame, PoseMessage, check_name
 
-from ..errors import InputError, MessageError, SessionNotFoundError
+from ..errors import InputError, MessageError, SessionNotFoundError, UnavailableError
 from .logfmt import event
 from .sessions import pose_from_result, validate_camera
 from .status import abort, error_info
@@ -247,9 +247,12 @@ def make_grpc_server(server: "Server") -> tuple[grpc.aio.Server, health_aio.Heal
     reflection.enable_server_reflection(
         (SERVICE_NAME, health_pb2.DESCRIPTOR.services_by_name["Health"].full_name, reflection.SERVICE_NAME), g
     )
-    port = g.add_insecure_port(server.conf.grpc.address)
+    try:
+        port = g.add_insecure_port(server.conf.grpc.address)
+    except RuntimeError as exc:  # grpc's way of saying the address is taken or invalid
+        raise UnavailableError(f"cannot listen for gRPC on {server.conf.grpc.address}: {exc}") from None
     if port == 0:
-        raise OSError(f"cannot listen for gRPC on {server.conf.grpc.address}")
+        raise UnavailableError(f"cannot listen for gRPC on {server.conf.grpc.address}")
     return g, health, port
 
 
