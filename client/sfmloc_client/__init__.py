@@ -10,11 +10,18 @@ Zenoh (streams at camera rate)::
     from sfmloc_client import CameraSpec, FrameStreamer, PoseSubscriber, make_zenoh_config
 
     cam = CameraSpec.parse("PINHOLE 640 480 525 525 320 240")
+    def on_pose(p):                       # PoseMessage: seq, status, world_from_cam, error...
+        print(p.seq, p.status, p.world_from_cam)
+
     with zenoh.open(make_zenoh_config(connect=["tcp/server:7447"])) as z:
-        with PoseSubscriber(z, "lab", "drone1") as poses, FrameStreamer(z, "lab", "drone1", cam) as fs:
+        with PoseSubscriber(z, "lab", "drone1", callback=on_pose) as poses, \
+                FrameStreamer(z, "lab", "drone1", cam) as fs:
             fs.wait_for_server()
-            fs.run("frames/", fps=30, poses=poses)
-            for pose in poses: ...            # PoseMessage: seq, status, world_from_cam, ...
+            stats = fs.run("frames/", fps=30, poses=poses)   # or an array stack, a video, 0
+            poses.wait_for(stats.last_seq, timeout=5)
+
+Without a callback, ``PoseSubscriber`` queues poses for ``get(timeout)`` or iteration (which
+ends when it is closed).
 
 gRPC (single images, map management, streams without Zenoh)::
 

@@ -9,10 +9,10 @@ Why processes: the engine is numpy/OpenCV with many small Python-level steps, an
 serializes those across threads. Measured on this 2-core machine (``sfmloc bench-transport
 --only workers``): see ``app.py`` for the numbers.
 
-Messages between the server and a worker are msgpack over a ``multiprocessing`` pipe
-(``send_bytes``/``recv_bytes``: nothing is pickled; frame bytes follow their header as a second
-message). Only starting a worker pickles its arguments (a Connection and plain values), which
-is between our own processes on this machine.
+A worker process is a fresh interpreter (``python -m sfmloc.server.workers``) holding one end
+of a socket pair. Messages are msgpack, framed by ``multiprocessing.connection.Connection``
+(``send_bytes``/``recv_bytes``); frame bytes follow their header as a second message. Nothing
+is pickled anywhere (no ``multiprocessing`` queues, which pickle, and no spawn arguments).
 
 Protocol (server -> worker): ``load`` (name, gen, path), ``drop`` (name, gen), ``frame`` (sid,
 map, gen, seq, stamp, camera, encoding; + data), ``reloc`` (req, map, gen, camera, encoding,
@@ -46,8 +46,8 @@ from .status import error_from_wire, error_to_wire
 
 log = logging.getLogger(__name__)
 
-# One thread per worker for BLAS/OpenMP; inherited by spawned workers before numpy loads.
-SOCKET_BUFFER = 4 * 1024 * 1024
+SOCKET_BUFFER = 4 * 1024 * 1024  # per direction: a few raw frames fit in one write
+# One thread per worker for BLAS/OpenMP: in the worker's environment before numpy loads.
 THREAD_ENV = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS")
 
 
@@ -406,8 +406,8 @@ class WorkerPool:
 
     # ------------------------------------------------------------------ pumps
     def _sender(self, h: WorkerHandle) -> None:
-        """Writes to one worker's pipe. A separate thread, so a busy worker (its pipe full)
-        never blocks the Zenoh or gRPC thread that handed over a frame."""
+        """Writes to one worker's socket. A separate thread, so a busy worker (its socket
+        full) never blocks the Zenoh or gRPC thread that handed over a frame."""
         while True:
             item = h.outbox.get()
             if item is None:
