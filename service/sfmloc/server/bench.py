@@ -197,6 +197,30 @@ def bench_overhead(inp: BenchInput, n: int) -> dict[str, Any]:
 
 
 # ============================================================================ clients
+def _cpu_seconds(pid: int) -> float:
+    """User + system CPU seconds of a process so far (Linux /proc), 0 when unknown."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return 0.0
+
+
+def _child_pids(pid: int) -> list[int]:
+    out = []
+    for d in os.listdir("/proc") if os.path.isdir("/proc") else []:
+        if d.isdigit():
+            try:
+                with open(f"/proc/{d}/stat") as f:
+                    if int(f.read().rsplit(")", 1)[1].split()[1]) == pid:
+                        out.append(int(d))
+            except (OSError, ValueError, IndexError):
+                pass
+    return out
+
+
+
 def bench_clients(inp: BenchInput, clients: int, rate: float, duration: float, workers: int, kind: str) -> dict[str, Any]:
     from sfmloc_client import CameraSpec, FrameStreamer, PoseSubscriber
 
@@ -264,11 +288,17 @@ def bench_clients(inp: BenchInput, clients: int, rate: float, duration: float, w
                 }
 
         threads = [threading.Thread(target=client, args=(i,)) for i in range(clients)]
+        pids = {"server": [srv.proc.pid], "workers": _child_pids(srv.proc.pid), "clients": [os.getpid()]}
+        cpu0 = {k: sum(_cpu_seconds(p) for p in v) for k, v in pids.items()}
+        t0 = time.perf_counter()
         for t in threads:
             t.start()
         for t in threads:
             t.join()
-    return {"workers": workers, "kind": kind, "clients": results, "load_before": load0, "load_after": os.getloadavg()[0]}
+        wall = time.perf_counter() - t0
+        cores = {k: (sum(_cpu_seconds(p) for p in v) - cpu0[k]) / wall for k, v in pids.items()}
+    return {"workers": workers, "kind": kind, "clients": results, "load_before": load0, "load_after": os.getloadavg()[0],
+            "cores_used": cores}
 
 
 # ============================================================================ engine scaling
@@ -413,6 +443,9 @@ def run(args: Any) -> int:
                                       f"engine p50 {r['engine_ms_p50']:.1f} mean {r['engine_ms_mean']:.1f})"))
         worst = max(r["drop_pct"] for r in c["clients"])
         rows.append(("worst drop", f"{worst:.2f}%  (load average {c['load_before']:.2f} -> {c['load_after']:.2f})"))
+        cu = c["cores_used"]
+        rows.append(("CPU (cores)", f"server main process {cu['server']:.2f}, workers {cu['workers']:.2f}, "
+                                    f"clients (this process) {cu['clients']:.2f}"))
         _print_table(f"{args.clients} clients x {args.rate:g} Hz x {args.duration:g} s, {c['workers']} {kind} workers", rows)
     if args.json:
         Path(args.json).write_text(json.dumps(report, indent=2, default=float))
