@@ -6,8 +6,8 @@ message at a time, so a frame runs start to end on one core and its latency does
 what other threads do. Sessions stick to their worker (their track table and filter live there).
 
 Why processes: the engine is numpy/OpenCV with many small Python-level steps, and the GIL
-serializes those across threads. Measured on this 2-core machine (``sfmloc bench-transport
---only workers``): see ``app.py`` for the numbers.
+serializes those across threads; measured with ``sfmloc bench-transport --only engine,workers``
+(numbers in ``app.py``). ``worker_kind="thread"`` exists for that comparison only.
 
 A worker process is a fresh interpreter (``python -m sfmloc.server.workers``) holding one end
 of a socket pair. Messages are msgpack, framed by ``multiprocessing.connection.Connection``
