@@ -82,7 +82,8 @@ class FrameSource:
         return index / self.fps
 
     def __iter__(self) -> Iterator[Frame]:
-        flag = cv2.IMREAD_GRAYSCALE if self.gray else cv2.IMREAD_COLOR
+        # Stored pixels, no EXIF rotation (as COLMAP and the builder read images).
+        flag = (cv2.IMREAD_GRAYSCALE if self.gray else cv2.IMREAD_COLOR) | cv2.IMREAD_IGNORE_ORIENTATION
         if self.kind == "folder":
             for i, p in enumerate(self.files):
                 data = np.fromfile(str(p), dtype=np.uint8)

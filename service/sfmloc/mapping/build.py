@@ -75,7 +75,8 @@ def load_gray(path: Path, camera: Camera) -> np.ndarray:
     if not path.is_file():
         raise ImageDecodeError(f"image {path} is missing")
     data = np.fromfile(str(path), dtype=np.uint8)
-    img = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE) if data.size else None
+    # Stored pixels, no EXIF rotation: the SfM model (COLMAP) describes the stored image.
+    img = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION) if data.size else None
     if img is None:
         raise ImageDecodeError(f"image {path} cannot be decoded")
     if img.shape != (camera.height, camera.width):
