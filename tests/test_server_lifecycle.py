@@ -36,18 +36,20 @@ def world(tmp_path_factory):
 
 
 # ----------------------------------------------------------------------------- start-up
-@pytest.fixture(scope="module")
+@pytest.fixture()
 def late(world):
-    """A server started without its maps (loaded by the first test), short idle timeout."""
+    """A server started without its maps (the test loads them)."""
     ep = zenoh_endpoint()
-    conf = server_config(world, ep, idle_timeout_s=0.5, server_id="late-server")
-    with running_server(conf, load_maps=False) as srv:
+    with running_server(server_config(world, ep, server_id="late-server"), load_maps=False) as srv:
         yield srv, ep
 
 
-def _ensure_loaded(srv) -> None:
-    if not srv.server.ready:
-        srv.call(srv.server.load_initial_maps())
+@pytest.fixture()
+def impatient(world):
+    """A server whose Zenoh sessions expire after half a second without frames."""
+    ep = zenoh_endpoint()
+    with running_server(server_config(world, ep, idle_timeout_s=0.5)) as srv:
+        yield srv, ep
 
 
 def test_health_is_serving_only_after_the_maps_are_loaded(late):
@@ -63,9 +65,8 @@ def test_health_is_serving_only_after_the_maps_are_loaded(late):
         assert wait_until(lambda: "late-server" in list_server_ids(z, timeout=1), 30)
 
 
-def test_an_idle_session_expires(world, late):
-    srv, ep = late
-    _ensure_loaded(srv)
+def test_an_idle_session_expires(world, impatient):
+    srv, ep = impatient
     with client_zenoh(ep) as z, LocalizationClient(f"127.0.0.1:{srv.grpc_port}") as c:
         first = stream_lockstep(z, "room", "sleepy", world, n=3)
         assert [p.seq for p in first] == [0, 1, 2]
