@@ -40,11 +40,13 @@ def replay(
         if max_frames is not None and len(records) >= max_frames:
             break
         decode_ms += (time.perf_counter() - t_dec) * 1e3
+        cpu0 = time.process_time()
         res = loc.localize(frame.image, frame.stamp)
+        cpu_ms = (time.process_time() - cpu0) * 1e3
         rec = FrameRecord(
             index=frame.index, name=frame.name, stamp=frame.stamp, status=res.status.value, matching=res.matching,
             latency_ms=res.latency_ms, inliers=res.inliers, detected=res.detected, tracked=res.tracked,
-            tracked_3d=res.tracked_3d, timings_ms=dict(res.timings_ms),
+            tracked_3d=res.tracked_3d, timings_ms=dict(res.timings_ms), cpu_ms=cpu_ms,
         )
         gt = groundtruth[frame.index] if groundtruth is not None and frame.index < len(groundtruth) else None
         attach_errors(rec, res.cam_from_world, gt)
