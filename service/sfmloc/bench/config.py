@@ -1,0 +1,99 @@
+"""What ``sfmloc bench`` runs: suites, frame budgets, peers, throughput settings."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal, Optional
+
+from pydantic import Field
+
+from ..config import StrictModel
+
+REPO = Path(__file__).resolve().parents[3]
+# The real data are read in place, never copied into the repo.
+DEFAULT_DATA = REPO.parent / "shared" / "data" / "redkitchen-seq01"
+REDKITCHEN_CAMERA = "PINHOLE 640 480 525.505 525.505 320 240"
+REDKITCHEN_POSES = "pgt_sfm_seq01.txt"
+
+LOCALIZATION_SUITES = ("redkitchen", "redkitchen-split", "synthetic-walk", "synthetic-flight")
+SUITES = (*LOCALIZATION_SUITES, "throughput", "map")
+# The peers run next to our engine in every localization suite.
+PEERS = ("global-every-frame", "pycolmap-sift")
+OURS = "sfmloc"
+
+SUITE_HELP = {
+    "redkitchen": "real: map from every 10th of the 1000 frames (pgt_sfm poses, known-poses builder); "
+    "all frames replayed as 30 Hz video; errors against pgt_sfm_seq01.txt",
+    "redkitchen-split": "real, harder: map from every 5th of frames 0-499 only; frames 500-999 replayed "
+    "(partly outside the map: how much is localized, and nothing confidently wrong)",
+    "synthetic-walk": "exact ground truth: `sfmloc synth` room, walking video (seed fixed); map from the "
+    "exact COLMAP model",
+    "synthetic-flight": "exact ground truth: quadrotor-like flight with fast yaw bursts (seed fixed)",
+    "throughput": "1, 2, 4, 8 clients streaming redkitchen JPEGs over Zenoh (loopback, no multicast) at "
+    "30 Hz each to one `sfmloc serve` process: delivered rate, dropped fraction, latency p50/p99",
+    "map": "build time, bundle size, load time and resident memory (fresh process) of the redkitchen "
+    "bundle, per million descriptors",
+}
+
+
+class SiftPeerConf(StrictModel):
+    """Matching and pose settings of the peer (extraction follows the map's SfM settings)."""
+
+    # Lowe's ratio test: nearest / nearest other 3D point, in descriptor distance.
+    ratio: float = Field(0.8, gt=0.0, le=1.0)
+    # "all": every observation's descriptor (multiple per point); "mean": one mean per point.
+    descriptors: Literal["all", "mean"] = "all"
+    # "exact": faiss flat L2; "hnsw": faiss HNSW (recall against exact is measured in tuning).
+    search: Literal["exact", "hnsw"] = "hnsw"
+    hnsw_m: int = Field(32, ge=4)
+    ef_search: int = Field(64, ge=8)
+    # Neighbours retrieved per keypoint ("all": to find the nearest descriptor of another point).
+    k: int = Field(8, ge=2)
+    # pycolmap RANSAC inlier threshold (px); pycolmap's default is 12.
+    ransac_max_error_px: float = Field(12.0, gt=0.0)
+    min_inliers: int = Field(10, ge=4)
+    seed: int = 0
+
+
+class BenchConf(StrictModel):
+    suites: list[str] = Field(default_factory=lambda: list(SUITES))
+    data: Path = DEFAULT_DATA
+    camera: str = REDKITCHEN_CAMERA
+    poses: str = REDKITCHEN_POSES
+    # Frames replayed per localization suite (None: all of the suite's frames).
+    frames: Optional[int] = Field(None, ge=2)
+    # Frames per suite the peers run on, evenly strided over the replayed frames (our engine
+    # is summarised on the same frames for the side-by-side); None: every frame.
+    peer_frames: Optional[int] = Field(250, ge=1)
+    seed: int = 0
+    # Synthetic suites: frames of the video and mapping views.
+    synth_frames: int = Field(300, ge=10)
+    synth_mapping_views: int = Field(120, ge=10)
+    # Peer tuning: frames (not map images) of the first real suite, then the grid below.
+    tune: bool = True
+    tune_frames: int = Field(40, ge=2)
+    tune_ratios: list[float] = Field(default_factory=lambda: [0.7, 0.8, 0.9])
+    tune_max_errors: list[float] = Field(default_factory=lambda: [4.0, 8.0, 12.0])
+    tune_descriptors: list[str] = Field(default_factory=lambda: ["all", "mean"])
+    tune_ef: list[int] = Field(default_factory=lambda: [32, 64, 128])
+    # The recall (vs exact search) an HNSW setting must reach to be used instead of exact.
+    tune_min_recall: float = Field(0.99, gt=0.0, le=1.0)
+    sift: SiftPeerConf = SiftPeerConf()  # used as is when tune is off
+    # Throughput.
+    clients: list[int] = Field(default_factory=lambda: [1, 2, 4, 8])
+    rate_hz: float = Field(30.0, gt=0)
+    duration_s: float = Field(10.0, gt=0)
+    workers: int = Field(0, ge=0)  # server workers (0: one per core)
+    reuse: bool = False  # reuse maps and synthetic data already under OUT/work
+    quick: bool = False
+
+
+def quick_conf(**changes) -> BenchConf:
+    """A smoke run: few frames, small synthetic scenes, short throughput runs, small grid."""
+    base = {
+        "frames": 60, "peer_frames": 12, "synth_frames": 40, "synth_mapping_views": 40, "tune_frames": 6,
+        "tune_ratios": [0.8], "tune_max_errors": [12.0], "tune_ef": [64], "clients": [1, 2], "duration_s": 3.0,
+        "quick": True,
+    }
+    base.update(changes)
+    return BenchConf(**base)
