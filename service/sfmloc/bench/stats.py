@@ -1,0 +1,100 @@
+"""Per-method numbers of a localization suite: the paper's Table 2 columns and the accuracy
+figures users compare, computed from ``FrameRecord``s with ``sfmloc.eval.metrics``."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+from ..eval.metrics import WRONG_POSITION_M, WRONG_ROTATION_DEG, FrameRecord, absolute_trajectory_error, summarize
+
+# The usual 7-Scenes recall threshold: a frame counts as right within 5 cm and 5 degrees.
+RECALL_POSITION_M = 0.05
+RECALL_ROTATION_DEG = 5.0
+
+# Our engine's per-stage timers (``FrameResult.timings_ms``), in pipeline order.
+STAGES = ("filter", "keypoints", "track", "pose", "guided", "global")
+
+
+def _ms(x: Sequence[float]) -> tuple[float, float]:
+    return (float(np.mean(x)), float(np.std(x))) if len(x) else (math.nan, math.nan)
+
+
+def method_summary(records: list[FrameRecord]) -> dict:
+    """Table 2 (F, F_loc, T, M, T_M), errors, latency tail, wrong poses, ATE, CPU time."""
+    s = summarize(records)
+    n = len(records)
+    lat = [r.latency_ms for r in records]
+    cpu = [r.cpu_ms for r in records if r.cpu_ms is not None]
+    matched = [r.latency_ms for r in records if r.matching in ("guided", "global")]
+    t_mean, t_std = _ms(lat)
+    tm_mean, tm_std = _ms(matched)
+    evaluated = [r for r in records if r.position_error_m is not None]
+    wrong_any = [
+        r for r in evaluated
+        if r.position_error_m > WRONG_POSITION_M or r.rotation_error_deg > WRONG_ROTATION_DEG
+    ]
+    good = [
+        r for r in evaluated
+        if r.position_error_m <= RECALL_POSITION_M and r.rotation_error_deg <= RECALL_ROTATION_DEG
+    ]
+    with_gt = s["frames_with_groundtruth"]
+    return {
+        "F": n,
+        "F_loc": s["localized_frames"],
+        "F_loc_pct": 100.0 * s["localized_fraction"],
+        "T_ms_mean": t_mean,
+        "T_ms_std": t_std,
+        "rate_hz": 1000.0 / t_mean if t_mean and t_mean == t_mean else math.nan,
+        "M": len(matched),
+        "M_pct": 100.0 * len(matched) / n if n else math.nan,
+        "T_M_ms_mean": tm_mean,
+        "T_M_ms_std": tm_std,
+        "guided_frames": s["guided_frames"],
+        "global_frames": s["global_frames"],
+        "T_ms_p50": s["latency_ms"]["p50"],
+        "T_ms_p99": s["latency_ms"]["p99"],
+        "T_ms_max": s["latency_ms"]["max"],
+        "cpu_ms_mean": float(np.mean(cpu)) if cpu else math.nan,
+        "median_position_error_m": s["median_position_error_m"],
+        "mean_position_error_m": s["mean_position_error_m"],
+        "median_rotation_error_deg": s["median_rotation_error_deg"],
+        "mean_rotation_error_deg": s["mean_rotation_error_deg"],
+        # TRACKING frames that wrong (the brief's "confident wrong"); single-image peers never
+        # say TRACKING, so for them every reported pose that wrong is counted in wrong_poses.
+        "confident_wrong": s["confident_wrong"],
+        "wrong_poses": len(wrong_any),
+        "recall_5cm_5deg_pct": 100.0 * len(good) / with_gt if with_gt else math.nan,
+        "ate_m": absolute_trajectory_error(records),
+        "inliers_median": float(np.median([r.inliers for r in records if r.status != "LOST"]))
+        if s["localized_frames"] else math.nan,
+        "frames_with_groundtruth": with_gt,
+        "status_counts": s["status_counts"],
+    }
+
+
+def stage_times(records: list[FrameRecord]) -> dict[str, float]:
+    """Mean ms per frame spent in each stage (over all frames; a stage absent in a frame
+    counts as 0), and the share of the total."""
+    n = max(1, len(records))
+    keys = [k for k in STAGES if any(k in r.timings_ms for r in records)]
+    keys += sorted({k for r in records for k in r.timings_ms} - set(keys) - {"total"})
+    out = {k: sum(r.timings_ms.get(k, 0.0) for r in records) / n for k in keys}
+    return out
+
+
+def ratios(ours: dict, peer: dict) -> dict:
+    """Ours against a peer on the same frames: frame-rate ratio (peer mean time / ours), the
+    same on CPU time, and the accuracy ratio (peer median position error / ours)."""
+
+    def div(a: float, b: float) -> float:
+        return a / b if b and b == b and a == a else math.nan
+
+    return {
+        "rate_ratio": div(peer["T_ms_mean"], ours["T_ms_mean"]),
+        "cpu_ratio": div(peer["cpu_ms_mean"], ours["cpu_ms_mean"]),
+        "p99_ratio": div(peer["T_ms_p99"], ours["T_ms_p99"]),
+        "median_position_error_ratio": div(peer["median_position_error_m"], ours["median_position_error_m"]),
+    }

@@ -1,0 +1,256 @@
+"""The localization suites: their data and maps (prepared under ``OUT/work``), and one run of
+our engine and both peers on the same frames.
+
+Maps:
+
+- ``redkitchen``: ``build.main(images=DATA, poses=DATA/pgt_sfm_seq01.txt, stride=10)``, the
+  builder's known-poses path; its SfM work folder is kept so the SIFT peer's map reuses the
+  very same triangulated points (and their SIFT observations).
+- ``redkitchen-split``: the same from frames 0-499 (a pose file restricted to them, written to
+  the work folder), every 5th; frames 500-999 are replayed.
+- ``synthetic-*``: ``sfmloc.synth`` renders; our bundle from the exact COLMAP model; the SIFT
+  peer's map from the mapping images at their exact poses (known-poses triangulation).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import re
+import shutil
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..cameras import Camera
+from ..errors import InputError
+from ..eval.groundtruth import load_groundtruth
+from ..eval.metrics import FrameRecord
+from ..io.frames import FrameSource
+from ..transforms import Rigid3d
+from .config import OURS, BenchConf
+from .sift_peer import SiftMap
+
+log = logging.getLogger(__name__)
+
+Progress = Callable[[str, float, str], None]
+
+_FRAME_NO = re.compile(r"frame-(\d+)")
+
+
+@dataclass
+class Prepared:
+    """A suite ready to run: frames, ground truth, our bundle and the SIFT peer's map."""
+
+    name: str
+    kind: str  # "real" or "synthetic"
+    frames_dir: Path
+    camera: Camera
+    groundtruth: list[Rigid3d | None]
+    start: int
+    count: int
+    bundle_path: Path
+    sift_map_path: Path
+    info: dict = field(default_factory=dict)
+
+    @property
+    def indices(self) -> list[int]:
+        return list(range(self.start, self.start + self.count))
+
+
+def _sfm_conf():
+    from ..mapping.sfm import SfmConf
+
+    # The front-end's defaults, with the work folder kept for the SIFT peer's map.
+    return SfmConf(keep_workdir=True)
+
+
+def _fresh_dir(path: Path) -> Path:
+    if path.exists():
+        shutil.rmtree(path)
+    path.mkdir(parents=True)
+    return path
+
+
+def _kept_workdir(parent: Path) -> Path:
+    found = sorted(parent.glob("sfmloc-sfm-*"), key=lambda p: p.stat().st_mtime)
+    if not found:
+        raise InputError(f"no kept SfM work folder under {parent}")
+    return found[-1]
+
+
+def _reusable(bundle: Path, sift: Path, reuse: bool) -> bool:
+    return reuse and (bundle / "manifest.json").is_file() and sift.is_file()
+
+
+def _limit(n: int, conf: BenchConf) -> int:
+    return n if conf.frames is None else min(n, conf.frames)
+
+
+# --------------------------------------------------------------------------- redkitchen
+def restrict_pose_file(src: Path, dst: Path, first: int, last: int) -> int:
+    """Copy the pose lines of frames ``first..last`` (by the frame number in the name)."""
+    lines = []
+    for line in src.read_text().splitlines():
+        m = _FRAME_NO.search(line)
+        if line.strip() and not line.lstrip().startswith("#") and m and first <= int(m.group(1)) <= last:
+            lines.append(line)
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    dst.write_text("\n".join(lines) + "\n")
+    return len(lines)
+
+
+def prepare_redkitchen(conf: BenchConf, work: Path, split: bool, progress: Progress) -> Prepared:
+    from ..mapping import build
+    from ..mapping.bundle import MapBundle
+
+    name = "redkitchen-split" if split else "redkitchen"
+    data = Path(conf.data)
+    poses = data / conf.poses
+    if not poses.is_file():
+        raise InputError(
+            f"real data not found: {poses} (pass --data PATH to a folder of frame-NNNNNN.color.jpg and "
+            f"{conf.poses}, or run only the synthetic suites: --suite synthetic-walk)"
+        )
+    camera = Camera.parse(conf.camera)
+    source = FrameSource(data)
+    n = len(source)
+    suite_work = work / name
+    bundle_path = work / "maps" / name
+    sift_path = suite_work / "sift-map.npz"
+    if split:
+        half = n // 2
+        map_poses = suite_work / f"poses-0-{half - 1}.txt"
+        stride, start, count = 5, half, n - half
+    else:
+        map_poses, stride, start, count = poses, 10, 0, n
+    info: dict = {"map_images": f"every {stride}th of frames " + (f"0-{n // 2 - 1}" if split else f"0-{n - 1}"),
+                  "stride": stride}
+    stamp = suite_work / "map-source.json"
+    source_id = {"data": str(data.resolve()), "poses": conf.poses, "frames": n, "stride": stride, "split": split}
+    if _reusable(bundle_path, sift_path, conf.reuse) and stamp.is_file() and json.loads(stamp.read_text()) == source_id:
+        log.info("%s: reusing %s", name, bundle_path)
+    else:
+        if split:
+            k = restrict_pose_file(poses, map_poses, 0, n // 2 - 1)
+            log.info("%s: %d poses of frames 0-%d in %s", name, k, n // 2 - 1, map_poses)
+        sfm_dir = _fresh_dir(suite_work / "sfm")
+        sfm_conf = _sfm_conf()
+        t0 = time.perf_counter()
+        build.main(build.preset("default"), name, work / "maps", images=data, poses=map_poses, camera=camera,
+                   stride=stride, sfm_conf=sfm_conf, workdir=sfm_dir, progress=progress)
+        log.info("%s: bundle built in %.1f s", name, time.perf_counter() - t0)
+        bundle = MapBundle(bundle_path, verify=False)
+        sfm_dump = sfm_conf.model_dump()
+        SiftMap.from_sfm_workdir(_kept_workdir(sfm_dir), bundle.array("point_ids"), sfm_dump).save(sift_path)
+        shutil.rmtree(sfm_dir, ignore_errors=True)  # the database is no longer needed
+        stamp.write_text(json.dumps(source_id))
+    gt = load_groundtruth(poses, source.names(), [source.stamp(i) for i in range(n)], source.fps)
+    return Prepared(name, "real", data, camera, gt, start, _limit(count, conf), bundle_path, sift_path, info)
+
+
+# --------------------------------------------------------------------------- synthetic
+def prepare_synthetic(conf: BenchConf, work: Path, kind: str, progress: Progress) -> Prepared:
+    from ..io.colmap import read_model
+    from ..io.poses import write_colmap_list
+    from ..mapping import build, sfm
+    from ..synth.config import preset as synth_preset
+    from ..synth.main import run as synth_run
+
+    name = f"synthetic-{kind}"
+    suite_work = work / name
+    data = suite_work / "data"
+    bundle_path = work / "maps" / name
+    sift_path = suite_work / "sift-map.npz"
+    sconf = synth_preset("flight" if kind == "flight" else "default", seed=conf.seed,
+                         mapping_views=conf.synth_mapping_views, trajectory={"n_frames": conf.synth_frames})
+    stamp = suite_work / "synth-conf.json"
+    same_data = conf.reuse and (data / "scene.json").is_file() and stamp.is_file() and \
+        json.loads(stamp.read_text()) == sconf.model_dump()
+    if not same_data:
+        progress(name, 0.0, "rendering the synthetic data set")
+        t0 = time.perf_counter()
+        res = synth_run(sconf, data, overwrite=True)
+        stamp.write_text(json.dumps(sconf.model_dump()))
+        log.info("%s: rendered %d mapping views and %d frames in %.1f s", name, res.n_mapping, res.n_frames,
+                 time.perf_counter() - t0)
+    camera = Camera.from_json(data / "camera.json")
+    if same_data and _reusable(bundle_path, sift_path, True):
+        log.info("%s: reusing %s", name, bundle_path)
+    else:
+        build.main(build.preset("default"), name, work / "maps", colmap=data / "sparse", images=data / "images",
+                   progress=progress)
+        # The SIFT peer's map: SIFT of the same mapping images triangulated at their exact poses.
+        model = read_model(data / "sparse")
+        ims = sorted(model.images.values(), key=lambda im: im.name)
+        pose_file = write_colmap_list(suite_work / "map_poses.txt", [im.name for im in ims],
+                                      [im.cam_from_world for im in ims])
+        sfm_dir = _fresh_dir(suite_work / "sfm")
+        sfm_conf = _sfm_conf()
+        rec = sfm.triangulate_known_poses(data / "images", pose_file, camera, conf=sfm_conf, workdir=sfm_dir,
+                                          progress=progress)
+        ids = np.array(sorted(rec.points3D), np.int64)
+        SiftMap.from_sfm_workdir(_kept_workdir(sfm_dir), ids, sfm_conf.model_dump()).save(sift_path)
+        shutil.rmtree(sfm_dir, ignore_errors=True)
+    source = FrameSource(data / "video")
+    n = len(source)
+    gt = load_groundtruth(data / "groundtruth.tum", source.names(), [source.stamp(i) for i in range(n)], source.fps)
+    info = {"map_images": f"{conf.synth_mapping_views} rendered mapping views (exact COLMAP model)",
+            "trajectory": kind, "seed": conf.seed}
+    return Prepared(name, "synthetic", data / "video", camera, gt, 0, _limit(n, conf), bundle_path, sift_path, info)
+
+
+def prepare(name: str, conf: BenchConf, work: Path, progress: Progress) -> Prepared:
+    if name == "redkitchen":
+        return prepare_redkitchen(conf, work, False, progress)
+    if name == "redkitchen-split":
+        return prepare_redkitchen(conf, work, True, progress)
+    if name.startswith("synthetic-"):
+        return prepare_synthetic(conf, work, name.split("-", 1)[1], progress)
+    raise InputError(f"unknown localization suite {name!r}")
+
+
+# --------------------------------------------------------------------------- running
+def peer_indices(prep: Prepared, peer_frames: int | None) -> tuple[list[int], int]:
+    """The frames the peers run on: every ``stride``-th replayed frame; (indices, stride)."""
+    idx = prep.indices
+    if peer_frames is None or peer_frames >= len(idx):
+        return idx, 1
+    stride = int(np.ceil(len(idx) / peer_frames))
+    return idx[::stride], stride
+
+
+def run_suite(prep: Prepared, conf: BenchConf, sift_conf, progress: Progress,
+              index_cache: dict | None = None) -> dict[str, list[FrameRecord]]:
+    """Our engine on every frame (as a 30 Hz video), both peers on the strided frames."""
+    from ..engine import EngineConf
+    from ..eval.replay import replay
+    from ..mapping.bundle import MapBundle
+    from .peers import global_every_frame, run_peer, sift_peer
+    from .sift_peer import SiftLocalizer
+
+    bundle = MapBundle(prep.bundle_path)
+    source = FrameSource(prep.frames_dir)
+    log.info("%s: our engine on %d frames", prep.name, prep.count)
+    ours, _decode = replay(
+        bundle, source, prep.camera, EngineConf(), prep.groundtruth, start=prep.start, max_frames=prep.count,
+        on_frame=lambda r: progress(f"{prep.name}:{OURS}", (r.index - prep.start + 1) / prep.count,
+                                    f"{r.name} {r.status}"),
+    )
+    idx, stride = peer_indices(prep, conf.peer_frames)
+    log.info("%s: peers on %d frames (every %d)", prep.name, len(idx), stride)
+    out = {OURS: ours}
+    out["global-every-frame"] = run_peer(
+        "global-every-frame", global_every_frame(bundle, prep.camera, EngineConf()), source, idx, prep.groundtruth,
+        progress=lambda s, f, m: progress(f"{prep.name}:{s}", f, m),
+    )
+    sift_map = SiftMap.load(prep.sift_map_path)
+    loc = SiftLocalizer(sift_map, prep.camera, sift_conf, index_cache)
+    out["pycolmap-sift"] = run_peer(
+        "pycolmap-sift", sift_peer(loc), source, idx, prep.groundtruth,
+        progress=lambda s, f, m: progress(f"{prep.name}:{s}", f, m),
+    )
+    return out
