@@ -1,0 +1,109 @@
+"""sfmloc bench: the paper's tables on real and synthetic data, next to the alternatives."""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+import sys
+import textwrap
+
+SUITES_TEXT = """\
+Suites (--suite, repeatable; default: all):
+{suites}
+
+In every localization suite three methods run on the same frames and machine:
+  sfmloc             our engine (tracking + guided/global matching), every frame as a 30 Hz video
+  global-every-frame our single-image global matching (relocalize) on every frame, no tracking
+  pycolmap-sift      a COLMAP/hloc-style SIFT pipeline: SIFT map of the same map images at the same
+                     poses (pycolmap triangulation), per-frame SIFT, nearest-neighbour ratio test,
+                     pycolmap.estimate_and_refine_absolute_pose; tuned first on frames that are not
+                     map images (descriptor layout, ratio, RANSAC threshold, search recall)
+The peers run on every k-th frame when --peer-frames caps them (our engine is then also
+summarised on exactly those frames). Per-frame time is one call on a decoded frame, one thread.
+
+Outputs (OUT):
+  results.json   summary numbers (Table 2 columns, errors, p99, wrong frames, ATE, ratios, tuning,
+                 throughput, map); report.md: tables, figures and notes, all from this run
+  SUITE/fig-per-frame.png (the paper's Figure 2), SUITE/fig-trajectory.png (top view, lost
+  frames marked), SUITE/fig-compare.png (the three methods), throughput.png
+  SUITE/METHOD.tum + METHOD.gt.tum (TUM, same timestamps: evo_ape tum GT EST -a),
+  SUITE/frames-METHOD.json (per-frame records); work/ (maps, synthetic data; --reuse)
+
+Publish a run to the README: cp OUT/results.json docs/results.json &&
+  python -m sfmloc.bench.readme docs/results.json README.md   (or: make bench-publish)
+"""
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    from ..bench.config import DEFAULT_DATA, SUITE_HELP, SUITES
+
+    p = sub.add_parser(
+        "bench", help="the paper's Table 2 / Figures 2 and 4 on real data, with peers, throughput and map size",
+        description=textwrap.dedent("""\
+            Reproduce the paper's evaluation (Table 2, Figures 2 and 4) on real and synthetic
+            sequences, side by side with what users would pick instead, and measure the server's
+            throughput and the map's footprint. Writes OUT/results.json, OUT/report.md and PNG
+            figures, and prints the summary table. Progress goes to stderr.\n\n""")
+        + SUITES_TEXT.format(suites="\n".join(
+            textwrap.fill(text, 96, initial_indent=f"  {name:<19s}", subsequent_indent=" " * 21)
+            for name, text in SUITE_HELP.items())),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--suite", action="append", choices=SUITES, metavar="NAME",
+                   help="run this suite (repeatable; default all): " + ", ".join(SUITES))
+    p.add_argument("--out", default="bench-out", help="output folder (default bench-out)")
+    p.add_argument("--data", help="redkitchen-like folder (frame-NNNNNN.color.jpg + pgt_sfm_seq01.txt); "
+                   f"default {DEFAULT_DATA}")
+    p.add_argument("--frames", type=int, help="replay at most this many frames per localization suite")
+    p.add_argument("--peer-frames", type=int, help="frames per suite for the peers, strided (default 250; 0: all)")
+    p.add_argument("--synth-frames", type=int, help="frames of each synthetic video (default 300)")
+    p.add_argument("--clients", help="throughput client counts, comma-separated (default 1,2,4,8)")
+    p.add_argument("--duration", type=float, help="seconds per throughput run (default 10)")
+    p.add_argument("--workers", type=int, help="server workers for throughput (default one per core)")
+    p.add_argument("--no-tune", action="store_true", help="skip the SIFT peer's tuning (use its defaults)")
+    p.add_argument("--reuse", action="store_true", help="reuse maps and synthetic data already under OUT/work")
+    p.add_argument("--quick", action="store_true", help="smoke run: few frames, small scenes, short throughput runs")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from .runtime import pin_threads_env, pin_threads_runtime
+
+    pin_threads_env()
+    pin_threads_runtime()
+    from ..bench.config import BenchConf, quick_conf
+    from ..bench.main import main
+    from ..bench.report import summary_text
+    from .progress import ProgressPrinter
+
+    changes: dict = {}
+    if args.suite:
+        changes["suites"] = list(dict.fromkeys(args.suite))
+    if args.data:
+        changes["data"] = args.data
+    if args.frames is not None:
+        changes["frames"] = args.frames
+    if args.peer_frames is not None:
+        changes["peer_frames"] = args.peer_frames or None
+    if args.synth_frames is not None:
+        changes["synth_frames"] = args.synth_frames
+    if args.clients:
+        changes["clients"] = [int(c) for c in args.clients.split(",") if c.strip()]
+    if args.duration is not None:
+        changes["duration_s"] = args.duration
+    if args.workers is not None:
+        changes["workers"] = args.workers
+    if args.no_tune:
+        changes["tune"] = False
+    if args.reuse:
+        changes["reuse"] = True
+    conf = quick_conf(**changes) if args.quick else BenchConf(**changes)
+    command = "sfmloc bench " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if len(sys.argv) > 2 else "sfmloc bench"
+    bar = ProgressPrinter()
+    path = main(conf, args.out, progress=bar, command=command)
+    bar.close()
+    import json
+
+    print(summary_text(json.loads(path.read_text())))
+    print(f"\nresults {path}\nreport  {path.parent / 'report.md'}", file=sys.stderr)
+    return 0
