@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test bench proto lint clean
+.PHONY: demo test bench bench-publish proto lint clean
 
 $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -18,8 +18,15 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
+# All suites (redkitchen needs ../shared/data); prints the summary and its wall time.
 bench: $(STAMP)
-	$(BIN)/sfmloc bench --out bench-out
+	@start=$$(date +%s); $(BIN)/sfmloc bench --out bench-out; rc=$$?; \
+	echo "make bench: $$(( $$(date +%s) - start )) s (exit $$rc)"; exit $$rc
+
+# Commit a bench run's numbers: docs/results.json and the README's results block from it.
+bench-publish: $(STAMP)
+	mkdir -p docs && cp bench-out/results.json docs/results.json
+	$(BIN)/python -m sfmloc.bench.readme docs/results.json README.md
 
 # Regenerate the committed gRPC/protobuf code from proto/ (tests fail when it is stale).
 proto: $(STAMP)

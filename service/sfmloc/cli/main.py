@@ -23,6 +23,7 @@ COMMANDS = [
     "maps",
     "sessions",
     "servers",
+    "bench",
     "bench_transport",
     "demo",
 ]
