@@ -64,7 +64,7 @@ class BenchConf(StrictModel):
     frames: Optional[int] = Field(None, ge=2)
     # Frames per suite the peers run on, evenly strided over the replayed frames (our engine
     # is summarised on the same frames for the side-by-side); None: every frame.
-    peer_frames: Optional[int] = Field(250, ge=1)
+    peer_frames: Optional[int] = Field(500, ge=1)
     seed: int = 0
     # Synthetic suites: frames of the video and mapping views.
     synth_frames: int = Field(300, ge=10)

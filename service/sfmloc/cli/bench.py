@@ -55,7 +55,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--data", help="redkitchen-like folder (frame-NNNNNN.color.jpg + pgt_sfm_seq01.txt); "
                    f"default {DEFAULT_DATA}")
     p.add_argument("--frames", type=int, help="replay at most this many frames per localization suite")
-    p.add_argument("--peer-frames", type=int, help="frames per suite for the peers, strided (default 250; 0: all)")
+    p.add_argument("--peer-frames", type=int, help="frames per suite for the peers, strided (default 500; 0: all)")
     p.add_argument("--synth-frames", type=int, help="frames of each synthetic video (default 300)")
     p.add_argument("--clients", help="throughput client counts, comma-separated (default 1,2,4,8)")
     p.add_argument("--duration", type=float, help="seconds per throughput run (default 10)")
