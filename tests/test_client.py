@@ -234,6 +234,28 @@ def test_streamer_from_a_numpy_stack_and_the_pose_iterator(world, server):
     assert sum(p.localized for p in got) >= 7
 
 
+def test_streamer_from_a_video_file_uses_its_clock(world, server, tmp_path):
+    import cv2
+
+    srv, ep = server
+    video = tmp_path / "walk.avi"
+    w = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 30, (640, 480))
+    assert w.isOpened()
+    for g in world.gray[:12]:
+        w.write(np.dstack([g, g, g]))
+    w.release()
+    stamps: list[int] = []
+    with client_zenoh(ep) as z:
+        with PoseSubscriber(z, "room", "video", callback=lambda p: stamps.append(p.stamp_ns)) as poses, \
+                FrameStreamer(z, "room", "video", camera(world)) as fs:
+            assert fs.wait_for_server(30)
+            stats = fs.run(str(video), lockstep=True, poses=poses)
+            assert poses.wait_for(stats.last_seq, 30)
+    assert stats.sent == 12 and len(stamps) == 12
+    np.testing.assert_allclose(np.diff(stamps), 1e9 / 30, rtol=0.01)  # the file's 30 Hz, from 0
+    assert stamps[0] == 0
+
+
 def _cli(*args: str, timeout: float = 180) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "sfmloc", *args], capture_output=True, text=True, timeout=timeout)
 

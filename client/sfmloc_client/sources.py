@@ -66,16 +66,25 @@ def video_frames(source: str | int, *, gray: bool = False) -> Iterator[SourceFra
     cap = cv2.VideoCapture(source)
     if not cap.isOpened():
         raise ClientError(f"cannot open video source {source!r}")
+    is_file = isinstance(source, str)
+    fps = (cap.get(cv2.CAP_PROP_FPS) or 30.0) if is_file else 0.0
     try:
         k = 0
+        last = -1
         while True:
             ok, img = cap.read()
             if not ok:
                 break
             if gray and img.ndim == 3:
                 img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
-            pos_ms = cap.get(cv2.CAP_PROP_POS_MSEC) if isinstance(source, str) else 0.0
-            stamp = int(pos_ms * 1e6) if pos_ms and pos_ms > 0 else None
+            stamp = None  # a live camera: stamped when sent
+            if is_file:
+                # The file's own clock when it has one that moves forward, else index / fps;
+                # never a mix of both (time going back resets the server's motion filter).
+                pos = int(cap.get(cv2.CAP_PROP_POS_MSEC) * 1e6)
+                stamp = pos if pos > last else int(k * 1e9 / fps)
+                stamp = max(stamp, last + 1)
+                last = stamp
             yield SourceFrame(image=img, stamp_ns=stamp, name=f"{k:06d}")
             k += 1
     finally:
