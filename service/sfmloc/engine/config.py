@@ -6,6 +6,7 @@ from __future__ import annotations
 from typing import Literal
 
 from ..config import StrictModel
+from .pose import RansacParams
 
 
 class EngineConf(StrictModel):
@@ -74,3 +75,13 @@ class EngineConf(StrictModel):
     position_noise: float = 0.02  # m, measurement
     orientation_noise: float = 0.01  # rad, measurement
     max_frame_gap_s: float = 1.0  # a longer gap between frames resets the filter
+
+    def ransac(self, min_inliers: int | None = None) -> RansacParams:
+        """The RANSAC settings of the pose estimators."""
+        return RansacParams(
+            threshold=self.ransac_threshold_px,
+            refine_threshold=self.refine_threshold_px,
+            min_inliers=self.min_inliers if min_inliers is None else min_inliers,
+            confidence=self.ransac_confidence,
+            max_iterations=self.ransac_max_iterations,
+        )

@@ -143,15 +143,7 @@ class Localizer:
             return None
         c = self.conf
         est = estimate_pose(
-            self._undistort(self.table.xy[rows]),
-            self.bundle.points_xyz[pts],
-            self.K,
-            threshold=c.ransac_threshold_px,
-            refine_threshold=c.refine_threshold_px,
-            min_inliers=c.min_inliers,
-            confidence=c.ransac_confidence,
-            max_iterations=c.ransac_max_iterations,
-            prior=pred,
+            self._undistort(self.table.xy[rows]), self.bundle.points_xyz[pts], self.K, c.ransac(), prior=pred
         )
         if est is not None and not self._plausible(est.cam_from_world, pred, dt):
             log.debug("rejected a pose %.2f m / %.1f deg from the prediction",
@@ -319,12 +311,7 @@ class Localizer:
         q = np.nonzero(gm.point >= 0)[0]
         if len(q) < c.recover_min_inliers:
             return None
-        est = estimate_pose(
-            xy_u[q], self.bundle.points_xyz[gm.point[q]], self.K,
-            threshold=c.ransac_threshold_px, refine_threshold=c.refine_threshold_px,
-            min_inliers=c.recover_min_inliers, confidence=c.ransac_confidence,
-            max_iterations=c.ransac_max_iterations,
-        )
+        est = estimate_pose(xy_u[q], self.bundle.points_xyz[gm.point[q]], self.K, c.ransac(c.recover_min_inliers))
         if est is None:
             return None
         T.hyp = gm.hyp
@@ -369,12 +356,7 @@ def _pose_from_global(
         hyp[gm.set2_q, rank] = gm.set2_p
     X = bundle.points_xyz
     res = estimate_pose_one_to_many(
-        xy_u[gm.set1_q], X[gm.set1_p], gm.set2_q, xy_u[gm.set2_q], X[gm.set2_p], K,
-        threshold=conf.ransac_threshold_px,
-        refine_threshold=conf.refine_threshold_px,
-        min_inliers=conf.min_inliers,
-        confidence=conf.ransac_confidence,
-        max_iterations=conf.ransac_max_iterations,
+        xy_u[gm.set1_q], X[gm.set1_p], gm.set2_q, xy_u[gm.set2_q], X[gm.set2_p], K, conf.ransac()
     )
     if res is None:
         return None
@@ -442,8 +424,4 @@ def _pose_near_prior(desc, xy_u, bundle: MapBundle, K, conf: EngineConf, prior: 
     q = np.nonzero(gm.point >= 0)[0]
     if len(q) < conf.min_inliers:
         return None
-    return estimate_pose(
-        xy_u[q], bundle.points_xyz[gm.point[q]], K,
-        threshold=conf.ransac_threshold_px, refine_threshold=conf.refine_threshold_px,
-        min_inliers=conf.min_inliers, confidence=conf.ransac_confidence, max_iterations=conf.ransac_max_iterations,
-    )
+    return estimate_pose(xy_u[q], bundle.points_xyz[gm.point[q]], K, conf.ransac())

@@ -25,6 +25,15 @@ import numpy as np
 from ..transforms import Rigid3d
 
 
+@dataclass(frozen=True)
+class RansacParams:
+    threshold: float = 4.0  # inlier reprojection error (px) while hypothesizing
+    refine_threshold: float = 3.0  # inliers kept for the final refinement (px)
+    min_inliers: int = 10  # fewer: no pose
+    confidence: float = 0.999
+    max_iterations: int = 1000
+
+
 @dataclass
 class PoseEstimate:
     cam_from_world: Rigid3d
@@ -82,12 +91,8 @@ def estimate_pose(
     xy: np.ndarray,
     X: np.ndarray,
     K: np.ndarray,
+    params: RansacParams = RansacParams(),
     *,
-    threshold: float = 4.0,
-    refine_threshold: float = 3.0,
-    min_inliers: int = 10,
-    confidence: float = 0.999,
-    max_iterations: int = 1000,
     prior: Rigid3d | None = None,
     prior_tie: float = 0.9,
     prior_accept: float = 0.8,
@@ -102,6 +107,7 @@ def estimate_pose(
     prior's solution already explains ``prior_accept`` of all matches, RANSAC is skipped: the
     common tracking case, where matches were verified against the previous pose.
     """
+    threshold, refine_threshold, min_inliers = params.threshold, params.refine_threshold, params.min_inliers
     n = len(xy)
     if n < max(4, min_inliers):
         return None
@@ -118,9 +124,9 @@ def estimate_pose(
         xy.astype(np.float64),
         K,
         None,
-        iterationsCount=max_iterations,
+        iterationsCount=params.max_iterations,
         reprojectionError=threshold,
-        confidence=confidence,
+        confidence=params.confidence,
         flags=cv2.SOLVEPNP_AP3P,
     )
     ransac = None
@@ -150,12 +156,8 @@ def estimate_pose_one_to_many(
     ver_xy: np.ndarray,
     ver_X: np.ndarray,
     K: np.ndarray,
+    params: RansacParams = RansacParams(),
     *,
-    threshold: float = 4.0,
-    refine_threshold: float = 3.0,
-    min_inliers: int = 10,
-    confidence: float = 0.999,
-    max_iterations: int = 1000,
     batch: int = 16,
     seed: int = 0,
     growth: int = 200,
@@ -169,6 +171,8 @@ def estimate_pose_one_to_many(
 
     Returns the pose and, per set-2 pair, whether it is the inlier chosen for its keypoint
     (at most one per keypoint: the closest reprojection)."""
+    threshold, refine_threshold, min_inliers = params.threshold, params.refine_threshold, params.min_inliers
+    confidence, max_iterations = params.confidence, params.max_iterations
     n1 = len(hyp_xy)
     if n1 < 3 or len(ver_kp) < min_inliers:
         return None
