@@ -3,7 +3,8 @@
     python -m sfmloc.bench.readme docs/results.json README.md
 
 replaces what lies between ``<!-- results:begin -->`` and ``<!-- results:end -->`` (and nothing
-else); when the markers are absent they are appended under a ``## Results`` heading at the end.
+else); when the markers are absent they go under the ``## Results`` heading (added at the end
+when there is none).
 ``tests/test_bench.py`` regenerates the block from the committed results file and fails when the
 README differs.
 """
@@ -13,6 +14,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -52,6 +54,9 @@ def render_block(results: dict, source: str = "docs/results.json") -> str:
               "mean times per frame):", "",
               markdown_table(COMPARE_HEADER, compare_rows(results)), ""]
         L += [f"- {line}" for line in ratio_lines(results)] + [""]
+        if any(n.startswith("redkitchen") for n in localization_suites(results)):
+            L += ["Ground truth: redkitchen's `pgt_sfm_seq01.txt` is a COLMAP (SIFT) SfM pseudo ground truth, which "
+                  "favours SIFT-based estimates; the synthetic suites have exact ground truth.", ""]
     if throughput_rows(results):
         t = results["suites"]["throughput"]
         L += [f"**Throughput**: clients streaming at {t['rate_hz']:g} Hz each to one `sfmloc serve` "
@@ -62,17 +67,22 @@ def render_block(results: dict, source: str = "docs/results.json") -> str:
         L += [f"**Map**: {map_line(mp)}.", ""]
     tg = results.get("targets", [])
     if tg:
-        L += ["**Targets**: " + "; ".join(f"{t['target']}: {'met' if t['met'] else 'MISSED'} ({t['measured']})"
-                                         for t in tg) + ".", ""]
+        L += ["**Targets**:", ""] + [f"- {'met' if t['met'] else '**missed**'}: {t['target']}: {t['measured']}"
+                                     for t in tg] + [""]
     L.append(END)
     return "\n".join(L)
 
 
 def update_text(readme: str, block: str) -> str:
-    """``readme`` with its results block replaced by ``block`` (appended when absent)."""
+    """``readme`` with its results block replaced by ``block``. Without markers, the block goes
+    right under an existing ``## Results`` heading, else under a new one at the end."""
     i, j = readme.find(BEGIN), readme.find(END)
     if i >= 0 and j > i:
         return readme[:i] + block + readme[j + len(END):]
+    m = re.search(r"^## Results[ \t]*$", readme, flags=re.MULTILINE)
+    if m:
+        head, rest = readme[: m.end()], readme[m.end():].lstrip("\n")
+        return head + "\n\n" + block + "\n" + ("\n" + rest if rest else "")
     sep = "" if readme.endswith("\n") or not readme else "\n"
     return readme + sep + ("\n" if readme else "") + "## Results\n\n" + block + "\n"
 

@@ -142,7 +142,7 @@ def summary_text(results: dict) -> str:
                   text_table(THROUGHPUT_HEADER, throughput_rows(results)), ""]
     m = results.get("suites", {}).get("map")
     if m:
-        parts.append(map_line(m))
+        parts.append("map " + map_line(m))
     for t in results.get("targets", []):
         parts.append(f"target {'MET   ' if t['met'] else 'MISSED'} {t['target']}: {t['measured']}")
     parts.append(f"wall time {results.get('wall_s', float('nan')):.0f} s")
@@ -150,7 +150,7 @@ def summary_text(results: dict) -> str:
 
 
 def map_line(m: dict) -> str:
-    return (f"map {m['map']}: {m['images']} images, {m['points']} points, {m['descriptors']} descriptors "
+    return (f"{m['map']}: {m['images']} images, {m['points']} points, {m['descriptors']} descriptors "
             f"({m['descriptors_per_point']:.1f}/point); built in {m['build_s']:.1f} s; bundle {m['bundle_mb']:.1f} MB; "
             f"loads in {m['load_s'] * 1e3:.0f} ms ({m['load_s_verified'] * 1e3:.0f} ms with checksums); resident "
             f"{m['rss_mb']:.1f} MB = {m['rss_mb_per_million_descriptors']:.0f} MB per million descriptors")
