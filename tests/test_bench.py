@@ -1,0 +1,209 @@
+"""sfmloc bench: the README's results block against the committed results, the table, report
+and figure writers on fabricated records (writers only: reported numbers are always measured),
+the SIFT peer against exact ground truth, and its ratio test."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sfmloc.bench import figures, readme, report
+from sfmloc.bench.config import OURS
+from sfmloc.bench.main import summarize_suite, targets, write_suite_files
+from sfmloc.bench.sift_peer import ratio_test
+from sfmloc.bench.stats import method_summary
+from sfmloc.eval.metrics import FrameRecord
+from sfmloc.transforms import Rigid3d, pose_errors, rotmat_from_rotvec
+
+REPO = Path(__file__).resolve().parents[1]
+RESULTS = REPO / "docs" / "results.json"
+PNG = b"\x89PNG\r\n\x1a\n"
+
+
+# ----------------------------------------------------------------------------- README block
+def test_readme_results_block_matches_the_committed_results():
+    results = json.loads(RESULTS.read_text())
+    block = readme.current_block((REPO / "README.md").read_text())
+    assert block is not None, "README.md has no <!-- results:begin --> ... <!-- results:end --> block"
+    expected = readme.render_block(results, "docs/results.json")
+    assert block == expected, (
+        "README.md's results block differs from docs/results.json: run "
+        "`python -m sfmloc.bench.readme docs/results.json README.md`"
+    )
+
+
+def test_committed_results_are_summary_numbers_only():
+    results = json.loads(RESULTS.read_text())
+    assert RESULTS.stat().st_size < 200_000
+    assert results["format"] == "sfmloc-bench-results"
+
+    def no_long_lists(x, path="results"):
+        if isinstance(x, list):
+            assert len(x) <= 64, f"{path} holds {len(x)} items: per-frame arrays do not belong here"
+            for i, v in enumerate(x):
+                no_long_lists(v, f"{path}[{i}]")
+        elif isinstance(x, dict):
+            for k, v in x.items():
+                no_long_lists(v, f"{path}.{k}")
+
+    no_long_lists(results)
+
+
+def test_update_text_touches_only_the_block():
+    block = readme.BEGIN + "\nnew\n" + readme.END
+    text = "# Title\n\nintro\n\n## Results\n\n" + readme.BEGIN + "\nold\n" + readme.END + "\n\n## Later\nmore\n"
+    out = readme.update_text(text, block)
+    assert out == text.replace("\nold\n", "\nnew\n")
+    appended = readme.update_text("# Title\n\nintro\n", block)
+    assert appended == "# Title\n\nintro\n\n## Results\n\n" + block + "\n"
+    assert readme.update_text(appended, block) == appended
+    assert readme.update_text("", block) == "## Results\n\n" + block + "\n"
+    # An existing heading without markers gets them (no second heading); text after it stays.
+    assert readme.update_text("# T\n\n## Results\n", block) == "# T\n\n## Results\n\n" + block + "\n"
+    assert readme.update_text("# T\n## Results\n\nkept\n", block) == "# T\n## Results\n\n" + block + "\n\nkept\n"
+
+
+# ----------------------------------------------------------------------------- writers
+def _pose(i: int) -> Rigid3d:
+    R = rotmat_from_rotvec([0.0, 0.02 * i, 0.0])
+    c = np.array([0.05 * i, 0.0, 0.01 * i])
+    return Rigid3d(R, -R @ c)
+
+
+def fake_records(n: int = 50, method: str = OURS, seed: int = 0) -> list[FrameRecord]:
+    """A plausible sequence: one global frame, guided frames, one lost frame, one frame 1 m off
+    while TRACKING."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for i in range(n):
+        gt = _pose(i)
+        matching = "global" if i == 0 else ("guided" if i % 7 == 0 else "none")
+        status = "RELOCALIZED" if i == 0 else "TRACKING"
+        if method != OURS:
+            matching, status = "global", "RELOCALIZED"
+        est = Rigid3d(gt.rotation, gt.translation + rng.normal(0, 0.01, 3))
+        if i == 20:
+            est = Rigid3d(gt.rotation, gt.translation + np.array([1.0, 0, 0]))
+        if i == 30:
+            est, status = None, "LOST"
+        r = FrameRecord(i, f"frame-{i:06d}.png", i / 30.0, status, matching, 10.0 + i % 5 + (90 if i == 0 else 0),
+                        50, 900, 500, 120, timings_ms={"keypoints": 5.0, "track": 3.0, "total": 10.0}, cpu_ms=9.0)
+        r.cam_from_world, r.gt_cam_from_world = est, gt
+        if est is not None:
+            r.position_error_m, r.rotation_error_deg = pose_errors(est, gt)
+        out.append(r)
+    return out
+
+
+def test_method_summary_has_the_table2_columns():
+    recs = fake_records()
+    s = method_summary(recs)
+    assert s["F"] == 50 and s["F_loc"] == 49
+    assert s["M"] == 1 + len([i for i in range(1, 50) if i % 7 == 0])
+    assert s["T_M_ms_mean"] == pytest.approx(np.mean([r.latency_ms for r in recs if r.matching != "none"]))
+    assert s["T_ms_mean"] == pytest.approx(np.mean([r.latency_ms for r in recs]))
+    assert s["confident_wrong"] == 1 and s["wrong_poses"] == 1
+    assert 0.005 < s["median_position_error_m"] < 0.03
+    assert s["recall_5cm_5deg_pct"] == pytest.approx(100 * 48 / 50)  # all but the lost and the wrong frame
+    assert s["cpu_ms_mean"] == pytest.approx(9.0)
+
+
+def test_suite_summary_report_figures_and_readme_on_fabricated_records(tmp_path):
+    recs = {OURS: fake_records(), "global-every-frame": fake_records(method="x", seed=1)[::5],
+            "pycolmap-sift": fake_records(method="x", seed=2)[::5]}
+    for r in recs["pycolmap-sift"]:
+        r.latency_ms *= 20
+    idx = [r.index for r in recs["pycolmap-sift"]]
+    suite = summarize_suite(recs, idx, 5)
+    assert suite["same_frames"][OURS]["F"] == len(idx)
+    assert suite["ratios"]["pycolmap-sift"]["rate_ratio"] > 10
+    files = write_suite_files("fake", recs, suite, idx, tmp_path, np.random.default_rng(0).normal(size=(500, 3)))
+    for key in ("fig_per_frame", "fig_trajectory", "fig_compare"):
+        data = (tmp_path / files[key]).read_bytes()
+        assert data[:8] == PNG and len(data) > 10_000
+    est = (tmp_path / "fake" / f"{OURS}.tum").read_text().splitlines()[1:]
+    gt = (tmp_path / "fake" / f"{OURS}.gt.tum").read_text().splitlines()[1:]
+    assert len(est) == len(gt) == 49 and [a.split()[0] for a in est] == [b.split()[0] for b in gt]
+    thr = [{"clients": n, "offered_hz": 30.0 * n, "delivered_hz_total": min(30.0 * n, 70.0),
+            "delivered_hz_per_client": min(30.0, 70.0 / n), "dropped_pct": max(0.0, 100 - 7000 / (30 * n)),
+            "latency_ms_p50": 20.0 * n, "latency_ms_p99": 60.0 * n} for n in (1, 2, 4, 8)]
+    assert figures.throughput(thr, "fake", tmp_path / "t.png").read_bytes()[:8] == PNG
+    results = {
+        "format": "sfmloc-bench-results", "command": "sfmloc bench --quick", "created_utc": "now", "wall_s": 1.0,
+        "machine": {"cpus": 2, "cpu_model": "test", "load_average_start": 0.5, "load_average_end": 0.6},
+        "suites": {"redkitchen": {**suite, "data": "synthetic", "frames_replayed": 50, "start": 0, "files": files,
+                                  "map": {"map_images": "fake", "images": 3, "points": 500, "descriptors": 4000}},
+                   "throughput": {"kind": "throughput", "rows": thr, "rate_hz": 30.0, "workers": 2,
+                                  "duration_s": 1.0, "server": "fake"}},
+    }
+    results["targets"] = targets(results)
+    assert {t["target"].split(":")[0] for t in results["targets"]} == {"redkitchen"}
+    text = report.summary_text(results)
+    assert "redkitchen" in text and "pycolmap-sift" in text and "target" in text
+    md = report.write_report(results, tmp_path).read_text()
+    assert "fig-per-frame.png" in md and "| 8 |" in md
+    block = readme.render_block(results)
+    assert block.startswith(readme.BEGIN) and block.endswith(readme.END) and "pycolmap-sift" in block
+
+
+def test_per_frame_figure_of_a_run_without_ground_truth(tmp_path):
+    recs = fake_records(20)
+    for r in recs:
+        r.gt_cam_from_world = None
+        r.position_error_m = r.rotation_error_deg = None
+    assert figures.per_frame(recs, "no gt", tmp_path / "a.png").read_bytes()[:8] == PNG
+    assert figures.trajectory(recs, "no gt", tmp_path / "b.png").read_bytes()[:8] == PNG
+
+
+# ----------------------------------------------------------------------------- SIFT peer
+def test_ratio_test_compares_against_the_nearest_other_point():
+    label = np.array([0, 0, 1, 2])  # descriptors 0 and 1 belong to point 0
+    nn = np.array([[0, 1, 2], [2, 3, 0], [0, 1, -1]])
+    d = np.array([[1.0, 1.1, 4.0], [1.0, 1.1, 9.0], [1.0, 1.0, 0.0]])  # squared distances
+    q, p = ratio_test(d, nn, label, 0.8)
+    # query 0: nearest other point at sqrt(4) -> 1 < 0.8 * 2 passes; query 1: 1 vs sqrt(1.1) fails;
+    # query 2: no other point among its neighbours passes.
+    assert q.tolist() == [0, 2] and p.tolist() == [0, 0]
+
+
+@pytest.fixture(scope="module")
+def sift_world(tmp_path_factory):
+    from server_helpers import build_world
+
+    from sfmloc.bench.sift_peer import SiftMap
+    from sfmloc.cameras import Camera
+    from sfmloc.io.colmap import read_model
+    from sfmloc.io.poses import write_colmap_list
+    from sfmloc.mapping import sfm
+
+    world = build_world(tmp_path_factory.getbasetemp())
+    work = tmp_path_factory.mktemp("sift-peer")
+    model = read_model(world.root / "synth" / "sparse")
+    ims = sorted(model.images.values(), key=lambda im: im.name)
+    poses = write_colmap_list(work / "poses.txt", [im.name for im in ims], [im.cam_from_world for im in ims])
+    cam = Camera.parse(world.camera_spec)
+    conf = sfm.SfmConf(keep_workdir=True)
+    rec = sfm.triangulate_known_poses(world.root / "synth" / "images", poses, cam, conf=conf, workdir=work / "sfm")
+    kept = next((work / "sfm").glob("sfmloc-sfm-*"))
+    sm = SiftMap.from_sfm_workdir(kept, np.array(sorted(rec.points3D)), conf.model_dump())
+    sm = SiftMap.load(sm.save(work / "sift-map.npz"))  # through the file, as the bench does
+    return world, cam, sm
+
+
+@pytest.mark.parametrize("search", ["exact", "hnsw"])
+def test_sift_peer_pose_is_right_on_synthetic_frames(sift_world, search):
+    from sfmloc.bench.config import SiftPeerConf
+    from sfmloc.bench.sift_peer import SiftLocalizer
+
+    world, cam, sm = sift_world
+    assert sm.n_points > 500 and len(sm.desc) > 2 * sm.n_points
+    loc = SiftLocalizer(sm, cam, SiftPeerConf(search=search))
+    for k in (5, len(world.frames) - 5):
+        res = loc.localize(world.gray[k])
+        assert res.cam_from_world is not None, f"frame {k}: no pose ({res.matches} matches)"
+        dp, dr = pose_errors(res.cam_from_world, world.gt_cam_from_world[k])
+        assert dp < 0.02 and dr < 0.3, f"frame {k}: {dp * 100:.2f} cm, {dr:.2f} deg"
+        assert res.inliers >= 50 and set(res.timings_ms) >= {"extract", "match", "pose", "total"}
