@@ -77,6 +77,26 @@ def test_an_idle_session_expires(world, impatient):
         assert srv.server.metrics.sessions_opened.get("room", "zenoh") >= 2
 
 
+def test_max_pending_keeps_the_newest_frames(world):
+    """With max_pending 3, a burst is processed as its first frame plus (at least) the three
+    newest; everything else is counted as dropped."""
+    from sfmloc_client import FrameStreamer, PoseSubscriber
+
+    ep = zenoh_endpoint()
+    with running_server(server_config(world, ep, max_pending=3)) as srv, client_zenoh(ep) as z:
+        got: list = []
+        n = 30
+        with PoseSubscriber(z, "room", "burst3", callback=got.append) as poses, \
+                FrameStreamer(z, "room", "burst3", camera(world)) as fs:
+            assert fs.wait_for_server(30)
+            for k in range(n):
+                fs.publish(data=world.png[k], encoding="png", stamp_ns=int(k * 1e9 / 30))
+            assert poses.wait_for(n - 1, 60)
+        seqs = [p.seq for p in got]
+        assert seqs == sorted(seqs) and seqs[-3:] == [n - 3, n - 2, n - 1]
+        assert len(got) + got[-1].dropped == n and got[-1].dropped > 0
+
+
 # ----------------------------------------------------------------------------- shutdown
 def test_stop_finishes_in_flight_relocalizations(world):
     from sfmloc.server.app import ServerThread

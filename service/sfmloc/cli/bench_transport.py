@@ -36,6 +36,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--rate", type=float, default=30.0, help="frames per second per client (default 30)")
     p.add_argument("--duration", type=float, default=20.0, help="seconds per client run (default 20)")
     p.add_argument("--workers", type=int, default=0, help="server workers (default: one per core)")
+    p.add_argument("--max-pending", type=int, default=1, help="the server's --max-pending (default 1: latest frame only)")
+    p.add_argument("--encoding", choices=["jpeg", "gray8"], default="jpeg",
+                   help="clients/workers sections: frames as the JPEG files (default) or raw gray8")
     p.add_argument("--repeat", type=int, default=3, help="engine section: runs per mode, the best is kept (default 3)")
     p.add_argument("--json", metavar="FILE", help="also write the numbers as JSON")
     p.set_defaults(func=run)

@@ -51,6 +51,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--workers", type=int, metavar="N", help="engine worker processes (default: one per core)")
     p.add_argument("--worker-kind", choices=["process", "thread"], help=argparse.SUPPRESS)
     p.add_argument("--idle-timeout", type=float, metavar="S", help="end a Zenoh session after S seconds without frames (default 30)")
+    p.add_argument("--max-pending", type=int, metavar="N",
+                   help="frames of a client that may wait while one is processed (default 1: latest frame only)")
     p.add_argument("--follow-builder", action="store_true", help="load bundles the builder announces on sfmloc/maps/*")
     p.add_argument("--metrics-port", type=int, metavar="N", help="serve Prometheus metrics on http://0.0.0.0:N/metrics")
     p.add_argument("--server-id", metavar="ID", help="id in sfmloc/servers/<id> (default <hostname>-<pid>)")
@@ -63,7 +65,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def overrides_from_args(args: argparse.Namespace) -> dict:
     """Only what was given on the command line (so that it wins over file and environment)."""
     o: dict = {"maps": args.maps, "workers": args.workers, "worker_kind": args.worker_kind,
-               "idle_timeout_s": args.idle_timeout, "metrics_port": args.metrics_port,
+               "idle_timeout_s": args.idle_timeout, "metrics_port": args.metrics_port, "max_pending": args.max_pending,
                "server_id": args.server_id, "log_format": args.log_format}
     if args.follow_builder:
         o["follow_builder"] = True

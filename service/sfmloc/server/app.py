@@ -77,7 +77,7 @@ class Server:
         self.sessions = SessionManager(
             self.pool, self.registry, self.metrics, server_id=self.server_id,
             max_sessions=conf.max_sessions, idle_timeout_s=conf.idle_timeout_s,
-            max_image_pixels=conf.max_image_pixels,
+            max_image_pixels=conf.max_image_pixels, max_pending=conf.max_pending,
         )
         self.metrics.gauges(
             sessions=self.sessions.counts_by_map,
@@ -378,12 +378,13 @@ class ServerProcess:
             srv.endpoint (Zenoh), srv.grpc (host:port)
     """
 
-    def __init__(self, maps: str | os.PathLike, workers: int = 0, kind: str = "process", quiet: bool = True) -> None:
+    def __init__(self, maps: str | os.PathLike, workers: int = 0, kind: str = "process", quiet: bool = True,
+                 extra_args: tuple[str, ...] = ()) -> None:
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
         self.grpc = f"127.0.0.1:{free_port()}"
         cmd = [sys.executable, "-m", "sfmloc", *(["-q"] if quiet else []), "serve", "--maps", str(maps),
                "--zenoh-listen", self.endpoint, "--no-multicast", "--grpc", self.grpc,
-               "--workers", str(workers), "--worker-kind", kind]
+               "--workers", str(workers), "--worker-kind", kind, *extra_args]
         self.proc = subprocess.Popen(cmd)
 
     def __enter__(self) -> "ServerProcess":

@@ -221,14 +221,16 @@ def _child_pids(pid: int) -> list[int]:
 
 
 
-def bench_clients(inp: BenchInput, clients: int, rate: float, duration: float, workers: int, kind: str) -> dict[str, Any]:
+def bench_clients(inp: BenchInput, clients: int, rate: float, duration: float, workers: int, kind: str,
+                  encoding: str = "jpeg", max_pending: int = 1) -> dict[str, Any]:
     from sfmloc_client import CameraSpec, FrameStreamer, PoseSubscriber
 
     spec = CameraSpec.parse(inp.camera)
     n_frames = int(rate * duration)
+    frames = inp.jpeg if encoding == "jpeg" else [g.tobytes() for g in inp.gray]
     results: list[dict[str, Any]] = [{} for _ in range(clients)]
     load0 = os.getloadavg()[0]
-    with ServerProcess(inp.maps, workers=workers, kind=kind) as srv:
+    with ServerProcess(inp.maps, workers=workers, kind=kind, extra_args=("--max-pending", str(max_pending))) as srv:
         barrier = threading.Barrier(clients)
 
         def client(i: int) -> None:
@@ -256,7 +258,7 @@ def bench_clients(inp: BenchInput, clients: int, rate: float, duration: float, w
                     FrameStreamer(z, inp.map_name, cid, spec) as fs:
                 fs.wait_for_server(30)
                 # Warm-up: the first frame relocalizes; the measurement starts tracking.
-                fs.publish(data=inp.jpeg[offset], encoding="jpeg", seq=0)
+                fs.publish(data=frames[offset], encoding=encoding, seq=0)
                 poses.wait_for(0, 30)
                 with lock:
                     last.update(received=0, dropped=0)
@@ -268,10 +270,10 @@ def bench_clients(inp: BenchInput, clients: int, rate: float, duration: float, w
                     delay = t_due - time.perf_counter()
                     if delay > 0:
                         time.sleep(delay)
-                    data = inp.jpeg[(offset + k) % len(inp.jpeg)]
+                    data = frames[(offset + k) % len(frames)]
                     with lock:
                         sent_at[k] = time.perf_counter()
-                    fs.publish(data=data, encoding="jpeg", seq=k)
+                    fs.publish(data=data, encoding=encoding, seq=k)
                 poses.wait_for(n_frames, 10)
                 elapsed = time.perf_counter() - t_start
             with lock:
@@ -297,7 +299,7 @@ def bench_clients(inp: BenchInput, clients: int, rate: float, duration: float, w
             t.join()
         wall = time.perf_counter() - t0
         cores = {k: (sum(_cpu_seconds(p) for p in v) - cpu0[k]) / wall for k, v in pids.items()}
-    return {"workers": workers, "kind": kind, "clients": results, "load_before": load0, "load_after": os.getloadavg()[0],
+    return {"workers": workers, "kind": kind, "encoding": encoding, "clients": results, "load_before": load0, "load_after": os.getloadavg()[0],
             "cores_used": cores}
 
 
@@ -433,7 +435,8 @@ def run(args: Any) -> int:
     for section, kind in (("clients", "process"), ("workers", "thread")):
         if section not in only:
             continue
-        c = report[section] = bench_clients(inp, args.clients, args.rate, args.duration, args.workers or (os.cpu_count() or 1), kind)
+        c = report[section] = bench_clients(inp, args.clients, args.rate, args.duration, args.workers or (os.cpu_count() or 1),
+                                            kind, args.encoding, args.max_pending)
         rows = []
         for r in c["clients"]:
             rows.append((r["client"], f"sent {r['sent']} poses {r['received']} dropped {r['drop_pct']:.2f}% "
@@ -446,7 +449,8 @@ def run(args: Any) -> int:
         cu = c["cores_used"]
         rows.append(("CPU (cores)", f"server main process {cu['server']:.2f}, workers {cu['workers']:.2f}, "
                                     f"clients (this process) {cu['clients']:.2f}"))
-        _print_table(f"{args.clients} clients x {args.rate:g} Hz x {args.duration:g} s, {c['workers']} {kind} workers", rows)
+        _print_table(f"{args.clients} clients x {args.rate:g} Hz x {args.duration:g} s, {args.encoding} frames, "
+                     f"{c['workers']} {kind} workers, max pending {args.max_pending}", rows)
     if args.json:
         Path(args.json).write_text(json.dumps(report, indent=2, default=float))
         print(f"\nwrote {args.json}")

@@ -42,6 +42,9 @@ class ServerConfig(StrictModel):
     workers: int = Field(0, ge=0)
     worker_kind: Literal["process", "thread"] = "process"
     idle_timeout_s: float = Field(30.0, gt=0)  # a Zenoh session without frames this long ends
+    # Frames of a session that may wait while its previous one is processed; older ones are
+    # dropped. 1 = latest-frame-only (the default: the freshest pose, soonest).
+    max_pending: int = Field(1, ge=1, le=8)
     max_sessions: int = Field(256, ge=1)
     # Zenoh frame envelopes larger than this are refused (RESOURCE_EXHAUSTED).
     max_frame_bytes: int = Field(16 * 1024 * 1024, ge=1024)

@@ -2,10 +2,12 @@
 
 A session is created on a client's first frame (key: map, client id, transport) and is bound
 to one worker, where its ``Localizer`` (track table, motion filter) lives. At most one frame
-per session is in a worker at any time, and at most one more waits here: a frame that arrives
-while another is waiting replaces it, and the replaced one is counted as dropped. So a client
-sending faster than it can be served gets the freshest frame processed next, never a growing
-queue, and other clients' frames never wait behind its backlog.
+per session is in a worker at any time, and at most one more waits here (``max_pending``,
+default 1): a frame that arrives while another is waiting replaces it, and the replaced one is
+counted as dropped. So a client sending faster than it can be served gets the freshest frame
+processed next, never a growing queue, and other clients' frames never wait behind its
+backlog. (``max_pending`` > 1 keeps that many newest frames instead: fewer drops after a slow
+frame, at the price of poses that are older when they come back.)
 
 Poses go back through the session's *sink* (a Zenoh publisher, or a gRPC stream's queue).
 Zenoh sessions end after ``idle_timeout_s`` without frames; gRPC sessions end with their stream.
@@ -15,6 +17,7 @@ from __future__ import annotations
 
 import itertools
 import logging
+from collections import deque
 import threading
 import time
 from collections.abc import Callable
@@ -68,7 +71,7 @@ class Session:
     latency_sum_ms: float = 0.0
     last_status: str = ""
     busy: bool = False  # a frame of this session is in its worker
-    pending: _Pending | None = None
+    pending: deque[_Pending] = field(default_factory=deque)  # newest frames waiting (bounded)
     camera: Any = None  # the last CameraSpec seen (validated once, not per frame)
     inflight_t_recv: dict[int, float] = field(default_factory=dict)  # seq -> receipt time
     closed: bool = False
@@ -89,6 +92,7 @@ class SessionManager:
         max_sessions: int = 256,
         idle_timeout_s: float = 30.0,
         max_image_pixels: int = 4096 * 4096,
+        max_pending: int = 1,
     ) -> None:
         self.pool = pool
         self.registry = registry
@@ -97,6 +101,7 @@ class SessionManager:
         self.max_sessions = max_sessions
         self.idle_timeout_s = idle_timeout_s
         self.max_image_pixels = max_image_pixels
+        self.max_pending = max_pending  # 1: latest-frame-only
         self._lock = threading.Lock()
         self._by_key: dict[tuple[str, str, str], Session] = {}
         self._by_sid: dict[int, Session] = {}
@@ -137,10 +142,11 @@ class SessionManager:
             if s.closed:
                 return s
             if s.busy:
-                if s.pending is not None:
+                if len(s.pending) >= self.max_pending:
+                    s.pending.popleft()  # the stalest waiting frame makes room
                     s.dropped += 1
                     self.metrics.frames_dropped.inc(map_name)
-                s.pending = _Pending(frame, t_recv)
+                s.pending.append(_Pending(frame, t_recv))
                 return s
             s.busy = True
             s.inflight_t_recv[frame.seq] = t_recv
@@ -181,13 +187,13 @@ class SessionManager:
                 return  # closed meanwhile
             t_recv = s.inflight_t_recv.pop(msg["seq"], now)
             s.busy = False
-            if s.pending is not None:
-                nxt, s.pending = s.pending, None
+            if s.pending:
                 if self.draining or s.closed:
-                    s.dropped += 1
-                    self.metrics.frames_dropped.inc(s.map)
-                    nxt = None
+                    s.dropped += len(s.pending)
+                    self.metrics.frames_dropped.inc(s.map, value=len(s.pending))
+                    s.pending.clear()
                 else:
+                    nxt = s.pending.popleft()
                     s.busy = True
                     s.inflight_t_recv[nxt.frame.seq] = nxt.t_recv
             latency_ms = (now - t_recv) * 1e3
@@ -313,7 +319,8 @@ class SessionManager:
             for s in hit:
                 lost += [(s, seq) for seq in s.inflight_t_recv]
                 s.inflight_t_recv.clear()
-                s.busy, s.pending = False, None
+                s.busy = False
+                s.pending.clear()
             self._idle.notify_all()
         for s, seq in lost:
             self._send(s, self.error_pose(s.map, s.client_id, seq, 0,
