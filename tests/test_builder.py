@@ -278,3 +278,35 @@ def test_zero_descriptors_is_a_descriptor_stage_error(world, tmp_path):
         main(BuildConf(), "room", tmp_path / "maps", colmap=tmp_path / "model", images=world.root / "synth" / "images")
     assert e.value.stage == "descriptors"
     assert not (tmp_path / "maps" / "room").exists()
+
+
+# ----------------------------------------------------------------------------- point refinement
+def test_points_are_refined_to_their_keypoints_exactly_and_only_when_consistent():
+    from sfmloc.mapping.refine import RefineConf, refine_points
+    from sfmloc.transforms import Rigid3d, rotmat_from_rotvec
+
+    rng = np.random.default_rng(0)
+    cam = Camera("OPENCV", 640, 480, [500, 500, 320, 240, -0.05, 0.01, 0.0, 0.0])
+    poses = [Rigid3d(rotmat_from_rotvec([0, 0.1 * k, 0]), [-0.3 * k, 0, 0]) for k in range(4)]
+    truth = np.column_stack([rng.uniform(-1, 1, 50), rng.uniform(-0.7, 0.7, 50), rng.uniform(3, 5, 50)])
+    # keypoints exactly at the true projections (distorted pixels), at level 0
+    dp, di, dl, dxy = [], [], [], []
+    for i, T in enumerate(poses):
+        uv, _ = cam.project(T, truth)
+        dp.append(np.arange(50)), di.append(np.full(50, i)), dl.append(np.zeros(50, np.uint8)), dxy.append(uv)
+    dp, di, dl, dxy = (np.concatenate(a) for a in (dp, di, dl, dxy))
+    # SfM positions off by ~1 px in the images
+    start = truth + rng.normal(0, 0.004, truth.shape)
+    # point 0: one observation 6 px off (a different corner): inconsistent, must not move
+    dxy = dxy.copy()
+    dxy[50 * 2 + 0] += [6.0, 0.0]
+    # point 1: only level-1 keypoints: not used
+    dl = dl.copy()
+    dl[dp == 1] = 1
+    new, moved = refine_points(start, dp, di, dl, dxy, [cam] * 4, poses, RefineConf())
+    assert not moved[0] and np.array_equal(new[0], start[0])
+    assert not moved[1] and np.array_equal(new[1], start[1])
+    assert moved[2:].all()
+    assert np.abs(new[2:] - truth[2:]).max() < 1e-6
+    off, _ = refine_points(start, dp, di, dl, dxy, [cam] * 4, poses, RefineConf(enabled=False))
+    assert np.array_equal(off, start)

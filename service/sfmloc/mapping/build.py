@@ -6,6 +6,7 @@ Stages, each reported through ``progress(stage, fraction, message)``:
                  or images only (full SfM with pycolmap) -> a reconstruction
 ``descriptors``  per image: Gaussian pyramid, Harris in every level, oriented DAISY at corners
                  within tau of a projected 3D point of the image
+``refine``       points re-triangulated at their full-resolution Harris keypoints (``refine``)
 ``pca``          PCA of the raw descriptors to 32 dimensions
 ``clusters``     overlapping camera clusters for place recognition
 ``index``        the ANN index over all descriptors
@@ -35,6 +36,7 @@ from .bundle import MapData, validate_name, write_bundle
 from .clusters import ClusterConf, cluster_images
 from .descriptors import DescriptorConf, extract_image_descriptors
 from .index import DescriptorIndex, IndexConf
+from .refine import RefineConf, refine_points
 
 log = logging.getLogger(__name__)
 
@@ -44,6 +46,7 @@ CancelCheck = Callable[[], bool]
 
 class BuildConf(StrictModel):
     descriptors: DescriptorConf = DescriptorConf()
+    refine: RefineConf = RefineConf()
     clusters: ClusterConf = ClusterConf()
     index: IndexConf = IndexConf()
     pca_dim: int = 32
@@ -144,6 +147,16 @@ def assemble(
     image_desc_ptr = np.zeros(len(images) + 1, np.int64)
     image_desc_ptr[1:] = np.cumsum([len(r) for r in raws])
 
+    # ---- points moved to where their own full-resolution Harris keypoints triangulate
+    t0 = time.perf_counter()
+    progress("refine", 0.0, "re-triangulating points at their Harris keypoints")
+    points_xyz, moved = refine_points(
+        points_xyz, np.concatenate(dpoint), np.concatenate(dimage), np.concatenate(dlevel), np.concatenate(dxy),
+        [rec.cameras[im.camera_id] for im in images], [im.cam_from_world for im in images], conf.refine,
+    )
+    timings["refine"] = time.perf_counter() - t0
+    progress("refine", 1.0, f"{int(moved.sum())} of {len(moved)} points refined")
+
     # ---- PCA
     t0 = time.perf_counter()
     progress("pca", 0.0, f"PCA of {len(raw)} descriptors to {conf.pca_dim} dimensions")
@@ -201,7 +214,10 @@ def assemble(
         cameras=cameras,
         image_names=[im.name for im in images],
     )
-    info = {"kind": index.kind, "nlist": index.nlist, "nprobe": index.nprobe, "corners_detected": n_corners}
+    info = {
+        "kind": index.kind, "nlist": index.nlist, "nprobe": index.nprobe, "corners_detected": n_corners,
+        "points_refined": int(moved.sum()),
+    }
     return data, timings, info
 
 

@@ -1,0 +1,125 @@
+"""Re-triangulate map points at the keypoints the engine will see (a builder stage).
+
+SfM places a 3D point where its SfM features were (SIFT blobs); the paper then assigns every
+Harris corner within tau = 2 px of the point's projection to it. Online, the engine's 2D
+observation of that point is a Harris corner, not the SIFT blob, so every 2D-3D match carries a
+systematic offset of up to tau (and Harris' own inward bias at corners), which limits pose
+accuracy. This stage moves each point to where its own level-0 (full-resolution) Harris
+keypoints triangulate, with the image poses fixed, so map and online detector agree:
+
+- a point needs observations in at least two images and a triangulation angle of at least
+  ``min_angle_deg``;
+- Gauss-Newton on the reprojection error, all points at once (padded, masked);
+- the new position is kept only when every observation reprojects within ``max_error_px`` and
+  no projection moves more than ``max_shift_px`` (it must stay the same point); else the SfM
+  position stays.
+
+Measured: synthetic walk (exact ground truth) median error 0.96 -> 0.48 cm, 0.17 -> 0.10 deg;
+redkitchen median 0.68 -> 0.53 cm, mean 1.36 -> 1.01 cm.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..cameras import Camera
+from ..config import StrictModel
+from ..transforms import Rigid3d
+
+
+class RefineConf(StrictModel):
+    enabled: bool = True
+    levels: list[int] = [0]  # pyramid levels whose keypoints are used (0: full resolution)
+    max_observations: int = 16  # per point (the first ones)
+    iterations: int = 6
+    max_error_px: float = 1.5
+    max_shift_px: float = 2.5
+    min_angle_deg: float = 1.5
+
+
+def refine_points(
+    points_xyz: np.ndarray,
+    desc_point: np.ndarray,
+    desc_image: np.ndarray,
+    desc_level: np.ndarray,
+    desc_xy: np.ndarray,
+    image_cameras: list[Camera],
+    image_poses: list[Rigid3d],
+    conf: RefineConf | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """New point positions (P, 3) and which points moved (P,) bool."""
+    conf = conf or RefineConf()
+    n_pts = len(points_xyz)
+    out = np.array(points_xyz, dtype=np.float64, copy=True)
+    moved = np.zeros(n_pts, bool)
+    sel = np.isin(desc_level, conf.levels)
+    if not conf.enabled or not sel.any():
+        return out, moved
+    P, I, XY = desc_point[sel].astype(np.int64), desc_image[sel].astype(np.int64), desc_xy[sel].astype(np.float64)
+    # Observations in undistorted normalized coordinates; residuals are scaled back to pixels
+    # by the focal length.
+    uvn = np.empty_like(XY)
+    focal = np.empty(len(XY))
+    for cam in {id(c): c for c in image_cameras}.values():
+        m = np.array([image_cameras[i] is cam for i in I])
+        if m.any():
+            uvn[m] = cam.cam_from_img(XY[m])
+            focal[m] = 0.5 * sum(cam.focal)
+    order = np.lexsort((I, P))
+    P, I, uvn, focal = P[order], I[order], uvn[order], focal[order]
+    # At most one observation per (point, image): the first.
+    first = np.ones(len(P), bool)
+    first[1:] = (P[1:] != P[:-1]) | (I[1:] != I[:-1])
+    P, I, uvn, focal = P[first], I[first], uvn[first], focal[first]
+    counts = np.bincount(P, minlength=n_pts)
+    cand = np.nonzero(counts >= 2)[0]
+    if len(cand) == 0:
+        return out, moved
+    M = conf.max_observations
+    start = np.searchsorted(P, cand)
+    n_obs = np.minimum(counts[cand], M)
+    idx = start[:, None] + np.arange(M)[None, :]
+    valid = np.arange(M)[None, :] < n_obs[:, None]
+    idx = np.where(valid, idx, start[:, None])
+    R = np.stack([T.rotation for T in image_poses])[I[idx]]  # (C, M, 3, 3)
+    t = np.stack([T.translation for T in image_poses])[I[idx]]  # (C, M, 3)
+    obs = uvn[idx]  # (C, M, 2)
+    f = focal[idx]  # (C, M)
+    X0 = out[cand]
+    X = X0.copy()
+    w = valid.astype(np.float64)
+    for _ in range(conf.iterations):
+        pc = np.einsum("cmij,cj->cmi", R, X) + t
+        z = np.where(np.abs(pc[..., 2]) > 1e-9, pc[..., 2], 1e-9)
+        proj = pc[..., :2] / z[..., None]
+        r = (proj - obs) * (f * w)[..., None]  # (C, M, 2) pixels
+        # d(proj)/dX = (R[:2] - proj * R[2]) / z
+        J = (R[..., :2, :] - proj[..., :, None] * R[..., 2:3, :]) / z[..., None, None]
+        J = J * (f * w)[..., None, None]  # (C, M, 2, 3)
+        J = J.reshape(len(cand), -1, 3)
+        r = r.reshape(len(cand), -1)
+        H = np.einsum("cki,ckj->cij", J, J) + 1e-9 * np.eye(3)
+        g = np.einsum("cki,ck->ci", J, r)
+        X = X - np.linalg.solve(H, g[..., None])[..., 0]
+    # acceptance
+    pc = np.einsum("cmij,cj->cmi", R, X) + t
+    pc0 = np.einsum("cmij,cj->cmi", R, X0) + t
+    z, z0 = pc[..., 2], pc0[..., 2]
+    ok_depth = np.all((z > 1e-6) | ~valid, axis=1)
+    zs, z0s = np.where(np.abs(z) > 1e-9, z, 1e-9), np.where(np.abs(z0) > 1e-9, z0, 1e-9)
+    proj, proj0 = pc[..., :2] / zs[..., None], pc0[..., :2] / z0s[..., None]
+    err = np.linalg.norm(proj - obs, axis=2) * f
+    shift = np.linalg.norm(proj - proj0, axis=2) * f
+    err_ok = np.all((err < conf.max_error_px) | ~valid, axis=1)
+    shift_ok = np.all((shift < conf.max_shift_px) | ~valid, axis=1)
+    # triangulation angle: widest pair of viewing rays
+    centers = np.stack([T.center for T in image_poses])[I[idx]]  # (C, M, 3)
+    rays = X[:, None, :] - centers
+    rays /= np.maximum(np.linalg.norm(rays, axis=2, keepdims=True), 1e-12)
+    cos = np.einsum("cmi,cni->cmn", rays, rays)
+    cos = np.where(valid[:, :, None] & valid[:, None, :], cos, 1.0)
+    angle_ok = np.degrees(np.arccos(np.clip(cos.min(axis=(1, 2)), -1, 1))) >= conf.min_angle_deg
+    keep = ok_depth & err_ok & shift_ok & angle_ok & np.all(np.isfinite(X), axis=1)
+    out[cand[keep]] = X[keep]
+    moved[cand[keep]] = True
+    return out, moved
