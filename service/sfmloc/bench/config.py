@@ -25,7 +25,8 @@ SUITE_HELP = {
     "redkitchen": "real: map from every 10th of the 1000 frames (pgt_sfm poses, known-poses builder); "
     "all frames replayed as 30 Hz video; errors against pgt_sfm_seq01.txt",
     "redkitchen-split": "real, harder: map from every 5th of frames 0-499 only; frames 500-999 replayed "
-    "(partly outside the map: how much is localized, and nothing confidently wrong)",
+    "(parts seen from viewpoints the map covers poorly: how much is localized, and nothing "
+    "confidently wrong)",
     "synthetic-walk": "exact ground truth: `sfmloc synth` room, walking video (seed fixed); map from the "
     "exact COLMAP model",
     "synthetic-flight": "exact ground truth: quadrotor-like flight with fast yaw bursts (seed fixed)",

@@ -262,7 +262,7 @@ def main(conf: BenchConf, out: str | Path, *, progress: Progress | None = None, 
             log.info("== map: size, load time, resident memory")
             frames = [rk.frames_dir / n for n in FrameSource(rk.frames_dir).names()[:5]]
             mp = map_stats(rk.bundle_path, frames, conf.camera)
-            mp["sift_peer_map"] = sift_map_stats(rk.sift_map_path, sift_conf.hnsw_m)
+            mp["sift_peer_map"] = sift_map_stats(rk.sift_map_path, sift_conf.descriptors, sift_conf.hnsw_m)
             results["suites"]["map"] = {"kind": "map", **mp}
         if "throughput" in conf.suites:
             from .throughput import run_throughput

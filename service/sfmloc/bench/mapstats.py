@@ -109,15 +109,17 @@ def map_stats(bundle: Path, frames: list[Path], camera: str) -> dict[str, Any]:
     }
 
 
-def sift_map_stats(sift_map_path: Path, hnsw_m: int) -> dict[str, Any]:
-    """The SIFT peer's map for comparison: descriptor bytes and its faiss index in memory."""
+def sift_map_stats(sift_map_path: Path, descriptors: str, hnsw_m: int) -> dict[str, Any]:
+    """The SIFT peer's map for comparison: its descriptors and, for the layout the peer uses
+    ("all" observations or one "mean" per point), the size of its faiss HNSW index."""
     from .sift_peer import SiftMap
 
     sm = SiftMap.load(sift_map_path)
     n = len(sm.desc)
-    # uint8 on disk; faiss holds float32 vectors, HNSW adds 2*M neighbour ids (int32) per level-0 node.
-    return {"points": sm.n_points, "descriptors": n, "descriptor_mb_uint8": n * 128 / 1e6,
-            "faiss_hnsw_mb": (n * 128 * 4 + n * 2 * hnsw_m * 4) / 1e6}
+    indexed = n if descriptors == "all" else sm.n_points
+    # faiss keeps float32 vectors; HNSW adds 2*M neighbour ids (int32) per node at level 0.
+    return {"points": sm.n_points, "descriptors": n, "descriptor_mb_uint8": n * 128 / 1e6, "layout": descriptors,
+            "indexed_vectors": indexed, "faiss_hnsw_mb": (indexed * 128 * 4 + indexed * 2 * hnsw_m * 4) / 1e6}
 
 
 if __name__ == "__main__":

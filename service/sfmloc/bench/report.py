@@ -273,8 +273,10 @@ def write_report(results: dict, out: Path) -> Path:
         sm = mp.get("sift_peer_map")
         if sm:
             L += [f"The SIFT peer's map of the same images: {sm['points']} points, {sm['descriptors']} SIFT "
-                  f"descriptors, {sm['descriptor_mb_uint8']:.1f} MB as uint8; its faiss HNSW index holds them "
-                  f"as float32 plus graph links: about {sm['faiss_hnsw_mb']:.0f} MB (estimate from sizes).", ""]
+                  f"descriptors ({sm['descriptor_mb_uint8']:.1f} MB as uint8); the peer indexes "
+                  f"{sm.get('indexed_vectors', sm['descriptors'])} vectors ({sm.get('layout', 'all')} layout) in a "
+                  f"faiss HNSW index of about {sm['faiss_hnsw_mb']:.0f} MB (float32 vectors plus graph links, "
+                  "computed from the sizes, not measured).", ""]
     notes = results.get("notes", [])
     if notes:
         L += ["## Notes", ""] + [f"- {n}" for n in notes] + [""]
