@@ -298,8 +298,8 @@ class Localizer:
     def _recover(self, prepared: np.ndarray, kps: Keypoints, pred: Rigid3d) -> PoseEstimate | None:
         """Tracking lost its 2D-3D matches but the motion filter still predicts the pose:
         guided matching of all the frame's keypoints, scoped by the images that saw the last
-        matched points and verified against the prediction with a loose threshold, then a
-        regular pose. Much cheaper than global matching, which remains the fallback."""
+        matched points, and a pose from the hypotheses around the prediction (two passes, see
+        ``_pose_from_hypotheses``). Much cheaper than global matching, the fallback."""
         c = self.conf
         T = self._restart_table(kps)
         if len(T) < c.min_inliers:
@@ -308,14 +308,12 @@ class Localizer:
         desc = describe(self.extractor, self.bundle, prepared, T.xy)
         loose = c.model_copy(update={"guided_threshold_px": c.prior_threshold_px})
         gm = guided_matching(desc, xy_u, self.bundle, self.scope_points, pred, self.K, loose)
-        q = np.nonzero(gm.point >= 0)[0]
-        if len(q) < c.recover_min_inliers:
+        res = _pose_from_hypotheses(gm.hyp, xy_u, self.bundle, self.K, c, pred)
+        if res is None:
             return None
-        est = estimate_pose(xy_u[q], self.bundle.points_xyz[gm.point[q]], self.K, c.ransac(c.recover_min_inliers))
-        if est is None:
-            return None
+        est, point = res
         T.hyp = gm.hyp
-        T.point[q[est.inlier_mask]] = gm.point[q[est.inlier_mask]]
+        T.point = point
         T.pending = T.point < 0
         self.table = T
         self._reverify(est.cam_from_world)
@@ -412,16 +410,41 @@ def relocalize(
     return result
 
 
+def _pose_from_hypotheses(
+    hyp: np.ndarray, xy_u: np.ndarray, bundle: MapBundle, K: np.ndarray, conf: EngineConf, prior: Rigid3d
+) -> tuple[PoseEstimate, np.ndarray] | None:
+    """A pose from one-to-many hypotheses around an approximate ``prior``, in two passes:
+    verification within ``prior_threshold_px`` of the prior and a first pose, then every
+    keypoint's hypotheses re-verified against that pose within ``guided_threshold_px`` and the
+    pose re-estimated (wrong matches that fit the loose window drop out). Returns the pose and
+    the verified point of every keypoint (-1: none)."""
+    params = conf.ransac(conf.recover_min_inliers)
+    est, point = None, None
+    for threshold in (conf.prior_threshold_px, conf.guided_threshold_px):
+        cur = np.full(len(hyp), -1, np.int64)
+        verify_hypotheses(hyp, xy_u, bundle.points_xyz, prior, K, threshold, cur)
+        q = np.nonzero(cur >= 0)[0]
+        if len(q) < params.min_inliers:
+            break
+        nxt = estimate_pose(xy_u[q], bundle.points_xyz[cur[q]], K, params, prior=prior)
+        if nxt is None:
+            break
+        est, prior = nxt, nxt.cam_from_world
+        point = np.full(len(hyp), -1, np.int64)
+        point[q[nxt.inlier_mask]] = cur[q[nxt.inlier_mask]]
+    return None if est is None else (est, point)
+
+
 def _pose_near_prior(desc, xy_u, bundle: MapBundle, K, conf: EngineConf, prior: Rigid3d) -> PoseEstimate | None:
     """Matches scoped by the points visible from the prior, verified against it with a loose
-    threshold (the prior is approximate), then a regular RANSAC pose."""
+    threshold (the prior is approximate), then a pose with the prior as a hypothesis; the same
+    rules as the tracker's recovery (``prior_threshold_px``, ``recover_min_inliers``)."""
     uv, z = project(prior, K, bundle.points_xyz)
     w, h = 2 * K[0, 2], 2 * K[1, 2]
     visible = np.nonzero((z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h))[0]
     if len(visible) < conf.min_inliers:
         return None
-    gm = guided_matching(desc, xy_u, bundle, visible, prior, K, conf.model_copy(update={"guided_threshold_px": 40.0}))
-    q = np.nonzero(gm.point >= 0)[0]
-    if len(q) < conf.min_inliers:
-        return None
-    return estimate_pose(xy_u[q], bundle.points_xyz[gm.point[q]], K, conf.ransac())
+    loose = conf.model_copy(update={"guided_threshold_px": conf.prior_threshold_px})
+    gm = guided_matching(desc, xy_u, bundle, visible, prior, K, loose)
+    res = _pose_from_hypotheses(gm.hyp, xy_u, bundle, K, conf, prior)
+    return None if res is None else res[0]

@@ -40,6 +40,38 @@ class PoseEstimate:
     inlier_mask: np.ndarray  # over the correspondences given to the estimator
     num_inliers: int
     mean_error_px: float
+    position_std_m: float = float("nan")  # worst-direction standard deviation of the centre
+    rotation_std_deg: float = float("nan")  # worst-axis standard deviation of the orientation
+
+
+def pose_uncertainty(cam_from_world: Rigid3d, K: np.ndarray, xy: np.ndarray, X: np.ndarray) -> tuple[float, float]:
+    """First-order standard deviations (worst direction) of the camera centre (map units) and
+    orientation (degrees) from the inliers' reprojection Jacobian, with the residuals' RMS as
+    the pixel noise. Large values flag poorly constrained poses (e.g. points on one distant
+    wall, where a sideways shift and a small rotation explain the image almost equally)."""
+    pc = X @ cam_from_world.rotation.T + cam_from_world.translation
+    x, y, z = pc[:, 0], pc[:, 1], np.maximum(pc[:, 2], 1e-9)
+    fx, fy = K[0, 0], K[1, 1]
+    # Perturbation in the camera frame: pc' = exp(d) pc + tau; d(pc)/d(d) = -[pc]x.
+    du = np.stack([fx / z, np.zeros_like(z), -fx * x / z**2], 1)
+    dv = np.stack([np.zeros_like(z), fy / z, -fy * y / z**2], 1)
+    skew = np.zeros((len(pc), 3, 3))
+    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -pc[:, 2], pc[:, 1], -pc[:, 0]
+    skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = pc[:, 2], -pc[:, 1], pc[:, 0]
+    J = np.concatenate([
+        np.hstack([-np.einsum("ni,nij->nj", du, skew), du]),
+        np.hstack([-np.einsum("ni,nij->nj", dv, skew), dv]),
+    ])
+    uv = np.stack([fx * x / z + K[0, 2], fy * y / z + K[1, 2]], 1)
+    rms = max(float(np.sqrt(np.mean(np.sum((uv - xy) ** 2, axis=1) / 2))), 0.5)
+    try:
+        cov = np.linalg.inv(J.T @ J) * rms**2
+    except np.linalg.LinAlgError:
+        return float("inf"), float("inf")
+    # centre = c - R^T tau to first order: same eigenvalues as the tau block
+    pos = float(np.sqrt(max(np.linalg.eigvalsh(cov[3:, 3:]).max(), 0.0)))
+    rot = float(np.degrees(np.sqrt(max(np.linalg.eigvalsh(cov[:3, :3]).max(), 0.0))))
+    return pos, rot
 
 
 def project(cam_from_world: Rigid3d, K: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -146,7 +178,8 @@ def _finish(pose: Rigid3d, mask: np.ndarray, K, xy, X, min_inliers: int) -> Pose
     if n_in < min_inliers or not pose.is_finite():
         return None
     err = reprojection_errors(pose, K, xy[mask], X[mask])
-    return PoseEstimate(pose, mask, n_in, float(err.mean()) if n_in else float("inf"))
+    pos_std, rot_std = pose_uncertainty(pose, K, xy[mask], X[mask])
+    return PoseEstimate(pose, mask, n_in, float(err.mean()) if n_in else float("inf"), pos_std, rot_std)
 
 
 def estimate_pose_one_to_many(
@@ -161,13 +194,15 @@ def estimate_pose_one_to_many(
     batch: int = 16,
     seed: int = 0,
     growth: int = 200,
+    lo_per_batch: int = 2,
 ) -> tuple[PoseEstimate, np.ndarray] | None:
     """RANSAC over set 1 (``hyp_xy``, ``hyp_X``: one match per keypoint, best first) verified
     on set 2 (``ver_kp``: keypoint id of each one-to-many pair, ``ver_xy``, ``ver_X``).
 
     Sampling is progressive (PROSAC-like): minimal samples come from the best-ranked matches
-    first, the pool growing to all of set 1 over ``growth`` iterations; the adaptive stop uses
-    the inlier ratio within the current pool.
+    first, the pool growing to all of set 1 over ``growth`` iterations; the ``lo_per_batch``
+    best hypotheses of each batch are locally optimized (refined on their inliers) before
+    scoring; the adaptive stop uses the best pose's inlier ratio over all of set 1.
 
     Returns the pose and, per set-2 pair, whether it is the inlier chosen for its keypoint
     (at most one per keypoint: the closest reprojection)."""
@@ -216,17 +251,30 @@ def estimate_pose_one_to_many(
         m_idx, b_idx = np.nonzero(inl)
         hit[b_idx, kp_dense[m_idx]] = True
         scores = hit.sum(axis=1)
-        b = int(np.argmax(scores))
-        if scores[b] > best_score:
-            best_score = int(scores[b])
-            best_pose = Rigid3d(R[b], T[b])
-            # Adaptive stop from the inlier ratio of the pool samples are drawn from.
-            e1 = reprojection_errors(best_pose, K, hyp_xy[:pool], hyp_X[:pool])
-            w = float(np.mean(e1 < threshold))
-            if w >= 1.0:
-                needed = it
-            elif w > 0:
-                needed = int(math.ceil(math.log(1.0 - confidence) / math.log(1.0 - w**3)))
+        # Local optimization (LO-RANSAC): a minimal solution from correct matches is itself off
+        # by centimetres and a degree or two, so its raw support can lose to a wrong pose built
+        # on repeated structure; the batch's strongest hypotheses are refined on their inliers
+        # and scored again.
+        for b in np.argsort(-scores, kind="stable")[:lo_per_batch]:
+            if scores[b] < max(0.5 * best_score, 0.5 * min_inliers):
+                break  # not competitive even before refinement
+            cand = Rigid3d(R[b], T[b])
+            chosen = _closest_per_keypoint(cand, K, kp_dense, ver_xy, ver_X, threshold)
+            if chosen.sum() >= 4:
+                cand, _ = refine(cand, K, ver_xy[chosen], ver_X[chosen], threshold, rounds=2)
+            score = int(_closest_per_keypoint(cand, K, kp_dense, ver_xy, ver_X, threshold).sum())
+            if score > best_score:
+                best_score, best_pose = score, cand
+                # Adaptive stop from the inlier ratio of the whole set, as for uniform
+                # sampling: the ratio within the best-ranked pool can be high for a wrong pose
+                # when repeated structure puts a consistent cluster of wrong matches at the top
+                # of the ranking. Sampling the best-ranked first still stops sooner.
+                e1 = reprojection_errors(best_pose, K, hyp_xy, hyp_X)
+                w = float(np.mean(e1 < threshold))
+                if w >= 1.0:
+                    needed = it
+                elif w > 0:
+                    needed = int(math.ceil(math.log(1.0 - confidence) / math.log(1.0 - w**3)))
     if best_pose is None or best_score < min_inliers:
         return None
     # One-to-one correspondences: for each keypoint its closest inlier hypothesis; refine on
