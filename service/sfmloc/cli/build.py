@@ -36,7 +36,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--poses", metavar="FILE", help="known poses (COLMAP list or TUM)")
     p.add_argument("--camera", help="camera.json or 'MODEL w h params...'")
     p.add_argument("--stride", type=int, default=1, help="posed/images-only inputs: use every N-th image (default 1)")
-    p.add_argument("--preset", default="default", help="builder preset: default, fast, dense (default: default)")
+    p.add_argument(
+        "--preset", default="default",
+        help="builder preset: default (2 octaves down, 2 sub-octaves up, points refined), paper (the paper's "
+        "map exactly), fast, dense (default: default)",
+    )
     p.add_argument("--sfm-preset", default="default", help="SfM preset: default, fast, accurate (default: default)")
     p.add_argument("--matching", choices=["sequential", "exhaustive"], help="images only: pair selection")
     p.add_argument("--config", help="JSON/TOML file of builder settings merged over the preset")

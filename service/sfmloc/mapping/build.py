@@ -53,13 +53,14 @@ class BuildConf(StrictModel):
 
 
 PRESETS: dict[str, dict[str, Any]] = {
-    # The paper's settings.
+    # Two octaves down and two sub-octaves up (see DescriptorConf.up_levels), points refined.
     "default": {},
+    # Exactly the paper's map: two octaves down only, points where SfM put them.
+    "paper": {"descriptors": {"up_levels": 0}, "refine": {"enabled": False}},
     # Fewer pyramid levels and corners: quicker builds for large image sets.
-    "fast": {"descriptors": {"octaves": 1, "max_corners_per_level": 3000}},
-    # More descriptors per point: also sample above the original resolution (helps when the
-    # live camera gets closer to surfaces than the mapping images did).
-    "dense": {"descriptors": {"up_levels": 2}},
+    "fast": {"descriptors": {"octaves": 1, "up_levels": 1, "max_corners_per_level": 3000}},
+    # Even more scales: four sub-octaves above the original resolution too.
+    "dense": {"descriptors": {"up_levels": 4}},
 }
 
 
@@ -153,6 +154,7 @@ def assemble(
     points_xyz, moved = refine_points(
         points_xyz, np.concatenate(dpoint), np.concatenate(dimage), np.concatenate(dlevel), np.concatenate(dxy),
         [rec.cameras[im.camera_id] for im in images], [im.cam_from_world for im in images], conf.refine,
+        full_resolution_level=conf.descriptors.up_levels,
     )
     timings["refine"] = time.perf_counter() - t0
     progress("refine", 1.0, f"{int(moved.sum())} of {len(moved)} points refined")

@@ -26,7 +26,12 @@ from ..transforms import Rigid3d
 class DescriptorConf(StrictModel):
     octaves: int = 2
     per_octave: int = 4
-    up_levels: int = 0  # levels above the original resolution (2^(1/per_octave) each)
+    # Levels above the original resolution (2^(1/per_octave) each). The paper's pyramid only
+    # goes down (two octaves): it covers a live camera farther from surfaces than the mapping
+    # images, not closer. On redkitchen-split (map from frames 0-499, frames 500-999 replayed)
+    # two levels up take localization from 73.2% to 97.8% (mean latency 47 -> 16 ms, fewer
+    # relocalizations) at +8% descriptors; the full sequence and synthetic scenes are unchanged.
+    up_levels: int = 2
     tau: float = 2.0  # px, in the level, corner-to-projection distance for assignment
     harris_rel_threshold: float = 0.0005  # of the level's maximum cornerness
     max_corners_per_level: int = 6000

@@ -29,7 +29,9 @@ from ..transforms import Rigid3d
 
 class RefineConf(StrictModel):
     enabled: bool = True
-    levels: list[int] = [0]  # pyramid levels whose keypoints are used (0: full resolution)
+    # Pyramid levels whose keypoints are used, relative to the full-resolution level (0;
+    # positive: downsampled, negative: upsampled).
+    levels: list[int] = [0]
     max_observations: int = 16  # per point (the first ones)
     iterations: int = 6
     max_error_px: float = 1.5
@@ -46,13 +48,16 @@ def refine_points(
     image_cameras: list[Camera],
     image_poses: list[Rigid3d],
     conf: RefineConf | None = None,
+    full_resolution_level: int = 0,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """New point positions (P, 3) and which points moved (P,) bool."""
+    """New point positions (P, 3) and which points moved (P,) bool. ``desc_level`` holds
+    pyramid level indices; ``full_resolution_level`` is the index of scale 1 (the builder's
+    number of upsampled levels)."""
     conf = conf or RefineConf()
     n_pts = len(points_xyz)
     out = np.array(points_xyz, dtype=np.float64, copy=True)
     moved = np.zeros(n_pts, bool)
-    sel = np.isin(desc_level, conf.levels)
+    sel = np.isin(desc_level, [full_resolution_level + lv for lv in conf.levels])
     if not conf.enabled or not sel.any():
         return out, moved
     P, I, XY = desc_point[sel].astype(np.int64), desc_image[sel].astype(np.int64), desc_xy[sel].astype(np.float64)
