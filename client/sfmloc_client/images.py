@@ -60,7 +60,10 @@ def decode_image(encoding: str, data: bytes | bytearray | memoryview, width: int
     cv2 = _cv2()
     buf = np.frombuffer(data, np.uint8)
     try:
-        img = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_UNCHANGED) if buf.size else None
+        # Stored pixels, no EXIF rotation: the camera describes the stored image (as COLMAP and
+        # the map builder read images).
+        flag = cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION if gray else cv2.IMREAD_UNCHANGED
+        img = cv2.imdecode(buf, flag) if buf.size else None
     except cv2.error as exc:  # e.g. larger than OPENCV_IO_MAX_IMAGE_PIXELS allows
         reason = "larger than the decoder allows" if "MAX_IMAGE_PIXELS" in str(exc) else str(exc).strip().splitlines()[-1]
         raise ImageDataError(f"the {encoding} data ({len(data)} bytes) cannot be decoded: {reason}") from None

@@ -54,7 +54,8 @@ def folder_frames(folder: str | Path, *, pattern: str = "*", passthrough: str | 
             yield SourceFrame(data=p.read_bytes(), encoding=passthrough, name=p.name)
             continue
         cv2 = _cv2()
-        img = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR)
+        # Stored pixels, no EXIF rotation (as the server decodes what the client sends).
+        img = cv2.imread(str(p), (cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR) | cv2.IMREAD_IGNORE_ORIENTATION)
         if img is None:
             raise ClientError(f"cannot read image {p}")
         yield SourceFrame(image=img, name=p.name)

@@ -48,7 +48,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         import cv2
 
-        image, encoding = cv2.imread(str(path), cv2.IMREAD_COLOR), "png"
+        image, encoding = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION), "png"
         if image is None:
             raise InputError(f"cannot read image {path}")
     prior = None
