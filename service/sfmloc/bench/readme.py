@@ -35,6 +35,11 @@ BEGIN = "<!-- results:begin -->"
 END = "<!-- results:end -->"
 
 
+def _shared_note(load: float) -> str:
+    """The benchmark keeps about one core busy itself; more than that at start means others."""
+    return " (other processes shared the machine)" if load > 1.5 else ""
+
+
 def render_block(results: dict, source: str = "docs/results.json") -> str:
     """The block's content (markers included) for ``results``."""
     m = results.get("machine", {})
@@ -43,7 +48,7 @@ def render_block(results: dict, source: str = "docs/results.json") -> str:
          f"Measured by `{results.get('command', 'sfmloc bench')}` on {results.get('created_utc', '?')} at commit "
          f"{m.get('git', '?')}: "
          f"{m.get('cpus', '?')} cores ({m.get('cpu_model', '?')}), load average {m.get('load_average_start', 0):.1f} "
-         f"(other processes shared the machine), wall time {results.get('wall_s', 0):.0f} s. "
+         f"at start{_shared_note(m.get('load_average_start', 0))}, wall time {results.get('wall_s', 0):.0f} s. "
          f"Rerun with `make bench` (full report and figures in `bench-out/report.md`)._", ""]
     if localization_suites(results):
         L += ["**Our engine, the paper's Table 2 columns** (F frames, F_loc localized, T time per frame mean ± std, "
