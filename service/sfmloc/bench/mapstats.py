@@ -55,7 +55,6 @@ def probe(bundle: str, frames: list[str], camera: str, verify: bool = True) -> d
     for arr in (b.points_xyz, b.desc_point, b.desc_image, b.image_desc_ptr, b.image_points_ptr, b.image_points_idx,
                 b.cluster_images_ptr, b.cluster_images_idx, b.point_clusters_ptr, b.point_clusters_idx, b.image_camera):
         float(np.asarray(arr, np.float64).sum())
-    b.point_images()
     after_touch = _status_kib()
     loc = Localizer(b, cam)
     for k, g in enumerate(grays):

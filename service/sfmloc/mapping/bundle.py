@@ -413,7 +413,14 @@ class MapBundle:
             raise BundleError(
                 f"map bundle {self.path}: index holds {self.index.ntotal} descriptors, bundle has {len(self.desc_point)}"
             )
-        self._point_images: tuple[np.ndarray, np.ndarray] | None = None
+        # The inverse of image_points, built once here (O(observations)) so that the bundle stays
+        # read-only and safe to share between threads.
+        counts = np.diff(self.image_points_ptr)
+        owner = np.repeat(np.arange(self.n_images, dtype=np.int32), counts)
+        order = np.argsort(self.image_points_idx, kind="stable")
+        ptr = np.zeros(self.n_points + 1, np.int64)
+        np.add.at(ptr, np.asarray(self.image_points_idx, np.int64) + 1, 1)
+        self._point_images = (np.cumsum(ptr), owner[order])
         q = np.asarray(a["image_cam_from_world"])
         self.image_cam_from_world = [Rigid3d.from_quat_wxyz(r[:4], r[4:]) for r in q]
 
@@ -441,15 +448,7 @@ class MapBundle:
         return self.image_points_idx[self.image_points_ptr[i] : self.image_points_ptr[i + 1]]
 
     def point_images(self) -> tuple[np.ndarray, np.ndarray]:
-        """CSR (ptr, idx): for each point, the images that see it (inverse of image_points),
-        computed once on first use."""
-        if self._point_images is None:
-            counts = np.diff(self.image_points_ptr)
-            owner = np.repeat(np.arange(self.n_images, dtype=np.int32), counts)
-            order = np.argsort(self.image_points_idx, kind="stable")
-            ptr = np.zeros(self.n_points + 1, np.int64)
-            np.add.at(ptr, np.asarray(self.image_points_idx, np.int64) + 1, 1)
-            self._point_images = (np.cumsum(ptr), owner[order])
+        """CSR (ptr, idx): for each point, the images that see it (inverse of image_points)."""
         return self._point_images
 
     def cluster_images(self, c: int) -> np.ndarray:

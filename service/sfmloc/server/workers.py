@@ -139,7 +139,6 @@ class _Worker:
                 raise BundleError(
                     f"map bundle {m['path']} changed while loading (build {b.build_id}, expected {m['build_id']}); retry"
                 )
-            b.point_images()  # computed lazily by the engine otherwise: keep it off the first frame
             _warm_up(b, self.conf)
             self.bundles[(m["name"], m["gen"])] = b
             s = b.summary()
