@@ -40,38 +40,6 @@ class PoseEstimate:
     inlier_mask: np.ndarray  # over the correspondences given to the estimator
     num_inliers: int
     mean_error_px: float
-    position_std_m: float = float("nan")  # worst-direction standard deviation of the centre
-    rotation_std_deg: float = float("nan")  # worst-axis standard deviation of the orientation
-
-
-def pose_uncertainty(cam_from_world: Rigid3d, K: np.ndarray, xy: np.ndarray, X: np.ndarray) -> tuple[float, float]:
-    """First-order standard deviations (worst direction) of the camera centre (map units) and
-    orientation (degrees) from the inliers' reprojection Jacobian, with the residuals' RMS as
-    the pixel noise. Large values flag poorly constrained poses (e.g. points on one distant
-    wall, where a sideways shift and a small rotation explain the image almost equally)."""
-    pc = X @ cam_from_world.rotation.T + cam_from_world.translation
-    x, y, z = pc[:, 0], pc[:, 1], np.maximum(pc[:, 2], 1e-9)
-    fx, fy = K[0, 0], K[1, 1]
-    # Perturbation in the camera frame: pc' = exp(d) pc + tau; d(pc)/d(d) = -[pc]x.
-    du = np.stack([fx / z, np.zeros_like(z), -fx * x / z**2], 1)
-    dv = np.stack([np.zeros_like(z), fy / z, -fy * y / z**2], 1)
-    skew = np.zeros((len(pc), 3, 3))
-    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -pc[:, 2], pc[:, 1], -pc[:, 0]
-    skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = pc[:, 2], -pc[:, 1], pc[:, 0]
-    J = np.concatenate([
-        np.hstack([-np.einsum("ni,nij->nj", du, skew), du]),
-        np.hstack([-np.einsum("ni,nij->nj", dv, skew), dv]),
-    ])
-    uv = np.stack([fx * x / z + K[0, 2], fy * y / z + K[1, 2]], 1)
-    rms = max(float(np.sqrt(np.mean(np.sum((uv - xy) ** 2, axis=1) / 2))), 0.5)
-    try:
-        cov = np.linalg.inv(J.T @ J) * rms**2
-    except np.linalg.LinAlgError:
-        return float("inf"), float("inf")
-    # centre = c - R^T tau to first order: same eigenvalues as the tau block
-    pos = float(np.sqrt(max(np.linalg.eigvalsh(cov[3:, 3:]).max(), 0.0)))
-    rot = float(np.degrees(np.sqrt(max(np.linalg.eigvalsh(cov[:3, :3]).max(), 0.0))))
-    return pos, rot
 
 
 def project(cam_from_world: Rigid3d, K: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -165,12 +133,9 @@ def estimate_pose(
     if ok and inl is not None and len(inl) >= min_inliers:
         pose, mask = refine(_rigid(rvec, tvec), K, xy, X, refine_threshold)
         ransac = _finish(pose, mask, K, xy, X, min_inliers)
-    candidates = [c for c in (ransac, from_prior) if c is not None]
-    if not candidates:
-        return None
-    if ransac is not None and from_prior is not None:
-        return from_prior if from_prior.num_inliers >= prior_tie * ransac.num_inliers else ransac
-    return candidates[0]
+    if ransac is None or from_prior is None:
+        return ransac if ransac is not None else from_prior
+    return from_prior if from_prior.num_inliers >= prior_tie * ransac.num_inliers else ransac
 
 
 def _finish(pose: Rigid3d, mask: np.ndarray, K, xy, X, min_inliers: int) -> PoseEstimate | None:
@@ -178,8 +143,7 @@ def _finish(pose: Rigid3d, mask: np.ndarray, K, xy, X, min_inliers: int) -> Pose
     if n_in < min_inliers or not pose.is_finite():
         return None
     err = reprojection_errors(pose, K, xy[mask], X[mask])
-    pos_std, rot_std = pose_uncertainty(pose, K, xy[mask], X[mask])
-    return PoseEstimate(pose, mask, n_in, float(err.mean()) if n_in else float("inf"), pos_std, rot_std)
+    return PoseEstimate(pose, mask, n_in, float(err.mean()) if n_in else float("inf"))
 
 
 def estimate_pose_one_to_many(
