@@ -240,6 +240,12 @@ def run_sequence(loc, frames, stamps):
 
 def test_localizer_end_to_end_on_a_synthetic_video(world, bundle, cam):
     loc = Localizer(bundle, cam)
+    first = loc.localize(world.gray[0], 0.0)
+    # the result and the state describe the table global matching just built
+    assert first.status is Status.RELOCALIZED and first.matching == "global"
+    assert first.tracked_3d == loc.table.n_3d() >= first.inliers > 0
+    assert np.array_equal(np.sort(loc.scope_points), np.sort(loc.table.point[loc.table.point >= 0]))
+    loc.reset()
     res = run_sequence(loc, world.gray, [i / 30 for i in range(len(world.gray))])
     assert res[0].status is Status.RELOCALIZED and res[0].matching == "global"
     localized = [r for r in res if r.status is not Status.LOST]

@@ -227,6 +227,7 @@ class Localizer:
             matching = "global"
             relocalized = est is not None
             timer.lap("global")
+        T = self.table  # recovery and global matching restart the table
         c2_ids = set(T.track_id[T.point >= 0].tolist())
         if len(c2_ids) > c.kappa2 and c2_ids != c1_ids and not relocalized:
             # The new matches were verified against this frame's pose: it is the better prior.
