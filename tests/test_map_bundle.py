@@ -220,3 +220,22 @@ def test_bundle_replace_is_atomic_and_failures_leave_nothing(tmp_path):
 def test_bundle_rejects_bad_names(tmp_path, name):
     with pytest.raises(InputError, match="invalid map name"):
         write_bundle(small_map(), tmp_path, name)
+
+
+def test_bundle_scene_scale_is_median_observed_depth(tmp_path):
+    """scene_scale is the median depth of observed points in their cameras: scaling the
+    scene by s scales it by s (thresholds built on it are unit-free)."""
+    import dataclasses
+
+    for s in (0.01, 1.0, 100.0):
+        data = small_map()
+        data = dataclasses.replace(
+            data,
+            points_xyz=data.points_xyz * s,
+            image_cam_from_world=np.tile([1.0, 0, 0, 0, 0, 0, 10.0 * s], (6, 1)),
+        )
+        b = MapBundle(write_bundle(data, tmp_path / str(s), "lab"))
+        idx = np.asarray(data.image_points_idx)
+        expect = np.median(data.points_xyz[idx, 2] + 10.0 * s)
+        assert b.scene_scale == pytest.approx(expect, rel=1e-9)
+        assert 9.0 * s < b.scene_scale < 11.0 * s

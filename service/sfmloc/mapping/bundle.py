@@ -423,6 +423,21 @@ class MapBundle:
         self._point_images = (np.cumsum(ptr), owner[order])
         q = np.asarray(a["image_cam_from_world"])
         self.image_cam_from_world = [Rigid3d.from_quat_wxyz(r[:4], r[4:]) for r in q]
+        self.scene_scale = self._median_depth()
+
+    def _median_depth(self) -> float:
+        """The scene's scale: median depth of every observed point in the camera that sees it
+        (map units). Thresholds that must mean the same in a 0.2-unit object scan and a
+        500-unit street (wrong-pose limits, motion tolerances) are fractions of it."""
+        depths = []
+        for i, cfw in enumerate(self.image_cam_from_world):
+            idx = self.image_points(i)
+            if len(idx):
+                X = self.points_xyz[idx]
+                depths.append(X @ cfw.rotation[2] + cfw.translation[2])
+        d = np.concatenate(depths) if depths else np.zeros(0)
+        d = d[np.isfinite(d) & (d > 0)]
+        return float(np.median(d)) if len(d) else 1.0
 
     # ------------------------------------------------------------------ accessors
     def array(self, name: str) -> np.ndarray:
