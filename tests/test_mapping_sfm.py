@@ -644,3 +644,30 @@ def test_known_poses_on_redkitchen_frames(redkitchen):
         depths.append(im.cam_from_world.apply(X)[:, 2])
     d = np.concatenate(depths)
     assert np.all(d > 0) and 0.3 < np.median(d) < 5.0
+
+
+def test_token_cancelled_reads_the_installed_pycolmap_token():
+    """pycolmap 4.2 made ``is_cancelled`` a property; calling it raised TypeError and turned
+    every failure of an SfM stage (and Ctrl-C) into that TypeError."""
+    from sfmloc.mapping.sfm_common import token_cancelled
+
+    token = pycolmap.CancellationToken()
+    assert token_cancelled(token) is False
+    token.cancel()
+    assert token_cancelled(token) is True
+
+
+@pytest.mark.parametrize("polling", [False, True])
+def test_a_failing_pycolmap_stage_names_its_error(tmp_path, polling):
+    """A real pycolmap call that fails (no such database folder) comes back as a BuildError
+    naming the stage and pycolmap's own reason, with or without a cancel poller."""
+    from sfmloc.mapping.sfm_common import Reporter
+
+    images = tmp_path / "images"
+    images.mkdir()
+    cv2.imwrite(str(images / "a.png"), np.zeros((32, 32), np.uint8))
+    rep = Reporter(None, (lambda: False) if polling else None)
+    with pytest.raises(BuildError) as err:
+        rep.run("features", pycolmap.extract_features, str(tmp_path / "no" / "such" / "db.db"), str(images))
+    assert err.value.stage == "features"
+    assert "extract_features" in str(err.value)

@@ -164,13 +164,21 @@ class Reporter:
                 raise
         exc = out.get("error")
         if exc is not None:
-            if isinstance(exc, InterruptedError) or token.is_cancelled():
-                raise BuildCancelled("cancelled", stage=stage) from None
             if isinstance(exc, (KeyboardInterrupt, SystemExit)):
                 raise exc
+            if isinstance(exc, InterruptedError) or token_cancelled(token):
+                raise BuildCancelled("cancelled", stage=stage) from None
             name = getattr(fn, "__name__", "pycolmap")
             raise BuildError(f"pycolmap {name} failed: {exc}", stage=stage) from exc
         return out.get("value")
+
+
+def token_cancelled(token: Any) -> bool:
+    """Whether a pycolmap ``CancellationToken`` was cancelled: a method in some pycolmap
+    releases, a property in others (4.2: calling it raised ``TypeError: 'bool' object is not
+    callable`` and hid the stage's real error)."""
+    flag = token.is_cancelled
+    return bool(flag() if callable(flag) else flag)
 
 
 @contextlib.contextmanager
