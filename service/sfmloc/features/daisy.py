@@ -13,8 +13,8 @@ computed from a resampled patch" (Winder, Hua, Brown, "Picking the best DAISY", 
   applies exactly the same projection.
 
 We never run a dense whole-image DAISY: every descriptor is computed from a small patch
-resampled around its keypoint in one ``cv2.remap`` call for all keypoints, so the cost is
-proportional to the number of keypoints (OpenCV's DAISY precomputes the whole image on every
+resampled around its keypoint in ``cv2.remap`` calls batching many keypoints (chunked under
+OpenCV's limit of 32767 map rows, ``REMAP_MAX_ROWS``), so the cost is proportional to the number of keypoints (OpenCV's DAISY precomputes the whole image on every
 call, 6-30 ms whatever the keypoint count). Patch geometry is in pixels of the image the
 keypoints come from; the builder runs it on every pyramid level, so the support scales with
 the level.
@@ -30,6 +30,9 @@ import numpy as np
 from ..cameras import PIXEL_CENTER_OFFSET
 
 RAW_DIM = 104
+# cv2.remap asserts that its maps have fewer than SHRT_MAX (32767) rows and columns: one call
+# on (n * side, side) maps fails from n = 1490 keypoints (side 22). Chunks stay under it.
+REMAP_MAX_ROWS = 32766
 
 
 @dataclass(frozen=True)
@@ -153,20 +156,23 @@ class DaisyExtractor:
         self, img: np.ndarray, xy: np.ndarray, theta: np.ndarray, offsets: np.ndarray, side: int
     ) -> np.ndarray:
         """Bilinear samples (N, side, side) of ``img`` on ``offsets`` rotated by ``theta`` around
-        each keypoint, all in one remap."""
+        each keypoint, in as few remaps as OpenCV's map-size limit allows."""
         n = len(xy)
         c, s = np.cos(theta).astype(np.float32), np.sin(theta).astype(np.float32)
         ox, oy = offsets[:, 0], offsets[:, 1]
         # Keypoint in array-index coordinates.
         kx = (xy[:, 0] - PIXEL_CENTER_OFFSET).astype(np.float32)[:, None]
         ky = (xy[:, 1] - PIXEL_CENTER_OFFSET).astype(np.float32)[:, None]
-        mx = kx + c[:, None] * ox - s[:, None] * oy
-        my = ky + s[:, None] * ox + c[:, None] * oy
-        mx = mx.reshape(n * side, side)
-        my = my.reshape(n * side, side)
-        out = cv2.remap(img, mx, my, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT_101)
+        mx = (kx + c[:, None] * ox - s[:, None] * oy).reshape(n * side, side)
+        my = (ky + s[:, None] * ox + c[:, None] * oy).reshape(n * side, side)
+        out = np.empty((n * side, side), img.dtype)
+        step = max(1, REMAP_MAX_ROWS // side) * side  # whole patches per chunk
+        for a in range(0, n * side, step):
+            out[a : a + step] = cv2.remap(
+                img, mx[a : a + step], my[a : a + step], interpolation=cv2.INTER_LINEAR,
+                borderMode=cv2.BORDER_REFLECT_101,
+            )
         return out.reshape(n, side, side)
-
 
 def _pooling_matrix(p: DaisyParams) -> np.ndarray:
     """(13, grid^2) normalized Gaussian weights of the DAISY regions over the patch samples."""
