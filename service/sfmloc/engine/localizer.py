@@ -40,7 +40,7 @@ from .config import EngineConf
 from .frame import to_gray
 from .matching import global_matching, guided_matching, verify_hypotheses
 from .motion_filter import PoseFilter
-from .pose import PoseEstimate, estimate_pose, estimate_pose_one_to_many, project
+from .pose import PoseEstimate, estimate_pose, estimate_pose_one_to_many, pose_covariance, project
 from .track_table import TrackTable
 from .tracker import Keypoints, extract_keypoints, free_candidates, track_2d
 from .types import FrameResult, Status
@@ -259,6 +259,7 @@ class Localizer:
             matching=matching,
             timings_ms=timer.total(),
             message="" if est is not None else "not enough 2D-3D matches for a pose",
+            covariance=None if est is None else _covariance(est, self.K),
         )
 
     def _reverify(self, pose: Rigid3d) -> None:
@@ -341,6 +342,13 @@ class Localizer:
         return est
 
 
+def _covariance(est: PoseEstimate, K: np.ndarray) -> np.ndarray:
+    """The pose's 6x6 covariance from its final refinement's inliers (``pose_covariance``)."""
+    if est.inlier_xy is None or est.inlier_X is None:
+        return np.full((6, 6), np.inf)
+    return pose_covariance(est.cam_from_world, K, est.inlier_xy, est.inlier_X)
+
+
 def _pose_from_global(
     desc: np.ndarray, xy_u: np.ndarray, bundle: MapBundle, K: np.ndarray, conf: EngineConf
 ) -> tuple[PoseEstimate, np.ndarray, np.ndarray, np.ndarray] | None:
@@ -405,6 +413,7 @@ def relocalize(
         result.status = Status.RELOCALIZED
         result.cam_from_world = est.cam_from_world
         result.inliers = est.num_inliers
+        result.covariance = _covariance(est, K)
     else:
         result.message = "no pose: too few consistent 2D-3D matches"
     result.timings_ms = timer.total()

@@ -40,6 +40,64 @@ class PoseEstimate:
     inlier_mask: np.ndarray  # over the correspondences given to the estimator
     num_inliers: int
     mean_error_px: float
+    # The inlier correspondences of the final refinement (undistorted px, world points): the
+    # input of ``pose_covariance``.
+    inlier_xy: np.ndarray | None = None
+    inlier_X: np.ndarray | None = None
+
+
+# The covariance's parameterization, in this order (the same on every interface):
+#   [0:3] rotation: a small rotation vector d applied on the world side of world_from_cam,
+#         R_world_from_cam' = exp([d]x) R_world_from_cam (radians, world axes);
+#   [3:6] camera centre in world coordinates (map units).
+COVARIANCE_ORDER = ("rot_x", "rot_y", "rot_z", "center_x", "center_y", "center_z")
+# The pixel noise is estimated from the residuals, never below this (px): with exact matches
+# (or a handful of inliers that happen to agree) the residuals alone would claim certainty.
+MIN_NOISE_PX = 0.3
+
+
+def pose_covariance(
+    cam_from_world: Rigid3d, K: np.ndarray, xy: np.ndarray, X: np.ndarray, min_noise_px: float = MIN_NOISE_PX
+) -> np.ndarray:
+    """6x6 covariance of a refined pose (order ``COVARIANCE_ORDER``) from its inlier
+    correspondences (undistorted pixels ``xy`` (N,2), world points ``X`` (N,3)): the
+    Gauss-Newton normal matrix J^T J of the reprojection residuals, inverted and scaled by the
+    residual variance (sum of squared residuals over 2N - 6 degrees of freedom). All-infinite
+    when the geometry does not constrain the pose (fewer than 4 points, degenerate)."""
+    n = len(xy)
+    if n < 4:
+        return np.full((6, 6), np.inf)
+    R_cw = cam_from_world.rotation
+    c = cam_from_world.center
+    d = np.asarray(X, np.float64) - c  # (N, 3) world-frame rays from the centre
+    pc = d @ R_cw.T
+    x, y, z = pc[:, 0], pc[:, 1], np.maximum(pc[:, 2], 1e-9)
+    fx, fy = K[0, 0], K[1, 1]
+    zero = np.zeros_like(z)
+    # d(u, v)/d(pc): (N, 2, 3)
+    dproj = np.stack([np.stack([fx / z, zero, -fx * x / z**2], 1), np.stack([zero, fy / z, -fy * y / z**2], 1)], 1)
+    # pc = R_cw (X - c); with R_wc' = exp([w]x) R_wc: d pc / d w = R_cw [X - c]x, d pc / d c = -R_cw
+    skew = np.zeros((n, 3, 3))
+    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -d[:, 2], d[:, 1], -d[:, 0]
+    skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = d[:, 2], -d[:, 1], d[:, 0]
+    dpc = np.concatenate([np.einsum("ij,njk->nik", R_cw, skew), np.broadcast_to(-R_cw, (n, 3, 3))], 2)
+    J = np.einsum("nij,njk->nik", dproj, dpc).reshape(2 * n, 6)
+    uv = np.stack([fx * x / z + K[0, 2], fy * y / z + K[1, 2]], 1)
+    dof = max(2 * n - 6, 1)
+    var = max(float(np.sum((uv - xy) ** 2)) / dof, min_noise_px**2)
+    H = J.T @ J
+    if not np.all(np.isfinite(H)) or np.linalg.cond(H) > 1e12:
+        return np.full((6, 6), np.inf)
+    cov = np.linalg.inv(H) * var
+    return 0.5 * (cov + cov.T)
+
+
+def pose_error_vector(est_cam_from_world: Rigid3d, gt_cam_from_world: Rigid3d) -> np.ndarray:
+    """The error of an estimate in the covariance's parameterization (``COVARIANCE_ORDER``):
+    rotation vector of R_wc_est R_wc_gt^T (world axes, rad) and centre difference."""
+    R = est_cam_from_world.rotation.T @ gt_cam_from_world.rotation
+    rot = cv2.Rodrigues(R)[0].reshape(3)
+    return np.concatenate([rot, est_cam_from_world.center - gt_cam_from_world.center])
 
 
 def project(cam_from_world: Rigid3d, K: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -143,7 +201,7 @@ def _finish(pose: Rigid3d, mask: np.ndarray, K, xy, X, min_inliers: int) -> Pose
     if n_in < min_inliers or not pose.is_finite():
         return None
     err = reprojection_errors(pose, K, xy[mask], X[mask])
-    return PoseEstimate(pose, mask, n_in, float(err.mean()) if n_in else float("inf"))
+    return PoseEstimate(pose, mask, n_in, float(err.mean()) if n_in else float("inf"), xy[mask], X[mask])
 
 
 def estimate_pose_one_to_many(

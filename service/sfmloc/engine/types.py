@@ -5,6 +5,8 @@ from __future__ import annotations
 import enum
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from ..transforms import Rigid3d
 
 
@@ -27,6 +29,10 @@ class FrameResult:
     matching: str = "none"  # "none", "guided" or "global"
     timings_ms: dict[str, float] = field(default_factory=dict)
     message: str = ""  # why a frame is LOST, when known
+    # 6x6 covariance of ``cam_from_world`` (None when LOST), order [rotation (rad, a small
+    # rotation on the world side of world_from_cam), camera centre in world (map units)]:
+    # see ``engine.pose.COVARIANCE_ORDER``.
+    covariance: np.ndarray | None = None
 
     @property
     def world_from_cam(self) -> Rigid3d | None:
