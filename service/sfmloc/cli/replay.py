@@ -17,8 +17,17 @@ guided or global matching.
 FRAMES is a folder whose .jpg/.png images are taken in name order (other files are ignored) or
 a video file. Ground truth is a COLMAP list ('name qw qx qy qz tx ty tz [f]', cam_from_world,
 matched to frames by file name, or by name stem across folders/extensions) or a TUM file
-('timestamp tx ty tz qx qy qz qw', world_from_cam, matched by timestamp: a numeric file stem,
-else frame index / --fps). OpenCV, BLAS and faiss run on one thread.
+('timestamp tx ty tz qx qy qz qw', world_from_cam, matched by the frames' timestamps within
+half a frame interval). OpenCV, BLAS and faiss run on one thread.
+
+Clock: each frame's timestamp is frame index / --fps (default 30), whatever the file names,
+unless --timestamps names another source:
+  stem-s, stem-ms, stem-us, stem-ns  the numeric file-name stem in that unit
+                                     (TUM RGB-D folders: stem-s; ROS bag exports: stem-ns)
+  FILE                               'timestamp filename' lines (TUM rgb.txt), or one
+                                     'timestamp ...' line per frame in frame order
+The engine's motion model runs on this clock: a gap over max_frame_gap_s (1 s) between frames
+resets tracking. The summary names the clock used and counts such gaps.
 """
 
 
@@ -33,7 +42,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--groundtruth", help="ground-truth poses (COLMAP list or TUM)")
     p.add_argument("--json", dest="json_out", help="write the summary (and per-frame records) as JSON here")
     p.add_argument("--trajectory", help="write the estimated trajectory here (TUM, world_from_cam, raw poses)")
-    p.add_argument("--fps", type=float, default=30.0, help="frame rate for timestamps (default 30)")
+    p.add_argument("--fps", type=float, default=30.0,
+                   help="the clock: timestamp = frame index / fps (default 30), unless --timestamps")
+    p.add_argument("--timestamps", metavar="SOURCE",
+                   help="take timestamps from stem-s|stem-ms|stem-us|stem-ns (numeric file names "
+                        "in that unit) or a TUM-style timestamps file, instead of --fps")
     p.add_argument("--start", type=int, default=0, help="first frame index (default 0)")
     p.add_argument("--max-frames", type=int, help="stop after this many frames")
     p.add_argument("--config", help="engine config file (JSON/TOML; SFMLOC_ENGINE__* variables also apply)")
@@ -89,10 +102,11 @@ def run(args: argparse.Namespace) -> int:
     camera = Camera.parse(args.camera)
     conf = load_config(EngineConf, args.config, prefix="SFMLOC_ENGINE__")
     bundle = MapBundle(args.map, verify=not args.no_verify)
-    source = FrameSource(args.frames, fps=args.fps)
+    source = FrameSource(args.frames, fps=args.fps, timestamps=args.timestamps)
     gt = None
     if args.groundtruth:
-        gt = load_groundtruth(args.groundtruth, source.names(), [source.stamp(i) for i in range(len(source))], args.fps)
+        stamps = [source.stamp(i) for i in range(len(source))]
+        gt = load_groundtruth(args.groundtruth, source.names(), stamps, source.nominal_fps)
     total = len(source) - args.start
     if args.max_frames is not None:
         total = min(total, args.max_frames)
@@ -105,6 +119,12 @@ def run(args: argparse.Namespace) -> int:
     summary = summarize(records)
     summary["ate_m"] = absolute_trajectory_error(records)
     print(format_summary(summary, decode_ms))
+    summary["clock"] = source.clock
+    summary["clock_fps"] = source.nominal_fps
+    gaps = source.gaps_over(conf.max_frame_gap_s)
+    summary["clock_gaps_over_max"] = gaps
+    print(f"clock                {source.clock} ({source.nominal_fps:.3g} frames/s)"
+          + (f"; {gaps} gaps over max_frame_gap_s {conf.max_frame_gap_s:g} s reset tracking" if gaps else ""))
     if summary["ate_m"] == summary["ate_m"]:
         print(f"ATE (SE(3)-aligned)  {summary['ate_m'] * 100:.2f} cm")
     if args.trajectory:

@@ -1,6 +1,16 @@
 """Recorded frame sequences: an image folder (jpg/png, in name order, other files ignored) or
 a video file. Each frame comes with its name (file name, or ``frame-NNNNNN`` for videos) and a
-timestamp in seconds (a numeric file stem, as in TUM RGB-D folders, else index / fps)."""
+timestamp in seconds from one stated clock (``timestamps``, see ``frame_clock``):
+
+- ``None`` (default): frame index / fps, whatever the file names;
+- ``"stem-s"``, ``"stem-ms"``, ``"stem-us"``, ``"stem-ns"``: the numeric file-name stem, in
+  that unit (TUM RGB-D folders: seconds; ROS exports: nanoseconds);
+- a file path: a TUM-style list, ``timestamp filename`` per line (TUM ``rgb.txt``, matched by
+  file name) or ``timestamp ...`` with one line per frame, in frame order.
+
+File names are never taken as timestamps unless asked: frames named 000000, 000002, ... read as
+seconds are 2 s apart, and the engine resets its motion filter on every such gap.
+"""
 
 from __future__ import annotations
 
@@ -30,20 +40,96 @@ def _natural_key(name: str) -> list:
     return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", name)]
 
 
-def _numeric_stem(name: str) -> float | None:
+STEM_UNITS = {"s": 1, "ms": 1_000, "us": 1_000_000, "ns": 1_000_000_000}  # per second
+CLOCK_CHOICES = tuple(f"stem-{u}" for u in STEM_UNITS)
+
+
+def _numeric_stem(name: str, per_second: int) -> float | None:
     stem = Path(name).stem
+    if re.fullmatch(r"\d+", stem):
+        return int(stem) / per_second  # exact integer division: ns stamps keep their precision
     try:
-        return float(stem)
+        return float(stem) / per_second
     except ValueError:
         return None
+
+
+def _stamps_from_stems(names: list[str], unit: str) -> list[float]:
+    out = []
+    for n in names:
+        s = _numeric_stem(n, STEM_UNITS[unit])
+        if s is None:
+            raise InputError(f"--timestamps stem-{unit}: file name {n!r} has no numeric stem")
+        out.append(s)
+    return out
+
+
+def _stamps_from_file(path: Path, names: list[str] | None, count: int) -> list[float]:
+    """A TUM-style timestamp list: ``timestamp filename`` (matched by name, else by stem) or
+    one ``timestamp ...`` line per frame in order."""
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"cannot read timestamps file {path}: {exc}") from None
+    rows: list[tuple[float, str | None]] = []
+    for lineno, line in enumerate(text.splitlines(), 1):
+        parts = line.split()
+        if not parts or parts[0].startswith("#"):
+            continue
+        try:
+            t = float(parts[0])
+        except ValueError:
+            raise InputError(f"{path}:{lineno}: a timestamp (seconds) must start the line, got {parts[0]!r}") from None
+        second = parts[1] if len(parts) > 1 else None
+        is_name = second is not None and _is_number(second) is False
+        rows.append((t, second if is_name else None))
+    if not rows:
+        raise InputError(f"timestamps file {path} has no timestamps")
+    if names is not None and all(n is not None for _, n in rows):
+        by_name = {Path(n).name: t for t, n in rows}
+        by_stem = {Path(n).stem: t for t, n in rows}
+        out = []
+        for n in names:
+            t = by_name.get(n, by_stem.get(Path(n).stem))
+            if t is None:
+                raise InputError(f"timestamps file {path} has no line for frame {n!r}")
+            out.append(t)
+        return out
+    if len(rows) != count:
+        raise InputError(
+            f"timestamps file {path} has {len(rows)} timestamps for {count} frames "
+            "(give one line per frame in order, or 'timestamp filename' lines)"
+        )
+    return [t for t, _ in rows]
+
+
+def _is_number(s: str) -> bool:
+    try:
+        float(s)
+        return True
+    except ValueError:
+        return False
+
+
+def _check_increasing(stamps: list[float], names: list[str], clock: str) -> None:
+    for i in range(1, len(stamps)):
+        if not stamps[i] > stamps[i - 1]:
+            raise InputError(
+                f"timestamps from {clock} do not increase: {names[i - 1]} {stamps[i - 1]!r} s, "
+                f"then {names[i]} {stamps[i]!r} s"
+            )
 
 
 class FrameSource:
     """Iterate the frames of a folder or video; ``len()`` is known for folders and, as far as
     the container says, for videos."""
 
-    def __init__(self, path: str | Path, fps: float = 30.0, gray: bool = True) -> None:
+    def __init__(
+        self, path: str | Path, fps: float = 30.0, gray: bool = True, timestamps: str | None = None
+    ) -> None:
         self.path = Path(path)
+        if not fps > 0:
+            raise InputError(f"--fps must be positive, got {fps}")
         self.fps = float(fps)
         self.gray = gray
         if self.path.is_dir():
@@ -51,8 +137,6 @@ class FrameSource:
             if not files:
                 raise InputError(f"no .jpg/.png images in {self.path}")
             self.files = sorted(files, key=lambda p: _natural_key(p.name))
-            stamps = [_numeric_stem(p.name) for p in self.files]
-            self._stamps = stamps if all(s is not None for s in stamps) else None
             self.kind = "folder"
         elif self.path.is_file() and self.path.suffix.lower() in VIDEO_SUFFIXES:
             self.files = []
@@ -67,6 +151,41 @@ class FrameSource:
             raise InputError(f"{self.path} is neither an image folder nor a video ({', '.join(VIDEO_SUFFIXES)})")
         else:
             raise InputError(f"frames source {self.path} does not exist")
+        self._stamps: list[float] | None = None
+        self.clock = f"frame index / {self.fps:g} fps"
+        if timestamps is not None:
+            self._set_clock(timestamps)
+
+    def _set_clock(self, timestamps: str) -> None:
+        names = self.names()
+        if timestamps in CLOCK_CHOICES:
+            unit = timestamps.split("-", 1)[1]
+            if self.kind != "folder":
+                raise InputError(f"--timestamps {timestamps}: a video has no file names to read stamps from")
+            self._stamps = _stamps_from_stems(names, unit)
+            self.clock = f"file-name stems in {unit}"
+        else:
+            p = Path(timestamps)
+            if not p.is_file():
+                raise InputError(
+                    f"--timestamps {timestamps!r} is neither one of {', '.join(CLOCK_CHOICES)} nor a file"
+                )
+            self._stamps = _stamps_from_file(p, names if self.kind == "folder" else None, len(self))
+            self.clock = f"timestamps file {p}"
+        _check_increasing(self._stamps, names, self.clock)
+
+    @property
+    def nominal_fps(self) -> float:
+        """Frames per second of the clock (from the median interval when stamps are given)."""
+        if self._stamps is None or len(self._stamps) < 2:
+            return self.fps
+        return 1.0 / float(np.median(np.diff(self._stamps)))
+
+    def gaps_over(self, seconds: float) -> int:
+        """How many frame intervals of the clock exceed ``seconds``."""
+        if self._stamps is None:
+            return len(self) - 1 if 1.0 / self.fps > seconds and len(self) > 1 else 0
+        return int(np.sum(np.diff(self._stamps) > seconds))
 
     def __len__(self) -> int:
         return len(self.files) if self.kind == "folder" else self._video_len
@@ -78,6 +197,8 @@ class FrameSource:
 
     def stamp(self, index: int) -> float:
         if self._stamps is not None:
+            if index >= len(self._stamps):
+                raise InputError(f"frame {index} has no timestamp ({self.clock} lists {len(self._stamps)})")
             return float(self._stamps[index])
         return index / self.fps
 
@@ -101,7 +222,7 @@ class FrameSource:
                     break
                 if self.gray:
                     img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
-                yield Frame(i, f"frame-{i:06d}", i / self.fps, img)
+                yield Frame(i, f"frame-{i:06d}", self.stamp(i), img)
                 i += 1
         finally:
             cap.release()
