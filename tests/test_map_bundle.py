@@ -179,10 +179,10 @@ def test_bundle_detects_missing_truncated_and_bad_manifest(tmp_path):
     path = write_bundle(small_map(), tmp_path, "lab3")
     m = json.loads((path / "manifest.json").read_text())
     m["version"] = 99
-    (path / "manifest.json").write_text(json.dumps(m))
+    _reseal(path, json.dumps(m))
     with pytest.raises(BundleError, match="version 99"):
         MapBundle(path)
-    (path / "manifest.json").write_text("{not json")
+    _reseal(path, "{not json")
     with pytest.raises(BundleError, match="unreadable manifest"):
         read_manifest(path)
     with pytest.raises(BundleError, match="not a folder"):
@@ -239,3 +239,79 @@ def test_bundle_scene_scale_is_median_observed_depth(tmp_path):
         expect = np.median(data.points_xyz[idx, 2] + 10.0 * s)
         assert b.scene_scale == pytest.approx(expect, rel=1e-9)
         assert 9.0 * s < b.scene_scale < 11.0 * s
+
+
+def _reseal(path, text: str) -> None:
+    """Rewrite the manifest *and* its checksum (what a deliberate edit would do), so the checks
+    behind the checksum can be tested."""
+    import hashlib
+
+    (path / "manifest.json").write_text(text)
+    digest = hashlib.sha256(text.encode()).hexdigest()
+    (path / "manifest.sha256").write_text(f"{digest}  manifest.json\n")
+
+
+def test_bundle_one_byte_change_anywhere_is_refused(tmp_path):
+    """Any single changed byte of any file of a bundle, the manifest included (e.g. fx
+    525.505 -> 925.505), is refused by verify and by loading."""
+    base = write_bundle(small_map(), tmp_path, "lab")
+    files = sorted(p.name for p in base.iterdir())
+    assert "manifest.json" in files and "manifest.sha256" in files
+    for k, fname in enumerate(files):
+        path = write_bundle(small_map(), tmp_path, f"edit{k}")
+        f = path / fname
+        raw = bytearray(f.read_bytes())
+        pos = len(raw) // 2 if fname != "manifest.json" else raw.index(b'"fx"') + 1
+        raw[pos] ^= 0x01
+        f.write_bytes(bytes(raw))
+        assert verify_bundle(path), fname
+        with pytest.raises(BundleError):
+            MapBundle(path)
+    # an edited intrinsic is named as a manifest edit
+    path = write_bundle(small_map(), tmp_path, "fx")
+    text = (path / "manifest.json").read_text()
+    (path / "manifest.json").write_text(text.replace("500.0", "900.0", 1))
+    with pytest.raises(BundleError, match="manifest.json: checksum mismatch"):
+        MapBundle(path)
+
+
+def test_bundle_checksum_file_is_sha256sum_format(tmp_path):
+    import subprocess
+
+    path = write_bundle(small_map(), tmp_path, "lab")
+    out = subprocess.run(["sha256sum", "-c", "manifest.sha256"], cwd=path, capture_output=True, text=True)
+    assert out.returncode == 0 and "manifest.json: OK" in out.stdout
+
+
+@pytest.mark.parametrize("bad", ["../../etc/passwd", "/etc/passwd", "sub/points_xyz.npy", "..npy", "x.txt"])
+def test_bundle_array_paths_stay_inside(tmp_path, bad):
+    """An array file named outside the bundle is refused before anything is opened, and the
+    error says nothing about the outside file (whether it exists, its size)."""
+    path = write_bundle(small_map(), tmp_path, "lab")
+    m = json.loads((path / "manifest.json").read_text())
+    m["arrays"]["points_xyz"]["file"] = bad
+    _reseal(path, json.dumps(m))
+    with pytest.raises(BundleError, match="plain .npy file name") as err:
+        MapBundle(path)
+    assert "No such file" not in str(err.value) and "size" not in str(err.value)
+    assert any("plain .npy file name" in p for p in verify_bundle(path))
+
+
+def test_bundle_refuses_symlinks_and_a_missing_checksum(tmp_path):
+    outside = tmp_path / "outside.npy"
+    np.save(outside, np.zeros((300, 3)))
+    path = write_bundle(small_map(), tmp_path, "lab")
+    (path / "points_xyz.npy").unlink()
+    (path / "points_xyz.npy").symlink_to(outside)
+    assert any("not a regular file" in p for p in verify_bundle(path))
+    with pytest.raises(BundleError, match="not a regular file"):
+        MapBundle(path, verify=False)
+    path = write_bundle(small_map(), tmp_path, "lab2")
+    (path / "manifest.sha256").unlink()
+    with pytest.raises(BundleError, match="manifest.sha256 is missing"):
+        MapBundle(path)
+    path = write_bundle(small_map(), tmp_path, "lab3")
+    (path / "manifest.json").rename(tmp_path / "m.json")
+    (path / "manifest.json").symlink_to(tmp_path / "m.json")
+    with pytest.raises(BundleError, match="not a regular file"):
+        read_manifest(path)

@@ -5,7 +5,11 @@ Layout of ``maps/NAME/``::
     manifest.json        pydantic ``Manifest``: format, version, build id, counts, builder
                          parameters, cameras, image names, and for every array its file,
                          dtype, shape and SHA-256
-    <array>.npy          plain .npy arrays (no pickle), loadable with memory mapping
+    manifest.sha256      SHA-256 of manifest.json in ``sha256sum`` format (``sha256sum -c``
+                         works): the manifest is covered too, so no byte of a bundle can be
+                         edited unnoticed (the manifest holds every array's SHA-256)
+    <array>.npy          plain .npy arrays (no pickle), loadable with memory mapping; their
+                         names in the manifest are plain file names inside the bundle folder
 
 Arrays (P points, D descriptors, I images, L clusters, C cameras):
 
@@ -47,6 +51,7 @@ import json
 import os
 import re
 import shutil
+import stat
 import time
 import uuid
 from dataclasses import dataclass, field
@@ -54,7 +59,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, ValidationError
+from pydantic import BaseModel, ConfigDict, ValidationError, field_validator
 
 from .. import __version__
 from ..cameras import Camera
@@ -66,6 +71,9 @@ from .index import DescriptorIndex
 BUNDLE_FORMAT = "sfmloc-map-bundle"
 BUNDLE_VERSION = 1
 MANIFEST = "manifest.json"
+MANIFEST_SHA256 = "manifest.sha256"
+MAX_MANIFEST_BYTES = 64 << 20  # image names and cameras of a very large map fit many times over
+_ARRAY_FILE_RE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,127}\.npy")
 NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 
 # name -> (dtype, number of dimensions); shapes are checked against the counts on load.
@@ -109,6 +117,15 @@ class ArrayEntry(BaseModel):
     shape: list[int]
     sha256: str
     bytes: int
+
+    @field_validator("file")
+    @classmethod
+    def _plain_name(cls, v: str) -> str:
+        # A path that leaves the bundle ('../../etc/passwd', '/abs', a folder) is refused before
+        # anything is opened; the error repeats only what the manifest says.
+        if not _ARRAY_FILE_RE.fullmatch(v):
+            raise ValueError("must be a plain .npy file name inside the bundle folder")
+        return v
 
 
 class Counts(BaseModel):
@@ -262,10 +279,15 @@ def write_bundle(
             image_names=list(data.image_names),
             arrays=entries,
         )
-        with open(tmp / MANIFEST, "w") as f:
-            f.write(manifest.model_dump_json(indent=2))
-            f.flush()
-            os.fsync(f.fileno())
+        text = manifest.model_dump_json(indent=2).encode()
+        for fname, content in (
+            (MANIFEST, text),
+            (MANIFEST_SHA256, f"{hashlib.sha256(text).hexdigest()}  {MANIFEST}\n".encode()),
+        ):
+            with open(tmp / fname, "wb") as f:
+                f.write(content)
+                f.flush()
+                os.fsync(f.fileno())
         _fsync_dir(tmp)
         _swap_into_place(tmp, final)
     except BaseException:
@@ -308,17 +330,48 @@ def _rename_exchange(a: Path, b: Path) -> bool:
 
 
 # ============================================================================ reading
+def _read_small_file(path: Path, limit: int) -> bytes:
+    """A regular file of the bundle (not a symlink, device or FIFO), at most ``limit`` bytes."""
+    try:
+        st = path.lstat()
+    except OSError:
+        raise BundleError(f"{path.parent} is not a map bundle: {path.name} is missing") from None
+    if not stat.S_ISREG(st.st_mode):
+        raise BundleError(f"{path}: not a regular file (symlinks and devices are refused)")
+    if st.st_size > limit:
+        raise BundleError(f"{path}: {st.st_size} B, larger than the {limit} B allowed")
+    try:
+        with open(path, "rb") as f:
+            return f.read(limit + 1)
+    except OSError as exc:
+        raise BundleError(f"{path}: unreadable ({exc.strerror})") from None
+
+
 def read_manifest(path: str | Path) -> Manifest:
+    """The bundle's manifest, after checking it against ``manifest.sha256``."""
     path = Path(path)
     mpath = path / MANIFEST
     if not path.is_dir():
         raise BundleError(f"no map bundle at {path}: not a folder")
-    if not mpath.is_file():
+    if not mpath.exists() and not mpath.is_symlink():
         raise BundleError(f"{path} is not a map bundle: {MANIFEST} is missing")
+    text = _read_small_file(mpath, MAX_MANIFEST_BYTES)
+    if not (path / MANIFEST_SHA256).exists() and not (path / MANIFEST_SHA256).is_symlink():
+        raise BundleError(
+            f"{path}: {MANIFEST_SHA256} is missing, so the manifest cannot be checked "
+            "(bundles written before the manifest was checksummed have none: rebuild the map)"
+        )
+    expect = _read_small_file(path / MANIFEST_SHA256, 4096).decode("ascii", "replace").split()
+    if len(expect) != 2 or expect[1] != MANIFEST:
+        raise BundleError(f"{path / MANIFEST_SHA256}: not a checksum line for {MANIFEST}")
+    if hashlib.sha256(text).hexdigest() != expect[0].lower():
+        raise BundleError(f"{mpath}: checksum mismatch (the manifest was edited or is corrupt)")
     try:
-        raw = json.loads(mpath.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raw = json.loads(text.decode())
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise BundleError(f"{mpath}: unreadable manifest ({exc})") from None
+    if not isinstance(raw, dict):
+        raise BundleError(f"{mpath}: unreadable manifest (not a JSON object)")
     if raw.get("format") != BUNDLE_FORMAT:
         raise BundleError(f"{mpath}: not an sfmloc map bundle (format {raw.get('format')!r})")
     if raw.get("version") != BUNDLE_VERSION:
@@ -346,11 +399,16 @@ def verify_bundle(path: str | Path, checksums: bool = True) -> list[str]:
             problems.append(f"array {aname} is not in the manifest")
             continue
         apath = path / entry.file
-        if not apath.is_file():
+        try:
+            st = apath.lstat()
+        except OSError:
             problems.append(f"{apath.name}: missing")
             continue
-        if apath.stat().st_size != entry.bytes:
-            problems.append(f"{apath.name}: size {apath.stat().st_size} B, manifest says {entry.bytes} B")
+        if not stat.S_ISREG(st.st_mode):
+            problems.append(f"{apath.name}: not a regular file (symlinks and devices are refused)")
+            continue
+        if st.st_size != entry.bytes:
+            problems.append(f"{apath.name}: size {st.st_size} B, manifest says {entry.bytes} B")
             continue
         if checksums and _sha256(apath) != entry.sha256:
             problems.append(f"{apath.name}: checksum mismatch (corrupt)")
@@ -381,8 +439,11 @@ class MapBundle:
             entry = self.manifest.arrays.get(aname)
             if entry is None:
                 raise BundleError(f"map bundle {self.path}: array {aname} missing from the manifest")
+            apath = self.path / entry.file
+            if apath.is_symlink() or not apath.is_file():
+                raise BundleError(f"map bundle {self.path}: {entry.file} is missing or not a regular file")
             try:
-                a[aname] = np.load(self.path / entry.file, mmap_mode="r", allow_pickle=False)
+                a[aname] = np.load(apath, mmap_mode="r", allow_pickle=False)
             except Exception as exc:  # noqa: BLE001
                 raise BundleError(f"map bundle {self.path}: cannot load {entry.file} ({exc})") from None
         self._a = a
