@@ -359,7 +359,8 @@ def read_manifest(path: str | Path) -> Manifest:
     if not (path / MANIFEST_SHA256).exists() and not (path / MANIFEST_SHA256).is_symlink():
         raise BundleError(
             f"{path}: {MANIFEST_SHA256} is missing, so the manifest cannot be checked "
-            "(bundles written before the manifest was checksummed have none: rebuild the map)"
+            "(bundles written before the manifest was checksummed have none: rebuild the map, "
+            f"or for a bundle you trust run 'sha256sum {MANIFEST} > {MANIFEST_SHA256}' inside it)"
         )
     expect = _read_small_file(path / MANIFEST_SHA256, 4096).decode("ascii", "replace").split()
     if len(expect) != 2 or expect[1] != MANIFEST:
