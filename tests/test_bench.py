@@ -15,7 +15,7 @@ from sfmloc.bench.config import OURS
 from sfmloc.bench.main import summarize_suite, targets, write_suite_files
 from sfmloc.bench.sift_peer import ratio_test
 from sfmloc.bench.stats import method_summary
-from sfmloc.eval.metrics import FrameRecord
+from sfmloc.eval.metrics import FrameRecord, summarize, wrong_poses
 from sfmloc.transforms import Rigid3d, pose_errors, rotmat_from_rotvec
 
 REPO = Path(__file__).resolve().parents[1]
@@ -100,14 +100,16 @@ def fake_records(n: int = 50, method: str = OURS, seed: int = 0) -> list[FrameRe
 
 def test_method_summary_has_the_table2_columns():
     recs = fake_records()
-    s = method_summary(recs)
+    s = method_summary(recs, scene_scale=2.0)
     assert s["F"] == 50 and s["F_loc"] == 49
     assert s["M"] == 1 + len([i for i in range(1, 50) if i % 7 == 0])
     assert s["T_M_ms_mean"] == pytest.approx(np.mean([r.latency_ms for r in recs if r.matching != "none"]))
     assert s["T_ms_mean"] == pytest.approx(np.mean([r.latency_ms for r in recs]))
-    assert s["confident_wrong"] == 1 and s["wrong_poses"] == 1
+    assert s["wrong_poses"] == 1 and s["wrong_statuses"] == {"TRACKING": 1}
     assert 0.005 < s["median_position_error_m"] < 0.03
     assert s["recall_5cm_5deg_pct"] == pytest.approx(100 * 48 / 50)  # all but the lost and the wrong frame
+    assert s["recall_relative_pct"] == pytest.approx(100 * 48 / 50)  # 2.5% of 2.0 is 5 cm
+    assert s["median_position_error_rel"] == pytest.approx(s["median_position_error_m"] / 2.0)
     assert s["cpu_ms_mean"] == pytest.approx(9.0)
 
 
@@ -117,7 +119,7 @@ def test_suite_summary_report_figures_and_readme_on_fabricated_records(tmp_path)
     for r in recs["pycolmap-sift"]:
         r.latency_ms *= 20
     idx = [r.index for r in recs["pycolmap-sift"]]
-    suite = summarize_suite(recs, idx, 5)
+    suite = summarize_suite(recs, idx, 5, 2.0)
     assert suite["same_frames"][OURS]["F"] == len(idx)
     assert suite["ratios"]["pycolmap-sift"]["rate_ratio"] > 10
     files = write_suite_files("fake", recs, suite, idx, tmp_path, np.random.default_rng(0).normal(size=(500, 3)))
@@ -156,6 +158,71 @@ def test_per_frame_figure_of_a_run_without_ground_truth(tmp_path):
         r.position_error_m = r.rotation_error_deg = None
     assert figures.per_frame(recs, "no gt", tmp_path / "a.png").read_bytes()[:8] == PNG
     assert figures.trajectory(recs, "no gt", tmp_path / "b.png").read_bytes()[:8] == PNG
+
+
+# ----------------------------------------------------------------------------- wrong poses
+def _record(i: int, status: str, dp: float | None, dr: float | None = 0.0) -> FrameRecord:
+    r = FrameRecord(i, f"f{i}", i / 30.0, status, "none", 10.0, 50, 900, 500, 120)
+    r.gt_cam_from_world = _pose(i)
+    if dp is not None:
+        r.cam_from_world = _pose(i)
+        r.position_error_m, r.rotation_error_deg = dp, dr
+    return r
+
+
+def test_wrong_poses_count_every_status_but_lost():
+    """A pose under any status but LOST (including statuses added later) counts when it is off
+    by more than 5% of the scene scale or 10 deg; LOST frames never do."""
+    recs = [
+        _record(0, "TRACKING", 0.2), _record(1, "RELOCALIZED", 0.2), _record(2, "UNVERIFIED", 0.2),
+        _record(3, "RELOCALIZED", 0.01, 11.0), _record(4, "LOST", None),
+        _record(5, "TRACKING", 0.01),
+        _record(6, "NEW_STATUS", 0.01, 10.5),
+    ]
+    s = summarize(recs, scene_scale=2.0)  # limit 0.1 units
+    assert s["confident_wrong"] == 5
+    assert s["confident_wrong_frames"] == ["f0", "f1", "f2", "f3", "f6"]
+    assert s["wrong_statuses"] == {"TRACKING": 1, "RELOCALIZED": 2, "UNVERIFIED": 1,
+                                   "NEW_STATUS": 1}
+    assert s["status_counts"] == {"TRACKING": 2, "RELOCALIZED": 2, "LOST": 1, "UNVERIFIED": 1,
+                                  "NEW_STATUS": 1}
+    assert s["localized_frames"] == 6 and s["wrong_position_limit"] == pytest.approx(0.1)
+    # A LOST frame with a (stale) pose error attached is still not a wrong pose.
+    stale = _record(7, "LOST", 5.0)
+    assert summarize([stale], scene_scale=2.0)["confident_wrong"] == 0
+    assert [r.name for r in wrong_poses(recs, 2.0)] == ["f0", "f1", "f2", "f3", "f6"]
+
+
+def test_wrong_pose_limit_scales_with_the_scene():
+    """The same 0.2-unit error is wrong in a 2-unit scene, fine in a 5-unit one; scaling the
+    scene and the errors together changes nothing."""
+    recs = [_record(0, "TRACKING", 0.2), _record(1, "RELOCALIZED", 0.04)]
+    assert summarize(recs, 2.0)["confident_wrong"] == 1
+    assert summarize(recs, 5.0)["confident_wrong"] == 0
+    assert summarize(recs, 0.7)["confident_wrong"] == 2  # limit 3.5 cm
+    for k, metric in ((0.01, 1.0), (100.0, 0.0)):
+        scaled = [_record(0, "TRACKING", 0.2 * k), _record(1, "RELOCALIZED", 0.04 * k)]
+        s = summarize(scaled, 2.0 * k)
+        assert s["confident_wrong"] == 1 and s["wrong_position_limit"] == pytest.approx(0.1 * k)
+        # The scene-relative accuracy bound scales too (2.5% of the scale); 5 cm does not.
+        assert s["within_relative_fraction"] == pytest.approx(0.5)
+        assert s["within_5cm_5deg_fraction"] == pytest.approx(metric)
+    with pytest.raises(ValueError, match="scene_scale"):
+        summarize(recs, 0.0)
+    with pytest.raises(ValueError, match="scene_scale"):
+        wrong_poses(recs, float("nan"))
+
+
+def test_replay_summary_prints_wrong_poses_and_every_status():
+    from sfmloc.cli.replay import format_summary
+
+    recs = [_record(0, "TRACKING", 0.2), _record(1, "UNVERIFIED", 0.3), _record(2, "LOST", None),
+            _record(3, "TRACKING", 0.01)]
+    text = format_summary(summarize(recs, 2.0))
+    assert "wrong poses          2 [TRACKING 1, UNVERIFIED 1]" in text
+    assert "UNVERIFIED 1" in text.splitlines()[1] and "LOST 1" in text.splitlines()[1]
+    assert "0.1 = 5% of the scene scale 2" in text
+    assert "within 5 cm / 5 deg  25.0%" in text
 
 
 # ----------------------------------------------------------------------------- SIFT peer

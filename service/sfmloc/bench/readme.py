@@ -29,6 +29,7 @@ from .report import (
     ratio_lines,
     table2_rows,
     throughput_rows,
+    wrong_pose_rule,
 )
 
 BEGIN = "<!-- results:begin -->"
@@ -59,6 +60,7 @@ def render_block(results: dict, source: str = "docs/results.json") -> str:
               "mean times per frame):", "",
               markdown_table(COMPARE_HEADER, compare_rows(results)), ""]
         L += [f"- {line}" for line in ratio_lines(results)] + [""]
+        L += [f"Wrong poses: frames with a pose under {wrong_pose_rule(results)}.", ""]
         if any(n.startswith("redkitchen") for n in localization_suites(results)):
             L += ["Ground truth: redkitchen's `pgt_sfm_seq01.txt` is a COLMAP (SIFT) SfM pseudo ground truth, which "
                   "favours SIFT-based estimates; the synthetic suites have exact ground truth.", ""]

@@ -8,11 +8,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from ..eval.metrics import WRONG_POSITION_M, WRONG_ROTATION_DEG, FrameRecord, absolute_trajectory_error, summarize
-
-# The usual 7-Scenes recall threshold: a frame counts as right within 5 cm and 5 degrees.
-RECALL_POSITION_M = 0.05
-RECALL_ROTATION_DEG = 5.0
+from ..eval.metrics import FrameRecord, absolute_trajectory_error, is_pose, summarize
 
 # Our engine's per-stage timers (``FrameResult.timings_ms``), in pipeline order.
 STAGES = ("filter", "keypoints", "track", "pose", "guided", "global")
@@ -22,24 +18,16 @@ def _ms(x: Sequence[float]) -> tuple[float, float]:
     return (float(np.mean(x)), float(np.std(x))) if len(x) else (math.nan, math.nan)
 
 
-def method_summary(records: list[FrameRecord]) -> dict:
-    """Table 2 (F, F_loc, T, M, T_M), errors, latency tail, wrong poses, ATE, CPU time."""
-    s = summarize(records)
+def method_summary(records: list[FrameRecord], scene_scale: float) -> dict:
+    """Table 2 (F, F_loc, T, M, T_M), errors, latency tail, wrong poses, ATE, CPU time.
+    ``scene_scale`` (the map's median depth) sets the wrong-pose and relative-recall limits."""
+    s = summarize(records, scene_scale)
     n = len(records)
     lat = [r.latency_ms for r in records]
     cpu = [r.cpu_ms for r in records if r.cpu_ms is not None]
     matched = [r.latency_ms for r in records if r.matching in ("guided", "global")]
     t_mean, t_std = _ms(lat)
     tm_mean, tm_std = _ms(matched)
-    evaluated = [r for r in records if r.position_error_m is not None]
-    wrong_any = [
-        r for r in evaluated
-        if r.position_error_m > WRONG_POSITION_M or r.rotation_error_deg > WRONG_ROTATION_DEG
-    ]
-    good = [
-        r for r in evaluated
-        if r.position_error_m <= RECALL_POSITION_M and r.rotation_error_deg <= RECALL_ROTATION_DEG
-    ]
     with_gt = s["frames_with_groundtruth"]
     return {
         "F": n,
@@ -59,16 +47,20 @@ def method_summary(records: list[FrameRecord]) -> dict:
         "T_ms_max": s["latency_ms"]["max"],
         "cpu_ms_mean": float(np.mean(cpu)) if cpu else math.nan,
         "median_position_error_m": s["median_position_error_m"],
+        "median_position_error_rel": s["median_position_error_m"] / s["scene_scale"],
         "mean_position_error_m": s["mean_position_error_m"],
         "median_rotation_error_deg": s["median_rotation_error_deg"],
         "mean_rotation_error_deg": s["mean_rotation_error_deg"],
-        # TRACKING frames that wrong (the brief's "confident wrong"); single-image peers never
-        # say TRACKING, so for them every reported pose that wrong is counted in wrong_poses.
-        "confident_wrong": s["confident_wrong"],
-        "wrong_poses": len(wrong_any),
-        "recall_5cm_5deg_pct": 100.0 * len(good) / with_gt if with_gt else math.nan,
+        # Poses under any status but LOST beyond the wrong-pose limits (eval.metrics).
+        "wrong_poses": s["confident_wrong"],
+        "wrong_statuses": s["wrong_statuses"],
+        "scene_scale": s["scene_scale"],
+        "wrong_position_limit": s["wrong_position_limit"],
+        "recall_5cm_5deg_pct": 100.0 * s["within_5cm_5deg_fraction"],
+        "recall_relative_pct": 100.0 * s["within_relative_fraction"],
+        "recall_relative_position_limit": s["within_relative_position_limit"],
         "ate_m": absolute_trajectory_error(records),
-        "inliers_median": float(np.median([r.inliers for r in records if r.status != "LOST"]))
+        "inliers_median": float(np.median([r.inliers for r in records if is_pose(r.status)]))
         if s["localized_frames"] else math.nan,
         "frames_with_groundtruth": with_gt,
         "status_counts": s["status_counts"],

@@ -9,8 +9,10 @@ from pathlib import Path
 DESCRIPTION = """\
 Run a recorded sequence through the localization engine in-process, as a 30 Hz video, and
 print a summary: frames, localized fraction, position and rotation errors against ground
-truth (median, mean; rotation error is the angle of R_est R_gt^T), "confident wrong" frames
-(error over 0.5 m or 10 degrees while the status says TRACKING), per-frame latency (mean, std,
+truth (median, mean; rotation error is the angle of R_est R_gt^T), wrong poses (any status
+but LOST with a position error over 5% of the scene scale, the map's median camera-to-point
+depth, or a rotation error over 10 degrees), the share of frames within 5 cm / 5 degrees and
+within 2.5% of the scene scale / 5 degrees, per-frame latency (mean, std,
 p50, p95, p99, max; the engine's time per frame, decoding excluded), and how many frames ran
 guided or global matching.
 
@@ -55,6 +57,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def format_summary(s: dict, decode_ms: float | None = None) -> str:
+    from ..eval.metrics import RECALL_POSITION_FRACTION, WRONG_POSITION_FRACTION, WRONG_ROTATION_DEG
+
     lat = s["latency_ms"]
 
     def cm(x):
@@ -63,14 +67,27 @@ def format_summary(s: dict, decode_ms: float | None = None) -> str:
     def deg(x):
         return f"{x:.2f} deg" if x == x else "n/a"
 
+    def pct(x):
+        return f"{x * 100:.1f}%" if x == x else "n/a"
+
+    statuses = ", ".join(f"{k} {v}" for k, v in s["status_counts"].items())
+    wrong_by = ", ".join(f"{k} {v}" for k, v in s["wrong_statuses"].items())
     lines = [
         f"frames               {s['frames']}",
         f"localized            {s['localized_frames']} ({s['localized_fraction'] * 100:.1f}%)  "
-        f"[TRACKING {s['status_counts']['TRACKING']}, RELOCALIZED {s['status_counts']['RELOCALIZED']}, LOST {s['status_counts']['LOST']}]",
+        f"[{statuses}]",
         f"evaluated            {s['evaluated_frames']} frames with ground truth and a pose",
         f"position error       median {cm(s['median_position_error_m'])}, mean {cm(s['mean_position_error_m'])}",
         f"rotation error       median {deg(s['median_rotation_error_deg'])}, mean {deg(s['mean_rotation_error_deg'])}",
-        f"confident wrong      {s['confident_wrong']} (TRACKING with error > 0.5 m or 10 deg)",
+        f"wrong poses          {s['confident_wrong']}{f' [{wrong_by}]' if wrong_by else ''} "
+        f"(any status but LOST, error > {s['wrong_position_limit']:.3g} = "
+        f"{WRONG_POSITION_FRACTION:.0%} of the scene scale {s['scene_scale']:.3g}, "
+        f"or > {WRONG_ROTATION_DEG:g} deg)",
+        f"within 5 cm / 5 deg  {pct(s['within_5cm_5deg_fraction'])} of the frames with "
+        "ground truth",
+        f"within {RECALL_POSITION_FRACTION:.1%} / 5 deg {pct(s['within_relative_fraction'])} "
+        f"(position within {s['within_relative_position_limit']:.3g} map units = "
+        f"{RECALL_POSITION_FRACTION:.1%} of the scene scale)",
         f"latency (ms)         mean {lat['mean']:.1f}, std {lat['std']:.1f}, p50 {lat['p50']:.1f}, p95 {lat['p95']:.1f}, "
         f"p99 {lat['p99']:.1f}, max {lat['max']:.1f}",
         f"guided matching      {s['guided_frames']} frames, mean {s['guided_latency_ms_mean']:.1f} ms",
@@ -116,7 +133,7 @@ def run(args: argparse.Namespace) -> int:
         on_frame=lambda r: bar("replay", (r.index - args.start + 1) / max(1, total), f"{r.name} {r.status}"),
     )
     bar.close()
-    summary = summarize(records)
+    summary = summarize(records, bundle.scene_scale)
     summary["ate_m"] = absolute_trajectory_error(records)
     print(format_summary(summary, decode_ms))
     summary["clock"] = source.clock

@@ -9,9 +9,21 @@ import numpy as np
 
 from ..transforms import Rigid3d, pose_errors
 
-# A TRACKING frame this wrong is "confident wrong".
-WRONG_POSITION_M = 0.5
+# A wrong pose: any status but LOST (a client acts on every pose it receives, whatever the
+# status says) off by more than this fraction of the scene's scale (MapBundle.scene_scale,
+# the median camera-to-point depth of the map, in map units) or by more than this angle.
+WRONG_POSITION_FRACTION = 0.05
 WRONG_ROTATION_DEG = 10.0
+# Accuracy bounds: the usual 7-Scenes recall (5 cm and 5 deg, for maps in metres) and a
+# scene-relative one for maps in any unit: 2.5% of the scene scale is 5 cm at a 2 m median
+# depth (the order of redkitchen's and the synthetic room's).
+RECALL_POSITION_M = 0.05
+RECALL_ROTATION_DEG = 5.0
+RECALL_POSITION_FRACTION = 0.025
+WRONG_POSE_RULE = (
+    f"any status but LOST, position error > {WRONG_POSITION_FRACTION:.0%} of the scene scale "
+    f"(median camera-to-point depth) or rotation error > {WRONG_ROTATION_DEG:g} deg"
+)
 
 
 @dataclass
@@ -43,6 +55,41 @@ def attach_errors(rec: FrameRecord, est: Rigid3d | None, gt: Rigid3d | None) -> 
         rec.position_error_m, rec.rotation_error_deg = pose_errors(est, gt)
 
 
+def is_pose(status: str) -> bool:
+    """Every status but LOST reports a pose (TRACKING, RELOCALIZED and any status added later)."""
+    return status != "LOST"
+
+
+def wrong_position_limit(scene_scale: float) -> float:
+    """The position error (map units) above which a pose is wrong."""
+    return WRONG_POSITION_FRACTION * _checked_scale(scene_scale)
+
+
+def _checked_scale(scene_scale: float) -> float:
+    if not (isinstance(scene_scale, (int, float)) and np.isfinite(scene_scale) and scene_scale > 0):
+        raise ValueError(f"scene_scale must be a positive number (map units), got {scene_scale!r}")
+    return float(scene_scale)
+
+
+def wrong_poses(records: list[FrameRecord], scene_scale: float) -> list[FrameRecord]:
+    """Frames with a pose (any status but LOST) and an error over the wrong-pose limits."""
+    limit = wrong_position_limit(scene_scale)
+    return [r for r in records if is_pose(r.status) and r.position_error_m is not None
+            and (r.position_error_m > limit or r.rotation_error_deg > WRONG_ROTATION_DEG)]
+
+
+def within(records: list[FrameRecord], position: float, rotation_deg: float) -> int:
+    """Frames with a pose within ``position`` (map units) and ``rotation_deg`` of ground truth."""
+    return sum(1 for r in records if is_pose(r.status) and r.position_error_m is not None
+               and r.position_error_m <= position and r.rotation_error_deg <= rotation_deg)
+
+
+def _counts(first: list[str], records: list[FrameRecord]) -> dict[str, int]:
+    """Frames per status: ``first`` (even when 0), then any other status in order of appearance."""
+    keys = dict.fromkeys([*first, *(r.status for r in records)])
+    return {s: sum(1 for r in records if r.status == s) for s in keys}
+
+
 def _stats(x: np.ndarray) -> dict[str, float]:
     if len(x) == 0:
         return {k: float("nan") for k in ("mean", "std", "p50", "p95", "p99", "max")}
@@ -56,21 +103,24 @@ def _stats(x: np.ndarray) -> dict[str, float]:
     }
 
 
-def summarize(records: list[FrameRecord]) -> dict:
-    """The replay summary (keys fixed by the CLI contract, plus a few extras)."""
+def summarize(records: list[FrameRecord], scene_scale: float) -> dict:
+    """The replay summary (keys fixed by the CLI contract, plus a few extras). ``scene_scale``
+    (``MapBundle.scene_scale``) sets the wrong-pose and scene-relative accuracy limits;
+    ``confident_wrong`` counts wrong poses under any status but LOST."""
+    scale = _checked_scale(scene_scale)
     n = len(records)
-    localized = np.array([r.status != "LOST" for r in records], bool)
+    localized = np.array([is_pose(r.status) for r in records], bool)
     lat = np.array([r.latency_ms for r in records], np.float64)
     with_gt = [r for r in records if r.position_error_m is not None]
     pe = np.array([r.position_error_m for r in with_gt], np.float64)
     re_ = np.array([r.rotation_error_deg for r in with_gt], np.float64)
-    wrong = [
-        r for r in with_gt
-        if r.status == "TRACKING" and (r.position_error_m > WRONG_POSITION_M or r.rotation_error_deg > WRONG_ROTATION_DEG)
-    ]
+    wrong = wrong_poses(records, scale)
     guided = [r for r in records if r.matching == "guided"]
     glob = [r for r in records if r.matching == "global"]
     frames_with_gt = sum(1 for r in records if r.gt_cam_from_world is not None)
+
+    def share(k: int) -> float:
+        return k / frames_with_gt if frames_with_gt else float("nan")
 
     def nanstat(f, x):
         return float(f(x)) if len(x) else float("nan")
@@ -92,8 +142,18 @@ def summarize(records: list[FrameRecord]) -> dict:
         "evaluated_frames": len(with_gt),
         "guided_latency_ms_mean": float(np.mean([r.latency_ms for r in guided])) if guided else float("nan"),
         "global_latency_ms_mean": float(np.mean([r.latency_ms for r in glob])) if glob else float("nan"),
-        "status_counts": {s: sum(1 for r in records if r.status == s) for s in ("TRACKING", "RELOCALIZED", "LOST")},
+        # The usual three first, then any other status seen, in order of appearance.
+        "status_counts": _counts(["TRACKING", "RELOCALIZED", "LOST"], records),
         "confident_wrong_frames": [r.name for r in wrong][:50],
+        "wrong_statuses": _counts([], wrong),
+        "scene_scale": scale,
+        "wrong_position_limit": wrong_position_limit(scale),
+        "wrong_rotation_limit_deg": WRONG_ROTATION_DEG,
+        # Fractions of the frames with ground truth (a LOST frame counts as a miss).
+        "within_5cm_5deg_fraction": share(within(records, RECALL_POSITION_M, RECALL_ROTATION_DEG)),
+        "within_relative_fraction": share(
+            within(records, RECALL_POSITION_FRACTION * scale, RECALL_ROTATION_DEG)),
+        "within_relative_position_limit": RECALL_POSITION_FRACTION * scale,
     }
 
 
