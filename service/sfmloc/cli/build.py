@@ -17,6 +17,19 @@ Inputs (one of):
                                   matched by file name or stem; or TUM, world_from_cam); the map
                                   is in the poses' world frame and units
   --images DIR [--camera CAMERA]  images only: full SfM with pycolmap first (arbitrary frame/scale)
+  --video FILE [--poses TUM --camera CAMERA]
+                                  a video (any format OpenCV decodes): keyframes chosen by motion
+                                  and sharpness, then built like posed images (with a TUM pose log
+                                  on the video's clock, world_from_cam, interpolated to each
+                                  keyframe's time) or like images only (no --poses)
+
+Video keyframes: a frame's time is the container's presentation time (CAP_PROP_POS_MSEC), or
+index / fps when the container has none; the first frame is at 0 s. A frame becomes a keyframe
+after enough motion since the last keyframe: with poses, --kf-rotation degrees or --kf-translation
+times the scene depth (estimated from tracks triangulated with the poses); without poses,
+--kf-flow of the image diagonal of median corner motion. The sharpest of that frame and its next
+--kf-window - 1 frames is taken (blurry frames are dropped). The choice is printed and stored in
+the bundle's manifest; keyframes go to a temporary folder removed afterwards.
 
 CAMERA is a camera.json file or 'MODEL width height params...' in COLMAP order, e.g.
 'PINHOLE 640 480 525.505 525.505 320 240'. An existing bundle of the same name stays intact
@@ -33,7 +46,16 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", default="maps", help="folder for bundles (default: maps)")
     p.add_argument("--colmap", metavar="MODEL_DIR", help="COLMAP sparse model folder (cameras/images/points3D .txt or .bin)")
     p.add_argument("--images", metavar="DIR", help="image folder")
-    p.add_argument("--poses", metavar="FILE", help="known poses (COLMAP list or TUM)")
+    p.add_argument("--poses", metavar="FILE", help="known poses (COLMAP list or TUM; with --video: TUM)")
+    p.add_argument("--video", metavar="FILE", help="a video instead of --images (keyframes chosen)")
+    p.add_argument("--kf-rotation", type=float, metavar="DEG",
+                   help="video with poses: keyframe after this rotation (default 5)")
+    p.add_argument("--kf-translation", type=float, metavar="F",
+                   help="video with poses: keyframe after this translation, of the scene depth (default 0.05)")
+    p.add_argument("--kf-flow", type=float, metavar="F",
+                   help="video without poses: keyframe after this image motion, of the diagonal (default 0.05)")
+    p.add_argument("--kf-window", type=int, metavar="N",
+                   help="video: the sharpest of N frames becomes the keyframe (default 5)")
     p.add_argument("--camera", help="camera.json or 'MODEL w h params...'")
     p.add_argument("--stride", type=int, default=1, help="posed/images-only inputs: use every N-th image (default 1)")
     p.add_argument(
@@ -65,8 +87,10 @@ def run(args: argparse.Namespace) -> int:
 
     if args.colmap and args.poses:
         raise InputError("give either --colmap (a COLMAP model) or --poses (known poses), not both")
-    if not args.images:
-        raise InputError("--images is required (the image folder)")
+    if args.video and (args.images or args.colmap):
+        raise InputError("give either --video or --images/--colmap, not both")
+    if not args.images and not args.video:
+        raise InputError("--images (an image folder) or --video (a video file) is required")
     if args.poses and not args.camera:
         raise InputError("--poses needs --camera (camera.json or 'PINHOLE w h fx fy cx cy')")
     conf = preset(args.preset)
@@ -83,17 +107,43 @@ def run(args: argparse.Namespace) -> int:
     bar = ProgressPrinter()
     t0 = time.perf_counter()
     try:
-        path = main(
-            conf, args.name, args.out, colmap=args.colmap, images=args.images, poses=args.poses,
-            camera=args.camera, sfm_conf=sconf, stride=args.stride, workdir=args.workdir, progress=bar,
-        )
+        if args.video:
+            path = _build_video(args, conf, sconf, bar)
+        else:
+            path = main(
+                conf, args.name, args.out, colmap=args.colmap, images=args.images, poses=args.poses,
+                camera=args.camera, sfm_conf=sconf, stride=args.stride, workdir=args.workdir, progress=bar,
+            )
     finally:
         bar.close()
     dt = time.perf_counter() - t0
-    s = MapBundle(path, verify=False).summary()
+    bundle = MapBundle(path, verify=False)
+    kf = bundle.manifest.source.get("keyframes")
+    if kf:
+        print(
+            f"video: {kf['keyframes']} keyframes of {kf['frames']} frames ({kf['clock']} clock); dropped "
+            f"{kf['dropped_motion']} (too little motion), {kf['dropped_blur']} (blurrier than a neighbour), "
+            f"{kf['dropped_no_pose']} (no pose at their time)"
+        )
+    s = bundle.summary()
     print(
         f"built {path} in {dt:.1f} s: {s['points']} points, {s['descriptors']} descriptors "
         f"({s['descriptors_per_point']} per point), {s['images']} images, {s['clusters']} clusters, "
         f"{s['disk_mb']} MB on disk, {s['memory_mb']} MB in memory"
     )
     return 0
+
+
+def _build_video(args: argparse.Namespace, conf, sconf, bar):
+    from ..mapping.video import VideoConf, build_from_video
+
+    changes = {
+        k: v for k, v in (
+            ("min_rotation_deg", args.kf_rotation), ("min_translation", args.kf_translation),
+            ("min_flow", args.kf_flow), ("sharpness_window", args.kf_window),
+        ) if v is not None
+    }
+    return build_from_video(
+        conf, args.name, args.out, video=args.video, poses=args.poses, camera=args.camera,
+        video_conf=VideoConf(**changes), sfm_conf=sconf, workdir=args.workdir, progress=bar,
+    )

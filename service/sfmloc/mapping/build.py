@@ -237,6 +237,7 @@ def main(
     workdir: str | Path | None = None,
     progress: Progress | None = None,
     should_cancel: CancelCheck | None = None,
+    source_extra: dict[str, Any] | None = None,
 ) -> Path:
     """Build the bundle ``out_dir/name`` from one of the three inputs; return its path.
 
@@ -245,6 +246,7 @@ def main(
     - ``images`` (+ optional ``camera``): full SfM with pycolmap first.
 
     ``stride`` keeps every n-th posed image (or image) for the last two inputs.
+    ``source_extra`` is merged into the manifest's ``source`` (``video.build_from_video``).
     """
     from . import sfm  # pycolmap is only needed here
 
@@ -289,6 +291,7 @@ def main(
                 image_dir, cam, conf=sfm_conf, workdir=workdir, progress=progress,
                 should_cancel=should_cancel, stride=stride,
             )
+        source.update(source_extra or {})
         progress("sfm", 1.0, rec.summary())
         timings["sfm"] = time.perf_counter() - t0
         log.info("reconstruction: %s", rec.summary())

@@ -1,0 +1,212 @@
+"""Video in (issue 17, Build 2): a synthetic walk rendered with exact poses, encoded with
+OpenCV (MJPG in .avi), decoded back; keyframes chosen by motion and sharpness, poses
+interpolated on the video's clock, and a map built from the keyframes that localizes."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from sfmloc.cameras import Camera
+from sfmloc.errors import BuildError, InputError
+from sfmloc.io.poses import read_poses, write_tum
+from sfmloc.mapping.video import VideoConf, extract_keyframes, interpolate_pose, read_pose_log
+from sfmloc.transforms import pose_errors, rotation_angle_deg
+
+W, H, N_FRAMES = 320, 240, 120
+
+
+@pytest.fixture(scope="module")
+def walk(tmp_path_factory):
+    """A 4 s walk through the synthetic room at 30 Hz, 320x240, its frames and exact poses."""
+    from sfmloc.synth import preset
+    from sfmloc.synth.main import run
+
+    root = tmp_path_factory.mktemp("video") / "synth"
+    run(preset("small", width=W, height=H, mapping_views=4, trajectory={"n_frames": N_FRAMES}), root)
+    frames = [cv2.imread(str(p)) for p in sorted((root / "video").glob("frame-*.png"))]
+    gt = read_poses(root / "video_poses.txt").by_stem()
+    return root, frames, [gt[f"frame-{i:06d}"] for i in range(len(frames))]
+
+
+def encode(path: Path, frames: list[np.ndarray], fps: float = 30.0) -> Path:
+    w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), fps, (frames[0].shape[1], frames[0].shape[0]))
+    assert w.isOpened()
+    for f in frames:
+        w.write(f)
+    w.release()
+    return path
+
+
+@pytest.fixture(scope="module")
+def video(walk, tmp_path_factory):
+    return encode(tmp_path_factory.mktemp("enc") / "walk.avi", walk[1])
+
+
+def _exact_median_depth(root: Path, cam: Camera, poses) -> float:
+    from sfmloc.synth import Scene, SynthConf, render_geometry
+
+    conf = SynthConf.model_validate(json.loads((root / "scene.json").read_text())["config"])
+    scene = Scene.room(conf.seed, conf.scene)
+    meds = []
+    for T in poses[::10]:
+        depth, _ = render_geometry(scene, cam, T)
+        meds.append(np.median(depth[np.isfinite(depth)]))
+    return float(np.median(meds))
+
+
+def test_interpolated_poses_match_the_exact_poses(walk, tmp_path):
+    """A pose log at 15 Hz (every other frame): the odd frames' poses by slerp + lerp are within
+    a few mm and a tenth of a degree of the exact ones; the even frames' are exact; times outside
+    the log or in a gap wider than max_gap_s have no pose."""
+    _, _, gt = walk
+    log_idx = list(range(0, 60, 2))
+    tum = write_tum(tmp_path / "p.tum", [i / 30 for i in log_idx], [gt[i].inverse() for i in log_idx])
+    times, world_from_cams = read_pose_log(tum)
+    for i in range(0, 59):
+        T = interpolate_pose(times, world_from_cams, i / 30, max_gap_s=0.1, max_time_diff_s=0.02)
+        dp, dr = pose_errors(T, gt[i])
+        if i % 2 == 0:
+            assert dp < 1e-6 and dr < 1e-4
+        else:
+            assert dp < 0.005 and dr < 0.1, (i, dp, dr)
+    assert interpolate_pose(times, world_from_cams, 59 / 30 + 0.1, 0.1, 0.02) is None
+    assert interpolate_pose(times, world_from_cams, -0.05, 0.1, 0.02) is None
+    assert interpolate_pose(times, world_from_cams, 1 / 30, max_gap_s=0.05, max_time_diff_s=0.02) is None
+
+
+def test_posed_keyframes_from_an_encoded_video(walk, video, tmp_path):
+    root, frames, gt = walk
+    cam = Camera.from_json(root / "camera.json")
+    conf = VideoConf()
+    kf = extract_keyframes(video, tmp_path / "kf", conf, poses=root / "groundtruth.tum", camera=cam)
+    rep = kf.report
+    assert rep.frames == N_FRAMES and rep.clock == "pos_msec"
+    assert rep.keyframes + rep.dropped_motion + rep.dropped_blur + rep.dropped_no_pose == rep.frames
+    assert rep.dropped_no_pose == 0
+    # The scene depth estimated from tracks triangulated with the poses is the room's.
+    exact = _exact_median_depth(root, cam, gt)
+    assert 0.75 * exact < rep.scene_depth < 1.33 * exact, (rep.scene_depth, exact)
+    keys = rep.keyframe_indices
+    assert N_FRAMES / 20 <= len(keys) <= N_FRAMES / 3, keys
+    # Each keyframe's written pose is its frame's exact pose (clock, names and poses agree).
+    written = read_poses(kf.poses_file).by_key()
+    assert sorted(written) == sorted(p.name for p in kf.image_dir.iterdir())
+    for i in keys:
+        dp, dr = pose_errors(written[f"frame-{i:06d}.png"], gt[i])
+        assert dp < 1e-6 and dr < 1e-4
+    # Consecutive keyframes moved enough (exact poses), and no frame moves enough without a
+    # keyframe coming within the sharpness window.
+    for a, b in zip(keys, keys[1:]):
+        moved = (rotation_angle_deg(gt[a].rotation, gt[b].rotation) >= conf.min_rotation_deg
+                 or np.linalg.norm(gt[a].center - gt[b].center) >= conf.min_translation * rep.scene_depth)
+        assert moved, (a, b)
+        first_enough = next(
+            i for i in range(a + 1, b + 1)
+            if rotation_angle_deg(gt[a].rotation, gt[i].rotation) >= conf.min_rotation_deg
+            or np.linalg.norm(gt[a].center - gt[i].center) >= conf.min_translation * rep.scene_depth
+        )
+        assert b - first_enough < conf.sharpness_window
+    # Keyframes are the decoded frames (MJPG: close to the rendered ones, not other frames).
+    img = cv2.imread(str(kf.image_dir / f"frame-{keys[3]:06d}.png"))
+    err = np.abs(img.astype(int) - frames[keys[3]].astype(int)).mean()
+    err_next = np.abs(img.astype(int) - frames[keys[3] + 1].astype(int)).mean()
+    assert err < 6 and err < err_next
+
+
+def test_blurry_frames_are_not_keyframes(walk, tmp_path):
+    root, frames, _ = walk
+    blurred = {i for i in range(N_FRAMES) if i % 3 == 1}
+    shaken = [cv2.GaussianBlur(f, (0, 0), 2.5) if i in blurred else f for i, f in enumerate(frames)]
+    vid = encode(tmp_path / "shaky.avi", shaken)
+    kf = extract_keyframes(vid, tmp_path / "kf", poses=root / "groundtruth.tum", camera=Camera.from_json(root / "camera.json"))
+    assert kf.report.keyframes >= 5
+    assert not blurred & set(kf.report.keyframe_indices), kf.report.keyframe_indices
+    assert kf.report.dropped_blur > 0
+
+
+def test_images_only_keyframes_follow_image_motion(walk, video, tmp_path):
+    """Without poses: accumulated median corner motion. A faster threshold gives fewer keyframes,
+    each further apart in the true trajectory; a still video gives one keyframe, a clear error."""
+    _, frames, gt = walk
+    small = extract_keyframes(video, tmp_path / "a", VideoConf(min_flow=0.03)).report
+    large = extract_keyframes(video, tmp_path / "b", VideoConf(min_flow=0.10)).report
+    assert small.scene_depth is None and small.dropped_no_pose == 0
+    assert small.keyframes > large.keyframes >= 3
+    assert sorted(p.name for p in (tmp_path / "b" / "images").iterdir()) == [
+        f"frame-{i:06d}.png" for i in large.keyframe_indices
+    ]
+
+    def mean_step(keys):
+        return np.mean([np.linalg.norm(gt[a].center - gt[b].center) + 0.05 * rotation_angle_deg(
+            gt[a].rotation, gt[b].rotation) for a, b in zip(keys, keys[1:])])
+
+    assert mean_step(large.keyframe_indices) > 1.5 * mean_step(small.keyframe_indices)
+    still = encode(tmp_path / "still.avi", [frames[0]] * 30)
+    with pytest.raises(BuildError, match="only 1 keyframe"):
+        extract_keyframes(still, tmp_path / "c")
+
+
+def test_video_input_errors_are_clear(walk, video, tmp_path):
+    root, _, _ = walk
+    cam = Camera.from_json(root / "camera.json")
+    with pytest.raises(InputError, match="TUM"):
+        extract_keyframes(video, tmp_path / "a", poses=root / "video_poses.txt", camera=cam)
+    with pytest.raises(InputError, match="does not exist"):
+        extract_keyframes(tmp_path / "missing.avi", tmp_path / "b")
+    (tmp_path / "junk.avi").write_bytes(b"not a video" * 100)
+    with pytest.raises(InputError, match="junk.avi"):
+        extract_keyframes(tmp_path / "junk.avi", tmp_path / "c")
+    # A pose log on another clock (here: shifted by an hour) matches no frame.
+    times, wfc = read_pose_log(root / "groundtruth.tum")
+    late = write_tum(tmp_path / "late.tum", list(times + 3600.0), wfc)
+    with pytest.raises(InputError, match="video's clock"):
+        extract_keyframes(video, tmp_path / "d", poses=late, camera=cam)
+
+
+def test_a_map_built_from_an_encoded_video_localizes(walk, video, tmp_path):
+    """sfmloc build --video --poses (the CLI, a subprocess): keyframes triangulated with their
+    poses; the map localizes the video's own frames (decoded from the same lossy video)."""
+    from sfmloc.engine import Localizer, Status
+    from sfmloc.mapping.bundle import MapBundle
+
+    root, frames, gt = walk
+    cam = Camera.from_json(root / "camera.json")
+    out = subprocess.run(
+        [sys.executable, "-m", "sfmloc", "build", "walk", "--out", str(tmp_path / "maps"), "--video", str(video),
+         "--poses", str(root / "groundtruth.tum"), "--camera", str(root / "camera.json"),
+         "--workdir", str(tmp_path / "work")],
+        capture_output=True, text=True, timeout=600,
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "keyframes of 120 frames" in out.stdout
+    assert list((tmp_path / "work").iterdir()) == []  # keyframe and SfM folders removed
+    bundle = MapBundle(tmp_path / "maps" / "walk")
+    src = bundle.manifest.source
+    assert src["kind"] == "video" and src["keyframes"]["keyframes"] == bundle.n_images
+    loc = Localizer(bundle, cam)
+    cap = cv2.VideoCapture(str(video))
+    res = []
+    for i in range(N_FRAMES):
+        ok, f = cap.read()
+        assert ok
+        if i % 2 == 0:
+            res.append((i, loc.localize(cv2.cvtColor(f, cv2.COLOR_BGR2GRAY), i / 30)))
+    cap.release()
+    errs = [pose_errors(r.cam_from_world, gt[i]) for i, r in res if r.status is not Status.LOST]
+    assert len(errs) >= 0.9 * len(res), [r.status for _, r in res]
+    scale = bundle.scene_scale
+    assert np.median([e[0] for e in errs]) < 0.01 * scale
+    assert max(e[0] for e in errs) < 0.05 * scale and max(e[1] for e in errs) < 2.0
+
+
+def test_build_help_documents_video():
+    out = subprocess.run([sys.executable, "-m", "sfmloc", "build", "--help"], capture_output=True, text=True)
+    for flag in ("--video", "--kf-rotation", "--kf-translation", "--kf-flow", "--kf-window", "CAP_PROP_POS_MSEC"):
+        assert flag in out.stdout
