@@ -170,7 +170,9 @@ def _child_main(spec_bytes: bytes, conn, cancel_event, workdir: str) -> None:
             progress=progress,
             should_cancel=cancel_event.is_set,
         )
-        send("done", path=str(path), build_id=read_manifest(path).build_id)
+        manifest = read_manifest(path)
+        send("done", path=str(path), build_id=manifest.build_id,
+             warnings=list(manifest.report.get("warnings", [])))
     except BuildCancelled:
         send("cancelled")
     except SfmlocError as exc:
@@ -373,7 +375,8 @@ class JobManager:
                 elif kind == "done":
                     job.bundle_path, job.build_id = msg["path"], msg["build_id"]
                     job.stage, job.fraction = "done", 1.0
-                    self._finish(job, JobState.SUCCEEDED, message=f"bundle written to {job.bundle_path}")
+                    warn = "".join(f"; WARNING: {w}" for w in msg.get("warnings", []))
+                    self._finish(job, JobState.SUCCEEDED, message=f"bundle written to {job.bundle_path}{warn}")
                 elif kind == "cancelled":
                     self._finish(job, JobState.CANCELLED, message="cancelled")
                 elif kind == "failed":

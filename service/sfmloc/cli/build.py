@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 
 DESCRIPTION = """\
 Build a map bundle (the paper's offline stage): multi-scale Harris + oriented DAISY descriptors
@@ -64,6 +65,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "map exactly), fast, dense (default: default)",
     )
     p.add_argument("--sfm-preset", default="default", help="SfM preset: default, fast, accurate (default: default)")
+    p.add_argument(
+        "--min-track-length", type=int, metavar="N",
+        help="known poses: drop points seen in fewer than N images (default 3; 2 keeps two-view points, "
+        "which thin maps need: the poses are given, so two views fix a point). Images-only SfM keeps its "
+        "own rule: at least 3, since its poses are estimated from the same matches. Not used with --colmap",
+    )
     p.add_argument("--matching", choices=["sequential", "exhaustive"], help="images only: pair selection")
     p.add_argument("--config", help="JSON/TOML file of builder settings merged over the preset")
     p.add_argument("--threads", type=int, help="threads for pycolmap (default: all cores)")
@@ -82,6 +89,7 @@ def run(args: argparse.Namespace) -> int:
     from ..errors import InputError
     from ..mapping.build import main, preset
     from ..mapping.bundle import MapBundle
+    from ..mapping.report import report_lines
     from ..mapping.sfm import sfm_conf
     from .progress import ProgressPrinter
 
@@ -103,6 +111,17 @@ def run(args: argparse.Namespace) -> int:
         overrides["matching"] = args.matching
     if args.keep_workdir:
         overrides["keep_workdir"] = True
+    if args.min_track_length is not None:
+        if args.colmap:
+            raise InputError("--min-track-length applies to --poses or images-only builds, not to --colmap models")
+        low = 2 if args.poses else 3
+        if args.min_track_length < low:
+            raise InputError(
+                f"--min-track-length must be >= {low} "
+                + ("with known poses" if args.poses else "for images-only SfM (its poses come from the same matches)")
+                + f", got {args.min_track_length}"
+            )
+        overrides["min_track_length"] = args.min_track_length
     sconf = sfm_conf(args.sfm_preset, **overrides)
     bar = ProgressPrinter()
     t0 = time.perf_counter()
@@ -131,6 +150,8 @@ def run(args: argparse.Namespace) -> int:
         f"({s['descriptors_per_point']} per point), {s['images']} images, {s['clusters']} clusters, "
         f"{s['disk_mb']} MB on disk, {s['memory_mb']} MB in memory"
     )
+    for line in report_lines(bundle.report()):
+        print(line, file=sys.stderr if line.startswith("WARNING") else sys.stdout)
     return 0
 
 

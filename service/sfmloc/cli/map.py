@@ -13,7 +13,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "inspect",
         help="print a bundle's summary and verify its checksums",
         description="Print points, descriptors (per point), clusters, images, memory, build parameters and "
-        "timings of a bundle, and verify every array's checksum (exit 1 on corruption).",
+        "timings of a bundle, the map report (points per image, track lengths, coverage of each image, and "
+        "a warning when the map is too sparse to localize against), and verify every array's checksum "
+        "(exit 1 on corruption).",
     )
     i.add_argument("path", help="bundle folder")
     i.add_argument("--json", action="store_true", help="print the summary as JSON")
@@ -47,7 +49,10 @@ def run_inspect(args: argparse.Namespace) -> int:
         for p in problems:
             print(f"CORRUPT: {p}")
         return 1
+    from ..mapping.report import report_lines
+
     s = bundle.summary()
+    s["report"] = bundle.report()
     s["checksums"] = "ok"
     if args.json:
         print(json.dumps(s, indent=2))
@@ -72,6 +77,8 @@ def run_inspect(args: argparse.Namespace) -> int:
             f"parameters   pyramid {d.get('octaves')} octaves x {d.get('per_octave')} (+{d.get('up_levels', 0)} up), "
             f"tau {d.get('tau')} px, PCA {p.get('pca_dim')}, clusters max {p.get('clusters', {}).get('max_size')} images"
         )
+    for line in report_lines(s["report"]):
+        print(line)
     print("checksums    ok")
     return 0
 

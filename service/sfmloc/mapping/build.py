@@ -32,11 +32,13 @@ from ..config import StrictModel, merge_presets
 from ..errors import BuildCancelled, BuildError, ImageDecodeError
 from ..features.daisy import DaisyExtractor, Pca
 from ..io.colmap import Reconstruction
+from ..transforms import Rigid3d
 from .bundle import MapData, validate_name, write_bundle
 from .clusters import ClusterConf, cluster_images
 from .descriptors import DescriptorConf, extract_image_descriptors
 from .index import DescriptorIndex, IndexConf
 from .refine import RefineConf, refine_points
+from .report import map_report
 
 log = logging.getLogger(__name__)
 
@@ -304,12 +306,19 @@ def main(
         params = conf.model_dump()
         if sfm_conf is not None and hasattr(sfm_conf, "model_dump"):
             params["sfm"] = sfm_conf.model_dump()
+        report = map_report(
+            data.points_xyz, data.image_points_ptr, data.image_points_idx, data.cameras, data.image_camera,
+            [Rigid3d.from_quat_wxyz(q[:4], q[4:]) for q in data.image_cam_from_world],
+        )
+        for w in report["warnings"]:
+            log.warning("%s: %s", name, w)
         timings["write"] = time.perf_counter() - t0
         timings["total"] = time.perf_counter() - t_all
         path = write_bundle(
-            data, out_dir, name, source=source, params=params, timings_s=timings, index_info=index_info
+            data, out_dir, name, source=source, params=params, timings_s=timings, index_info=index_info,
+            report=report,
         )
-        progress("write", 1.0, str(path))
+        progress("write", 1.0, str(path) + "".join(f"; WARNING: {w}" for w in report["warnings"]))
         return path
     except OSError as exc:
         # A full disk, permissions, ...: name the file and the stage.

@@ -151,6 +151,8 @@ class Manifest(BaseModel):
     timings_s: dict[str, float] = {}
     counts: Counts
     index: dict[str, Any] = {}
+    # Points per image, track lengths, coverage, sparse-map warnings (``mapping.report``).
+    report: dict[str, Any] = {}
     cameras: list[dict[str, Any]]
     image_names: list[str]
     arrays: dict[str, ArrayEntry]
@@ -228,6 +230,7 @@ def write_bundle(
     params: dict[str, Any] | None = None,
     timings_s: dict[str, float] | None = None,
     index_info: dict[str, Any] | None = None,
+    report: dict[str, Any] | None = None,
 ) -> Path:
     """Write ``data`` as ``out_dir/name`` atomically and return the bundle's path."""
     validate_name(name)
@@ -275,6 +278,7 @@ def write_bundle(
             timings_s=timings_s or {},
             counts=data.counts(),
             index=index_info or {},
+            report=report or {},
             cameras=[c.to_dict() for c in data.cameras],
             image_names=list(data.image_names),
             arrays=entries,
@@ -539,6 +543,17 @@ class MapBundle:
         skip = {"index_faiss", "descriptors"}  # the index holds its own copy of both
         return sum(int(v.nbytes) for k, v in self._a.items() if k not in skip) + self.index.memory_bytes()
 
+    def report(self) -> dict[str, Any]:
+        """The map report written by the builder (computed now for bundles built before it)."""
+        if self.manifest.report:
+            return self.manifest.report
+        from .report import map_report
+
+        return map_report(
+            self.points_xyz, self.image_points_ptr, self.image_points_idx, self.cameras, self.image_camera,
+            self.image_cam_from_world,
+        )
+
     def summary(self) -> dict[str, Any]:
         c = self.manifest.counts
         return {
@@ -559,6 +574,7 @@ class MapBundle:
             "source": self.manifest.source,
             "params": self.manifest.params,
             "timings_s": self.manifest.timings_s,
+            "report": self.manifest.report,  # as built; ``report()`` fills it for older bundles
         }
 
     def _check_consistency(self) -> None:
