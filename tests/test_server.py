@@ -58,7 +58,8 @@ def zep():
 def srv(world, zep):
     """The server most tests share: two worker processes, both maps, following the builder."""
     conf = server_config(world, zep, workers=2, worker_kind="process", follow_builder=True,
-                         metrics_port=free_port(), server_id="test-server")
+                         metrics_port=free_port(), server_id="test-server",
+                         map_roots=[str(world.spare_dir)])
     with running_server(conf) as s:
         yield s
 
@@ -358,7 +359,7 @@ def test_unload_load_and_corrupt_bundles(world, z, grpc_client):
         grpc_client.load_map(str(world.corrupt), "room2")
     assert e.value.code == "FAILED_PRECONDITION" and "corrupt" in e.value.message
     with pytest.raises(RemoteError) as e:
-        grpc_client.load_map(str(world.root / "nothing-here"))
+        grpc_client.load_map(str(world.maps_dir / "nothing-here"))
     assert e.value.code == "FAILED_PRECONDITION"
     with pytest.raises(RemoteError) as e:
         grpc_client.load_map(str(world.maps_dir / "room2"), "bad name!")
@@ -366,6 +367,36 @@ def test_unload_load_and_corrupt_bundles(world, z, grpc_client):
     m = grpc_client.load_map(str(world.maps_dir / "room2"))
     assert m.name == "room2" and m.points > 0 and m.memory_mb > 0
     assert [p.seq for p in stream_lockstep(z, "room2", "after-reload", world, n=5)] == list(range(5))
+
+
+def test_load_map_only_from_the_maps_folders(world, z, grpc_client):
+    """LoadMap takes a map name or a path inside the maps folders (--maps, map_roots);
+    anything else, a bundle included, is PERMISSION_DENIED before it is read, and the
+    message does not tell whether the outside path exists."""
+    outside = world.root / "synth"  # exists, outside both roots
+    link_in_maps = world.maps_dir / "link-out"
+    link_in_maps.symlink_to(world.root, target_is_directory=True)
+    try:
+        for path in (str(outside), str(world.root / "nothing-here"), "/etc", "/dev/zero", "/",
+                     str(world.maps_dir / ".." / "synth"), str(link_in_maps / "synth"),
+                     "../synth", str(world.maps_dir)):
+            with pytest.raises(RemoteError) as e:
+                grpc_client.load_map(path, "denied")
+            assert e.value.code == "PERMISSION_DENIED", path
+            assert "outside the server's maps folders" in e.value.message
+            assert "No such file" not in e.value.message
+        # an announcement pointing outside is refused the same way (logged, nothing loaded)
+        ann = MapAnnouncement("denied", "some-build", str(outside))
+        z.put(map_announce_key("denied"), encode_map_announcement(ann))
+        # a name resolves inside the maps folder; a relative path from it
+        assert grpc_client.load_map("room2", "by-name").points > 0
+        assert grpc_client.load_map("./room2", "by-rel").points > 0
+        assert "denied" not in {m.name for m in grpc_client.list_maps()}
+    finally:
+        link_in_maps.unlink()
+        for m in grpc_client.list_maps():
+            if m.name in ("by-name", "by-rel"):
+                grpc_client.unload_map(m.name)
 
 
 def test_follow_builder_announcement_loads_the_map(world, z, grpc_client):

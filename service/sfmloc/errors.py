@@ -63,5 +63,9 @@ class UnavailableError(SfmlocError):
     """The server cannot do this now (shutting down, a worker restarting); retry later."""
 
 
+class PermissionDeniedError(SfmlocError):
+    """The request is well formed but not allowed (e.g. a bundle outside the maps folders)."""
+
+
 class MessageError(InputError):
     """A wire message (msgpack envelope, gRPC request) is malformed."""

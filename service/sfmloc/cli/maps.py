@@ -17,8 +17,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     a = ms.add_parser("show", help="details of one map")
     a.add_argument("name")
     add_grpc_option(a)
-    a = ms.add_parser("load", help="load (or replace) a bundle folder on the server's machine")
-    a.add_argument("path", help="bundle folder, as the server sees it")
+    a = ms.add_parser("load", help="load (or replace) a bundle from the server's maps folders",
+                      description="Load (or replace) a bundle the server can see: a map name (a folder "
+                                  "in the server's --maps folder or its map_roots), or a path inside "
+                                  "those folders. Paths elsewhere are refused (PERMISSION_DENIED).")
+    a.add_argument("path", help="map name, or bundle folder inside the server's maps folders")
     a.add_argument("--name", default="", help="name to serve it under (default: the bundle's own)")
     add_grpc_option(a)
     a = ms.add_parser("unload", help="unload a map (its sessions end)")

@@ -45,7 +45,7 @@ from .. import __version__
 from ..errors import ConfigError
 from .config import ServerConfig
 from .logfmt import event
-from .maps import MapEntry, MapRegistry
+from .maps import MapEntry, MapRegistry, resolve_bundle_path
 from .metrics import MetricsServer, ServerMetrics
 from .sessions import SessionManager
 from .workers import WorkerPool
@@ -106,8 +106,10 @@ class Server:
         self.sessions.on_worker_lost(index)
 
     def load_map(self, path: str, name: str | None = None) -> MapEntry:
+        """Load a bundle given by name or by a path inside the maps folders (LoadMap,
+        builder announcements); anything else is refused before it is read."""
         try:
-            entry = self.registry.load(path, name)
+            entry = self.registry.load(resolve_bundle_path(path, [self.conf.maps, *self.conf.map_roots]), name)
         except Exception:
             self.metrics.map_loads.inc("failed")
             raise

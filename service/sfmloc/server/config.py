@@ -36,6 +36,9 @@ class GrpcConf(StrictModel):
 
 class ServerConfig(StrictModel):
     maps: str = "maps"  # every bundle folder in here is loaded at start
+    # Further folders LoadMap and builder announcements may load bundles from (``maps`` always
+    # is one). A bundle anywhere else on the machine is refused (PERMISSION_DENIED).
+    map_roots: list[str] = []
     server_id: str = ""  # default: <hostname>-<pid>
     # Engine workers; 0 = one per core. "process" (default) or "thread" (measurements only:
     # the GIL serializes the engine's Python-level work, see the report in app.py).

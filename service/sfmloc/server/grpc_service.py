@@ -196,7 +196,7 @@ class LocalizationService(pb_grpc.LocalizationServicer):
     @_unary
     async def LoadMap(self, request: pb.LoadMapRequest, context: grpc.aio.ServicerContext) -> pb.MapInfo:
         if not request.path:
-            raise MessageError("LoadMap needs the path of a bundle folder on the server")
+            raise MessageError("LoadMap needs a map name or the path of a bundle folder in the maps folders")
         loop = asyncio.get_running_loop()
         entry = await loop.run_in_executor(self.server.executor, self.server.load_map, request.path, request.name or None)
         return _map_info(self.server, entry)

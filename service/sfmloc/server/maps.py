@@ -18,12 +18,43 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from ..errors import BundleError, MapNotFoundError
+import os
+
+from ..errors import BundleError, MapNotFoundError, MessageError, PermissionDeniedError
 from ..mapping.bundle import MANIFEST, read_manifest, validate_name, verify_bundle
 from .logfmt import event
 from .workers import WorkerPool
 
 log = logging.getLogger(__name__)
+
+
+def resolve_bundle_path(spec: str, roots: list[str | Path]) -> Path:
+    """Where ``spec`` (a map name, or a path) is allowed to load a bundle from.
+
+    A name (no ``/``) is looked up in the roots in order; a path must lead, after symlinks and
+    ``..`` are resolved, to a folder strictly inside one of the roots (a relative path is taken
+    from the first root). Anything else is ``PermissionDeniedError``, decided from the path
+    alone: nothing outside the roots is opened, and the message does not say whether it exists.
+    """
+    if not spec or "\x00" in spec:
+        raise MessageError("LoadMap needs a map name or the path of a bundle folder in the maps folders")
+    real_roots = [Path(os.path.realpath(r)) for r in roots]
+    if "/" not in spec:
+        validate_name(spec)
+        for root in real_roots:
+            if (root / spec).is_dir():
+                return root / spec
+        raise BundleError(f"no bundle named {spec!r} in the maps folders")
+    p = Path(spec)
+    real = Path(os.path.realpath(p if p.is_absolute() else Path(roots[0]) / p))
+    if not any(real != root and real.is_relative_to(root) for root in real_roots):
+        raise PermissionDeniedError(
+            f"{spec!r} is outside the server's maps folders: give a map name, or a path inside "
+            "them (folders are added with the server's map_roots setting)"
+        )
+    if not real.is_dir():
+        raise BundleError(f"no map bundle at {spec}: not a folder")
+    return real
 
 
 @dataclass(frozen=True)

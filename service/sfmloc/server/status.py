@@ -20,6 +20,7 @@ STATUS_TABLE: tuple[tuple[type[BaseException], grpc.StatusCode], ...] = (
     (E.SessionNotFoundError, grpc.StatusCode.NOT_FOUND),
     (MessageTooLargeError, grpc.StatusCode.RESOURCE_EXHAUSTED),
     (E.OverloadError, grpc.StatusCode.RESOURCE_EXHAUSTED),
+    (E.PermissionDeniedError, grpc.StatusCode.PERMISSION_DENIED),
     (E.BundleError, grpc.StatusCode.FAILED_PRECONDITION),
     (E.UnavailableError, grpc.StatusCode.UNAVAILABLE),
     (WireError, grpc.StatusCode.INVALID_ARGUMENT),  # malformed envelope, bad camera/image data
