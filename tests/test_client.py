@@ -43,6 +43,7 @@ from sfmloc_client import (
     encode_pose,
     make_zenoh_config,
 )
+from sfmloc_client.convert import pose_from_estimate_pb, pose_to_estimate_pb
 from sfmloc_client.wire import decode_server_info, encode_server_info, frame_key, parse_frame_key, pose_key
 
 CAM = CameraSpec("PINHOLE", 64, 48, (50.0, 50.0, 32.0, 24.0))
@@ -118,6 +119,19 @@ def test_pose_round_trip_with_filtered_and_error():
                     engine_ms=8.0, counts={"detected": 500, "tracked": 300, "tracked_3d": 120}, matching="guided",
                     dropped=3, map="lab", client_id="drone", build_id="b1", server_id="s1")
     assert decode_pose(encode_pose(p)) == p
+    # the covariance (36 values, row-major 6x6) survives the Zenoh wire and the protobuf form
+    cov = np.diag([1e-4, 2e-4, 3e-4, 1e-6, 2e-6, 3e-6])
+    cov[0, 3] = cov[3, 0] = 1e-6
+    p.covariance = tuple(cov.ravel())
+    p.status = "UNVERIFIED"
+    back = decode_pose(encode_pose(p))
+    assert back == p and np.array_equal(back.covariance_matrix, cov)
+    assert pose_from_estimate_pb(pose_to_estimate_pb(p), seq=5, stamp_ns=99).covariance == p.covariance
+    assert pose_from_estimate_pb(pose_to_estimate_pb(p), seq=5, stamp_ns=99).status == "UNVERIFIED"
+    with pytest.raises(WireError, match="covariance must have 36"):
+        decode_pose(msgpack.packb({"status": "TRACKING", "covariance": [1.0] * 35}))
+    with pytest.raises(WireError, match="covariance"):
+        decode_pose(msgpack.packb({"status": "TRACKING", "covariance": [float("nan")] * 36}))
     e = PoseMessage(seq=None, stamp_ns=0, status="LOST", error=ErrorInfo("NOT_FOUND", "map 'x' is not loaded"))
     back = decode_pose(encode_pose(e))
     assert back == e and not back.localized and back.error.code == "NOT_FOUND"
@@ -198,6 +212,20 @@ def test_tum_writer_writes_localized_world_from_cam(tmp_path):
     lines = (tmp_path / "t.tum").read_text().splitlines()
     assert lines[0].startswith("#") and len(lines) == 2
     assert [float(v) for v in lines[1].split()] == [1.5, 1.0, 2.0, 3.0, 0.0, 0.0, 0.0, 1.0]
+    # the covariance side file: one line per pose line, timestamp, status, 36 values
+    cov = tuple(float(v) for v in np.eye(6).ravel() * 1e-4)
+    with TumWriter(tmp_path / "c.tum") as w:
+        w.write(PoseMessage(1, 1_500_000_000, "UNVERIFIED", cam_from_world=T.inverse(), world_from_cam=T,
+                            covariance=cov))
+        w.write(PoseMessage(2, 1_533_000_000, "TRACKING", cam_from_world=T.inverse(), world_from_cam=T))
+    rows = [r.split() for r in (tmp_path / "c.tum.cov").read_text().splitlines()]
+    assert rows[0][0] == "#" and "rx ry rz cx cy cz" in " ".join(rows[0])
+    assert rows[1][:2] == ["1.500000000", "UNVERIFIED"] and tuple(float(v) for v in rows[1][2:]) == cov
+    assert rows[2][1] == "TRACKING" and len(rows[2]) == 38 and all(v == "nan" for v in rows[2][2:])
+    from sfmloc.io.poses import COVARIANCE_HEADER
+
+    from sfmloc_client.trajectory import COVARIANCE_HEADER as CLIENT_HEADER
+    assert COVARIANCE_HEADER == CLIENT_HEADER
 
 
 def test_zenoh_config_builder():
@@ -277,6 +305,11 @@ def test_cli_stream_writes_a_tum_trajectory(world, server, tmp_path):
     assert stamps == sorted(stamps)
     q = np.array([[float(v) for v in row[4:]] for row in rows])
     np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-6)
+    cov_rows = [line.split() for line in (tmp_path / "room.tum.cov").read_text().splitlines()[1:]]
+    assert [row[0] for row in cov_rows] == [row[0] for row in rows]
+    for row in cov_rows:
+        C = np.array([float(v) for v in row[2:]]).reshape(6, 6)
+        assert row[1] in ("TRACKING", "RELOCALIZED", "UNVERIFIED") and np.linalg.eigvalsh(C).min() > 0
     assert "sent 30 poses" in r.stderr  # the live status line
 
 

@@ -361,6 +361,23 @@ def test_reported_covariance_is_calibrated_on_a_synthetic_video(world, bundle, c
     assert 3.0 < np.mean(values) < 12.0, np.mean(values)
 
 
+def test_replay_cli_writes_tum_and_covariance_side_file(world, tmp_path, capsys):
+    from sfmloc.cli.main import main as cli
+    from sfmloc.io.poses import read_poses
+
+    traj = tmp_path / "t.tum"
+    rc = cli(["replay", str(world.maps_dir / "room"), str(world.frames[0].parent), "--camera",
+              world.camera_spec, "--max-frames", "20", "--trajectory", str(traj)])
+    assert rc == 0
+    assert len(read_poses(traj, "tum")) >= 19  # a valid TUM file, untouched by the covariance
+    tum = [line.split() for line in traj.read_text().splitlines() if not line.startswith("#")]
+    cov = [line.split() for line in (tmp_path / "t.tum.cov").read_text().splitlines() if not line.startswith("#")]
+    assert [r[0] for r in cov] == [r[0] for r in tum]
+    for r in cov:
+        C = np.array([float(v) for v in r[2:]]).reshape(6, 6)
+        assert r[1] != "LOST" and np.linalg.eigvalsh(C).min() > 0
+
+
 # ----------------------------------------------------------------------------- bad input
 def test_bad_frames_are_errors_or_lost_never_a_made_up_pose(world, bundle, cam):
     loc = Localizer(bundle, cam)

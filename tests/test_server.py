@@ -87,6 +87,11 @@ def test_stream_receives_a_pose_for_every_frame_with_its_seq(world, z):
     assert poses[0].status == "RELOCALIZED" or not poses[0].localized  # a new session starts from scratch
     assert any(p.status == "TRACKING" for p in poses)
     assert all(p.latency_ms >= p.engine_ms > 0 for p in localized)
+    # every pose carries its 6x6 covariance (positive definite); LOST ones none
+    for p in poses:
+        C = p.covariance_matrix
+        assert (C is None) == (not p.localized)
+        assert C is None or (np.allclose(C, C.T) and np.linalg.eigvalsh(C).min() > 0)
 
 
 def test_two_clients_on_two_maps_at_once(world, z):
@@ -153,6 +158,7 @@ def test_grpc_stream_localize_with_a_corrupt_frame_in_the_middle(world, grpc_cli
     assert all(p.error is None and p.client_id == "grpc-walker" for p in poses if p.seq not in (10, 15))
     assert sum(p.localized for p in poses) >= 17
     assert np.median(position_errors(world, poses)) < 0.05
+    assert all((p.covariance is not None) == p.localized for p in poses)  # StreamLocalize
 
 
 def test_grpc_stream_burst_drops_stale_frames_and_ends_with_the_last(world, grpc_client):
@@ -265,6 +271,8 @@ def test_relocalize_single_images(world, grpc_client):
     for k in (5, 25, 45):
         pose = grpc_client.relocalize(world.png[k], "room", cam, encoding="png")
         assert pose.status == "RELOCALIZED" and pose.inliers >= 10
+        C = pose.covariance_matrix  # through the gRPC response
+        assert C.shape == (6, 6) and np.linalg.eigvalsh(C).min() > 0 and np.sqrt(C[3, 3]) < 0.05
         gt = world.gt_cam_from_world[k].inverse().translation
         errs.append(np.linalg.norm(np.asarray(pose.world_from_cam.t) - gt))
     assert np.median(errs) < 0.05

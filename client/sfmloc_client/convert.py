@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 from .errors import WireError
 from .pb import common_pb2, localization_pb2
 from .wire import ENCODINGS, CameraSpec, ErrorInfo, PoseMessage, Transform, raw_size
@@ -9,6 +11,7 @@ from .wire import ENCODINGS, CameraSpec, ErrorInfo, PoseMessage, Transform, raw_
 STATUS_TO_PB = {
     "TRACKING": common_pb2.LOCALIZATION_STATUS_TRACKING,
     "RELOCALIZED": common_pb2.LOCALIZATION_STATUS_RELOCALIZED,
+    "UNVERIFIED": common_pb2.LOCALIZATION_STATUS_UNVERIFIED,
     "LOST": common_pb2.LOCALIZATION_STATUS_LOST,
 }
 STATUS_FROM_PB = {v: k for k, v in STATUS_TO_PB.items()}
@@ -75,6 +78,7 @@ def pose_to_estimate_pb(p: PoseMessage) -> common_pb2.PoseEstimate:
         ),
         matching=p.matching,
         message=p.message,
+        covariance=list(p.covariance) if p.covariance is not None else [],
     )
     for field, value in (
         ("cam_from_world", p.cam_from_world),
@@ -104,7 +108,16 @@ def pose_from_estimate_pb(est: common_pb2.PoseEstimate, seq: int | None = None, 
         counts={"detected": est.counts.detected, "tracked": est.counts.tracked, "tracked_3d": est.counts.tracked_3d},
         matching=est.matching or "none",
         message=est.message,
+        covariance=_covariance_from_pb(est.covariance),
     )
+
+
+def _covariance_from_pb(values: Any) -> tuple[float, ...] | None:
+    if len(values) == 0:
+        return None
+    if len(values) != 36:
+        raise WireError(f"covariance must have 36 values (6x6, row-major), got {len(values)}")
+    return tuple(float(v) for v in values)
 
 
 def pose_to_update_pb(p: PoseMessage) -> localization_pb2.PoseUpdate:

@@ -28,8 +28,10 @@ Unknown keys are ignored (newer clients may add some); missing or mistyped keys 
 
 Pose message (msgpack map), one per processed frame, and one per rejected frame::
 
-    {"v": 1, "seq": uint | nil, "stamp_ns": uint, "status": "TRACKING" | "RELOCALIZED" | "LOST",
+    {"v": 1, "seq": uint | nil, "stamp_ns": uint,
+     "status": "TRACKING" | "RELOCALIZED" | "UNVERIFIED" | "LOST",
      "cam_from_world": {"quat_xyzw": [4 floats], "t": [3 floats]} | nil,
+     "covariance": [36 floats] | nil,
      "world_from_cam": {...} | nil,
      "filtered": {"cam_from_world": {...}, "world_from_cam": {...}} | nil,
      "inliers": uint, "latency_ms": float, "engine_ms": float,
@@ -47,6 +49,19 @@ A frame the server cannot process gets a message with ``status: "LOST"`` and ``e
 (``seq`` is nil when the envelope was too broken to read it); ``error.code`` is a gRPC status
 code name, the same the gRPC API would return for that failure. ``message`` says why a frame is
 LOST when the engine knows.
+
+``status``: ``TRACKING`` (tracked keypoints with verified 2D-3D matches), ``RELOCALIZED`` (global
+matching this frame, verified by a strict geometric test), ``UNVERIFIED`` (global matching this
+frame, not verified yet: the next frames confirm it by tracking from it, so treat it with care),
+``LOST`` (no pose).
+
+``covariance`` (every pose that is not LOST; nil otherwise): the 6x6 covariance of
+``cam_from_world``, row-major, in this parameter order: ``[rx, ry, rz, cx, cy, cz]``, where
+``r`` is a small rotation vector (radians) applied on the world side of the camera's rotation,
+``R_world_from_cam' = exp([r]x) R_world_from_cam``, and ``c`` the camera centre in world
+coordinates (map units). It comes from the final pose refinement (the reprojection residuals'
+Gauss-Newton normal matrix, scaled by their variance). ``PoseMessage.covariance_matrix``
+returns it as a numpy array.
 
 Transforms are ``tgt_from_src`` (``x_tgt = R(quat_xyzw) x_src + t``), unit quaternions in
 ``x, y, z, w`` order with ``w >= 0``.
@@ -79,7 +94,9 @@ from .errors import ImageDataError, MessageTooLargeError, WireError
 WIRE_VERSION = 1
 ROOT = "sfmloc"
 ENCODINGS: tuple[str, ...] = ("gray8", "bgr8", "jpeg", "png")
-STATUSES: tuple[str, ...] = ("TRACKING", "RELOCALIZED", "LOST")
+STATUSES: tuple[str, ...] = ("TRACKING", "RELOCALIZED", "UNVERIFIED", "LOST")
+# Order of the covariance's rows and columns (see the module docstring).
+COVARIANCE_ORDER: tuple[str, ...] = ("rot_x", "rot_y", "rot_z", "center_x", "center_y", "center_z")
 # Frames larger than this are rejected (RESOURCE_EXHAUSTED) unless the server is configured
 # otherwise; 16 MiB holds a raw 4K BGR frame.
 DEFAULT_MAX_FRAME_BYTES = 16 * 1024 * 1024
@@ -424,10 +441,21 @@ class PoseMessage:
     server_id: str = ""
     message: str = ""
     error: ErrorInfo | None = None
+    # 36 values, row-major 6x6 (order COVARIANCE_ORDER); None when LOST
+    covariance: tuple[float, ...] | None = None
 
     @property
     def localized(self) -> bool:
         return self.status != "LOST" and self.cam_from_world is not None
+
+    @property
+    def covariance_matrix(self) -> Any:
+        """The covariance as a 6x6 numpy array (None when there is none)."""
+        if self.covariance is None:
+            return None
+        import numpy as np
+
+        return np.asarray(self.covariance, dtype=np.float64).reshape(6, 6)
 
 
 def encode_pose(p: PoseMessage) -> bytes:
@@ -458,6 +486,7 @@ def encode_pose(p: PoseMessage) -> bytes:
             "server_id": p.server_id,
             "message": p.message,
             "error": None if p.error is None else p.error.to_wire(),
+            "covariance": None if p.covariance is None else [float(v) for v in p.covariance],
         }
     )
 
@@ -486,6 +515,8 @@ def decode_pose(payload: bytes | bytearray | memoryview, max_bytes: int = 1 << 2
     counts = d.get("counts") or {}
     if not isinstance(counts, dict):
         raise WireError("counts must be a map")
+    cov = d.get("covariance")  # absent from servers older than the field: None
+    cov = None if cov is None else _floats(cov, 36, "covariance")
     return PoseMessage(
         seq=seq,
         stamp_ns=_uint(d.get("stamp_ns", 0), "stamp_ns"),
@@ -506,6 +537,7 @@ def decode_pose(payload: bytes | bytearray | memoryview, max_bytes: int = 1 << 2
         server_id=_str(d.get("server_id", ""), "server_id"),
         message=_str(d.get("message", ""), "message"),
         error=err,
+        covariance=cov,
     )
 
 

@@ -24,17 +24,17 @@ _sym_db = _symbol_database.Default()
 
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x16sfmloc/v1/common.proto\x12\tsfmloc.v1\"F\n\x06\x43\x61mera\x12\r\n\x05model\x18\x01 \x01(\t\x12\r\n\x05width\x18\x02 \x01(\r\x12\x0e\n\x06height\x18\x03 \x01(\r\x12\x0e\n\x06params\x18\x04 \x03(\x01\"\'\n\x07Rigid3d\x12\x11\n\tquat_xyzw\x18\x01 \x03(\x01\x12\t\n\x01t\x18\x02 \x03(\x01\"`\n\x05Image\x12*\n\x08\x65ncoding\x18\x01 \x01(\x0e\x32\x18.sfmloc.v1.ImageEncoding\x12\x0c\n\x04\x64\x61ta\x18\x02 \x01(\x0c\x12\r\n\x05width\x18\x03 \x01(\r\x12\x0e\n\x06height\x18\x04 \x01(\r\"D\n\x0b\x46rameCounts\x12\x10\n\x08\x64\x65tected\x18\x01 \x01(\r\x12\x0f\n\x07tracked\x18\x02 \x01(\r\x12\x12\n\ntracked_3d\x18\x03 \x01(\r\"\xef\x02\n\x0cPoseEstimate\x12-\n\x06status\x18\x01 \x01(\x0e\x32\x1d.sfmloc.v1.LocalizationStatus\x12*\n\x0e\x63\x61m_from_world\x18\x02 \x01(\x0b\x32\x12.sfmloc.v1.Rigid3d\x12*\n\x0eworld_from_cam\x18\x03 \x01(\x0b\x32\x12.sfmloc.v1.Rigid3d\x12\x33\n\x17\x66iltered_cam_from_world\x18\x04 \x01(\x0b\x32\x12.sfmloc.v1.Rigid3d\x12\x33\n\x17\x66iltered_world_from_cam\x18\x05 \x01(\x0b\x32\x12.sfmloc.v1.Rigid3d\x12\x0f\n\x07inliers\x18\x06 \x01(\r\x12\x12\n\nlatency_ms\x18\x07 \x01(\x01\x12&\n\x06\x63ounts\x18\x08 \x01(\x0b\x32\x16.sfmloc.v1.FrameCounts\x12\x10\n\x08matching\x18\t \x01(\t\x12\x0f\n\x07message\x18\n \x01(\t*\x93\x01\n\rImageEncoding\x12\x1e\n\x1aIMAGE_ENCODING_UNSPECIFIED\x10\x00\x12\x18\n\x14IMAGE_ENCODING_GRAY8\x10\x01\x12\x17\n\x13IMAGE_ENCODING_BGR8\x10\x02\x12\x17\n\x13IMAGE_ENCODING_JPEG\x10\x03\x12\x16\n\x12IMAGE_ENCODING_PNG\x10\x04*\x9e\x01\n\x12LocalizationStatus\x12#\n\x1fLOCALIZATION_STATUS_UNSPECIFIED\x10\x00\x12 \n\x1cLOCALIZATION_STATUS_TRACKING\x10\x01\x12#\n\x1fLOCALIZATION_STATUS_RELOCALIZED\x10\x02\x12\x1c\n\x18LOCALIZATION_STATUS_LOST\x10\x03\x62\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x16sfmloc/v1/common.proto\x12\tsfmloc.v1\"F\n\x06\x43\x61mera\x12\r\n\x05model\x18\x01 \x01(\t\x12\r\n\x05width\x18\x02 \x01(\r\x12\x0e\n\x06height\x18\x03 \x01(\r\x12\x0e\n\x06params\x18\x04 \x03(\x01\"\'\n\x07Rigid3d\x12\x11\n\tquat_xyzw\x18\x01 \x03(\x01\x12\t\n\x01t\x18\x02 \x03(\x01\"`\n\x05Image\x12*\n\x08\x65ncoding\x18\x01 \x01(\x0e\x32\x18.sfmloc.v1.ImageEncoding\x12\x0c\n\x04\x64\x61ta\x18\x02 \x01(\x0c\x12\r\n\x05width\x18\x03 \x01(\r\x12\x0e\n\x06height\x18\x04 \x01(\r\"D\n\x0b\x46rameCounts\x12\x10\n\x08\x64\x65tected\x18\x01 \x01(\r\x12\x0f\n\x07tracked\x18\x02 \x01(\r\x12\x12\n\ntracked_3d\x18\x03 \x01(\r\"\x83\x03\n\x0cPoseEstimate\x12-\n\x06status\x18\x01 \x01(\x0e\x32\x1d.sfmloc.v1.LocalizationStatus\x12*\n\x0e\x63\x61m_from_world\x18\x02 \x01(\x0b\x32\x12.sfmloc.v1.Rigid3d\x12*\n\x0eworld_from_cam\x18\x03 \x01(\x0b\x32\x12.sfmloc.v1.Rigid3d\x12\x33\n\x17\x66iltered_cam_from_world\x18\x04 \x01(\x0b\x32\x12.sfmloc.v1.Rigid3d\x12\x33\n\x17\x66iltered_world_from_cam\x18\x05 \x01(\x0b\x32\x12.sfmloc.v1.Rigid3d\x12\x0f\n\x07inliers\x18\x06 \x01(\r\x12\x12\n\nlatency_ms\x18\x07 \x01(\x01\x12&\n\x06\x63ounts\x18\x08 \x01(\x0b\x32\x16.sfmloc.v1.FrameCounts\x12\x10\n\x08matching\x18\t \x01(\t\x12\x0f\n\x07message\x18\n \x01(\t\x12\x12\n\ncovariance\x18\x0b \x03(\x01*\x93\x01\n\rImageEncoding\x12\x1e\n\x1aIMAGE_ENCODING_UNSPECIFIED\x10\x00\x12\x18\n\x14IMAGE_ENCODING_GRAY8\x10\x01\x12\x17\n\x13IMAGE_ENCODING_BGR8\x10\x02\x12\x17\n\x13IMAGE_ENCODING_JPEG\x10\x03\x12\x16\n\x12IMAGE_ENCODING_PNG\x10\x04*\xc2\x01\n\x12LocalizationStatus\x12#\n\x1fLOCALIZATION_STATUS_UNSPECIFIED\x10\x00\x12 \n\x1cLOCALIZATION_STATUS_TRACKING\x10\x01\x12#\n\x1fLOCALIZATION_STATUS_RELOCALIZED\x10\x02\x12\x1c\n\x18LOCALIZATION_STATUS_LOST\x10\x03\x12\"\n\x1eLOCALIZATION_STATUS_UNVERIFIED\x10\x04\x62\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
 _builder.BuildTopDescriptorsAndMessages(DESCRIPTOR, 'sfmloc.v1.common_pb2', _globals)
 if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
-  _globals['_IMAGEENCODING']._serialized_start=689
-  _globals['_IMAGEENCODING']._serialized_end=836
-  _globals['_LOCALIZATIONSTATUS']._serialized_start=839
-  _globals['_LOCALIZATIONSTATUS']._serialized_end=997
+  _globals['_IMAGEENCODING']._serialized_start=709
+  _globals['_IMAGEENCODING']._serialized_end=856
+  _globals['_LOCALIZATIONSTATUS']._serialized_start=859
+  _globals['_LOCALIZATIONSTATUS']._serialized_end=1053
   _globals['_CAMERA']._serialized_start=37
   _globals['_CAMERA']._serialized_end=107
   _globals['_RIGID3D']._serialized_start=109
@@ -44,5 +44,5 @@ if not _descriptor._USE_C_DESCRIPTORS:
   _globals['_FRAMECOUNTS']._serialized_start=248
   _globals['_FRAMECOUNTS']._serialized_end=316
   _globals['_POSEESTIMATE']._serialized_start=319
-  _globals['_POSEESTIMATE']._serialized_end=686
+  _globals['_POSEESTIMATE']._serialized_end=706
 # @@protoc_insertion_point(module_scope)

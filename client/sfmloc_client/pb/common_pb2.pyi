@@ -21,6 +21,7 @@ class LocalizationStatus(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     LOCALIZATION_STATUS_TRACKING: _ClassVar[LocalizationStatus]
     LOCALIZATION_STATUS_RELOCALIZED: _ClassVar[LocalizationStatus]
     LOCALIZATION_STATUS_LOST: _ClassVar[LocalizationStatus]
+    LOCALIZATION_STATUS_UNVERIFIED: _ClassVar[LocalizationStatus]
 IMAGE_ENCODING_UNSPECIFIED: ImageEncoding
 IMAGE_ENCODING_GRAY8: ImageEncoding
 IMAGE_ENCODING_BGR8: ImageEncoding
@@ -30,6 +31,7 @@ LOCALIZATION_STATUS_UNSPECIFIED: LocalizationStatus
 LOCALIZATION_STATUS_TRACKING: LocalizationStatus
 LOCALIZATION_STATUS_RELOCALIZED: LocalizationStatus
 LOCALIZATION_STATUS_LOST: LocalizationStatus
+LOCALIZATION_STATUS_UNVERIFIED: LocalizationStatus
 
 class Camera(_message.Message):
     __slots__ = ("model", "width", "height", "params")
@@ -74,7 +76,7 @@ class FrameCounts(_message.Message):
     def __init__(self, detected: _Optional[int] = ..., tracked: _Optional[int] = ..., tracked_3d: _Optional[int] = ...) -> None: ...
 
 class PoseEstimate(_message.Message):
-    __slots__ = ("status", "cam_from_world", "world_from_cam", "filtered_cam_from_world", "filtered_world_from_cam", "inliers", "latency_ms", "counts", "matching", "message")
+    __slots__ = ("status", "cam_from_world", "world_from_cam", "filtered_cam_from_world", "filtered_world_from_cam", "inliers", "latency_ms", "counts", "matching", "message", "covariance")
     STATUS_FIELD_NUMBER: _ClassVar[int]
     CAM_FROM_WORLD_FIELD_NUMBER: _ClassVar[int]
     WORLD_FROM_CAM_FIELD_NUMBER: _ClassVar[int]
@@ -85,6 +87,7 @@ class PoseEstimate(_message.Message):
     COUNTS_FIELD_NUMBER: _ClassVar[int]
     MATCHING_FIELD_NUMBER: _ClassVar[int]
     MESSAGE_FIELD_NUMBER: _ClassVar[int]
+    COVARIANCE_FIELD_NUMBER: _ClassVar[int]
     status: LocalizationStatus
     cam_from_world: Rigid3d
     world_from_cam: Rigid3d
@@ -95,4 +98,5 @@ class PoseEstimate(_message.Message):
     counts: FrameCounts
     matching: str
     message: str
-    def __init__(self, status: _Optional[_Union[LocalizationStatus, str]] = ..., cam_from_world: _Optional[_Union[Rigid3d, _Mapping]] = ..., world_from_cam: _Optional[_Union[Rigid3d, _Mapping]] = ..., filtered_cam_from_world: _Optional[_Union[Rigid3d, _Mapping]] = ..., filtered_world_from_cam: _Optional[_Union[Rigid3d, _Mapping]] = ..., inliers: _Optional[int] = ..., latency_ms: _Optional[float] = ..., counts: _Optional[_Union[FrameCounts, _Mapping]] = ..., matching: _Optional[str] = ..., message: _Optional[str] = ...) -> None: ...
+    covariance: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, status: _Optional[_Union[LocalizationStatus, str]] = ..., cam_from_world: _Optional[_Union[Rigid3d, _Mapping]] = ..., world_from_cam: _Optional[_Union[Rigid3d, _Mapping]] = ..., filtered_cam_from_world: _Optional[_Union[Rigid3d, _Mapping]] = ..., filtered_world_from_cam: _Optional[_Union[Rigid3d, _Mapping]] = ..., inliers: _Optional[int] = ..., latency_ms: _Optional[float] = ..., counts: _Optional[_Union[FrameCounts, _Mapping]] = ..., matching: _Optional[str] = ..., message: _Optional[str] = ..., covariance: _Optional[_Iterable[float]] = ...) -> None: ...

@@ -43,7 +43,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--camera", required=True, help="camera.json or 'MODEL w h params...' (e.g. 'PINHOLE 640 480 525 525 320 240')")
     p.add_argument("--groundtruth", help="ground-truth poses (COLMAP list or TUM)")
     p.add_argument("--json", dest="json_out", help="write the summary (and per-frame records) as JSON here")
-    p.add_argument("--trajectory", help="write the estimated trajectory here (TUM, world_from_cam, raw poses)")
+    p.add_argument("--trajectory", help="write the estimated trajectory here (TUM, world_from_cam, raw poses); "
+                   "FILE.cov beside it: status and 6x6 covariance per pose (see README, Conventions)")
     p.add_argument("--fps", type=float, default=30.0,
                    help="the clock: timestamp = frame index / fps (default 30), unless --timestamps")
     p.add_argument("--timestamps", metavar="SOURCE",
@@ -112,7 +113,7 @@ def run(args: argparse.Namespace) -> int:
     from ..eval.metrics import absolute_trajectory_error, summarize
     from ..eval.replay import replay
     from ..io.frames import FrameSource
-    from ..io.poses import write_tum
+    from ..io.poses import write_tum, write_tum_covariances
     from ..mapping.bundle import MapBundle
     from .progress import ProgressPrinter
 
@@ -147,7 +148,9 @@ def run(args: argparse.Namespace) -> int:
     if args.trajectory:
         ok = [r for r in records if r.cam_from_world is not None]
         write_tum(args.trajectory, [r.stamp for r in ok], [r.cam_from_world.inverse() for r in ok])
-        print(f"trajectory           {args.trajectory} ({len(ok)} poses, TUM)", file=sys.stderr)
+        cov = write_tum_covariances(args.trajectory + ".cov", [r.stamp for r in ok], [r.status for r in ok],
+                                    [r.covariance for r in ok])
+        print(f"trajectory           {args.trajectory} ({len(ok)} poses, TUM; covariances {cov})", file=sys.stderr)
     if args.json_out:
         out = dict(summary)
         out["map"] = str(args.map)

@@ -12,7 +12,8 @@ DESCRIPTION = textwrap.dedent(
     Publish frames of SOURCE on sfmloc/<map>/<client>/frame and receive their poses on
     sfmloc/<map>/<client>/pose. Live status (rate, latency, status) goes to stderr; with
     --out the trajectory is written in TUM format (timestamp tx ty tz qx qy qz qw,
-    world_from_cam, localized frames only).
+    world_from_cam, localized frames only) and FILE.cov beside it (per pose: timestamp,
+    status, 6x6 covariance, row-major, order rx ry rz cx cy cz; see README, Conventions).
 
     Pacing: --fps N sends at N frames/s (the server drops frames it cannot keep up with,
     newest kept); without --fps the next frame goes out when the previous pose is back.
@@ -38,7 +39,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--camera", required=True, metavar="CAMERA", help="camera.json or 'MODEL w h params...'")
     p.add_argument("--fps", type=float, metavar="N", help="send rate (default: as fast as poses come back)")
     p.add_argument("--client-id", metavar="ID", help="client id (default <hostname>-<pid>)")
-    p.add_argument("--out", metavar="FILE.tum", help="write the trajectory (TUM, world_from_cam)")
+    p.add_argument("--out", metavar="FILE.tum", help="write the trajectory (TUM, world_from_cam); FILE.tum.cov "
+                   "beside it: status and 6x6 covariance per pose (see README, Conventions)")
     p.add_argument("--filtered", action="store_true", help="write the Kalman-filtered poses to --out")
     p.add_argument("--encoding", choices=["jpeg", "png", "gray8", "bgr8"], default="jpeg",
                    help="how frames are sent (default jpeg; .jpg files are sent as they are)")

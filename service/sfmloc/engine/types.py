@@ -12,7 +12,10 @@ from ..transforms import Rigid3d
 
 class Status(str, enum.Enum):
     TRACKING = "TRACKING"  # pose from tracked keypoints with verified 2D-3D matches
-    RELOCALIZED = "RELOCALIZED"  # pose from global matching this frame
+    RELOCALIZED = "RELOCALIZED"  # pose from global matching this frame, verified
+    # A pose from global matching this frame that is not verified yet (weak geometric support):
+    # the following frames confirm it by tracking from it. Its covariance is inflated.
+    UNVERIFIED = "UNVERIFIED"
     LOST = "LOST"  # no pose
 
 

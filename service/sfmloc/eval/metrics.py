@@ -46,6 +46,7 @@ class FrameRecord:
     # CPU time of the process for the frame (ms): unlike latency_ms, it does not grow when
     # other processes load the machine (the engine runs on one thread).
     cpu_ms: float | None = None
+    covariance: np.ndarray | None = None  # 6x6 of cam_from_world (engine.pose.COVARIANCE_ORDER)
 
 
 def attach_errors(rec: FrameRecord, est: Rigid3d | None, gt: Rigid3d | None) -> None:

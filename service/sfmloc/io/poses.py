@@ -135,6 +135,29 @@ def write_tum(path: str | Path, timestamps: list[float], world_from_cams: list[R
     return path
 
 
+# The same text as sfmloc_client.trajectory.COVARIANCE_HEADER (a test compares them): the
+# client package is not imported here (it pulls in the transports).
+COVARIANCE_HEADER = (
+    "# timestamp status c00 c01 ... c55: 6x6 covariance of the pose on the same line of the TUM "
+    "file (row-major; order rx ry rz cx cy cz: r a small rotation vector in radians on the world "
+    "side of world_from_cam's rotation, c the camera centre in world coordinates, map units)"
+)
+
+
+def write_tum_covariances(
+    path: str | Path, timestamps: list[float], statuses: list[str], covariances: list[np.ndarray | None]
+) -> Path:
+    """The covariance side file of a TUM trajectory (``FILE.cov``; format and order as
+    ``sfmloc_client.trajectory``): ``timestamp status c00 ... c55`` per pose line."""
+    path = Path(path)
+    with open(path, "w") as f:
+        f.write(COVARIANCE_HEADER + "\n")
+        for ts, st, C in zip(timestamps, statuses, covariances):
+            vals = np.full(36, np.nan) if C is None else np.asarray(C, np.float64).ravel()
+            f.write(f"{ts:.9f} {st} " + " ".join(f"{v:.6e}" for v in vals) + "\n")
+    return path
+
+
 def write_colmap_list(path: str | Path, names: list[str], cam_from_worlds: list[Rigid3d]) -> Path:
     """Write ``name qw qx qy qz tx ty tz`` lines (``cam_from_world``)."""
     path = Path(path)

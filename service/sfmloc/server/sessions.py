@@ -377,6 +377,7 @@ def pose_from_result(
     p.counts = {"detected": res["detected"], "tracked": res["tracked"], "tracked_3d": res["tracked_3d"]}
     p.matching = res["matching"]
     p.message = res["message"]
+    p.covariance = None if res.get("cov") is None else tuple(res["cov"])
     return p
 
 

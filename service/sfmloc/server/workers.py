@@ -283,6 +283,7 @@ def result_to_wire(r: Any) -> dict[str, Any]:
         "matching": r.matching,
         "engine_ms": float(r.latency_ms),
         "message": r.message,
+        "cov": None if r.covariance is None else [float(v) for v in r.covariance.ravel()],
     }
 
 
