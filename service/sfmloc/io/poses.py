@@ -154,7 +154,7 @@ def write_tum_covariances(
         f.write(COVARIANCE_HEADER + "\n")
         for ts, st, C in zip(timestamps, statuses, covariances):
             vals = np.full(36, np.nan) if C is None else np.asarray(C, np.float64).ravel()
-            f.write(f"{ts:.9f} {st} " + " ".join(f"{v:.6e}" for v in vals) + "\n")
+            f.write(f"{ts:.6f} {st} " + " ".join(f"{v:.6e}" for v in vals) + "\n")  # as format_tum_line
     return path
 
 
