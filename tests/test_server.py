@@ -372,8 +372,11 @@ def test_unload_load_and_corrupt_bundles(world, z, grpc_client):
     with pytest.raises(RemoteError) as e:
         grpc_client.load_map(str(world.maps_dir / "room2"), "bad name!")
     assert e.value.code == "INVALID_ARGUMENT"
+    assert wait_until(lambda: grpc_client.health("sfmloc.v1.Localization/room2") == "NOT_SERVING", 10)
+    assert grpc_client.health() == "SERVING"  # room is still loaded
     m = grpc_client.load_map(str(world.maps_dir / "room2"))
     assert m.name == "room2" and m.points > 0 and m.memory_mb > 0
+    assert wait_until(lambda: grpc_client.health("sfmloc.v1.Localization/room2") == "SERVING", 10)
     assert [p.seq for p in stream_lockstep(z, "room2", "after-reload", world, n=5)] == list(range(5))
 
 
@@ -463,6 +466,10 @@ def test_health_and_reflection(srv, grpc_client):
 
     assert grpc_client.health() == "SERVING"
     assert grpc_client.health("sfmloc.v1.Localization") == "SERVING"
+    assert grpc_client.health("sfmloc.v1.Localization/room") == "SERVING"  # per map
+    with pytest.raises(RemoteError) as e:
+        grpc_client.health("sfmloc.v1.Localization/no-such-map")
+    assert e.value.code == "NOT_FOUND"
     stub = reflection_pb2_grpc.ServerReflectionStub(grpc_client.channel)
     resp = next(stub.ServerReflectionInfo(iter([reflection_pb2.ServerReflectionRequest(list_services="")]), timeout=10))
     names = {s.name for s in resp.list_services_response.service}

@@ -65,6 +65,34 @@ def test_health_is_serving_only_after_the_maps_are_loaded(late):
         assert wait_until(lambda: "late-server" in list_server_ids(z, timeout=1), 30)
 
 
+@pytest.mark.parametrize("allow_empty", [False, True])
+def test_health_with_no_map_loaded(world, tmp_path, allow_empty):
+    """A server whose maps folder is empty (or missing) cannot localize: NOT_SERVING on gRPC
+    health and 503 on /healthz, unless --allow-empty says an empty server is fine."""
+    import urllib.error
+    import urllib.request
+
+    port = free_port()
+    conf = server_config(world, zenoh_endpoint(), maps=str(tmp_path / "nonexistent"),
+                         allow_empty=allow_empty, metrics_port=port, map_roots=[str(world.maps_dir)])
+    with running_server(conf) as srv, LocalizationClient(f"127.0.0.1:{srv.grpc_port}") as c:
+        assert srv.server.ready and c.list_maps() == []
+        want = "SERVING" if allow_empty else "NOT_SERVING"
+        assert c.health() == want and c.health("sfmloc.v1.Localization") == want
+        try:
+            code = urllib.request.urlopen(f"http://127.0.0.1:{port}/healthz", timeout=10).status
+        except urllib.error.HTTPError as exc:
+            code = exc.code
+        assert code == (200 if allow_empty else 503)
+        # a map loaded later (LoadMap from the server's map roots) makes it SERVING
+        c.load_map(str(world.maps_dir / "room"))
+        assert wait_until(lambda: c.health() == "SERVING", 10)
+        assert c.health("sfmloc.v1.Localization/room") == "SERVING"
+        c.unload_map("room")
+        assert wait_until(lambda: c.health("sfmloc.v1.Localization/room") == "NOT_SERVING", 10)
+        assert wait_until(lambda: c.health() == want, 10)
+
+
 def test_an_idle_session_expires(world, impatient):
     srv, ep = impatient
     with client_zenoh(ep) as z, LocalizationClient(f"127.0.0.1:{srv.grpc_port}") as c:

@@ -18,8 +18,10 @@ DESCRIPTION = textwrap.dedent(
     liveliness token sfmloc/servers/<id> and answers sfmloc/servers/<id>/info.
 
     gRPC (sfmloc.v1.Localization at --grpc): Relocalize, StreamLocalize, ListMaps, GetMap,
-    LoadMap, UnloadMap, ListSessions, ResetSession, plus grpc.health.v1 (SERVING once the
-    maps are loaded) and reflection.
+    LoadMap, UnloadMap, ListSessions, ResetSession, plus grpc.health.v1 and reflection.
+    Health: "" and sfmloc.v1.Localization are SERVING once start-up is done and at least
+    one map is loaded (--allow-empty: also with none); sfmloc.v1.Localization/<map> is
+    SERVING while that map is loaded.
 
     Settings: flags > environment (SFMLOC_WORKERS, SFMLOC_ZENOH__MODE, SFMLOC_GRPC__ADDRESS,
     SFMLOC_ENGINE__K, ...) > --config FILE (JSON or TOML, the ServerConfig fields) > defaults.
@@ -54,6 +56,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--max-pending", type=int, metavar="N",
                    help="frames of a client that may wait while one is processed (default 1: latest frame only)")
     p.add_argument("--follow-builder", action="store_true", help="load bundles the builder announces on sfmloc/maps/*")
+    p.add_argument("--allow-empty", action="store_true",
+                   help="health SERVING even with no map loaded (default: NOT_SERVING until one is)")
     p.add_argument("--metrics-port", type=int, metavar="N", help="serve Prometheus metrics on http://0.0.0.0:N/metrics")
     p.add_argument("--server-id", metavar="ID", help="id in sfmloc/servers/<id> (default <hostname>-<pid>)")
     p.add_argument("--max-message-mb", type=float, metavar="MB", help="largest gRPC message and Zenoh frame (default 16)")
@@ -69,6 +73,8 @@ def overrides_from_args(args: argparse.Namespace) -> dict:
                "server_id": args.server_id, "log_format": args.log_format}
     if args.follow_builder:
         o["follow_builder"] = True
+    if args.allow_empty:
+        o["allow_empty"] = True
     z: dict = {}
     if args.zenoh_mode:
         z["mode"] = args.zenoh_mode

@@ -73,7 +73,7 @@ class Server:
             log_level=logging.getLogger().getEffectiveLevel(), log_format=conf.log_format,
             max_pending_relocalize=conf.max_pending_relocalize, max_image_pixels=conf.max_image_pixels,
         )
-        self.registry = MapRegistry(self.pool)
+        self.registry = MapRegistry(self.pool, on_change=self._on_map_change)
         self.sessions = SessionManager(
             self.pool, self.registry, self.metrics, server_id=self.server_id,
             max_sessions=conf.max_sessions, idle_timeout_s=conf.idle_timeout_s,
@@ -91,6 +91,8 @@ class Server:
         self.grpc_port: int | None = None
         self.metrics_server: MetricsServer | None = None
         self.ready = False
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._health_maps: set[str] = set()  # maps whose per-map health entry was set SERVING
         self._stopped = asyncio.Event()
         self._reaper_stop = threading.Event()
         self._reaper: threading.Thread | None = None
@@ -163,9 +165,10 @@ class Server:
     # ------------------------------------------------------------------ lifecycle
     async def start(self, load_maps: bool = True) -> None:
         loop = asyncio.get_running_loop()
+        self._loop = loop
         c = self.conf
         if c.metrics_port is not None:
-            self.metrics_server = MetricsServer(self.metrics.registry, c.metrics_host, c.metrics_port, lambda: self.ready)
+            self.metrics_server = MetricsServer(self.metrics.registry, c.metrics_host, c.metrics_port, self.serving)
             self.metrics_server.start()
         t0 = time.perf_counter()
         await loop.run_in_executor(self.executor, self.pool.start)
@@ -206,14 +209,40 @@ class Server:
     async def mark_ready(self) -> None:
         if self.zenoh is not None:
             self.zenoh.start_intake()
-        if self.health is not None:
-            from grpc_health.v1 import health_pb2
-
-            from .grpc_service import SERVICE_NAME
-
-            for svc in ("", SERVICE_NAME):
-                await self.health.set(svc, health_pb2.HealthCheckResponse.SERVING)
         self.ready = True
+        await self._update_health()
+
+    def serving(self) -> bool:
+        """What health reports: started, and able to localize (a map loaded, or allow_empty)."""
+        return self.ready and (self.conf.allow_empty or bool(self.registry.list()))
+
+    async def _update_health(self) -> None:
+        """The server's and each map's gRPC health from the registry (``/healthz`` reads
+        ``serving()`` directly)."""
+        if self.health is None:
+            return
+        from grpc_health.v1 import health_pb2
+
+        from .grpc_service import SERVICE_NAME
+
+        ok, no = health_pb2.HealthCheckResponse.SERVING, health_pb2.HealthCheckResponse.NOT_SERVING
+        up = self.serving()
+        for svc in ("", SERVICE_NAME):
+            await self.health.set(svc, ok if up else no)
+        names = {e.name for e in self.registry.list()} if self.ready else set()
+        for name in sorted(names | self._health_maps):
+            await self.health.set(f"{SERVICE_NAME}/{name}", ok if name in names else no)
+        self._health_maps = names
+
+    def _on_map_change(self, name: str, old: MapEntry | None, new: MapEntry | None) -> None:
+        """Registry callback (any thread): health follows the loaded maps."""
+        loop = self._loop
+        if loop is None or loop.is_closed() or not self.ready:
+            return
+        try:
+            asyncio.run_coroutine_threadsafe(self._update_health(), loop)
+        except RuntimeError:  # the loop is shutting down
+            pass
 
     def _reap(self) -> None:
         while not self._reaper_stop.wait(min(1.0, self.conf.idle_timeout_s / 4)):

@@ -56,6 +56,10 @@ class ServerConfig(StrictModel):
     # small JPEG claiming a huge image cannot exhaust its memory.
     max_image_pixels: int = Field(4096 * 4096, ge=1)
     follow_builder: bool = False  # load bundles the builder announces on sfmloc/maps/*
+    # Health says SERVING only while at least one map is loaded (a server that can localize
+    # nothing fails its container health check). True: SERVING with no map too (a server that
+    # waits for LoadMap or the builder).
+    allow_empty: bool = False
     grace_s: float = Field(5.0, ge=0)  # shutdown: time for in-flight frames and calls
     metrics_port: Optional[int] = Field(None, ge=0, le=65535)
     metrics_host: str = "0.0.0.0"
