@@ -248,6 +248,8 @@ class Server:
         while not self._reaper_stop.wait(min(1.0, self.conf.idle_timeout_s / 4)):
             try:
                 self.sessions.expire_idle()
+                if self.zenoh is not None:
+                    self.zenoh.rejections.flush()  # the summary of held-back lines, on time
             except Exception:  # noqa: BLE001
                 log.exception("idle-session reaper failed")
 

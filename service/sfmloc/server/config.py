@@ -51,6 +51,12 @@ class ServerConfig(StrictModel):
     max_sessions: int = Field(256, ge=1)
     # Zenoh frame envelopes larger than this are refused (RESOURCE_EXHAUSTED).
     max_frame_bytes: int = Field(16 * 1024 * 1024, ge=1024)
+    # Frames per second one Zenoh client (map/client id) may send on average, in bursts of up
+    # to 2 s; beyond, frames are refused (RESOURCE_EXHAUSTED) before they are decoded.
+    max_client_fps: float = Field(240.0, gt=0)
+    # Rejected frames are logged at most 3 lines per client and 50 in all per interval; the
+    # rest is summed up in one line per interval (a flood must not fill the disk).
+    log_interval_s: float = Field(10.0, gt=0)
     max_pending_relocalize: int = Field(16, ge=1)  # queued single-image requests, all workers
     # Largest camera (width x height) accepted; also caps what OpenCV decodes in a worker, so a
     # small JPEG claiming a huge image cannot exhaust its memory.

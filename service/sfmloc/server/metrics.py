@@ -150,6 +150,7 @@ class ServerMetrics:
         self.frames_dropped = r.add(Counter("sfmloc_frames_dropped_total", "Stale frames dropped (latest-frame-only intake).", ("map",)))
         self.frames_done = r.add(Counter("sfmloc_frames_processed_total", "Frames processed by the engine, by result status.", ("map", "status")))
         self.frame_errors = r.add(Counter("sfmloc_frame_errors_total", "Frames rejected, by status code.", ("map", "code")))
+        self.frames_refused = r.add(Counter("sfmloc_frames_refused_total", "Frames refused by a per-client limit, by limit.", ("limit",)))
         self.latency = r.add(Histogram("sfmloc_frame_latency_seconds", "Frame receipt to pose publication.", ("map",)))
         self.engine_latency = r.add(Histogram("sfmloc_engine_latency_seconds", "Engine time per frame.", ("map",)))
         self.relocalize = r.add(Counter("sfmloc_relocalize_total", "Single-image relocalizations, by status.", ("map", "status")))

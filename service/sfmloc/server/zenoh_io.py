@@ -39,8 +39,9 @@ from sfmloc_client.wire import (
 )
 from sfmloc_client.zconfig import make_zenoh_config
 
-from ..errors import ConfigError, MapNotFoundError, UnavailableError
+from ..errors import ConfigError, MapNotFoundError, OverloadError, UnavailableError
 from .config import ServerConfig
+from .limits import LogLimiter, RateLimiter
 from .logfmt import event
 from .sessions import SessionManager
 
@@ -89,6 +90,8 @@ class ZenohFrontend:
         self._others: list[Any] = []
         # Announcements load maps, which blocks on the workers: never on Zenoh's thread.
         self._loader = ThreadPoolExecutor(1, thread_name_prefix="sfmloc-announce")
+        self._rate = RateLimiter(conf.max_client_fps, 2.0 * conf.max_client_fps)
+        self.rejections = LogLimiter(log, "frame_rejected", conf.log_interval_s)
 
     def open(self) -> None:
         zc = self.conf.zenoh
@@ -146,6 +149,11 @@ class ZenohFrontend:
         try:
             check_name(map_name, "map name")
             check_name(client_id, "client id")
+            if not self._rate.allow(f"{map_name}/{client_id}"):
+                self.sessions.metrics.frames_refused.inc("rate")
+                raise OverloadError(
+                    f"client {client_id!r} sends more than {self.conf.max_client_fps:g} frames/s: frame refused"
+                )
             frame = decode_frame(payload, self.conf.max_frame_bytes)
             self.sessions.submit(
                 map_name, client_id, "zenoh", frame, t_recv,
@@ -162,8 +170,10 @@ class ZenohFrontend:
     def _reply_error(self, map_name: str, client_id: str, payload: bytes, exc: BaseException) -> None:
         seq = peek_seq(payload) if len(payload) <= self.conf.max_frame_bytes else None
         pose = self.sessions.error_pose(map_name, client_id, seq, 0, exc)
-        event(log, logging.INFO, "frame_rejected", map=map_name, client=client_id, seq=seq,
-              code=pose.error.code if pose.error else "", error=pose.message)
+        code = pose.error.code if pose.error else ""
+        if self.rejections.allow(client_id, code):
+            event(log, logging.INFO, "frame_rejected", map=map_name, client=client_id, seq=seq,
+                  code=code, error=pose.message)
         if self.z is None:
             return
         try:
