@@ -286,7 +286,8 @@ def test_relocalize_single_images(world, grpc_client):
 @pytest.mark.parametrize(
     "case, code",
     [("unknown-map", "NOT_FOUND"), ("corrupt-jpeg", "INVALID_ARGUMENT"), ("bad-camera", "INVALID_ARGUMENT"),
-     ("wrong-raw-size", "INVALID_ARGUMENT"), ("no-encoding", "INVALID_ARGUMENT"), ("oversized", "RESOURCE_EXHAUSTED")],
+     ("wrong-raw-size", "INVALID_ARGUMENT"), ("no-encoding", "INVALID_ARGUMENT"), ("oversized", "RESOURCE_EXHAUSTED"),
+     ("nan-prior", "INVALID_ARGUMENT"), ("zero-prior", "INVALID_ARGUMENT"), ("short-prior", "INVALID_ARGUMENT")],
 )
 def test_relocalize_errors_map_to_status_codes(world, grpc_client, case, code):
     from sfmloc_client.grpc_client import relocalize_request
@@ -306,6 +307,9 @@ def test_relocalize_errors_map_to_status_codes(world, grpc_client, case, code):
         req.image.encoding = common_pb2.IMAGE_ENCODING_UNSPECIFIED
     elif case == "oversized":
         req.image.data = b"\x00" * (5 * 1024 * 1024)  # the test server takes 4 MB
+    elif case.endswith("-prior"):
+        q = {"nan": [float("nan"), 0, 0, 1], "zero": [0, 0, 0, 0], "short": [0, 0, 1]}[case[:-6]]
+        req.prior_cam_from_world.CopyFrom(common_pb2.Rigid3d(quat_xyzw=q, t=[0, 0, 0]))
     with pytest.raises(grpc.RpcError) as e:
         grpc_client.stub.Relocalize(req, timeout=60)
     assert e.value.code().name == code

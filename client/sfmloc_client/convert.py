@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 from .errors import WireError
@@ -64,7 +65,12 @@ def transform_from_pb(pb: common_pb2.Rigid3d, present: bool) -> Transform | None
         return None
     if len(pb.quat_xyzw) != 4 or len(pb.t) != 3:
         raise WireError("a Rigid3d needs 4 quaternion values and 3 translation values")
-    return Transform(tuple(pb.quat_xyzw), tuple(pb.t))  # type: ignore[arg-type]
+    q, t = tuple(float(v) for v in pb.quat_xyzw), tuple(float(v) for v in pb.t)
+    if not all(math.isfinite(v) for v in q + t):
+        raise WireError(f"a Rigid3d must be finite: quat_xyzw={list(q)}, t={list(t)}")
+    if math.sqrt(sum(v * v for v in q)) < 1e-6:
+        raise WireError(f"a Rigid3d quaternion must not be zero: quat_xyzw={list(q)}")
+    return Transform(q, t)  # type: ignore[arg-type]
 
 
 def pose_to_estimate_pb(p: PoseMessage) -> common_pb2.PoseEstimate:
