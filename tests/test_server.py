@@ -318,6 +318,25 @@ def test_relocalize_errors_map_to_status_codes(world, grpc_client, case, code):
         assert "larger than max" in e.value.details() or "exceeds" in e.value.details()
 
 
+@pytest.mark.parametrize("method, kind", [
+    ("/sfmloc.v1.Localization/Relocalize", "unary"), ("/sfmloc.v1.Localization/ListMaps", "unary"),
+    ("/sfmloc.v1.Localization/StreamLocalize", "stream"), ("/grpc.health.v1.Health/Check", "unary"),
+])
+def test_unparsable_request_bytes_are_invalid_argument(srv, method, kind):
+    """Bytes that are no protobuf message of the method's type: INVALID_ARGUMENT with a
+    message (grpc's own answer would be UNKNOWN or INTERNAL)."""
+    garbage = [b"\xff\xff\xff\xff", b"\x0a\xff\x01", bytes(range(256))]
+    with grpc.insecure_channel(f"127.0.0.1:{srv.grpc_port}") as ch:
+        for data in garbage:
+            with pytest.raises(grpc.RpcError) as e:
+                if kind == "unary":
+                    ch.unary_unary(method)(data, timeout=30)
+                else:
+                    list(ch.stream_stream(method)(iter([data]), timeout=30))
+            assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT, (method, data, e.value.details())
+            assert "malformed request" in e.value.details()
+
+
 def test_async_client(world, srv):
     from sfmloc_client import AsyncLocalizationClient
 

@@ -37,6 +37,7 @@ from sfmloc_client.wire import Frame, PoseMessage, check_name
 from ..errors import InputError, MessageError, SessionNotFoundError, UnavailableError
 from .logfmt import event
 from .sessions import pose_from_result, validate_camera
+from .interceptors import MalformedRequestInterceptor
 from .status import abort, error_info
 
 if TYPE_CHECKING:
@@ -236,7 +237,7 @@ def make_grpc_server(server: "Server") -> tuple[grpc.aio.Server, health_aio.Heal
     """The grpc.aio server with our service, health (NOT_SERVING until maps are loaded) and
     reflection; returns (server, health servicer, bound port)."""
     n = int(server.conf.grpc.max_message_mb * 1024 * 1024)
-    g = grpc.aio.server(options=[
+    g = grpc.aio.server(interceptors=[MalformedRequestInterceptor()], options=[
         ("grpc.max_receive_message_length", n),
         ("grpc.max_send_message_length", n),
         ("grpc.so_reuseport", 0),

@@ -1,0 +1,107 @@
+"""gRPC server interceptors shared by our services.
+
+``MalformedRequestInterceptor``: a request that is not a valid protobuf message of the method's
+type ends with INVALID_ARGUMENT and a message saying so. Without it grpc answers such bytes
+with UNKNOWN or INTERNAL (its deserializer raises before any handler of ours runs), which tells
+a client nothing and looks like a server bug.
+"""
+
+from __future__ import annotations
+
+import inspect
+from collections.abc import AsyncIterator, Awaitable, Callable
+from typing import Any
+
+import grpc
+
+
+class _Malformed:
+    """What a request that failed to parse becomes (the handler then refuses it)."""
+
+    __slots__ = ("reason",)
+
+    def __init__(self, reason: str) -> None:
+        self.reason = reason
+
+
+def _safe(deserializer: Callable[[bytes], Any] | None) -> Callable[[bytes], Any] | None:
+    if deserializer is None:
+        return None
+
+    def parse(data: bytes) -> Any:
+        try:
+            return deserializer(data)
+        except Exception as exc:  # noqa: BLE001 - protobuf's DecodeError and friends
+            return _Malformed(f"{type(exc).__name__}: {exc}")
+
+    return parse
+
+
+async def _refuse(context: grpc.aio.ServicerContext, bad: _Malformed) -> None:
+    await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"malformed request: not a valid message ({bad.reason})")
+
+
+def _wrap(behavior: Callable[..., Any], streaming_requests: bool) -> Callable[..., Any]:
+    """``behavior`` with malformed requests refused first, of the same kind (an async
+    generator, a coroutine or a plain function, as grpc.aio runs each differently)."""
+
+    def requests_of(request: Any, context: grpc.aio.ServicerContext) -> Any:
+        return _checked_requests(request, context) if streaming_requests else request
+
+    if inspect.isasyncgenfunction(behavior):
+
+        async def gen(request: Any, context: grpc.aio.ServicerContext) -> AsyncIterator[Any]:
+            if isinstance(request, _Malformed):
+                await _refuse(context, request)
+            async for item in behavior(requests_of(request, context), context):
+                yield item
+
+        return gen
+    if inspect.iscoroutinefunction(behavior):
+
+        async def coro(request: Any, context: grpc.aio.ServicerContext) -> Any:
+            if isinstance(request, _Malformed):
+                await _refuse(context, request)
+            return await behavior(requests_of(request, context), context)
+
+        return coro
+    if streaming_requests:
+        return behavior  # a synchronous streaming handler: left as it is (none of ours)
+
+    def plain(request: Any, context: Any) -> Any:
+        if isinstance(request, _Malformed):
+            context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"malformed request: not a valid message ({request.reason})")
+        return behavior(request, context)
+
+    return plain
+
+
+async def _checked_requests(requests: AsyncIterator[Any], context: grpc.aio.ServicerContext) -> AsyncIterator[Any]:
+    async for request in requests:
+        if isinstance(request, _Malformed):
+            await _refuse(context, request)
+        yield request
+
+
+class MalformedRequestInterceptor(grpc.aio.ServerInterceptor):
+    """Unparsable request bytes: INVALID_ARGUMENT with a message, for every method."""
+
+    async def intercept_service(
+        self,
+        continuation: Callable[[grpc.HandlerCallDetails], Awaitable[grpc.RpcMethodHandler]],
+        handler_call_details: grpc.HandlerCallDetails,
+    ) -> grpc.RpcMethodHandler:
+        handler = await continuation(handler_call_details)
+        if handler is None:
+            return handler
+        parse = _safe(handler.request_deserializer)
+        ser = handler.response_serializer
+        if handler.unary_unary is not None:
+            return grpc.unary_unary_rpc_method_handler(_wrap(handler.unary_unary, False), parse, ser)
+        if handler.unary_stream is not None:
+            return grpc.unary_stream_rpc_method_handler(_wrap(handler.unary_stream, False), parse, ser)
+        if handler.stream_unary is not None:
+            return grpc.stream_unary_rpc_method_handler(_wrap(handler.stream_unary, True), parse, ser)
+        if handler.stream_stream is not None:
+            return grpc.stream_stream_rpc_method_handler(_wrap(handler.stream_stream, True), parse, ser)
+        return handler
