@@ -16,7 +16,7 @@ REDKITCHEN_CAMERA = "PINHOLE 640 480 525.505 525.505 320 240"
 REDKITCHEN_POSES = "pgt_sfm_seq01.txt"
 
 LOCALIZATION_SUITES = ("redkitchen", "redkitchen-split", "synthetic-walk", "synthetic-flight")
-SUITES = (*LOCALIZATION_SUITES, "throughput", "map")
+SUITES = (*LOCALIZATION_SUITES, "robust", "throughput", "map")
 # The peers run next to our engine in every localization suite.
 PEERS = ("global-every-frame", "pycolmap-sift")
 OURS = "sfmloc"
@@ -30,6 +30,13 @@ SUITE_HELP = {
     "synthetic-walk": "exact ground truth: `sfmloc synth` room, walking video (seed fixed); map from the "
     "exact COLMAP model",
     "synthetic-flight": "exact ground truth: quadrotor-like flight with fast yaw bursts (seed fixed)",
+    "robust": "the data users bring (issue 9's test bed), our engine and pycolmap-sift on the "
+    "same frames of every row: image size (synthetic walk at 640x480, 1280x960, 3072x2048 "
+    "against the 640x480 map; redkitchen upsampled to 1920x1440), map density (synthetic "
+    "mapping views at 1x, 3x, 6x the spacing; redkitchen maps from every 10th, 30th, 60th "
+    "frame), scene scale (the room x0.01, x1, x100) and motion (walk, flight, orbit around the "
+    "table at 30, 10, 3 Hz). Targets per row: localized >= the peer's, median error <= 1.5x the "
+    "peer's, 0 wrong poses, no crash (--robust-rows to choose rows)",
     "throughput": "1, 2, 4, 8 clients streaming redkitchen JPEGs over Zenoh (loopback, no multicast) at "
     "30 Hz each to one `sfmloc serve` process: delivered rate, dropped fraction, latency p50/p99",
     "map": "build time, bundle size, load time and resident memory (fresh process) of the redkitchen "
@@ -85,6 +92,16 @@ class BenchConf(StrictModel):
     rate_hz: float = Field(30.0, gt=0)
     duration_s: float = Field(10.0, gt=0)
     workers: int = Field(0, ge=0)  # server workers (0: one per core)
+    # The robust suite: frames per row (30 Hz span of the synthetic and redkitchen rows; the
+    # 10 and 3 Hz rows keep every 3rd / 10th of it), frames of the large-image rows (the
+    # 3072x2048 row 2/5 of them), frames per row for the peer (evenly strided; half on the
+    # 1280x960 and 1920x1440 rows, a quarter at 3072x2048), rows to run (names or groups, shell
+    # patterns; None: all) and a time budget per method and row (over it a row stops, saying so).
+    robust_frames: int = Field(300, ge=2)
+    robust_large_frames: int = Field(20, ge=2)
+    robust_peer_frames: int = Field(20, ge=1)
+    robust_rows: Optional[list[str]] = None
+    robust_budget_s: float = Field(150.0, gt=0)
     reuse: bool = False  # reuse maps and synthetic data already under OUT/work
     quick: bool = False
 
@@ -94,6 +111,7 @@ def quick_conf(**changes) -> BenchConf:
     base = {
         "frames": 60, "peer_frames": 12, "synth_frames": 40, "synth_mapping_views": 40, "tune_frames": 6,
         "tune_ratios": [0.8], "tune_max_errors": [12.0], "tune_ef": [64], "clients": [1, 2], "duration_s": 3.0,
+        "robust_frames": 30, "robust_large_frames": 4, "robust_peer_frames": 4,
         "quick": True,
     }
     base.update(changes)

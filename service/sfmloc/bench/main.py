@@ -192,6 +192,11 @@ def targets(results: dict) -> list[dict]:
                         "measured": f"{m['wrong_poses']} frames (limit "
                                     f"{m['wrong_position_limit']:.3g} map units"
                                     f"{_by_status(m['wrong_statuses'])})"})
+    rb = results["suites"].get("robust")
+    if rb:
+        from .robust import targets as robust_targets
+
+        out += robust_targets(rb)
     return out
 
 
@@ -263,6 +268,14 @@ def main(conf: BenchConf, out: str | Path, *, progress: Progress | None = None, 
         results["suites"][name] = suite_results(prep, recs, conf, out, {
             "sift_points": sm.n_points, "sift_descriptors": int(len(sm.desc))})
         log.info("%s done (%.0f s so far)", name, time.perf_counter() - t_start)
+
+    if "robust" in conf.suites:
+        from .robust import run_robust
+
+        log.info("== robust: %s", ", ".join(conf.robust_rows) if conf.robust_rows else "every row")
+        results["suites"]["robust"] = run_robust(conf, work, progress, preps, sift_conf)
+        results["suites"]["robust"]["sift_peer_tuned"] = "sift_tuning" in results
+        log.info("robust done (%.0f s so far)", time.perf_counter() - t_start)
 
     need_real = [s for s in ("map", "throughput") if s in conf.suites]
     if need_real:

@@ -29,8 +29,10 @@ from .report import (
     ratio_lines,
     table2_rows,
     throughput_rows,
+    verdict,
     wrong_pose_rule,
 )
+from .robust_report import ROBUST_HEADER, robust_note, robust_rows
 
 BEGIN = "<!-- results:begin -->"
 END = "<!-- results:end -->"
@@ -64,6 +66,10 @@ def render_block(results: dict, source: str = "docs/results.json") -> str:
         if any(n.startswith("redkitchen") for n in localization_suites(results)):
             L += ["Ground truth: redkitchen's `pgt_sfm_seq01.txt` is a COLMAP (SIFT) SfM pseudo ground truth, which "
                   "favours SIFT-based estimates; the synthetic suites have exact ground truth.", ""]
+    if robust_rows(results):
+        L += ["**Robust suite** (the data users bring; ours / pycolmap-sift on the same frames):",
+              "",
+              markdown_table(ROBUST_HEADER, robust_rows(results)), "", robust_note(results), ""]
     if throughput_rows(results):
         t = results["suites"]["throughput"]
         L += [f"**Throughput**: clients streaming at {t['rate_hz']:g} Hz each to one `sfmloc serve` "
@@ -74,8 +80,11 @@ def render_block(results: dict, source: str = "docs/results.json") -> str:
         L += [f"**Map**: {map_line(mp)}.", ""]
     tg = results.get("targets", [])
     if tg:
-        L += ["**Targets**:", ""] + [f"- {'met' if t['met'] else '**missed**'}: {t['target']}: {t['measured']}"
-                                     for t in tg] + [""]
+        L += ["**Targets**:", ""]
+        for t in tg:
+            v = verdict(t)
+            L.append(f"- {v if v == 'met' else f'**{v}**'}: {t['target']}: {t['measured']}")
+        L += [""]
     L.append(END)
     return "\n".join(L)
 

@@ -106,6 +106,11 @@ COMPARE_HEADER = ["Suite", "Method", "frames", "localized", "≤5 cm/5°",
                   "CPU (ms)", "med. pos (cm)", "med. rot (°)", "wrong poses", "ours faster by"]
 
 
+def verdict(t: dict) -> str:
+    """A target's state: met, missed, or skipped (``met`` None: not measured, e.g. no data)."""
+    return "skipped" if t.get("met") is None else ("met" if t["met"] else "missed")
+
+
 def throughput_rows(results: dict) -> list[list[str]]:
     t = results.get("suites", {}).get("throughput")
     if not t:
@@ -152,6 +157,11 @@ def summary_text(results: dict) -> str:
         parts += ["Table 2 (our engine, all frames of each suite)", text_table(TABLE2_HEADER, table2_rows(results)), "",
                   "Side by side on the same frames", text_table(COMPARE_HEADER, compare_rows(results)), ""]
         parts += ratio_lines(results) + [""]
+    from .robust_report import ROBUST_HEADER, robust_rows
+
+    if robust_rows(results):
+        parts += ["Robust suite (ours / pycolmap-sift)",
+                  text_table(ROBUST_HEADER, robust_rows(results)), ""]
     if throughput_rows(results):
         parts += ["Throughput (one sfmloc serve, Zenoh loopback)",
                   text_table(THROUGHPUT_HEADER, throughput_rows(results)), ""]
@@ -159,7 +169,7 @@ def summary_text(results: dict) -> str:
     if m:
         parts.append("map " + map_line(m))
     for t in results.get("targets", []):
-        parts.append(f"target {'MET   ' if t['met'] else 'MISSED'} {t['target']}: {t['measured']}")
+        parts.append(f"target {verdict(t).upper():7s}{t['target']}: {t['measured']}")
     parts.append(f"wall time {results.get('wall_s', float('nan')):.0f} s")
     return "\n".join(parts)
 
@@ -262,10 +272,13 @@ def write_report(results: dict, out: Path) -> Path:
     targets = results.get("targets", [])
     if targets:
         L += ["## Targets", ""]
-        L += [f"- {'**met**' if t['met'] else '**missed**'}: {t['target']}: {t['measured']}" for t in targets]
+        L += [f"- **{verdict(t)}**: {t['target']}: {t['measured']}" for t in targets]
         L += [""]
     for name in localization_suites(results):
         L += _suite_section(name, results["suites"][name])
+    from .robust_report import robust_section
+
+    L += robust_section(results)
     tun = results.get("sift_tuning")
     if tun:
         L += _tuning_section(tun)

@@ -55,6 +55,7 @@ class Prepared:
     bundle_path: Path
     sift_map_path: Path
     info: dict = field(default_factory=dict)
+    fps: float = 30.0  # the frames' clock: frame k at k / fps seconds
 
     @property
     def indices(self) -> list[int]:
@@ -103,10 +104,28 @@ def restrict_pose_file(src: Path, dst: Path, first: int, last: int) -> int:
     return len(lines)
 
 
-def prepare_redkitchen(conf: BenchConf, work: Path, split: bool, progress: Progress) -> Prepared:
+def build_known_poses_maps(name: str, images: Path, poses: Path, camera: Camera, stride: int,
+                           maps: Path, work: Path, sift_path: Path, progress: Progress) -> Path:
+    """Our bundle ``maps/name`` from every ``stride``-th posed image (the builder's known-poses
+    path) and the SIFT peer's map of the very same triangulated points; the bundle's path."""
     from ..mapping import build
     from ..mapping.bundle import MapBundle
 
+    sfm_dir = _fresh_dir(work / "sfm")
+    sfm_conf = _sfm_conf()
+    t0 = time.perf_counter()
+    path = build.main(build.preset("default"), name, maps, images=images, poses=poses,
+                      camera=camera, stride=stride, sfm_conf=sfm_conf, workdir=sfm_dir,
+                      progress=progress)
+    log.info("%s: bundle built in %.1f s", name, time.perf_counter() - t0)
+    bundle = MapBundle(maps / name, verify=False)
+    ids = bundle.array("point_ids")
+    SiftMap.from_sfm_workdir(_kept_workdir(sfm_dir), ids, sfm_conf.model_dump()).save(sift_path)
+    shutil.rmtree(sfm_dir, ignore_errors=True)  # the database is no longer needed
+    return Path(path)
+
+
+def prepare_redkitchen(conf: BenchConf, work: Path, split: bool, progress: Progress) -> Prepared:
     name = "redkitchen-split" if split else "redkitchen"
     data = Path(conf.data)
     poses = data / conf.poses
@@ -137,27 +156,25 @@ def prepare_redkitchen(conf: BenchConf, work: Path, split: bool, progress: Progr
         if split:
             k = restrict_pose_file(poses, map_poses, 0, n // 2 - 1)
             log.info("%s: %d poses of frames 0-%d in %s", name, k, n // 2 - 1, map_poses)
-        sfm_dir = _fresh_dir(suite_work / "sfm")
-        sfm_conf = _sfm_conf()
-        t0 = time.perf_counter()
-        build.main(build.preset("default"), name, work / "maps", images=data, poses=map_poses, camera=camera,
-                   stride=stride, sfm_conf=sfm_conf, workdir=sfm_dir, progress=progress)
-        log.info("%s: bundle built in %.1f s", name, time.perf_counter() - t0)
-        bundle = MapBundle(bundle_path, verify=False)
-        sfm_dump = sfm_conf.model_dump()
-        SiftMap.from_sfm_workdir(_kept_workdir(sfm_dir), bundle.array("point_ids"), sfm_dump).save(sift_path)
-        shutil.rmtree(sfm_dir, ignore_errors=True)  # the database is no longer needed
+        build_known_poses_maps(name, data, map_poses, camera, stride, work / "maps", suite_work,
+                               sift_path, progress)
         stamp.write_text(json.dumps(source_id))
     gt = load_groundtruth(poses, source.names(), [source.stamp(i) for i in range(n)], source.fps)
     return Prepared(name, "real", data, camera, gt, start, _limit(count, conf), bundle_path, sift_path, info)
 
 
 # --------------------------------------------------------------------------- synthetic
-def prepare_synthetic(conf: BenchConf, work: Path, kind: str, progress: Progress) -> Prepared:
-    from ..io.colmap import read_model
-    from ..io.poses import write_colmap_list
-    from ..mapping import build, sfm
+def synth_conf(conf: BenchConf, kind: str):
+    """The bench's synthetic room (seed, mapping views, video length), trajectory ``kind``."""
     from ..synth.config import preset as synth_preset
+
+    return synth_preset(kind if kind in ("flight", "orbit") else "default", seed=conf.seed,
+                        mapping_views=conf.synth_mapping_views,
+                        trajectory={"n_frames": conf.synth_frames})
+
+
+def prepare_synthetic(conf: BenchConf, work: Path, kind: str, progress: Progress) -> Prepared:
+    from ..mapping import build
     from ..synth.main import run as synth_run
 
     name = f"synthetic-{kind}"
@@ -165,8 +182,7 @@ def prepare_synthetic(conf: BenchConf, work: Path, kind: str, progress: Progress
     data = suite_work / "data"
     bundle_path = work / "maps" / name
     sift_path = suite_work / "sift-map.npz"
-    sconf = synth_preset("flight" if kind == "flight" else "default", seed=conf.seed,
-                         mapping_views=conf.synth_mapping_views, trajectory={"n_frames": conf.synth_frames})
+    sconf = synth_conf(conf, kind)
     stamp = suite_work / "synth-conf.json"
     same_data = conf.reuse and (data / "scene.json").is_file() and stamp.is_file() and \
         json.loads(stamp.read_text()) == sconf.model_dump()
@@ -183,24 +199,35 @@ def prepare_synthetic(conf: BenchConf, work: Path, kind: str, progress: Progress
     else:
         build.main(build.preset("default"), name, work / "maps", colmap=data / "sparse", images=data / "images",
                    progress=progress)
-        # The SIFT peer's map: SIFT of the same mapping images triangulated at their exact poses.
-        model = read_model(data / "sparse")
-        ims = sorted(model.images.values(), key=lambda im: im.name)
-        pose_file = write_colmap_list(suite_work / "map_poses.txt", [im.name for im in ims],
-                                      [im.cam_from_world for im in ims])
-        sfm_dir = _fresh_dir(suite_work / "sfm")
-        sfm_conf = _sfm_conf()
-        rec = sfm.triangulate_known_poses(data / "images", pose_file, camera, conf=sfm_conf, workdir=sfm_dir,
-                                          progress=progress)
-        ids = np.array(sorted(rec.points3D), np.int64)
-        SiftMap.from_sfm_workdir(_kept_workdir(sfm_dir), ids, sfm_conf.model_dump()).save(sift_path)
-        shutil.rmtree(sfm_dir, ignore_errors=True)
+        build_sift_map_of_model(data / "sparse", data / "images", camera, suite_work, sift_path,
+                                progress)
     source = FrameSource(data / "video")
     n = len(source)
     gt = load_groundtruth(data / "groundtruth.tum", source.names(), [source.stamp(i) for i in range(n)], source.fps)
     info = {"map_images": f"{conf.synth_mapping_views} rendered mapping views (exact COLMAP model)",
             "trajectory": kind, "seed": conf.seed}
     return Prepared(name, "synthetic", data / "video", camera, gt, 0, _limit(n, conf), bundle_path, sift_path, info)
+
+
+def build_sift_map_of_model(model_dir: Path, images: Path, camera: Camera, work: Path,
+                            sift_path: Path, progress: Progress) -> Path:
+    """The SIFT peer's map: SIFT of the model's images triangulated at the model's exact poses."""
+    from ..io.colmap import read_model
+    from ..io.poses import write_colmap_list
+    from ..mapping import sfm
+
+    model = read_model(model_dir)
+    ims = sorted(model.images.values(), key=lambda im: im.name)
+    pose_file = write_colmap_list(work / "map_poses.txt", [im.name for im in ims],
+                                  [im.cam_from_world for im in ims])
+    sfm_dir = _fresh_dir(work / "sfm")
+    sfm_conf = _sfm_conf()
+    rec = sfm.triangulate_known_poses(images, pose_file, camera, conf=sfm_conf, workdir=sfm_dir,
+                                      progress=progress)
+    ids = np.array(sorted(rec.points3D), np.int64)
+    SiftMap.from_sfm_workdir(_kept_workdir(sfm_dir), ids, sfm_conf.model_dump()).save(sift_path)
+    shutil.rmtree(sfm_dir, ignore_errors=True)
+    return sift_path
 
 
 def prepare(name: str, conf: BenchConf, work: Path, progress: Progress) -> Prepared:
@@ -233,7 +260,7 @@ def run_suite(prep: Prepared, conf: BenchConf, sift_conf, progress: Progress,
     from .sift_peer import SiftLocalizer
 
     bundle = MapBundle(prep.bundle_path)
-    source = FrameSource(prep.frames_dir)
+    source = FrameSource(prep.frames_dir, fps=prep.fps)
     log.info("%s: our engine on %d frames", prep.name, prep.count)
     ours, _decode = replay(
         bundle, source, prep.camera, EngineConf(), prep.groundtruth, start=prep.start, max_frames=prep.count,

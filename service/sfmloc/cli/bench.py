@@ -51,6 +51,15 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--suite", action="append", choices=SUITES, metavar="NAME",
                    help="run this suite (repeatable; default all): " + ", ".join(SUITES))
+    p.add_argument("--suites", metavar="A,B",
+                   help="the same as --suite, comma-separated (e.g. --suites robust)")
+    p.add_argument("--robust-rows", metavar="PATTERNS",
+                   help="robust suite: only these rows, comma-separated names or groups, shell "
+                   "patterns (e.g. 'size-*,motion'; default all)")
+    p.add_argument("--robust-frames", type=int,
+                   help="robust suite: 30 Hz frames per row (default 300)")
+    p.add_argument("--robust-peer-frames", type=int,
+                   help="robust suite: peer frames per row (default 20)")
     p.add_argument("--out", default="bench-out", help="output folder (default bench-out)")
     p.add_argument("--data", help="redkitchen-like folder (frame-NNNNNN.color.jpg + pgt_sfm_seq01.txt); "
                    f"default {DEFAULT_DATA}")
@@ -76,9 +85,23 @@ def run(args: argparse.Namespace) -> int:
     from ..bench.report import summary_text
     from .progress import ProgressPrinter
 
+    from ..bench.config import SUITES
+    from ..errors import InputError
+
     changes: dict = {}
-    if args.suite:
-        changes["suites"] = list(dict.fromkeys(args.suite))
+    listed = [s.strip() for s in (args.suites or "").split(",") if s.strip()]
+    chosen = list(args.suite or []) + listed
+    bad = [s for s in chosen if s not in SUITES]
+    if bad:
+        raise InputError(f"unknown suite(s) {', '.join(bad)}; choose from {', '.join(SUITES)}")
+    if chosen:
+        changes["suites"] = list(dict.fromkeys(chosen))
+    if args.robust_rows:
+        changes["robust_rows"] = [s.strip() for s in args.robust_rows.split(",") if s.strip()]
+    if args.robust_frames is not None:
+        changes["robust_frames"] = args.robust_frames
+    if args.robust_peer_frames is not None:
+        changes["robust_peer_frames"] = args.robust_peer_frames
     if args.data:
         changes["data"] = args.data
     if args.frames is not None:
@@ -99,6 +122,10 @@ def run(args: argparse.Namespace) -> int:
         changes["reuse"] = True
     conf = quick_conf(**changes) if args.quick else BenchConf(**changes)
     command = "sfmloc bench " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if len(sys.argv) > 2 else "sfmloc bench"
+    if conf.robust_rows and "robust" in conf.suites:
+        from ..bench.robust import select_rows
+
+        select_rows(conf.robust_rows)  # a bad pattern fails now, not after the other suites
     bar = ProgressPrinter()
     path = main(conf, args.out, progress=bar, command=command)
     bar.close()

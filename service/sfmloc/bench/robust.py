@@ -1,0 +1,836 @@
+"""The ``robust`` suite (issue 9's test bed): our engine and the pycolmap-sift peer, on the same
+frames, on the data users bring: other image sizes, sparser maps, other scene scales, other
+motions and frame rates. One row per case, four groups:
+
+- image size: the synthetic walk rendered at 640x480, 1280x960 and 3072x2048 (focal length
+  scaled with the width) against the map of 640x480 mapping views; redkitchen frames upsampled
+  3x to 1920x1440 (bicubic, intrinsics x3) against the map of 640x480 frames;
+- map density: the synthetic map from every 1st, 3rd, 6th mapping view (1x, 3x, 6x the
+  spacing); redkitchen maps from every 10th, 30th, 60th frame;
+- scene scale: the synthetic room's model, map and ground truth scaled by 0.01 and 100 (points
+  and camera centres; the images are the same files); the peer's map is its 1x map scaled
+  (triangulation at scaled poses gives scaled points: its thresholds are in pixels and angles);
+- motion: walk, flight and an orbit around the table (with a crate on it) at 30 Hz, and the
+  same frames subsampled to 10 and 3 Hz (every 3rd / 10th frame, stamps kept).
+
+Rows that are the same run (640x480 = 1x density = scale 1 = walk at 30 Hz) run once. Our
+engine replays every frame of a row as a video; the peer runs on evenly strided frames (on
+redkitchen, never a map image of the every-10th map); both are compared on those frames. A
+crash of either method, or of a row's preparation, is recorded in the row and the suite goes
+on; a method over the row's time budget stops and the row says so.
+
+``run_robust(conf, work, progress, preps, sift_conf) -> dict`` is the suite's results entry.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import json
+import logging
+import math
+import time
+import traceback
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..cameras import Camera
+from ..errors import InputError
+from ..eval.groundtruth import load_groundtruth
+from ..eval.metrics import FrameRecord
+from ..io.frames import FrameSource
+from . import robust_data
+from .config import OURS, BenchConf
+from .stats import method_summary
+from .suites import (
+    Prepared,
+    build_known_poses_maps,
+    build_sift_map_of_model,
+    prepare_redkitchen,
+    prepare_synthetic,
+    synth_conf,
+)
+
+log = logging.getLogger(__name__)
+
+Progress = Callable[[str, float, str], None]
+PEER = "pycolmap-sift"
+GROUPS = ("image size", "map density", "scene scale", "motion")
+# Targets per row: our median position error at most this multiple of the peer's.
+MEDIAN_ERROR_FACTOR = 1.5
+SIZES = ((1280, 960), (3072, 2048))
+DENSITIES = (1, 3, 6)
+REDKITCHEN_STRIDES = (10, 30, 60)
+SCALES = (0.01, 100.0)
+MOTIONS = ("walk", "flight", "orbit")
+RATES_HZ = (30, 10, 3)
+VIDEO_HZ = 30
+
+
+@dataclass(frozen=True)
+class RowSpec:
+    name: str
+    group: str
+    text: str
+    real: bool = False  # needs the redkitchen data
+
+
+def _scale_tag(s: float) -> str:
+    return f"{s:g}".replace(".", "p")
+
+
+def row_specs() -> list[RowSpec]:
+    rows = [RowSpec("size-640x480", "image size", "synthetic walk at 640x480, the map's size")]
+    rows += [
+        RowSpec(f"size-{w}x{h}", "image size", f"the same walk rendered at {w}x{h}")
+        for w, h in SIZES
+    ]
+    rows.append(
+        RowSpec(
+            "redkitchen-1920x1440",
+            "image size",
+            "redkitchen upsampled 3x, intrinsics x3; map from every 10th 640x480 frame",
+            real=True,
+        )
+    )
+    rows += [
+        RowSpec(
+            f"density-{k}x",
+            "map density",
+            f"synthetic map from every {k} of the 120 mapping views"
+            if k > 1
+            else "synthetic map from all mapping views",
+        )
+        for k in DENSITIES
+    ]
+    rows += [
+        RowSpec(
+            f"redkitchen-every-{k}th",
+            "map density",
+            f"redkitchen map from every {k}th frame",
+            real=True,
+        )
+        for k in REDKITCHEN_STRIDES
+    ]
+    rows.append(RowSpec("scale-1", "scene scale", "the synthetic room as rendered (metres)"))
+    rows += [
+        RowSpec(
+            f"scale-{s:g}",
+            "scene scale",
+            f"the room scaled by {s:g}: points and poses, images unchanged",
+        )
+        for s in SCALES
+    ]
+    rows += [
+        RowSpec(
+            f"{kind}-{hz}hz",
+            "motion",
+            f"synthetic {kind}"
+            + (" around the table" if kind == "orbit" else "")
+            + (
+                f", every {VIDEO_HZ // hz}th frame of the 30 Hz video"
+                if hz != VIDEO_HZ
+                else " at 30 Hz"
+            ),
+        )
+        for kind in MOTIONS
+        for hz in RATES_HZ
+    ]
+    return rows
+
+
+ROWS: tuple[RowSpec, ...] = tuple(row_specs())
+
+
+def select_rows(patterns: list[str] | None) -> list[RowSpec]:
+    """Rows whose name or group matches one of ``patterns`` (shell patterns); all for None."""
+    if not patterns:
+        return list(ROWS)
+    out = [
+        r
+        for r in ROWS
+        if any(fnmatch.fnmatch(r.name, p) or fnmatch.fnmatch(r.group, p) for p in patterns)
+    ]
+    unmatched = [
+        p
+        for p in patterns
+        if not any(fnmatch.fnmatch(r.name, p) or fnmatch.fnmatch(r.group, p) for r in ROWS)
+    ]
+    if unmatched:
+        raise InputError(
+            f"--robust-rows: {', '.join(unmatched)} match no row; rows: "
+            f"{', '.join(r.name for r in ROWS)}; groups: {', '.join(GROUPS)}"
+        )
+    return out
+
+
+# Frames of the large-image rows: rendering, our engine while it relocalizes and SIFT all
+# cost about in proportion to the pixels (a 3072x2048 frame takes ~20x a 640x480 one), so the
+# 6 MP row gets 2/5 of the large-image frames and the peer a quarter of its frames there.
+LARGE_PIXELS = 1.5 * 640 * 480
+HUGE_PIXELS = 4_000_000
+
+
+def large_row_frames(conf: BenchConf, pixels: int) -> int:
+    n = conf.robust_large_frames
+    return max(2, 2 * n // 5) if pixels > HUGE_PIXELS else n
+
+
+def peer_row_frames(conf: BenchConf, pixels: int) -> int:
+    n = conf.robust_peer_frames
+    if pixels > HUGE_PIXELS:
+        return max(1, n // 4)
+    return max(1, n // 2) if pixels > LARGE_PIXELS else n
+
+
+# --------------------------------------------------------------------------- the rows' data
+class RobustData:
+    """Builds each row's inputs once (maps, videos, derived frame folders) under ``work/robust``,
+    reusing the other suites' data and maps when they ran in the same bench run; a failure is
+    remembered and raised again for every row that needs the same input."""
+
+    def __init__(
+        self,
+        conf: BenchConf,
+        work: Path,
+        progress: Progress,
+        preps: dict[str, Prepared] | None = None,
+    ):
+        self.conf, self.work, self.progress = conf, Path(work), progress
+        self.preps = dict(preps or {})
+        self.root = self.work / "robust"
+        self.root.mkdir(parents=True, exist_ok=True)
+        self._memo: dict = {}
+
+    def _once(self, key, fn):
+        if key not in self._memo:
+            try:
+                self._memo[key] = (True, fn())
+            except Exception as exc:  # noqa: BLE001 - remembered and raised again for every row
+                self._memo[key] = (False, exc)
+        ok, value = self._memo[key]
+        if not ok:
+            raise value
+        return value
+
+    def _cached(self, folder: Path, key: dict, make: Callable[[], None]) -> Path:
+        """Run ``make`` (it fills ``folder``) unless --reuse and ``key`` made ``folder``."""
+        stamp = folder / "robust-source.json"
+        if self.conf.reuse and stamp.is_file() and json.loads(stamp.read_text()) == key:
+            log.info("robust: reusing %s", folder)
+            return folder
+        folder.mkdir(parents=True, exist_ok=True)
+        stamp.unlink(missing_ok=True)
+        make()
+        stamp.write_text(json.dumps(key))
+        return folder
+
+    # ----------------------------------------------------------------- synthetic
+    def base(self) -> Prepared:
+        """The synthetic walk, its 120-view map and the peer's map (the synthetic-walk suite's)."""
+        return self._once(
+            "base",
+            lambda: (
+                self.preps.get("synthetic-walk")
+                or prepare_synthetic(self.conf, self.work, "walk", self.progress)
+            ),
+        )
+
+    def video(self, kind: str, size: tuple[int, int] | None = None) -> tuple[Path, Camera]:
+        """Frames of trajectory ``kind`` at ``size`` (default 640x480): the synthetic suites'
+        when they ran, else rendered (large sizes: only the large-image rows' frames)."""
+
+        def make():
+            if size is None and kind == "walk":
+                b = self.base()
+                return b.frames_dir, b.camera
+            if size is None and f"synthetic-{kind}" in self.preps:
+                p = self.preps[f"synthetic-{kind}"]
+                return p.frames_dir, p.camera
+            sconf = synth_conf(self.conf, kind)
+            w, h = size or (sconf.width, sconf.height)
+            n = (
+                self.large_frames(size)
+                if size
+                else min(self.conf.robust_frames, sconf.trajectory.n_frames)
+            )
+            folder = self.root / f"video-{kind}-{w}x{h}"
+            key = {"synth": sconf.model_dump(mode="json"), "size": [w, h], "frames": n}
+            self.progress(f"robust: render {kind} {w}x{h}", 0.0, f"{n} frames")
+            t0 = time.perf_counter()
+            self._cached(
+                folder, key, lambda: robust_data.render_video(sconf, folder / "frames", n, w, h)
+            )
+            log.info(
+                "robust: %d %s frames at %dx%d in %.1f s", n, kind, w, h, time.perf_counter() - t0
+            )
+            return folder / "frames", Camera.from_json(folder / "frames" / "camera.json")
+
+        return self._once(("video", kind, size), make)
+
+    def large_frames(self, size: tuple[int, int]) -> int:
+        return large_row_frames(self.conf, size[0] * size[1])
+
+    def density_map(self, k: int) -> tuple[Path, Path]:
+        """Our bundle and the peer's map from every ``k``-th synthetic mapping view."""
+
+        def make():
+            b = self.base()
+            if k == 1:
+                return b.bundle_path, b.sift_map_path
+            data = b.frames_dir.parent
+            folder = self.root / f"density-{k}x"
+            name = f"robust-density-{k}x"
+            sift = folder / "sift-map.npz"
+
+            def build():
+                from ..mapping import build as builder
+
+                model, names = robust_data.write_subset_model(data / "sparse", folder / "sparse", k)
+                log.info("robust: density %dx: %d of the mapping views", k, len(names))
+                builder.main(
+                    builder.preset("default"),
+                    name,
+                    self.work / "maps",
+                    colmap=model,
+                    images=data / "images",
+                    progress=self.progress,
+                )
+                # The peer's map failing (e.g. too few SIFT tracks) leaves our row to run.
+                failed = folder / "sift-map-error.txt"
+                failed.unlink(missing_ok=True)
+                try:
+                    build_sift_map_of_model(
+                        model, data / "images", b.camera, folder, sift, self.progress
+                    )
+                except Exception as exc:  # noqa: BLE001 - recorded as the peer's failure
+                    failed.write_text(f"building its map: {_error_text(exc)}")
+
+            self._cached(folder, {"base": str(data), "k": k, "synth": self._synth_key()}, build)
+            return self.work / "maps" / name, sift
+
+        return self._once(("density", k), make)
+
+    def _synth_key(self) -> dict:
+        return synth_conf(self.conf, "walk").model_dump(mode="json")
+
+    def scaled(self, s: float) -> tuple[Path, Path, Path]:
+        """Our bundle built from the room's model scaled by ``s``, the peer's map scaled, and the
+        video's ground truth scaled (pose list)."""
+
+        def make():
+            b = self.base()
+            data = b.frames_dir.parent
+            tag = _scale_tag(s)
+            folder = self.root / f"scale-{tag}"
+            name = f"robust-scale-{tag}"
+
+            def build():
+                from ..mapping import build as builder
+                from .sift_peer import SiftMap
+
+                model = robust_data.write_scaled_model(data / "sparse", folder / "sparse", s)
+                builder.main(
+                    builder.preset("default"),
+                    name,
+                    self.work / "maps",
+                    colmap=model,
+                    images=data / "images",
+                    progress=self.progress,
+                )
+                sm = SiftMap.load(b.sift_map_path)
+                SiftMap(sm.points_xyz * s, sm.point_ids, sm.desc, sm.desc_point, sm.sfm).save(
+                    folder / "sift-map.npz"
+                )
+                robust_data.scale_pose_list(data / "video_poses.txt", folder / "video_poses.txt", s)
+
+            self._cached(folder, {"base": str(data), "s": s, "synth": self._synth_key()}, build)
+            return self.work / "maps" / name, folder / "sift-map.npz", folder / "video_poses.txt"
+
+        return self._once(("scale", s), make)
+
+    def subsampled(self, kind: str, hz: int) -> Path:
+        def make():
+            frames, _cam = self.video(kind)
+            files = FrameSource(frames).files[: self.conf.robust_frames]
+            return robust_data.subsample_frames(files, VIDEO_HZ // hz, self.root / f"{kind}-{hz}hz")
+
+        return self._once(("sub", kind, hz), make)
+
+    # ----------------------------------------------------------------- redkitchen
+    def has_redkitchen(self) -> bool:
+        return (Path(self.conf.data) / self.conf.poses).is_file()
+
+    def redkitchen(self) -> Prepared:
+        return self._once(
+            "rk",
+            lambda: (
+                self.preps.get("redkitchen")
+                or prepare_redkitchen(self.conf, self.work, False, self.progress)
+            ),
+        )
+
+    def redkitchen_map(self, stride: int) -> tuple[Path, Path]:
+        def make():
+            rk = self.redkitchen()
+            if stride == rk.info.get("stride"):
+                return rk.bundle_path, rk.sift_map_path
+            folder = self.root / f"redkitchen-every-{stride}th"
+            name = f"robust-redkitchen-every-{stride}th"
+            sift = folder / "sift-map.npz"
+            data = Path(self.conf.data)
+            key = {"data": str(data.resolve()), "poses": self.conf.poses, "stride": stride}
+            self._cached(
+                folder,
+                key,
+                lambda: build_known_poses_maps(
+                    name,
+                    data,
+                    data / self.conf.poses,
+                    rk.camera,
+                    stride,
+                    self.work / "maps",
+                    folder,
+                    sift,
+                    self.progress,
+                ),
+            )
+            return self.work / "maps" / name, sift
+
+        return self._once(("rkmap", stride), make)
+
+    def redkitchen_upsampled(self, factor: int = 3) -> tuple[Path, Camera]:
+        def make():
+            rk = self.redkitchen()
+            n = self.large_frames((rk.camera.width * factor, rk.camera.height * factor))
+            files = FrameSource(rk.frames_dir).files[:n]
+            folder = self.root / f"redkitchen-x{factor}"
+            key = {"data": str(Path(self.conf.data).resolve()), "frames": n, "factor": factor}
+            self._cached(
+                folder,
+                key,
+                lambda: robust_data.upsample_frames(files, factor, folder / "frames", rk.camera),
+            )
+            return folder / "frames", rk.camera.scaled(factor)
+
+        return self._once(("rkup", factor), make)
+
+
+def _groundtruth(pose_file: Path, frames: Path, fps: float) -> list:
+    src = FrameSource(frames, fps=fps)
+    return load_groundtruth(pose_file, src.names(), [src.stamp(i) for i in range(len(src))], fps)
+
+
+def prepare_row(spec: RowSpec, data: RobustData) -> Prepared:
+    """The row's frames, camera, ground truth, our bundle and the peer's map."""
+    conf = data.conf
+    name = f"robust/{spec.name}"
+    if spec.real:
+        rk = data.redkitchen()
+        info = {"exclude_every": 10}  # never compare on a map image of the every-10th map
+        if spec.name == "redkitchen-1920x1440":
+            frames, cam = data.redkitchen_upsampled()
+            n = len(FrameSource(frames))
+            return Prepared(
+                name,
+                "real",
+                frames,
+                cam,
+                _groundtruth(Path(conf.data) / conf.poses, frames, VIDEO_HZ),
+                0,
+                n,
+                rk.bundle_path,
+                rk.sift_map_path,
+                info,
+            )
+        stride = int(spec.name.split("-")[2].rstrip("th"))
+        bundle, sift = data.redkitchen_map(stride)
+        n = min(conf.robust_frames, len(rk.groundtruth))
+        return Prepared(
+            name,
+            "real",
+            rk.frames_dir,
+            rk.camera,
+            rk.groundtruth,
+            0,
+            n,
+            bundle,
+            sift,
+            {**info, "map_stride": stride},
+        )
+    base = data.base()
+    n30 = min(conf.robust_frames, base.count)
+    if spec.name.startswith("size-") and spec.name != "size-640x480":
+        w, h = (int(x) for x in spec.name[5:].split("x"))
+        frames, cam = data.video("walk", (w, h))
+        n = len(FrameSource(frames))
+        return Prepared(
+            name,
+            "synthetic",
+            frames,
+            cam,
+            _groundtruth(frames / "video_poses.txt", frames, VIDEO_HZ),
+            0,
+            n,
+            base.bundle_path,
+            base.sift_map_path,
+            {},
+        )
+    if spec.name.startswith("density-"):
+        bundle, sift = data.density_map(int(spec.name[8:-1]))
+        failed = sift.parent / "sift-map-error.txt"
+        info = {"peer_map_error": failed.read_text()} if failed.is_file() else {}
+        return Prepared(
+            name,
+            "synthetic",
+            base.frames_dir,
+            base.camera,
+            base.groundtruth,
+            0,
+            n30,
+            bundle,
+            sift,
+            info,
+        )
+    if spec.name.startswith("scale-") and spec.name != "scale-1":
+        bundle, sift, gt = data.scaled(float(spec.name[6:]))
+        return Prepared(
+            name,
+            "synthetic",
+            base.frames_dir,
+            base.camera,
+            _groundtruth(gt, base.frames_dir, VIDEO_HZ),
+            0,
+            n30,
+            bundle,
+            sift,
+            {},
+        )
+    if spec.group == "motion":
+        kind, rate = spec.name.split("-")
+        hz = int(rate[:-2])
+        frames, cam = data.video(kind)
+        n = min(conf.robust_frames, len(FrameSource(frames)))
+        if hz != VIDEO_HZ:  # every 3rd / 10th of the same 30 Hz frames, stamps kept
+            frames = data.subsampled(kind, hz)
+            n = len(FrameSource(frames))
+        gt = _groundtruth(_pose_file_of(data, kind), frames, hz)
+        return Prepared(
+            name,
+            "synthetic",
+            frames,
+            cam,
+            gt,
+            0,
+            n,
+            base.bundle_path,
+            base.sift_map_path,
+            {},
+            fps=hz,
+        )
+    # size-640x480, density-1x, scale-1: the synthetic walk as it is
+    return Prepared(
+        name,
+        "synthetic",
+        base.frames_dir,
+        base.camera,
+        base.groundtruth,
+        0,
+        n30,
+        base.bundle_path,
+        base.sift_map_path,
+        {},
+    )
+
+
+def _pose_file_of(data: RobustData, kind: str) -> Path:
+    """The exact video poses of trajectory ``kind`` (COLMAP list, matched by name)."""
+    frames, _ = data.video(kind)
+    for p in (frames / "video_poses.txt", frames.parent / "video_poses.txt"):
+        if p.is_file():
+            return p
+    raise InputError(f"no video_poses.txt next to {frames}")
+
+
+# --------------------------------------------------------------------------- running a row
+def peer_frames(prep: Prepared, n: int) -> list[int]:
+    """``n`` frames evenly strided over the row (skipping excluded map images), centred."""
+    every = prep.info.get("exclude_every")
+    cand = [i for i in prep.indices if not (every and i % every == 0)]
+    if n >= len(cand):
+        return cand
+    stride = len(cand) / n
+    return [cand[int(stride * (j + 0.5))] for j in range(n)]
+
+
+class _OverBudget(Exception):
+    pass
+
+
+def _error_text(exc: BaseException) -> str:
+    tb = traceback.extract_tb(exc.__traceback__)
+    where = f" at {Path(tb[-1].filename).name}:{tb[-1].lineno}" if tb else ""
+    return f"{type(exc).__name__}: {exc}{where}"
+
+
+def run_ours(
+    prep: Prepared, bundle, budget_s: float, progress: Progress
+) -> tuple[list[FrameRecord], str | None, bool]:
+    """Our engine on every frame of the row as a video: (records, error or None, stopped)."""
+    from ..engine import EngineConf
+    from ..eval.replay import replay
+
+    recs: list[FrameRecord] = []
+    t0 = time.perf_counter()
+
+    def on_frame(r: FrameRecord) -> None:
+        recs.append(r)
+        progress(f"{prep.name}:{OURS}", len(recs) / prep.count, f"{r.name} {r.status}")
+        if time.perf_counter() - t0 > budget_s and len(recs) < prep.count:
+            raise _OverBudget
+
+    try:
+        replay(
+            bundle,
+            FrameSource(prep.frames_dir, fps=prep.fps),
+            prep.camera,
+            EngineConf(),
+            prep.groundtruth,
+            start=prep.start,
+            max_frames=prep.count,
+            on_frame=on_frame,
+        )
+    except _OverBudget:
+        return recs, None, True
+    except Exception as exc:  # noqa: BLE001 - a crash is a result of the row
+        log.warning("%s: our engine failed: %s", prep.name, _error_text(exc))
+        return recs, _error_text(exc), False
+    return recs, None, False
+
+
+def run_sift(
+    prep: Prepared, idx: list[int], sift_conf, budget_s: float, progress: Progress
+) -> tuple[list[FrameRecord], str | None, bool]:
+    """The peer on the frames ``idx`` (one untimed warm-up call first, as in every suite)."""
+    from .peers import run_peer, sift_peer
+    from .sift_peer import SiftLocalizer, SiftMap
+
+    recs: list[FrameRecord] = []
+    if prep.info.get("peer_map_error"):
+        return recs, prep.info["peer_map_error"], False
+    t0 = time.perf_counter()
+    try:
+        loc = SiftLocalizer(SiftMap.load(prep.sift_map_path), prep.camera, sift_conf)
+        source = FrameSource(prep.frames_dir, fps=prep.fps)
+        fn = sift_peer(loc)
+        for k, i in enumerate(idx):
+            recs += run_peer(PEER, fn, source, [i], prep.groundtruth, warmup=k == 0)
+            progress(
+                f"{prep.name}:{PEER}", (k + 1) / len(idx), f"{recs[-1].name} {recs[-1].status}"
+            )
+            if time.perf_counter() - t0 > budget_s and k + 1 < len(idx):
+                return recs, None, True
+    except Exception as exc:  # noqa: BLE001 - a crash is a result of the row
+        log.warning("%s: the peer failed: %s", prep.name, _error_text(exc))
+        return recs, _error_text(exc), False
+    return recs, None, False
+
+
+def _nan_le(a: float, b: float) -> bool:
+    return not math.isnan(a) and a <= b
+
+
+def row_targets(
+    ours_same: dict, peer_same: dict, ours_all: dict, ours_error: str | None, ours_stopped: bool
+) -> dict[str, bool]:
+    """The issue's targets for one row: localized >= the peer's, median position error <= 1.5x
+    the peer's (met when the peer has none), no wrong pose on any of our frames, no crash."""
+    p_med = peer_same["median_position_error_m"]
+    o_med = ours_same["median_position_error_m"]
+    return {
+        "localized": ours_same["F"] > 0 and ours_same["F_loc_pct"] >= peer_same["F_loc_pct"],
+        "median_error": math.isnan(p_med) or _nan_le(o_med, MEDIAN_ERROR_FACTOR * p_med),
+        "no_wrong_pose": ours_all["wrong_poses"] == 0,
+        "no_crash": ours_error is None and not ours_stopped,
+    }
+
+
+def summarize_row(ours: list[FrameRecord], peer: list[FrameRecord], scene_scale: float) -> dict:
+    """Ours on all its frames; ours and the peer on the frames both ran (all of ours when the
+    peer ran on none, e.g. its map failed: then only our own targets can fail)."""
+    both = {r.index for r in ours} & {r.index for r in peer} if peer else {r.index for r in ours}
+    return {
+        "ours": method_summary(ours, scene_scale),
+        "ours_same": method_summary([r for r in ours if r.index in both], scene_scale),
+        "peer_same": method_summary([r for r in peer if r.index in both], scene_scale),
+        "peer": method_summary(peer, scene_scale),
+        "same_frames": len(both),
+    }
+
+
+def _map_info(bundle) -> dict:
+    return {
+        "images": bundle.n_images,
+        "points": bundle.n_points,
+        "descriptors": bundle.n_descriptors,
+        "scene_scale": bundle.scene_scale,
+    }
+
+
+def run_row(prep: Prepared, n_peer: int, sift_conf, budget_s: float, progress: Progress) -> dict:
+    """Both methods on one prepared row; its summary, targets, errors and timings."""
+    from ..mapping.bundle import MapBundle
+
+    t0 = time.perf_counter()
+    idx = peer_frames(prep, n_peer)
+    bundle = MapBundle(prep.bundle_path, verify=False)  # built by this run (or --reuse)
+    mp = _map_info(bundle)
+    log.info("%s: our engine on %d frames, the peer on %d", prep.name, prep.count, len(idx))
+    ours, ours_err, ours_stop = run_ours(prep, bundle, budget_s, progress)
+    peer, peer_err, peer_stop = run_sift(prep, idx, sift_conf, budget_s, progress)
+    out = summarize_row(ours, peer, mp["scene_scale"])
+    out.update(
+        {
+            "frames": prep.count,
+            "fps": prep.fps,
+            "peer_frames": len(idx),
+            "image_size": f"{prep.camera.width}x{prep.camera.height}",
+            "map": mp,
+            "ours_error": ours_err,
+            "ours_stopped": ours_stop,
+            "peer_error": peer_err,
+            "peer_stopped": peer_stop,
+            "wall_s": time.perf_counter() - t0,
+        }
+    )
+    out["targets"] = row_targets(
+        out["ours_same"], out["peer_same"], out["ours"], ours_err, ours_stop
+    )
+    out["met"] = all(out["targets"].values())
+    return out
+
+
+def _run_key(p: Prepared) -> tuple:
+    return (
+        str(p.frames_dir),
+        p.start,
+        p.count,
+        p.fps,
+        str(p.bundle_path),
+        str(p.sift_map_path),
+        p.camera.to_string(),
+    )
+
+
+def run_robust(
+    conf: BenchConf,
+    work: Path,
+    progress: Progress,
+    preps: dict[str, Prepared] | None = None,
+    sift_conf=None,
+) -> dict:
+    """Every selected row; a row whose data are missing is skipped with the reason, a row whose
+    preparation fails is recorded as a crash; the suite always goes on."""
+    from .config import SiftPeerConf
+
+    sift_conf = sift_conf or SiftPeerConf()
+    data = RobustData(conf, work, progress, preps)
+    t_start = time.perf_counter()
+    rows, done = [], {}
+    for spec in select_rows(conf.robust_rows):
+        row = {"name": spec.name, "group": spec.group, "text": spec.text}
+        if spec.real and not data.has_redkitchen():
+            row.update(
+                status="skipped",
+                reason=f"redkitchen data not found: {Path(conf.data) / conf.poses} (pass --data)",
+            )
+            log.info("robust/%s: skipped (%s)", spec.name, row["reason"])
+            rows.append(row)
+            continue
+        log.info("== robust/%s: %s", spec.name, spec.text)
+        try:
+            prep = prepare_row(spec, data)
+        except Exception as exc:  # noqa: BLE001 - recorded in the row, the suite goes on
+            row.update(status="crash", reason=f"preparing the row: {_error_text(exc)}")
+            log.warning("robust/%s: %s", spec.name, row["reason"])
+            rows.append(row)
+            continue
+        n_peer = peer_row_frames(conf, prep.camera.width * prep.camera.height)
+        key = _run_key(prep) + (n_peer,)
+        if key in done:
+            same = done[key]
+            row.update(
+                same_as=same["name"],
+                **{k: v for k, v in same.items() if k not in ("name", "group", "text")},
+            )
+        else:
+            try:
+                row.update(
+                    status="ran", **run_row(prep, n_peer, sift_conf, conf.robust_budget_s, progress)
+                )
+            except Exception as exc:  # noqa: BLE001 - e.g. the bundle does not load
+                row.update(status="crash", reason=f"running the row: {_error_text(exc)}")
+            done[key] = row
+        rows.append(row)
+        log.info("robust/%s: %s", spec.name, row_line(row))
+    return {
+        "kind": "robust",
+        "rows": rows,
+        "wall_s": time.perf_counter() - t_start,
+        "frames": {
+            "per_row": conf.robust_frames,
+            "large_image_rows": conf.robust_large_frames,
+            "peer_per_row": conf.robust_peer_frames,
+            "budget_s": conf.robust_budget_s,
+        },
+        "sift_peer_conf": sift_conf.model_dump(),
+    }
+
+
+def row_line(row: dict, verdict: bool = True) -> str:
+    """One line of a row's outcome (ours vs the peer), for the log and the targets."""
+    if row["status"] != "ran":
+        return f"{row['status']}: {row['reason']}"
+    o, p = row["ours_same"], row["peer_same"]
+    text = (
+        f"localized {o['F_loc_pct']:.0f}% vs {p['F_loc_pct']:.0f}%, median "
+        f"{o['median_position_error_m']:.3g} vs {p['median_position_error_m']:.3g} units, "
+        f"wrong poses {row['ours']['wrong_poses']}"
+    )
+    if row["ours_error"]:
+        text += f"; our engine failed: {row['ours_error']}"
+    if row["ours_stopped"]:
+        text += "; our engine stopped at the time budget"
+    if row["peer_error"]:
+        text += f"; the peer failed: {row['peer_error']}"
+    return text + (f", targets {'met' if row['met'] else 'MISSED'}" if verdict else "")
+
+
+def targets(suite: dict) -> list[dict]:
+    """One acceptance entry per row (skipped rows say why)."""
+    out = []
+    for r in suite["rows"]:
+        t = (
+            f"robust/{r['name']}: localized >= peer, median error <= "
+            f"{MEDIAN_ERROR_FACTOR:g}x peer, "
+            "0 wrong poses, no crash"
+        )
+        if r["status"] != "ran":
+            out.append(
+                {
+                    "target": t,
+                    "met": False if r["status"] == "crash" else None,
+                    "measured": f"{r['status']}: {r['reason']}",
+                }
+            )
+            continue
+        missed = [k for k, v in r["targets"].items() if not v]
+        out.append(
+            {
+                "target": t,
+                "met": r["met"],
+                "measured": row_line(r, verdict=False)
+                + (f" (missed: {', '.join(missed)})" if missed else ""),
+            }
+        )
+    return out
