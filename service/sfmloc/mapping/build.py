@@ -19,6 +19,7 @@ Stages, each reported through ``progress(stage, fraction, message)``:
 from __future__ import annotations
 
 import logging
+import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -30,13 +31,15 @@ import numpy as np
 from ..cameras import Camera
 from ..config import StrictModel, merge_presets
 from ..errors import BuildCancelled, BuildError, ImageDecodeError
-from ..features.daisy import DaisyExtractor, Pca
+from ..features.daisy import RAW_DIM, DaisyExtractor
 from ..io.colmap import Reconstruction
 from ..transforms import Rigid3d
 from .bundle import MapData, validate_name, write_bundle
 from .clusters import ClusterConf, cluster_images
+from .desc_store import RawStore
 from .descriptors import DescriptorConf, extract_image_descriptors
 from .index import DescriptorIndex, IndexConf
+from .pca import project_store
 from .refine import RefineConf, refine_points
 from .report import map_report
 
@@ -52,6 +55,13 @@ class BuildConf(StrictModel):
     clusters: ClusterConf = ClusterConf()
     index: IndexConf = IndexConf()
     pca_dim: int = 32
+    # Build memory (issue 17): raw descriptors go to a file in the build's temporary folder
+    # and come back chunk_rows at a time (27 MB of raw DAISY); PCA is fitted on a random
+    # sample of pca_samples. False keeps every raw vector in memory (the old path, 1.7 KB per
+    # descriptor at peak; see desc_store).
+    stream_descriptors: bool = True
+    chunk_rows: int = 65536
+    pca_samples: int = 200_000
 
 
 PRESETS: dict[str, dict[str, Any]] = {
@@ -98,8 +108,26 @@ def assemble(
     conf: BuildConf,
     progress: Progress = _noop,
     should_cancel: CancelCheck | None = None,
+    workdir: str | Path | None = None,
 ) -> tuple[MapData, dict[str, float], dict[str, Any]]:
-    """Descriptors, PCA, clusters and index for a reconstruction -> ``MapData``."""
+    """Descriptors, PCA, clusters and index for a reconstruction -> ``MapData``. Raw
+    descriptors are streamed to a file under ``workdir`` (default: the system's temporary
+    folder), removed afterwards."""
+    folder = None
+    if conf.stream_descriptors:
+        folder = Path(workdir) if workdir is not None else Path(tempfile.gettempdir())
+    with RawStore(RAW_DIM, folder, conf.chunk_rows) as store:
+        return _assemble(rec, image_dir, conf, store, progress, should_cancel)
+
+
+def _assemble(
+    rec: Reconstruction,
+    image_dir: Path,
+    conf: BuildConf,
+    store: RawStore,
+    progress: Progress,
+    should_cancel: CancelCheck | None,
+) -> tuple[MapData, dict[str, float], dict[str, Any]]:
     timings: dict[str, float] = {}
     if not rec.points3D:
         raise BuildError("the reconstruction has no 3D points", stage="sfm")
@@ -123,7 +151,7 @@ def assemble(
     # ---- descriptors
     t0 = time.perf_counter()
     extractor = DaisyExtractor()
-    raws, dpoint, dimage, dlevel, dxy = [], [], [], [], []
+    counts, dpoint, dimage, dlevel, dxy = [], [], [], [], []
     n_corners = 0
     for i, im in enumerate(images):
         if should_cancel and should_cancel():
@@ -132,15 +160,16 @@ def assemble(
         gray = load_gray(image_dir / im.name, cam)
         pts = image_points[i]
         d = extract_image_descriptors(gray, cam, im.cam_from_world, points_xyz[pts], conf.descriptors, extractor)
-        raws.append(d.raw)
+        store.append(d.raw)
+        counts.append(len(d.raw))
         dpoint.append(pts[d.point_index].astype(np.int32))
         dimage.append(np.full(len(d.raw), i, np.int32))
         dlevel.append(d.level)
         dxy.append(d.xy)
         n_corners += d.n_corners
         progress("descriptors", (i + 1) / len(images), f"{im.name}: {len(d.raw)} descriptors")
-    raw = np.concatenate(raws)
-    if len(raw) == 0:
+    n_desc = len(store)
+    if n_desc == 0:
         raise BuildError(
             "no descriptors: no Harris corner lies within tau of a projected 3D point in any image "
             "(are the poses and the camera right?)",
@@ -148,13 +177,17 @@ def assemble(
         )
     timings["descriptors"] = time.perf_counter() - t0
     image_desc_ptr = np.zeros(len(images) + 1, np.int64)
-    image_desc_ptr[1:] = np.cumsum([len(r) for r in raws])
+    image_desc_ptr[1:] = np.cumsum(counts)
+    # Per-descriptor lookups, concatenated once (17 B per descriptor, kept in the map).
+    desc_point, desc_image = np.concatenate(dpoint), np.concatenate(dimage)
+    desc_level, desc_xy = np.concatenate(dlevel), np.concatenate(dxy)
+    del dpoint, dimage, dlevel, dxy
 
     # ---- points moved to where their own full-resolution Harris keypoints triangulate
     t0 = time.perf_counter()
     progress("refine", 0.0, "re-triangulating points at their Harris keypoints")
     points_xyz, moved = refine_points(
-        points_xyz, np.concatenate(dpoint), np.concatenate(dimage), np.concatenate(dlevel), np.concatenate(dxy),
+        points_xyz, desc_point, desc_image, desc_level, desc_xy,
         [rec.cameras[im.camera_id] for im in images], [im.cam_from_world for im in images], conf.refine,
         full_resolution_level=conf.descriptors.up_levels,
     )
@@ -163,12 +196,12 @@ def assemble(
 
     # ---- PCA
     t0 = time.perf_counter()
-    progress("pca", 0.0, f"PCA of {len(raw)} descriptors to {conf.pca_dim} dimensions")
+    progress("pca", 0.0, f"PCA of {n_desc} descriptors to {conf.pca_dim} dimensions")
     try:
-        pca = Pca.fit(raw, dim=conf.pca_dim)
+        desc, pca = project_store(store, conf.pca_dim, conf.pca_samples, progress=progress)
     except ValueError as exc:
         raise BuildError(str(exc), stage="pca") from None
-    desc = pca.project(raw).astype(np.float16)
+    store.close()  # the raw descriptors are no longer needed
     timings["pca"] = time.perf_counter() - t0
     progress("pca", 1.0, "done")
 
@@ -186,9 +219,12 @@ def assemble(
     # ---- index (built from exactly the stored float16 values)
     t0 = time.perf_counter()
     progress("index", 0.0, f"indexing {len(desc)} descriptors")
-    index = DescriptorIndex.build(desc.astype(np.float32), conf.index)
+    index = DescriptorIndex.build(desc, conf.index, chunk_rows=conf.chunk_rows)
+    index_faiss = index.serialize()
+    index_info = {"kind": index.kind, "nlist": index.nlist, "nprobe": index.nprobe}
+    del index  # the serialized copy is what the bundle stores
     timings["index"] = time.perf_counter() - t0
-    progress("index", 1.0, f"{index.kind}, {index.nlist} lists")
+    progress("index", 1.0, f"{index_info['kind']}, {index_info['nlist']} lists")
 
     ip_ptr = np.zeros(len(images) + 1, np.int64)
     ip_ptr[1:] = np.cumsum([len(p) for p in image_points])
@@ -197,10 +233,10 @@ def assemble(
         point_ids=point_ids,
         point_rgb=point_rgb,
         descriptors=desc,
-        desc_point=np.concatenate(dpoint),
-        desc_image=np.concatenate(dimage),
-        desc_level=np.concatenate(dlevel),
-        desc_xy=np.concatenate(dxy),
+        desc_point=desc_point,
+        desc_image=desc_image,
+        desc_level=desc_level,
+        desc_xy=desc_xy,
         image_desc_ptr=image_desc_ptr,
         image_cam_from_world=np.stack(
             [np.concatenate([im.cam_from_world.quat_wxyz, im.cam_from_world.translation]) for im in images]
@@ -214,12 +250,12 @@ def assemble(
         point_clusters_idx=pc_idx,
         pca_mean=pca.mean,
         pca_basis=pca.basis,
-        index_faiss=index.serialize(),
+        index_faiss=index_faiss,
         cameras=cameras,
         image_names=[im.name for im in images],
     )
     info = {
-        "kind": index.kind, "nlist": index.nlist, "nprobe": index.nprobe, "corners_detected": n_corners,
+        **index_info, "corners_detected": n_corners,
         "points_refined": int(moved.sum()),
     }
     return data, timings, info
@@ -297,7 +333,7 @@ def main(
         progress("sfm", 1.0, rec.summary())
         timings["sfm"] = time.perf_counter() - t0
         log.info("reconstruction: %s", rec.summary())
-        data, t_stages, index_info = assemble(rec, image_dir, conf, progress, should_cancel)
+        data, t_stages, index_info = assemble(rec, image_dir, conf, progress, should_cancel, workdir=workdir)
         timings.update(t_stages)
         if should_cancel and should_cancel():
             raise BuildCancelled("cancelled", stage="write")

@@ -57,9 +57,13 @@ class DescriptorIndex:
 
     # ----------------------------------------------------------------- building / storage
     @classmethod
-    def build(cls, descriptors: np.ndarray, conf: IndexConf | None = None, seed: int = 0) -> "DescriptorIndex":
+    def build(
+        cls, descriptors: np.ndarray, conf: IndexConf | None = None, seed: int = 0, chunk_rows: int = 65536
+    ) -> "DescriptorIndex":
+        """Trained on a sample (``conf.train_samples``), filled ``chunk_rows`` at a time, so
+        float16 descriptors are never all converted to float32 at once (build memory)."""
         conf = conf or IndexConf()
-        x = np.ascontiguousarray(descriptors, dtype=np.float32)
+        x = descriptors
         n, d = x.shape
         kind = conf.kind
         nlist = conf.nlist or choose_nlist(n)
@@ -77,10 +81,11 @@ class DescriptorIndex:
             train = x
             if n > conf.train_samples:
                 train = x[np.random.default_rng(seed).choice(n, conf.train_samples, replace=False)]
-            index.train(train)
+            index.train(np.ascontiguousarray(train, dtype=np.float32))
             index.own_fields = True
             quantizer.this.disown()  # the IVF index owns its quantizer from here on
-        index.add(x)
+        for start in range(0, n, max(1, chunk_rows)):
+            index.add(np.ascontiguousarray(x[start : start + chunk_rows], dtype=np.float32))
         return cls(index, conf.nprobe)
 
     def serialize(self) -> np.ndarray:

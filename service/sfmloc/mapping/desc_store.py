@@ -1,0 +1,106 @@
+"""Raw descriptors during a build, held on disk so that peak memory follows the final map.
+
+The raw 104-d float32 DAISY vectors (416 B each) are 6.5x the stored PCA-32 float16 ones and
+are needed only for PCA (a bounded sample) and the projection (one pass). ``RawStore``
+appends them image by image to a flat float32 file in the build's temporary folder and reads
+them back in chunks of ``chunk_rows`` with ordinary reads into one reused buffer: a memory map
+would count every page it touched in the process's resident set, so one pass over a mapped
+file would bring the whole file back into RSS. ``folder=None`` keeps them in memory instead
+(the old path: every raw vector resident; for comparisons and tiny maps).
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+
+class RawStore:
+    def __init__(self, dim: int, folder: str | Path | None = None, chunk_rows: int = 65536) -> None:
+        self.dim = dim
+        self.chunk_rows = max(1, int(chunk_rows))
+        self._n = 0
+        self._mem: list[np.ndarray] | None = None
+        self._file = None
+        self.path: Path | None = None
+        if folder is None:
+            self._mem = []
+        else:
+            Path(folder).mkdir(parents=True, exist_ok=True)
+            fd, name = tempfile.mkstemp(prefix="raw-descriptors-", suffix=".f32", dir=str(folder))
+            self.path = Path(name)
+            self._file = os.fdopen(fd, "w+b")
+
+    def __len__(self) -> int:
+        return self._n
+
+    @property
+    def on_disk(self) -> bool:
+        return self._mem is None
+
+    def append(self, raw: np.ndarray) -> None:
+        raw = np.ascontiguousarray(raw, dtype=np.float32).reshape(-1, self.dim)
+        if self._mem is not None:
+            self._mem.append(raw)
+        else:
+            self._file.write(raw.tobytes())  # an OSError (full disk) names the file
+        self._n += len(raw)
+
+    def chunks(self) -> Iterator[tuple[int, np.ndarray]]:
+        """``(first row, rows)`` in order; on disk the rows are a view of a reused buffer,
+        valid until the next chunk."""
+        if self._mem is not None:
+            self._consolidate()
+            if self._n:
+                yield 0, self._mem[0]
+            return
+        self._file.flush()
+        buf = np.empty((min(self.chunk_rows, max(self._n, 1)), self.dim), np.float32)
+        self._file.seek(0)
+        start = 0
+        while start < self._n:
+            m = min(len(buf), self._n - start)
+            view = buf[:m]
+            got = self._file.readinto(memoryview(view).cast("B"))
+            if got != view.nbytes:
+                raise OSError(f"short read of raw descriptors ({got} of {view.nbytes} bytes)", str(self.path))
+            yield start, view
+            start += m
+
+    def take(self, rows: np.ndarray) -> np.ndarray:
+        """The given rows (any order, no repeats), as a new float32 array in that order."""
+        rows = np.asarray(rows, dtype=np.int64)
+        if self._mem is not None:
+            self._consolidate()
+            return self._mem[0][rows] if self._n else np.zeros((0, self.dim), np.float32)
+        out = np.empty((len(rows), self.dim), np.float32)
+        order = np.argsort(rows, kind="stable")
+        srt = rows[order]
+        for start, chunk in self.chunks():
+            lo, hi = np.searchsorted(srt, [start, start + len(chunk)])
+            if hi > lo:
+                out[order[lo:hi]] = chunk[srt[lo:hi] - start]
+        return out
+
+    def _consolidate(self) -> None:
+        if len(self._mem) > 1:
+            self._mem = [np.concatenate(self._mem)]
+
+    def close(self) -> None:
+        """Remove the file (idempotent)."""
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+        if self.path is not None:
+            self.path.unlink(missing_ok=True)
+        self._mem = [] if self._mem is not None else None
+
+    def __enter__(self) -> "RawStore":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
