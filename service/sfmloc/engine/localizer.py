@@ -37,7 +37,7 @@ from ..features.harris import detect_corners
 from ..mapping.bundle import MapBundle
 from ..transforms import Rigid3d, rotation_angle_deg
 from .config import EngineConf
-from .frame import to_gray
+from .frame import to_gray, to_working, working_scale
 from .matching import global_matching, guided_matching, verify_hypotheses
 from .motion_filter import PoseFilter
 from .pose import PoseEstimate, estimate_pose, estimate_pose_one_to_many, pose_covariance, project
@@ -76,13 +76,19 @@ class Localizer:
     ``localize(frame, stamp)`` processes one video frame (uint8 gray or BGR of the camera's
     size; ``stamp`` in seconds) and returns a ``FrameResult``. Not thread-safe: one frame at a
     time per instance. The bundle is shared read-only between instances.
+
+    Frames finer than the map (``working_scale``) are downscaled once on arrival: ``camera``
+    is the working camera every pixel quantity refers to, ``input_camera`` the caller's.
+    Poses are the same for both (scaling the intrinsics does not move the camera).
     """
 
     def __init__(self, bundle: MapBundle, camera: Camera, conf: EngineConf | None = None) -> None:
         self.bundle = bundle
-        self.camera = camera
         self.conf = conf or EngineConf()
-        self.K = camera.K
+        self.input_camera = camera
+        self.scale = working_scale(camera, bundle.native_focal_px, self.conf.working_scale)
+        self.camera = camera if self.scale == 1.0 else camera.scaled(self.scale)
+        self.K = self.camera.K
         self.extractor = DaisyExtractor()
         self.reset()
 
@@ -164,7 +170,7 @@ class Localizer:
     def localize(self, frame: np.ndarray, stamp: float) -> FrameResult:
         c = self.conf
         timer = _Timer()
-        gray = to_gray(frame, self.camera)
+        gray = to_gray(frame, self.input_camera)
         if self.last_stamp is not None and (stamp - self.last_stamp > c.max_frame_gap_s or stamp < self.last_stamp):
             self.reset()  # a long gap (or time going back): motion and tracks are stale
         dt = 0.0 if self.last_stamp is None else stamp - self.last_stamp
@@ -173,6 +179,7 @@ class Localizer:
         self.frames += 1
         timer.lap("filter")
 
+        gray = to_working(gray, self.scale)
         thr = c.gamma * self.prev_max_response if self.prev_max_response else None
         kps = extract_keypoints(gray, thr, c)
         if kps.max_response > 0:
@@ -388,6 +395,11 @@ def relocalize(
     conf = conf or EngineConf()
     timer = _Timer()
     gray = to_gray(image, camera)
+    # A fine image is described at about the map's resolution (see ``Localizer``); the pose
+    # does not depend on the scaling of the intrinsics.
+    scale = working_scale(camera, bundle.native_focal_px, conf.working_scale)
+    if scale != 1.0:
+        gray, camera = to_working(gray, scale), camera.scaled(scale)
     corners = detect_corners(
         gray, rel_threshold=conf.gamma, max_corners=conf.global_max_keypoints, border=conf.mu // 2
     )

@@ -32,6 +32,7 @@ from ..cameras import Camera
 from ..config import StrictModel, merge_presets
 from ..errors import BuildCancelled, BuildError, ImageDecodeError
 from ..features.daisy import RAW_DIM, DaisyExtractor
+from ..features.pyramid import level_scales
 from ..io.colmap import Reconstruction
 from ..transforms import Rigid3d
 from .bundle import MapData, validate_name, write_bundle
@@ -39,6 +40,7 @@ from .clusters import ClusterConf, cluster_images
 from .desc_store import RawStore
 from .descriptors import DescriptorConf, extract_image_descriptors
 from .index import DescriptorIndex, IndexConf
+from .keypoint_scales import keypoint_scales
 from .pca import project_store
 from .refine import RefineConf, refine_points
 from .report import map_report
@@ -253,6 +255,10 @@ def _assemble(
         index_faiss=index_faiss,
         cameras=cameras,
         image_names=[im.name for im in images],
+    )
+    data.keypoint_scales = keypoint_scales(
+        data.desc_image, data.desc_level, data.image_camera, cameras,
+        level_scales(conf.descriptors.octaves, conf.descriptors.per_octave, conf.descriptors.up_levels),
     )
     info = {
         **index_info, "corners_detected": n_corners,

@@ -3,8 +3,9 @@
 Layout of ``maps/NAME/``::
 
     manifest.json        pydantic ``Manifest``: format, version, build id, counts, builder
-                         parameters, cameras, image names, and for every array its file,
-                         dtype, shape and SHA-256
+                         parameters, cameras, image names, keypoint scales (the focal length
+                         in pixels the descriptors were computed at, ``keypoint_scales``), and
+                         for every array its file, dtype, shape and SHA-256
     manifest.sha256      SHA-256 of manifest.json in ``sha256sum`` format (``sha256sum -c``
                          works): the manifest is covered too, so no byte of a bundle can be
                          edited unnoticed (the manifest holds every array's SHA-256)
@@ -67,6 +68,7 @@ from ..errors import BundleError, InputError
 from ..features.daisy import RAW_DIM, Pca
 from ..transforms import Rigid3d
 from .index import DescriptorIndex
+from .keypoint_scales import keypoint_scales, pyramid_level_scales
 
 BUNDLE_FORMAT = "sfmloc-map-bundle"
 BUNDLE_VERSION = 1
@@ -99,6 +101,18 @@ ARRAY_SPECS: dict[str, tuple[str, int]] = {
     "pca_basis": ("<f4", 2),
     "index_faiss": ("|u1", 1),
 }
+
+
+def _level_scales_of(params: dict[str, Any]) -> list[float] | None:
+    """The pyramid of ``desc_level`` from the builder parameters, None when not recorded."""
+    d = params.get("descriptors") if isinstance(params, dict) else None
+    return pyramid_level_scales(d) if isinstance(d, dict) else None
+
+
+def _computed_keypoint_scales(data: "MapData", params: dict[str, Any]) -> dict[str, Any]:
+    return keypoint_scales(
+        data.desc_image, data.desc_level, data.image_camera, data.cameras, _level_scales_of(params)
+    )
 
 
 def validate_name(name: str) -> str:
@@ -156,6 +170,9 @@ class Manifest(BaseModel):
     cameras: list[dict[str, Any]]
     image_names: list[str]
     arrays: dict[str, ArrayEntry]
+    # Focal lengths (px) the descriptors were computed at (``keypoint_scales``); absent in
+    # bundles written before it, which get it computed at load.
+    keypoint_scales: dict[str, Any] = {}
 
 
 @dataclass
@@ -184,6 +201,7 @@ class MapData:
     index_faiss: np.ndarray
     cameras: list[Camera] = field(default_factory=list)
     image_names: list[str] = field(default_factory=list)
+    keypoint_scales: dict[str, Any] = field(default_factory=dict)
 
     def arrays(self) -> dict[str, np.ndarray]:
         return {name: getattr(self, name) for name in ARRAY_SPECS}
@@ -282,6 +300,7 @@ def write_bundle(
             cameras=[c.to_dict() for c in data.cameras],
             image_names=list(data.image_names),
             arrays=entries,
+            keypoint_scales=data.keypoint_scales or _computed_keypoint_scales(data, params or {}),
         )
         text = manifest.model_dump_json(indent=2).encode()
         for fname, content in (
@@ -490,6 +509,19 @@ class MapBundle:
         q = np.asarray(a["image_cam_from_world"])
         self.image_cam_from_world = [Rigid3d.from_quat_wxyz(r[:4], r[4:]) for r in q]
         self.scene_scale = self._median_depth()
+        self.keypoint_scales = dict(self.manifest.keypoint_scales) or keypoint_scales(
+            np.asarray(a["desc_image"]), np.asarray(a["desc_level"]), self.image_camera, self.cameras,
+            _level_scales_of(self.manifest.params),
+        )
+        try:
+            self.native_focal_px = float(self.keypoint_scales.get("native_focal_px"))
+        except (TypeError, ValueError):
+            self.native_focal_px = float("nan")
+        if not np.isfinite(self.native_focal_px) or self.native_focal_px <= 0:
+            raise BundleError(
+                f"map bundle {self.path}: keypoint_scales.native_focal_px must be a positive number of "
+                f"pixels, got {self.keypoint_scales.get('native_focal_px')!r}"
+            )
 
     def _median_depth(self) -> float:
         """The scene's scale: median depth of every observed point in the camera that sees it
