@@ -443,6 +443,56 @@ def test_follow_builder_announcement_loads_the_map(world, z, grpc_client):
 
 
 # ----------------------------------------------------------------------------- sessions
+def test_a_second_device_under_the_same_client_id_is_refused(world, zep, srv):
+    """Two Zenoh sessions (two devices) streaming under one client id: the second is refused
+    with PERMISSION_DENIED and the first keeps its session (its poses stay correct); once the
+    first has been silent for a few seconds, the second takes over with a fresh session."""
+    from sfmloc.server.sessions import SOURCE_TAKEOVER_S
+
+    cam = camera(world)
+    with client_zenoh(zep) as za, client_zenoh(zep) as zb:
+        got: list = []
+
+        def answered(k: int) -> bool:  # wait_for(seq) means "up to seq": the seqs interleave here
+            return wait_until(lambda: any(p.seq == k for p in got), 60)
+
+        with PoseSubscriber(za, "room", "twin", callback=got.append), \
+                FrameStreamer(za, "room", "twin", cam) as a, FrameStreamer(zb, "room", "twin", cam) as b:
+            assert a.source != b.source
+            assert a.wait_for_server(30) and b.wait_for_server(30)
+            for k in range(20):
+                a.publish(data=world.png[k], encoding="png", seq=k, stamp_ns=int(k * 1e9 / 30))
+                assert answered(k)
+                if k in (5, 10, 15):
+                    b.publish(data=world.png[k], encoding="png", seq=1000 + k, stamp_ns=int(k * 1e9 / 30))
+                    assert answered(1000 + k)
+            mine = [p for p in got if p.seq is not None and p.seq < 1000]
+            theirs = [p for p in got if p.seq is not None and p.seq >= 1000]
+            assert [p.seq for p in mine] == list(range(20))
+            assert len(theirs) == 3 and all(p.error is not None and p.error.code == "PERMISSION_DENIED" for p in theirs)
+            assert "in use by another sender" in theirs[0].error.message
+            assert position_errors(world, mine[3:]).max() < 0.05  # A's track table was not disturbed
+            assert mine[-1].status == "TRACKING"
+            # A goes quiet: B's frames are refused until A has been silent SOURCE_TAKEOVER_S,
+            # then B takes the id over, from a fresh session
+            seq = iter(range(3000, 4000))
+
+            def b_accepted() -> bool:
+                k = next(seq)
+                b.publish(data=world.png[20], encoding="png", seq=k, stamp_ns=int(20 * 1e9 / 30))
+                assert answered(k)
+                return next(p for p in got if p.seq == k).error is None
+
+            assert not b_accepted()  # right after A's last frame: still A's
+            assert wait_until(b_accepted, SOURCE_TAKEOVER_S + 30, every=0.25)
+            for k in range(20, 25):
+                b.publish(data=world.png[k], encoding="png", seq=2000 + k, stamp_ns=int(k * 1e9 / 30))
+                assert answered(2000 + k)
+            taken = [p for p in got if p.seq is not None and 2000 <= p.seq < 3000]
+            assert all(p.error is None for p in taken) and sum(p.localized for p in taken) >= 3
+    assert srv.server.metrics.sessions_closed.get("room", "replaced") >= 1
+
+
 def test_list_and_reset_sessions(world, z, grpc_client):
     poses = stream_lockstep(z, "room", "resettable", world, n=10)
     assert poses[-1].status == "TRACKING"

@@ -78,6 +78,8 @@ class FrameStreamer:
         self.jpeg_quality = jpeg_quality
         self.next_seq = 0
         self.last_put_time = 0.0
+        # The server binds our session to this id: another device under our client id is refused.
+        self.source = str(session.zid())
         self._pub = session.declare_publisher(
             self.key,
             priority=zenoh.Priority.DATA_HIGH,
@@ -120,7 +122,7 @@ class FrameStreamer:
         seq = self.next_seq if seq is None else int(seq)
         self.next_seq = seq + 1
         stamp_ns = time.time_ns() if stamp_ns is None else int(stamp_ns)
-        payload = encode_frame(Frame(seq, stamp_ns, self.camera, encoding, data))
+        payload = encode_frame(Frame(seq, stamp_ns, self.camera, encoding, data, self.source))
         # When the frame went out (perf_counter): a large frame reaches the server before
         # put() returns, so latency is measured from here, not from after publish().
         self.last_put_time = time.perf_counter()

@@ -21,9 +21,14 @@ Frame envelope (msgpack map; the image travels inside it, see "Why one envelope"
     {"seq": uint, "stamp_ns": uint,
      "camera": {"model": "PINHOLE", "width": 640, "height": 480, "params": [fx, fy, cx, cy]},
      "encoding": "gray8" | "bgr8" | "jpeg" | "png",
-     "data": bin}
+     "data": bin,
+     "source": str}            # optional: the sender's Zenoh session id (FrameStreamer sets it)
 
 Raw encodings are row-major uint8, ``width*height`` (gray8) or ``width*height*3`` (bgr8) bytes.
+A session belongs to the ``source`` of its first frame: frames under the same map and client id
+from another source are refused (PERMISSION_DENIED) while the session is active, so two devices
+given one id do not share (and corrupt) one track table; a source silent for a few seconds
+(a device that restarted) is replaced by the new one, whose session starts afresh.
 Unknown keys are ignored (newer clients may add some); missing or mistyped keys are errors.
 
 Pose message (msgpack map), one per processed frame, and one per rejected frame::
@@ -296,6 +301,7 @@ class Frame:
     camera: CameraSpec
     encoding: str
     data: bytes
+    source: str = ""  # the sender's Zenoh session id ("" : not given)
 
     def validate(self) -> "Frame":
         _uint(self.seq, "seq")
@@ -312,20 +318,23 @@ class Frame:
                 f"{self.encoding} data of {len(self.data)} bytes does not match the camera's "
                 f"{self.camera.width}x{self.camera.height} ({n} bytes expected)"
             )
+        if not isinstance(self.source, str) or len(self.source) > 64:
+            raise WireError("source must be a string of at most 64 characters")
         return self
 
 
 def encode_frame(frame: Frame) -> bytes:
     frame.validate()
-    return _pack(
-        {
-            "seq": frame.seq,
-            "stamp_ns": frame.stamp_ns,
-            "camera": frame.camera.to_wire(),
-            "encoding": frame.encoding,
-            "data": bytes(frame.data) if not isinstance(frame.data, bytes) else frame.data,
-        }
-    )
+    d = {
+        "seq": frame.seq,
+        "stamp_ns": frame.stamp_ns,
+        "camera": frame.camera.to_wire(),
+        "encoding": frame.encoding,
+        "data": bytes(frame.data) if not isinstance(frame.data, bytes) else frame.data,
+    }
+    if frame.source:
+        d["source"] = frame.source
+    return _pack(d)
 
 
 def decode_frame(payload: bytes | bytearray | memoryview, max_bytes: int = DEFAULT_MAX_FRAME_BYTES) -> Frame:
@@ -338,6 +347,7 @@ def decode_frame(payload: bytes | bytearray | memoryview, max_bytes: int = DEFAU
         camera=CameraSpec.from_wire(_get(d, "camera", what)),
         encoding=_str(_get(d, "encoding", what), "encoding"),
         data=_get(d, "data", what),
+        source=_str(d.get("source", ""), "source"),
     ).validate()
 
 

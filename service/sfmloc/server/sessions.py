@@ -27,7 +27,7 @@ from typing import Any, Protocol
 from sfmloc_client.wire import ErrorInfo, Frame, PoseMessage, Transform
 
 from ..cameras import Camera
-from ..errors import OverloadError
+from ..errors import OverloadError, PermissionDeniedError
 from .logfmt import event
 from .maps import MapRegistry
 from .metrics import ServerMetrics
@@ -36,6 +36,10 @@ from .workers import WorkerPool
 
 log = logging.getLogger(__name__)
 
+# A session's sender that has been silent this long may be replaced by another one under the
+# same client id (a device that restarted gets a new Zenoh session id); before, the other
+# sender is refused. Short against the idle timeout (30 s), long against a frame interval.
+SOURCE_TAKEOVER_S = 3.0
 UNKNOWN_MAP = "(not loaded)"  # metrics label of frames for maps this server does not host
 
 
@@ -75,6 +79,7 @@ class Session:
     camera: Any = None  # the last CameraSpec seen (validated once, not per frame)
     inflight_t_recv: dict[int, float] = field(default_factory=dict)  # seq -> receipt time
     closed: bool = False
+    source: str = ""  # the sender of its first frame (Zenoh session id); "" = not given
 
     @property
     def mean_latency_ms(self) -> float:
@@ -129,12 +134,22 @@ class SessionManager:
         entry = self.registry.get(map_name)  # MapNotFoundError
         self.metrics.frames_in.inc(map_name, transport)
         key = (map_name, client_id, transport + key_suffix)
+        replaced = None
         with self._lock:
             s = self._by_key.get(key)
+            if s is not None and frame.source != s.source:
+                if time.monotonic() - s.last_seen < SOURCE_TAKEOVER_S:
+                    raise PermissionDeniedError(
+                        f"client id {client_id!r} on map {map_name!r} is in use by another sender; "
+                        "give each device its own client id"
+                    )
+                replaced, s = s, None  # the old sender went quiet (e.g. a device restarted)
             if s is None:
-                s = self._open(key, map_name, client_id, transport, make_sink)
+                s = self._open(key, map_name, client_id, transport, make_sink, frame.source)
             s.last_seen = time.monotonic()
             s.frames += 1
+        if replaced is not None:
+            self.close(replaced, "replaced")
         if s.camera != frame.camera:
             validate_camera(frame.camera, self.max_image_pixels)
             s.camera = frame.camera
@@ -154,7 +169,7 @@ class SessionManager:
         return s
 
     def _open(self, key: tuple[str, str, str], map_name: str, client_id: str, transport: str,
-              make_sink: Callable[[], Sink]) -> Session:
+              make_sink: Callable[[], Sink], source: str = "") -> Session:
         if len(self._by_key) >= self.max_sessions:
             raise OverloadError(f"the server is at its limit of {self.max_sessions} sessions; retry later")
         per_worker = [0] * self.pool.n
@@ -162,7 +177,7 @@ class SessionManager:
             per_worker[other.worker] += 1
         inflight = self.pool.inflight()
         worker = min(range(self.pool.n), key=lambda i: (per_worker[i], inflight[i], i))
-        s = Session(next(self._sid), map_name, client_id, transport, key, worker, make_sink())
+        s = Session(next(self._sid), map_name, client_id, transport, key, worker, make_sink(), source=source)
         self._by_key[key] = s
         self._by_sid[s.sid] = s
         self.metrics.sessions_opened.inc(map_name, transport)
@@ -265,7 +280,8 @@ class SessionManager:
             if s.closed:
                 return
             s.closed = True
-            self._by_key.pop(s.key, None)
+            if self._by_key.get(s.key) is s:  # a replacement may hold the key already
+                del self._by_key[s.key]
             self._by_sid.pop(s.sid, None)
             self._idle.notify_all()
         self.pool.close_session(s.worker, s.sid)
