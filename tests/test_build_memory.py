@@ -73,19 +73,21 @@ def test_streamed_build_equals_the_in_memory_build(room, tmp_path):
 
     rec = read_model(room / "sparse")
     small = {"chunk_rows": 500, "pca_samples": 1500, "index": {"train_samples": 1500, "nlist": 32}}
-    streamed, _, info_s = assemble(
-        rec, room / "images", merge_presets(BuildConf(), stream_descriptors=True, **small), workdir=tmp_path / "w"
-    )
-    memory, _, info_m = assemble(rec, room / "images", merge_presets(BuildConf(), stream_descriptors=False, **small))
+    conf_s = merge_presets(BuildConf(), stream_descriptors=True, **small)
+    conf_m = merge_presets(BuildConf(), stream_descriptors=False, **small)
+    streamed, _, info_s = assemble(rec, room / "images", conf_s, workdir=tmp_path / "w")
+    memory, _, info_m = assemble(rec, room / "images", conf_m)
     n = len(memory.descriptors)
     assert n > 3 * 1500, n  # the samples are a fraction of the map
     assert list((tmp_path / "w").iterdir()) == []  # the raw file is removed
     assert info_s == info_m
-    for name in ("points_xyz", "point_ids", "desc_point", "desc_image", "desc_level", "desc_xy", "image_desc_ptr",
-                 "image_points_idx", "cluster_images_idx", "point_clusters_idx", "pca_mean", "pca_basis"):
+    for name in ("points_xyz", "point_ids", "desc_point", "desc_image", "desc_level", "desc_xy",
+                 "image_desc_ptr", "image_points_idx", "cluster_images_idx", "point_clusters_idx",
+                 "pca_mean", "pca_basis"):
         assert np.array_equal(getattr(streamed, name), getattr(memory, name)), name
     np.testing.assert_allclose(
-        streamed.descriptors.astype(np.float32), memory.descriptors.astype(np.float32), rtol=2**-10, atol=1e-4
+        streamed.descriptors.astype(np.float32), memory.descriptors.astype(np.float32),
+        rtol=2**-10, atol=1e-4,
     )
     a = DescriptorIndex.deserialize(streamed.index_faiss)
     b = DescriptorIndex.deserialize(memory.index_faiss)

@@ -29,14 +29,16 @@ def walk(tmp_path_factory):
     from sfmloc.synth.main import run
 
     root = tmp_path_factory.mktemp("video") / "synth"
-    run(preset("small", width=W, height=H, mapping_views=4, trajectory={"n_frames": N_FRAMES}), root)
+    conf = preset("small", width=W, height=H, mapping_views=4, trajectory={"n_frames": N_FRAMES})
+    run(conf, root)
     frames = [cv2.imread(str(p)) for p in sorted((root / "video").glob("frame-*.png"))]
     gt = read_poses(root / "video_poses.txt").by_stem()
     return root, frames, [gt[f"frame-{i:06d}"] for i in range(len(frames))]
 
 
 def encode(path: Path, frames: list[np.ndarray], fps: float = 30.0) -> Path:
-    w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), fps, (frames[0].shape[1], frames[0].shape[0]))
+    size = (frames[0].shape[1], frames[0].shape[0])
+    w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), fps, size)
     assert w.isOpened()
     for f in frames:
         w.write(f)
@@ -67,7 +69,9 @@ def test_interpolated_poses_match_the_exact_poses(walk, tmp_path):
     the log or in a gap wider than max_gap_s have no pose."""
     _, _, gt = walk
     log_idx = list(range(0, 60, 2))
-    tum = write_tum(tmp_path / "p.tum", [i / 30 for i in log_idx], [gt[i].inverse() for i in log_idx])
+    tum = write_tum(
+        tmp_path / "p.tum", [i / 30 for i in log_idx], [gt[i].inverse() for i in log_idx]
+    )
     times, world_from_cams = read_pose_log(tum)
     for i in range(0, 59):
         T = interpolate_pose(times, world_from_cams, i / 30, max_gap_s=0.1, max_time_diff_s=0.02)
@@ -78,7 +82,8 @@ def test_interpolated_poses_match_the_exact_poses(walk, tmp_path):
             assert dp < 0.005 and dr < 0.1, (i, dp, dr)
     assert interpolate_pose(times, world_from_cams, 59 / 30 + 0.1, 0.1, 0.02) is None
     assert interpolate_pose(times, world_from_cams, -0.05, 0.1, 0.02) is None
-    assert interpolate_pose(times, world_from_cams, 1 / 30, max_gap_s=0.05, max_time_diff_s=0.02) is None
+    gap = interpolate_pose(times, world_from_cams, 1 / 30, max_gap_s=0.05, max_time_diff_s=0.02)
+    assert gap is None
 
 
 def test_posed_keyframes_from_an_encoded_video(walk, video, tmp_path):
@@ -104,8 +109,10 @@ def test_posed_keyframes_from_an_encoded_video(walk, video, tmp_path):
     # Consecutive keyframes moved enough (exact poses), and no frame moves enough without a
     # keyframe coming within the sharpness window.
     for a, b in zip(keys, keys[1:]):
-        moved = (rotation_angle_deg(gt[a].rotation, gt[b].rotation) >= conf.min_rotation_deg
-                 or np.linalg.norm(gt[a].center - gt[b].center) >= conf.min_translation * rep.scene_depth)
+        moved = (
+            rotation_angle_deg(gt[a].rotation, gt[b].rotation) >= conf.min_rotation_deg
+            or np.linalg.norm(gt[a].center - gt[b].center) >= conf.min_translation * rep.scene_depth
+        )
         assert moved, (a, b)
         first_enough = next(
             i for i in range(a + 1, b + 1)
@@ -125,7 +132,8 @@ def test_blurry_frames_are_not_keyframes(walk, tmp_path):
     blurred = {i for i in range(N_FRAMES) if i % 3 == 1}
     shaken = [cv2.GaussianBlur(f, (0, 0), 2.5) if i in blurred else f for i, f in enumerate(frames)]
     vid = encode(tmp_path / "shaky.avi", shaken)
-    kf = extract_keyframes(vid, tmp_path / "kf", poses=root / "groundtruth.tum", camera=Camera.from_json(root / "camera.json"))
+    cam = Camera.from_json(root / "camera.json")
+    kf = extract_keyframes(vid, tmp_path / "kf", poses=root / "groundtruth.tum", camera=cam)
     assert kf.report.keyframes >= 5
     assert not blurred & set(kf.report.keyframe_indices), kf.report.keyframe_indices
     assert kf.report.dropped_blur > 0
@@ -179,8 +187,9 @@ def test_a_map_built_from_an_encoded_video_localizes(walk, video, tmp_path):
     root, frames, gt = walk
     cam = Camera.from_json(root / "camera.json")
     out = subprocess.run(
-        [sys.executable, "-m", "sfmloc", "build", "walk", "--out", str(tmp_path / "maps"), "--video", str(video),
-         "--poses", str(root / "groundtruth.tum"), "--camera", str(root / "camera.json"),
+        [sys.executable, "-m", "sfmloc", "build", "walk", "--out", str(tmp_path / "maps"),
+         "--video", str(video), "--poses", str(root / "groundtruth.tum"),
+         "--camera", str(root / "camera.json"),
          "--workdir", str(tmp_path / "work")],
         capture_output=True, text=True, timeout=600,
     )
@@ -207,6 +216,9 @@ def test_a_map_built_from_an_encoded_video_localizes(walk, video, tmp_path):
 
 
 def test_build_help_documents_video():
-    out = subprocess.run([sys.executable, "-m", "sfmloc", "build", "--help"], capture_output=True, text=True)
-    for flag in ("--video", "--kf-rotation", "--kf-translation", "--kf-flow", "--kf-window", "CAP_PROP_POS_MSEC"):
+    out = subprocess.run(
+        [sys.executable, "-m", "sfmloc", "build", "--help"], capture_output=True, text=True
+    )
+    for flag in ("--video", "--kf-rotation", "--kf-translation", "--kf-flow", "--kf-window",
+                 "CAP_PROP_POS_MSEC"):
         assert flag in out.stdout

@@ -47,14 +47,17 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", default="maps", help="folder for bundles (default: maps)")
     p.add_argument("--colmap", metavar="MODEL_DIR", help="COLMAP sparse model folder (cameras/images/points3D .txt or .bin)")
     p.add_argument("--images", metavar="DIR", help="image folder")
-    p.add_argument("--poses", metavar="FILE", help="known poses (COLMAP list or TUM; with --video: TUM)")
+    p.add_argument("--poses", metavar="FILE",
+                   help="known poses (COLMAP list or TUM; with --video: TUM)")
     p.add_argument("--video", metavar="FILE", help="a video instead of --images (keyframes chosen)")
     p.add_argument("--kf-rotation", type=float, metavar="DEG",
                    help="video with poses: keyframe after this rotation (default 5)")
     p.add_argument("--kf-translation", type=float, metavar="F",
-                   help="video with poses: keyframe after this translation, of the scene depth (default 0.05)")
+                   help="video with poses: keyframe after this translation, of the scene depth "
+                   "(default 0.05)")
     p.add_argument("--kf-flow", type=float, metavar="F",
-                   help="video without poses: keyframe after this image motion, of the diagonal (default 0.05)")
+                   help="video without poses: keyframe after this image motion, of the diagonal "
+                   "(default 0.05)")
     p.add_argument("--kf-window", type=int, metavar="N",
                    help="video: the sharpest of N frames becomes the keyframe (default 5)")
     p.add_argument("--camera", help="camera.json or 'MODEL w h params...'")

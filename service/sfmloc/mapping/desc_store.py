@@ -67,7 +67,8 @@ class RawStore:
             view = buf[:m]
             got = self._file.readinto(memoryview(view).cast("B"))
             if got != view.nbytes:
-                raise OSError(f"short read of raw descriptors ({got} of {view.nbytes} bytes)", str(self.path))
+                msg = f"short read of raw descriptors ({got} of {view.nbytes} bytes)"
+                raise OSError(msg, str(self.path))
             yield start, view
             start += m
 

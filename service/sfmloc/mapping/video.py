@@ -84,8 +84,8 @@ class KeyframeReport:
         depth = f", scene depth {self.scene_depth:.3g}" if self.scene_depth else ""
         return (
             f"{self.keyframes} keyframes of {self.frames} frames ({self.clock} clock{depth}); "
-            f"dropped: {self.dropped_motion} too little motion, {self.dropped_blur} blurrier than a "
-            f"neighbour, {self.dropped_no_pose} without a pose"
+            f"dropped: {self.dropped_motion} too little motion, {self.dropped_blur} blurrier "
+            f"than a neighbour, {self.dropped_no_pose} without a pose"
         )
 
     def to_dict(self) -> dict[str, Any]:
@@ -106,7 +106,11 @@ class FrameStats:
 
 # --------------------------------------------------------------------------- poses in time
 def interpolate_pose(
-    times: np.ndarray, world_from_cams: list[Rigid3d], t: float, max_gap_s: float, max_time_diff_s: float
+    times: np.ndarray,
+    world_from_cams: list[Rigid3d],
+    t: float,
+    max_gap_s: float,
+    max_time_diff_s: float,
 ) -> Rigid3d | None:
     """``cam_from_world`` at time ``t`` from a sorted pose log, or None when ``t`` is outside
     it or in a gap wider than ``max_gap_s``. Slerp of the rotation, lerp of the centre."""
@@ -145,8 +149,8 @@ def read_pose_log(path: str | Path) -> tuple[np.ndarray, list[Rigid3d]]:
     poses: PoseList = read_poses(path)
     if poses.format != "tum":
         raise InputError(
-            f"with --video, --poses must be a TUM file 'timestamp tx ty tz qx qy qz qw' on the video's "
-            f"clock (first frame at 0 s); {path} looks like a COLMAP list"
+            "with --video, --poses must be a TUM file 'timestamp tx ty tz qx qy qz qw' on the "
+            f"video's clock (first frame at 0 s); {path} looks like a COLMAP list"
         )
     entries = sorted(poses.entries, key=lambda e: e.timestamp)
     return np.array([e.timestamp for e in entries]), [e.world_from_cam for e in entries]
@@ -159,7 +163,9 @@ def open_video(path: str | Path) -> cv2.VideoCapture:
         raise InputError(f"video {path} does not exist")
     cap = cv2.VideoCapture(str(path))
     if not cap.isOpened():
-        raise ImageDecodeError(f"video {path} cannot be opened by OpenCV (no video backend reads it)")
+        raise ImageDecodeError(
+            f"video {path} cannot be opened by OpenCV (no video backend reads it)"
+        )
     return cap
 
 
@@ -233,7 +239,9 @@ def analyze_video(
         sharp.append(_sharpness(gray))
         step = 0.0
         if prev is not None and pts is not None and len(pts) > 0:
-            nxt, st, _ = cv2.calcOpticalFlowPyrLK(prev, gray, pts, None, winSize=(21, 21), maxLevel=3)
+            nxt, st, _ = cv2.calcOpticalFlowPyrLK(
+                prev, gray, pts, None, winSize=(21, 21), maxLevel=3
+            )
             ok = st.ravel() == 1
             if ok.sum() >= 8:
                 step = float(np.median(np.linalg.norm(nxt[ok] - pts[ok], axis=-1))) / diag
@@ -247,10 +255,11 @@ def analyze_video(
         # Segment end: triangulate the tracks with the known poses; restart the tracks.
         seg_end = pts is None or i - anchor_i >= conf.depth_segment or 2 * len(pts) < anchor_count
         if seg_end:
-            if cam_from_world_at is not None and camera is not None and pts is not None and i > anchor_i:
+            posed = cam_from_world_at is not None and camera is not None
+            if posed and pts is not None and i > anchor_i:
                 d = _segment_depth(
-                    (anchor_pts + 0.5) / scale, (pts + 0.5) / scale, times[anchor_i], times[i], cam_from_world_at, camera,
-                    conf.min_parallax_deg,
+                    (anchor_pts + 0.5) / scale, (pts + 0.5) / scale, times[anchor_i], times[i],
+                    cam_from_world_at, camera, conf.min_parallax_deg,
                 )
                 if d is not None:
                     depths.append(d)
@@ -262,7 +271,8 @@ def analyze_video(
         prev = gray
         if progress and (i % 30 == 0):
             frac = min(0.99, (i + 1) / n_est) if n_est else 0.0
-            progress("video", 0.5 * frac, f"analysing frame {i + 1}" + (f" of {n_est}" if n_est else ""))
+            of = f" of {n_est}" if n_est else ""
+            progress("video", 0.5 * frac, f"analysing frame {i + 1}{of}")
     if not pos_ms:
         raise ImageDecodeError(f"video {path}: no frame could be decoded")
     times, clock = _clock(np.array(pos_ms) / 1000.0, fps)
@@ -274,7 +284,9 @@ def _clock(pos_s: np.ndarray, fps: float) -> tuple[np.ndarray, str]:
     """Container times when they increase strictly, else index / fps."""
     if len(pos_s) == 1 or np.all(np.diff(pos_s) > 0) or fps <= 0:
         if len(pos_s) > 1 and not np.all(np.diff(pos_s) > 0):
-            raise ImageDecodeError("the video reports neither increasing frame times nor a frame rate")
+            raise ImageDecodeError(
+                "the video reports neither increasing frame times nor a frame rate"
+            )
         return pos_s, "pos_msec"
     return np.arange(len(pos_s)) / fps, "index/fps"
 
@@ -299,7 +311,8 @@ def _segment_depth(
     z1 = P1.apply(X)[:, 2]
     r0 = X - P0.center
     r1 = X - P1.center
-    cosang = np.sum(r0 * r1, axis=1) / np.maximum(np.linalg.norm(r0, axis=1) * np.linalg.norm(r1, axis=1), 1e-12)
+    norms = np.linalg.norm(r0, axis=1) * np.linalg.norm(r1, axis=1)
+    cosang = np.sum(r0 * r1, axis=1) / np.maximum(norms, 1e-12)
     parallax = np.degrees(np.arccos(np.clip(cosang, -1, 1)))
     ok = (z0 > 0) & (z1 > 0) & (parallax >= min_parallax_deg)
     if ok.sum() < 8:
@@ -328,7 +341,8 @@ def select_keyframes(
             A, B = poses[k], poses[i]
             if rotation_angle_deg(A.rotation, B.rotation) >= conf.min_rotation_deg:
                 return True
-            return float(np.linalg.norm(A.center - B.center)) >= conf.min_translation * stats.scene_depth
+            moved = float(np.linalg.norm(A.center - B.center))
+            return moved >= conf.min_translation * stats.scene_depth
         return float(np.sum(stats.flow[k + 1 : i + 1])) >= conf.min_flow
 
     keys: list[int] = []
@@ -376,22 +390,29 @@ def extract_keyframes(
     pose_at = None
     if poses is not None:
         if camera is None:
-            raise InputError("--video with --poses needs --camera (camera.json or 'PINHOLE w h fx fy cx cy')")
+            raise InputError(
+                "--video with --poses needs --camera (camera.json or 'PINHOLE w h fx fy cx cy')"
+            )
         ptimes, world_from_cams = read_pose_log(poses)
 
         def pose_at(t: float) -> Rigid3d | None:
-            return interpolate_pose(ptimes, world_from_cams, t, conf.max_pose_gap_s, conf.max_time_diff_s)
+            return interpolate_pose(
+                ptimes, world_from_cams, t, conf.max_pose_gap_s, conf.max_time_diff_s
+            )
 
     stats = analyze_video(video, conf, pose_at, camera, progress, should_cancel)
     frame_poses = [pose_at(float(t)) for t in stats.times] if pose_at is not None else None
     if frame_poses is not None and not any(p is not None for p in frame_poses):
         raise InputError(
-            f"no frame of {video} ({stats.times[0]:.3f}-{stats.times[-1]:.3f} s, {stats.clock} clock) has a "
-            f"pose in {poses} ({ptimes[0]:.3f}-{ptimes[-1]:.3f} s): the pose log must be on the video's clock"
+            f"no frame of {video} ({stats.times[0]:.3f}-{stats.times[-1]:.3f} s, {stats.clock} "
+            f"clock) has a pose in {poses} ({ptimes[0]:.3f}-{ptimes[-1]:.3f} s): the pose log "
+            "must be on the video's clock"
         )
     keys, rep = select_keyframes(stats, conf, frame_poses)
     if len(keys) < 2:
-        raise BuildError(f"video {video}: only {len(keys)} keyframe(s): {rep.summary()}", stage="video")
+        raise BuildError(
+            f"video {video}: only {len(keys)} keyframe(s): {rep.summary()}", stage="video"
+        )
     image_dir = out_dir / "images"
     image_dir.mkdir(parents=True, exist_ok=True)
     wanted = set(keys)
@@ -401,7 +422,8 @@ def extract_keyframes(
             raise BuildCancelled("cancelled", stage="video")
         if i in wanted:
             name = f"frame-{i:06d}.png"
-            if camera is not None and (frame.shape[1], frame.shape[0]) != (camera.width, camera.height):
+            size = (frame.shape[1], frame.shape[0])
+            if camera is not None and size != (camera.width, camera.height):
                 raise ImageDecodeError(
                     f"video {video} is {frame.shape[1]}x{frame.shape[0]}, the camera says "
                     f"{camera.width}x{camera.height}"
@@ -415,7 +437,10 @@ def extract_keyframes(
         if i >= keys[-1]:
             break
     if written != len(keys):
-        raise ImageDecodeError(f"video {video} decoded differently the second time ({written} of {len(keys)} keyframes)")
+        raise ImageDecodeError(
+            f"video {video} decoded differently the second time "
+            f"({written} of {len(keys)} keyframes)"
+        )
     poses_file = None
     if frame_poses is not None:
         poses_file = out_dir / "poses.txt"
@@ -447,15 +472,17 @@ def build_from_video(
     cam = Camera.parse(camera) if isinstance(camera, (str, Path)) else camera
     if workdir is not None:
         Path(workdir).mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix="sfmloc-video-", dir=None if workdir is None else str(workdir)))
+    parent = None if workdir is None else str(workdir)
+    tmp = Path(tempfile.mkdtemp(prefix="sfmloc-video-", dir=parent))
     try:
         kf = extract_keyframes(video, tmp, video_conf, poses, cam, progress, should_cancel)
         source = {"kind": "video", "video": str(video), "keyframes": kf.report.to_dict()}
         if poses is not None:
             source["poses"] = str(poses)
         return main(
-            conf, name, out_dir, images=kf.image_dir, poses=kf.poses_file, camera=cam, sfm_conf=sfm_conf,
-            workdir=workdir, progress=progress, should_cancel=should_cancel, source_extra=source,
+            conf, name, out_dir, images=kf.image_dir, poses=kf.poses_file, camera=cam,
+            sfm_conf=sfm_conf, workdir=workdir, progress=progress, should_cancel=should_cancel,
+            source_extra=source,
         )
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
