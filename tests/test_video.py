@@ -222,3 +222,29 @@ def test_build_help_documents_video():
     for flag in ("--video", "--kf-rotation", "--kf-translation", "--kf-flow", "--kf-window",
                  "CAP_PROP_POS_MSEC"):
         assert flag in out.stdout
+
+
+def test_other_frame_rates_and_sparser_pose_logs(walk, tmp_path):
+    """A 10 Hz video (every third frame): frame k is at k / 10 s and takes the pose of walk
+    frame 3k. A 30 Hz video with a 10 Hz pose log: keyframe poses are interpolated, within a
+    centimetre and half a degree of the exact ones."""
+    root, frames, gt = walk
+    cam = Camera.from_json(root / "camera.json")
+    tum = root / "groundtruth.tum"
+    slow = encode(tmp_path / "slow.avi", frames[::3], fps=10.0)
+    kf = extract_keyframes(slow, tmp_path / "a", poses=tum, camera=cam)
+    assert kf.report.frames == len(frames[::3]) and kf.report.keyframes >= 4
+    written = read_poses(kf.poses_file).by_key()
+    for k in kf.report.keyframe_indices:
+        dp, dr = pose_errors(written[f"frame-{k:06d}.png"], gt[3 * k])
+        assert dp < 1e-6 and dr < 1e-4, k
+    times, wfc = read_pose_log(tum)
+    sparse = write_tum(tmp_path / "10hz.tum", list(times[::3]), wfc[::3])
+    fast = encode(tmp_path / "fast.avi", frames)
+    kf = extract_keyframes(fast, tmp_path / "b", poses=sparse, camera=cam)
+    written = read_poses(kf.poses_file).by_key()
+    interpolated = [k for k in kf.report.keyframe_indices if k % 3]
+    assert interpolated and kf.report.dropped_no_pose <= 2  # frames past the log's last pose
+    for k in kf.report.keyframe_indices:
+        dp, dr = pose_errors(written[f"frame-{k:06d}.png"], gt[k])
+        assert dp < 0.01 and dr < 0.5, (k, dp, dr)
