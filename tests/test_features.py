@@ -169,6 +169,28 @@ def test_daisy_on_5000_keypoints_equals_small_chunks():
     # Different keypoints get different descriptors (the chunks are not one patch repeated).
     assert len(np.unique(d, axis=0)) == 5000
 
+def test_daisy_on_an_image_wider_than_opencvs_remap_limit():
+    """cv2.remap refuses sources of 32767 pixels or more: a 40000-pixel-wide strip is read
+    through crops, with exactly the samples of the whole image."""
+    rng = np.random.default_rng(6)
+    strip = cv2.resize(textured_image(7, shape=(120, 4000)), (40000, 120), interpolation=cv2.INTER_LINEAR)
+    strip = np.clip(strip + rng.normal(0, 6, strip.shape), 0, 255).astype(np.uint8)
+    ex = DaisyExtractor()
+    xy = np.column_stack([rng.uniform(15, 39985, 400), rng.uniform(30, 90, 400)]).astype(np.float32)
+    xy[:4, 0] = [16383.0, 16386.0, 32766.5, 32769.0]  # either side of tile and limit edges
+    prepared = ex.prepare(strip)
+    theta = ex.orientations(prepared, xy)
+    d = ex.describe(prepared, xy, theta)
+    # The same keypoints described in small windows of the strip (under the limit); float32
+    # sample coordinates near x = 40000 are only 1/256 px fine, hence the tolerance.
+    for x0 in range(0, 40000, 2000):
+        sel = np.nonzero((xy[:, 0] >= x0) & (xy[:, 0] < x0 + 2000))[0]
+        a = max(0, x0 - 100)
+        win = prepared[:, a : x0 + 2100]
+        local = xy[sel] - np.float32([a, 0])
+        np.testing.assert_allclose(ex.orientations(win, local), theta[sel], atol=1e-3)
+        np.testing.assert_allclose(ex.describe(win, local, theta[sel]), d[sel], atol=1e-3)
+
 def test_pca_projects_to_principal_subspace():
     rng = np.random.default_rng(3)
     basis = np.linalg.qr(rng.standard_normal((RAW_DIM, RAW_DIM)))[0]

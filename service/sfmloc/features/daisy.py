@@ -14,7 +14,8 @@ computed from a resampled patch" (Winder, Hua, Brown, "Picking the best DAISY", 
 
 We never run a dense whole-image DAISY: every descriptor is computed from a small patch
 resampled around its keypoint in ``cv2.remap`` calls batching many keypoints (chunked under
-OpenCV's limit of 32767 map rows, ``REMAP_MAX_ROWS``), so the cost is proportional to the number of keypoints (OpenCV's DAISY precomputes the whole image on every
+OpenCV's limit of 32767 rows and columns, ``REMAP_MAX``), so the cost is proportional to the
+number of keypoints (OpenCV's DAISY precomputes the whole image on every
 call, 6-30 ms whatever the keypoint count). Patch geometry is in pixels of the image the
 keypoints come from; the builder runs it on every pyramid level, so the support scales with
 the level.
@@ -30,9 +31,12 @@ import numpy as np
 from ..cameras import PIXEL_CENTER_OFFSET
 
 RAW_DIM = 104
-# cv2.remap asserts that its maps have fewer than SHRT_MAX (32767) rows and columns: one call
-# on (n * side, side) maps fails from n = 1490 keypoints (side 22). Chunks stay under it.
-REMAP_MAX_ROWS = 32766
+# cv2.remap asserts that its maps and its source image have fewer than SHRT_MAX (32767) rows
+# and columns: one call on (n * side, side) maps fails from n = 1490 keypoints (side 22), and
+# an image 32767 pixels wide fails whatever the keypoints. Maps are cut into chunks of whole
+# patches, and larger images are read through crops of REMAP_TILE pixels plus the patch reach.
+REMAP_MAX = 32766
+REMAP_TILE = 16384
 
 
 @dataclass(frozen=True)
@@ -165,14 +169,41 @@ class DaisyExtractor:
         ky = (xy[:, 1] - PIXEL_CENTER_OFFSET).astype(np.float32)[:, None]
         mx = (kx + c[:, None] * ox - s[:, None] * oy).reshape(n * side, side)
         my = (ky + s[:, None] * ox + c[:, None] * oy).reshape(n * side, side)
-        out = np.empty((n * side, side), img.dtype)
-        step = max(1, REMAP_MAX_ROWS // side) * side  # whole patches per chunk
-        for a in range(0, n * side, step):
-            out[a : a + step] = cv2.remap(
-                img, mx[a : a + step], my[a : a + step], interpolation=cv2.INTER_LINEAR,
-                borderMode=cv2.BORDER_REFLECT_101,
-            )
-        return out.reshape(n, side, side)
+        h, w = img.shape[:2]
+        if h <= REMAP_MAX and w <= REMAP_MAX:
+            return _remap_patches(img, mx, my, side).reshape(n, side, side)
+        # A source over OpenCV's limit: keypoints grouped by tile, each tile read from a crop
+        # that holds every sample of its patches (shifting the maps by whole pixels keeps the
+        # bilinear weights, so the samples are exactly those of the whole image).
+        reach = int(np.ceil(np.abs(offsets).max() * np.sqrt(2))) + 2
+        out = np.empty((n, side, side), img.dtype)
+        tiles = np.floor(np.hstack([kx, ky]) / REMAP_TILE).astype(np.int64)
+        _, tile_of = np.unique(tiles, axis=0, return_inverse=True)
+        mx3, my3 = mx.reshape(n, side, side), my.reshape(n, side, side)
+        for k in range(int(tile_of.max()) + 1):
+            idx = np.nonzero(tile_of.ravel() == k)[0]
+            x0 = max(0, int(np.floor(kx[idx].min())) - reach)
+            x1 = min(w, int(np.ceil(kx[idx].max())) + reach + 1)
+            y0 = max(0, int(np.floor(ky[idx].min())) - reach)
+            y1 = min(h, int(np.ceil(ky[idx].max())) + reach + 1)
+            sub = img[y0:y1, x0:x1]
+            ax = (mx3[idx] - np.float32(x0)).reshape(-1, side)
+            ay = (my3[idx] - np.float32(y0)).reshape(-1, side)
+            out[idx] = _remap_patches(sub, ax, ay, side).reshape(len(idx), side, side)
+        return out
+
+
+def _remap_patches(img: np.ndarray, mx: np.ndarray, my: np.ndarray, side: int) -> np.ndarray:
+    """``cv2.remap`` of (n * side, side) maps in chunks of whole patches under REMAP_MAX rows."""
+    out = np.empty(mx.shape, img.dtype)
+    step = max(1, REMAP_MAX // side) * side
+    for a in range(0, len(mx), step):
+        out[a : a + step] = cv2.remap(
+            img, mx[a : a + step], my[a : a + step], interpolation=cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_REFLECT_101,
+        )
+    return out
+
 
 def _pooling_matrix(p: DaisyParams) -> np.ndarray:
     """(13, grid^2) normalized Gaussian weights of the DAISY regions over the patch samples."""

@@ -365,3 +365,13 @@ def main(
     except OSError as exc:
         # A full disk, permissions, ...: name the file and the stage.
         raise BuildError(f"{exc.strerror or exc} ({exc.filename or out_dir})", stage=stage[0]) from None
+    except cv2.error as exc:
+        # An OpenCV limit or assertion (e.g. an image too large for one call) is a build error
+        # naming the stage, not a traceback; the detail is in the message's last line.
+        detail = str(exc).strip().splitlines()[-1] if str(exc).strip() else repr(exc)
+        raise BuildError(f"OpenCV failed: {detail}", stage=stage[0]) from None
+    except MemoryError:
+        raise BuildError(
+            "out of memory (fewer or smaller images, --preset fast, or a machine with more memory)",
+            stage=stage[0],
+        ) from None
