@@ -3,10 +3,24 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal
+
+from pydantic import model_validator
 
 from ..config import StrictModel
 from .pose import RansacParams
+
+
+# Settings renamed when the motion model became scale-free: an old config names the new unit.
+RENAMED = {
+    "max_speed_mps": "max_speed_scales_per_s (scene scales per second, not m/s)",
+    "max_angular_speed_rps": "max_angular_speed_rad_s",
+    "jump_tolerance_m": "jump_tolerance_scales (a fraction of the scene scale, not metres)",
+    "accel_noise": "accel_noise_scales_per_s2 (scene scales per s^2, not m/s^2)",
+    "angular_accel_noise": "angular_accel_noise_rad_s2",
+    "position_noise": "position_noise_scales (a fraction of the scene scale, not metres)",
+    "orientation_noise": "orientation_noise_rad",
+}
 
 
 class EngineConf(StrictModel):
@@ -53,9 +67,13 @@ class EngineConf(StrictModel):
     recover_min_inliers: int = 20
     # A tracked pose farther from the motion prediction than the camera can move in the frame
     # interval is rejected (the frame then recovers or relocalizes instead of reporting it).
-    max_speed_mps: float = 5.0
-    max_angular_speed_rps: float = 6.0  # ~340 deg/s: beyond a quadrotor's fast yaw
-    jump_tolerance_m: float = 0.10
+    # Distances are in scene scales (MapBundle.scene_scale, the median camera-to-point depth in
+    # map units: 1.90 m on redkitchen, 2.37 m in the synthetic room), so one setting holds for
+    # a 0.2-unit object scan and a 500-unit street; the defaults are the former metric ones on
+    # redkitchen (5 m/s, 0.10 m).
+    max_speed_scales_per_s: float = 2.6
+    max_angular_speed_rad_s: float = 6.0  # ~340 deg/s: beyond a quadrotor's fast yaw
+    jump_tolerance_scales: float = 0.05
     jump_tolerance_deg: float = 5.0
     # Frames and queries finer than the map ("map"): processed at about the mapping images'
     # focal length (downscaled, never upsampled; see engine.frame.working_scale). "full": at
@@ -75,12 +93,34 @@ class EngineConf(StrictModel):
     refine_threshold_px: float = 3.0  # inliers kept for the final refinement
     guided_threshold_px: float = 6.0  # verification of guided hypotheses against the pose
     add_min_distance_px: float = 6.0  # new keypoints keep this far from tracked ones
-    # Kalman filter (constant velocity, constant angular velocity)
-    accel_noise: float = 4.0  # m/s^2 (white-noise acceleration)
-    angular_accel_noise: float = 8.0  # rad/s^2
-    position_noise: float = 0.02  # m, measurement
-    orientation_noise: float = 0.01  # rad, measurement
+    # Kalman filter. "se3": one constant-velocity model on SE(3) (pose and body-frame twist);
+    # "paper": constant velocity and constant angular velocity filtered apart (Section 3.3).
+    # Measured with python -m sfmloc.eval.motion (synthetic room; median one-step prediction
+    # error of the tracked map points): an orbit at 3 Hz 3.9 px (paper) -> 0.2 px (se3), tracked
+    # frames 87% -> 93%; at 30 Hz walk 2.3 -> 0.9 px, flight 1.1 -> 0.5 px, redkitchen 2.3 -> 2.5
+    # px, the same localized fraction and errors.
+    motion_model: Literal["se3", "paper"] = "se3"
+    # A relocalized frame restarts the filter with the motion since the last posed frame (within
+    # max_frame_gap_s) instead of none: at low frame rates a motionless prediction misses the
+    # tracking window, tracking fails, the frame relocalizes and the cycle repeats. At 3 Hz
+    # (synthetic room, 30 frames) tracked frames go 30% -> 93% (orbit), 10% -> 63% (walk), 33%
+    # -> 47% (flight); global matching 21 -> 2, 27 -> 11, 20 -> 16 frames.
+    relocalize_keeps_motion: bool = True
+    # Noises with distances in scene scales as above (the former 4 m/s^2 and 0.02 m on redkitchen)
+    accel_noise_scales_per_s2: float = 2.0  # white-noise acceleration
+    angular_accel_noise_rad_s2: float = 8.0
+    position_noise_scales: float = 0.01  # measurement noise of a pose
+    orientation_noise_rad: float = 0.01
     max_frame_gap_s: float = 1.0  # a longer gap between frames resets the filter
+
+    @model_validator(mode="before")
+    @classmethod
+    def _renamed(cls, data: Any) -> Any:
+        if isinstance(data, dict):
+            old = [k for k in data if k in RENAMED]
+            if old:
+                raise ValueError("; ".join(f"{k} was renamed {RENAMED[k]}" for k in old))
+        return data
 
     def ransac(self, min_inliers: int | None = None) -> RansacParams:
         """The RANSAC settings of the pose estimators."""

@@ -39,7 +39,7 @@ from ..transforms import Rigid3d, rotation_angle_deg
 from .config import EngineConf
 from .frame import to_gray, to_working, working_scale
 from .matching import global_matching, guided_matching, verify_hypotheses
-from .motion_filter import PoseFilter
+from .motion_filter import make_pose_filter
 from .pose import PoseEstimate, estimate_pose, estimate_pose_one_to_many, pose_covariance, project
 from .track_table import TrackTable
 from .tracker import Keypoints, extract_keypoints, free_candidates, track_2d
@@ -96,7 +96,10 @@ class Localizer:
         """Forget tracks and motion: the next frame relocalizes."""
         c = self.conf
         self.table = TrackTable.empty(c.max_hypotheses)
-        self.filter = PoseFilter(c.accel_noise, c.angular_accel_noise, c.position_noise, c.orientation_noise)
+        self.filter = make_pose_filter(
+            c.motion_model, c.accel_noise_scales_per_s2, c.angular_accel_noise_rad_s2,
+            c.position_noise_scales, c.orientation_noise_rad, self.bundle.scene_scale,
+        )
         self.prev_max_response: float | None = None
         self.next_track_id = 0
         self.last_stamp: float | None = None
@@ -139,9 +142,9 @@ class Localizer:
         dpos = float(np.linalg.norm(pose.center - pred.center))
         drot = np.radians(rotation_angle_deg(pose.rotation, pred.rotation))
         slack = max(dt, 1.0 / 30.0)
-        return dpos <= c.max_speed_mps * slack + c.jump_tolerance_m and drot <= c.max_angular_speed_rps * slack + np.radians(
-            c.jump_tolerance_deg
-        )
+        reach = (c.max_speed_scales_per_s * slack + c.jump_tolerance_scales) * self.bundle.scene_scale
+        turn = c.max_angular_speed_rad_s * slack + np.radians(c.jump_tolerance_deg)
+        return dpos <= reach and drot <= turn
 
     def _estimate_from_table(self, pred: Rigid3d | None = None, dt: float = 0.0) -> PoseEstimate | None:
         rows, pts = self.table.matches()
@@ -152,7 +155,7 @@ class Localizer:
             self._undistort(self.table.xy[rows]), self.bundle.points_xyz[pts], self.K, c.ransac(), prior=pred
         )
         if est is not None and not self._plausible(est.cam_from_world, pred, dt):
-            log.debug("rejected a pose %.2f m / %.1f deg from the prediction",
+            log.debug("rejected a pose %.3g units / %.1f deg from the prediction",
                       np.linalg.norm(est.cam_from_world.center - pred.center),
                       rotation_angle_deg(est.cam_from_world.rotation, pred.rotation))
             est = None
@@ -248,7 +251,9 @@ class Localizer:
         if est is not None:
             self.scope_points = T.point[T.point >= 0].copy()
             if relocalized or not self.filter.initialized:
-                self.filter.reset(est.cam_from_world, stamp)
+                keep = c.max_frame_gap_s if c.relocalize_keeps_motion else 0.0
+                self.filter.reset(est.cam_from_world, stamp, keep,
+                                  c.max_speed_scales_per_s * self.bundle.scene_scale, c.max_angular_speed_rad_s)
                 filtered = est.cam_from_world
             else:
                 filtered = self.filter.update(est.cam_from_world)
