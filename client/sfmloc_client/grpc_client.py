@@ -34,6 +34,21 @@ def _options(max_message_mb: float) -> list[tuple[str, int]]:
     return [("grpc.max_send_message_length", n), ("grpc.max_receive_message_length", n)]
 
 
+def _credentials(tls_ca: str | None, tls_cert: str | None, tls_key: str | None) -> grpc.ChannelCredentials | None:
+    """TLS channel credentials from PEM files (``tls_ca``: the CA that signed the server's
+    certificate, None for the system's roots; ``tls_cert``/``tls_key``: ours, for mutual TLS)."""
+
+    def read(path: str | None) -> bytes | None:
+        return None if not path else open(path, "rb").read()
+
+    return grpc.ssl_channel_credentials(read(tls_ca), read(tls_key), read(tls_cert))
+
+
+def _channel(target: str, options: list, tls: bool, creds: grpc.ChannelCredentials | None, aio: bool) -> Any:
+    mod = grpc.aio if aio else grpc
+    return mod.secure_channel(target, creds, options=options) if tls else mod.insecure_channel(target, options=options)
+
+
 def _remote(exc: grpc.RpcError) -> RemoteError:
     code = exc.code() if hasattr(exc, "code") else None
     details = exc.details() if hasattr(exc, "details") else str(exc)
@@ -75,17 +90,31 @@ def _stream_requests(
 
 
 class LocalizationClient:
-    """Blocking gRPC client. ``target`` is ``host:port``."""
+    """Blocking gRPC client. ``target`` is ``host:port``.
 
-    def __init__(self, target: str = DEFAULT_TARGET, *, timeout: float = 30.0, max_message_mb: float = 64.0) -> None:
+    ``token``: a bearer token for servers with authentication (``sfmloc auth add-token``).
+    ``tls``/``tls_ca``: a TLS channel (``tls_ca``: PEM of the CA that signed the server's
+    certificate; default the system's roots); ``tls_cert``/``tls_key``: our certificate, for
+    servers that require one (mutual TLS).
+    """
+
+    def __init__(
+        self, target: str = DEFAULT_TARGET, *, timeout: float = 30.0, max_message_mb: float = 64.0,
+        token: str | None = None, tls: bool = False, tls_ca: str | None = None,
+        tls_cert: str | None = None, tls_key: str | None = None,
+    ) -> None:
         self.target = target
         self.timeout = timeout
-        self.channel = grpc.insecure_channel(target, options=_options(max_message_mb))
+        tls = tls or bool(tls_ca or tls_cert)
+        creds = _credentials(tls_ca, tls_cert, tls_key) if tls else None
+        self.channel = _channel(target, _options(max_message_mb), tls, creds, aio=False)
         self.stub = pb_grpc.LocalizationStub(self.channel)
+        # Sent with every call (servers with authentication need it; others ignore it).
+        self.metadata = (("authorization", f"Bearer {token}"),) if token else None
 
     def _call(self, method: Any, request: Any, timeout: float | None) -> Any:
         try:
-            return method(request, timeout=self.timeout if timeout is None else timeout)
+            return method(request, timeout=self.timeout if timeout is None else timeout, metadata=self.metadata)
         except grpc.RpcError as exc:
             raise _remote(exc) from None
 
@@ -104,7 +133,8 @@ class LocalizationClient:
         """Stream frames (numpy images, bytes in ``encoding`` or ``SourceFrame``s) and yield a
         pose per processed frame (the server drops frames that queue up behind a busy one)."""
         calls = self.stub.StreamLocalize(
-            _stream_requests(frames, map_name, camera, client_id, encoding, jpeg_quality), timeout=timeout
+            _stream_requests(frames, map_name, camera, client_id, encoding, jpeg_quality), timeout=timeout,
+            metadata=self.metadata,
         )
         try:
             for update in calls:
@@ -165,15 +195,23 @@ class LocalizationClient:
 class AsyncLocalizationClient:
     """asyncio gRPC client (``grpc.aio``), the same methods as ``LocalizationClient``."""
 
-    def __init__(self, target: str = DEFAULT_TARGET, *, timeout: float = 30.0, max_message_mb: float = 64.0) -> None:
+    def __init__(
+        self, target: str = DEFAULT_TARGET, *, timeout: float = 30.0, max_message_mb: float = 64.0,
+        token: str | None = None, tls: bool = False, tls_ca: str | None = None,
+        tls_cert: str | None = None, tls_key: str | None = None,
+    ) -> None:
         self.target = target
         self.timeout = timeout
-        self.channel = grpc.aio.insecure_channel(target, options=_options(max_message_mb))
+        tls = tls or bool(tls_ca or tls_cert)
+        creds = _credentials(tls_ca, tls_cert, tls_key) if tls else None
+        self.channel = _channel(target, _options(max_message_mb), tls, creds, aio=True)
         self.stub = pb_grpc.LocalizationStub(self.channel)
+        # Sent with every call (servers with authentication need it; others ignore it).
+        self.metadata = (("authorization", f"Bearer {token}"),) if token else None
 
     async def _call(self, method: Any, request: Any, timeout: float | None) -> Any:
         try:
-            return await method(request, timeout=self.timeout if timeout is None else timeout)
+            return await method(request, timeout=self.timeout if timeout is None else timeout, metadata=self.metadata)
         except grpc.RpcError as exc:
             raise _remote(exc) from None
 
@@ -189,7 +227,8 @@ class AsyncLocalizationClient:
         encoding: str = "jpeg", jpeg_quality: int = 90, timeout: float | None = None,
     ) -> AsyncIterator[PoseMessage]:
         call = self.stub.StreamLocalize(
-            _stream_requests(frames, map_name, camera, client_id, encoding, jpeg_quality), timeout=timeout
+            _stream_requests(frames, map_name, camera, client_id, encoding, jpeg_quality), timeout=timeout,
+            metadata=self.metadata,
         )
         try:
             async for update in call:

@@ -30,6 +30,19 @@ def zenoh_config(args: argparse.Namespace) -> Any:
 def add_grpc_option(p: argparse.ArgumentParser) -> None:
     p.add_argument("--grpc", metavar="HOST:PORT", default=DEFAULT_GRPC, help=f"the server's gRPC address (default {DEFAULT_GRPC})")
     p.add_argument("--timeout", type=float, default=60.0, metavar="S", help="call timeout in seconds (default 60)")
+    p.add_argument("--token", default=os.environ.get("SFMLOC_TOKEN"), metavar="TOKEN",
+                   help="bearer token for a server with authentication (default: $SFMLOC_TOKEN)")
+    p.add_argument("--tls-ca", metavar="PEM", help="use TLS; PEM of the CA that signed the server's certificate")
+    p.add_argument("--tls-cert", metavar="PEM", help="our certificate (servers that require client certificates)")
+    p.add_argument("--tls-key", metavar="PEM", help="the key of --tls-cert")
+
+
+def grpc_client(args: argparse.Namespace) -> Any:
+    """A LocalizationClient from the options of ``add_grpc_option``."""
+    from sfmloc_client import LocalizationClient
+
+    return LocalizationClient(args.grpc, timeout=args.timeout, token=args.token, tls_ca=args.tls_ca,
+                              tls_cert=args.tls_cert, tls_key=args.tls_key)
 
 
 def default_client_id() -> str:

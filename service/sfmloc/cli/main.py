@@ -23,6 +23,7 @@ COMMANDS = [
     "maps",
     "sessions",
     "servers",
+    "auth",
     "bench",
     "bench_transport",
     "demo",

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from ._clientopts import add_grpc_option
+from ._clientopts import add_grpc_option, grpc_client
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -36,12 +36,12 @@ def _row(m) -> str:  # noqa: ANN001 - a MapInfo message
 
 
 def run(args: argparse.Namespace) -> int:
-    from sfmloc_client import LocalizationClient, RemoteError
+    from sfmloc_client import RemoteError
 
     from ..errors import InputError
 
     try:
-        with LocalizationClient(args.grpc, timeout=args.timeout) as c:
+        with grpc_client(args) as c:
             if args.maps_command == "list":
                 maps = c.list_maps()
                 print(f"{'name':<20} {'build_id':<28} {'points':>8} {'descriptors':>11} {'images':>6} "

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import textwrap
 
-from ._clientopts import add_grpc_option, camera_spec
+from ._clientopts import add_grpc_option, camera_spec, grpc_client
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -34,7 +34,7 @@ def run(args: argparse.Namespace) -> int:
     import json
     from pathlib import Path
 
-    from sfmloc_client import LocalizationClient, RemoteError, Transform
+    from sfmloc_client import RemoteError, Transform
 
     from ..errors import InputError
 
@@ -57,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
         if len(v) != 7:
             raise InputError("--prior takes 7 numbers: qx qy qz qw tx ty tz")
         prior = Transform(tuple(v[:4]), tuple(v[4:]))  # type: ignore[arg-type]
-    with LocalizationClient(args.grpc, timeout=args.timeout) as c:
+    with grpc_client(args) as c:
         try:
             pose = c.relocalize(image, args.map, cam, encoding=encoding, prior=prior)
         except RemoteError as exc:

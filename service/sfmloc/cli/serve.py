@@ -60,6 +60,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="health SERVING even with no map loaded (default: NOT_SERVING until one is)")
     p.add_argument("--metrics-port", type=int, metavar="N", help="serve Prometheus metrics on http://0.0.0.0:N/metrics")
     p.add_argument("--server-id", metavar="ID", help="id in sfmloc/servers/<id> (default <hostname>-<pid>)")
+    p.add_argument("--tls-cert", metavar="PEM", help="serve gRPC over TLS with this certificate chain")
+    p.add_argument("--tls-key", metavar="PEM", help="the private key of --tls-cert")
+    p.add_argument("--tls-client-ca", metavar="PEM", help="require client certificates signed by this CA (mutual TLS)")
+    p.add_argument("--tokens", metavar="FILE", help="require bearer tokens with roles on gRPC (see `sfmloc auth`)")
     p.add_argument("--max-message-mb", type=float, metavar="MB", help="largest gRPC message and Zenoh frame (default 16)")
     p.add_argument("--log-format", choices=["kv", "json"], help="log line format (default kv)")
     p.add_argument("--config", metavar="FILE", help="ServerConfig as JSON or TOML")
@@ -93,6 +97,10 @@ def overrides_from_args(args: argparse.Namespace) -> dict:
     g: dict = {}
     if args.grpc is not None:
         g["address"] = "" if args.grpc.lower() in ("off", "none", "") else args.grpc
+    for flag, key in (("tls_cert", "tls_cert"), ("tls_key", "tls_key"), ("tls_client_ca", "tls_client_ca"),
+                      ("tokens", "tokens_file")):
+        if getattr(args, flag):
+            g[key] = getattr(args, flag)
     if args.max_message_mb is not None:
         g["max_message_mb"] = args.max_message_mb
         o["max_frame_bytes"] = int(args.max_message_mb * 1024 * 1024)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from ._clientopts import add_grpc_option
+from ._clientopts import add_grpc_option, grpc_client
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -23,13 +23,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from sfmloc_client import LocalizationClient, RemoteError
+    from sfmloc_client import RemoteError
     from sfmloc_client.convert import STATUS_FROM_PB
 
     from ..errors import InputError
 
     try:
-        with LocalizationClient(args.grpc, timeout=args.timeout) as c:
+        with grpc_client(args) as c:
             if args.sessions_command == "list":
                 rows = c.list_sessions(args.map)
                 print(f"{'client':<24} {'map':<16} {'transport':<9} {'frames':>7} {'localized':>9} {'dropped':>7} "

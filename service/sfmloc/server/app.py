@@ -43,6 +43,7 @@ from sfmloc_client.wire import MapAnnouncement, ServerInfo, check_name
 
 from .. import __version__
 from ..errors import ConfigError
+from .auth import TokenTable
 from .config import ServerConfig
 from .logfmt import event
 from .maps import MapEntry, MapRegistry, resolve_bundle_path
@@ -74,6 +75,8 @@ class Server:
             max_pending_relocalize=conf.max_pending_relocalize, max_image_pixels=conf.max_image_pixels,
         )
         self.registry = MapRegistry(self.pool, on_change=self._on_map_change)
+        # gRPC bearer tokens and roles (None: authentication off).
+        self.tokens = TokenTable.load(conf.grpc.tokens_file) if conf.grpc.tokens_file else None
         self.sessions = SessionManager(
             self.pool, self.registry, self.metrics, server_id=self.server_id,
             max_sessions=conf.max_sessions, idle_timeout_s=conf.idle_timeout_s,

@@ -32,6 +32,14 @@ class GrpcConf(StrictModel):
     # Requests and responses larger than this are refused with RESOURCE_EXHAUSTED.
     max_message_mb: float = Field(16.0, gt=0)
     threads: int = Field(4, ge=1)  # executor for blocking calls (LoadMap)
+    # TLS: PEM files of the server's certificate chain and key; with client_ca, clients must
+    # present a certificate signed by it (mutual TLS).
+    tls_cert: str = ""
+    tls_key: str = ""
+    tls_client_ca: str = ""
+    # Bearer tokens and roles (a JSON file, see sfmloc.server.auth; `sfmloc auth add-token`).
+    # Off when empty. Tokens travel in the clear without TLS: allowed only on loopback.
+    tokens_file: str = ""
 
 
 class ServerConfig(StrictModel):

@@ -16,6 +16,7 @@ import logging
 import time
 import uuid
 from collections.abc import AsyncIterator, Awaitable, Callable
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import grpc
@@ -34,10 +35,11 @@ from sfmloc_client.pb import localization_pb2 as pb
 from sfmloc_client.pb import localization_pb2_grpc as pb_grpc
 from sfmloc_client.wire import Frame, PoseMessage, check_name
 
-from ..errors import InputError, MessageError, SessionNotFoundError, UnavailableError
+from ..errors import ConfigError, InputError, MessageError, PermissionDeniedError, SessionNotFoundError, UnavailableError
+from .auth import AuthInterceptor, caller
+from .interceptors import MalformedRequestInterceptor
 from .logfmt import event
 from .sessions import pose_from_result, validate_camera
-from .interceptors import MalformedRequestInterceptor
 from .status import abort, error_info
 
 if TYPE_CHECKING:
@@ -142,6 +144,14 @@ class LocalizationService(pb_grpc.LocalizationServicer):
                         srv.registry.get(req.map)
                         state["map"] = req.map
                         state["client"] = check_name(req.client_id, "client id") if req.client_id else f"grpc-{stream_id}"
+                        who = caller(srv.tokens, context)
+                        if who is not None and not who.admin:
+                            # A caller's sessions carry its identity: it cannot pose as another client.
+                            if req.client_id and req.client_id != who.name:
+                                raise PermissionDeniedError(
+                                    f"{who.name!r} may stream only as client {who.name!r}, not {req.client_id!r}"
+                                )
+                            state["client"] = who.name
                         if not req.HasField("camera"):
                             raise MessageError("the first frame of a stream must carry the camera")
                         state["camera"] = _checked_camera(req.camera, srv.conf.max_image_pixels)  # no camera, no stream
@@ -214,7 +224,10 @@ class LocalizationService(pb_grpc.LocalizationServicer):
 
         now = time.monotonic()
         out = []
+        who = caller(self.server.tokens, context)
         for s in self.server.sessions.list(request.map):
+            if who is not None and not who.admin and s.client_id != who.name:
+                continue  # a localize caller sees its own sessions only
             out.append(pb.SessionInfo(
                 client_id=s.client_id, map=s.map, transport=s.transport, frames=s.frames, localized=s.localized,
                 dropped=s.dropped, last_latency_ms=s.last_latency_ms, mean_latency_ms=s.mean_latency_ms,
@@ -226,6 +239,9 @@ class LocalizationService(pb_grpc.LocalizationServicer):
     async def ResetSession(self, request: pb.ResetSessionRequest, context: grpc.aio.ServicerContext) -> pb.ResetSessionResponse:
         if not request.client_id:
             raise MessageError("ResetSession needs a client_id")
+        who = caller(self.server.tokens, context)
+        if who is not None and not who.admin and request.client_id != who.name:
+            raise PermissionDeniedError(f"{who.name!r} may reset only its own sessions (needs the admin role)")
         if not self.server.sessions.reset(request.client_id, request.map):
             raise SessionNotFoundError(
                 f"no session of client {request.client_id!r}" + (f" on map {request.map!r}" if request.map else "")
@@ -233,11 +249,43 @@ class LocalizationService(pb_grpc.LocalizationServicer):
         return pb.ResetSessionResponse(reset=True)
 
 
+def _read_pem(path: str, what: str) -> bytes:
+    try:
+        return Path(path).read_bytes()
+    except OSError as exc:
+        raise ConfigError(f"cannot read the {what} {path}: {exc.strerror}") from None
+
+
+def _server_credentials(gc: Any) -> grpc.ServerCredentials | None:
+    if not (gc.tls_cert or gc.tls_key or gc.tls_client_ca):
+        return None
+    if not (gc.tls_cert and gc.tls_key):
+        raise ConfigError("TLS needs both grpc.tls_cert and grpc.tls_key (--tls-cert, --tls-key)")
+    pair = (_read_pem(gc.tls_key, "TLS key"), _read_pem(gc.tls_cert, "TLS certificate"))
+    ca = _read_pem(gc.tls_client_ca, "client CA") if gc.tls_client_ca else None
+    return grpc.ssl_server_credentials([pair], root_certificates=ca, require_client_auth=ca is not None)
+
+
+def _is_loopback(address: str) -> bool:
+    host = address.rsplit(":", 1)[0].strip("[]")
+    return host in ("localhost", "::1") or host.startswith("127.")
+
+
 def make_grpc_server(server: "Server") -> tuple[grpc.aio.Server, health_aio.HealthServicer, int]:
     """The grpc.aio server with our service, health (NOT_SERVING until maps are loaded) and
     reflection; returns (server, health servicer, bound port)."""
-    n = int(server.conf.grpc.max_message_mb * 1024 * 1024)
-    g = grpc.aio.server(interceptors=[MalformedRequestInterceptor()], options=[
+    gc = server.conf.grpc
+    n = int(gc.max_message_mb * 1024 * 1024)
+    interceptors: list[grpc.aio.ServerInterceptor] = [MalformedRequestInterceptor()]
+    if server.tokens is not None:
+        interceptors.insert(0, AuthInterceptor(server.tokens))
+    creds = _server_credentials(gc)
+    if server.tokens is not None and creds is None and not _is_loopback(gc.address):
+        raise ConfigError(
+            f"gRPC tokens without TLS would travel in the clear on {gc.address}: set grpc.tls_cert and "
+            "grpc.tls_key (--tls-cert/--tls-key), or listen on loopback only"
+        )
+    g = grpc.aio.server(interceptors=interceptors, options=[
         ("grpc.max_receive_message_length", n),
         ("grpc.max_send_message_length", n),
         ("grpc.so_reuseport", 0),
@@ -249,7 +297,7 @@ def make_grpc_server(server: "Server") -> tuple[grpc.aio.Server, health_aio.Heal
         (SERVICE_NAME, health_pb2.DESCRIPTOR.services_by_name["Health"].full_name, reflection.SERVICE_NAME), g
     )
     try:
-        port = g.add_insecure_port(server.conf.grpc.address)
+        port = g.add_insecure_port(gc.address) if creds is None else g.add_secure_port(gc.address, creds)
     except RuntimeError as exc:  # grpc's way of saying the address is taken or invalid
         raise UnavailableError(f"cannot listen for gRPC on {server.conf.grpc.address}: {exc}") from None
     if port == 0:
