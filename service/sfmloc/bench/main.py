@@ -273,7 +273,7 @@ def main(conf: BenchConf, out: str | Path, *, progress: Progress | None = None, 
         from .robust import run_robust
 
         log.info("== robust: %s", ", ".join(conf.robust_rows) if conf.robust_rows else "every row")
-        results["suites"]["robust"] = run_robust(conf, work, progress, preps, sift_conf)
+        results["suites"]["robust"] = run_robust(conf, work, progress, preps, sift_conf, out)
         results["suites"]["robust"]["sift_peer_tuned"] = "sift_tuning" in results
         log.info("robust done (%.0f s so far)", time.perf_counter() - t_start)
 

@@ -677,8 +677,17 @@ def _map_info(bundle) -> dict:
     }
 
 
-def run_row(prep: Prepared, n_peer: int, sift_conf, budget_s: float, progress: Progress) -> dict:
-    """Both methods on one prepared row; its summary, targets, errors and timings."""
+def run_row(
+    prep: Prepared,
+    n_peer: int,
+    sift_conf,
+    budget_s: float,
+    progress: Progress,
+    files_dir: Path | None = None,
+) -> dict:
+    """Both methods on one prepared row; its summary, targets, errors and timings. With
+    ``files_dir``, each method's per-frame records go to ``frames-METHOD.json`` there (to see
+    which frames were lost or wrong)."""
     from ..mapping.bundle import MapBundle
 
     t0 = time.perf_counter()
@@ -707,6 +716,12 @@ def run_row(prep: Prepared, n_peer: int, sift_conf, budget_s: float, progress: P
         out["ours_same"], out["peer_same"], out["ours"], ours_err, ours_stop
     )
     out["met"] = all(out["targets"].values())
+    if files_dir is not None:
+        from .report import frame_dicts, write_json
+
+        files_dir.mkdir(parents=True, exist_ok=True)
+        for method, recs in ((OURS, ours), (PEER, peer)):
+            write_json(files_dir / f"frames-{method}.json", frame_dicts(recs))
     return out
 
 
@@ -728,9 +743,11 @@ def run_robust(
     progress: Progress,
     preps: dict[str, Prepared] | None = None,
     sift_conf=None,
+    out: Path | None = None,
 ) -> dict:
     """Every selected row; a row whose data are missing is skipped with the reason, a row whose
-    preparation fails is recorded as a crash; the suite always goes on."""
+    preparation fails is recorded as a crash; the suite always goes on. With ``out``, per-frame
+    records of each row go to ``out/robust/ROW/``."""
     from .config import SiftPeerConf
 
     sift_conf = sift_conf or SiftPeerConf()
@@ -766,8 +783,18 @@ def run_robust(
         else:
             try:
                 row.update(
-                    status="ran", **run_row(prep, n_peer, sift_conf, conf.robust_budget_s, progress)
+                    status="ran",
+                    **run_row(
+                        prep,
+                        n_peer,
+                        sift_conf,
+                        conf.robust_budget_s,
+                        progress,
+                        None if out is None else Path(out) / "robust" / spec.name,
+                    ),
                 )
+                if out is not None:
+                    row["files"] = f"robust/{spec.name}"  # relative to out
             except Exception as exc:  # noqa: BLE001 - e.g. the bundle does not load
                 row.update(status="crash", reason=f"running the row: {_error_text(exc)}")
             done[key] = row

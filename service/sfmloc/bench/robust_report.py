@@ -111,5 +111,5 @@ def robust_note(results: dict) -> str:
         "never a map image), and localized, median errors and times compare both on exactly "
         "those frames. Wrong poses count every frame each method ran. Median position error in "
         "map units and as a fraction of the scene scale (our map's median depth). The peer's "
-        "settings were " + tuned
+        "settings were " + tuned + " Per-frame records: robust/ROW/frames-METHOD.json."
     )

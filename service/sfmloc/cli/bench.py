@@ -27,7 +27,8 @@ Outputs (OUT):
   SUITE/fig-per-frame.png (the paper's Figure 2), SUITE/fig-trajectory.png (top view, lost
   frames marked), SUITE/fig-compare.png (the three methods), throughput.png
   SUITE/METHOD.tum + METHOD.gt.tum (TUM, same timestamps: evo_ape tum GT EST -a),
-  SUITE/frames-METHOD.json (per-frame records); work/ (maps, synthetic data; --reuse)
+  SUITE/frames-METHOD.json (per-frame records); robust/ROW/frames-METHOD.json (per-frame
+  records of each robust row); work/ (maps, synthetic data; --reuse)
 
 Publish a run to the README: cp OUT/results.json docs/results.json &&
   python -m sfmloc.bench.readme docs/results.json README.md   (or: make bench-publish)
