@@ -150,6 +150,34 @@ def test_submit_watch_and_zenoh_announcement(world, builder):
     assert wait_until(lambda: not any(svc.jobs.work_root.iterdir()), 20)
 
 
+def test_a_server_started_after_the_announcement_loads_the_map(world, builder, tmp_path):
+    """The builder repeats its announcements when a server appears, and answers queries for
+    them: a server that starts after a build (following the builder) still loads the map."""
+    import zenoh
+    from server_helpers import running_server, server_config
+    from sfmloc_client import LocalizationClient, make_zenoh_config
+    from sfmloc_client.pb import builder_pb2 as pb
+    from sfmloc_client.wire import decode_map_announcement
+
+    svc, ep, out = builder
+    ch, stub = _stub(svc)
+    with ch:
+        job_id = stub.SubmitBuild(_colmap_request(world, "latecomer")).job_id
+        assert list(stub.WatchBuild(pb.WatchBuildRequest(job_id=job_id)))[-1].state == pb.BUILD_STATE_SUCCEEDED
+    with zenoh.open(make_zenoh_config("peer", connect=[ep], multicast=False)) as z:
+        assert wait_until(lambda: any(
+            decode_map_announcement(r.ok.payload.to_bytes()).name == "latecomer"
+            for r in z.get("sfmloc/maps/*", timeout=5) if r.ok is not None), 20)
+    empty = tmp_path / "maps"
+    empty.mkdir()
+    conf = server_config(world, zenoh_endpoint(), maps=str(empty), map_roots=[str(out)], follow_builder=True,
+                         zenoh={"listen": [zenoh_endpoint()], "connect": [ep], "multicast": False})
+    with running_server(conf) as srv, LocalizationClient(f"127.0.0.1:{srv.grpc_port}") as c:
+        assert wait_until(lambda: "latecomer" in {m.name for m in c.list_maps()}, 60)
+        assert c.get_map("latecomer").build_id == MapBundle(out / "latecomer").build_id
+        assert wait_until(lambda: c.health() == "SERVING", 10)
+
+
 def test_cancel_leaves_no_bundle(world, builder, tmp_path):
     from sfmloc_client.pb import builder_pb2 as pb
 

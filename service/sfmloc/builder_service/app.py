@@ -1,5 +1,9 @@
 """``sfmloc builder serve``: the MapBuilder gRPC service, health and reflection, and Zenoh
-announcements of finished bundles (``sfmloc/maps/<name>``: ``{name, build_id, path}``)."""
+announcements of finished bundles (``sfmloc/maps/<name>``: ``{name, build_id, path}``).
+
+Announcements reach servers that start later too: the builder repeats its current ones when a
+server appears (its liveliness token ``sfmloc/servers/<id>``), and answers queries on
+``sfmloc/maps/*`` with them."""
 
 from __future__ import annotations
 
@@ -14,7 +18,13 @@ from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 from pydantic import Field
 from sfmloc_client.pb import builder_pb2, builder_pb2_grpc
-from sfmloc_client.wire import MapAnnouncement, encode_map_announcement, map_announce_key
+from sfmloc_client.wire import (
+    MAPS_KEYEXPR,
+    SERVERS_KEYEXPR,
+    MapAnnouncement,
+    encode_map_announcement,
+    map_announce_key,
+)
 from sfmloc_client.zconfig import make_zenoh_config
 
 from ..config import StrictModel
@@ -54,14 +64,38 @@ class BuilderService:
         self.server: grpc.Server | None = None
         self.port: int | None = None
         self.health = health.HealthServicer()
+        self._announced: dict[str, bytes] = {}  # map name -> its latest announcement
+        self._zenoh_objects: list = []
 
     def _announce(self, job: Job) -> None:
         if self.session is None:
             return
         ann = MapAnnouncement(job.spec.name, job.build_id, str(Path(job.bundle_path).resolve()))
+        payload = encode_map_announcement(ann)
         with self._zenoh_lock:
-            self.session.put(map_announce_key(job.spec.name), encode_map_announcement(ann))
+            self._announced[job.spec.name] = payload
+            self.session.put(map_announce_key(job.spec.name), payload)
         log.info("announced %s (build %s) on %s", job.spec.name, job.build_id, map_announce_key(job.spec.name))
+
+    def _reannounce(self, sample) -> None:  # noqa: ANN001 - a zenoh liveliness Sample
+        """A server appeared: repeat the current announcements (it may have missed them)."""
+        import zenoh
+
+        if sample.kind != zenoh.SampleKind.PUT or self.session is None:
+            return
+        with self._zenoh_lock:
+            for name, payload in self._announced.items():
+                self.session.put(map_announce_key(name), payload)
+        if self._announced:
+            log.info("server %s appeared: repeated %d announcement(s)", sample.key_expr, len(self._announced))
+
+    def _on_query(self, query) -> None:  # noqa: ANN001 - a zenoh Query
+        with self._zenoh_lock:
+            current = dict(self._announced)
+        for name, payload in current.items():
+            key = map_announce_key(name)
+            if query.key_expr.intersects(key):
+                query.reply(key, payload)
 
     def start(self) -> int:
         c = self.config
@@ -70,6 +104,10 @@ class BuilderService:
 
             zconf = make_zenoh_config(c.zenoh_mode, c.zenoh_listen, c.zenoh_connect, c.zenoh_multicast, c.zenoh_config)
             self.session = zenoh.open(zconf)
+            self._zenoh_objects = [
+                self.session.liveliness().declare_subscriber(SERVERS_KEYEXPR, self._reannounce),
+                self.session.declare_queryable(MAPS_KEYEXPR, self._on_query),
+            ]
         limit = c.max_message_mb * 1024 * 1024
         self.server = grpc.server(
             futures.ThreadPoolExecutor(max_workers=16),
@@ -95,6 +133,9 @@ class BuilderService:
             self.server.stop(grace).wait()
         self.jobs.close(cancel_running=True, timeout=self.config.cancel_grace_s + 10)
         if self.session is not None:
+            for obj in self._zenoh_objects:
+                obj.undeclare()
+            self._zenoh_objects = []
             self.session.close()
             self.session = None
 
