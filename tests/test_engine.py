@@ -29,6 +29,7 @@ from sfmloc.errors import ImageDecodeError
 from sfmloc.features.daisy import DaisyExtractor
 from sfmloc.features.harris import detect_corners
 from sfmloc.mapping.bundle import MapBundle
+from sfmloc.synth.config import SceneConf as SynthSceneConf
 from sfmloc.transforms import Rigid3d, pose_errors, rotmat_from_rotvec
 
 K = np.array([[525.0, 0, 320.0], [0, 525.0, 240.0], [0, 0, 1]])
@@ -359,6 +360,88 @@ def test_reported_covariance_is_calibrated_on_a_synthetic_video(world, bundle, c
         values.append(nees(cov, r.cam_from_world, gt))
     assert len(values) >= 0.95 * len(world.gray)
     assert 3.0 < np.mean(values) < 12.0, np.mean(values)
+
+
+def test_unverified_relocalization_and_its_confirmation(world, bundle, cam):
+    """A relocalization failing the strict test is UNVERIFIED, and so are the frames tracked
+    from it, until one passes the test (then TRACKING); a verified one is RELOCALIZED."""
+    strict = EngineConf(verified_min_inliers=10_000)  # no pose can pass: nothing is verified
+    loc = Localizer(bundle, cam, strict)
+    res = [loc.localize(world.gray[i], i / 30) for i in range(5)]
+    assert [r.status for r in res] == [Status.UNVERIFIED] * 5
+    for r, gt in zip(res, world.gt_cam_from_world):
+        dp, dr = pose_errors(r.cam_from_world, gt)
+        assert dp < 0.05 and dr < 1 and r.covariance is not None and r.matching != "global" or r is res[0]
+    loc.conf = EngineConf()  # the next tracked frame passes: confirmed
+    r = loc.localize(world.gray[5], 5 / 30)
+    assert r.status is Status.TRACKING and r.matching != "global"
+    first = Localizer(bundle, cam).localize(world.gray[0], 0.0)
+    assert first.status is Status.RELOCALIZED
+
+
+def test_weak_relocalization_against_the_motion_is_rejected(world, bundle, cam):
+    """Tracking frames 0-9, then a frame from far along the video: global matching finds it.
+    Verified, it is RELOCALIZED; unverified, it contradicts the motion prediction and is LOST
+    (no pose adopted) while the last pose is recent, UNVERIFIED once the prediction is stale."""
+    far = len(world.gray) - 1
+    gt_far = world.gt_cam_from_world[far]
+    assert pose_errors(gt_far, world.gt_cam_from_world[9])[0] > 0.05 * bundle.scene_scale
+    for conf, expected in ((EngineConf(), Status.RELOCALIZED), (EngineConf(verified_min_inliers=10_000), Status.LOST)):
+        loc = Localizer(bundle, cam, conf)
+        for i in range(10):
+            assert loc.localize(world.gray[i], i / 30).localized
+        r = loc.localize(world.gray[far], 10 / 30)
+        assert r.status is expected and r.matching == "global", (r.status, r.message)
+        if expected is Status.LOST:
+            assert r.cam_from_world is None and r.covariance is None and "motion prediction" in r.message
+            assert loc.table.n_3d() == 0  # not adopted: the next frame relocalizes again
+            # frames 0.6 s apart (no reset): rejected while the last pose (frame 9) is recent
+            assert loc.localize(world.gray[far], 10 / 30 + 0.6).status is Status.LOST
+            r = loc.localize(world.gray[far], 10 / 30 + 1.2)
+            assert r.status is Status.UNVERIFIED and r.matching == "global"
+        assert pose_errors(r.cam_from_world, gt_far)[0] < 0.05
+
+
+@pytest.fixture(scope="module")
+def ambiguous_world(tmp_path_factory):
+    """A square room whose four walls carry the same texture (``repeat_walls``), two boxes."""
+    import cv2
+
+    from sfmloc.io.colmap import read_model
+    from sfmloc.io.poses import read_poses
+    from sfmloc.mapping.build import BuildConf, assemble
+    from sfmloc.mapping.bundle import write_bundle
+    from sfmloc.synth import preset
+    from sfmloc.synth.main import run
+
+    root = tmp_path_factory.mktemp("ambiguous")
+    conf = preset("small", mapping_views=40, trajectory={"n_frames": 60},
+                  scene={"size": (5.0, 5.0, 3.0), "repeat_walls": True, "n_boxes": 2})
+    run(conf, root / "synth")
+    data, timings, info = assemble(read_model(root / "synth" / "sparse"), root / "synth" / "images", BuildConf())
+    bundle = MapBundle(write_bundle(data, root / "maps", "amb", timings_s=timings, index_info=info))
+    frames = sorted((root / "synth" / "video").glob("frame-*.png"))
+    gt = read_poses(root / "synth" / "video_poses.txt").by_stem()
+    gray = [cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) for f in frames]
+    return bundle, Camera.from_json(root / "synth" / "camera.json"), gray, [gt[f.stem] for f in frames]
+
+
+def test_no_wrong_pose_on_a_scene_with_identical_walls(ambiguous_world):
+    """Repeated texture on every wall: whatever the status, no pose beyond the wrong-pose limit
+    (5% of the scene scale or 10 deg), and the video is still localized."""
+    bundle, cam, gray, gt = ambiguous_world
+    from sfmloc.synth.scene import Scene
+
+    walls = Scene.room(0, SynthSceneConf(size=(5.0, 5.0, 3.0), repeat_walls=True, n_boxes=2))
+    textures = [f.texture for f in walls.faces if f.recipe[0] == "wall"]
+    assert len(textures) == 4 and all(np.array_equal(t, textures[0]) for t in textures)
+    limit = 0.05 * bundle.scene_scale
+    loc = Localizer(bundle, cam)
+    res = [loc.localize(img, i / 30) for i, img in enumerate(gray)]
+    wrong = [(i, r.status.value, *pose_errors(r.cam_from_world, g)) for i, (r, g) in enumerate(zip(res, gt))
+             if r.localized and (pose_errors(r.cam_from_world, g)[0] > limit or pose_errors(r.cam_from_world, g)[1] > 10)]
+    assert not wrong
+    assert sum(r.localized for r in res) >= 0.8 * len(res)
 
 
 def test_replay_cli_writes_tum_and_covariance_side_file(world, tmp_path, capsys):

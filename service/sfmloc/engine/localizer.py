@@ -40,6 +40,7 @@ from .config import EngineConf
 from .frame import to_gray, to_working, working_scale
 from .matching import global_matching, guided_matching, verify_hypotheses
 from .motion_filter import make_pose_filter
+from .point_uncertainty import PointUncertainty
 from .pose import PoseEstimate, estimate_pose, estimate_pose_one_to_many, pose_covariance, project
 from .track_table import TrackTable
 from .tracker import Keypoints, extract_keypoints, free_candidates, track_2d
@@ -105,6 +106,8 @@ class Localizer:
         self.last_stamp: float | None = None
         self.frames = 0
         self.scope_points = np.zeros(0, np.int64)  # 3D points matched in the last posed frame
+        self.unverified = False  # tracking from a relocalization not verified yet
+        self.last_posed_stamp: float | None = None
 
     # ------------------------------------------------------------------ helpers
     def _undistort(self, xy: np.ndarray) -> np.ndarray:
@@ -246,9 +249,27 @@ class Localizer:
                 est = est2
             timer.lap("pose")
 
+        # A pose is a promise: judge it by its covariance before anyone relies on it.
+        cov = None if est is None else _covariance(est, self.K, self.bundle, c)
+        sd = np.inf if cov is None else _position_sd(cov) / self.bundle.scene_scale
+        verified = est is not None and _verified(est, sd, c)
+        message = ""
+        recent = self.last_posed_stamp is not None and stamp - self.last_posed_stamp <= c.max_frame_gap_s
+        if est is not None and relocalized and not verified and pred is not None and recent:
+            dpos = np.linalg.norm(est.cam_from_world.center - pred.center) / self.bundle.scene_scale
+            drot = rotation_angle_deg(est.cam_from_world.rotation, pred.rotation)
+            if dpos > c.contradiction_position or drot > c.contradiction_deg:
+                # weak and against the motion: not adopted; the next frame relocalizes again
+                message = (f"weak relocalization ({est.num_inliers} inliers) {dpos:.2f} scene scales / "
+                           f"{drot:.0f} deg from the motion prediction: rejected")
+                T.point[:] = -1
+                T.pending[:] = True
+                est, cov = None, None
+
         # KALMAN-FILTER-UPDATE
         filtered = None
         if est is not None:
+            self.last_posed_stamp = stamp
             self.scope_points = T.point[T.point >= 0].copy()
             if relocalized or not self.filter.initialized:
                 keep = c.max_frame_gap_s if c.relocalize_keeps_motion else 0.0
@@ -258,20 +279,34 @@ class Localizer:
             else:
                 filtered = self.filter.update(est.cam_from_world)
         timer.lap("filter")
-        status = Status.LOST if est is None else (Status.RELOCALIZED if relocalized else Status.TRACKING)
+        if est is None:
+            status = Status.LOST
+            message = message or "not enough 2D-3D matches for a pose"
+        else:
+            self.unverified = not verified if relocalized else self.unverified and not verified
+            if sd > c.max_position_sd:
+                # Too uncertain to promise: withheld (the tracker and filter still follow it).
+                status = Status.LOST
+                message = (f"pose withheld: centre sd {sd * 100:.1f}% of the scene scale "
+                           f"(limit {c.max_position_sd * 100:.1f}%), {est.num_inliers} inliers")
+            elif self.unverified:
+                status = Status.UNVERIFIED
+            else:
+                status = Status.RELOCALIZED if relocalized else Status.TRACKING
+        posed = status is not Status.LOST
         return FrameResult(
             status=status,
             stamp=stamp,
-            cam_from_world=None if est is None else est.cam_from_world,
-            filtered_cam_from_world=filtered,
+            cam_from_world=est.cam_from_world if posed else None,
+            filtered_cam_from_world=filtered if posed else None,
             inliers=0 if est is None else est.num_inliers,
             detected=len(kps),
             tracked=eta,
             tracked_3d=T.n_3d(),
             matching=matching,
             timings_ms=timer.total(),
-            message="" if est is not None else "not enough 2D-3D matches for a pose",
-            covariance=None if est is None else _covariance(est, self.K),
+            message=message,
+            covariance=cov if posed else None,
         )
 
     def _reverify(self, pose: Rigid3d) -> None:
@@ -354,11 +389,29 @@ class Localizer:
         return est
 
 
-def _covariance(est: PoseEstimate, K: np.ndarray) -> np.ndarray:
-    """The pose's 6x6 covariance from its final refinement's inliers (``pose_covariance``)."""
+def _covariance(est: PoseEstimate, K: np.ndarray, bundle: MapBundle, conf: EngineConf) -> np.ndarray:
+    """The pose's 6x6 covariance from its final refinement's inliers (``pose_covariance``),
+    with the map points' own uncertainty (``point_uncertainty``) unless switched off."""
     if est.inlier_xy is None or est.inlier_X is None:
         return np.full((6, 6), np.inf)
-    return pose_covariance(est.cam_from_world, K, est.inlier_xy, est.inlier_X)
+    extra = None
+    if conf.map_noise_px > 0:
+        z = est.inlier_X @ est.cam_from_world.rotation[2] + est.cam_from_world.translation[2]
+        extra = PointUncertainty.for_bundle(bundle).sigma_px(est.inlier_X, z, conf.map_noise_px)
+    return pose_covariance(est.cam_from_world, K, est.inlier_xy, est.inlier_X, point_sigma_px=extra)
+
+
+def _verified(est: PoseEstimate, sd: float, conf: EngineConf) -> bool:
+    """The strict test: certain enough (centre sd, a fraction of the scene scale) on enough
+    inliers."""
+    return sd <= conf.verified_position_sd and est.num_inliers >= conf.verified_min_inliers
+
+
+def _position_sd(cov: np.ndarray) -> float:
+    """Standard deviation of the camera centre in its worst direction (map units)."""
+    if not np.all(np.isfinite(cov)):
+        return float("inf")
+    return float(np.sqrt(max(np.linalg.eigvalsh(cov[3:, 3:]).max(), 0.0)))
 
 
 def _pose_from_global(
@@ -427,10 +480,17 @@ def relocalize(
         est = None if res is None else res[0]
     timer.lap("global")
     if est is not None:
-        result.status = Status.RELOCALIZED
-        result.cam_from_world = est.cam_from_world
+        cov = _covariance(est, K, bundle, conf)
+        sd = _position_sd(cov) / bundle.scene_scale
         result.inliers = est.num_inliers
-        result.covariance = _covariance(est, K)
+        if sd > conf.max_position_sd:
+            result.message = (f"pose withheld: centre sd {sd * 100:.1f}% of the scene scale "
+                              f"(limit {conf.max_position_sd * 100:.1f}%), {est.num_inliers} inliers")
+        else:
+            # a single image has no next frame to confirm it: only the strict test verifies
+            result.status = Status.RELOCALIZED if _verified(est, sd, conf) else Status.UNVERIFIED
+            result.cam_from_world = est.cam_from_world
+            result.covariance = cov
     else:
         result.message = "no pose: too few consistent 2D-3D matches"
     result.timings_ms = timer.total()

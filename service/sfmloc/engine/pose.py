@@ -57,13 +57,21 @@ MIN_NOISE_PX = 0.3
 
 
 def pose_covariance(
-    cam_from_world: Rigid3d, K: np.ndarray, xy: np.ndarray, X: np.ndarray, min_noise_px: float = MIN_NOISE_PX
+    cam_from_world: Rigid3d,
+    K: np.ndarray,
+    xy: np.ndarray,
+    X: np.ndarray,
+    min_noise_px: float = MIN_NOISE_PX,
+    point_sigma_px: np.ndarray | None = None,
 ) -> np.ndarray:
     """6x6 covariance of a refined pose (order ``COVARIANCE_ORDER``) from its inlier
     correspondences (undistorted pixels ``xy`` (N,2), world points ``X`` (N,3)): the
     Gauss-Newton normal matrix J^T J of the reprojection residuals, inverted and scaled by the
-    residual variance (sum of squared residuals over 2N - 6 degrees of freedom). All-infinite
-    when the geometry does not constrain the pose (fewer than 4 points, degenerate)."""
+    residual variance (sum of squared residuals over 2N - 6 degrees of freedom). With
+    ``point_sigma_px`` (N,), each correspondence's variance is the residual variance plus that
+    term squared (the map point's own error, projected: ``point_uncertainty``), and the normal
+    matrix is weighted accordingly. All-infinite when the geometry does not constrain the pose
+    (fewer than 4 points, degenerate)."""
     n = len(xy)
     if n < 4:
         return np.full((6, 6), np.inf)
@@ -85,10 +93,14 @@ def pose_covariance(
     uv = np.stack([fx * x / z + K[0, 2], fy * y / z + K[1, 2]], 1)
     dof = max(2 * n - 6, 1)
     var = max(float(np.sum((uv - xy) ** 2)) / dof, min_noise_px**2)
-    H = J.T @ J
+    if point_sigma_px is None:
+        H = J.T @ J / var
+    else:
+        w = np.repeat(1.0 / (var + np.asarray(point_sigma_px, np.float64) ** 2), 2)
+        H = (J * w[:, None]).T @ J
     if not np.all(np.isfinite(H)) or np.linalg.cond(H) > 1e12:
         return np.full((6, 6), np.inf)
-    cov = np.linalg.inv(H) * var
+    cov = np.linalg.inv(H)
     return 0.5 * (cov + cov.T)
 
 

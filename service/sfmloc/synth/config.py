@@ -29,6 +29,9 @@ class SceneConf(StrictModel):
     texel_size: float = Field(0.004, ge=0.001, le=0.05)
     # Gray levels of per-texel grain (paper/plaster) so nothing is one flat colour.
     grain: float = Field(2.0, ge=0.0, le=20.0)
+    # Every wall gets the same texture (in a square room the four walls are then identical):
+    # an ambiguous scene, to test that repeated structure never yields a confident wrong pose.
+    repeat_walls: bool = False
 
 
 class RenderConf(StrictModel):

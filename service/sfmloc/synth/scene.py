@@ -459,7 +459,7 @@ def _build_room(seed: int, conf: SceneConf, layout: RoomLayout) -> Scene:
     xyz, fidx, st, rad, rgb = [], [], [], [], []
     for q in layout.quads:
         # One stream per face: a face's texture does not depend on how many draws others made.
-        rng = np.random.default_rng([seed, 1, q.index])
+        rng = np.random.default_rng([seed, 1, 0 if conf.repeat_walls and q.recipe[0] == "wall" else q.index])
         img, cand = texture(q, rng)
         face = Face(q.index, q.name, q.origin, q.u_axis, q.v_axis, q.recipe, texture=img)
         face.shade = _shade(face.normal, rng)
