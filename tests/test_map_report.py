@@ -121,3 +121,20 @@ def test_cli_min_track_length_flag_and_inspect_report(corner_maps, tmp_path):
     assert r.returncode != 0 and "--min-track-length must be >= 2" in r.stderr
     r = _cli("build", "bad", "--out", str(tmp_path), "--images", str(d["dir"] / "images"), "--min-track-length", "2")
     assert r.returncode != 0 and ">= 3 for images-only" in r.stderr
+
+
+def test_two_view_points_are_kept_only_where_the_map_would_be_sparse(corner_maps):
+    d3 = corner_maps[3]
+    b3 = MapBundle(d3[3], verify=False)
+    dense = corner_maps[4]
+    # 3 views: with tracks >= 3 the median image sees ~80 points, under the switch: two-view kept
+    rec = sfm.triangulate_known_poses(d3["dir"] / "images", d3["pose_file"], CAM,
+                                      conf=sfm.sfm_conf("default", two_view_below=SPARSE_POINTS_PER_IMAGE))
+    tracks = np.array([len(p.track_image_ids) for p in rec.points3D.values()])
+    assert tracks.min() == 2 and len(tracks) > 3 * b3.n_points
+    # 4 views: dense enough with tracks >= 3, so the map is the one built without the switch
+    rec = sfm.triangulate_known_poses(dense["dir"] / "images", dense["pose_file"], CAM,
+                                      conf=sfm.sfm_conf("default", two_view_below=SPARSE_POINTS_PER_IMAGE))
+    b4 = MapBundle(dense[3], verify=False)
+    assert min(len(p.track_image_ids) for p in rec.points3D.values()) == 3
+    assert len(rec.points3D) == b4.n_points

@@ -125,6 +125,7 @@ def run(args: argparse.Namespace) -> int:
                 + f", got {args.min_track_length}"
             )
         overrides["min_track_length"] = args.min_track_length
+        overrides["two_view_below"] = 0  # the user's choice, whatever the density
     sconf = sfm_conf(args.sfm_preset, **overrides)
     bar = ProgressPrinter()
     t0 = time.perf_counter()

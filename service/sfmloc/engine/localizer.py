@@ -433,6 +433,15 @@ def _pose_from_global(
     if res is None:
         return None
     est, chosen = res
+    if conf.global_verify:
+        # Guided matching of the whole frame around the RANSAC pose (scope: the map points it
+        # makes visible). A right pose gathers the matches the ratio test dropped; a chance one
+        # does not reach ``recover_min_inliers``. See ``EngineConf.global_verify``.
+        ver = _match_near_prior(desc, xy_u, bundle, K, conf, est.cam_from_world)
+        if ver is not None:
+            vest, point = ver
+            q = np.nonzero(point >= 0)[0]
+            return vest, q, point[q], hyp
     # Among hundreds of candidate matches, ten that agree can be chance: demand a fraction too.
     if est.num_inliers < conf.global_min_inlier_ratio * len(gm.set1_q):
         return None
@@ -526,6 +535,14 @@ def _pose_near_prior(desc, xy_u, bundle: MapBundle, K, conf: EngineConf, prior: 
     """Matches scoped by the points visible from the prior, verified against it with a loose
     threshold (the prior is approximate), then a pose with the prior as a hypothesis; the same
     rules as the tracker's recovery (``prior_threshold_px``, ``recover_min_inliers``)."""
+    res = _match_near_prior(desc, xy_u, bundle, K, conf, prior)
+    return None if res is None else res[0]
+
+
+def _match_near_prior(
+    desc: np.ndarray, xy_u: np.ndarray, bundle: MapBundle, K: np.ndarray, conf: EngineConf, prior: Rigid3d
+) -> tuple[PoseEstimate, np.ndarray] | None:
+    """``_pose_near_prior``'s pose and the verified point of every keypoint (-1: none)."""
     uv, z = project(prior, K, bundle.points_xyz)
     w, h = 2 * K[0, 2], 2 * K[1, 2]
     visible = np.nonzero((z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h))[0]
@@ -533,5 +550,4 @@ def _pose_near_prior(desc, xy_u, bundle: MapBundle, K, conf: EngineConf, prior: 
         return None
     loose = conf.model_copy(update={"guided_threshold_px": conf.prior_threshold_px})
     gm = guided_matching(desc, xy_u, bundle, visible, prior, K, loose)
-    res = _pose_from_hypotheses(gm.hyp, xy_u, bundle, K, conf, prior)
-    return None if res is None else res[0]
+    return _pose_from_hypotheses(gm.hyp, xy_u, bundle, K, conf, prior)

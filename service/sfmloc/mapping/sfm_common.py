@@ -68,6 +68,10 @@ class SfmConf(StrictModel):
     quadratic_overlap: bool = Field(True, description="images only: and with the next 2^k, k < overlap")
     # triangulation and point filtering
     min_track_length: int = Field(3, ge=2, description="drop points seen in fewer images")
+    # Known poses: when the median image would see fewer points than this with tracks of
+    # min_track_length, triangulate again keeping two-view tracks (the poses are given, so two
+    # views fix a point). 0: never. Measured: bench/sparse_maps.py (README "Beyond the paper").
+    two_view_below: int = Field(0, ge=0, description="known poses: keep two-view points below this median points/image")
     max_reproj_error: float = Field(4.0, gt=0, description="px; COLMAP's filter_max_reproj_error")
     min_tri_angle_deg: float = Field(1.5, gt=0, description="deg; COLMAP's filter_min_tri_angle")
     # images only: intrinsics refinement when a camera is given (always refined otherwise)

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import bisect
 import math
+import shutil
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -256,22 +257,18 @@ def triangulate_known_poses(
             match_pairs(db_path, work, pairs, conf, rep)
             rep.check("triangulate")
             rep.report("triangulate", 0.0, "triangulating with fixed poses")
-            prec = _posed_reconstruction(db_path, pose_of)
-            out_dir = work / "sparse"
-            out_dir.mkdir()
-            tri = rep.run(
-                "triangulate",
-                pycolmap.triangulate_points,
-                prec,
-                db_path,
-                image_dir,
-                out_dir,
-                clear_points=True,
-                options=incremental_options(conf),
-                refine_intrinsics=False,
-            )
-            rec = reconstruction_from_pycolmap(tri)
-    dropped = filter_points(rec, conf.min_track_length, conf.max_reproj_error)
+            min_track = conf.min_track_length
+            rec, dropped = _triangulate(db_path, image_dir, work, pose_of, conf, min_track, rep)
+            ppi = _median_points_per_image(rec)
+            if min_track > 2 and ppi < conf.two_view_below:
+                rep.report(
+                    "triangulate", 0.5,
+                    f"median image sees {ppi:.0f} points (< {conf.two_view_below}): keeping two-view points",
+                )
+                log.info("known poses: median %.0f points per image with tracks >= %d; re-triangulating with "
+                         "two-view tracks (SfmConf.two_view_below)", ppi, min_track)
+                min_track = 2
+                rec, dropped = _triangulate(db_path, image_dir, work, pose_of, conf, min_track, rep)
     st = reconstruction_stats(rec)
     if st["points3D"] == 0:
         raise BuildError(
@@ -280,12 +277,41 @@ def triangulate_known_poses(
             stage="triangulate",
         )
     msg = (
-        f"{st['points3D']} points (dropped {dropped}: track < {conf.min_track_length} or error > "
+        f"{st['points3D']} points (dropped {dropped}: track < {min_track} or error > "
         f"{conf.max_reproj_error:g} px), mean track {st['mean_track_length']:.2f}, mean error {st['mean_reproj_error_px']:.2f} px"
     )
     log.info("known-poses triangulation: %s", msg)
     rep.report("triangulate", 1.0, msg)
     return rec
+
+
+def _triangulate(
+    db_path: Path, image_dir: Path, work: Path, pose_of: dict[str, Rigid3d], conf: SfmConf, min_track: int,
+    rep: Reporter,
+) -> tuple[Reconstruction, int]:
+    """pycolmap triangulation at the fixed poses into ``work/sparse`` (replaced), points with
+    shorter tracks or larger errors dropped: (reconstruction, points dropped)."""
+    out_dir = work / "sparse"
+    shutil.rmtree(out_dir, ignore_errors=True)
+    out_dir.mkdir()
+    tri = rep.run(
+        "triangulate",
+        pycolmap.triangulate_points,
+        _posed_reconstruction(db_path, pose_of),
+        db_path,
+        image_dir,
+        out_dir,
+        clear_points=True,
+        options=incremental_options(conf.model_copy(update={"min_track_length": min_track})),
+        refine_intrinsics=False,
+    )
+    rec = reconstruction_from_pycolmap(tri)
+    return rec, filter_points(rec, min_track, conf.max_reproj_error)
+
+
+def _median_points_per_image(rec: Reconstruction) -> float:
+    n = [int(np.count_nonzero(im.point3D_ids >= 0)) for im in rec.images.values()]
+    return float(np.median(n)) if n else 0.0
 
 
 def _posed_reconstruction(db_path: Path, pose_of: dict[str, Rigid3d]) -> pycolmap.Reconstruction:
