@@ -259,7 +259,7 @@ def test_row_summary_and_targets_on_fabricated_records():
     assert all(t.values())
 
 
-def test_rows_without_data_are_skipped_and_failing_rows_recorded(tmp_path):
+def test_rows_without_data_are_skipped_and_failing_rows_recorded(tmp_path, capsys):
     """No redkitchen data: skipped with the reason. Data that cannot be read: the row records
     the error and the suite goes on to the next row."""
     conf = BenchConf(data=tmp_path / "none", robust_rows=["redkitchen-every-30th"])
@@ -271,13 +271,17 @@ def test_rows_without_data_are_skipped_and_failing_rows_recorded(tmp_path):
     (bad / "pgt_sfm_seq01.txt").write_text("not a pose file\n")
     cv2.imwrite(str(bad / "frame-000000.color.jpg"), np.zeros((48, 64), np.uint8))
     conf = BenchConf(data=bad, robust_rows=["redkitchen-every-30th", "redkitchen-every-60th"])
-    out = robust.run_robust(conf, tmp_path / "work2", lambda *a: None)
+    out = robust.run_robust(conf, tmp_path / "work2", lambda *a: None, out=tmp_path / "o")
     assert [r["status"] for r in out["rows"]] == ["crash", "crash"]
     assert all("preparing the row" in r["reason"] for r in out["rows"])
-    from sfmloc.bench.robust_report import robust_rows
+    from sfmloc.bench.robust_report import main, robust_rows
 
     cells = robust_rows({"suites": {"robust": out}})
     assert [c[-1].split(":")[0] for c in cells] == ["crash", "crash"]
+    # The rows so far are on disk after every row, and print as the table.
+    assert main([str(tmp_path / "o" / "robust" / "rows-so-far.json")]) == 0
+    printed = capsys.readouterr().out
+    assert "redkitchen-every-30th" in printed and "redkitchen-every-60th" in printed
 
 
 def test_a_row_runs_both_methods_on_the_same_frames_and_writes_per_frame_records(tiny, tmp_path):

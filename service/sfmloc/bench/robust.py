@@ -754,6 +754,29 @@ def run_robust(
     data = RobustData(conf, work, progress, preps)
     t_start = time.perf_counter()
     rows, done = [], {}
+
+    def suite() -> dict:
+        return {
+            "kind": "robust",
+            "rows": rows,
+            "wall_s": time.perf_counter() - t_start,
+            "frames": {
+                "per_row": conf.robust_frames,
+                "large_image_rows": conf.robust_large_frames,
+                "peer_per_row": conf.robust_peer_frames,
+                "budget_s": conf.robust_budget_s,
+            },
+            "sift_peer_conf": sift_conf.model_dump(),
+        }
+
+    def save_partial() -> None:
+        """The rows so far (a long run can be read before it ends)."""
+        if out is not None:
+            from .report import write_json
+
+            (Path(out) / "robust").mkdir(parents=True, exist_ok=True)
+            write_json(Path(out) / "robust" / "rows-so-far.json", suite())
+
     for spec in select_rows(conf.robust_rows):
         row = {"name": spec.name, "group": spec.group, "text": spec.text}
         if spec.real and not data.has_redkitchen():
@@ -763,6 +786,7 @@ def run_robust(
             )
             log.info("robust/%s: skipped (%s)", spec.name, row["reason"])
             rows.append(row)
+            save_partial()
             continue
         log.info("== robust/%s: %s", spec.name, spec.text)
         try:
@@ -771,6 +795,7 @@ def run_robust(
             row.update(status="crash", reason=f"preparing the row: {_error_text(exc)}")
             log.warning("robust/%s: %s", spec.name, row["reason"])
             rows.append(row)
+            save_partial()
             continue
         n_peer = peer_row_frames(conf, prep.camera.width * prep.camera.height)
         key = _run_key(prep) + (n_peer,)
@@ -799,19 +824,9 @@ def run_robust(
                 row.update(status="crash", reason=f"running the row: {_error_text(exc)}")
             done[key] = row
         rows.append(row)
+        save_partial()
         log.info("robust/%s: %s", spec.name, row_line(row))
-    return {
-        "kind": "robust",
-        "rows": rows,
-        "wall_s": time.perf_counter() - t_start,
-        "frames": {
-            "per_row": conf.robust_frames,
-            "large_image_rows": conf.robust_large_frames,
-            "peer_per_row": conf.robust_peer_frames,
-            "budget_s": conf.robust_budget_s,
-        },
-        "sift_peer_conf": sift_conf.model_dump(),
-    }
+    return suite()
 
 
 def row_line(row: dict, verdict: bool = True) -> str:

@@ -113,3 +113,32 @@ def robust_note(results: dict) -> str:
         "map units and as a fraction of the scene scale (our map's median depth). The peer's "
         "settings were " + tuned + " Per-frame records: robust/ROW/frames-METHOD.json."
     )
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Print the robust table of a bench run: OUT/results.json, or OUT/robust/rows-so-far.json
+    while the run is still going."""
+    import argparse
+    import json
+    from pathlib import Path
+
+    from .report import text_table
+
+    p = argparse.ArgumentParser(
+        prog="python -m sfmloc.bench.robust_report", description=main.__doc__
+    )
+    p.add_argument("results", help="results.json or robust/rows-so-far.json of a bench run")
+    p.add_argument("--markdown", action="store_true", help="a Markdown table")
+    args = p.parse_args(argv)
+    data = json.loads(Path(args.results).read_text())
+    results = data if "suites" in data else {"suites": {"robust": data}}
+    rows = robust_rows(results)
+    if not rows:
+        print(f"{args.results} has no robust rows")
+        return 1
+    print((markdown_table if args.markdown else text_table)(ROBUST_HEADER, rows))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
