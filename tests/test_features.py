@@ -42,13 +42,62 @@ SHIFTS = [(0.3, 0.7), (-0.4, 0.2), (0.5, -0.5), (0.25, 0.25)]
 
 
 @pytest.mark.parametrize("dx,dy", SHIFTS)
-def test_harris_corner_position_follows_subpixel_shifts(dx, dy):
+@pytest.mark.parametrize("method", ["forstner", "quadratic"])
+def test_harris_corner_position_follows_subpixel_shifts(dx, dy, method):
     # Harris' maximum of an L-corner lies a fraction of a pixel inside the corner (a property
-    # of the detector); it must be within a pixel and follow the corner to ~1/4 pixel.
-    base = best_corner(checker_corner_image(100.0, 80.0))
-    moved = best_corner(checker_corner_image(100.0 + dx, 80.0 + dy))
-    assert np.linalg.norm(base - [100.0, 80.0]) < 1.05
+    # of the detector, which the quadratic fit keeps); Forstner's step moves it onto the corner.
+    # Either must follow the corner to ~1/4 pixel.
+    base = best_corner(checker_corner_image(100.0, 80.0), method)
+    moved = best_corner(checker_corner_image(100.0 + dx, 80.0 + dy), method)
+    assert np.linalg.norm(base - [100.0, 80.0]) < (0.3 if method == "forstner" else 1.05)
     assert np.linalg.norm((moved - base) - [dx, dy]) < 0.25, (moved - base, dx, dy)
+
+
+def test_forstner_corners_sit_on_the_true_corner_at_every_angle():
+    # The quadratic fit finds Harris' biased peak precisely; its offset from the corner turns
+    # with the corner (so with the viewpoint). Forstner's point is the corner itself.
+    errs = {"forstner": [], "quadratic": [], "none": []}
+    for angle in (0, 20, 45, 70, 110, 160, 200, 300):
+        for dx, dy in [(0.0, 0.0)] + SHIFTS[:2]:
+            img = checker_corner_image(100.0 + dx, 80.0 + dy, angle_deg=angle)
+            for method, e in errs.items():
+                e.append(np.linalg.norm(best_corner(img, method) - [100.0 + dx, 80.0 + dy]))
+    mean = {m: float(np.mean(e)) for m, e in errs.items()}
+    assert mean["quadratic"] > 0.8 and mean["none"] > 0.8, mean  # the bias exists
+    assert mean["forstner"] < 0.2, mean
+    assert max(errs["forstner"]) < 0.45, errs["forstner"]
+
+
+def test_forstner_corners_are_closer_to_exact_projections_on_a_rendered_view():
+    # Exact ground truth: the renderer's texture corners, projected (the visible ones).
+    from scipy.spatial import cKDTree
+
+    from sfmloc.cameras import Camera
+    from sfmloc.synth import Scene, mapping_views, render_full, visible_points
+
+    scene = Scene.room(0)
+    camera = Camera.pinhole(640, 480, 525.0, 525.0, 320.0, 240.0)
+    dist = {"forstner": [], "quadratic": [], "none": []}
+    for i, T in enumerate(mapping_views(scene, 12, seed=0)[::4]):
+        r = render_full(scene, camera, T, noise_seed=(0, 1, i))
+        gray = cv2.cvtColor(r.bgr, cv2.COLOR_BGR2GRAY)
+        truth = visible_points(scene, camera, T, face_id=r.face_id).xy
+        # pair corners with true projections by the integer maxima, the same pairs for all
+        ref = detect_corners(gray, rel_threshold=0.001, border=16, subpixel="none")
+        d0, nn = cKDTree(truth).query(ref.xy, distance_upper_bound=2.0)
+        hit = np.isfinite(d0)
+        for method, d in dist.items():
+            c = detect_corners(gray, rel_threshold=0.001, border=16, subpixel=method)
+            assert len(c) == len(ref)  # same maxima, moved
+            d.append(np.linalg.norm(c.xy[hit] - truth[nn[hit]], axis=1))
+    med = {m: float(np.median(np.concatenate(d))) for m, d in dist.items()}
+    assert len(np.concatenate(dist["none"])) >= 300
+    assert med["forstner"] < 0.5 and med["forstner"] < 0.5 * med["quadratic"], med
+
+
+def test_detect_corners_rejects_an_unknown_subpixel_method():
+    with pytest.raises(ValueError, match="subpixel"):
+        detect_corners(checker_corner_image(100.0, 80.0), subpixel="parabolic")
 
 
 def test_harris_subpixel_refinement_beats_integer_positions():

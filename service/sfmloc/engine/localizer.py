@@ -43,7 +43,7 @@ from .motion_filter import make_pose_filter
 from .point_uncertainty import PointUncertainty
 from .pose import PoseEstimate, estimate_pose, estimate_pose_one_to_many, pose_covariance, project
 from .track_table import TrackTable
-from .tracker import Keypoints, extract_keypoints, free_candidates, track_2d
+from .tracker import Keypoints, extract_keypoints, free_candidates, map_subpixel, track_2d
 from .types import FrameResult, Status
 
 log = logging.getLogger(__name__)
@@ -90,6 +90,7 @@ class Localizer:
         self.scale = working_scale(camera, bundle.native_focal_px, self.conf.working_scale)
         self.camera = camera if self.scale == 1.0 else camera.scaled(self.scale)
         self.K = self.camera.K
+        self.subpixel = map_subpixel(self.conf, bundle.manifest.params)
         self.extractor = DaisyExtractor()
         self.reset()
 
@@ -187,7 +188,7 @@ class Localizer:
 
         gray = to_working(gray, self.scale)
         thr = c.gamma * self.prev_max_response if self.prev_max_response else None
-        kps = extract_keypoints(gray, thr, c)
+        kps = extract_keypoints(gray, thr, c, self.subpixel)
         if kps.max_response > 0:
             self.prev_max_response = kps.max_response
         timer.lap("keypoints")
@@ -468,7 +469,8 @@ def relocalize(
     if scale != 1.0:
         gray, camera = to_working(gray, scale), camera.scaled(scale)
     corners = detect_corners(
-        gray, rel_threshold=conf.gamma, max_corners=conf.global_max_keypoints, border=conf.mu // 2
+        gray, rel_threshold=conf.gamma, max_corners=conf.global_max_keypoints, border=conf.mu // 2,
+        subpixel=map_subpixel(conf, bundle.manifest.params),
     )
     timer.lap("keypoints")
     result = FrameResult(Status.LOST, 0.0, detected=len(corners), matching="global")

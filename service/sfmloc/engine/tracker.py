@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..features.brief import compute_brief, smooth_for_brief
-from ..features.harris import detect_corners
+from ..features.harris import SUBPIXEL_DEFAULT, detect_corners
 from .config import EngineConf
 from .track_table import TrackTable
 
@@ -33,9 +33,23 @@ class Keypoints:
         return len(self.xy)
 
 
-def extract_keypoints(gray: np.ndarray, threshold: float | None, conf: EngineConf) -> Keypoints:
+def map_subpixel(conf: EngineConf, map_params: dict) -> str:
+    """The sub-pixel keypoint method to use with a map (``EngineConf.subpixel``; "map": the
+    method its keypoints were localized with, recorded in its build parameters: "quadratic"
+    when the parameters predate the record, the detector's default when there are none)."""
+    if conf.subpixel != "map":
+        return conf.subpixel
+    if "descriptors" not in map_params:
+        return SUBPIXEL_DEFAULT
+    return map_params["descriptors"].get("subpixel", "quadratic")
+
+
+def extract_keypoints(
+    gray: np.ndarray, threshold: float | None, conf: EngineConf, subpixel: str | None = None
+) -> Keypoints:
     """Harris corners above ``threshold`` (gamma times the previous frame's maximum; None on
-    the first frame: gamma times this frame's) with BRIEF descriptors."""
+    the first frame: gamma times this frame's) with BRIEF descriptors; ``subpixel``: the
+    sub-pixel method (see ``map_subpixel``)."""
     border = conf.mu // 2
     corners = detect_corners(
         gray,
@@ -43,6 +57,7 @@ def extract_keypoints(gray: np.ndarray, threshold: float | None, conf: EngineCon
         rel_threshold=conf.gamma,
         max_corners=conf.max_keypoints,
         border=border,
+        subpixel=subpixel or (SUBPIXEL_DEFAULT if conf.subpixel == "map" else conf.subpixel),
     )
     smoothed = smooth_for_brief(gray)
     brief = compute_brief(smoothed, corners.xy, conf.mu)
@@ -132,3 +147,4 @@ def free_candidates(tracked_xy: np.ndarray, kps: Keypoints, used: np.ndarray, mi
         idx = np.nonzero(free)[0]
         free[idx[blocked]] = False
     return np.nonzero(free)[0]
+

@@ -21,6 +21,28 @@ import numpy as np
 from ..cameras import PIXEL_CENTER_OFFSET
 
 
+# Sub-pixel localization of the Harris maxima. The Harris maximum of an L-corner sits inside
+# the corner, by an offset that depends on the corner's angle and so on the viewpoint; a
+# quadratic fit of the response only finds that biased peak more precisely. Forstner's
+# operator (as cv2.cornerSubPix) finds the point the edges around the maximum point at.
+# Measured on the synthetic walk (exact texture corners, 9800 corners in 30 frames): distance to
+# the true corner, median / mean, integer 1.22 / 1.20 px, quadratic 1.27 / 1.24 px, Forstner
+# 0.36 / 0.62 px; the median signed bias in y drops from +0.31 to +0.01 px, and map points
+# refined at Forstner keypoints are 1.0 mm from the truth instead of 4.8 mm (median). End to
+# end (map built with the same method), synthetic walk median error 0.52 -> 0.44 cm, mean
+# 0.94 -> 0.61 cm; flight unchanged (0.36 -> 0.37 cm); but redkitchen (400 frames) 0.77 ->
+# 1.00 cm, with larger residuals at the ground-truth pose (median 1.37 -> 1.83 px): on real,
+# blurred corners the 5x5 step is noisier than the bias it removes. Quadratic stays the default.
+SUBPIXEL_METHODS = ("forstner", "quadratic", "none")
+SUBPIXEL_DEFAULT = "quadratic"
+# One step in a uniform 5x5 window (the support of the Harris window, sigma = 1). Measured on
+# the walk above: Gaussian weights (sigma 1, 1.5, 2.5) give medians 0.60, 0.46, 0.39 px against
+# 0.36 uniform; iterating (re-centred windows) lowers the median 0.02 px but raises the mean
+# (neighbouring corners pull the window away); a 7x7 window is worse (0.55 px).
+FORSTNER_RADIUS = 2
+FORSTNER_MAX_SHIFT = 1.5  # px; a larger step is not this maximum's corner: keep the pixel
+
+
 @dataclass
 class Corners:
     xy: np.ndarray  # (N, 2) float64, COLMAP pixel convention
@@ -31,12 +53,20 @@ class Corners:
         return len(self.xy)
 
 
-def harris_response(gray: np.ndarray, sigma: float = 1.0, k: float = 0.04) -> np.ndarray:
+def _gradients(gray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sobel gradients scaled to unit pixel steps (Sobel / 8), float32."""
+    gx = cv2.Sobel(gray, cv2.CV_32F, 1, 0, ksize=3, scale=1.0 / 8.0)
+    gy = cv2.Sobel(gray, cv2.CV_32F, 0, 1, ksize=3, scale=1.0 / 8.0)
+    return gx, gy
+
+
+def harris_response(
+    gray: np.ndarray, sigma: float = 1.0, k: float = 0.04, gradients: tuple[np.ndarray, np.ndarray] | None = None
+) -> np.ndarray:
     """Harris cornerness ``det(M) - k trace(M)^2`` (float32), M from Sobel gradients
     integrated with a Gaussian of ``sigma`` pixels. Gradients are scaled to unit pixel steps
     (Sobel / 8) so the response is comparable across images and pyramid levels."""
-    gx = cv2.Sobel(gray, cv2.CV_32F, 1, 0, ksize=3, scale=1.0 / 8.0)
-    gy = cv2.Sobel(gray, cv2.CV_32F, 0, 1, ksize=3, scale=1.0 / 8.0)
+    gx, gy = gradients if gradients is not None else _gradients(gray)
     ksize = int(2 * round(2.5 * sigma) + 1)
     # The three products as one interleaved 3-channel image: one blur call instead of three
     # (measured 1.0 vs 1.5 ms at 640x480).
@@ -59,7 +89,7 @@ def detect_corners(
     border: int = 0,
     mask: np.ndarray | None = None,
     sigma: float = 1.0,
-    subpixel: bool = True,
+    subpixel: bool | str = True,
 ) -> Corners:
     """Harris corners of a uint8 grayscale image.
 
@@ -67,12 +97,18 @@ def detect_corners(
     previous frame); when None, ``rel_threshold`` times this image's maximum is used.
     ``border`` drops corners closer than that to the image edge (descriptor support);
     ``mask`` (uint8, nonzero = allowed) restricts where corners may be; ``max_corners`` > 0
-    keeps the strongest. ``subpixel`` refines each maximum with a 2D quadratic fit of the
-    response (pose accuracy depends on it).
+    keeps the strongest. ``subpixel`` locates each maximum to sub-pixel precision (pose
+    accuracy depends on it): "forstner" moves it to the point where the edges around it meet,
+    "quadratic" (or True) to the peak of a quadratic fit of the response, "none" (or False)
+    keeps the pixel.
     """
+    method = SUBPIXEL_DEFAULT if subpixel is True else ("none" if subpixel is False else subpixel)
+    if method not in SUBPIXEL_METHODS:
+        raise ValueError(f"subpixel must be one of {SUBPIXEL_METHODS}, got {subpixel!r}")
     if gray.ndim != 2:
         raise ValueError(f"expected a grayscale image, got shape {gray.shape}")
-    R = harris_response(gray, sigma=sigma)
+    grads = _gradients(gray)
+    R = harris_response(gray, sigma=sigma, gradients=grads)
     r_max = float(R.max()) if R.size else 0.0
     thr = threshold if threshold is not None else rel_threshold * r_max
     thr = max(float(thr), 1e-12)
@@ -93,9 +129,14 @@ def detect_corners(
         keep.sort()  # raster order, deterministic
         xs, ys, resp = xs[keep], ys[keep], resp[keep]
     xy = np.stack([xs, ys], axis=1).astype(np.float64)
-    if subpixel and len(xs):
+    if method == "quadratic" and len(xs):
         xy += _subpixel_offsets(R, xs, ys)
+    elif method == "forstner" and len(xs):
+        xy += _forstner_offsets(*grads, xs, ys)
     xy += PIXEL_CENTER_OFFSET
+    if border > 0 and len(xy):  # a sub-pixel step may not cross the border (descriptor support)
+        h, w = gray.shape
+        xy = np.clip(xy, border, np.array([w - border, h - border], np.float64))
     return Corners(xy=xy, response=resp.astype(np.float32), max_response=r_max)
 
 
@@ -118,3 +159,34 @@ def _subpixel_offsets(R: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> np.ndarr
         dx = np.where(ok, -(hyy * gx - hxy * gy) / det, 0.0)
         dy = np.where(ok, -(hxx * gy - hxy * gx) / det, 0.0)
     return np.stack([np.clip(dx, -0.5, 0.5), np.clip(dy, -0.5, 0.5)], axis=1)
+
+
+_FO = np.arange(-FORSTNER_RADIUS, FORSTNER_RADIUS + 1)
+_FO_Y_INT, _FO_X_INT = (a.ravel() for a in np.meshgrid(_FO, _FO, indexing="ij"))
+_FOX, _FOY = _FO_X_INT.astype(np.float64), _FO_Y_INT.astype(np.float64)
+
+
+def _forstner_offsets(gx: np.ndarray, gy: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
+    """Offsets from each pixel to the least-squares intersection of the edge lines in the
+    window around it (Forstner): the point c minimizing ``sum_p (g_p . (p - c))^2``, one
+    closed-form step. Where that system is ill-conditioned or the step leaves the window's
+    core, the offset is 0."""
+    h, w = gx.shape
+    px = np.clip(xs[:, None] + _FO_X_INT, 0, w - 1)
+    py = np.clip(ys[:, None] + _FO_Y_INT, 0, h - 1)
+    flat = py * w + px
+    a = gx.ravel()[flat].astype(np.float64)
+    b = gy.ravel()[flat].astype(np.float64)
+    gaa, gbb, gab = a * a, b * b, a * b
+    aa, bb, ab = gaa.sum(1), gbb.sum(1), gab.sum(1)
+    # sum g g^T (p - centre)
+    qx = gaa @ _FOX + gab @ _FOY
+    qy = gab @ _FOX + gbb @ _FOY
+    det = aa * bb - ab * ab
+    tr = aa + bb
+    ok = det > 1e-3 * tr * tr  # two independent edge directions
+    with np.errstate(divide="ignore", invalid="ignore"):
+        dx = (bb * qx - ab * qy) / det
+        dy = (aa * qy - ab * qx) / det
+    ok &= (np.abs(dx) <= FORSTNER_MAX_SHIFT) & (np.abs(dy) <= FORSTNER_MAX_SHIFT)
+    return np.stack([np.where(ok, dx, 0.0), np.where(ok, dy, 0.0)], axis=1)

@@ -11,6 +11,7 @@ keypoint at one fixed scale match the map.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -36,6 +37,9 @@ class DescriptorConf(StrictModel):
     harris_rel_threshold: float = 0.0005  # of the level's maximum cornerness
     max_corners_per_level: int = 6000
     border: int = 8  # px from the level's edge
+    # Sub-pixel keypoint localization, as the engine's (EngineConf.subpixel): the refine stage
+    # re-triangulates points at these keypoints, so map and frames share the detector's bias.
+    subpixel: Literal["forstner", "quadratic", "none"] = "quadratic"
 
 
 @dataclass
@@ -83,6 +87,7 @@ def extract_image_descriptors(
             rel_threshold=conf.harris_rel_threshold,
             max_corners=conf.max_corners_per_level,
             border=conf.border,
+            subpixel=conf.subpixel,
         )
         n_corners += len(corners)
         if len(corners) == 0:
