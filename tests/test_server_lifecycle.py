@@ -295,3 +295,45 @@ def test_prometheus_text_format():
     assert 'sfmloc_frame_latency_seconds_bucket{map="room",le="0.005"} 1' in text
     assert 'sfmloc_frame_latency_seconds_bucket{map="room",le="+Inf"} 2' in text
     assert 'sfmloc_frame_latency_seconds_count{map="room"} 2' in text
+
+
+# ----------------------------------------------------------------------------- worker start-up
+def test_workers_start_from_a_folder_that_shadows_the_package(tmp_path, monkeypatch):
+    """A server started where a folder named ``sfmloc`` exists (the parent of a clone): its
+    worker processes still import the installed package (they drop the working directory from
+    sys.path) and the pool starts."""
+    from sfmloc.server.workers import WorkerPool
+
+    (tmp_path / "sfmloc").mkdir()  # found first on sys.path when the working directory is on it
+    (tmp_path / "sfmloc" / "__init__.py").write_text("raise ImportError('the shadow was imported')\n")
+    monkeypatch.chdir(tmp_path)
+    pool = WorkerPool(1, "process", "{}", on_result=lambda msg: None)
+    try:
+        pool.start(timeout=120)
+        assert pool.workers[0].ready.is_set() and pool.fatal is None and pool.restarts == 0
+    finally:
+        pool.stop()
+
+
+def test_a_worker_that_cannot_start_fails_the_pool_loudly(tmp_path, monkeypatch):
+    """Workers that die before they are ready are retried a bounded number of times with
+    back-off, then the pool gives up with the child's own error in one line; every dead
+    child is reaped (no zombie)."""
+    from sfmloc.server.workers import MAX_START_FAILURES, WorkerPool
+
+    broken = tmp_path / "broken" / "sfmloc"
+    broken.mkdir(parents=True)
+    (broken / "__init__.py").write_text("raise ImportError('sfmloc is broken on purpose')\n")
+    monkeypatch.setenv("PYTHONPATH", f"{broken.parent}{os.pathsep}{os.environ.get('PYTHONPATH', '')}")
+    pool = WorkerPool(1, "process", "{}", on_result=lambda msg: None)
+    try:
+        with pytest.raises(E.UnavailableError) as err:
+            pool.start(timeout=120)
+        assert f"exited {MAX_START_FAILURES} times" in str(err.value)
+        assert "sfmloc is broken on purpose" in str(err.value)
+        assert pool.restarts == MAX_START_FAILURES - 1
+        assert all(h.runner.exitcode is not None for h in pool.workers)  # reaped
+        out = subprocess.run(["ps", "-o", "stat=", "--ppid", str(os.getpid())], capture_output=True, text=True)
+        assert "Z" not in out.stdout.split()  # no zombie child
+    finally:
+        pool.stop()

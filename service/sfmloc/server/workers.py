@@ -299,6 +299,7 @@ class WorkerHandle:
     alive: bool = True
     pid: int = 0
     threads: list[threading.Thread] = field(default_factory=list)
+    ready: threading.Event = field(default_factory=threading.Event)  # this process said "ready"
 
 
 class WorkerPool:
@@ -338,6 +339,9 @@ class WorkerPool:
         self._stopping = False
         self._reloc_pending = 0
         self.restarts = 0
+        self._start_failures = [0] * n  # consecutive deaths before "ready", per worker index
+        self.fatal: Exception | None = None  # a worker that cannot start: the pool gives up
+        self._started = False  # start() returned: every worker was ready once
 
     # ------------------------------------------------------------------ lifecycle
     def start(self, timeout: float = 120.0) -> None:
@@ -345,9 +349,18 @@ class WorkerPool:
             os.environ.setdefault(var, "1")
         for i in range(self.n):
             self.workers.append(self._spawn(i))
+        deadline = time.monotonic() + timeout
         for i in range(self.n):
-            if not self._ready[i].wait(timeout):
-                raise UnavailableError(f"worker {i} did not start within {timeout:.0f} s")
+            # A worker that dies while starting is restarted (with back-off) by its reader
+            # thread, which replaces self.workers[i]; after MAX_START_FAILURES it gives up.
+            while not self.workers[i].ready.wait(0.05):
+                if self.fatal is not None:
+                    raise self.fatal
+                if self._stopping:  # SIGTERM during start-up: do not keep the process waiting
+                    raise UnavailableError("the server stopped while its workers were starting")
+                if time.monotonic() > deadline:
+                    raise UnavailableError(f"worker {i} did not start within {timeout:.0f} s")
+        self._started = True
 
     def _spawn(self, i: int) -> WorkerHandle:
         ours, theirs = socket.socketpair()
@@ -363,10 +376,11 @@ class WorkerPool:
             # claims a huge size would otherwise be decoded before its size is checked).
             env["OPENCV_IO_MAX_IMAGE_PIXELS"] = str(self.max_image_pixels)
             fd = theirs.fileno()
-            cmd = [sys.executable, "-m", "sfmloc.server.workers", "--fd", str(fd), "--index", str(i),
+            cmd = [sys.executable, "-c", _BOOTSTRAP, "--fd", str(fd), "--index", str(i),
                    "--log-level", str(self.log_level), "--log-format", self.log_format,
                    "--engine-conf", self.engine_conf_json]
-            runner: Any = _Process(subprocess.Popen(cmd, pass_fds=(fd,), env=env, stdin=subprocess.DEVNULL))
+            runner: Any = _Process(subprocess.Popen(cmd, pass_fds=(fd,), env=env, stdin=subprocess.DEVNULL,
+                                                    stderr=subprocess.PIPE))
             theirs.close()  # the child holds its end; ours must not keep it open (EOF detection)
         else:
             conn = Connection(theirs.detach())
@@ -454,13 +468,19 @@ class WorkerPool:
                     fut.set_result(msg)
         elif op == "ready":
             h.pid = msg.get("pid", 0)
+            h.ready.set()
             self._ready[h.index].set()
 
     def _worker_lost(self, h: WorkerHandle) -> None:
         """A worker died (a crash in native code, killed): fail what it had, restart it with
         the current maps, and tell the sessions (they relocalize on the new worker)."""
+        if self.kind == "process":
+            h.runner.join(5)  # reap it now: no zombie, and its exit code is known
         code = getattr(h.runner, "exitcode", None)
-        event(log, logging.ERROR, "worker_lost", worker=h.index, pid=h.pid, exitcode=code)
+        pid = h.pid or getattr(getattr(h.runner, "popen", None), "pid", 0)
+        started = h.ready.is_set()
+        event(log, logging.ERROR, "worker_lost", worker=h.index, pid=pid, exitcode=code,
+              during_start=not started, stderr=getattr(h.runner, "last_line", ""))
         with self._lock:
             h.alive = False
             h.outbox.put(None)
@@ -471,11 +491,26 @@ class WorkerPool:
             f.set_exception(UnavailableError(f"worker {h.index} died; retry"))
         if self._stopping:
             return
+        fails = 0 if started else self._start_failures[h.index] + 1
+        self._start_failures[h.index] = fails
+        if fails >= MAX_START_FAILURES:
+            # Restarting would loop forever (e.g. the package does not import): give up loudly.
+            self.fatal = UnavailableError(
+                f"worker {h.index} exited {fails} times before it was ready (exit code {code})"
+                + (f": {h.runner.last_line}" if getattr(h.runner, "last_line", "") else "")
+            )
+            event(log, logging.ERROR, "worker_start_failed", worker=h.index, attempts=fails, error=str(self.fatal))
+            return
+        if fails:
+            time.sleep(min(5.0, 0.25 * 2**fails))  # back-off before the next attempt
         self.restarts += 1
         new = self._spawn(h.index)
-        if not self._ready[h.index].wait(120):
-            log.error("worker %d did not restart", h.index)
+        if not self._started:
+            self.workers[h.index] = new  # start() waits on the replacement
             return
+        while not new.ready.wait(0.1):
+            if not new.alive or self._stopping:
+                return  # the replacement died too: its own reader thread handles that
         for (name, gen), (path, build_id) in maps.items():
             try:
                 self._request(new, {"op": "load", "name": name, "gen": gen, "path": path, "build_id": build_id}).result(120)
@@ -566,11 +601,41 @@ class WorkerPool:
         return [h.busy_ms for h in self.workers]
 
 
+# How a worker process starts: by module path, with the working directory (sys.path[0] of
+# ``-m`` or ``-c``) removed from sys.path, so that a folder named ``sfmloc`` where the server
+# was started (the parent of a clone) cannot shadow the installed package (``-P``, Python 3.11+).
+_BOOTSTRAP = (
+    "import sys; sys.path[:] = [p for p in sys.path if p not in ('', '.')]; "
+    "sys.argv[0] = 'sfmloc-worker'; from sfmloc.server.workers import _main; _main()"
+)
+MAX_START_FAILURES = 3
+
+
 class _Process:
-    """``subprocess.Popen`` with the few ``Process``/``Thread`` methods the pool uses."""
+    """``subprocess.Popen`` with the few ``Process``/``Thread`` methods the pool uses. The
+    child's stderr is passed through to ours, and its last line kept (why it died)."""
 
     def __init__(self, popen: subprocess.Popen) -> None:
         self.popen = popen
+        self.last_line = ""
+        if popen.stderr is not None:
+            threading.Thread(target=self._pump, name=f"sfmloc-worker-stderr-{popen.pid}", daemon=True).start()
+
+    def _pump(self) -> None:
+        assert self.popen.stderr is not None
+        out = getattr(sys.stderr, "buffer", None)
+        for line in iter(self.popen.stderr.readline, b""):
+            text = line.decode("utf-8", "replace").strip()
+            if text:
+                self.last_line = text[-300:]
+            try:
+                if out is not None:
+                    out.write(line)
+                    out.flush()
+                else:
+                    sys.stderr.write(line.decode("utf-8", "replace"))
+            except (OSError, ValueError):
+                pass
 
     def join(self, timeout: float | None = None) -> None:
         try:
