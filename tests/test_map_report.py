@@ -67,7 +67,7 @@ def corner_maps(tmp_path_factory) -> dict:
         for mt in ((2, 3) if n == 3 else (3,)):
             out[n][mt] = build.main(
                 build.preset("default"), f"t{mt}", d / "maps", images=d / "images", poses=pose_file, camera=CAM,
-                sfm_conf=sfm.sfm_conf("default", min_track_length=mt),
+                sfm_conf=sfm.sfm_conf("default", min_track_length=mt, two_view_below=0),
             )
     return out
 
@@ -127,14 +127,14 @@ def test_two_view_points_are_kept_only_where_the_map_would_be_sparse(corner_maps
     d3 = corner_maps[3]
     b3 = MapBundle(d3[3], verify=False)
     dense = corner_maps[4]
-    # 3 views: with tracks >= 3 the median image sees ~80 points, under the switch: two-view kept
-    rec = sfm.triangulate_known_poses(d3["dir"] / "images", d3["pose_file"], CAM,
-                                      conf=sfm.sfm_conf("default", two_view_below=SPARSE_POINTS_PER_IMAGE))
+    # 3 views: with tracks >= 3 the median image sees ~80 points, under the switch (default
+    # 400): two-view points kept
+    rec = sfm.triangulate_known_poses(d3["dir"] / "images", d3["pose_file"], CAM)
     tracks = np.array([len(p.track_image_ids) for p in rec.points3D.values()])
     assert tracks.min() == 2 and len(tracks) > 3 * b3.n_points
-    # 4 views: dense enough with tracks >= 3, so the map is the one built without the switch
-    rec = sfm.triangulate_known_poses(dense["dir"] / "images", dense["pose_file"], CAM,
-                                      conf=sfm.sfm_conf("default", two_view_below=SPARSE_POINTS_PER_IMAGE))
+    # 4 views: dense enough with tracks >= 3 (~570 points/image), so the map is the one built
+    # without the switch
+    rec = sfm.triangulate_known_poses(dense["dir"] / "images", dense["pose_file"], CAM)
     b4 = MapBundle(dense[3], verify=False)
     assert min(len(p.track_image_ids) for p in rec.points3D.values()) == 3
     assert len(rec.points3D) == b4.n_points

@@ -65,7 +65,7 @@ def prepare(name: str, work: Path, data: Path, min_track: int, synth_ours: str =
             sdir = mdir / "sfm"
             shutil.rmtree(sdir, ignore_errors=True)
             sdir.mkdir(parents=True)
-            sconf = sfm.sfm_conf("default", keep_workdir=True, min_track_length=min_track)
+            sconf = sfm.sfm_conf("default", keep_workdir=True, min_track_length=min_track, two_view_below=0)
             build.main(build.preset("default"), "map", mdir, images=data, poses=poses, camera=camera,
                        stride=stride, sfm_conf=sconf, workdir=sdir)
             from ..mapping.bundle import MapBundle
@@ -94,18 +94,19 @@ def prepare(name: str, work: Path, data: Path, min_track: int, synth_ours: str =
         gt = load_groundtruth(sdata / "groundtruth.tum", source.names(), [source.stamp(i) for i in range(n)],
                               source.fps)
         if not (bundle / "manifest.json").is_file() or not sift_path.is_file():
+            mdir.mkdir(parents=True, exist_ok=True)
             model = read_model(sdata / "sparse")
             ims = sorted(model.images.values(), key=lambda im: im.name)
             pf = write_colmap_list(mdir / "map_poses.txt", [im.name for im in ims], [im.cam_from_world for im in ims])
             if synth_ours == "triangulated":
                 build.main(build.preset("default"), "map", mdir, images=sdata / "images", poses=pf, camera=camera,
-                           sfm_conf=sfm.sfm_conf("default", min_track_length=min_track))
+                           sfm_conf=sfm.sfm_conf("default", min_track_length=min_track, two_view_below=0))
             else:
                 build.main(build.preset("default"), "map", mdir, colmap=sdata / "sparse", images=sdata / "images")
             sdir = mdir / "sfm"
             shutil.rmtree(sdir, ignore_errors=True)
             sdir.mkdir(parents=True)
-            sconf = sfm.sfm_conf("default", keep_workdir=True, min_track_length=min_track)
+            sconf = sfm.sfm_conf("default", keep_workdir=True, min_track_length=min_track, two_view_below=0)
             rec = sfm.triangulate_known_poses(sdata / "images", pf, camera, conf=sconf, workdir=sdir)
             ids = np.array(sorted(rec.points3D), np.int64)
             SiftMap.from_sfm_workdir(_kept(sdir), ids, sconf.model_dump()).save(sift_path)

@@ -70,9 +70,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--sfm-preset", default="default", help="SfM preset: default, fast, accurate (default: default)")
     p.add_argument(
         "--min-track-length", type=int, metavar="N",
-        help="known poses: drop points seen in fewer than N images (default 3; 2 keeps two-view points, "
-        "which thin maps need: the poses are given, so two views fix a point). Images-only SfM keeps its "
-        "own rule: at least 3, since its poses are estimated from the same matches. Not used with --colmap",
+        help="known poses: drop points seen in fewer than N images (default 3, or 2 where the median image "
+        "would see fewer than 400 points with 3: the poses are given, so two views fix a point, and thin "
+        "maps need them). Images-only SfM keeps its own rule: at least 3, since its poses are estimated "
+        "from the same matches. Not used with --colmap",
     )
     p.add_argument("--matching", choices=["sequential", "exhaustive"], help="images only: pair selection")
     p.add_argument("--config", help="JSON/TOML file of builder settings merged over the preset")

@@ -8,7 +8,8 @@ within ``pair_max_angle_deg`` of the same direction, plus its ``pair_sequential`
 in pose-file order); match and verify them; ``pycolmap.triangulate_points`` with the given
 poses and intrinsics held fixed (it triangulates, merges and completes tracks, and refines the
 points only by bundle adjustment, filtering by reprojection error and triangulation angle);
-drop points seen in fewer than ``min_track_length`` images.
+drop points seen in fewer than ``min_track_length`` images (where that would leave the median
+image fewer than ``two_view_below`` points, triangulate again keeping two-view tracks).
 
 Matching pose entries to files:
 
