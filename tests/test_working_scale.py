@@ -82,6 +82,17 @@ def test_working_scale_selection_and_scaled_intrinsics():
     assert working_scale(Camera.pinhole(640, 480, 560, 560, 320, 240), F640) == 1.0
     assert working_scale(big_camera(320, 240), F640) == 1.0  # never upsampled
     assert working_scale(cam, F640, "full") == 1.0  # the paper's behaviour, on request
+    # A map of 3072x2048 images (f = 2520, pyramid down to 630): a frame of the same camera
+    # runs within the engine's pixel budget (640x480 pixels) but not below the map's coarsest
+    # level: 768x512, f = 630.
+    assert working_scale(cam, 2520.0, "map", 640 * 480, 630.0) == 768 / 3072
+    # A 1920x1080 camera mapped with itself: the budget alone (pyramid down to f / 4).
+    hd = Camera.pinhole(1920, 1080, 1400, 1400, 960, 540)
+    budget = np.sqrt(640 * 480 / (1920 * 1080))
+    assert working_scale(hd, 1400.0, "map", 640 * 480, 350.0) == round(1920 * budget) / 1920
+    # The budget never makes a frame finer than the map, and a VGA frame is left alone.
+    assert working_scale(cam, F640, "map", 640 * 480, F640 / 4) == pytest.approx(640 / 3072)
+    assert working_scale(big_camera(640, 480), F640, "map", 640 * 480, F640 / 4) == 1.0
     # Other models: distortion is in normalized coordinates and stays.
     rad = Camera("SIMPLE_RADIAL", 2000, 1500, np.array([1640.0, 1000.0, 750.0, -0.05]))
     r = rad.scaled(working_scale(rad, 410.0))
@@ -165,6 +176,7 @@ def write_manifest(bundle_dir, manifest: dict) -> None:
 def test_bundle_records_keypoint_scales_and_old_bundles_still_load(world, bundle, tmp_path):
     ks = bundle.keypoint_scales
     assert bundle.native_focal_px == pytest.approx(F640)
+    assert bundle.coarsest_focal_px == pytest.approx(F640 / 4)  # two octaves down
     assert ks["native_focal_px"] == pytest.approx(F640)
     # An old bundle: no keypoint_scales in its manifest (checksums cover the arrays only).
     old = tmp_path / "old"

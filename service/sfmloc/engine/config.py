@@ -93,6 +93,12 @@ class EngineConf(StrictModel):
     # descriptor describes. Synthetic 3072x2048 queries of a map of 640x480 views: "full" 2/10
     # relocalized, both > 1 m off; "map" 10/10, median 0.5 cm (640x480 queries: 0.39 cm).
     working_scale: Literal["map", "full"] = "map"
+    # ... and within a pixel budget (0: none), but never coarser than the map's coarsest
+    # pyramid level: the engine's parameters (mu, rho, tau, the DAISY patch, 1000 keypoints)
+    # are pixels of the paper's 640x480 video. 3072x2048 queries of a map of 3072x2048 images
+    # (10 synthetic views): at full size 4/10 relocalized, median 33 cm off; at 2048 px wide
+    # 10/10, 1.1 cm; 1280: 0.28 cm; 800: 0.21 cm; 640: 0.20 cm.
+    max_working_pixels: int = 640 * 480
     # Sub-pixel keypoint localization (features/harris.py). "map": as the map's keypoints were
     # (the builder's descriptors.subpixel; "quadratic" for maps built before it was recorded):
     # points are triangulated at those keypoints, so frames must share their localization.

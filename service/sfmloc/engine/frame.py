@@ -40,17 +40,31 @@ def to_gray(frame: np.ndarray, camera: Camera) -> np.ndarray:
 _SCALE_DEAD_BAND = 2.0 ** (-1.0 / 8.0)
 
 
-def working_scale(camera: Camera, native_focal_px: float, mode: str = "map") -> float:
+def working_scale(
+    camera: Camera,
+    native_focal_px: float,
+    mode: str = "map",
+    max_pixels: int = 0,
+    coarsest_focal_px: float = 0.0,
+) -> float:
     """The factor (<= 1) by which a frame of ``camera`` is resized before keypoints are
-    extracted, so that they describe the scene at about the map's own pixels per radian
-    (``MapBundle.native_focal_px``, the mapping images' focal length). A 3072x2048 frame with
-    f = 2520 against a map of 640x480 images with f = 525 is processed at 640x427. Frames at
-    or below the map's resolution are used as they are (never upsampled). ``mode="full"``:
-    always the full resolution (the paper's behaviour)."""
+    extracted. Three rules, in this order of precedence:
+
+    - never finer than the map: at most the mapping images' own pixels per radian
+      (``native_focal_px``), so keypoints are described at a scale the map holds. A 3072x2048
+      frame with f = 2520 against a map of 640x480 images (f = 525) runs at 640x427;
+    - within the engine's pixel budget (``max_pixels``; its parameters are VGA pixels), ...
+    - ... but never coarser than the map's coarsest descriptors (``coarsest_focal_px``).
+
+    Never above 1 (no upsampling). ``mode="full"``: always the full resolution (the paper)."""
     if mode == "full" or not np.isfinite(native_focal_px) or native_focal_px <= 0:
         return 1.0
     fx, fy = camera.focal
-    s = float(native_focal_px) / float(np.sqrt(fx * fy))
+    f = float(np.sqrt(fx * fy))
+    s = native_focal_px / f
+    if max_pixels > 0:
+        budget = float(np.sqrt(max_pixels / (camera.width * camera.height)))
+        s = min(s, max(budget, coarsest_focal_px / f))
     if s >= _SCALE_DEAD_BAND:
         return 1.0
     # The width lands on an integer, so the working image spans exactly ``s`` times the original.

@@ -65,6 +65,12 @@ class _Timer:
         return self.ms
 
 
+def _working_scale(camera: Camera, bundle: MapBundle, conf: EngineConf) -> float:
+    return working_scale(
+        camera, bundle.native_focal_px, conf.working_scale, conf.max_working_pixels, bundle.coarsest_focal_px
+    )
+
+
 def describe(extractor: DaisyExtractor, bundle: MapBundle, gray_prepared: np.ndarray, xy: np.ndarray) -> np.ndarray:
     """PCA-32 DAISY at keypoints of a frame (same descriptor and projection as the bundle)."""
     theta = extractor.orientations(gray_prepared, xy)
@@ -87,7 +93,7 @@ class Localizer:
         self.bundle = bundle
         self.conf = conf or EngineConf()
         self.input_camera = camera
-        self.scale = working_scale(camera, bundle.native_focal_px, self.conf.working_scale)
+        self.scale = _working_scale(camera, bundle, self.conf)
         self.camera = camera if self.scale == 1.0 else camera.scaled(self.scale)
         self.K = self.camera.K
         self.subpixel = map_subpixel(self.conf, bundle.manifest.params)
@@ -465,7 +471,7 @@ def relocalize(
     gray = to_gray(image, camera)
     # A fine image is described at about the map's resolution (see ``Localizer``); the pose
     # does not depend on the scaling of the intrinsics.
-    scale = working_scale(camera, bundle.native_focal_px, conf.working_scale)
+    scale = _working_scale(camera, bundle, conf)
     if scale != 1.0:
         gray, camera = to_working(gray, scale), camera.scaled(scale)
     corners = detect_corners(

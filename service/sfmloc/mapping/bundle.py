@@ -68,7 +68,7 @@ from ..errors import BundleError, InputError
 from ..features.daisy import RAW_DIM, Pca
 from ..transforms import Rigid3d
 from .index import DescriptorIndex
-from .keypoint_scales import keypoint_scales, pyramid_level_scales
+from .keypoint_scales import coarsest_focal_px, keypoint_scales, pyramid_level_scales
 
 BUNDLE_FORMAT = "sfmloc-map-bundle"
 BUNDLE_VERSION = 1
@@ -522,6 +522,7 @@ class MapBundle:
                 f"map bundle {self.path}: keypoint_scales.native_focal_px must be a positive number of "
                 f"pixels, got {self.keypoint_scales.get('native_focal_px')!r}"
             )
+        self.coarsest_focal_px = coarsest_focal_px(self.keypoint_scales)
 
     def _median_depth(self) -> float:
         """The scene's scale: median depth of every observed point in the camera that sees it

@@ -66,3 +66,16 @@ def keypoint_scales(
             out["descriptor_focal_px"] = {f"p{q:02d}": float(v) for q, v in zip(PERCENTILES, pct)}
             out["level_scales"] = [float(x) for x in s]
     return out
+
+
+def coarsest_focal_px(scales: dict[str, Any]) -> float:
+    """The focal length (px) of the map's coarsest pyramid level; for maps whose pyramid is not
+    recorded, that of the default (and the paper's) pyramid, two octaves below the images."""
+    native = float(scales.get("native_focal_px") or 0.0)
+    levels = scales.get("level_scales")
+    if isinstance(levels, list) and levels:
+        try:
+            return native * min(float(x) for x in levels)
+        except (TypeError, ValueError):
+            pass
+    return native * 0.25
