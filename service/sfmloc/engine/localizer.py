@@ -67,7 +67,8 @@ class _Timer:
 
 def _working_scale(camera: Camera, bundle: MapBundle, conf: EngineConf) -> float:
     return working_scale(
-        camera, bundle.native_focal_px, conf.working_scale, conf.max_working_pixels, bundle.coarsest_focal_px
+        camera, bundle.native_focal_px, conf.working_scale, conf.max_working_pixels,
+        bundle.coarsest_focal_px,
     )
 
 
