@@ -208,3 +208,20 @@ def test_full_resolution_mode_is_the_papers_front_end(world, bundle):
     cam = Camera.parse(world.camera_spec)
     assert Localizer(bundle, cam).scale == 1.0
     assert Localizer(bundle, big_camera(1280, 960), EngineConf(working_scale="full")).scale == 1.0
+
+
+def test_large_query_over_grpc(world, big):
+    """The server path: a 3072x2048 JPEG through gRPC's Relocalize is processed at the
+    working scale and the pose comes back for the original camera."""
+    from server_helpers import free_port, running_server, server_config, zenoh_endpoint
+
+    from sfmloc_client import CameraSpec, LocalizationClient
+
+    cam, gray = big
+    spec = CameraSpec.parse("PINHOLE 3072 2048 " + " ".join(repr(float(p)) for p in cam.params))
+    conf = server_config(world, zenoh_endpoint(), metrics_port=free_port())
+    with running_server(conf) as srv, LocalizationClient(f"127.0.0.1:{srv.grpc_port}", timeout=120) as c:
+        pose = c.relocalize(gray, "room", spec, encoding="jpeg")
+    assert pose.status == "RELOCALIZED", pose
+    gt = world.gt_cam_from_world[30].inverse().translation
+    assert np.linalg.norm(np.asarray(pose.world_from_cam.t) - gt) < 0.05
