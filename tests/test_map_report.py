@@ -23,7 +23,8 @@ from sfmloc.transforms import Rigid3d
 def _at_pixels(cam: Camera, uv: list[tuple[float, float]], depth: float) -> np.ndarray:
     (fx, fy), (cx, cy) = cam.focal, cam.principal_point
     uv = np.asarray(uv, np.float64)
-    return np.stack([(uv[:, 0] - cx) / fx * depth, (uv[:, 1] - cy) / fy * depth, np.full(len(uv), depth)], 1)
+    x, y = (uv[:, 0] - cx) / fx * depth, (uv[:, 1] - cy) / fy * depth
+    return np.stack([x, y, np.full(len(uv), depth)], 1)
 
 
 def test_report_numbers_on_a_hand_made_map():
@@ -66,7 +67,8 @@ def corner_maps(tmp_path_factory) -> dict:
         out[n] = {"dir": d, "pose_file": pose_file}
         for mt in ((2, 3) if n == 3 else (3,)):
             out[n][mt] = build.main(
-                build.preset("default"), f"t{mt}", d / "maps", images=d / "images", poses=pose_file, camera=CAM,
+                build.preset("default"), f"t{mt}", d / "maps", images=d / "images", poses=pose_file,
+                camera=CAM,
                 sfm_conf=sfm.sfm_conf("default", min_track_length=mt, two_view_below=0),
             )
     return out
@@ -101,13 +103,16 @@ def test_min_track_length_2_adds_correct_points_with_known_poses(corner_maps):
 
 
 def _cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "sfmloc", *args], capture_output=True, text=True, timeout=300)
+    return subprocess.run([sys.executable, "-m", "sfmloc", *args], capture_output=True, text=True,
+                          timeout=300)
 
 
 def test_cli_min_track_length_flag_and_inspect_report(corner_maps, tmp_path):
     d = corner_maps[3]
-    r = _cli("build", "few", "--out", str(tmp_path), "--images", str(d["dir"] / "images"), "--poses",
-             str(d["pose_file"]), "--camera", CAM.to_string(), "--min-track-length", "2", "--preset", "fast")
+    posed = ["--images", str(d["dir"] / "images"), "--poses", str(d["pose_file"]), "--camera",
+             CAM.to_string()]
+    r = _cli("build", "few", "--out", str(tmp_path), *posed, "--min-track-length", "2",
+             "--preset", "fast")
     assert r.returncode == 0, r.stderr
     assert "points/image" in r.stdout and "track length" in r.stdout and "coverage" in r.stdout
     m = MapBundle(tmp_path / "few", verify=False)
@@ -116,10 +121,10 @@ def test_cli_min_track_length_flag_and_inspect_report(corner_maps, tmp_path):
     # The sparse map (track >= 3 from 3 views) warns in map inspect too.
     r = _cli("map", "inspect", str(corner_maps[3][3]))
     assert r.returncode == 0 and "WARNING" in r.stdout and "too sparse" in r.stdout, r.stderr
-    r = _cli("build", "bad", "--out", str(tmp_path), "--images", str(d["dir"] / "images"), "--poses",
-             str(d["pose_file"]), "--camera", CAM.to_string(), "--min-track-length", "1")
+    r = _cli("build", "bad", "--out", str(tmp_path), *posed, "--min-track-length", "1")
     assert r.returncode != 0 and "--min-track-length must be >= 2" in r.stderr
-    r = _cli("build", "bad", "--out", str(tmp_path), "--images", str(d["dir"] / "images"), "--min-track-length", "2")
+    r = _cli("build", "bad", "--out", str(tmp_path), "--images", str(d["dir"] / "images"),
+             "--min-track-length", "2")
     assert r.returncode != 0 and ">= 3 for images-only" in r.stderr
 
 

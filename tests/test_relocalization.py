@@ -37,7 +37,8 @@ def cam(world):
 
 def _features(gray, bundle, conf):
     ex = DaisyExtractor()
-    c = detect_corners(gray, rel_threshold=conf.gamma, max_corners=conf.global_max_keypoints, border=conf.mu // 2)
+    c = detect_corners(gray, rel_threshold=conf.gamma, max_corners=conf.global_max_keypoints,
+                       border=conf.mu // 2)
     return c.xy, describe(ex, bundle, ex.prepare(gray), c.xy)
 
 
@@ -48,8 +49,8 @@ def _ransac_pose(gray, bundle, cam, conf):
     X = bundle.points_xyz
     if len(gm.set1_q) < 3:
         return xy, desc, None
-    res = estimate_pose_one_to_many(xy[gm.set1_q], X[gm.set1_p], gm.set2_q, xy[gm.set2_q], X[gm.set2_p], cam.K,
-                                    conf.ransac())
+    res = estimate_pose_one_to_many(xy[gm.set1_q], X[gm.set1_p], gm.set2_q, xy[gm.set2_q],
+                                    X[gm.set2_p], cam.K, conf.ransac())
     return xy, desc, None if res is None else res[0]
 
 
@@ -80,12 +81,14 @@ def test_verification_rejects_chance_poses(world, bundle, cam):
     # A pose at the right place but off by 1 m and 20 deg is not confirmed.
     i = 25
     gt = world.gt_cam_from_world[i]
-    off = Rigid3d(rotmat_from_rotvec([0.0, np.radians(20.0), 0.0]) @ gt.rotation, gt.translation + [1.0, 0.0, 0.0])
+    turn = rotmat_from_rotvec([0.0, np.radians(20.0), 0.0])
+    off = Rigid3d(turn @ gt.rotation, gt.translation + [1.0, 0.0, 0.0])
     xy, desc = _features(world.gray[i], bundle, conf)
     assert _match_near_prior(desc, xy, bundle, cam.K, conf, off) is None
     # Images of another scene and noise: whatever RANSAC finds (no inlier-ratio floor) is not
     # confirmed, and relocalization gives no pose.
-    other_scene = Corner(seed=3).render(cam, look_at(np.array([2.8, 2.2, 1.4]), (0.6, 0.8, 0.6)), ss=1)
+    view = look_at(np.array([2.8, 2.2, 1.4]), (0.6, 0.8, 0.6))
+    other_scene = Corner(seed=3).render(cam, view, ss=1)
     noise = np.random.default_rng(1).integers(0, 255, (cam.height, cam.width), dtype=np.uint8)
     no_floor = EngineConf(global_min_inlier_ratio=0.0)
     for img in (other_scene, noise):

@@ -117,12 +117,15 @@ def run(args: argparse.Namespace) -> int:
         overrides["keep_workdir"] = True
     if args.min_track_length is not None:
         if args.colmap:
-            raise InputError("--min-track-length applies to --poses or images-only builds, not to --colmap models")
+            raise InputError(
+                "--min-track-length applies to --poses or images-only builds, not to --colmap models"
+            )
         low = 2 if args.poses else 3
         if args.min_track_length < low:
             raise InputError(
                 f"--min-track-length must be >= {low} "
-                + ("with known poses" if args.poses else "for images-only SfM (its poses come from the same matches)")
+                + ("with known poses" if args.poses
+                   else "for images-only SfM (its poses come from the same matches)")
                 + f", got {args.min_track_length}"
             )
         overrides["min_track_length"] = args.min_track_length

@@ -82,7 +82,9 @@ def map_report(
         "points": int(n_pts),
         "points_per_image": _stats(ppi),
         "track_length": {**track_stats, "histogram": hist},
-        "coverage": {**{k: round(v, 3) for k, v in _stats(cov).items()}, "grid": list(COVERAGE_GRID)},
+        "coverage": {
+            **{k: round(v, 3) for k, v in _stats(cov).items()}, "grid": list(COVERAGE_GRID)
+        },
         "sparse_threshold_points_per_image": SPARSE_POINTS_PER_IMAGE,
     }
     report["warnings"] = sparse_warnings(report)
@@ -97,8 +99,8 @@ def sparse_warnings(report: dict[str, Any]) -> list[str]:
         return []
     return [
         f"map too sparse to localize against reliably: the median image sees {med:.0f} map points "
-        f"(fewer than {SPARSE_POINTS_PER_IMAGE}); add mapping images (a smaller --stride, more views "
-        f"of each place), or with known poses keep two-view points (--min-track-length 2)"
+        f"(fewer than {SPARSE_POINTS_PER_IMAGE}); add mapping images (a smaller --stride, more "
+        f"views of each place), or with known poses keep two-view points (--min-track-length 2)"
     ]
 
 
@@ -108,8 +110,8 @@ def report_lines(report: dict[str, Any]) -> list[str]:
     hist = " ".join(f"{k}:{v}" for k, v in t["histogram"].items())
     return [
         f"points/image min {p['min']:.0f}  median {p['median']:.0f}  max {p['max']:.0f}",
-        f"track length min {t['min']:.0f}  median {t['median']:.0f}  mean {t['mean']:.2f}  max {t['max']:.0f}"
-        f"  (images per point: {hist})",
+        f"track length min {t['min']:.0f}  median {t['median']:.0f}  mean {t['mean']:.2f}  "
+        f"max {t['max']:.0f}  (images per point: {hist})",
         f"coverage     min {c['min']:.0%}  median {c['median']:.0%}  max {c['max']:.0%}"
         f"  (of {c['grid'][0]}x{c['grid'][1]} cells per image with a map point)",
     ] + [f"WARNING: {w}" for w in report["warnings"]]
