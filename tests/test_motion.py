@@ -206,3 +206,28 @@ def test_scaled_rooms_behave_identically(world):
         assert runs[s]["statuses"] == ref["statuses"], s
         assert np.allclose(runs[s]["perr"], ref["perr"], rtol=1e-3, atol=1e-5), s
         assert np.allclose(runs[s]["rerr"], ref["rerr"], atol=1e-3), s
+
+
+def test_a_prediction_beyond_the_inlier_threshold_still_seeds_the_pose():
+    """At 3 Hz the motion prediction is often 15-30 px off: farther than the RANSAC threshold,
+    so the prior's hypothesis found no inliers and a mirror pose could win. A first round within
+    prior_threshold px recovers it."""
+    from sfmloc.engine.pose import RansacParams, estimate_pose, refine
+
+    K = np.array([[525.0, 0, 320.0], [0, 525.0, 240.0], [0, 0, 1]])
+    rng = np.random.default_rng(5)
+    gt = Rigid3d(rotmat_from_rotvec([0.05, -0.4, 0.02]), [0.3, -0.1, 2.0])
+    # 60 points on one wall, 2.4-3 m in front of the camera
+    uv = rng.uniform([40, 40], [600, 440], (60, 2))
+    z = 2.4 + 0.6 * (uv[:, 0] - 40) / 560
+    xc = np.hstack([(uv - K[:2, 2]) / 525.0 * z[:, None], z[:, None]])
+    X = gt.inverse().apply(xc)
+    xy = uv + rng.normal(0, 0.5, uv.shape)
+    prior = Rigid3d(rotmat_from_rotvec([0.0, 0.031, 0.0]) @ gt.rotation, gt.translation + [0.03, 0.0, 0.02])
+    assert _px(prior, gt, X) > 8.0  # the prediction is off by over twice the threshold
+    _, mask = refine(prior, K, xy, X, 4.0, rounds=1)
+    assert mask.sum() == 0  # the old first round: nothing to refine on
+    est = estimate_pose(xy, X, K, RansacParams(threshold=4.0, refine_threshold=3.0), prior=prior,
+                        prior_threshold=20.0)
+    dp, dr = pose_errors(est.cam_from_world, gt)
+    assert est.num_inliers >= 55 and dp < 0.02 and dr < 0.3

@@ -163,7 +163,8 @@ class Localizer:
             return None
         c = self.conf
         est = estimate_pose(
-            self._undistort(self.table.xy[rows]), self.bundle.points_xyz[pts], self.K, c.ransac(), prior=pred
+            self._undistort(self.table.xy[rows]), self.bundle.points_xyz[pts], self.K, c.ransac(), prior=pred,
+            prior_threshold=c.prior_threshold_px,
         )
         if est is not None and not self._plausible(est.cam_from_world, pred, dt):
             log.debug("rejected a pose %.3g units / %.1f deg from the prediction",

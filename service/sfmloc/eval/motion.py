@@ -92,6 +92,9 @@ def run(bundle: MapBundle, source: FrameSource, camera: Camera, gt: list, conf: 
             worst.append((errs[-1][0], fr.index, res.status.value, res.matching, res.inliers))
     errs_a = np.array(errs) if errs else np.full((1, 2), np.nan)
     n = len(statuses)
+    scale = float(getattr(bundle, "scene_scale", 1.0))
+    # wrong: any pose reported (not LOST) off by over 5% of the scene scale or 10 deg
+    wrong = int(np.sum((errs_a[:, 0] > 0.05 * scale) | (errs_a[:, 1] > 10.0))) if errs else 0
     return {
         "frames": n,
         "scene_scale": float(getattr(bundle, "scene_scale", float("nan"))),
@@ -106,6 +109,7 @@ def run(bundle: MapBundle, source: FrameSource, camera: Camera, gt: list, conf: 
         "median_pos_err": float(np.median(errs_a[:, 0])),
         "median_rot_err_deg": float(np.median(errs_a[:, 1])),
         "max_pos_err": float(np.max(errs_a[:, 0])),
+        "wrong": wrong,
         "mean_ms": float(np.mean(lat)),
         "statuses": statuses,
         "worst": sorted(worst, reverse=True)[:5],  # (position error, frame, status, matching, inliers)
@@ -141,7 +145,7 @@ def main(argv: list[str] | None = None) -> int:
           f"{out['tracked_mean']:.0f} (3D {out['tracked_3d_mean']:.0f})  localized {out['localized'] * 100:.1f}% "
           f"(tracking {out['tracking'] * 100:.1f}%, global {out['global_frames']})  median error "
           f"{out['median_pos_err'] / args.scale * 100:.2f} cm-equiv, {out['median_rot_err_deg']:.2f} deg  "
-          f"max {out['max_pos_err'] / args.scale * 100:.1f} cm-equiv")
+          f"max {out['max_pos_err'] / args.scale * 100:.1f} cm-equiv  wrong {out['wrong']}")
     if args.json:
         with open(args.json, "w") as f:
             json.dump(out, f, indent=1)
