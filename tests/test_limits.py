@@ -83,14 +83,18 @@ def test_a_flood_is_refused_logged_in_summary_and_others_are_served(world, caplo
         for k in range(2000):
             z.put(frame_key("room", f"garbage-{k}"), b"\x93\x01\x02" + bytes(k % 7))
         replies: list = []
+        m = srv.server.metrics
         with PoseSubscriber(z, "room", "flooder", callback=replies.append):
             for _ in range(400):  # far beyond 50/s with a burst of 100
                 z.put(frame_key("room", "flooder"), b"\x00not a frame")
-            assert wait_until(lambda: len(replies) >= 400, 60)
-        codes = [p.error.code for p in replies]
-        assert set(codes) == {"INVALID_ARGUMENT", "RESOURCE_EXHAUSTED"}
-        assert codes.count("RESOURCE_EXHAUSTED") >= 250  # 400 sent at once, a burst of 100
-        assert srv.server.metrics.frames_refused.get("rate") == codes.count("RESOURCE_EXHAUSTED")
+            # Every frame is answered on the server's side; error replies go out with congestion
+            # control DROP, so under load not all of them need to reach us.
+            assert wait_until(lambda: m.frame_errors.get("room", "INVALID_ARGUMENT")
+                              + m.frame_errors.get("room", "RESOURCE_EXHAUSTED") == 2400, 60)
+            assert wait_until(lambda: any(p.error.code == "RESOURCE_EXHAUSTED" for p in replies), 30)
+        assert {p.error.code for p in replies} <= {"INVALID_ARGUMENT", "RESOURCE_EXHAUSTED"}
+        refused = m.frames_refused.get("rate")
+        assert refused == m.frame_errors.get("room", "RESOURCE_EXHAUSTED") and refused >= 200  # burst of 100
         poses = stream_lockstep(z, "room", "canary", world, n=30)
         assert [p.seq for p in poses] == list(range(30)) and all(p.error is None for p in poses)
         assert wait_until(lambda: sum(logged()) == 2400, 30)  # every rejection accounted for
