@@ -12,7 +12,10 @@ def _g(x, nd: int = 3) -> str:
 
 
 def _rel(x) -> str:
-    return f"{100 * x:.2g}%" if _ok(x) else "n/a"
+    """A fraction as a percentage, two significant digits (no exponent: 140%, 0.05%)."""
+    if not _ok(x):
+        return "n/a"
+    return f"{100 * x:.0f}%" if 100 * x >= 10 else f"{100 * x:.2g}%"
 
 
 def _pair(a: str, b: str) -> str:
