@@ -129,7 +129,8 @@ def test_filters_are_scale_free(cls):
         f = cls(scale=ROOM_SCALE * s)
         out = []
         for i, T in enumerate(poses):
-            meas = Rigid3d(rotmat_from_rotvec(noise[i][0]) @ T.rotation, (T.translation + noise[i][1]) * s)
+            meas = Rigid3d(rotmat_from_rotvec(noise[i][0]) @ T.rotation,
+                           (T.translation + noise[i][1]) * s)
             if i == 0:
                 f.reset(meas, 0.0)
                 continue
@@ -187,7 +188,8 @@ def test_scaled_rooms_behave_identically(world):
     runs = {}
     for s in (1.0, 0.01, 100.0):
         bundle = scale_bundle(MapBundle(world.maps_dir / "room"), s)
-        assert bundle.scene_scale == pytest.approx(s * runs[1.0]["scale"] if runs else bundle.scene_scale)
+        if runs:
+            assert bundle.scene_scale == pytest.approx(s * runs[1.0]["scale"])
         loc = Localizer(bundle, camera)
         statuses, perr, rerr = [], [], []
         for i, img in enumerate(frames):
@@ -223,7 +225,8 @@ def test_a_prediction_beyond_the_inlier_threshold_still_seeds_the_pose():
     xc = np.hstack([(uv - K[:2, 2]) / 525.0 * z[:, None], z[:, None]])
     X = gt.inverse().apply(xc)
     xy = uv + rng.normal(0, 0.5, uv.shape)
-    prior = Rigid3d(rotmat_from_rotvec([0.0, 0.031, 0.0]) @ gt.rotation, gt.translation + [0.03, 0.0, 0.02])
+    prior = Rigid3d(rotmat_from_rotvec([0.0, 0.031, 0.0]) @ gt.rotation,
+                    gt.translation + [0.03, 0.0, 0.02])
     assert _px(prior, gt, X) > 8.0  # the prediction is off by over twice the threshold
     _, mask = refine(prior, K, xy, X, 4.0, rounds=1)
     assert mask.sum() == 0  # the old first round: nothing to refine on

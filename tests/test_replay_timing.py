@@ -144,7 +144,8 @@ def test_nanosecond_and_gapped_names_keep_tracking_on_their_clock(world, tmp_pat
     assert _kept_tracking(rec)
     # dropped frames: millisecond names with gaps of 2-3 frame intervals
     keep = [i for i in range(N + 12) if i % 3 != 1][:N]
-    folder = _folder(tmp_path / "gapped", world, [f"{round(i * 1000 / 30)}.png" for i in keep], keep)
+    names = [f"{round(i * 1000 / 30)}.png" for i in keep]
+    folder = _folder(tmp_path / "gapped", world, names, keep)
     src, rec = _run(world, folder, timestamps="stem-ms")
     assert [r.stamp for r in rec] == pytest.approx([round(i * 1000 / 30) / 1000 for i in keep])
     assert _kept_tracking(rec)

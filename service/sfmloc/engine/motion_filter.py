@@ -1,7 +1,9 @@
-"""Kalman filtering of the pose (paper Section 3.3), two motion models (``EngineConf.motion_model``):
+"""Kalman filtering of the pose (paper Section 3.3): two motion models, chosen by
+``EngineConf.motion_model``.
 
-``se3`` (default), ``Se3PoseFilter``: one constant-velocity model on SE(3). The state is the pose ``cam_from_world`` (T) and the camera's velocity as a twist in its own
-frame, ``xi = [v, w]`` (translation rate, angular rate): over ``dt`` the pose moves to
+``se3`` (default), ``Se3PoseFilter``: one constant-velocity model on SE(3). The state is the
+pose ``cam_from_world`` (T) and the camera's velocity as a twist in its own frame,
+``xi = [v, w]`` (translation rate, angular rate): over ``dt`` the pose moves to
 ``exp(dt xi) T``, so a camera that keeps turning while it moves (an orbit, a car taking a bend)
 is predicted along its arc instead of along a straight line with an independently extrapolated
 orientation. The filter is an error-state Kalman filter (filterpy): its 12-vector is
@@ -108,7 +110,8 @@ class Se3PoseFilter:
         xi = np.zeros(6)
         if self.last is not None and 0 < stamp - self.last[1] <= keep_motion_s:
             xi = se3_log(cam_from_world * self.last[0].inverse()) / (stamp - self.last[1])
-            speed = np.linalg.norm(cam_from_world.center - self.last[0].center) / (stamp - self.last[1])
+            moved = np.linalg.norm(cam_from_world.center - self.last[0].center)
+            speed = moved / (stamp - self.last[1])
             if speed > max_speed or np.linalg.norm(xi[3:]) > max_rate:
                 xi = np.zeros(6)
         self.T = Rigid3d(cam_from_world.rotation.copy(), cam_from_world.translation.copy())
@@ -182,7 +185,9 @@ def _transition(dt: float) -> np.ndarray:
 
 def _cv_noise(dt: float, accel_sigma: float) -> np.ndarray:
     # order_by_dim=False: [x y z x' y' z']
-    return Q_discrete_white_noise(dim=2, dt=max(dt, 1e-4), var=accel_sigma**2, block_size=3, order_by_dim=False)
+    return Q_discrete_white_noise(
+        dim=2, dt=max(dt, 1e-4), var=accel_sigma**2, block_size=3, order_by_dim=False
+    )
 
 
 class DecoupledPoseFilter:

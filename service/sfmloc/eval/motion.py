@@ -40,7 +40,9 @@ class ProbedLocalizer(Localizer):
 def scale_bundle(bundle: MapBundle, s: float) -> MapBundle:
     """The same map ``s`` times larger (points and camera positions; descriptors unchanged)."""
     bundle.points_xyz = np.asarray(bundle.points_xyz) * s
-    bundle.image_cam_from_world = [Rigid3d(T.rotation, T.translation * s) for T in bundle.image_cam_from_world]
+    bundle.image_cam_from_world = [
+        Rigid3d(T.rotation, T.translation * s) for T in bundle.image_cam_from_world
+    ]
     if hasattr(bundle, "_median_depth"):
         bundle.scene_scale = bundle._median_depth()
     return bundle
@@ -112,19 +114,23 @@ def run(bundle: MapBundle, source: FrameSource, camera: Camera, gt: list, conf: 
         "wrong": wrong,
         "mean_ms": float(np.mean(lat)),
         "statuses": statuses,
-        "worst": sorted(worst, reverse=True)[:5],  # (position error, frame, status, matching, inliers)
+        # (position error, frame, status, matching, inliers) of the worst five
+        "worst": sorted(worst, reverse=True)[:5],
     }
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("map")
     p.add_argument("frames")
     p.add_argument("--camera", required=True)
     p.add_argument("--groundtruth", required=True)
     p.add_argument("--start", type=int, default=0)
     p.add_argument("--frames", dest="n", type=int)
-    p.add_argument("--scale", type=float, default=1.0, help="scale the map and ground truth by this")
+    p.add_argument("--scale", type=float, default=1.0,
+                   help="scale the map and ground truth by this")
     p.add_argument("--fps", type=float, default=30.0, help="the recording's frame rate")
     p.add_argument("--stride", type=int, default=1, help="every k-th frame (30 Hz -> 30/k Hz)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
@@ -140,12 +146,16 @@ def main(argv: list[str] | None = None) -> int:
     conf = EngineConf(**dict(kv.split("=", 1) for kv in args.set))
     out = run(bundle, source, camera, gt, conf, args.start, args.n, args.stride)
     s = out["scene_scale"]
-    print(f"frames {out['frames']}  scene_scale {s:.4g}  prediction median {out['pred_px_median']:.1f} px "
-          f"(p90 {out['pred_px_p90']:.1f}; no-motion {out['still_px_median']:.1f})  tracks/frame "
-          f"{out['tracked_mean']:.0f} (3D {out['tracked_3d_mean']:.0f})  localized {out['localized'] * 100:.1f}% "
-          f"(tracking {out['tracking'] * 100:.1f}%, global {out['global_frames']})  median error "
-          f"{out['median_pos_err'] / args.scale * 100:.2f} cm-equiv, {out['median_rot_err_deg']:.2f} deg  "
-          f"max {out['max_pos_err'] / args.scale * 100:.1f} cm-equiv  wrong {out['wrong']}")
+    cm = 100 / args.scale  # errors in cm of the unscaled scene
+    print(
+        f"frames {out['frames']}  scene_scale {s:.4g}  prediction median "
+        f"{out['pred_px_median']:.1f} px (p90 {out['pred_px_p90']:.1f}; no-motion "
+        f"{out['still_px_median']:.1f})  tracks/frame {out['tracked_mean']:.0f} "
+        f"(3D {out['tracked_3d_mean']:.0f})  localized {out['localized'] * 100:.1f}% "
+        f"(tracking {out['tracking'] * 100:.1f}%, global {out['global_frames']})  median error "
+        f"{out['median_pos_err'] * cm:.2f} cm-equiv, {out['median_rot_err_deg']:.2f} deg  "
+        f"max {out['max_pos_err'] * cm:.1f} cm-equiv  wrong {out['wrong']}"
+    )
     if args.json:
         with open(args.json, "w") as f:
             json.dump(out, f, indent=1)

@@ -79,7 +79,9 @@ def _stamps_from_file(path: Path, names: list[str] | None, count: int) -> list[f
         try:
             t = float(parts[0])
         except ValueError:
-            raise InputError(f"{path}:{lineno}: a timestamp (seconds) must start the line, got {parts[0]!r}") from None
+            raise InputError(
+                f"{path}:{lineno}: a timestamp (seconds) must start the line, got {parts[0]!r}"
+            ) from None
         second = parts[1] if len(parts) > 1 else None
         is_name = second is not None and _is_number(second) is False
         rows.append((t, second if is_name else None))
@@ -161,14 +163,17 @@ class FrameSource:
         if timestamps in CLOCK_CHOICES:
             unit = timestamps.split("-", 1)[1]
             if self.kind != "folder":
-                raise InputError(f"--timestamps {timestamps}: a video has no file names to read stamps from")
+                raise InputError(
+                    f"--timestamps {timestamps}: a video has no file names to read stamps from"
+                )
             self._stamps = _stamps_from_stems(names, unit)
             self.clock = f"file-name stems in {unit}"
         else:
             p = Path(timestamps)
             if not p.is_file():
                 raise InputError(
-                    f"--timestamps {timestamps!r} is neither one of {', '.join(CLOCK_CHOICES)} nor a file"
+                    f"--timestamps {timestamps!r} is neither one of "
+                    f"{', '.join(CLOCK_CHOICES)} nor a file"
                 )
             self._stamps = _stamps_from_file(p, names if self.kind == "folder" else None, len(self))
             self.clock = f"timestamps file {p}"
@@ -198,7 +203,9 @@ class FrameSource:
     def stamp(self, index: int) -> float:
         if self._stamps is not None:
             if index >= len(self._stamps):
-                raise InputError(f"frame {index} has no timestamp ({self.clock} lists {len(self._stamps)})")
+                raise InputError(
+                    f"frame {index} has no timestamp ({self.clock} lists {len(self._stamps)})"
+                )
             return float(self._stamps[index])
         return index / self.fps
 
