@@ -68,6 +68,44 @@ def test_index_serialization_round_trip():
     assert np.array_equal(a, b)
 
 
+def _storage_addresses(ix: DescriptorIndex) -> list[int]:
+    """Where the index's data lives: every inverted list's codes and the centroids (IVF), or
+    the stored vectors (flat)."""
+    import faiss
+
+    if ix._ivf is None:
+        return [int(faiss.downcast_index(ix._index).get_xb())]
+    il = ix._ivf.invlists
+    out = [int(il.get_codes(i)) for i in range(ix.nlist) if il.list_size(i)]
+    out += [int(il.get_ids(i)) for i in range(ix.nlist) if il.list_size(i)]
+    return out + [int(faiss.downcast_index(ix._ivf.quantizer).get_xb())]
+
+
+@pytest.mark.parametrize("kind", ["ivf-sq8", "ivf-flat", "flat"])
+def test_index_read_in_place_from_a_memory_mapped_file(tmp_path, kind):
+    """Worker processes share one copy of a map's index: read from the memory-mapped .npy,
+    the index's lists and centroids are views into the file mapping, not copies, and it
+    answers exactly as the index it was written from."""
+    db = clustered_data(5000)
+    ix = DescriptorIndex.build(db, IndexConf(kind=kind))
+    np.save(tmp_path / "index.npy", ix.serialize())
+    mapped = np.load(tmp_path / "index.npy", mmap_mode="r")
+    lo, hi = mapped.ctypes.data, mapped.ctypes.data + mapped.nbytes
+    shared = DescriptorIndex.from_buffer(mapped, nprobe=ix.nprobe)
+    copied = DescriptorIndex.deserialize(mapped, nprobe=ix.nprobe)
+    assert shared.kind == ix.kind == kind and shared.ntotal == 5000
+    assert shared.shared_buffer is not None and copied.shared_buffer is None
+    assert all(lo <= p < hi for p in _storage_addresses(shared))
+    assert not any(lo <= p < hi for p in _storage_addresses(copied))  # the contrast: a private copy
+    bm = bitmap_from_ranges(5000, np.array([1000]), np.array([3000]))
+    for allowed in (None, bm):
+        want = ix.search(db[:40], 10, allowed=allowed)
+        got = shared.search(db[:40], 10, allowed=allowed)
+        assert np.array_equal(want[1], got[1]) and np.allclose(want[0], got[0])
+    del mapped  # the index keeps the mapping alive
+    assert np.array_equal(shared.search(db[:5], 3)[1], ix.search(db[:5], 3)[1])
+
+
 # ----------------------------------------------------------------------------- clusters
 def corridor_visibility(n_images=40, pts_per_image=200, overlap=0.6, seed=0):
     """Images along a corridor: image i sees a window of points shared with its neighbours."""
@@ -148,9 +186,13 @@ def test_bundle_round_trip(tmp_path):
     assert b.manifest.params == {"tau": 2.0}
     # arrays are memory-mapped, not copied
     assert isinstance(b.array("descriptors"), np.memmap)
-    # the index answers for the stored descriptors
+    # the index answers for the stored descriptors, read in place from its mapped file
     D, I = b.index.search(data.descriptors[:5].astype(np.float32), 1)
     assert np.array_equal(I[:, 0], np.arange(5))
+    mapped = b.array("index_faiss")
+    assert isinstance(mapped, np.memmap) and b.index.shared_buffer is not None
+    lo, hi = mapped.ctypes.data, mapped.ctypes.data + mapped.nbytes
+    assert all(lo <= p < hi for p in _storage_addresses(b.index))
     # no pickle anywhere: every array loads with allow_pickle=False
     for entry in b.manifest.arrays.values():
         np.load(path / entry.file, allow_pickle=False)

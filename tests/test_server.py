@@ -8,6 +8,7 @@ import asyncio
 import queue
 import threading
 import urllib.request
+from pathlib import Path
 
 import grpc
 import msgpack
@@ -374,6 +375,95 @@ def test_map_replaced_under_a_live_stream(world, z, grpc_client):
     assert switch == 21 and set(builds[:switch]) == {old} and set(builds[switch:]) == {new}  # one clean switch
     assert poses[switch].status in ("RELOCALIZED", "LOST")  # a fresh Localizer on the new map
     assert sum(p.localized for p in poses[switch:]) >= len(poses[switch:]) - 3
+
+
+def _index_mapping_kb(pid: int, bundle: Path) -> tuple[int, int, int]:
+    """(mappings, Rss kB, Pss kB) of process ``pid``'s mappings of ``bundle``'s index file:
+    the map's index pages that live in the shared file mapping (Pss < Rss: shared with
+    another process)."""
+    target = str(bundle.resolve() / "index_faiss.npy")
+    n = rss = pss = 0
+    hit = False
+    with open(f"/proc/{pid}/smaps") as f:
+        for line in f:
+            parts = line.split()
+            if parts and "-" in parts[0] and len(parts) >= 5:  # a mapping's header line
+                hit = parts[-1] == target
+                n += hit
+            elif hit and parts[0] == "Rss:":
+                rss += int(parts[1])
+            elif hit and parts[0] == "Pss:":
+                pss += int(parts[1])
+    return n, rss, pss
+
+
+def test_workers_share_one_mapped_index_and_all_see_a_replacement_under_load(world, z, grpc_client, srv, tmp_path):
+    """Every worker process reads a map's index in place from the bundle's file (one copy in
+    the page cache, shared), and a map replaced while clients on every worker stream is seen
+    by all of them: one clean switch per client, the new file mapped by every worker, the old
+    one released."""
+    import shutil
+
+    old_dir, new_dir = tmp_path / "a" / "shared", tmp_path / "b" / "shared"
+    shutil.copytree(world.maps_dir / "room", old_dir)  # files no other map of this server maps
+    shutil.copytree(world.room_rebuilt, new_dir)
+    pool = srv.server.pool
+    probe = pool.load_map("probe", 10**6, str(old_dir), "")  # each worker says how it holds the index
+    pool.drop_map("probe", 10**6)
+    assert probe["index_in_place"] is True
+    old = grpc_client.load_map(str(old_dir), "shared")
+    pids = [h.pid for h in pool.workers]
+    assert len(pids) == 2
+    for pid in pids:  # each worker searched the index at load (warm-up): the same pages
+        n, rss, pss = _index_mapping_kb(pid, old_dir)
+        assert n >= 1 and rss > 0 and pss < rss, (pid, n, rss, pss)
+
+    # Clients until every worker hosts one (sessions go to the least busy worker).
+    sessions = srv.server.sessions
+    clients: list[str] = []
+    while {s.worker for s in sessions.list("shared")} != set(range(len(pids))) and len(clients) < 8:
+        cid = f"sharer-{len(clients)}"
+        stream_lockstep(z, "shared", cid, world, n=1)
+        clients.append(cid)
+    assert {s.worker for s in sessions.list("shared")} == set(range(len(pids)))
+
+    n, switch_at = 40, 12
+    half = threading.Event()
+    results: dict[str, list] = {}
+
+    def client(cid: str) -> None:
+        got: list = []
+        with PoseSubscriber(z, "shared", cid, callback=got.append) as sub, \
+                FrameStreamer(z, "shared", cid, camera(world)) as fs:
+            for k in range(n):
+                seq = fs.publish(data=world.png[k], encoding="png", seq=k, stamp_ns=int((k + 1) * 1e9 / 30))
+                assert sub.wait_for(seq, 60)
+                if k == switch_at:
+                    half.set()
+                    assert wait_until(lambda: grpc_client.get_map("shared").build_id != old.build_id, 120)
+        results[cid] = got
+
+    threads = [threading.Thread(target=client, args=(c,)) for c in clients]
+    for t in threads:
+        t.start()
+    assert half.wait(120)
+    new = grpc_client.load_map(str(new_dir), "shared")  # replaces "shared" while they stream
+    for t in threads:
+        t.join(180)
+    assert new.build_id != old.build_id
+    for cid in clients:
+        poses = results[cid]
+        assert [p.seq for p in poses] == list(range(n)) and all(p.error is None for p in poses), cid
+        builds = [p.build_id for p in poses]
+        k = builds.index(new.build_id)
+        assert 0 < k and set(builds[:k]) == {old.build_id} and set(builds[k:]) == {new.build_id}, cid
+        assert sum(p.localized for p in poses[k:]) >= len(poses[k:]) - 3, cid
+    for pid in pids:
+        n, rss, pss = _index_mapping_kb(pid, new_dir)
+        assert n >= 1 and rss > 0 and pss < rss, (pid, n, rss, pss)
+    # The old generation is dropped everywhere: its file is no longer mapped by any worker.
+    assert wait_until(lambda: all(_index_mapping_kb(pid, old_dir)[0] == 0 for pid in pids), 30)
+    grpc_client.unload_map("shared")
 
 
 def test_unload_load_and_corrupt_bundles(world, z, grpc_client):

@@ -21,6 +21,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
               clients   N clients at R Hz (own Zenoh session each), process workers:
                         frames dropped per client, latency p50/p99
               workers   the same with thread workers (the GIL comparison)
+              memory    resident memory (RSS, PSS, anonymous) of server + workers with 1,
+                        2 and 4 workers: each map's index is held once, not per worker
             The server runs as a subprocess (sfmloc serve). Numbers are noisy when other
             processes load the CPU; the load average is printed with them."""
         ),
@@ -30,7 +32,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--map", default="redkitchen", help="map name (default redkitchen)")
     p.add_argument("--frames", default=str(_SHARED), help="folder of JPEG frames (default ../shared/data/redkitchen-seq01)")
     p.add_argument("--camera", default="PINHOLE 640 480 525.505 525.505 320 240", help="camera of the frames")
-    p.add_argument("--only", default="", help="comma-separated sections: wire,overhead,engine,clients,workers (default all)")
+    p.add_argument("--only", default="", help="comma-separated sections: wire,overhead,engine,clients,workers,memory "
+                   "(default all)")
     p.add_argument("--n", type=int, default=200, help="frames for the overhead and engine sections (default 200)")
     p.add_argument("--clients", type=int, default=4, help="clients (default 4)")
     p.add_argument("--rate", type=float, default=30.0, help="frames per second per client (default 30)")

@@ -448,8 +448,9 @@ def verify_bundle(path: str | Path, checksums: bool = True) -> list[str]:
 
 
 class MapBundle:
-    """A loaded bundle: memory-mapped arrays, the PCA, the deserialized ANN index, and the
-    lookups the engine needs. Read-only and safe to share between threads."""
+    """A loaded bundle: memory-mapped arrays, the PCA, the ANN index (read in place from its
+    memory-mapped file), and the lookups the engine needs. Read-only and safe to share between
+    threads."""
 
     def __init__(self, path: str | Path, *, verify: bool = True, nprobe: int | None = None) -> None:
         self.path = Path(path)
@@ -489,8 +490,10 @@ class MapBundle:
         self.image_camera = np.asarray(a["image_camera"])
         self.pca = Pca(np.array(a["pca_mean"]), np.array(a["pca_basis"]))
         try:
-            self.index = DescriptorIndex.deserialize(
-                np.asarray(a["index_faiss"]), nprobe or int(self.manifest.index.get("nprobe", 16))
+            # Read in place from the memory-mapped file: every process loading this bundle
+            # shares one copy of the index (the page cache), not one each.
+            self.index = DescriptorIndex.from_buffer(
+                a["index_faiss"], nprobe or int(self.manifest.index.get("nprobe", 16))
             )
         except Exception as exc:  # noqa: BLE001 - faiss raises RuntimeError on garbage
             raise BundleError(f"map bundle {self.path}: the ANN index does not load ({exc})") from None

@@ -415,13 +415,13 @@ class ServerProcess:
     """
 
     def __init__(self, maps: str | os.PathLike, workers: int = 0, kind: str = "process", quiet: bool = True,
-                 extra_args: tuple[str, ...] = ()) -> None:
+                 extra_args: tuple[str, ...] = (), env: dict[str, str] | None = None) -> None:
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
         self.grpc = f"127.0.0.1:{free_port()}"
         cmd = [sys.executable, "-m", "sfmloc", *(["-q"] if quiet else []), "serve", "--maps", str(maps),
                "--zenoh-listen", self.endpoint, "--no-multicast", "--grpc", self.grpc,
                "--workers", str(workers), "--worker-kind", kind, *extra_args]
-        self.proc = subprocess.Popen(cmd)
+        self.proc = subprocess.Popen(cmd, env=env)  # env: e.g. another checkout's PYTHONPATH
 
     def __enter__(self) -> "ServerProcess":
         from sfmloc_client import LocalizationClient

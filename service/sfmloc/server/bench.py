@@ -12,6 +12,8 @@ Sections (``--only``, comma-separated; all by default):
               frames from its own starting point: per client frames sent / poses back /
               dropped, latency p50 and p99.
 ``workers``   the same with thread workers instead of processes (why processes).
+``memory``    resident memory (RSS, PSS, anonymous) of the server and its workers with 1, 2 and
+              4 workers, and how much of each worker's index is the shared file mapping.
 
 The server runs as a subprocess (``sfmloc serve``) so that the benchmark's own client threads
 do not share its interpreter. Other processes on the machine add noise: the load average is
@@ -303,6 +305,66 @@ def bench_clients(inp: BenchInput, clients: int, rate: float, duration: float, w
             "cores_used": cores}
 
 
+# ============================================================================ memory
+def _smaps_rollup(pid: int) -> dict[str, int]:
+    """Resident memory of a process in kB (Linux): Rss, Pss (shared pages divided among the
+    processes that map them), Anonymous (private heap: what a copy per process costs)."""
+    out: dict[str, int] = {}
+    try:
+        with open(f"/proc/{pid}/smaps_rollup") as f:
+            for line in f:
+                parts = line.split()
+                if len(parts) == 3 and parts[2] == "kB":
+                    out[parts[0].rstrip(":")] = int(parts[1])
+    except OSError:
+        pass
+    return out
+
+
+def _mapped_kb(pid: int, fragment: str) -> int:
+    """Resident kB of the file mappings of ``pid`` whose path contains ``fragment``."""
+    total, hit = 0, False
+    try:
+        with open(f"/proc/{pid}/smaps") as f:
+            for line in f:
+                parts = line.split()
+                if parts and "-" in parts[0] and len(parts) >= 5:  # a mapping's header line
+                    hit = len(parts) >= 6 and fragment in parts[-1]
+                elif hit and parts and parts[0] == "Rss:":
+                    total += int(parts[1])
+    except OSError:
+        pass
+    return total
+
+
+def bench_memory(inp: BenchInput, workers_list: tuple[int, ...] = (1, 2, 4), frames: int = 30,
+                 env: dict[str, str] | None = None) -> dict[str, Any]:
+    """Resident memory of the server and its workers with the map loaded and one session per
+    worker that has streamed ``frames`` frames (every worker has searched the index)."""
+    from sfmloc_client import CameraSpec, FrameStreamer, PoseSubscriber
+
+    spec = CameraSpec.parse(inp.camera)
+    out: dict[str, Any] = {"frames_per_session": frames, "runs": []}
+    for w in workers_list:
+        with ServerProcess(inp.maps, workers=w, env=env) as srv, _zenoh(srv.endpoint) as z:
+            for i in range(w):  # sessions go to the least busy worker: one each
+                cid = f"bench-memory-{i}"
+                with PoseSubscriber(z, inp.map_name, cid) as poses, FrameStreamer(z, inp.map_name, cid, spec) as fs:
+                    fs.wait_for_server(30)
+                    for k in range(frames):
+                        fs.publish(data=inp.jpeg[(i * 97 + k) % len(inp.jpeg)], encoding="jpeg", seq=k)
+                        poses.wait_for(k, 30)
+            procs = {"server": srv.proc.pid, **{f"worker{j}": p for j, p in enumerate(_child_pids(srv.proc.pid))}}
+            rows = {}
+            for name, pid in procs.items():
+                r = _smaps_rollup(pid)
+                rows[name] = {"rss_kb": r.get("Rss", 0), "pss_kb": r.get("Pss", 0),
+                              "anon_kb": r.get("Anonymous", 0), "index_file_kb": _mapped_kb(pid, "index_faiss")}
+            total = {k: sum(r[k] for r in rows.values()) for k in ("rss_kb", "pss_kb", "anon_kb")}
+            out["runs"].append({"workers": w, "processes": rows, "total": total})
+    return out
+
+
 # ============================================================================ engine scaling
 def _engine_job(maps: str, map_name: str, frames: list[str], camera: str, start_at: float = 0.0) -> tuple[float, float, list[float]]:
     """Localize ``frames`` in sequence (one Localizer): (start, end) wall times and per-frame
@@ -396,7 +458,7 @@ def run(args: Any) -> int:
         raise InputError(f"no map bundle {maps / args.map} (--maps DIR --map NAME; build one with `sfmloc build`)")
     Camera.parse(args.camera)
     inp = BenchInput(maps, args.map, frames, args.camera)
-    only = set(args.only.split(",")) if args.only else {"wire", "overhead", "engine", "clients", "workers"}
+    only = set(args.only.split(",")) if args.only else {"wire", "overhead", "engine", "clients", "workers", "memory"}
     inp.load(max(args.n, int(args.rate * args.duration) + 10) if only & {"clients", "workers"} else args.n)
     report: dict[str, Any] = {"load_average": os.getloadavg(), "cpus": os.cpu_count()}
     print(f"sfmloc bench-transport: {len(inp.jpeg)} frames of {frames_dir}, map {maps / args.map}, "
@@ -451,6 +513,19 @@ def run(args: Any) -> int:
                                     f"clients (this process) {cu['clients']:.2f}"))
         _print_table(f"{args.clients} clients x {args.rate:g} Hz x {args.duration:g} s, {args.encoding} frames, "
                      f"{c['workers']} {kind} workers, max pending {args.max_pending}", rows)
+    if "memory" in only:
+        m = report["memory"] = bench_memory(inp)
+        rows = []
+        for r in m["runs"]:
+            t = r["total"]
+            wk = [v for k, v in r["processes"].items() if k.startswith("worker")]
+            rows.append((f"{r['workers']} worker(s)",
+                         f"total RSS {t['rss_kb'] / 1024:.0f} MB, PSS {t['pss_kb'] / 1024:.0f} MB, anonymous "
+                         f"{t['anon_kb'] / 1024:.0f} MB; per worker PSS "
+                         + ", ".join(f"{v['pss_kb'] / 1024:.0f}" for v in wk) + " MB, index file resident "
+                         + ", ".join(f"{v['index_file_kb'] / 1024:.1f}" for v in wk) + " MB"))
+        _print_table(f"memory: server + workers, map loaded, one session per worker ({m['frames_per_session']} "
+                     "frames each)", rows)
     if args.json:
         Path(args.json).write_text(json.dumps(report, indent=2, default=float))
         print(f"\nwrote {args.json}")

@@ -1,7 +1,7 @@
 """The worker pool: where frames are localized.
 
-Each worker (a process by default) holds every loaded map (memory-mapped arrays, its own copy
-of the faiss index) and the ``Localizer`` of each session assigned to it, and processes one
+Each worker (a process by default) holds every loaded map (memory-mapped arrays; the faiss
+index read in place from the bundle's mapped file, so all workers share one copy) and the ``Localizer`` of each session assigned to it, and processes one
 message at a time, so a frame runs start to end on one core and its latency does not depend on
 what other threads do. Sessions stick to their worker (their track table and filter live there).
 
@@ -143,6 +143,8 @@ class _Worker:
             self.bundles[(m["name"], m["gen"])] = b
             s = b.summary()
             summary = {k: s[k] for k in ("points", "descriptors", "images", "clusters", "memory_mb", "build_id")}
+            # The index reads the bundle's mapped file in place: every worker shares one copy.
+            summary["index_in_place"] = b.index.shared_buffer is not None
             self.send({"op": "loaded", "req": m["req"], "summary": summary, "ms": (time.perf_counter() - t0) * 1e3})
         except Exception as exc:  # noqa: BLE001
             self.send({"op": "loaded", "req": m["req"], "error": error_to_wire(exc)})
@@ -545,7 +547,9 @@ class WorkerPool:
         except BaseException:
             self.drop_map(name, gen)
             raise
-        return results[0]["summary"]
+        summary = dict(results[0]["summary"])
+        summary["index_in_place"] = all(r["summary"].get("index_in_place", False) for r in results)
+        return summary
 
     def drop_map(self, name: str, gen: int) -> None:
         with self._lock:
