@@ -63,3 +63,27 @@ def test_errors_exit_non_zero_with_a_message(tmp_path):
 
 def test_parser_builds():
     assert build_parser().prog == "sfmloc"
+
+
+def test_demo_bar_judges_what_was_measured_not_stale_drops():
+    """The demo passes on what it measured: frames dropped as stale (a loaded machine) are not
+    failures; too few of the processed frames localized, a large error, an unanswered last
+    frame, bad single images or an unclean exit are."""
+    import numpy as np
+
+    from sfmloc.cli.demo import demo_bar
+
+    def passed(*a):
+        return all(ok for _, ok, _ in demo_bar(*a))
+
+    errs = np.full(9, 0.6)  # cm
+    assert passed(10, errs, True, 5, 5, 0)  # 9 of the 10 processed frames (of 150 sent, say)
+    assert passed(10, errs, True, 4, 5, 0)  # one single image off is tolerated
+    assert not passed(12, errs, True, 5, 5, 0)  # 9/12 = 75% < 80%
+    assert not passed(0, np.zeros(0), True, 5, 5, 0)  # nothing processed: nothing shown
+    assert not passed(10, np.full(9, 7.0), True, 5, 5, 0)
+    assert not passed(10, errs, False, 5, 5, 0)
+    assert not passed(10, errs, True, 3, 5, 0)
+    assert not passed(10, errs, True, 5, 5, 1)
+    rows = demo_bar(12, errs, True, 5, 5, 0)
+    assert rows[0][0].startswith(">= 80%") and rows[0][2] == "9/12" and not rows[0][1]
