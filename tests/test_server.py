@@ -397,14 +397,16 @@ def _index_mapping_kb(pid: int, bundle: Path) -> tuple[int, int, int]:
     return n, rss, pss
 
 
-def test_workers_share_one_mapped_index_and_all_see_a_replacement_under_load(world, z, grpc_client, srv, tmp_path):
+def test_workers_share_one_mapped_index_and_all_see_a_replacement_under_load(world, z, grpc_client, srv):
     """Every worker process reads a map's index in place from the bundle's file (one copy in
     the page cache, shared), and a map replaced while clients on every worker stream is seen
     by all of them: one clean switch per client, the new file mapped by every worker, the old
     one released."""
     import shutil
 
-    old_dir, new_dir = tmp_path / "a" / "shared", tmp_path / "b" / "shared"
+    base = world.spare_dir / "share-test"  # inside the server's map_roots
+    shutil.rmtree(base, ignore_errors=True)
+    old_dir, new_dir = base / "a" / "shared", base / "b" / "shared"
     shutil.copytree(world.maps_dir / "room", old_dir)  # files no other map of this server maps
     shutil.copytree(world.room_rebuilt, new_dir)
     pool = srv.server.pool
@@ -464,6 +466,7 @@ def test_workers_share_one_mapped_index_and_all_see_a_replacement_under_load(wor
     # The old generation is dropped everywhere: its file is no longer mapped by any worker.
     assert wait_until(lambda: all(_index_mapping_kb(pid, old_dir)[0] == 0 for pid in pids), 30)
     grpc_client.unload_map("shared")
+    shutil.rmtree(base, ignore_errors=True)
 
 
 def test_unload_load_and_corrupt_bundles(world, z, grpc_client):
