@@ -125,6 +125,65 @@ def test_max_pending_keeps_the_newest_frames(world):
         assert len(got) + got[-1].dropped == n and got[-1].dropped > 0
 
 
+# ----------------------------------------------------------------------------- isolation
+def _nice(pid: int) -> int:
+    with open(f"/proc/{pid}/stat") as f:
+        return int(f.read().rsplit(")", 1)[1].split()[16])  # field 19: nice
+
+
+def test_relocalizations_run_on_their_own_lane_beside_a_stream(world):
+    """Single-image Relocalize runs on the relocalization lane (its own worker process, at a
+    lower CPU priority), never on the worker a streaming session's frames wait on: with
+    relocalizations in flight all the time, the stream gets every pose, and the stream
+    worker did none of the relocalizations."""
+    from sfmloc_client import FrameStreamer, PoseSubscriber
+
+    ep = zenoh_endpoint()
+    conf = server_config(world, ep, workers=1, worker_kind="process", relocalize_workers=1)
+    with running_server(conf) as srv, client_zenoh(ep) as z, \
+            LocalizationClient(f"127.0.0.1:{srv.grpc_port}", timeout=120) as c:
+        pool = srv.server.pool
+        stream_w, lane_w = pool.workers
+        assert _nice(lane_w.pid) == _nice(stream_w.pid) + 5
+        busy0 = pool.busy_ms()
+        first = c.relocalize(world.png[10], "room", camera(world), encoding="png")
+        assert first.localized
+        busy1 = pool.busy_ms()
+        assert busy1[0] == busy0[0] and busy1[1] > busy0[1]  # the lane did it, the stream worker nothing
+
+        stop = threading.Event()
+        answers: list = []
+
+        def caller() -> None:  # keeps a relocalization in flight until the stream is done
+            k = 0
+            while not stop.is_set():
+                answers.append(c.relocalize(world.png[k % 60], "room", camera(world), encoding="png"))
+                k += 7
+
+        callers = [threading.Thread(target=caller) for _ in range(2)]
+        for t in callers:
+            t.start()
+        try:
+            assert wait_until(lambda: pool.workers[1].inflight > 0, 60)
+            got: list = []
+            during: list[int] = []  # lane requests in flight when each pose came back
+            with PoseSubscriber(z, "room", "beside", callback=got.append) as sub, \
+                    FrameStreamer(z, "room", "beside", camera(world)) as fs:
+                assert fs.wait_for_server(30)
+                for k in range(20):
+                    seq = fs.publish(data=world.png[k], encoding="png", seq=k, stamp_ns=int(k * 1e9 / 30))
+                    assert sub.wait_for(seq, 60)
+                    during.append(pool.workers[1].inflight)
+        finally:
+            stop.set()
+            for t in callers:
+                t.join(120)
+        assert [p.seq for p in got] == list(range(20)) and all(p.error is None for p in got)
+        assert sum(p.localized for p in got) >= 18
+        assert sum(n > 0 for n in during) >= 10  # the lane was busy while the stream was served
+        assert answers and all(a.error is None for a in answers)
+
+
 # ----------------------------------------------------------------------------- shutdown
 def test_stop_finishes_in_flight_relocalizations(world):
     from sfmloc.server.app import ServerThread

@@ -52,6 +52,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-zenoh", action="store_true", help="gRPC only")
     p.add_argument("--workers", type=int, metavar="N", help="engine worker processes (default: one per core)")
     p.add_argument("--worker-kind", choices=["process", "thread"], help=argparse.SUPPRESS)
+    p.add_argument("--relocalize-workers", type=int, metavar="N",
+                   help="extra worker processes only for single-image Relocalize, at a lower CPU priority, so "
+                        "that it never delays streams' frames (default 1; 0: on the stream workers)")
     p.add_argument("--idle-timeout", type=float, metavar="S", help="end a Zenoh session after S seconds without frames (default 30)")
     p.add_argument("--max-pending", type=int, metavar="N",
                    help="frames of a client that may wait while one is processed (default 1: latest frame only)")
@@ -74,7 +77,8 @@ def overrides_from_args(args: argparse.Namespace) -> dict:
     """Only what was given on the command line (so that it wins over file and environment)."""
     o: dict = {"maps": args.maps, "workers": args.workers, "worker_kind": args.worker_kind,
                "idle_timeout_s": args.idle_timeout, "metrics_port": args.metrics_port, "max_pending": args.max_pending,
-               "server_id": args.server_id, "log_format": args.log_format}
+               "server_id": args.server_id, "log_format": args.log_format,
+               "relocalize_workers": args.relocalize_workers}
     if args.follow_builder:
         o["follow_builder"] = True
     if args.allow_empty:

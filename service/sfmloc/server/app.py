@@ -73,6 +73,7 @@ class Server:
             on_result=self._on_result, on_lost=self._on_worker_lost,
             log_level=logging.getLogger().getEffectiveLevel(), log_format=conf.log_format,
             max_pending_relocalize=conf.max_pending_relocalize, max_image_pixels=conf.max_image_pixels,
+            reloc_workers=conf.relocalize_workers,
         )
         self.registry = MapRegistry(self.pool, on_change=self._on_map_change)
         # gRPC bearer tokens and roles (None: authentication off).
@@ -150,7 +151,7 @@ class Server:
             sessions=len(self.sessions), workers=self.pool.n,
             load={
                 "frames_per_s": max(0.0, (frames - frames_prev) / dt),
-                "busy": min(1.0, sum(b - p for b, p in zip(busy, busy_prev)) / 1e3 / dt / max(1, self.pool.n)),
+                "busy": min(1.0, sum(b - p for b, p in zip(busy[: self.pool.n], busy_prev)) / 1e3 / dt / max(1, self.pool.n)),
                 "inflight": float(sum(self.pool.inflight())),
             },
             ready=self.ready,
@@ -175,7 +176,8 @@ class Server:
             self.metrics_server.start()
         t0 = time.perf_counter()
         await loop.run_in_executor(self.executor, self.pool.start)
-        event(log, logging.INFO, "workers_started", workers=self.pool.n, kind=c.worker_kind,
+        event(log, logging.INFO, "workers_started", workers=self.pool.n, relocalize_workers=self.pool.reloc_workers,
+              kind=c.worker_kind,
               ms=round((time.perf_counter() - t0) * 1e3))
         if c.zenoh.enabled:
             from .zenoh_io import ZenohFrontend

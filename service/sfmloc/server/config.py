@@ -66,6 +66,11 @@ class ServerConfig(StrictModel):
     # rest is summed up in one line per interval (a flood must not fill the disk).
     log_interval_s: float = Field(10.0, gt=0)
     max_pending_relocalize: int = Field(16, ge=1)  # queued single-image requests, all workers
+    # Worker processes only for single-image Relocalize, besides ``workers`` (at a lower CPU
+    # priority, nice +5): one client's relocalization (70-120 ms, seconds for a huge image)
+    # never holds a worker that streaming sessions' frames wait on. 0: Relocalize runs on the
+    # stream workers (the least busy one), delaying its sessions' frames by 2-3 frames.
+    relocalize_workers: int = Field(1, ge=0, le=16)
     # Largest camera (width x height) accepted; also caps what OpenCV decodes in a worker, so a
     # small JPEG claiming a huge image cannot exhaust its memory.
     max_image_pixels: int = Field(4096 * 4096, ge=1)

@@ -60,8 +60,15 @@ def _unpack(raw: bytes) -> Any:
 
 
 # ============================================================================ worker side
-def worker_main(conn: Any, index: int, engine_conf_json: str, log_level: int, log_format: str, is_process: bool) -> None:
-    """Entry point of a worker (a process, or a thread for measurements)."""
+def worker_main(conn: Any, index: int, engine_conf_json: str, log_level: int, log_format: str, is_process: bool,
+                nice: int = 0) -> None:
+    """Entry point of a worker (a process, or a thread for measurements). ``nice`` > 0 lowers
+    the process's CPU priority (the relocalization lane: streams' frames win the CPU)."""
+    if is_process and nice > 0:
+        try:
+            os.nice(nice)
+        except OSError:  # not permitted: run at the normal priority
+            pass
     if is_process:
         # The server process coordinates shutdown: Ctrl-C in a terminal signals the whole
         # process group, and a worker must not die mid-frame. It exits on "stop" or when its
@@ -323,8 +330,15 @@ class WorkerPool:
         log_format: str = "kv",
         max_pending_relocalize: int = 16,
         max_image_pixels: int = 4096 * 4096,
+        reloc_workers: int = 0,
+        reloc_nice: int = 5,
     ) -> None:
-        self.n = n
+        self.n = n  # stream workers (sessions live on workers 0..n-1)
+        # Workers n..n+reloc_workers-1 only serve single-image relocalizations (their own
+        # lane): a 70-120 ms (or, for a huge image, seconds-long) relocalization never
+        # holds a worker that streams' frames queue on. 0: they share the stream workers.
+        self.reloc_workers = reloc_workers
+        self.reloc_nice = reloc_nice
         self.kind = kind
         self.engine_conf_json = engine_conf_json
         self.on_result = on_result
@@ -341,7 +355,7 @@ class WorkerPool:
         self._stopping = False
         self._reloc_pending = 0
         self.restarts = 0
-        self._start_failures = [0] * n  # consecutive deaths before "ready", per worker index
+        self._start_failures = [0] * (n + reloc_workers)  # deaths before "ready", per worker index
         self.fatal: Exception | None = None  # a worker that cannot start: the pool gives up
         self._started = False  # start() returned: every worker was ready once
 
@@ -349,10 +363,10 @@ class WorkerPool:
     def start(self, timeout: float = 120.0) -> None:
         for var in THREAD_ENV:
             os.environ.setdefault(var, "1")
-        for i in range(self.n):
+        for i in range(self.n + self.reloc_workers):
             self.workers.append(self._spawn(i))
         deadline = time.monotonic() + timeout
-        for i in range(self.n):
+        for i in range(self.n + self.reloc_workers):
             # A worker that dies while starting is restarted (with back-off) by its reader
             # thread, which replaces self.workers[i]; after MAX_START_FAILURES it gives up.
             while not self.workers[i].ready.wait(0.05):
@@ -380,7 +394,8 @@ class WorkerPool:
             fd = theirs.fileno()
             cmd = [sys.executable, "-c", _BOOTSTRAP, "--fd", str(fd), "--index", str(i),
                    "--log-level", str(self.log_level), "--log-format", self.log_format,
-                   "--engine-conf", self.engine_conf_json]
+                   "--engine-conf", self.engine_conf_json,
+                   "--nice", str(self.reloc_nice if i >= self.n else 0)]
             runner: Any = _Process(subprocess.Popen(cmd, pass_fds=(fd,), env=env, stdin=subprocess.DEVNULL,
                                                     stderr=subprocess.PIPE))
             theirs.close()  # the child holds its end; ours must not keep it open (EOF detection)
@@ -571,14 +586,16 @@ class WorkerPool:
         self._send(self.workers[worker], {"op": "close", "sid": sid})
 
     def relocalize(self, msg: dict[str, Any], data: bytes) -> Future:
-        """Single-image relocalization on the least busy worker."""
+        """Single-image relocalization on the least busy worker of the relocalization lane
+        (of all workers when it has none)."""
         with self._lock:
             pending = self._reloc_pending
             if pending >= self.max_pending_relocalize:
                 raise OverloadError(
                     f"{pending} relocalizations are already queued (limit {self.max_pending_relocalize}); retry later"
                 )
-            h = min(self.workers, key=lambda w: (w.inflight, w.index))
+            lane = self.workers[self.n:] or self.workers
+            h = min(lane, key=lambda w: (w.inflight, w.index))
             h.inflight += 1
             self._reloc_pending += 1
         msg["op"] = "reloc"
@@ -667,8 +684,9 @@ def _main() -> None:
     ap.add_argument("--log-level", type=int, default=logging.INFO)
     ap.add_argument("--log-format", default="kv")
     ap.add_argument("--engine-conf", default="{}")
+    ap.add_argument("--nice", type=int, default=0)
     a = ap.parse_args()
-    worker_main(Connection(a.fd), a.index, a.engine_conf, a.log_level, a.log_format, True)
+    worker_main(Connection(a.fd), a.index, a.engine_conf, a.log_level, a.log_format, True, a.nice)
 
 
 if __name__ == "__main__":
