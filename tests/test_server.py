@@ -414,8 +414,8 @@ def test_workers_share_one_mapped_index_and_all_see_a_replacement_under_load(wor
     pool.drop_map("probe", 10**6)
     assert probe["index_in_place"] is True
     old = grpc_client.load_map(str(old_dir), "shared")
-    pids = [h.pid for h in pool.workers]
-    assert len(pids) == 2
+    pids = [h.pid for h in pool.workers]  # stream workers and the relocalization lane
+    assert len(pids) == pool.n + pool.reloc_workers == 3
     for pid in pids:  # each worker searched the index at load (warm-up): the same pages
         n, rss, pss = _index_mapping_kb(pid, old_dir)
         assert n >= 1 and rss > 0 and pss < rss, (pid, n, rss, pss)
@@ -423,11 +423,11 @@ def test_workers_share_one_mapped_index_and_all_see_a_replacement_under_load(wor
     # Clients until every worker hosts one (sessions go to the least busy worker).
     sessions = srv.server.sessions
     clients: list[str] = []
-    while {s.worker for s in sessions.list("shared")} != set(range(len(pids))) and len(clients) < 8:
+    while {s.worker for s in sessions.list("shared")} != set(range(pool.n)) and len(clients) < 8:
         cid = f"sharer-{len(clients)}"
         stream_lockstep(z, "shared", cid, world, n=1)
         clients.append(cid)
-    assert {s.worker for s in sessions.list("shared")} == set(range(len(pids)))
+    assert {s.worker for s in sessions.list("shared")} == set(range(pool.n))
 
     n, switch_at = 40, 12
     half = threading.Event()

@@ -42,6 +42,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--max-pending", type=int, default=1, help="the server's --max-pending (default 1: latest frame only)")
     p.add_argument("--encoding", choices=["jpeg", "gray8"], default="jpeg",
                    help="clients/workers sections: frames as the JPEG files (default) or raw gray8")
+    p.add_argument("--relocalize-rate", type=float, default=0.0, metavar="HZ",
+                   help="clients/workers sections: one more client calls single-image Relocalize over gRPC at "
+                        "HZ beside the streams (default 0: none)")
+    p.add_argument("--relocalize-workers", default="", metavar="N[,N...]",
+                   help="clients/workers sections: the server's --relocalize-workers, one run per value "
+                        "(e.g. 0,1: relocalizations on the stream workers vs their own lane)")
     p.add_argument("--repeat", type=int, default=3, help="engine section: runs per mode, the best is kept (default 3)")
     p.add_argument("--json", metavar="FILE", help="also write the numbers as JSON")
     p.set_defaults(func=run)

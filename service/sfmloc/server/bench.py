@@ -223,8 +223,33 @@ def _child_pids(pid: int) -> list[int]:
 
 
 
+def _relocalize_load(grpc_addr: str, inp: BenchInput, spec: Any, rate: float, stop: threading.Event,
+                     out: dict[str, Any]) -> None:
+    """Single-image Relocalize calls over gRPC at ``rate`` Hz (back to back when slower) until
+    ``stop``: the load of one client relocalizing beside the streams."""
+    from sfmloc_client import LocalizationClient
+
+    lat: list[float] = []
+    with LocalizationClient(grpc_addr, timeout=60) as c:
+        t_next, k = time.perf_counter(), 0
+        while not stop.is_set():
+            delay = t_next - time.perf_counter()
+            if delay > 0 and stop.wait(delay):
+                break
+            t0 = time.perf_counter()
+            try:
+                c.relocalize(inp.jpeg[(k * 37) % len(inp.jpeg)], inp.map_name, spec, encoding="jpeg")
+                lat.append((time.perf_counter() - t0) * 1e3)
+            except Exception:  # noqa: BLE001 - counted
+                out["errors"] = out.get("errors", 0) + 1
+            k += 1
+            t_next += 1.0 / rate
+    out.update(calls=len(lat), ms_p50=_pct(lat, 50), ms_p99=_pct(lat, 99))
+
+
 def bench_clients(inp: BenchInput, clients: int, rate: float, duration: float, workers: int, kind: str,
-                  encoding: str = "jpeg", max_pending: int = 1) -> dict[str, Any]:
+                  encoding: str = "jpeg", max_pending: int = 1, reloc_rate: float = 0.0,
+                  reloc_workers: int | None = None) -> dict[str, Any]:
     from sfmloc_client import CameraSpec, FrameStreamer, PoseSubscriber
 
     spec = CameraSpec.parse(inp.camera)
@@ -232,8 +257,17 @@ def bench_clients(inp: BenchInput, clients: int, rate: float, duration: float, w
     frames = inp.jpeg if encoding == "jpeg" else [g.tobytes() for g in inp.gray]
     results: list[dict[str, Any]] = [{} for _ in range(clients)]
     load0 = os.getloadavg()[0]
-    with ServerProcess(inp.maps, workers=workers, kind=kind, extra_args=("--max-pending", str(max_pending))) as srv:
-        barrier = threading.Barrier(clients)
+    extra = ("--max-pending", str(max_pending))
+    if reloc_workers is not None:
+        extra += ("--relocalize-workers", str(reloc_workers))
+    reloc: dict[str, Any] = {"rate_hz": reloc_rate, "workers": reloc_workers}
+    with ServerProcess(inp.maps, workers=workers, kind=kind, extra_args=extra) as srv:
+        barrier = threading.Barrier(clients + (1 if reloc_rate > 0 else 0))
+        stop_reloc = threading.Event()
+
+        def relocalizer() -> None:
+            barrier.wait()
+            _relocalize_load(srv.grpc, inp, spec, reloc_rate, stop_reloc, reloc)
 
         def client(i: int) -> None:
             cid = f"bench-client-{i}"
@@ -292,17 +326,21 @@ def bench_clients(inp: BenchInput, clients: int, rate: float, duration: float, w
                 }
 
         threads = [threading.Thread(target=client, args=(i,)) for i in range(clients)]
+        reloc_thread = threading.Thread(target=relocalizer) if reloc_rate > 0 else None
         pids = {"server": [srv.proc.pid], "workers": _child_pids(srv.proc.pid), "clients": [os.getpid()]}
         cpu0 = {k: sum(_cpu_seconds(p) for p in v) for k, v in pids.items()}
         t0 = time.perf_counter()
-        for t in threads:
+        for t in threads + ([reloc_thread] if reloc_thread else []):
             t.start()
         for t in threads:
             t.join()
+        stop_reloc.set()
+        if reloc_thread:
+            reloc_thread.join()
         wall = time.perf_counter() - t0
         cores = {k: (sum(_cpu_seconds(p) for p in v) - cpu0[k]) / wall for k, v in pids.items()}
     return {"workers": workers, "kind": kind, "encoding": encoding, "clients": results, "load_before": load0, "load_after": os.getloadavg()[0],
-            "cores_used": cores}
+            "cores_used": cores, "relocalize": reloc}
 
 
 # ============================================================================ memory
@@ -494,11 +532,13 @@ def run(args: Any) -> int:
                          f"{e[f'{kind}_fps']:.1f} frames/s ({e[f'{kind}_speedup']:.2f}x), {e[f'{kind}_ms_p50']:.1f} ms p50 per frame"))
         rows.append(("all runs (frames/s)", "; ".join(f"{k} " + ", ".join(f"{v:.0f}" for v in vs) for k, vs in e["runs_fps"].items())))
         _print_table(f"engine scaling: Localizers flat out, {e['frames_each']} frames each, best of {e['repeat']} (no transport)", rows)
-    for section, kind in (("clients", "process"), ("workers", "thread")):
-        if section not in only:
-            continue
-        c = report[section] = bench_clients(inp, args.clients, args.rate, args.duration, args.workers or (os.cpu_count() or 1),
-                                            kind, args.encoding, args.max_pending)
+    lanes: list[int | None] = [int(v) for v in args.relocalize_workers.split(",")] if args.relocalize_workers else [None]
+    runs = [(section, kind, lane) for section, kind in (("clients", "process"), ("workers", "thread"))
+            if section in only for lane in lanes]
+    for section, kind, lane in runs:
+        c = bench_clients(inp, args.clients, args.rate, args.duration, args.workers or (os.cpu_count() or 1),
+                          kind, args.encoding, args.max_pending, args.relocalize_rate, lane)
+        report[section if len(lanes) == 1 else f"{section}-relocalize-workers-{lane}"] = c
         rows = []
         for r in c["clients"]:
             rows.append((r["client"], f"sent {r['sent']} poses {r['received']} dropped {r['drop_pct']:.2f}% "
@@ -511,8 +551,14 @@ def run(args: Any) -> int:
         cu = c["cores_used"]
         rows.append(("CPU (cores)", f"server main process {cu['server']:.2f}, workers {cu['workers']:.2f}, "
                                     f"clients (this process) {cu['clients']:.2f}"))
+        rl = c["relocalize"]
+        if args.relocalize_rate > 0:
+            rows.append(("Relocalize beside them", f"{rl.get('calls', 0)} calls at {args.relocalize_rate:g} Hz, "
+                                                   f"p50 {rl.get('ms_p50', float('nan')):.0f} ms p99 "
+                                                   f"{rl.get('ms_p99', float('nan')):.0f} ms, errors {rl.get('errors', 0)}"))
+        lane_s = "" if lane is None else f", relocalize workers {lane}"
         _print_table(f"{args.clients} clients x {args.rate:g} Hz x {args.duration:g} s, {args.encoding} frames, "
-                     f"{c['workers']} {kind} workers, max pending {args.max_pending}", rows)
+                     f"{c['workers']} {kind} workers{lane_s}, max pending {args.max_pending}", rows)
     if "memory" in only:
         m = report["memory"] = bench_memory(inp)
         rows = []

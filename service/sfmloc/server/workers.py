@@ -423,8 +423,10 @@ class WorkerPool:
         for h in self.workers:
             h.runner.join(max(0.1, deadline - time.monotonic()))
             if self.kind == "process" and h.runner.is_alive():
-                log.warning("worker %d did not stop in time: terminating it", h.index)
-                h.runner.terminate()
+                # Workers ignore SIGTERM (a Ctrl-C or SIGTERM to the process group must not end
+                # them mid-frame), so SIGTERM would not end one busy with a long request.
+                log.warning("worker %d did not stop in time: killing it", h.index)
+                h.runner.kill()
                 h.runner.join(5)
             try:
                 h.conn.close()
@@ -455,7 +457,7 @@ class WorkerPool:
         while True:
             try:
                 msg = _unpack(h.conn.recv_bytes())
-            except (EOFError, OSError, ValueError):
+            except (EOFError, OSError, ValueError, TypeError):  # TypeError: closed by stop()
                 break
             try:
                 self._dispatch(h, msg)
@@ -669,6 +671,9 @@ class _Process:
 
     def terminate(self) -> None:
         self.popen.terminate()
+
+    def kill(self) -> None:
+        self.popen.kill()
 
     @property
     def exitcode(self) -> int | None:
