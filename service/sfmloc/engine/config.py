@@ -97,7 +97,8 @@ class EngineConf(StrictModel):
     # pyramid level: the engine's parameters (mu, rho, tau, the DAISY patch, 1000 keypoints)
     # are pixels of the paper's 640x480 video. 3072x2048 queries of a map of 3072x2048 images
     # (10 synthetic views): at full size 4/10 relocalized, median 33 cm off; at 2048 px wide
-    # 10/10, 1.1 cm; 1280: 0.28 cm; 800: 0.21 cm; 640: 0.20 cm.
+    # 10/10, 1.1 cm; 1280: 0.28 cm; 800: 0.21 cm; 640: 0.20 cm. Streaming 15 such frames:
+    # 0/15 at full size (15x the time per frame), 15/15 at 768x512 (median 0.25 cm).
     max_working_pixels: int = 640 * 480
     # Sub-pixel keypoint localization (features/harris.py). "map": as the map's keypoints were
     # (the builder's descriptors.subpixel; "quadratic" for maps built before it was recorded):
