@@ -656,3 +656,44 @@ def test_a_crashed_worker_is_restarted_and_other_clients_carry_on(world, z, srv)
     after = stream_lockstep(z, "room", "survivor", world, n=10)
     assert [p.seq for p in after] == list(range(10))
     assert sum(p.localized for p in after) >= 8
+
+
+def test_a_worker_killed_under_streams_answers_every_frame(world, z, srv):
+    """kill -9 of the worker two streams are on, while their frames are in it: every frame
+    gets an answer (a pose, or UNAVAILABLE for the frames the dead worker had), and the
+    sessions go on at once on the surviving worker, before the replacement is ready."""
+    import os
+    import signal
+
+    pool = srv.server.pool
+    assert wait_until(lambda: all(h.alive and h.ready.is_set() for h in pool.workers), 120)
+    cam = camera(world)
+    got: dict[str, list] = {"k1": [], "k2": []}
+    with PoseSubscriber(z, "room", "k1", callback=got["k1"].append), \
+            PoseSubscriber(z, "room", "k2", callback=got["k2"].append), \
+            FrameStreamer(z, "room", "k1", cam) as f1, FrameStreamer(z, "room", "k2", cam) as f2:
+        streams = [(f1, "k1"), (f2, "k2")]
+        assert f1.wait_for_server(30) and f2.wait_for_server(30)
+        for f, cid in streams:  # open both sessions
+            f.publish(data=world.png[0], encoding="png", seq=0, stamp_ns=0)
+            assert wait_until(lambda: any(p.seq == 0 for p in got[cid]), 60)
+        workers = {s.worker for s in srv.server.sessions.list("room") if s.client_id in ("k1", "k2")}
+        victim = pool.workers[sorted(workers)[0]]
+        restarts = pool.restarts
+        for k in range(1, 40):
+            for f, _ in streams:
+                f.publish(data=world.png[k], encoding="png", seq=k, stamp_ns=int(k * 1e9 / 30))
+            if k == 5:
+                os.kill(victim.pid, signal.SIGKILL)
+            for _, cid in streams:
+                assert wait_until(lambda: any(p.seq == k for p in got[cid]), 60), (cid, k)
+        moved = {s.worker for s in srv.server.sessions.list("room") if s.client_id in ("k1", "k2")}
+    for cid in ("k1", "k2"):
+        seqs = sorted({p.seq for p in got[cid]})
+        assert seqs == list(range(40)), cid  # nothing silent
+        errors = [p for p in got[cid] if p.error is not None]
+        assert all(p.error.code == "UNAVAILABLE" for p in errors) and len(errors) <= 2
+        assert sum(p.localized for p in got[cid] if p.seq >= 30) >= 8  # it went on
+    assert pool.restarts >= restarts + 1
+    assert victim.index not in moved  # the sessions left the dead worker and stayed away
+    assert wait_until(lambda: pool.workers[victim.index].alive and pool.workers[victim.index].ready.is_set(), 120)

@@ -70,7 +70,7 @@ class Server:
         n = conf.workers or os.cpu_count() or 1
         self.pool = WorkerPool(
             n, conf.worker_kind, conf.engine.model_dump_json(),
-            on_result=self._on_result, on_lost=self._on_worker_lost,
+            on_result=self._on_result, on_lost=self._on_worker_lost, on_dead=self._on_worker_dead,
             log_level=logging.getLogger().getEffectiveLevel(), log_format=conf.log_format,
             max_pending_relocalize=conf.max_pending_relocalize, max_image_pixels=conf.max_image_pixels,
             reloc_workers=conf.relocalize_workers,
@@ -106,6 +106,9 @@ class Server:
     # ------------------------------------------------------------------ wiring
     def _on_result(self, msg: dict[str, Any]) -> None:
         self.sessions.on_result(msg)
+
+    def _on_worker_dead(self, index: int) -> None:
+        self.sessions.on_worker_dead(index)
 
     def _on_worker_lost(self, index: int) -> None:
         self.metrics.worker_restarts.inc()

@@ -176,7 +176,8 @@ class SessionManager:
         for other in self._by_sid.values():
             per_worker[other.worker] += 1
         inflight = self.pool.inflight()
-        worker = min(range(self.pool.n), key=lambda i: (per_worker[i], inflight[i], i))
+        live = [i for i in range(self.pool.n) if self.pool.is_alive(i)] or list(range(self.pool.n))
+        worker = min(live, key=lambda i: (per_worker[i], inflight[i], i))
         s = Session(next(self._sid), map_name, client_id, transport, key, worker, make_sink(), source=source)
         self._by_key[key] = s
         self._by_sid[s.sid] = s
@@ -186,6 +187,21 @@ class SessionManager:
         return s
 
     def _dispatch(self, s: Session, frame: Frame, gen: int) -> None:
+        if not self.pool.is_alive(s.worker):
+            with self._lock:
+                target = self._live_worker(exclude=s.worker)
+                if target is None:  # every worker is down: answer now rather than never
+                    s.busy = False
+                    s.inflight_t_recv.pop(frame.seq, None)
+                    self._idle.notify_all()
+                else:
+                    s.worker = target
+            if target is None:
+                from ..errors import UnavailableError
+
+                self._send(s, self.error_pose(s.map, s.client_id, frame.seq, frame.stamp_ns, UnavailableError(
+                    "no engine worker is running (one is restarting); retry")))
+                return
         c = frame.camera
         msg = {"sid": s.sid, "map": s.map, "gen": gen, "seq": frame.seq, "stamp_ns": frame.stamp_ns,
                "camera": [c.model, c.width, c.height, list(c.params)], "enc": frame.encoding}
@@ -324,6 +340,50 @@ class SessionManager:
         for s in idle:
             self.close(s, "idle")
         return len(idle)
+
+    def _live_worker(self, exclude: int = -1) -> int | None:
+        """The live worker with the fewest sessions (caller holds the lock)."""
+        per_worker = [0] * self.pool.n
+        for other in self._by_sid.values():
+            if 0 <= other.worker < self.pool.n:
+                per_worker[other.worker] += 1
+        live = [i for i in range(self.pool.n) if i != exclude and self.pool.is_alive(i)]
+        return min(live, key=lambda i: (per_worker[i], i)) if live else None
+
+    def on_worker_dead(self, worker: int) -> None:
+        """A worker died: every frame it had gets an UNAVAILABLE error pose now, and its
+        sessions move to a live worker at once (their next frame relocalizes there), so that no
+        frame waits in silence for the restart."""
+        from ..errors import UnavailableError
+
+        with self._lock:
+            hit = [s for s in self._by_sid.values() if s.worker == worker]
+            lost, resume = [], []
+            for s in hit:
+                lost += [(s, seq) for seq in s.inflight_t_recv]
+                s.inflight_t_recv.clear()
+                s.busy = False
+                target = self._live_worker(exclude=worker)
+                if target is not None:
+                    s.worker = target
+                if s.pending and target is not None:
+                    nxt = s.pending.pop()  # the newest waiting frame goes on, on the new worker
+                    s.dropped += len(s.pending)
+                    s.pending.clear()
+                    s.busy = True
+                    s.inflight_t_recv[nxt.frame.seq] = nxt.t_recv
+                    resume.append((s, nxt))
+            self._idle.notify_all()
+        for s, seq in lost:
+            self._send(s, self.error_pose(s.map, s.client_id, seq, 0, UnavailableError(
+                f"the worker processing this frame died; the session goes on (worker {s.worker}) and relocalizes")))
+        for s, nxt in resume:
+            entry = self.registry.find(s.map)
+            if entry is None:
+                self._reject_pending(s, nxt)
+            else:
+                self._dispatch(s, nxt.frame, entry.generation)
+        event(log, logging.WARNING, "worker_sessions_moved", worker=worker, sessions=len(hit), frames_answered=len(lost))
 
     def on_worker_lost(self, worker: int) -> None:
         """A worker was restarted: its sessions lost their state and in-flight frames."""

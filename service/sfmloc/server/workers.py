@@ -326,6 +326,7 @@ class WorkerPool:
         *,
         on_result: Callable[[dict[str, Any]], None],
         on_lost: Callable[[int], None] | None = None,
+        on_dead: Callable[[int], None] | None = None,
         log_level: int = logging.INFO,
         log_format: str = "kv",
         max_pending_relocalize: int = 16,
@@ -343,6 +344,7 @@ class WorkerPool:
         self.engine_conf_json = engine_conf_json
         self.on_result = on_result
         self.on_lost = on_lost or (lambda i: None)
+        self.on_dead = on_dead or (lambda i: None)
         self.log_level, self.log_format = log_level, log_format
         self.max_pending_relocalize = max_pending_relocalize
         self.max_image_pixels = max_image_pixels
@@ -510,6 +512,11 @@ class WorkerPool:
             f.set_exception(UnavailableError(f"worker {h.index} died; retry"))
         if self._stopping:
             return
+        if started:
+            try:
+                self.on_dead(h.index)  # at once: answer its frames, move its sessions
+            except Exception:  # noqa: BLE001 - the restart must go on
+                log.exception("handling the death of worker %d failed", h.index)
         fails = 0 if started else self._start_failures[h.index] + 1
         self._start_failures[h.index] = fails
         if fails >= MAX_START_FAILURES:
@@ -573,6 +580,10 @@ class WorkerPool:
             self._maps.pop((name, gen), None)
         for h in self.workers:
             self._send(h, {"op": "drop", "name": name, "gen": gen})
+
+    def is_alive(self, worker: int) -> bool:
+        """Whether worker ``worker`` is up (False from its death until its replacement is ready)."""
+        return 0 <= worker < len(self.workers) and self.workers[worker].alive
 
     def submit_frame(self, worker: int, msg: dict[str, Any], data: bytes) -> None:
         h = self.workers[worker]
