@@ -116,12 +116,12 @@ class EngineConf(StrictModel):
     refine_threshold_px: float = 3.0  # inliers kept for the final refinement
     # The final refinement down-weights matches with a Cauchy loss of this scale (px; 0: plain
     # least squares on the inliers within refine_threshold_px). A wrong corner next to the
-    # right one passes the 3 px threshold and pulls a least-squares pose. Measured (same run,
-    # new/old CPU per frame): redkitchen 400 frames median 0.77 -> 0.62 cm, mean 1.10 -> 0.77
-    # cm, within 5 cm / 5 deg 97.8 -> 99.5%, CPU x1.04; synthetic walk median 0.52 -> 0.42 cm,
-    # flight 0.36 -> 0.27 cm. Scale 0.5 px: redkitchen 0.64 cm; refine_threshold_px 2 instead:
-    # 0.60 cm but tracks lost to the tighter threshold (6 global-matching frames against 2, CPU
-    # x1.18).
+    # right one passes the 3 px threshold and pulls a least-squares pose. Measured against 0 in
+    # the same run (CPU per frame new/old): redkitchen 1000 frames median 0.58 -> 0.48 cm, mean
+    # 0.82 -> 0.73 cm, within 5 cm / 5 deg 94.1 -> 95.5%, CPU x1.01; synthetic walk median 0.50
+    # -> 0.41 cm, flight 0.34 -> 0.26 cm (300 frames), CPU x1.02-1.04. Scale 0.5 px: no better;
+    # refine_threshold_px 2 instead: similar accuracy but tracks lost to the tighter threshold
+    # (3x the global-matching frames, CPU x1.18).
     refine_loss_scale_px: float = 1.0
     guided_threshold_px: float = 6.0  # verification of guided hypotheses against the pose
     add_min_distance_px: float = 6.0  # new keypoints keep this far from tracked ones
