@@ -697,3 +697,26 @@ def test_a_worker_killed_under_streams_answers_every_frame(world, z, srv):
     assert pool.restarts >= restarts + 1
     assert victim.index not in moved  # the sessions left the dead worker and stayed away
     assert wait_until(lambda: pool.workers[victim.index].alive and pool.workers[victim.index].ready.is_set(), 120)
+
+
+def test_load_map_while_a_worker_restarts(world, z, srv, grpc_client):
+    """LoadMap right after a worker died answers without waiting for the dead worker, and the
+    replacement comes up with that map too (it reloads the maps current when it is ready)."""
+    import os
+    import signal
+
+    pool = srv.server.pool
+    assert wait_until(lambda: all(h.alive and h.ready.is_set() for h in pool.workers), 120)
+    victim = pool.workers[0]
+    restarts = pool.restarts
+    os.kill(victim.pid, signal.SIGKILL)
+    assert wait_until(lambda: not pool.is_alive(0), 60)
+    info = grpc_client.load_map("room2", "window", timeout=60)  # answered by the live worker
+    assert info.name == "window"
+    assert wait_until(lambda: pool.restarts > restarts and pool.is_alive(0) and pool.workers[0].ready.is_set(), 120)
+    # two new sessions: one lands on the replacement, which must hold "window"
+    for cid in ("win-a", "win-b"):
+        poses = stream_lockstep(z, "window", cid, world, n=4)
+        assert all(p.error is None for p in poses) and poses[-1].localized, cid
+    assert {s.worker for s in srv.server.sessions.list("window")} >= {0}
+    grpc_client.unload_map("window")

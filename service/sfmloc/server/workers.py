@@ -358,6 +358,7 @@ class WorkerPool:
         self._reloc_pending = 0
         self.restarts = 0
         self._start_failures = [0] * (n + reloc_workers)  # deaths before "ready", per worker index
+        self._maps_version = 0  # bumped by every load/drop (a restart reloads until it is stable)
         self.fatal: Exception | None = None  # a worker that cannot start: the pool gives up
         self._started = False  # start() returned: every worker was ready once
 
@@ -507,7 +508,6 @@ class WorkerPool:
             h.outbox.put(None)
             lost = [r for r, (w, _) in self._futures.items() if w == h.index]
             futures = [self._futures.pop(r)[1] for r in lost]
-            maps = dict(self._maps)
         for f in futures:
             f.set_exception(UnavailableError(f"worker {h.index} died; retry"))
         if self._stopping:
@@ -537,12 +537,31 @@ class WorkerPool:
         while not new.ready.wait(0.1):
             if not new.alive or self._stopping:
                 return  # the replacement died too: its own reader thread handles that
-        for (name, gen), (path, build_id) in maps.items():
-            try:
-                self._request(new, {"op": "load", "name": name, "gen": gen, "path": path, "build_id": build_id}).result(120)
-            except Exception as exc:  # noqa: BLE001
-                log.error("worker %d: reloading map %s failed: %s", h.index, name, exc)
-        self.workers[h.index] = new
+        # The current maps (not those at the time of death: LoadMap/UnloadMap may have run
+        # meanwhile, skipping the dead worker), until no load or drop happened during the reload.
+        loaded: set[tuple[str, int]] = set()
+        while True:
+            with self._lock:
+                maps, version = dict(self._maps), self._maps_version
+            for (name, gen), (path, build_id) in maps.items():
+                if (name, gen) in loaded:
+                    continue
+                try:
+                    self._request(new, {"op": "load", "name": name, "gen": gen, "path": path,
+                                        "build_id": build_id}).result(120)
+                    loaded.add((name, gen))
+                except Exception as exc:  # noqa: BLE001
+                    log.error("worker %d: reloading map %s failed: %s", h.index, name, exc)
+            with self._lock:
+                if self._maps_version == version:
+                    self.workers[h.index] = new
+                    stale = loaded - set(self._maps)
+                    break
+            if not new.alive or self._stopping:
+                return
+        for name, gen in stale:
+            self._send(new, {"op": "drop", "name": name, "gen": gen})
+        event(log, logging.INFO, "worker_restarted", worker=h.index, pid=new.pid, maps=len(loaded - stale))
         self.on_lost(h.index)
 
     # ------------------------------------------------------------------ requests
@@ -557,6 +576,11 @@ class WorkerPool:
             req = next(self._req)
             self._futures[req] = (h.index, fut)
         msg["req"] = req
+        if not h.alive:  # its pump is gone: nothing would ever answer
+            with self._lock:
+                self._futures.pop(req, None)
+            fut.set_exception(UnavailableError(f"worker {h.index} is restarting; retry"))
+            return fut
         self._send(h, msg, data)
         return fut
 
@@ -565,8 +589,12 @@ class WorkerPool:
         msg = {"op": "load", "name": name, "gen": gen, "path": path, "build_id": build_id}
         with self._lock:
             self._maps[(name, gen)] = (path, build_id)  # a worker restarting meanwhile loads it too
-        futures = [self._request(h, dict(msg)) for h in self.workers]
+            self._maps_version += 1
+            live = [h for h in self.workers if h.alive]  # a dead one's replacement loads it
+        futures = [self._request(h, dict(msg)) for h in live]
         try:
+            if not futures:
+                raise UnavailableError("no engine worker is running (one is restarting); retry")
             results = [f.result(timeout) for f in futures]
         except BaseException:
             self.drop_map(name, gen)
@@ -578,6 +606,7 @@ class WorkerPool:
     def drop_map(self, name: str, gen: int) -> None:
         with self._lock:
             self._maps.pop((name, gen), None)
+            self._maps_version += 1
         for h in self.workers:
             self._send(h, {"op": "drop", "name": name, "gen": gen})
 
