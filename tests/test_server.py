@@ -397,7 +397,8 @@ def _index_mapping_kb(pid: int, bundle: Path) -> tuple[int, int, int]:
     return n, rss, pss
 
 
-def test_workers_share_one_mapped_index_and_all_see_a_replacement_under_load(world, z, grpc_client, srv):
+def test_workers_share_one_mapped_index_and_all_see_a_replacement_under_load(world, z, grpc_client,
+                                                                             srv):
     """Every worker process reads a map's index in place from the bundle's file (one copy in
     the page cache, shared), and a map replaced while clients on every worker stream is seen
     by all of them: one clean switch per client, the new file mapped by every worker, the old
@@ -410,7 +411,7 @@ def test_workers_share_one_mapped_index_and_all_see_a_replacement_under_load(wor
     shutil.copytree(world.maps_dir / "room", old_dir)  # files no other map of this server maps
     shutil.copytree(world.room_rebuilt, new_dir)
     pool = srv.server.pool
-    probe = pool.load_map("probe", 10**6, str(old_dir), "")  # each worker says how it holds the index
+    probe = pool.load_map("probe", 10**6, str(old_dir), "")  # each worker: how it holds the index
     pool.drop_map("probe", 10**6)
     assert probe["index_in_place"] is True
     old = grpc_client.load_map(str(old_dir), "shared")
@@ -438,11 +439,15 @@ def test_workers_share_one_mapped_index_and_all_see_a_replacement_under_load(wor
         with PoseSubscriber(z, "shared", cid, callback=got.append) as sub, \
                 FrameStreamer(z, "shared", cid, camera(world)) as fs:
             for k in range(n):
-                seq = fs.publish(data=world.png[k], encoding="png", seq=k, stamp_ns=int((k + 1) * 1e9 / 30))
+                seq = fs.publish(data=world.png[k], encoding="png", seq=k,
+                                 stamp_ns=int((k + 1) * 1e9 / 30))
                 assert sub.wait_for(seq, 60)
                 if k == switch_at:
                     half.set()
-                    assert wait_until(lambda: grpc_client.get_map("shared").build_id != old.build_id, 120)
+                    def switched() -> bool:
+                        return grpc_client.get_map("shared").build_id != old.build_id
+
+                    assert wait_until(switched, 120)
         results[cid] = got
 
     threads = [threading.Thread(target=client, args=(c,)) for c in clients]
@@ -458,7 +463,8 @@ def test_workers_share_one_mapped_index_and_all_see_a_replacement_under_load(wor
         assert [p.seq for p in poses] == list(range(n)) and all(p.error is None for p in poses), cid
         builds = [p.build_id for p in poses]
         k = builds.index(new.build_id)
-        assert 0 < k and set(builds[:k]) == {old.build_id} and set(builds[k:]) == {new.build_id}, cid
+        assert 0 < k and set(builds[:k]) == {old.build_id}, cid
+        assert set(builds[k:]) == {new.build_id}, cid
         assert sum(p.localized for p in poses[k:]) >= len(poses[k:]) - 3, cid
     for pid in pids:
         n, rss, pss = _index_mapping_kb(pid, new_dir)

@@ -149,7 +149,7 @@ def test_relocalizations_run_on_their_own_lane_beside_a_stream(world):
         first = c.relocalize(world.png[10], "room", camera(world), encoding="png")
         assert first.localized
         busy1 = pool.busy_ms()
-        assert busy1[0] == busy0[0] and busy1[1] > busy0[1]  # the lane did it, the stream worker nothing
+        assert busy1[0] == busy0[0] and busy1[1] > busy0[1]  # the lane did it, not worker 0
 
         stop = threading.Event()
         answers: list = []
@@ -157,7 +157,8 @@ def test_relocalizations_run_on_their_own_lane_beside_a_stream(world):
         def caller() -> None:  # keeps a relocalization in flight until the stream is done
             k = 0
             while not stop.is_set():
-                answers.append(c.relocalize(world.png[k % 60], "room", camera(world), encoding="png"))
+                image = world.png[k % 60]
+                answers.append(c.relocalize(image, "room", camera(world), encoding="png"))
                 k += 7
 
         callers = [threading.Thread(target=caller) for _ in range(2)]
@@ -171,7 +172,8 @@ def test_relocalizations_run_on_their_own_lane_beside_a_stream(world):
                     FrameStreamer(z, "room", "beside", camera(world)) as fs:
                 assert fs.wait_for_server(30)
                 for k in range(20):
-                    seq = fs.publish(data=world.png[k], encoding="png", seq=k, stamp_ns=int(k * 1e9 / 30))
+                    seq = fs.publish(data=world.png[k], encoding="png", seq=k,
+                                     stamp_ns=int(k * 1e9 / 30))
                     assert sub.wait_for(seq, 60)
                     during.append(pool.workers[1].inflight)
         finally:

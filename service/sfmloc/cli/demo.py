@@ -36,7 +36,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--workers", type=int, default=0, help="server workers (default: one per core)")
     p.add_argument("--seed", type=int, default=0, help="scene seed (default 0)")
     p.add_argument("--reuse", action="store_true",
-                   help="with --out: reuse the scene and map a previous run left there (repeated runs)")
+                   help="with --out: reuse the scene and map a previous run left there "
+                        "(repeated runs)")
     p.set_defaults(func=run)
 
 
@@ -51,9 +52,11 @@ def demo_bar(processed: int, position_errors_cm: "np.ndarray", last_answered: bo
     return [
         (">= 80% of the frames processed localized", processed > 0 and n_loc >= 0.8 * processed,
          f"{n_loc}/{processed}"),
-        ("median position error < 5 cm", n_loc > 0 and med < 5.0, f"{med:.2f} cm" if n_loc else "none localized"),
+        ("median position error < 5 cm", n_loc > 0 and med < 5.0,
+         f"{med:.2f} cm" if n_loc else "none localized"),
         ("the last frame answered", last_answered, "yes" if last_answered else "no"),
-        ("single images within 10 cm: all but one", reloc_ok >= reloc_n - 1, f"{reloc_ok}/{reloc_n}"),
+        ("single images within 10 cm: all but one", reloc_ok >= reloc_n - 1,
+         f"{reloc_ok}/{reloc_n}"),
         ("server exit code 0 after SIGTERM", exit_code == 0, str(exit_code)),
     ]
 
@@ -93,19 +96,21 @@ def run(args: argparse.Namespace) -> int:
     if not args.verbose:
         logging.getLogger("sfmloc").setLevel(logging.WARNING)
     try:
-        reuse = args.reuse and args.out and (root / "maps" / "demo-room" / "manifest.json").is_file() \
-            and (root / "synth" / "video_poses.txt").is_file()
+        reuse = bool(args.reuse and args.out
+                     and (root / "maps" / "demo-room" / "manifest.json").is_file()
+                     and (root / "synth" / "video_poses.txt").is_file())
         if reuse:
             step(f"reusing the scene and map in {root}")
         else:
-            step(f"rendering a synthetic room: {args.mapping_views} mapping views, {args.frames} video frames ({root})")
+            step(f"rendering a synthetic room: {args.mapping_views} mapping views, {args.frames} "
+                 f"video frames ({root})")
             conf = preset("default", seed=args.seed, mapping_views=args.mapping_views,
                           trajectory={"n_frames": args.frames})
             data = synth_run(conf, root / "synth", overwrite=True)
             step(f"  {data.n_points3D} exact 3D points, {data.n_observations} observations")
             step("building the map bundle from the synthetic COLMAP model")
-            bundle = build_map(BuildConf(), "demo-room", root / "maps", colmap=root / "synth" / "sparse",
-                               images=root / "synth" / "images")
+            bundle = build_map(BuildConf(), "demo-room", root / "maps",
+                               colmap=root / "synth" / "sparse", images=root / "synth" / "images")
             step(f"  {bundle}")
         cam_json = root / "synth" / "camera.json"
         import json
@@ -186,10 +191,12 @@ def run(args: argparse.Namespace) -> int:
         print(f"  {'frames sent':<34}{stats.sent}")
         print(f"  {'poses received':<34}{len(got)}  ({', '.join(f'{k} {v}' for k, v in sorted(statuses.items()))}; "
               f"{errored} errors)")
-        print(f"  {'dropped as stale':<34}{stale} = {100 * stale / max(1, stats.sent):.1f}% of frames sent "
-              "(the server keeps the newest frame when it cannot keep up; not a failure)")
-        print(f"  {'localized':<34}{len(loc)} = {100 * len(loc) / max(1, len(processed)):.1f}% of the "
-              f"{len(processed)} frames processed ({100 * len(loc) / n:.1f}% of frames sent)")
+        stale_pct = 100 * stale / max(1, stats.sent)
+        print(f"  {'dropped as stale':<34}{stale} = {stale_pct:.1f}% of frames "
+              "sent (the server keeps the newest frame when it cannot keep up; not a failure)")
+        share = 100 * len(loc) / max(1, len(processed))
+        print(f"  {'localized':<34}{len(loc)} = {share:.1f}% of the {len(processed)} frames "
+              f"processed ({100 * len(loc) / n:.1f}% of frames sent)")
         if len(loc):
             print(f"  {'position error (cm)':<34}median {np.median(dpos):.2f}  p90 {np.percentile(dpos, 90):.2f}  max {dpos.max():.2f}")
             print(f"  {'rotation error (deg)':<34}median {np.median(drot):.2f}  p90 {np.percentile(drot, 90):.2f}  max {drot.max():.2f}")
@@ -207,7 +214,8 @@ def run(args: argparse.Namespace) -> int:
                 print(f"    frame {k:4d}: {r.status:<11} {r.message}  {ms:6.1f} ms")
         print(f"  server exit code after SIGTERM: {exit_code}")
         print(f"  total {time.perf_counter() - t_all:.1f} s")
-        checks = demo_bar(len(processed), dpos, stats.last_seq in poses, ok_reloc, len(reloc), exit_code)
+        checks = demo_bar(len(processed), dpos, stats.last_seq in poses, ok_reloc, len(reloc),
+                          exit_code)
         print("  bar:")
         for what, ok, got_s in checks:
             print(f"    {'ok  ' if ok else 'FAIL'} {what:<44}{got_s}")

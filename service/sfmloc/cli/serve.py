@@ -53,8 +53,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--workers", type=int, metavar="N", help="engine worker processes (default: one per core)")
     p.add_argument("--worker-kind", choices=["process", "thread"], help=argparse.SUPPRESS)
     p.add_argument("--relocalize-workers", type=int, metavar="N",
-                   help="extra worker processes only for single-image Relocalize, at a lower CPU priority, so "
-                        "that it never delays streams' frames (default 1; 0: on the stream workers)")
+                   help="extra worker processes only for single-image Relocalize, at a lower CPU "
+                        "priority, so that it never delays streams' frames (default 1; 0: on the "
+                        "stream workers)")
     p.add_argument("--idle-timeout", type=float, metavar="S", help="end a Zenoh session after S seconds without frames (default 30)")
     p.add_argument("--max-pending", type=int, metavar="N",
                    help="frames of a client that may wait while one is processed (default 1: latest frame only)")

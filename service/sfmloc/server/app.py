@@ -154,7 +154,8 @@ class Server:
             sessions=len(self.sessions), workers=self.pool.n,
             load={
                 "frames_per_s": max(0.0, (frames - frames_prev) / dt),
-                "busy": min(1.0, sum(b - p for b, p in zip(busy[: self.pool.n], busy_prev)) / 1e3 / dt / max(1, self.pool.n)),
+                "busy": min(1.0, sum(b - p for b, p in zip(busy[: self.pool.n], busy_prev))
+                            / 1e3 / dt / max(1, self.pool.n)),
                 "inflight": float(sum(self.pool.inflight())),
             },
             ready=self.ready,
@@ -179,8 +180,8 @@ class Server:
             self.metrics_server.start()
         t0 = time.perf_counter()
         await loop.run_in_executor(self.executor, self.pool.start)
-        event(log, logging.INFO, "workers_started", workers=self.pool.n, relocalize_workers=self.pool.reloc_workers,
-              kind=c.worker_kind,
+        event(log, logging.INFO, "workers_started", workers=self.pool.n,
+              relocalize_workers=self.pool.reloc_workers, kind=c.worker_kind,
               ms=round((time.perf_counter() - t0) * 1e3))
         if c.zenoh.enabled:
             from .zenoh_io import ZenohFrontend

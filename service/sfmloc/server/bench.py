@@ -238,7 +238,8 @@ def _relocalize_load(grpc_addr: str, inp: BenchInput, spec: Any, rate: float, st
                 break
             t0 = time.perf_counter()
             try:
-                c.relocalize(inp.jpeg[(k * 37) % len(inp.jpeg)], inp.map_name, spec, encoding="jpeg")
+                image = inp.jpeg[(k * 37) % len(inp.jpeg)]
+                c.relocalize(image, inp.map_name, spec, encoding="jpeg")
                 lat.append((time.perf_counter() - t0) * 1e3)
             except Exception:  # noqa: BLE001 - counted
                 out["errors"] = out.get("errors", 0) + 1
@@ -387,17 +388,21 @@ def bench_memory(inp: BenchInput, workers_list: tuple[int, ...] = (1, 2, 4), fra
         with ServerProcess(inp.maps, workers=w, env=env) as srv, _zenoh(srv.endpoint) as z:
             for i in range(w):  # sessions go to the least busy worker: one each
                 cid = f"bench-memory-{i}"
-                with PoseSubscriber(z, inp.map_name, cid) as poses, FrameStreamer(z, inp.map_name, cid, spec) as fs:
+                with PoseSubscriber(z, inp.map_name, cid) as poses, \
+                        FrameStreamer(z, inp.map_name, cid, spec) as fs:
                     fs.wait_for_server(30)
                     for k in range(frames):
-                        fs.publish(data=inp.jpeg[(i * 97 + k) % len(inp.jpeg)], encoding="jpeg", seq=k)
+                        data = inp.jpeg[(i * 97 + k) % len(inp.jpeg)]
+                        fs.publish(data=data, encoding="jpeg", seq=k)
                         poses.wait_for(k, 30)
-            procs = {"server": srv.proc.pid, **{f"worker{j}": p for j, p in enumerate(_child_pids(srv.proc.pid))}}
+            workers = _child_pids(srv.proc.pid)
+            procs = {"server": srv.proc.pid, **{f"worker{j}": p for j, p in enumerate(workers)}}
             rows = {}
             for name, pid in procs.items():
                 r = _smaps_rollup(pid)
                 rows[name] = {"rss_kb": r.get("Rss", 0), "pss_kb": r.get("Pss", 0),
-                              "anon_kb": r.get("Anonymous", 0), "index_file_kb": _mapped_kb(pid, "index_faiss")}
+                              "anon_kb": r.get("Anonymous", 0),
+                              "index_file_kb": _mapped_kb(pid, "index_faiss")}
             total = {k: sum(r[k] for r in rows.values()) for k in ("rss_kb", "pss_kb", "anon_kb")}
             out["runs"].append({"workers": w, "processes": rows, "total": total})
     return out
@@ -496,7 +501,8 @@ def run(args: Any) -> int:
         raise InputError(f"no map bundle {maps / args.map} (--maps DIR --map NAME; build one with `sfmloc build`)")
     Camera.parse(args.camera)
     inp = BenchInput(maps, args.map, frames, args.camera)
-    only = set(args.only.split(",")) if args.only else {"wire", "overhead", "engine", "clients", "workers", "memory"}
+    every = {"wire", "overhead", "engine", "clients", "workers", "memory"}
+    only = set(args.only.split(",")) if args.only else every
     inp.load(max(args.n, int(args.rate * args.duration) + 10) if only & {"clients", "workers"} else args.n)
     report: dict[str, Any] = {"load_average": os.getloadavg(), "cpus": os.cpu_count()}
     print(f"sfmloc bench-transport: {len(inp.jpeg)} frames of {frames_dir}, map {maps / args.map}, "
@@ -532,12 +538,16 @@ def run(args: Any) -> int:
                          f"{e[f'{kind}_fps']:.1f} frames/s ({e[f'{kind}_speedup']:.2f}x), {e[f'{kind}_ms_p50']:.1f} ms p50 per frame"))
         rows.append(("all runs (frames/s)", "; ".join(f"{k} " + ", ".join(f"{v:.0f}" for v in vs) for k, vs in e["runs_fps"].items())))
         _print_table(f"engine scaling: Localizers flat out, {e['frames_each']} frames each, best of {e['repeat']} (no transport)", rows)
-    lanes: list[int | None] = [int(v) for v in args.relocalize_workers.split(",")] if args.relocalize_workers else [None]
-    runs = [(section, kind, lane) for section, kind in (("clients", "process"), ("workers", "thread"))
-            if section in only for lane in lanes]
+    lanes: list[int | None] = [None]
+    if args.relocalize_workers:
+        lanes = [int(v) for v in args.relocalize_workers.split(",")]
+    sections = (("clients", "process"), ("workers", "thread"))
+    runs = [(section, kind, lane) for section, kind in sections if section in only
+            for lane in lanes]
     for section, kind, lane in runs:
-        c = bench_clients(inp, args.clients, args.rate, args.duration, args.workers or (os.cpu_count() or 1),
-                          kind, args.encoding, args.max_pending, args.relocalize_rate, lane)
+        c = bench_clients(inp, args.clients, args.rate, args.duration,
+                          args.workers or (os.cpu_count() or 1), kind, args.encoding,
+                          args.max_pending, args.relocalize_rate, lane)
         report[section if len(lanes) == 1 else f"{section}-relocalize-workers-{lane}"] = c
         rows = []
         for r in c["clients"]:
@@ -553,9 +563,11 @@ def run(args: Any) -> int:
                                     f"clients (this process) {cu['clients']:.2f}"))
         rl = c["relocalize"]
         if args.relocalize_rate > 0:
-            rows.append(("Relocalize beside them", f"{rl.get('calls', 0)} calls at {args.relocalize_rate:g} Hz, "
-                                                   f"p50 {rl.get('ms_p50', float('nan')):.0f} ms p99 "
-                                                   f"{rl.get('ms_p99', float('nan')):.0f} ms, errors {rl.get('errors', 0)}"))
+            nan = float("nan")
+            rows.append(("Relocalize beside them",
+                         f"{rl.get('calls', 0)} calls at {args.relocalize_rate:g} Hz, p50 "
+                         f"{rl.get('ms_p50', nan):.0f} ms p99 {rl.get('ms_p99', nan):.0f} ms, "
+                         f"errors {rl.get('errors', 0)}"))
         lane_s = "" if lane is None else f", relocalize workers {lane}"
         _print_table(f"{args.clients} clients x {args.rate:g} Hz x {args.duration:g} s, {args.encoding} frames, "
                      f"{c['workers']} {kind} workers{lane_s}, max pending {args.max_pending}", rows)
@@ -565,13 +577,14 @@ def run(args: Any) -> int:
         for r in m["runs"]:
             t = r["total"]
             wk = [v for k, v in r["processes"].items() if k.startswith("worker")]
+            pss = ", ".join(f"{v['pss_kb'] / 1024:.0f}" for v in wk)
+            index = ", ".join(f"{v['index_file_kb'] / 1024:.1f}" for v in wk)
             rows.append((f"{r['workers']} worker(s)",
-                         f"total RSS {t['rss_kb'] / 1024:.0f} MB, PSS {t['pss_kb'] / 1024:.0f} MB, anonymous "
-                         f"{t['anon_kb'] / 1024:.0f} MB; per worker PSS "
-                         + ", ".join(f"{v['pss_kb'] / 1024:.0f}" for v in wk) + " MB, index file resident "
-                         + ", ".join(f"{v['index_file_kb'] / 1024:.1f}" for v in wk) + " MB"))
-        _print_table(f"memory: server + workers, map loaded, one session per worker ({m['frames_per_session']} "
-                     "frames each)", rows)
+                         f"total RSS {t['rss_kb'] / 1024:.0f} MB, PSS {t['pss_kb'] / 1024:.0f} MB, "
+                         f"anonymous {t['anon_kb'] / 1024:.0f} MB; per worker PSS {pss} MB, "
+                         f"index file resident {index} MB"))
+        _print_table("memory: server + workers, map loaded, one session per worker "
+                     f"({m['frames_per_session']} frames each)", rows)
     if args.json:
         Path(args.json).write_text(json.dumps(report, indent=2, default=float))
         print(f"\nwrote {args.json}")

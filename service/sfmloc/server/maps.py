@@ -2,7 +2,8 @@
 
 A map is identified by name; each load gets a new *generation*. Loading is: verify the bundle
 once here (manifest, checksums, shapes), load it on every worker (memory-mapped arrays, the
-faiss index read in place from its mapped file, lookups precomputed), then swap the registry entry in one step.
+faiss index read in place from its mapped file, lookups precomputed), then swap the registry
+entry in one step.
 Until the swap, frames keep going to the previous generation; after it, the next frame of each
 session goes to the new one and its worker starts a fresh ``Localizer`` there (a frame in
 flight on the old map finishes on it). The old generation is then dropped from the workers.

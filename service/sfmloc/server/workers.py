@@ -1,9 +1,10 @@
 """The worker pool: where frames are localized.
 
 Each worker (a process by default) holds every loaded map (memory-mapped arrays; the faiss
-index read in place from the bundle's mapped file, so all workers share one copy) and the ``Localizer`` of each session assigned to it, and processes one
-message at a time, so a frame runs start to end on one core and its latency does not depend on
-what other threads do. Sessions stick to their worker (their track table and filter live there).
+index read in place from the bundle's mapped file, so all workers share one copy) and the
+``Localizer`` of each session assigned to it, and processes one message at a time, so a frame
+runs start to end on one core and its latency does not depend on what other threads do.
+Sessions stick to their worker (their track table and filter live there).
 
 Why processes: the engine is numpy/OpenCV with many small Python-level steps, and the GIL
 serializes those across threads; measured with ``sfmloc bench-transport --only engine,workers``
@@ -60,8 +61,8 @@ def _unpack(raw: bytes) -> Any:
 
 
 # ============================================================================ worker side
-def worker_main(conn: Any, index: int, engine_conf_json: str, log_level: int, log_format: str, is_process: bool,
-                nice: int = 0) -> None:
+def worker_main(conn: Any, index: int, engine_conf_json: str, log_level: int, log_format: str,
+                is_process: bool, nice: int = 0) -> None:
     """Entry point of a worker (a process, or a thread for measurements). ``nice`` > 0 lowers
     the process's CPU priority (the relocalization lane: streams' frames win the CPU)."""
     if is_process and nice > 0:
