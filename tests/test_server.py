@@ -726,3 +726,32 @@ def test_load_map_while_a_worker_restarts(world, z, srv, grpc_client):
         assert all(p.error is None for p in poses) and poses[-1].localized, cid
     assert {s.worker for s in srv.server.sessions.list("window")} >= {0}
     grpc_client.unload_map("window")
+
+
+def test_a_stream_reports_an_outage_and_resumes_by_itself(world, z, srv):
+    """The server stops answering for a while (its frame intake withdrawn from frame 15 to
+    40): the streamer counts the outage (frames without an answer), keeps sending, and gets
+    poses again afterwards without being restarted."""
+    cam = camera(world)
+    got: list = []
+    fe = srv.server.zenoh
+
+    def on_sent(seq, _fr, _t):
+        if seq == 15:
+            fe.stop_intake()
+        elif seq == 40:
+            fe.start_intake()
+
+    try:
+        with PoseSubscriber(z, "room", "outage", callback=got.append) as poses, \
+                FrameStreamer(z, "room", "outage", cam) as fs:
+            assert fs.wait_for_server(30)
+            src = [SourceFrame(data=d, encoding="png", stamp_ns=int(k * 1e9 / 30)) for k, d in enumerate(world.png[:70])]
+            stats = fs.run(src, fps=15, poses=poses, on_sent=on_sent)
+            # answers come back (the server keeps the newest frame of a busy session)
+            assert wait_until(lambda: any(p.seq is not None and p.seq >= 45 for p in got), 60)
+    finally:
+        if fe._frame_sub is None:
+            fe.start_intake()
+    assert stats.outages >= 1 and stats.max_unanswered >= 20  # frames 16-39 had no answer
+    assert not {p.seq for p in got} & set(range(20, 38))  # nothing was answered in the outage

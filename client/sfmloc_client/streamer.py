@@ -25,6 +25,16 @@ from .wire import CameraSpec, Frame, encode_frame, frame_key
 log = logging.getLogger(__name__)
 
 
+# Frames in a row without an answer that make an outage (the server stopped, the network
+# dropped): reported, while the stream goes on and resumes when answers come back.
+OUTAGE_FRAMES = 5
+
+
+def unanswered(last_sent_seq: int, poses: "PoseSubscriber | None") -> int:
+    """Frames sent after the newest one the server answered (an outage when it grows)."""
+    return 0 if poses is None else max(0, last_sent_seq - max(poses.max_seq, -1))
+
+
 @dataclass
 class StreamStats:
     sent: int = 0
@@ -32,6 +42,10 @@ class StreamStats:
     started: float = 0.0
     ended: float = 0.0
     send_ms: list[float] = field(default_factory=list)  # client-side encode + publish time
+    # With ``poses``: the most frames ever sent after the newest answered one, and how many
+    # times that reached ``OUTAGE_FRAMES`` (each outage counted once, however long).
+    max_unanswered: int = 0
+    outages: int = 0
 
     @property
     def duration_s(self) -> float:
@@ -155,6 +169,7 @@ class FrameStreamer:
         stats = StreamStats(started=time.monotonic())
         period = 1.0 / fps if fps else 0.0
         t_next = time.monotonic()
+        in_outage = False
         for k, fr in enumerate(frames):
             if (max_frames is not None and k >= max_frames) or (should_stop and should_stop()):
                 break
@@ -171,6 +186,12 @@ class FrameStreamer:
             stats.send_ms.append((time.perf_counter() - t0) * 1e3)
             stats.sent += 1
             stats.last_seq = seq
+            gap = unanswered(seq - 1, poses)  # the frame just sent cannot be answered yet
+            stats.max_unanswered = max(stats.max_unanswered, gap)
+            if gap >= OUTAGE_FRAMES and not in_outage:
+                stats.outages += 1
+                log.warning("no answer for %d frames (since frame %d)", gap, seq - gap)
+            in_outage = gap >= OUTAGE_FRAMES
             if on_sent is not None:
                 on_sent(seq, fr, self.last_put_time)
             if lockstep:

@@ -60,6 +60,7 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
     import zenoh
     from sfmloc_client import FrameStreamer, PoseMessage, PoseSubscriber, TumWriter, open_source
+    from sfmloc_client.streamer import OUTAGE_FRAMES
 
     cam = camera_spec(args.camera)
     client_id = args.client_id or default_client_id()
@@ -70,7 +71,8 @@ def run(args: argparse.Namespace) -> int:
     statuses: dict[str, int] = {}
     lock = threading.Lock()
     writer = TumWriter(args.out, filtered=args.filtered) if args.out else None
-    state = {"last": None, "errors": 0, "dropped": 0, "t_status": 0.0, "sent": 0, "t0": time.monotonic()}
+    state = {"last": None, "errors": 0, "dropped": 0, "t_status": 0.0, "sent": 0, "t0": time.monotonic(),
+             "poses": None}
 
     def status_line(final: bool = False) -> None:
         with lock:
@@ -83,6 +85,9 @@ def run(args: argparse.Namespace) -> int:
                 f"last {last.status if last else '-'}")
         if last is not None and last.error is not None:
             line += f" [{last.error.code}: {last.error.message}]"
+        gap = state["sent"] - 1 - (state["poses"].max_seq if state["poses"] is not None else -1)
+        if gap >= OUTAGE_FRAMES:  # "last TRACKING" would hide that nothing comes back
+            line += f"  NO ANSWER for {gap} frames"
         if tty and not final:
             sys.stderr.write("\r" + line[:160].ljust(160))
         else:
@@ -110,6 +115,10 @@ def run(args: argparse.Namespace) -> int:
         with lock:
             sent_at[seq] = t_put
             state["sent"] += 1
+        now = time.monotonic()
+        if now - state["t_status"] > 0.5:  # also while no pose comes back
+            state["t_status"] = now
+            status_line()
 
     with zenoh.open(zenoh_config(args)) as z:
         with PoseSubscriber(z, args.map, client_id, callback=on_pose) as poses, \
@@ -119,6 +128,7 @@ def run(args: argparse.Namespace) -> int:
                                  "(is one running, reachable with --zenoh-connect, hosting this map?)\n")
                 return 1
             state["t0"] = time.monotonic()
+            state["poses"] = poses  # the status line reads the newest answered frame from it
             source = open_source(args.source, pattern=args.pattern,
                                  passthrough=args.encoding if args.encoding in ("jpeg", "png") else None)
             stats = fs.run(source, fps=args.fps, lockstep=args.fps is None, poses=poses,
@@ -135,6 +145,8 @@ def run(args: argparse.Namespace) -> int:
                     f"p50 {np.median(server_ms):.1f} ms p99 {np.percentile(server_ms, 99):.1f} ms")
     if rtt:
         summary += f"; round trip p50 {np.median(rtt):.1f} ms"
+    if stats.outages:
+        summary += f"; {stats.outages} outage(s), longest {stats.max_unanswered} frames without an answer"
     summary += ")" + (f"; {writer.count} poses written to {args.out}" if writer else "")
     print(summary)
     return 0 if received > 0 else 1
