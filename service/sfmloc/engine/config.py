@@ -129,14 +129,14 @@ class EngineConf(StrictModel):
     # "paper": constant velocity and constant angular velocity filtered apart (Section 3.3).
     # Measured with python -m sfmloc.eval.motion (synthetic room; median one-step prediction
     # error of the tracked map points): an orbit at 3 Hz 3.9 px (paper) -> 0.2 px (se3), tracked
-    # frames 87% -> 93%; at 30 Hz walk 2.3 -> 0.9 px, flight 1.1 -> 0.5 px, redkitchen 2.3 -> 2.5
+    # frames 87% -> 93%; at 30 Hz walk 2.3 -> 0.9 px, flight 1.0 -> 0.5 px, redkitchen 2.2 -> 2.5
     # px, the same localized fraction and errors.
     motion_model: Literal["se3", "paper"] = "se3"
     # A relocalized frame restarts the filter with the motion since the last posed frame (within
     # max_frame_gap_s) instead of none: at low frame rates a motionless prediction misses the
     # tracking window, tracking fails, the frame relocalizes and the cycle repeats. At 3 Hz
-    # (synthetic room, 30 frames) tracked frames go 30% -> 93% (orbit), 10% -> 63% (walk), 33%
-    # -> 47% (flight); global matching 21 -> 2, 27 -> 11, 20 -> 16 frames.
+    # (synthetic room, 30 frames; both switches off -> on) tracked frames 37% -> 83% (orbit),
+    # 20% -> 47% (walk), 33% -> 47% (flight); wrong poses 11 -> 1, 4 -> 1, 2 -> 0.
     relocalize_keeps_motion: bool = True
     # Noises with distances in scene scales as above (the former 4 m/s^2 and 0.02 m on redkitchen)
     accel_noise_scales_per_s2: float = 2.0  # white-noise acceleration
