@@ -163,7 +163,12 @@ def refine(
 
 
 def robust_refine(
-    cam_from_world: Rigid3d, K: np.ndarray, xy: np.ndarray, X: np.ndarray, scale: float, iterations: int = 3
+    cam_from_world: Rigid3d,
+    K: np.ndarray,
+    xy: np.ndarray,
+    X: np.ndarray,
+    scale: float,
+    iterations: int = 3,
 ) -> Rigid3d:
     """Gauss-Newton on the reprojection error with a Cauchy loss of ``scale`` pixels
     (iteratively reweighted): a match ``scale`` off counts half, one 3 ``scale`` off a tenth.

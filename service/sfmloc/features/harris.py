@@ -32,7 +32,12 @@ from ..cameras import PIXEL_CENTER_OFFSET
 # end (map built with the same method), synthetic walk median error 0.52 -> 0.44 cm, mean
 # 0.94 -> 0.61 cm; flight unchanged (0.36 -> 0.37 cm); but redkitchen (400 frames) 0.77 ->
 # 1.00 cm, with larger residuals at the ground-truth pose (median 1.37 -> 1.83 px): on real,
-# blurred corners the 5x5 step is noisier than the bias it removes. Quadratic stays the default.
+# blurred corners the 5x5 step is noisier than the bias it removes, and the map keeps 22% fewer
+# descriptors (corners move away from the SfM points' projections, tau = 2 px). With the Cauchy
+# final refinement (engine/pose.py): walk 0.41 -> 0.27 cm, flight 0.26 -> 0.29 cm, redkitchen
+# 0.62 -> 1.17 cm; a step limited to 1 px with the quadratic fit as fallback: redkitchen still
+# 0.52 -> 0.65 cm. Quadratic stays the default; a map built with the builder setting
+# {"descriptors": {"subpixel": "forstner"}} is tracked with Forstner corners (EngineConf.subpixel).
 SUBPIXEL_METHODS = ("forstner", "quadratic", "none")
 SUBPIXEL_DEFAULT = "quadratic"
 # One step in a uniform 5x5 window (the support of the Harris window, sigma = 1). Measured on
@@ -61,7 +66,10 @@ def _gradients(gray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def harris_response(
-    gray: np.ndarray, sigma: float = 1.0, k: float = 0.04, gradients: tuple[np.ndarray, np.ndarray] | None = None
+    gray: np.ndarray,
+    sigma: float = 1.0,
+    k: float = 0.04,
+    gradients: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """Harris cornerness ``det(M) - k trace(M)^2`` (float32), M from Sobel gradients
     integrated with a Gaussian of ``sigma`` pixels. Gradients are scaled to unit pixel steps
