@@ -45,8 +45,9 @@ class EngineConf(StrictModel):
     global_min_inlier_ratio: float = 0.05
     # A relocalization is re-matched by guided matching around its RANSAC pose (scope: the map
     # points the pose makes visible; the recovery's two passes and ``recover_min_inliers``);
-    # when that succeeds its pose replaces the RANSAC pose whatever the inlier ratio, otherwise
-    # the ratio floor above decides. Off: the paper's single RANSAC. Measured with
+    # when that succeeds the pose is accepted whatever the inlier ratio (of the two, the one
+    # with more inliers: fewer widen the covariance, redkitchen frame 436 was withheld),
+    # otherwise the ratio floor above decides. Off: the paper's single RANSAC. Measured with
     # ``python -m sfmloc.bench.sparse_maps`` (40 non-map frames per map, wrong = error over 5%
     # of scene_scale or 10 deg): redkitchen every 60th frame 27/40 localized, 2 wrong -> 28/40,
     # 0 wrong; every 30th 35/40, 1 wrong -> 35/40, 0 wrong; synthetic at 6x view spacing 24/40,

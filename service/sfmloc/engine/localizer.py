@@ -449,8 +449,11 @@ def _pose_from_global(
         ver = _match_near_prior(desc, xy_u, bundle, K, conf, est.cam_from_world)
         if ver is not None:
             vest, point = ver
-            q = np.nonzero(point >= 0)[0]
-            return vest, q, point[q], hyp
+            if vest.num_inliers >= est.num_inliers:
+                q = np.nonzero(point >= 0)[0]
+                return vest, q, point[q], hyp
+            # Confirmed, and the RANSAC pose has the more inliers (the narrower covariance).
+            return est, gm.set2_q[chosen], gm.set2_p[chosen], hyp
     # Among hundreds of candidate matches, ten that agree can be chance: demand a fraction too.
     if est.num_inliers < conf.global_min_inlier_ratio * len(gm.set1_q):
         return None
