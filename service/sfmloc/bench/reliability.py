@@ -1,0 +1,804 @@
+"""The ``reliability`` measurement (issues 12 and 16): bad input, dying workers, edited bundles.
+
+    python -m sfmloc.bench.reliability [--fuzz N] [--kills K] [--clients M] [--json OUT]
+
+Three parts, each bounded in count and time, against a real ``sfmloc serve`` subprocess on
+loopback (Zenoh peer mode, no multicast) holding a small synthetic map with exact ground truth
+(rendered with ``sfmloc.synth``, built once under ``--work``):
+
+``fuzz``     N inputs: Zenoh frame envelopes (random bytes, mutated valid msgpack envelopes,
+             bombs: huge claimed sizes, deep nesting, a PNG claiming 60000x60000 pixels) and
+             gRPC requests (random bytes on every raw method, mutated valid protobuf requests),
+             while a canary client streams valid frames in lockstep. Counts crashes (server
+             process gone), hangs (a call over its deadline), gRPC codes returned, canary frames
+             answered and wrong canary poses (eval.metrics' rule, exact ground truth).
+``kill``     kill -9 of a streaming worker K times under M clients streaming at R Hz: frames
+             answered (pose or error) and dropped (counted by the server as stale), longest
+             gap without an answer per client, time until every client has a pose again, zombies
+             among the server's children 1 s after each kill, restarts (new worker pids).
+``bundle``   one-byte flips (byte XOR 0xFF) of every file of a bundle (all positions of small
+             files, a sample of larger ones): each must be refused by ``verify_bundle`` (what
+             ``sfmloc map verify`` runs) and by ``MapBundle`` loading; a few by the CLI itself.
+
+Nothing here asserts the targets: the table shows measured values beside them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import random
+import shutil
+import signal
+import struct
+import subprocess
+import sys
+import threading
+import time
+import zlib
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+MAP = "room"
+WIDTH, HEIGHT = 640, 480
+LOC = "/sfmloc.v1.Localization/"
+GRPC_METHODS = ("Relocalize", "ListMaps", "GetMap", "LoadMap", "UnloadMap", "ListSessions",
+                "ResetSession")
+
+
+def _log(msg: str) -> None:
+    print(f"[reliability {time.strftime('%H:%M:%S')}] {msg}", file=sys.stderr, flush=True)
+
+
+# ============================================================================ the world
+@dataclass
+class World:
+    maps_dir: Path  # holds MAP
+    camera: str  # "PINHOLE w h fx fy cx cy"
+    gray: list[np.ndarray]
+    gt_cam_from_world: list[np.ndarray]  # 4x4 per frame
+    scene_scale: float
+
+    @property
+    def bundle(self) -> Path:
+        return self.maps_dir / MAP
+
+
+def prepare(work: Path, n_frames: int = 60, mapping_views: int = 40) -> World:
+    """Render the small synthetic room and build its bundle under ``work`` (reused if there)."""
+    import cv2
+
+    from ..cameras import Camera
+    from ..io.poses import read_poses
+    from ..mapping.bundle import MapBundle
+
+    work = Path(work)
+    synth, maps_dir = work / "synth", work / "maps"
+    if not (maps_dir / MAP / "manifest.json").exists():
+        from ..io.colmap import read_model
+        from ..mapping.build import BuildConf, assemble
+        from ..mapping.bundle import write_bundle
+        from ..synth import preset
+        from ..synth.main import run
+
+        _log(f"rendering the synthetic room and building its map under {work}")
+        conf = preset("small", width=WIDTH, height=HEIGHT, mapping_views=mapping_views,
+                      trajectory={"n_frames": n_frames})
+        run(conf, synth, overwrite=True)
+        data, timings, info = assemble(read_model(synth / "sparse"), synth / "images", BuildConf())
+        shutil.rmtree(maps_dir / MAP, ignore_errors=True)
+        write_bundle(data, maps_dir, MAP, timings_s=timings, index_info=info)
+    cam = Camera.from_json(synth / "camera.json")
+    frames = sorted((synth / "video").glob("frame-*.png"))
+    gt = read_poses(synth / "video_poses.txt").by_stem()
+    return World(
+        maps_dir=maps_dir,
+        camera=f"PINHOLE {cam.width} {cam.height} " + " ".join(repr(float(p)) for p in cam.params),
+        gray=[cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) for f in frames],
+        gt_cam_from_world=[np.asarray(gt[f.stem].matrix()) for f in frames],
+        scene_scale=MapBundle(maps_dir / MAP, verify=False).scene_scale,
+    )
+
+
+def pose_error(world: World, seq_frame: int, pose: Any) -> tuple[float, float]:
+    """Position error in scene scales and rotation error (deg) of a localized pose."""
+    est = np.asarray(pose.cam_from_world.matrix())
+    gt = world.gt_cam_from_world[seq_frame]
+    c_est = -est[:3, :3].T @ est[:3, 3]
+    c_gt = -gt[:3, :3].T @ gt[:3, 3]
+    r = est[:3, :3] @ gt[:3, :3].T
+    ang = np.degrees(np.arccos(np.clip((np.trace(r) - 1) / 2, -1.0, 1.0)))
+    return float(np.linalg.norm(c_est - c_gt) / world.scene_scale), float(ang)
+
+
+def pose_is_wrong(rel_position: float, rotation_deg: float) -> bool:
+    """eval.metrics' rule: a pose (status not LOST) off by > 5% of scene scale or > 10 deg."""
+    from ..eval.metrics import WRONG_POSITION_FRACTION, WRONG_ROTATION_DEG
+
+    return rel_position > WRONG_POSITION_FRACTION or rotation_deg > WRONG_ROTATION_DEG
+
+
+def pingpong(n: int, k: int) -> int:
+    """Frame index of the k-th frame sent: 0..n-1, n-2..1, 0.. (no jump at the video's end)."""
+    period = 2 * (n - 1)
+    m = k % period
+    return m if m < n else period - m
+
+
+# ============================================================================ the server
+class Server:
+    """``sfmloc serve`` subprocess (app.ServerProcess) plus what we watch of it."""
+
+    def __init__(self, world: World, workers: int, extra: tuple[str, ...] = ()) -> None:
+        from ..server.app import ServerProcess
+
+        self.sp = ServerProcess(world.maps_dir, workers=workers, extra_args=extra)
+
+    def __enter__(self) -> "Server":
+        self.sp.__enter__()
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.sp.stop(30)
+
+    @property
+    def pid(self) -> int:
+        return self.sp.proc.pid
+
+    def alive(self) -> bool:
+        return self.sp.proc.poll() is None
+
+    def children(self) -> list[dict]:
+        """The server's child processes: pid, state, nice, whether a worker."""
+        out = []
+        for d in Path("/proc").iterdir():
+            if not d.name.isdigit():
+                continue
+            try:
+                stat = (d / "stat").read_text()
+                rest = stat[stat.rindex(")") + 2:].split()
+                if int(rest[1]) != self.pid:
+                    continue
+                cmd = (d / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+            except (OSError, ValueError):
+                continue
+            out.append({"pid": int(d.name), "state": rest[0], "nice": int(rest[16]),
+                        "worker": "sfmloc.server.workers" in cmd or "sfmloc-worker" in cmd
+                        or rest[0] == "Z"})
+        return out
+
+    def stream_workers(self) -> list[int]:
+        """Live workers at the server's own priority (the relocalization lane runs at nice +5)."""
+        ch = [c for c in self.children() if c["worker"] and c["state"] != "Z"]
+        if not ch:
+            return []
+        base = min(c["nice"] for c in ch)
+        return sorted(c["pid"] for c in ch if c["nice"] == base)
+
+    def zombies(self) -> int:
+        return sum(c["state"] == "Z" for c in self.children())
+
+
+# ============================================================================ streaming clients
+@dataclass
+class ClientLog:
+    client_id: str
+    sent: dict[int, float] = field(default_factory=dict)  # seq -> time sent
+    answered: dict[int, float] = field(default_factory=dict)  # seq -> time of first answer
+    localized_at: list[float] = field(default_factory=list)
+    errors: Counter = field(default_factory=Counter)
+    duplicates: int = 0
+    wrong: int = 0
+    wrong_detail: list = field(default_factory=list)  # (seq, status, error/scale, deg)
+    dropped: int = 0  # the server's count of this stream's stale frames (last seen)
+    timeouts: int = 0
+
+
+class StreamClient(threading.Thread):
+    """One client (own Zenoh session): gray8 frames in ping-pong order, either in lockstep
+    (next frame after the answer or ``timeout``) or paced at ``rate_hz``."""
+
+    def __init__(self, world: World, endpoint: str, client_id: str, stop: threading.Event,
+                 rate_hz: float | None = None, timeout: float = 5.0) -> None:
+        super().__init__(daemon=True, name=client_id)
+        self.world, self.endpoint, self.stop_ev = world, endpoint, stop
+        self.rate_hz, self.timeout = rate_hz, timeout
+        self.log = ClientLog(client_id)
+        self._cv = threading.Condition()
+        self.ready = threading.Event()
+        self.failure: str | None = None
+
+    def _on_pose(self, p: Any) -> None:
+        now = time.monotonic()
+        lg = self.log
+        with self._cv:
+            if p.seq is None:
+                return
+            if p.seq in lg.answered:
+                lg.duplicates += 1
+                return
+            lg.answered[p.seq] = now
+            lg.dropped = max(lg.dropped, p.dropped)
+            if p.error is not None:
+                lg.errors[p.error.code] += 1
+            elif p.localized:
+                lg.localized_at.append(now)
+                err = pose_error(self.world, pingpong(len(self.world.gray), p.seq), p)
+                if pose_is_wrong(*err):
+                    lg.wrong += 1
+                    lg.wrong_detail.append((p.seq, p.status, round(err[0], 3), round(err[1], 1)))
+            self._cv.notify_all()
+
+    def run(self) -> None:
+        try:
+            self._run()
+        except Exception as exc:  # noqa: BLE001 - reported in the summary, not lost
+            self.failure = f"{type(exc).__name__}: {exc}"
+            self.ready.set()
+
+    def _run(self) -> None:
+        import zenoh
+
+        from sfmloc_client import CameraSpec, FrameStreamer, PoseSubscriber, make_zenoh_config
+
+        cam = CameraSpec.parse(self.world.camera)
+        n = len(self.world.gray)
+        conf = make_zenoh_config("peer", connect=[self.endpoint], multicast=False)
+        with zenoh.open(conf) as z, \
+                PoseSubscriber(z, MAP, self.log.client_id, callback=self._on_pose), \
+                FrameStreamer(z, MAP, self.log.client_id, cam, encoding="gray8") as fs:
+            if not fs.wait_for_server(30):
+                raise RuntimeError("no server subscribed to the frames")
+            self.ready.set()
+            seq, t_next = 0, time.monotonic()
+            while not self.stop_ev.is_set():
+                self.log.sent[seq] = time.monotonic()
+                fs.publish(data=self.world.gray[pingpong(n, seq)].tobytes(), encoding="gray8",
+                           seq=seq)
+                if self.rate_hz is None:
+                    with self._cv:
+                        if not self._cv.wait_for(lambda s=seq: s in self.log.answered,
+                                                 self.timeout):
+                            self.log.timeouts += 1
+                else:
+                    t_next += 1.0 / self.rate_hz
+                    self.stop_ev.wait(max(0.0, t_next - time.monotonic()))
+                seq += 1
+            # The last frames' answers.
+            with self._cv:
+                last = seq - 1
+                self._cv.wait_for(lambda: last in self.log.answered, self.timeout)
+
+    def summary(self, t0: float, t1: float) -> dict:
+        """Answers, and the longest time without one while frames were going out."""
+        lg = self.log
+        times = sorted(t for t in lg.answered.values())
+        marks = [t0, *[t for t in times if t0 <= t <= t1], t1]
+        gap = max((b - a for a, b in zip(marks, marks[1:])), default=float("nan"))
+        sent = len(lg.sent)
+        return {
+            "client": lg.client_id, "sent": sent, "answered": len(lg.answered),
+            "dropped_stale": lg.dropped,
+            "unanswered": max(0, sent - len(lg.answered) - lg.dropped),
+            "localized": len(lg.localized_at), "errors": dict(lg.errors), "wrong": lg.wrong,
+            "wrong_detail": lg.wrong_detail[:20],
+            "duplicates": lg.duplicates, "max_gap_s": gap, "failure": self.failure,
+        }
+
+
+# ============================================================================ fuzz inputs
+def _png_claiming(w: int, h: int) -> bytes:
+    """A PNG whose header claims w x h pixels and whose data is a few bytes (a bomb's shape)."""
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return (struct.pack(">I", len(data)) + kind + data
+                + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF))
+    ihdr = struct.pack(">IIBBBBB", w, h, 8, 0, 0, 0, 0)
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr)
+            + chunk(b"IDAT", zlib.compress(b"\0" * 4096)) + chunk(b"IEND", b""))
+
+
+def _mutate(rng: random.Random, data: bytes) -> bytes:
+    b = bytearray(data)
+    op = rng.randrange(5)
+    if op == 0 or not b:  # insert random bytes
+        pos = rng.randrange(len(b) + 1)
+        b[pos:pos] = rng.randbytes(rng.randint(1, 16))
+    elif op == 1:  # truncate
+        del b[rng.randrange(len(b)):]
+    elif op == 2:  # flip bits
+        for _ in range(rng.randint(1, 8)):
+            b[rng.randrange(len(b))] ^= 1 << rng.randrange(8)
+    elif op == 3:  # set bytes to boundary values
+        for _ in range(rng.randint(1, 4)):
+            b[rng.randrange(len(b))] = rng.choice((0, 0x7F, 0x80, 0xFF, 0xC0, 0xC1, 0xDD, 0xDF))
+    else:  # duplicate a slice
+        i = rng.randrange(len(b))
+        j = min(len(b), i + rng.randint(1, 64))
+        b[i:i] = b[i:j]
+    return bytes(b)
+
+
+class ZenohFuzz:
+    """Frame envelopes for ``sfmloc/<map>/<client>/frame``: (kind, payload)."""
+
+    def __init__(self, world: World, rng: random.Random) -> None:
+        import cv2
+        import msgpack
+
+        self.rng, self.msgpack = rng, msgpack
+        small = cv2.resize(world.gray[0], (32, 24), interpolation=cv2.INTER_AREA)
+        self.cam_small = {"model": "PINHOLE", "width": 32, "height": 24,
+                          "params": [26.0, 26.0, 16.0, 12.0]}
+        ok, png = cv2.imencode(".png", small)
+        self.valid = [self._env(self.cam_small, "gray8", small.tobytes()),
+                      self._env(self.cam_small, "png", png.tobytes())]
+
+    def _env(self, cam: dict, enc: str, data: bytes, **extra: Any) -> bytes:
+        d = {"seq": 1, "stamp_ns": 1, "camera": cam, "encoding": enc, "data": data, **extra}
+        return self.msgpack.packb(d, use_bin_type=True)
+
+    def _odd_value(self) -> Any:
+        r = self.rng
+        return r.choice([float("nan"), float("inf"), -1, 2**64 - 1, -(2**63), 1e308, "", "x" * 300,
+                         b"\0", None, True, [], {}, [1.0] * 1000, {"a": {"b": {"c": 1}}}])
+
+    def _fields(self) -> bytes:
+        """A valid envelope with one field (or a camera field) replaced by an odd value."""
+        r = self.rng
+        cam = dict(self.cam_small)
+        d = {"seq": 1, "stamp_ns": 1, "camera": cam, "encoding": "gray8", "data": b"\0" * 768}
+        if r.random() < 0.5:
+            cam[r.choice(list(cam))] = self._odd_value()
+        else:
+            key = r.choice(list(d) + ["source", "extra"])
+            d[key] = self._odd_value()
+        if r.random() < 0.2:
+            del d[r.choice(list(d))]
+        return self.msgpack.packb(d, use_bin_type=True)
+
+    def _bomb(self) -> bytes:
+        r = self.rng
+        k = r.randrange(8)
+        if k == 0:  # array / map / bin / str claiming 4 G entries or bytes
+            return r.choice([b"\xdd", b"\xdf", b"\xc6", b"\xdb"]) + b"\xff\xff\xff\xff" + b"\0" * 8
+        if k == 1:  # deep nesting
+            return b"\x91" * r.choice([100, 10_000, 100_000]) + b"\xc0"
+        if k == 2:  # deep nested maps
+            return b"\x81\xa1a" * r.choice([100, 10_000]) + b"\xc0"
+        if k == 3:  # a camera claiming a huge image, tiny data
+            side = r.choice([16384, 65535, 2**31 - 1, 2**32 + 1])
+            cam = {**self.cam_small, "width": side, "height": side}
+            return self._env(cam, r.choice(["gray8", "bgr8", "png", "jpeg"]), b"\0" * 64)
+        if k == 4:  # a PNG whose header claims 60000 x 60000 pixels (decompression bomb)
+            side = r.choice([60000, 16384, 1 << 30])
+            cam = {**self.cam_small, "width": side, "height": side}
+            return self._env(r.choice([cam, self.cam_small]), "png", _png_claiming(side, side))
+        if k == 5:  # ext types / huge integers
+            return b"\x85" + b"\xc7\xff\x01" + b"\0" * 255 + b"\xcf" + b"\xff" * 8
+        if k == 6:  # many keys
+            return self.msgpack.packb({str(i): i for i in range(r.choice([1000, 50_000]))})
+        return self._env(self.cam_small, "gray8", b"\0" * 768, source="s" * 100_000)
+
+    def next(self) -> tuple[str, bytes]:
+        r = self.rng
+        x = r.random()
+        if x < 0.25:
+            return "random", r.randbytes(r.choice([0, 1, 3, 16, 200, 2000]))
+        if x < 0.6:
+            return "mutated", _mutate(r, r.choice(self.valid))
+        if x < 0.9:
+            return "fields", self._fields()
+        return "bomb", self._bomb()
+
+
+class GrpcFuzz:
+    """Serialized requests for the raw Localization methods: (method, kind, payload)."""
+
+    def __init__(self, world: World, rng: random.Random) -> None:
+        import cv2
+
+        from sfmloc_client import CameraSpec
+        from sfmloc_client.convert import camera_to_pb, image_to_pb
+        from sfmloc_client.pb import localization_pb2 as pb
+
+        self.rng = rng
+        small = cv2.resize(world.gray[0], (80, 60), interpolation=cv2.INTER_AREA)
+        cam = CameraSpec.parse("PINHOLE 80 60 65.0 65.0 40 30")
+        img = image_to_pb("gray8", small.tobytes(), 80, 60)
+        reloc = pb.RelocalizeRequest(map=MAP, image=img, camera=camera_to_pb(cam))
+        # No request here names the live map with a destructive method: a mutation of it
+        # must not unload the canary's map (that would measure the fuzzer, not the server).
+        self.valid: dict[str, list[bytes]] = {
+            "Relocalize": [reloc.SerializeToString()],
+            "ListMaps": [pb.ListMapsRequest().SerializeToString()],
+            "GetMap": [pb.GetMapRequest(name=MAP).SerializeToString()],
+            "LoadMap": [pb.LoadMapRequest(path="nonexistent-map", name="fz").SerializeToString()],
+            "UnloadMap": [pb.UnloadMapRequest(name="not-loaded").SerializeToString()],
+            "ListSessions": [pb.ListSessionsRequest(map=MAP).SerializeToString()],
+            "ResetSession": [pb.ResetSessionRequest(client_id="nobody").SerializeToString()],
+        }
+        frame = pb.StreamFrame(map=MAP, client_id="fz-stream", seq=0, stamp_ns=1, image=img,
+                               camera=camera_to_pb(cam))
+        self.stream_valid = frame.SerializeToString()
+
+    def next(self) -> tuple[str, str, list[bytes]]:
+        r = self.rng
+        method = r.choice(GRPC_METHODS + ("StreamLocalize",))
+        if method == "StreamLocalize":
+            if r.random() < 0.3:
+                return method, "random", [r.randbytes(r.randint(0, 200)) for _ in range(3)]
+            n = r.randint(1, 3)
+            return method, "mutated", [_mutate(r, self.stream_valid) for _ in range(n)]
+        if r.random() < 0.3:
+            return method, "random", [r.randbytes(r.choice([0, 1, 5, 50, 500]))]
+        base = self.valid[method][0]
+        if method in ("UnloadMap", "ResetSession") and MAP.encode() in base:
+            raise AssertionError("destructive request on the live map")
+        out = _mutate(r, base)
+        if method == "UnloadMap" and MAP.encode() in out:  # never the canary's map
+            out = base
+        return method, "mutated", [out]
+
+
+# ============================================================================ part 1: fuzz
+def run_fuzz(world: World, n: int, workers: int, deadline_s: float, budget_s: float,
+             seed: int) -> dict:
+    import grpc
+    import zenoh
+
+    from sfmloc_client import LocalizationClient, make_zenoh_config
+    from sfmloc_client.wire import frame_key
+
+    rng = random.Random(seed)
+    zf, gf = ZenohFuzz(world, rng), GrpcFuzz(world, rng)
+    codes: Counter = Counter()
+    kinds: Counter = Counter()
+    hangs, crashes, sent = 0, 0, 0
+    samples: dict[str, str] = {}
+    stop = threading.Event()
+    with Server(world, workers) as srv:
+        canary = StreamClient(world, srv.sp.endpoint, "canary", stop, rate_hz=None,
+                              timeout=deadline_s)
+        canary.start()
+        canary.ready.wait(60)
+        conf = make_zenoh_config("peer", connect=[srv.sp.endpoint], multicast=False)
+        mb = 64 * 1024 * 1024
+        opts = [("grpc.max_send_message_length", mb), ("grpc.max_receive_message_length", mb)]
+        t0 = time.monotonic()
+        with zenoh.open(conf) as z, grpc.insecure_channel(srv.sp.grpc, options=opts) as ch, \
+                LocalizationClient(srv.sp.grpc) as health:
+            unary = {m: ch.unary_unary(LOC + m) for m in GRPC_METHODS}
+            stream = ch.stream_stream(LOC + "StreamLocalize")
+            for k in range(n):
+                if time.monotonic() - t0 > budget_s:
+                    _log(f"fuzz: time budget {budget_s:.0f} s reached after {k} inputs")
+                    break
+                if k % max(1, n // 10) == 0:
+                    _log(f"fuzz: {k}/{n} inputs, canary {len(canary.log.answered)} answers")
+                if k % 500 == 0 and not srv.alive():
+                    crashes += 1
+                    break
+                sent += 1
+                if k % 2 == 0:  # Zenoh
+                    kind, payload = zf.next()
+                    kinds["zenoh " + kind] += 1
+                    cid = rng.choice([f"fz{k}", "fz-same", "x" * 64, "canary-not"])
+                    mp = MAP if rng.random() < 0.9 else rng.choice(["nomap", "room2"])
+                    z.put(frame_key(mp, cid), payload)
+                    continue
+                method, kind, msgs = gf.next()
+                kinds["grpc " + kind] += 1
+                try:
+                    if method == "StreamLocalize":
+                        for _ in stream(iter(msgs), timeout=deadline_s):
+                            pass
+                    else:
+                        unary[method](msgs[0], timeout=deadline_s)
+                    code = "OK"
+                except grpc.RpcError as exc:
+                    code = exc.code().name
+                    if code in ("INTERNAL", "UNKNOWN") and code not in samples:
+                        samples[code] = f"{method}: {exc.details()}"[:300]
+                codes[f"{method} {code}"] += 1
+                if code == "DEADLINE_EXCEEDED":
+                    hangs += 1
+                if k % 1000 == 1 and health.health(timeout=deadline_s) != "SERVING":
+                    hangs += 1
+            t1 = time.monotonic()
+            fuzz_s = t1 - t0
+            alive = srv.alive()
+            crashes += 0 if alive else 1
+            stop.set()
+            canary.join(deadline_s + 5)
+    by_code = Counter()
+    for key, v in codes.items():
+        by_code[key.split()[1]] += v
+    can = canary.summary(t0, t1)
+    return {
+        "inputs": sent, "duration_s": round(fuzz_s, 1), "inputs_per_s": round(sent / fuzz_s, 1),
+        "kinds": dict(kinds), "crashes": crashes, "hangs": hangs, "server_alive": alive,
+        "grpc_codes": dict(by_code), "grpc_codes_by_method": dict(codes),
+        "internal": by_code["INTERNAL"], "unknown": by_code["UNKNOWN"],
+        "internal_unknown_samples": samples, "canary": can,
+        "canary_lost_pct": 100.0 * (can["sent"] - can["answered"]) / max(1, can["sent"]),
+    }
+
+
+# ============================================================================ part 2: kill
+def run_kill(world: World, kills: int, clients: int, rate_hz: float, interval_s: float,
+             workers: int) -> dict:
+    stop = threading.Event()
+    recovery: list[float] = []
+    zombies_after_1s: list[int] = []
+    seen: set[int] = set()
+    first: set[int] = set()
+    killed: list[int] = []
+    with Server(world, workers) as srv:
+        cl = [StreamClient(world, srv.sp.endpoint, f"kill-client-{i}", stop, rate_hz=rate_hz)
+              for i in range(clients)]
+        for c in cl:
+            c.start()
+        for c in cl:
+            c.ready.wait(60)
+        time.sleep(min(2.0, interval_s))  # warm up: every session tracking
+        t0 = time.monotonic()
+        first = set(srv.stream_workers())
+        seen.update(first)
+        for i in range(kills):
+            pids = srv.stream_workers()
+            if not pids:
+                _log("kill: no live stream worker to kill")
+                time.sleep(0.5)
+                continue
+            pid = pids[i % len(pids)]
+            t_kill = time.monotonic()
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+            killed.append(pid)
+            _log(f"kill {i + 1}/{kills}: worker {pid}")
+            deadline = t_kill + interval_s
+            rec = [float("nan")] * clients
+            one_s_checked = False
+            while time.monotonic() < deadline:
+                now = time.monotonic()
+                seen.update(srv.stream_workers())
+                if not one_s_checked and now - t_kill >= 1.0:
+                    zombies_after_1s.append(srv.zombies())
+                    one_s_checked = True
+                for j, c in enumerate(cl):
+                    if np.isnan(rec[j]):
+                        after = [t for t in c.log.localized_at if t > t_kill]
+                        if after:
+                            rec[j] = after[0] - t_kill
+                time.sleep(0.05)
+            if not one_s_checked:
+                zombies_after_1s.append(srv.zombies())
+            recovery.append(max(rec))  # NaN when a client got no pose within the interval
+        t1 = time.monotonic()
+        stop.set()
+        for c in cl:
+            c.join(10)
+        alive = srv.alive()
+    per = [c.summary(t0, t1) for c in cl]
+    return {
+        "kills": len(killed), "clients": clients, "rate_hz": rate_hz, "interval_s": interval_s,
+        "server_alive": alive, "restarts": len(seen - first),
+        "zombies_after_1s_max": max(zombies_after_1s, default=0),
+        "recovery_s_max": float(np.nanmax(recovery)) if any(np.isfinite(recovery)) else None,
+        "kills_without_recovery": int(np.sum(~np.isfinite(recovery))),
+        "sent": sum(p["sent"] for p in per), "answered": sum(p["answered"] for p in per),
+        "dropped_stale": sum(p["dropped_stale"] for p in per),
+        "unanswered": sum(p["unanswered"] for p in per),
+        "duplicates": sum(p["duplicates"] for p in per), "wrong": sum(p["wrong"] for p in per),
+        "max_gap_s": max(p["max_gap_s"] for p in per), "clients_detail": per,
+    }
+
+
+# ============================================================================ part 3: bundle
+def run_bundle(world: World, work: Path, per_file: int, cli_checks: int, seed: int,
+               every_byte_under: int = 1024, all_manifest_bytes: bool = True,
+               header_bytes: int = 128) -> dict:
+    """One-byte flips of a copy of the bundle's files, each refused by verify and by load?
+    Every byte of the manifest files and of files up to ``every_byte_under`` bytes; of the
+    others the first ``header_bytes`` of a .npy (the header the loader parses), the last byte
+    and ``per_file`` random positions."""
+    from ..errors import SfmlocError
+    from ..mapping.bundle import MapBundle, verify_bundle
+
+    rng = random.Random(seed)
+    copy = Path(work) / "mutated" / MAP
+    shutil.rmtree(copy.parent, ignore_errors=True)
+    shutil.copytree(world.bundle, copy)
+    rows, cli_ok, cli_n = [], 0, 0
+    files = sorted(p for p in copy.rglob("*") if p.is_file())
+    for f in files:
+        size = f.stat().st_size
+        if size <= every_byte_under or (all_manifest_bytes and f.name.startswith("manifest")):
+            positions = list(range(size))
+        else:  # the .npy header (what the loader parses) and a sample of the rest
+            head = range(min(header_bytes, size)) if f.suffix == ".npy" else range(0)
+            positions = sorted({*head, size - 1, *rng.sample(range(size), min(per_file, size))})
+        verify_ok = load_ok = 0
+        other: Counter = Counter()
+        missed: list[int] = []
+        original = f.read_bytes()
+        cli_pos = set(rng.sample(positions, min(cli_checks, len(positions))))
+        for pos in positions:
+            b = bytearray(original)
+            b[pos] ^= 0xFF
+            f.write_bytes(bytes(b))
+            try:
+                if verify_bundle(copy):
+                    verify_ok += 1
+                else:
+                    missed.append(pos)
+            except Exception as exc:  # noqa: BLE001 - an unclear error is what we count
+                other[f"verify {type(exc).__name__}"] += 1
+            try:
+                MapBundle(copy)
+            except SfmlocError:
+                load_ok += 1
+            except Exception as exc:  # noqa: BLE001
+                other[f"load {type(exc).__name__}"] += 1
+            if pos in cli_pos:
+                cli_n += 1
+                r = subprocess.run([sys.executable, "-m", "sfmloc", "map", "verify", str(copy)],
+                                   capture_output=True, text=True, timeout=120)
+                cli_ok += r.returncode != 0 and "Traceback" not in r.stderr
+        f.write_bytes(original)
+        rows.append({"file": str(f.relative_to(copy)), "bytes": size, "flips": len(positions),
+                     "verify_refused": verify_ok, "load_refused": load_ok,
+                     "other_errors": dict(other), "missed_positions": missed[:10]})
+        _log(f"bundle: {rows[-1]['file']}: {verify_ok}/{len(positions)} refused by verify, "
+             f"{load_ok} by load")
+    intact = not verify_bundle(copy)
+    shutil.rmtree(copy.parent, ignore_errors=True)
+    flips = sum(r["flips"] for r in rows)
+    return {
+        "files": len(rows), "flips": flips,
+        "verify_refused": sum(r["verify_refused"] for r in rows),
+        "load_refused": sum(r["load_refused"] for r in rows),
+        "cli_checks": cli_n, "cli_refused": cli_ok, "restored_intact": intact, "rows": rows,
+    }
+
+
+# ============================================================================ summary
+def table(res: dict) -> list[str]:
+    """Measured values beside the targets of issues 12 and 16."""
+    rows: list[tuple[str, str, str]] = []
+    f = res.get("fuzz")
+    if f:
+        c = f["canary"]
+        rows += [
+            ("fuzz inputs (Zenoh + gRPC)", f"{f['inputs']} in {f['duration_s']} s "
+             f"({f['inputs_per_s']}/s)", "100,000"),
+            ("fuzz: crashes / hangs", f"{f['crashes']} / {f['hangs']}", "0 / 0"),
+            ("fuzz: gRPC INTERNAL / UNKNOWN", f"{f['internal']} / {f['unknown']}", "0 / 0"),
+            ("fuzz: gRPC codes", ", ".join(f"{k} {v}" for k, v in
+                                           sorted(f["grpc_codes"].items())), "-"),
+            ("fuzz: canary answered / sent", f"{c['answered']} / {c['sent']} "
+             f"({f['canary_lost_pct']:.2f}% lost, {c['localized']} poses)", "<= 1% lost"),
+            ("fuzz: canary wrong poses", str(c["wrong"]), "0"),
+        ]
+    k = res.get("kill")
+    if k:
+        rec = "-" if k["recovery_s_max"] is None else f"{k['recovery_s_max']:.2f} s"
+        rows += [
+            ("kill -9 of a worker", f"{k['kills']} kills, {k['clients']} clients at "
+             f"{k['rate_hz']:g} Hz", "10 kills, 4 clients"),
+            ("kill: frames answered / sent", f"{k['answered']} / {k['sent']} (server dropped "
+             f"{k['dropped_stale']} stale, {k['unanswered']} silent)", "every frame"),
+            ("kill: longest gap without an answer", f"{k['max_gap_s']:.2f} s", "<= 0.5 s"),
+            ("kill: every client posed again after", f"{rec} (kills without: "
+             f"{k['kills_without_recovery']})", "<= 2 s"),
+            ("kill: duplicate answers / wrong poses", f"{k['duplicates']} / {k['wrong']}",
+             "0 / 0"),
+            ("kill: zombies 1 s after a kill (max)", str(k["zombies_after_1s_max"]), "0"),
+            ("kill: worker restarts seen", str(k["restarts"]), f"{k['kills']}"),
+        ]
+    b = res.get("bundle")
+    if b:
+        rows += [
+            ("bundle: one-byte flips", f"{b['flips']} over {b['files']} files", "every byte"),
+            ("bundle: refused by verify / load", f"{b['verify_refused']} / {b['load_refused']}",
+             f"{b['flips']} / {b['flips']}"),
+            ("bundle: refused by `sfmloc map verify`", f"{b['cli_refused']} / {b['cli_checks']}",
+             "all"),
+        ]
+    w = max(len(r[0]) for r in rows)
+    v = min(60, max(len(r[1]) for r in rows))
+    out = [f"{'':{w}}  {'measured':{v}}  target", "-" * (w + v + 12)]
+    out += [f"{a:{w}}  {m:{v}}  {t}" for a, m, t in rows]
+    return out
+
+
+def run(args: argparse.Namespace, world: World | None = None) -> dict:
+    """The parts named in ``args.parts``; ``world``: a prepared map (default: ``--work``'s)."""
+    from ..cli.runtime import pin_threads_env
+
+    pin_threads_env()
+    t0 = time.monotonic()
+    load0 = os.getloadavg()
+    world = world or prepare(Path(args.work))
+    res: dict[str, Any] = {"command": " ".join(sys.argv), "load_start": load0}
+    parts = set(args.parts.split(","))
+    if "fuzz" in parts:
+        _log(f"fuzz: {args.fuzz} inputs")
+        res["fuzz"] = run_fuzz(world, args.fuzz, args.workers, args.deadline, args.fuzz_budget,
+                               args.seed)
+    if "kill" in parts:
+        _log(f"kill: {args.kills} kills under {args.clients} clients")
+        res["kill"] = run_kill(world, args.kills, args.clients, args.rate, args.interval,
+                               args.workers)
+    if "bundle" in parts:
+        res["bundle"] = run_bundle(world, Path(args.work), args.flips_per_file,
+                                   args.cli_checks, args.seed, args.every_byte_under,
+                                   args.all_manifest_bytes, args.header_bytes)
+    res["duration_s"] = round(time.monotonic() - t0, 1)
+    res["load_end"] = os.getloadavg()
+    return res
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m sfmloc.bench.reliability",
+        description=__doc__.split("\n\n", 2)[2] if __doc__ else None,
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--parts", default="fuzz,kill,bundle",
+                   help="comma-separated parts to run (default: fuzz,kill,bundle)")
+    p.add_argument("--work", default="/tmp/sfmloc-reliability",
+                   help="where the synthetic map is built and reused (default: %(default)s)")
+    p.add_argument("--fuzz", type=int, default=20_000, help="fuzz inputs (default %(default)s; "
+                   "issue 12's target is 100,000)")
+    p.add_argument("--fuzz-budget", type=float, default=1800.0,
+                   help="stop fuzzing after this many seconds (default %(default)s)")
+    p.add_argument("--deadline", type=float, default=10.0,
+                   help="gRPC deadline and canary wait per frame, s; over it is a hang "
+                   "(default %(default)s)")
+    p.add_argument("--kills", type=int, default=10, help="worker kills (default %(default)s)")
+    p.add_argument("--clients", type=int, default=4,
+                   help="streaming clients during the kills (default %(default)s)")
+    p.add_argument("--rate", type=float, default=10.0,
+                   help="frames per second per client during the kills (default %(default)s)")
+    p.add_argument("--interval", type=float, default=4.0,
+                   help="seconds between kills (default %(default)s)")
+    p.add_argument("--workers", type=int, default=2, help="server workers (default %(default)s)")
+    p.add_argument("--flips-per-file", type=int, default=64,
+                   help="random one-byte flips per bundle file beyond its .npy header "
+                   "(default %(default)s)")
+    p.add_argument("--every-byte-under", type=int, default=1024,
+                   help="flip every byte of files up to this size; the manifest files always "
+                   "(default %(default)s)")
+    p.add_argument("--all-manifest-bytes", action=argparse.BooleanOptionalAction, default=True,
+                   help="flip every byte of manifest.json and manifest.sha256 (default: yes)")
+    p.add_argument("--header-bytes", type=int, default=128,
+                   help="flip each of the first N bytes of every .npy file (its header; default "
+                   "%(default)s)")
+    p.add_argument("--cli-checks", type=int, default=1,
+                   help="flips per file also checked with `sfmloc map verify` (default "
+                   "%(default)s)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--json", help="also write the full results to this file")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    res = run(args)
+    if args.json:
+        Path(args.json).write_text(json.dumps(res, indent=1, default=str))
+    for line in table(res):
+        print(line)
+    print(f"duration {res['duration_s']} s; load average {res['load_start'][0]:.2f} at start, "
+          f"{res['load_end'][0]:.2f} at the end ({os.cpu_count()} CPUs)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
