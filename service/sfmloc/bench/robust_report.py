@@ -123,6 +123,7 @@ def main(argv: list[str] | None = None) -> int:
     while the run is still going."""
     import argparse
     import json
+    import sys
     from pathlib import Path
 
     from .report import text_table
@@ -133,7 +134,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("results", help="results.json or robust/rows-so-far.json of a bench run")
     p.add_argument("--markdown", action="store_true", help="a Markdown table")
     args = p.parse_args(argv)
-    data = json.loads(Path(args.results).read_text())
+    try:
+        data = json.loads(Path(args.results).read_text())
+    except (OSError, ValueError) as exc:
+        print(f"cannot read {args.results}: {exc}", file=sys.stderr)
+        return 2
     results = data if "suites" in data else {"suites": {"robust": data}}
     rows = robust_rows(results)
     if not rows:
