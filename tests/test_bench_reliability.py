@@ -29,6 +29,7 @@ def test_reliability_tiny_run_computes_every_field(world, tmp_path):
     assert [rel.pingpong(4, k) for k in range(8)] == [0, 1, 2, 3, 2, 1, 0, 1]
     args = rel.parser().parse_args([
         "--fuzz", "200", "--kills", "1", "--clients", "1", "--interval", "2.5", "--rate", "5",
+        "--baseline", "1",
         "--flips-per-file", "2", "--every-byte-under", "0", "--no-all-manifest-bytes",
         "--header-bytes", "0",
         "--cli-checks", "0", "--work", str(tmp_path)])
@@ -45,6 +46,8 @@ def test_reliability_tiny_run_computes_every_field(world, tmp_path):
     assert c["sent"] >= 1 and 0 <= c["answered"] <= c["sent"] + 1
     assert c["localized"] <= c["answered"] and c["wrong"] <= c["localized"]
     assert 0.0 <= f["canary_lost_pct"] <= 100.0
+    cb = f["canary_baseline"]
+    assert cb["sent"] >= 1 and cb["localized"] <= cb["answered"] <= cb["sent"]
 
     k = res["kill"]
     assert k["kills"] == 1 and k["clients"] == 1 and k["sent"] >= 1
@@ -52,6 +55,8 @@ def test_reliability_tiny_run_computes_every_field(world, tmp_path):
     assert math.isfinite(k["max_gap_s"]) and k["max_gap_s"] > 0
     assert isinstance(k["zombies_after_1s_max"], int) and isinstance(k["restarts"], int)
     assert k["recovery_s_max"] is None or k["recovery_s_max"] > 0
+    kb = k["baseline"]
+    assert kb["sent"] >= 1 and kb["answered"] <= kb["sent"] and kb["wrong"] <= kb["localized"]
 
     b = res["bundle"]
     files = sorted(p.name for p in (world.maps_dir / "room").iterdir())

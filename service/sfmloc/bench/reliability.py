@@ -191,6 +191,9 @@ class ClientLog:
     client_id: str
     sent: dict[int, float] = field(default_factory=dict)  # seq -> time sent
     answered: dict[int, float] = field(default_factory=dict)  # seq -> time of first answer
+    dropped_by_seq: dict[int, int] = field(default_factory=dict)  # seq -> server's stale count
+    localized: set[int] = field(default_factory=set)
+    wrong_seqs: set[int] = field(default_factory=set)
     localized_at: list[float] = field(default_factory=list)
     errors: Counter = field(default_factory=Counter)
     duplicates: int = 0
@@ -225,13 +228,16 @@ class StreamClient(threading.Thread):
                 return
             lg.answered[p.seq] = now
             lg.dropped = max(lg.dropped, p.dropped)
+            lg.dropped_by_seq[p.seq] = p.dropped
             if p.error is not None:
                 lg.errors[p.error.code] += 1
             elif p.localized:
                 lg.localized_at.append(now)
+                lg.localized.add(p.seq)
                 err = pose_error(self.world, pingpong(len(self.world.gray), p.seq), p)
                 if pose_is_wrong(*err):
                     lg.wrong += 1
+                    lg.wrong_seqs.add(p.seq)
                     lg.wrong_detail.append((p.seq, p.status, round(err[0], 3), round(err[1], 1)))
             self._cv.notify_all()
 
@@ -276,18 +282,25 @@ class StreamClient(threading.Thread):
                 self._cv.wait_for(lambda: last in self.log.answered, self.timeout)
 
     def summary(self, t0: float, t1: float) -> dict:
-        """Answers, and the longest time without one while frames were going out."""
+        """The frames sent in [t0, t1]: answers, the server's stale drops among them, poses,
+        wrong poses, and the longest time without an answer in that window."""
         lg = self.log
-        times = sorted(t for t in lg.answered.values())
-        marks = [t0, *[t for t in times if t0 <= t <= t1], t1]
+        with self._cv:
+            seqs = [q for q, t in lg.sent.items() if t0 <= t <= t1]
+            before = [d for q, d in lg.dropped_by_seq.items() if lg.sent.get(q, t0) < t0]
+            within = [lg.dropped_by_seq[q] for q in seqs if q in lg.dropped_by_seq]
+            times = sorted(t for t in lg.answered.values() if t0 <= t <= t1)
+            answered = sum(q in lg.answered for q in seqs)
+            wrong = [d for d in lg.wrong_detail if d[0] in set(seqs)]
+            localized = sum(q in lg.localized for q in seqs)
+        dropped = max(0, max(within, default=0) - max(before, default=0))
+        marks = [t0, *times, t1]
         gap = max((b - a for a, b in zip(marks, marks[1:])), default=float("nan"))
-        sent = len(lg.sent)
         return {
-            "client": lg.client_id, "sent": sent, "answered": len(lg.answered),
-            "dropped_stale": lg.dropped,
-            "unanswered": max(0, sent - len(lg.answered) - lg.dropped),
-            "localized": len(lg.localized_at), "errors": dict(lg.errors), "wrong": lg.wrong,
-            "wrong_detail": lg.wrong_detail[:20],
+            "client": lg.client_id, "sent": len(seqs), "answered": answered,
+            "dropped_stale": dropped, "unanswered": max(0, len(seqs) - answered - dropped),
+            "localized": localized, "errors": dict(lg.errors), "wrong": len(wrong),
+            "wrong_detail": wrong[:20],
             "duplicates": lg.duplicates, "max_gap_s": gap, "failure": self.failure,
         }
 
@@ -448,7 +461,9 @@ class GrpcFuzz:
 
 # ============================================================================ part 1: fuzz
 def run_fuzz(world: World, n: int, workers: int, deadline_s: float, budget_s: float,
-             seed: int) -> dict:
+             seed: int, baseline_s: float = 0.0) -> dict:
+    """The fuzz inputs beside a lockstep canary; first ``baseline_s`` of the canary alone (what
+    it gets without fuzz on this machine now: the reference for its losses and wrong poses)."""
     import grpc
     import zenoh
 
@@ -467,6 +482,11 @@ def run_fuzz(world: World, n: int, workers: int, deadline_s: float, budget_s: fl
                               timeout=deadline_s)
         canary.start()
         canary.ready.wait(60)
+        tb = time.monotonic()
+        if baseline_s > 0:
+            _log(f"fuzz: canary alone for {baseline_s:g} s (baseline)")
+            time.sleep(baseline_s)
+        base = canary.summary(tb, time.monotonic())
         conf = make_zenoh_config("peer", connect=[srv.sp.endpoint], multicast=False)
         mb = 64 * 1024 * 1024
         opts = [("grpc.max_send_message_length", mb), ("grpc.max_receive_message_length", mb)]
@@ -525,14 +545,16 @@ def run_fuzz(world: World, n: int, workers: int, deadline_s: float, budget_s: fl
         "kinds": dict(kinds), "crashes": crashes, "hangs": hangs, "server_alive": alive,
         "grpc_codes": dict(by_code), "grpc_codes_by_method": dict(codes),
         "internal": by_code["INTERNAL"], "unknown": by_code["UNKNOWN"],
-        "internal_unknown_samples": samples, "canary": can,
+        "internal_unknown_samples": samples, "canary": can, "canary_baseline": base,
         "canary_lost_pct": 100.0 * (can["sent"] - can["answered"]) / max(1, can["sent"]),
     }
 
 
 # ============================================================================ part 2: kill
 def run_kill(world: World, kills: int, clients: int, rate_hz: float, interval_s: float,
-             workers: int) -> dict:
+             workers: int, baseline_s: float = 0.0) -> dict:
+    """``kills`` kills, ``interval_s`` apart, under streaming clients; first ``baseline_s`` of
+    the same streams without a kill (the gaps and wrong poses this machine gives anyway)."""
     stop = threading.Event()
     recovery: list[float] = []
     zombies_after_1s: list[int] = []
@@ -547,7 +569,12 @@ def run_kill(world: World, kills: int, clients: int, rate_hz: float, interval_s:
         for c in cl:
             c.ready.wait(60)
         time.sleep(min(2.0, interval_s))  # warm up: every session tracking
+        tb = time.monotonic()
+        if baseline_s > 0:
+            _log(f"kill: {baseline_s:g} s of streaming without a kill (baseline)")
+            time.sleep(baseline_s)
         t0 = time.monotonic()
+        base = _totals([c.summary(tb, t0) for c in cl])
         first = set(srv.stream_workers())
         seen.update(first)
         for i in range(kills):
@@ -586,18 +613,20 @@ def run_kill(world: World, kills: int, clients: int, rate_hz: float, interval_s:
             c.join(10)
         alive = srv.alive()
     per = [c.summary(t0, t1) for c in cl]
-    return {
+    return {"baseline": base, **_totals(per),
         "kills": len(killed), "clients": clients, "rate_hz": rate_hz, "interval_s": interval_s,
         "server_alive": alive, "restarts": len(seen - first),
         "zombies_after_1s_max": max(zombies_after_1s, default=0),
         "recovery_s_max": float(np.nanmax(recovery)) if any(np.isfinite(recovery)) else None,
         "kills_without_recovery": int(np.sum(~np.isfinite(recovery))),
-        "sent": sum(p["sent"] for p in per), "answered": sum(p["answered"] for p in per),
-        "dropped_stale": sum(p["dropped_stale"] for p in per),
-        "unanswered": sum(p["unanswered"] for p in per),
-        "duplicates": sum(p["duplicates"] for p in per), "wrong": sum(p["wrong"] for p in per),
-        "max_gap_s": max(p["max_gap_s"] for p in per), "clients_detail": per,
+        "clients_detail": per,
     }
+
+
+def _totals(per: list[dict]) -> dict:
+    keys = ("sent", "answered", "dropped_stale", "unanswered", "localized", "duplicates", "wrong")
+    return {**{k: sum(p[k] for p in per) for k in keys},
+            "max_gap_s": max((p["max_gap_s"] for p in per), default=float("nan"))}
 
 
 # ============================================================================ part 3: bundle
@@ -674,7 +703,8 @@ def table(res: dict) -> list[str]:
     rows: list[tuple[str, str, str]] = []
     f = res.get("fuzz")
     if f:
-        c = f["canary"]
+        c, cb = f["canary"], f.get("canary_baseline") or {}
+        lost_b = 100.0 * (cb.get("sent", 0) - cb.get("answered", 0)) / max(1, cb.get("sent", 0))
         rows += [
             ("fuzz inputs (Zenoh + gRPC)", f"{f['inputs']} in {f['duration_s']} s "
              f"({f['inputs_per_s']}/s)", "100,000"),
@@ -684,21 +714,29 @@ def table(res: dict) -> list[str]:
                                            sorted(f["grpc_codes"].items())), "-"),
             ("fuzz: canary answered / sent", f"{c['answered']} / {c['sent']} "
              f"({f['canary_lost_pct']:.2f}% lost, {c['localized']} poses)", "<= 1% lost"),
-            ("fuzz: canary wrong poses", str(c["wrong"]), "0"),
+            ("  canary alone (baseline)", f"{cb.get('answered', 0)} / {cb.get('sent', 0)} "
+             f"({lost_b:.2f}% lost, {cb.get('localized', 0)} poses)", "-"),
+            ("fuzz: canary wrong poses (alone)", f"{c['wrong']} ({cb.get('wrong', 0)})", "0"),
+            ("fuzz: canary longest wait (alone)", f"{c['max_gap_s']:.2f} s "
+             f"({cb.get('max_gap_s', float('nan')):.2f} s)", "-"),
         ]
     k = res.get("kill")
     if k:
+        kb = k.get("baseline") or {}
         rec = "-" if k["recovery_s_max"] is None else f"{k['recovery_s_max']:.2f} s"
         rows += [
             ("kill -9 of a worker", f"{k['kills']} kills, {k['clients']} clients at "
              f"{k['rate_hz']:g} Hz", "10 kills, 4 clients"),
             ("kill: frames answered / sent", f"{k['answered']} / {k['sent']} (server dropped "
              f"{k['dropped_stale']} stale, {k['unanswered']} silent)", "every frame"),
-            ("kill: longest gap without an answer", f"{k['max_gap_s']:.2f} s", "<= 0.5 s"),
+            ("  without kills (baseline)", f"{kb.get('answered', 0)} / {kb.get('sent', 0)} "
+             f"(dropped {kb.get('dropped_stale', 0)}, {kb.get('unanswered', 0)} silent)", "-"),
+            ("kill: longest gap w/o answer (no kill)", f"{k['max_gap_s']:.2f} s "
+             f"({kb.get('max_gap_s', float('nan')):.2f} s)", "<= 0.5 s"),
             ("kill: every client posed again after", f"{rec} (kills without: "
              f"{k['kills_without_recovery']})", "<= 2 s"),
-            ("kill: duplicate answers / wrong poses", f"{k['duplicates']} / {k['wrong']}",
-             "0 / 0"),
+            ("kill: duplicate answers / wrong poses", f"{k['duplicates']} / {k['wrong']} "
+             f"(no kill: {kb.get('wrong', 0)} wrong of {kb.get('localized', 0)} poses)", "0 / 0"),
             ("kill: zombies 1 s after a kill (max)", str(k["zombies_after_1s_max"]), "0"),
             ("kill: worker restarts seen", str(k["restarts"]), f"{k['kills']}"),
         ]
@@ -731,11 +769,11 @@ def run(args: argparse.Namespace, world: World | None = None) -> dict:
     if "fuzz" in parts:
         _log(f"fuzz: {args.fuzz} inputs")
         res["fuzz"] = run_fuzz(world, args.fuzz, args.workers, args.deadline, args.fuzz_budget,
-                               args.seed)
+                               args.seed, args.baseline)
     if "kill" in parts:
         _log(f"kill: {args.kills} kills under {args.clients} clients")
         res["kill"] = run_kill(world, args.kills, args.clients, args.rate, args.interval,
-                               args.workers)
+                               args.workers, args.baseline)
     if "bundle" in parts:
         res["bundle"] = run_bundle(world, Path(args.work), args.flips_per_file,
                                    args.cli_checks, args.seed, args.every_byte_under,
@@ -768,6 +806,10 @@ def parser() -> argparse.ArgumentParser:
                    help="frames per second per client during the kills (default %(default)s)")
     p.add_argument("--interval", type=float, default=4.0,
                    help="seconds between kills (default %(default)s)")
+    p.add_argument("--baseline", type=float, default=20.0,
+                   help="seconds of the canary alone before the fuzz and of the streams before "
+                   "the first kill: the reference the table shows in brackets (default "
+                   "%(default)s)")
     p.add_argument("--workers", type=int, default=2, help="server workers (default %(default)s)")
     p.add_argument("--flips-per-file", type=int, default=64,
                    help="random one-byte flips per bundle file beyond its .npy header "
