@@ -3,11 +3,15 @@
 from __future__ import annotations
 
 import json
+import re
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 MODES = ("peer", "client", "router")
+SHM_KEY = "transport/shared_memory/enabled"
+# A config file that names the key decides shared memory itself (JSON5: quoted or not).
+_SHM_IN_FILE = re.compile(r"""["']?shared_memory["']?\s*:""")
 
 
 def make_zenoh_config(
@@ -16,11 +20,18 @@ def make_zenoh_config(
     connect: Sequence[str] = (),
     multicast: bool | None = None,
     config_file: str | Path | None = None,
+    shared_memory: bool | None = None,
 ) -> Any:
     """A ``zenoh.Config``: ``config_file`` (JSON5, anything zenoh accepts) first, then the
     explicit settings over it. ``multicast=None`` keeps zenoh's default (or the file's);
     ``False`` turns multicast scouting off (explicit ``connect`` endpoints only), which is what
-    tests and locked-down networks want."""
+    tests and locked-down networks want.
+
+    ``shared_memory``: Zenoh's shared-memory transport, which zenoh turns on by default. We
+    turn it off unless asked (``True``, or a config file that sets ``transport/shared_memory``):
+    with it on, a process keeps every peer's 16 MiB segment mapped after that peer leaves
+    (zenoh 1.10; eclipse-zenoh/zenoh#2787, #1700), so a server grew ~20 MB per short-lived
+    client process that ever connected. Off costs copies over loopback only (README, Zenoh)."""
     import zenoh
 
     if mode not in MODES:
@@ -33,4 +44,15 @@ def make_zenoh_config(
         conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
     if multicast is not None:
         conf.insert_json5("scouting/multicast/enabled", json.dumps(bool(multicast)))
+    if shared_memory is None and not _file_sets_shm(config_file):
+        shared_memory = False
+    if shared_memory is not None:
+        conf.insert_json5(SHM_KEY, json.dumps(bool(shared_memory)))
     return conf
+
+
+def _file_sets_shm(config_file: str | Path | None) -> bool:
+    if not config_file:
+        return False
+    text = Path(config_file).read_text(encoding="utf-8", errors="replace")
+    return bool(_SHM_IN_FILE.search(text))

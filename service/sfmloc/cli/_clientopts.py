@@ -18,13 +18,17 @@ def add_zenoh_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--zenoh-mode", choices=["peer", "client"], default="peer", help="default peer")
     g.add_argument("--zenoh-config", metavar="FILE", help="a Zenoh JSON5 config file")
     g.add_argument("--no-multicast", action="store_true", help="no multicast scouting (explicit endpoints only)")
+    g.add_argument("--zenoh-shm", action="store_true",
+                   help="Zenoh's shared-memory transport on (default off, see README, Zenoh)")
 
 
 def zenoh_config(args: argparse.Namespace) -> Any:
     from sfmloc_client import make_zenoh_config
 
     return make_zenoh_config(args.zenoh_mode, args.zenoh_listen, args.zenoh_connect,
-                             multicast=False if args.no_multicast else None, config_file=args.zenoh_config)
+                             multicast=False if args.no_multicast else None,
+                             config_file=args.zenoh_config,
+                             shared_memory=True if args.zenoh_shm else None)
 
 
 def add_grpc_option(p: argparse.ArgumentParser) -> None:

@@ -49,6 +49,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--zenoh-connect", metavar="ENDPOINT", action="append", help="Zenoh endpoint to connect to (repeatable)")
     p.add_argument("--zenoh-config", metavar="FILE", help="a Zenoh JSON5 config file; the flags above go over it")
     p.add_argument("--no-multicast", action="store_true", help="no Zenoh multicast scouting (explicit endpoints only)")
+    p.add_argument("--zenoh-shm", action="store_true",
+                   help="Zenoh's shared-memory transport on (default off: with it on, each local "
+                        "client's 16 MiB segment stays mapped in the server after it leaves)")
     p.add_argument("--no-zenoh", action="store_true", help="gRPC only")
     p.add_argument("--workers", type=int, metavar="N", help="engine worker processes (default: one per core)")
     p.add_argument("--worker-kind", choices=["process", "thread"], help=argparse.SUPPRESS)
@@ -95,6 +98,8 @@ def overrides_from_args(args: argparse.Namespace) -> dict:
         z["config_file"] = args.zenoh_config
     if args.no_multicast:
         z["multicast"] = False
+    if args.zenoh_shm:
+        z["shared_memory"] = True
     if args.no_zenoh:
         z["enabled"] = False
     if z:

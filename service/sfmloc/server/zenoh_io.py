@@ -13,6 +13,7 @@
 
 from __future__ import annotations
 
+import json
 import logging
 import time
 from collections.abc import Callable
@@ -96,7 +97,8 @@ class ZenohFrontend:
     def open(self) -> None:
         zc = self.conf.zenoh
         try:
-            zconf = make_zenoh_config(zc.mode, zc.listen, zc.connect, multicast=zc.multicast, config_file=zc.config_file)
+            zconf = make_zenoh_config(zc.mode, zc.listen, zc.connect, multicast=zc.multicast,
+                                      config_file=zc.config_file, shared_memory=zc.shared_memory)
         except Exception as exc:  # noqa: BLE001 - zenoh raises ZError/ValueError on bad settings
             raise ConfigError(f"invalid Zenoh configuration: {exc}") from None
         try:
@@ -107,7 +109,8 @@ class ZenohFrontend:
         if self.conf.follow_builder and self.on_announcement is not None:
             self._others.append(self.z.declare_subscriber(MAPS_KEYEXPR, self._on_announcement))
         event(log, logging.INFO, "zenoh_open", zid=str(self.z.zid()), mode=zc.mode, listen=zc.listen,
-              connect=zc.connect, multicast=zc.multicast)
+              connect=zc.connect, multicast=zc.multicast,
+              shared_memory=json.loads(zconf.get_json("transport/shared_memory/enabled")))
 
     def start_intake(self) -> None:
         """Accept frames and become discoverable (once the maps are loaded)."""
