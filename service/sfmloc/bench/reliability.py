@@ -476,6 +476,7 @@ def run_fuzz(world: World, n: int, workers: int, deadline_s: float, budget_s: fl
     kinds: Counter = Counter()
     hangs, crashes, sent = 0, 0, 0
     samples: dict[str, str] = {}
+    hung: list[dict] = []
     stop = threading.Event()
     with Server(world, workers) as srv:
         canary = StreamClient(world, srv.sp.endpoint, "canary", stop, rate_hz=None,
@@ -528,6 +529,10 @@ def run_fuzz(world: World, n: int, workers: int, deadline_s: float, budget_s: fl
                 codes[f"{method} {code}"] += 1
                 if code == "DEADLINE_EXCEEDED":
                     hangs += 1
+                    # What hung, to reproduce it (the first few, hex of each message).
+                    if len(hung) < 5:
+                        hung.append({"method": method, "kind": kind,
+                                     "messages_hex": [m.hex() for m in msgs]})
                 if k % 1000 == 1 and health.health(timeout=deadline_s) != "SERVING":
                     hangs += 1
             t1 = time.monotonic()
@@ -545,7 +550,8 @@ def run_fuzz(world: World, n: int, workers: int, deadline_s: float, budget_s: fl
         "kinds": dict(kinds), "crashes": crashes, "hangs": hangs, "server_alive": alive,
         "grpc_codes": dict(by_code), "grpc_codes_by_method": dict(codes),
         "internal": by_code["INTERNAL"], "unknown": by_code["UNKNOWN"],
-        "internal_unknown_samples": samples, "canary": can, "canary_baseline": base,
+        "internal_unknown_samples": samples, "hung_requests": hung,
+        "canary": can, "canary_baseline": base,
         "canary_lost_pct": 100.0 * (can["sent"] - can["answered"]) / max(1, can["sent"]),
     }
 
