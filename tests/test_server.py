@@ -323,9 +323,12 @@ def test_relocalize_errors_map_to_status_codes(world, grpc_client, case, code):
     ("/sfmloc.v1.Localization/Relocalize", "unary"), ("/sfmloc.v1.Localization/ListMaps", "unary"),
     ("/sfmloc.v1.Localization/StreamLocalize", "stream"), ("/grpc.health.v1.Health/Check", "unary"),
 ])
-def test_unparsable_request_bytes_are_invalid_argument(srv, method, kind):
+def test_unparsable_request_bytes_are_invalid_argument(srv, method, kind, caplog):
     """Bytes that are no protobuf message of the method's type: INVALID_ARGUMENT with a
-    message (grpc's own answer would be UNKNOWN or INTERNAL)."""
+    message (grpc's own answer would be UNKNOWN or INTERNAL), and no error logged for it."""
+    import logging
+
+    caplog.set_level(logging.WARNING)
     garbage = [b"\xff\xff\xff\xff", b"\x0a\xff\x01", bytes(range(256))]
     with grpc.insecure_channel(f"127.0.0.1:{srv.grpc_port}") as ch:
         for data in garbage:
@@ -336,6 +339,8 @@ def test_unparsable_request_bytes_are_invalid_argument(srv, method, kind):
                     list(ch.stream_stream(method)(iter([data]), timeout=30))
             assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT, (method, data, e.value.details())
             assert "malformed request" in e.value.details()
+    errors = [r.getMessage()[:200] for r in caplog.records if r.levelno >= logging.ERROR]
+    assert errors == []  # e.g. not "Abort already called!" with a traceback per message
 
 
 def test_async_client(world, srv):

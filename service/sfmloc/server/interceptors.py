@@ -14,6 +14,8 @@ from typing import Any
 
 import grpc
 
+from ..errors import MessageError
+
 
 class _Malformed:
     """What a request that failed to parse becomes (the handler then refuses it)."""
@@ -77,9 +79,12 @@ def _wrap(behavior: Callable[..., Any], streaming_requests: bool) -> Callable[..
 
 
 async def _checked_requests(requests: AsyncIterator[Any], context: grpc.aio.ServicerContext) -> AsyncIterator[Any]:
+    # Raised, not aborted here: the handler reading the stream ends it through its own error
+    # path (one abort, INVALID_ARGUMENT by the status table); aborting under it made the
+    # handler abort a second time and log a traceback per malformed message.
     async for request in requests:
         if isinstance(request, _Malformed):
-            await _refuse(context, request)
+            raise MessageError(f"malformed request: not a valid message ({request.reason})")
         yield request
 
 
