@@ -24,3 +24,26 @@ def redkitchen() -> Path:
     if not (REDKITCHEN / "pgt_sfm_seq01.txt").is_file():
         pytest.skip(f"real data not present: {REDKITCHEN} (7-Scenes redkitchen seq-01 is read from ../shared/data)")
     return REDKITCHEN
+
+
+# The synthetic world with exact ground truth (server_helpers.build_world: rendered once per
+# session folder) and its map, for the modules that test the engine on it.
+@pytest.fixture(scope="module")
+def world(tmp_path_factory):
+    from server_helpers import build_world
+
+    return build_world(tmp_path_factory.getbasetemp())
+
+
+@pytest.fixture(scope="module")
+def bundle(world):
+    from sfmloc.mapping.bundle import MapBundle
+
+    return MapBundle(world.maps_dir / "room")
+
+
+@pytest.fixture(scope="module")
+def cam(world):
+    from sfmloc.cameras import Camera
+
+    return Camera.parse(world.camera_spec)

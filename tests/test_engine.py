@@ -8,7 +8,6 @@ import sys
 
 import numpy as np
 import pytest
-from server_helpers import build_world
 
 from sfmloc.cameras import Camera
 from sfmloc.engine import EngineConf, Localizer, Status, relocalize
@@ -33,21 +32,6 @@ from sfmloc.synth.config import SceneConf as SynthSceneConf
 from sfmloc.transforms import Rigid3d, pose_errors, rotmat_from_rotvec
 
 K = np.array([[525.0, 0, 320.0], [0, 525.0, 240.0], [0, 0, 1]])
-
-
-@pytest.fixture(scope="module")
-def world(tmp_path_factory):
-    return build_world(tmp_path_factory.getbasetemp())
-
-
-@pytest.fixture(scope="module")
-def bundle(world):
-    return MapBundle(world.maps_dir / "room")
-
-
-@pytest.fixture(scope="module")
-def cam(world):
-    return Camera.parse(world.camera_spec)
 
 
 # ----------------------------------------------------------------------------- pose

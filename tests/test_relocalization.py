@@ -5,34 +5,15 @@ confirmed (with more inliers), chance poses (another scene, noise, a pose that i
 from __future__ import annotations
 
 import numpy as np
-import pytest
-from server_helpers import build_world
 from test_mapping_sfm import Corner, look_at
 
-from sfmloc.cameras import Camera
 from sfmloc.engine import EngineConf, Status, relocalize
 from sfmloc.engine.localizer import _match_near_prior, describe
 from sfmloc.engine.matching import global_matching
 from sfmloc.engine.pose import estimate_pose_one_to_many
 from sfmloc.features.daisy import DaisyExtractor
 from sfmloc.features.harris import detect_corners
-from sfmloc.mapping.bundle import MapBundle
 from sfmloc.transforms import Rigid3d, pose_errors, rotmat_from_rotvec
-
-
-@pytest.fixture(scope="module")
-def world(tmp_path_factory):
-    return build_world(tmp_path_factory.getbasetemp())
-
-
-@pytest.fixture(scope="module")
-def bundle(world):
-    return MapBundle(world.maps_dir / "room")
-
-
-@pytest.fixture(scope="module")
-def cam(world):
-    return Camera.parse(world.camera_spec)
 
 
 def _features(gray, bundle, conf):

@@ -11,7 +11,7 @@ import shutil
 import cv2
 import numpy as np
 import pytest
-from server_helpers import HEIGHT, N_FRAMES, N_MAPPING, WIDTH, build_world
+from server_helpers import HEIGHT, N_FRAMES, N_MAPPING, WIDTH
 
 from sfmloc.cameras import Camera
 from sfmloc.engine import EngineConf, Localizer, Status, relocalize
@@ -22,16 +22,6 @@ from sfmloc.mapping.bundle import MANIFEST, MANIFEST_SHA256, MapBundle
 from sfmloc.transforms import pose_errors
 
 F640 = 525.0  # the world's focal length at 640x480
-
-
-@pytest.fixture(scope="module")
-def world(tmp_path_factory):
-    return build_world(tmp_path_factory.getbasetemp())
-
-
-@pytest.fixture(scope="module")
-def bundle(world):
-    return MapBundle(world.maps_dir / "room")
 
 
 @pytest.fixture(scope="module")
