@@ -760,3 +760,33 @@ def test_a_stream_reports_an_outage_and_resumes_by_itself(world, z, srv):
             fe.start_intake()
     assert stats.outages >= 1 and stats.max_unanswered >= 20  # frames 16-39 had no answer
     assert not {p.seq for p in got} & set(range(20, 38))  # nothing was answered in the outage
+
+
+def test_a_grpc_stream_survives_unload_and_resumes_when_the_map_is_back(world, grpc_client):
+    """UnloadMap under a live StreamLocalize: the frames get NOT_FOUND (none is silent, the
+    stream stays open), and once the map is loaded again the same stream localizes again."""
+    grpc_client.load_map("room2", "blinky")
+    acks: queue.Queue = queue.Queue()
+
+    def requests():
+        for k, d in enumerate(world.png[:24]):
+            if k == 8:
+                grpc_client.unload_map("blinky")
+            elif k == 14:
+                grpc_client.load_map("room2", "blinky")
+            yield SourceFrame(data=d, encoding="png", stamp_ns=int(k * 1e9 / 30))
+            acks.get(timeout=60)
+
+    poses = []
+    try:
+        for p in grpc_client.stream(requests(), "blinky", camera(world), client_id="blinker", encoding="png"):
+            poses.append(p)
+            acks.put(p.seq)
+    finally:
+        if "blinky" in {m.name for m in grpc_client.list_maps()}:
+            grpc_client.unload_map("blinky")
+    assert [p.seq for p in poses] == list(range(24))  # every frame answered, stream not ended
+    gone = [p for p in poses if 8 <= p.seq < 14]
+    assert all(p.error is not None and p.error.code == "NOT_FOUND" for p in gone)
+    assert all(p.error is None for p in poses if p.seq < 8 or p.seq >= 14)
+    assert sum(p.localized for p in poses if p.seq >= 14) >= 8  # resumed on the reloaded map

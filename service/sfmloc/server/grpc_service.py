@@ -35,7 +35,7 @@ from sfmloc_client.pb import localization_pb2 as pb
 from sfmloc_client.pb import localization_pb2_grpc as pb_grpc
 from sfmloc_client.wire import Frame, PoseMessage, check_name
 
-from ..errors import ConfigError, InputError, MessageError, PermissionDeniedError, SessionNotFoundError, UnavailableError
+from ..errors import ConfigError, InputError, MapNotFoundError, MessageError, PermissionDeniedError, SessionNotFoundError, UnavailableError
 from .auth import AuthInterceptor, caller
 from .interceptors import MalformedRequestInterceptor
 from .logfmt import event
@@ -166,7 +166,8 @@ class LocalizationService(pb_grpc.LocalizationServicer):
                         s = srv.sessions.submit(state["map"], state["client"], "grpc", frame, t_recv,
                                                 make_sink=lambda: _StreamSink(loop, q), key_suffix=f":{stream_id}")
                         state["session"] = s
-                    except (WireError, InputError) as exc:  # this frame only: the stream goes on
+                    except (WireError, InputError, MapNotFoundError) as exc:  # this frame only: the stream goes on
+                        # (an unloaded map too: its frames are answered NOT_FOUND until it is back)
                         srv.sessions.count_error(state["map"], exc)
                         q.put_nowait(srv.sessions.error_pose(state["map"], state["client"], req.seq, req.stamp_ns, exc))
                 # The client is done sending: let the last frames finish, then end the stream.

@@ -291,7 +291,9 @@ class SessionManager:
         self.metrics.frame_errors.inc(label, error_info(exc).code)
 
     # ------------------------------------------------------------------ management
-    def close(self, s: Session, reason: str) -> None:
+    def close(self, s: Session, reason: str, answer_inflight: Exception | None = None) -> None:
+        """End a session. With ``answer_inflight``, the frames it has in a worker are answered
+        with that error now (their results will find no session)."""
         with self._lock:
             if s.closed:
                 return
@@ -299,8 +301,14 @@ class SessionManager:
             if self._by_key.get(s.key) is s:  # a replacement may hold the key already
                 del self._by_key[s.key]
             self._by_sid.pop(s.sid, None)
+            inflight = list(s.inflight_t_recv) if answer_inflight is not None else []
+            s.inflight_t_recv.clear()
+            s.busy = False
             self._idle.notify_all()
         self.pool.close_session(s.worker, s.sid)
+        for seq in inflight:
+            assert answer_inflight is not None
+            self._send(s, self.error_pose(s.map, s.client_id, seq, 0, answer_inflight))
         try:
             s.sink.close()
         except Exception:  # noqa: BLE001
@@ -311,10 +319,15 @@ class SessionManager:
               dropped=s.dropped, errors=s.errors, mean_latency_ms=round(s.mean_latency_ms, 2))
 
     def close_map(self, map_name: str, reason: str = "map_unloaded") -> int:
+        """End the sessions of an unloaded map; the frames they had in a worker are answered
+        NOT_FOUND (their results would find no session). A client that keeps sending gets
+        NOT_FOUND per frame, and a fresh session once the map is loaded again."""
+        from ..errors import MapNotFoundError
+
         with self._lock:
             victims = [s for s in self._by_sid.values() if s.map == map_name]
         for s in victims:
-            self.close(s, reason)
+            self.close(s, reason, answer_inflight=MapNotFoundError(f"map {map_name!r} was unloaded"))
         return len(victims)
 
     def reset(self, client_id: str, map_name: str = "") -> bool:
