@@ -59,6 +59,13 @@ def se3_log(T: Rigid3d) -> np.ndarray:
     return np.concatenate([rho, phi])
 
 
+def _scene_scale(scale: float) -> float:
+    """The filters' unit of length (map units per scene scale), checked."""
+    if not (np.isfinite(scale) and scale > 0):
+        raise ValueError(f"scene scale must be positive, got {scale}")
+    return float(scale)
+
+
 def _process_noise(dt: float, accel_var: np.ndarray) -> np.ndarray:
     """Continuous white-noise acceleration, per twist component. (The piecewise-constant
     model's velocity gain tends to 2/dt when frames are far apart: at 3 Hz its velocity
@@ -88,9 +95,7 @@ class Se3PoseFilter:
         orientation_noise: float = 0.01,
         scale: float = 1.0,
     ) -> None:
-        if not (np.isfinite(scale) and scale > 0):
-            raise ValueError(f"scene scale must be positive, got {scale}")
-        self.scale = float(scale)
+        self.scale = _scene_scale(scale)
         self.accel_var = np.array([(accel_noise * scale) ** 2] * 3 + [angular_accel_noise**2] * 3)
         self.kf = KalmanFilter(dim_x=12, dim_z=6)
         self.kf.H = np.hstack([np.eye(6), np.zeros((6, 6))])
@@ -203,9 +208,7 @@ class DecoupledPoseFilter:
         orientation_noise: float = 0.01,
         scale: float = 1.0,
     ) -> None:
-        if not (np.isfinite(scale) and scale > 0):
-            raise ValueError(f"scene scale must be positive, got {scale}")
-        self.scale = float(scale)
+        self.scale = _scene_scale(scale)
         self.accel_noise = accel_noise * scale
         self.angular_accel_noise = angular_accel_noise
         self.pos = _cv_filter(position_noise * scale)

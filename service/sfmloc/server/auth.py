@@ -30,6 +30,7 @@ from typing import Any
 import grpc
 
 from ..errors import ConfigError
+from .interceptors import same_kind
 
 ROLES = ("localize", "admin")
 SERVICE = "/sfmloc.v1.Localization/"
@@ -135,14 +136,7 @@ def _deny(handler: grpc.RpcMethodHandler, code: grpc.StatusCode, message: str) -
     async def refuse(request: Any, context: grpc.aio.ServicerContext) -> None:
         await context.abort(code, message)
 
-    des, ser = handler.request_deserializer, handler.response_serializer
-    if handler.unary_unary is not None:
-        return grpc.unary_unary_rpc_method_handler(refuse, des, ser)
-    if handler.unary_stream is not None:
-        return grpc.unary_stream_rpc_method_handler(refuse, des, ser)
-    if handler.stream_unary is not None:
-        return grpc.stream_unary_rpc_method_handler(refuse, des, ser)
-    return grpc.stream_stream_rpc_method_handler(refuse, des, ser)
+    return same_kind(handler, lambda behavior, streaming: refuse)
 
 
 class AuthInterceptor(grpc.aio.ServerInterceptor):

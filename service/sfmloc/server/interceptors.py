@@ -88,6 +88,29 @@ async def _checked_requests(requests: AsyncIterator[Any], context: grpc.aio.Serv
         yield request
 
 
+_KINDS = (
+    ("unary_unary", grpc.unary_unary_rpc_method_handler, False),
+    ("unary_stream", grpc.unary_stream_rpc_method_handler, False),
+    ("stream_unary", grpc.stream_unary_rpc_method_handler, True),
+    ("stream_stream", grpc.stream_stream_rpc_method_handler, True),
+)
+
+
+def same_kind(
+    handler: grpc.RpcMethodHandler,
+    wrap: Callable[[Callable[..., Any], bool], Callable[..., Any]],
+    request_deserializer: Callable[[bytes], Any] | None = None,
+) -> grpc.RpcMethodHandler:
+    """A method handler of the same kind as ``handler`` (unary or streaming on each side) with
+    the behaviour ``wrap(behavior, streaming_requests)`` and, when given, another deserializer."""
+    des = request_deserializer or handler.request_deserializer
+    for attr, make, streaming in _KINDS:
+        behavior = getattr(handler, attr)
+        if behavior is not None:
+            return make(wrap(behavior, streaming), des, handler.response_serializer)
+    return handler
+
+
 class MalformedRequestInterceptor(grpc.aio.ServerInterceptor):
     """Unparsable request bytes: INVALID_ARGUMENT with a message, for every method."""
 
@@ -99,14 +122,4 @@ class MalformedRequestInterceptor(grpc.aio.ServerInterceptor):
         handler = await continuation(handler_call_details)
         if handler is None:
             return handler
-        parse = _safe(handler.request_deserializer)
-        ser = handler.response_serializer
-        if handler.unary_unary is not None:
-            return grpc.unary_unary_rpc_method_handler(_wrap(handler.unary_unary, False), parse, ser)
-        if handler.unary_stream is not None:
-            return grpc.unary_stream_rpc_method_handler(_wrap(handler.unary_stream, False), parse, ser)
-        if handler.stream_unary is not None:
-            return grpc.stream_unary_rpc_method_handler(_wrap(handler.stream_unary, True), parse, ser)
-        if handler.stream_stream is not None:
-            return grpc.stream_stream_rpc_method_handler(_wrap(handler.stream_stream, True), parse, ser)
-        return handler
+        return same_kind(handler, _wrap, _safe(handler.request_deserializer))
