@@ -37,7 +37,7 @@ def world(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def bundle(world):
-    from sfmloc.mapping.bundle import MapBundle
+    from sfmloc.map.bundle import MapBundle
 
     return MapBundle(world.maps_dir / "room")
 

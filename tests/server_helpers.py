@@ -55,8 +55,8 @@ def build_world(base: Path) -> World:
         from sfmloc.cameras import Camera
         from sfmloc.io.colmap import read_model
         from sfmloc.io.poses import read_poses
-        from sfmloc.mapping.build import BuildConf, assemble
-        from sfmloc.mapping.bundle import write_bundle
+        from sfmloc.builder.build import BuildConf, assemble
+        from sfmloc.map.bundle import write_bundle
         from sfmloc.synth import preset
         from sfmloc.synth.main import run
 

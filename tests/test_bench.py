@@ -244,7 +244,7 @@ def sift_world(tmp_path_factory):
     from sfmloc.cameras import Camera
     from sfmloc.io.colmap import read_model
     from sfmloc.io.poses import write_colmap_list
-    from sfmloc.mapping import sfm
+    from sfmloc.builder import sfm
 
     world = build_world(tmp_path_factory.getbasetemp())
     work = tmp_path_factory.mktemp("sift-peer")

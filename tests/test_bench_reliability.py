@@ -19,7 +19,7 @@ def world(tmp_path_factory):
 
 def test_reliability_tiny_run_computes_every_field(world, tmp_path):
     from sfmloc.bench import reliability as rel
-    from sfmloc.mapping.bundle import MapBundle
+    from sfmloc.map.bundle import MapBundle
 
     w = rel.World(maps_dir=world.maps_dir, camera=world.camera_spec, gray=world.gray,
                   gt_cam_from_world=[np.asarray(g.matrix()) for g in world.gt_cam_from_world],

@@ -76,8 +76,8 @@ def test_scaling_the_scene_scales_points_and_poses_and_keeps_observations(tiny, 
 
 
 def test_scene_scale_of_a_bundle_built_from_the_scaled_model_scales(tiny, tmp_path):
-    from sfmloc.mapping.build import BuildConf, assemble
-    from sfmloc.mapping.bundle import MapBundle, write_bundle
+    from sfmloc.builder.build import BuildConf, assemble
+    from sfmloc.map.bundle import MapBundle, write_bundle
 
     scales = {}
     for s in (1.0, 0.01):
@@ -291,8 +291,8 @@ def test_a_row_runs_both_methods_on_the_same_frames_and_writes_per_frame_records
 
     from sfmloc.bench.config import SiftPeerConf
     from sfmloc.bench.suites import build_sift_map_of_model
-    from sfmloc.mapping.build import BuildConf, assemble
-    from sfmloc.mapping.bundle import write_bundle
+    from sfmloc.builder.build import BuildConf, assemble
+    from sfmloc.map.bundle import write_bundle
 
     cam = Camera.from_json(tiny / "camera.json")
     data, timings, info = assemble(read_model(tiny / "sparse"), tiny / "images", BuildConf())

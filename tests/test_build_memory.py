@@ -15,8 +15,8 @@ import pytest
 
 from sfmloc.config import merge_presets
 from sfmloc.features.daisy import Pca
-from sfmloc.mapping.desc_store import RawStore
-from sfmloc.mapping.pca import fit_pca
+from sfmloc.builder.desc_store import RawStore
+from sfmloc.builder.pca import fit_pca
 
 BYTES_PER_DESCRIPTOR = 300  # issue 17's target: peak RSS <= 1 GiB + 300 B per descriptor
 
@@ -68,8 +68,8 @@ def test_streamed_build_equals_the_in_memory_build(room, tmp_path):
     """Small chunks and samples smaller than the map, so every sampled and chunked path runs:
     the same points, lookups and PCA, descriptors equal to float16 rounding, the same index."""
     from sfmloc.io.colmap import read_model
-    from sfmloc.mapping.build import BuildConf, assemble
-    from sfmloc.mapping.index import DescriptorIndex
+    from sfmloc.builder.build import BuildConf, assemble
+    from sfmloc.map.index import DescriptorIndex
 
     rec = read_model(room / "sparse")
     small = {"chunk_rows": 500, "pca_samples": 1500, "index": {"train_samples": 1500, "nlist": 32}}
@@ -99,9 +99,9 @@ def test_streamed_build_equals_the_in_memory_build(room, tmp_path):
 CHILD = r"""
 import json, sys
 import numpy as np
-from sfmloc.mapping.desc_store import RawStore
-from sfmloc.mapping.index import DescriptorIndex, IndexConf
-from sfmloc.mapping.pca import project_store
+from sfmloc.builder.desc_store import RawStore
+from sfmloc.map.index import DescriptorIndex, IndexConf
+from sfmloc.builder.pca import project_store
 
 n, folder = int(sys.argv[1]), (sys.argv[2] if sys.argv[2] != "-" else None)
 rng = np.random.default_rng(0)

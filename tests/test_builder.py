@@ -20,7 +20,7 @@ from scipy.spatial import cKDTree
 from server_helpers import build_world, free_port, wait_until, zenoh_endpoint
 
 from sfmloc.cameras import Camera
-from sfmloc.mapping.bundle import MapBundle, verify_bundle
+from sfmloc.map.bundle import MapBundle, verify_bundle
 
 
 @pytest.fixture(scope="module")
@@ -282,7 +282,7 @@ def _small_tmpfs(path: Path, size: str) -> bool:
 
 def test_a_full_disk_is_a_write_error_and_leaves_nothing(world, tmp_path):
     from sfmloc.errors import BuildError
-    from sfmloc.mapping.build import BuildConf, main
+    from sfmloc.builder.build import BuildConf, main
 
     disk = tmp_path / "tiny"
     if not _small_tmpfs(disk, "4m"):
@@ -301,7 +301,7 @@ def test_zero_descriptors_is_a_descriptor_stage_error(world, tmp_path):
     """Poses that do not fit the images: no corner lies near any projected point."""
     from sfmloc.errors import BuildError
     from sfmloc.io.colmap import read_model, write_model
-    from sfmloc.mapping.build import BuildConf, main
+    from sfmloc.builder.build import BuildConf, main
     from sfmloc.transforms import Rigid3d
 
     rec = read_model(world.root / "synth" / "sparse")
@@ -316,7 +316,7 @@ def test_zero_descriptors_is_a_descriptor_stage_error(world, tmp_path):
 
 # ----------------------------------------------------------------------------- point refinement
 def test_points_are_refined_to_their_keypoints_exactly_and_only_when_consistent():
-    from sfmloc.mapping.refine import RefineConf, refine_points
+    from sfmloc.builder.refine import RefineConf, refine_points
     from sfmloc.transforms import Rigid3d, rotmat_from_rotvec
 
     rng = np.random.default_rng(0)

@@ -27,7 +27,7 @@ from sfmloc.engine.tracker import extract_keypoints, track_2d
 from sfmloc.errors import ImageDecodeError
 from sfmloc.features.daisy import DaisyExtractor
 from sfmloc.features.harris import detect_corners
-from sfmloc.mapping.bundle import MapBundle
+from sfmloc.map.bundle import MapBundle
 from sfmloc.synth.config import SceneConf as SynthSceneConf
 from sfmloc.transforms import Rigid3d, pose_errors, rotmat_from_rotvec
 
@@ -305,7 +305,7 @@ def test_localizer_on_100_real_frames(redkitchen, tmp_path_factory):
     import cv2
 
     from sfmloc.io.poses import read_poses
-    from sfmloc.mapping.build import BuildConf, main
+    from sfmloc.builder.build import BuildConf, main
 
     out = tmp_path_factory.mktemp("rk")
     cam_spec = "PINHOLE 640 480 525.505 525.505 320 240"
@@ -434,8 +434,8 @@ def ambiguous_world(tmp_path_factory):
 
     from sfmloc.io.colmap import read_model
     from sfmloc.io.poses import read_poses
-    from sfmloc.mapping.build import BuildConf, assemble
-    from sfmloc.mapping.bundle import write_bundle
+    from sfmloc.builder.build import BuildConf, assemble
+    from sfmloc.map.bundle import write_bundle
     from sfmloc.synth import preset
     from sfmloc.synth.main import run
 
@@ -518,7 +518,7 @@ def test_bad_frames_are_errors_or_lost_never_a_made_up_pose(world, bundle, cam):
 
 def test_engine_imports_no_transport():
     code = (
-        "import sys, sfmloc.engine, sfmloc.features.daisy, sfmloc.mapping.bundle;"
+        "import sys, sfmloc.engine, sfmloc.features.daisy, sfmloc.map.bundle;"
         "bad = [m for m in ('zenoh', 'grpc') if m in sys.modules]; print(bad); sys.exit(1 if bad else 0)"
     )
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
@@ -537,7 +537,7 @@ def test_engine_config_has_the_paper_defaults_and_env_overrides():
 
 def test_frames_localize_keypoints_as_the_map_did(bundle, cam):
     from sfmloc.engine.tracker import map_subpixel
-    from sfmloc.mapping.build import BuildConf
+    from sfmloc.builder.build import BuildConf
 
     # The map's points were triangulated at its keypoints: frames must share their sub-pixel
     # method, read from the bundle (maps built before it was recorded used the quadratic fit).

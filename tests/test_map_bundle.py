@@ -11,9 +11,9 @@ import pytest
 
 from sfmloc.cameras import Camera
 from sfmloc.errors import BundleError, InputError
-from sfmloc.mapping.bundle import MapBundle, MapData, read_manifest, verify_bundle, write_bundle
-from sfmloc.mapping.clusters import ClusterConf, cluster_images
-from sfmloc.mapping.index import DescriptorIndex, IndexConf, bitmap_from_ranges
+from sfmloc.map.bundle import MapBundle, MapData, read_manifest, verify_bundle, write_bundle
+from sfmloc.builder.clusters import ClusterConf, cluster_images
+from sfmloc.map.index import DescriptorIndex, IndexConf, bitmap_from_ranges
 
 
 # ----------------------------------------------------------------------------- index

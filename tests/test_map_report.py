@@ -14,9 +14,9 @@ from test_mapping_sfm import CAM, Corner, arc_poses
 
 from sfmloc.cameras import Camera
 from sfmloc.io.poses import write_colmap_list
-from sfmloc.mapping import build, sfm
-from sfmloc.mapping.bundle import MapBundle
-from sfmloc.mapping.report import SPARSE_POINTS_PER_IMAGE, map_report
+from sfmloc.builder import build, sfm
+from sfmloc.map.bundle import MapBundle
+from sfmloc.map.report import SPARSE_POINTS_PER_IMAGE, map_report
 from sfmloc.transforms import Rigid3d
 
 

@@ -13,7 +13,7 @@ from sfmloc.cameras import Camera
 from sfmloc.engine import EngineConf, Localizer
 from sfmloc.engine.motion_filter import DecoupledPoseFilter, Se3PoseFilter, se3_exp, se3_log
 from sfmloc.eval.motion import scale_bundle
-from sfmloc.mapping.bundle import MapBundle
+from sfmloc.map.bundle import MapBundle
 from sfmloc.synth import make_trajectory
 from sfmloc.transforms import Rigid3d, pose_errors, rotmat_from_rotvec
 

@@ -15,7 +15,7 @@ from sfmloc.cameras import Camera
 from sfmloc.errors import InputError
 from sfmloc.eval.replay import replay
 from sfmloc.io.frames import FrameSource
-from sfmloc.mapping.bundle import MapBundle
+from sfmloc.map.bundle import MapBundle
 
 N = 24  # frames replayed per clock
 

@@ -16,7 +16,7 @@ import pytest
 from sfmloc.cameras import Camera
 from sfmloc.errors import BuildError, InputError
 from sfmloc.io.poses import read_poses, write_tum
-from sfmloc.mapping.video import VideoConf, extract_keyframes, interpolate_pose, read_pose_log
+from sfmloc.builder.video import VideoConf, extract_keyframes, interpolate_pose, read_pose_log
 from sfmloc.transforms import pose_errors, rotation_angle_deg
 
 W, H, N_FRAMES = 320, 240, 120
@@ -182,7 +182,7 @@ def test_a_map_built_from_an_encoded_video_localizes(walk, video, tmp_path):
     """sfmloc build --video --poses (the CLI, a subprocess): keyframes triangulated with their
     poses; the map localizes the video's own frames (decoded from the same lossy video)."""
     from sfmloc.engine import Localizer, Status
-    from sfmloc.mapping.bundle import MapBundle
+    from sfmloc.map.bundle import MapBundle
 
     root, frames, gt = walk
     cam = Camera.from_json(root / "camera.json")
@@ -270,9 +270,9 @@ def _similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np
 def test_a_map_built_from_a_video_without_poses(walk, video, tmp_path):
     """Images only: keyframes by image motion, full SfM; every keyframe registered and the
     camera centres equal to the true ones up to a similarity (2% of the path's extent)."""
-    from sfmloc.mapping.build import preset
-    from sfmloc.mapping.bundle import MapBundle
-    from sfmloc.mapping.video import build_from_video
+    from sfmloc.builder.build import preset
+    from sfmloc.map.bundle import MapBundle
+    from sfmloc.builder.video import build_from_video
 
     root, _, gt = walk
     path = build_from_video(

@@ -18,7 +18,7 @@ from sfmloc.engine import EngineConf, Localizer, Status, relocalize
 from sfmloc.engine.frame import to_working, working_scale
 from sfmloc.errors import BundleError
 from sfmloc.features.harris import detect_corners
-from sfmloc.mapping.bundle import MANIFEST, MANIFEST_SHA256, MapBundle
+from sfmloc.map.bundle import MANIFEST, MANIFEST_SHA256, MapBundle
 from sfmloc.transforms import pose_errors
 
 F640 = 525.0  # the world's focal length at 640x480

@@ -139,7 +139,7 @@ def write_suite_files(name: str, recs: dict[str, list[FrameRecord]], summary: di
 def suite_results(prep: Prepared, recs: dict[str, list[FrameRecord]], conf: BenchConf, out: Path,
                   sift_map_info: dict) -> dict:
     """Summaries, ratios and files of one localization suite."""
-    from ..mapping.bundle import MapBundle, read_manifest
+    from ..map.bundle import MapBundle, read_manifest
 
     idx, stride = peer_indices(prep, conf.peer_frames)
     man = read_manifest(prep.bundle_path)

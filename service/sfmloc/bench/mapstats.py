@@ -41,7 +41,7 @@ def probe(bundle: str, frames: list[str], camera: str, verify: bool = True) -> d
     pin_threads_runtime()
     from ..cameras import Camera
     from ..engine import Localizer
-    from ..mapping.bundle import MapBundle
+    from ..map.bundle import MapBundle
 
     cam = Camera.parse(camera)
     grays = [cv2.imread(f, cv2.IMREAD_GRAYSCALE) for f in frames]
@@ -73,7 +73,7 @@ def _fresh(bundle: Path, frames: list[Path], camera: str, verify: bool) -> dict[
 
 
 def map_stats(bundle: Path, frames: list[Path], camera: str) -> dict[str, Any]:
-    from ..mapping.bundle import read_manifest
+    from ..map.bundle import read_manifest
 
     m = read_manifest(bundle)
     size = sum(p.stat().st_size for p in bundle.iterdir() if p.is_file())

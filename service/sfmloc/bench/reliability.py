@@ -76,14 +76,14 @@ def prepare(work: Path, n_frames: int = 60, mapping_views: int = 40) -> World:
 
     from ..cameras import Camera
     from ..io.poses import read_poses
-    from ..mapping.bundle import MapBundle
+    from ..map.bundle import MapBundle
 
     work = Path(work)
     synth, maps_dir = work / "synth", work / "maps"
     if not (maps_dir / MAP / "manifest.json").exists():
         from ..io.colmap import read_model
-        from ..mapping.build import BuildConf, assemble
-        from ..mapping.bundle import write_bundle
+        from ..builder.build import BuildConf, assemble
+        from ..map.bundle import write_bundle
         from ..synth import preset
         from ..synth.main import run
 
@@ -644,7 +644,7 @@ def run_bundle(world: World, work: Path, per_file: int, cli_checks: int, seed: i
     others the first ``header_bytes`` of a .npy (the header the loader parses), the last byte
     and ``per_file`` random positions."""
     from ..errors import SfmlocError
-    from ..mapping.bundle import MapBundle, verify_bundle
+    from ..map.bundle import MapBundle, verify_bundle
 
     rng = random.Random(seed)
     copy = Path(work) / "mutated" / MAP

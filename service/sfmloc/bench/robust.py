@@ -284,7 +284,7 @@ class RobustData:
             sift = folder / "sift-map.npz"
 
             def build():
-                from ..mapping import build as builder
+                from ..builder import build as builder
 
                 model, names = robust_data.write_subset_model(data / "sparse", folder / "sparse", k)
                 log.info("robust: density %dx: %d of the mapping views", k, len(names))
@@ -326,7 +326,7 @@ class RobustData:
             name = f"robust-scale-{tag}"
 
             def build():
-                from ..mapping import build as builder
+                from ..builder import build as builder
                 from .sift_peer import SiftMap
 
                 model = robust_data.write_scaled_model(data / "sparse", folder / "sparse", s)
@@ -688,7 +688,7 @@ def run_row(
     """Both methods on one prepared row; its summary, targets, errors and timings. With
     ``files_dir``, each method's per-frame records go to ``frames-METHOD.json`` there (to see
     which frames were lost or wrong)."""
-    from ..mapping.bundle import MapBundle
+    from ..map.bundle import MapBundle
 
     t0 = time.perf_counter()
     idx = peer_frames(prep, n_peer)

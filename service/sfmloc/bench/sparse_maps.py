@@ -45,7 +45,7 @@ def prepare(name: str, work: Path, data: Path, min_track: int, synth_ours: str =
     map, from SIFT triangulated at the exact poses ("triangulated")."""
     from ..eval.groundtruth import load_groundtruth
     from ..io.frames import FrameSource
-    from ..mapping import build, sfm
+    from ..builder import build, sfm
     from .config import REDKITCHEN_CAMERA, REDKITCHEN_POSES
     from .sift_peer import SiftMap
 
@@ -67,7 +67,7 @@ def prepare(name: str, work: Path, data: Path, min_track: int, synth_ours: str =
             sconf = sfm.sfm_conf("default", keep_workdir=True, min_track_length=min_track, two_view_below=0)
             build.main(build.preset("default"), "map", mdir, images=data, poses=poses, camera=camera,
                        stride=stride, sfm_conf=sconf, workdir=sdir)
-            from ..mapping.bundle import MapBundle
+            from ..map.bundle import MapBundle
 
             ids = MapBundle(bundle, verify=False).array("point_ids")
             SiftMap.from_sfm_workdir(_kept(sdir), ids, sconf.model_dump()).save(sift_path)
@@ -139,7 +139,7 @@ def evaluate(prep: dict, conf, n_reloc: int, n_replay: int, sift: bool) -> dict:
     from ..engine import relocalize
     from ..eval.replay import replay
     from ..io.frames import FrameSource
-    from ..mapping.bundle import MapBundle
+    from ..map.bundle import MapBundle
     from .peers import decode_frames
     from .sift_peer import SiftLocalizer, SiftMap
 
@@ -209,8 +209,8 @@ def main(argv: list[str] | None = None) -> int:
         for mt, ov in runs:
             t0 = time.perf_counter()
             if mt == "auto":
-                from ..mapping.bundle import MapBundle
-                from ..mapping.sfm import SfmConf
+                from ..map.bundle import MapBundle
+                from ..builder.sfm import SfmConf
 
                 b3 = MapBundle(prepare(name, work, Path(a.data), 3, a.synth_ours)["bundle"], verify=False)
                 ppi = float(np.median(np.diff(b3.image_points_ptr)))

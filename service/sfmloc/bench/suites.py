@@ -63,7 +63,7 @@ class Prepared:
 
 
 def _sfm_conf():
-    from ..mapping.sfm import SfmConf
+    from ..builder.sfm import SfmConf
 
     # The front-end's defaults, with the work folder kept for the SIFT peer's map.
     return SfmConf(keep_workdir=True)
@@ -108,8 +108,8 @@ def build_known_poses_maps(name: str, images: Path, poses: Path, camera: Camera,
                            maps: Path, work: Path, sift_path: Path, progress: Progress) -> Path:
     """Our bundle ``maps/name`` from every ``stride``-th posed image (the builder's known-poses
     path) and the SIFT peer's map of the very same triangulated points; the bundle's path."""
-    from ..mapping import build
-    from ..mapping.bundle import MapBundle
+    from ..builder import build
+    from ..map.bundle import MapBundle
 
     sfm_dir = _fresh_dir(work / "sfm")
     sfm_conf = _sfm_conf()
@@ -174,7 +174,7 @@ def synth_conf(conf: BenchConf, kind: str):
 
 
 def prepare_synthetic(conf: BenchConf, work: Path, kind: str, progress: Progress) -> Prepared:
-    from ..mapping import build
+    from ..builder import build
     from ..synth.main import run as synth_run
 
     name = f"synthetic-{kind}"
@@ -214,7 +214,7 @@ def build_sift_map_of_model(model_dir: Path, images: Path, camera: Camera, work:
     """The SIFT peer's map: SIFT of the model's images triangulated at the model's exact poses."""
     from ..io.colmap import read_model
     from ..io.poses import write_colmap_list
-    from ..mapping import sfm
+    from ..builder import sfm
 
     model = read_model(model_dir)
     ims = sorted(model.images.values(), key=lambda im: im.name)
@@ -255,7 +255,7 @@ def run_suite(prep: Prepared, conf: BenchConf, sift_conf, progress: Progress,
     """Our engine on every frame (as a 30 Hz video), both peers on the strided frames."""
     from ..engine import EngineConf
     from ..eval.replay import replay
-    from ..mapping.bundle import MapBundle
+    from ..map.bundle import MapBundle
     from .peers import global_every_frame, run_peer, sift_peer
     from .sift_peer import SiftLocalizer
 

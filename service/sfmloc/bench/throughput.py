@@ -1,6 +1,6 @@
 """The ``throughput`` suite: N clients at camera rate against one real ``sfmloc serve``.
 
-Reuses the server benchmark's client run (``sfmloc.server.bench.bench_clients``, also behind
+Reuses the server benchmark's client run (``sfmloc.bench.transport.bench_clients``, also behind
 ``sfmloc bench-transport``): the server is a subprocess (``ServerProcess``: Zenoh on a free
 loopback port, multicast scouting off, process workers, one per core by default); each client
 has its own Zenoh session and streams redkitchen JPEGs at ``rate_hz`` from its own starting
@@ -58,7 +58,7 @@ def aggregate(clients: list[dict[str, Any]], rate_hz: float) -> dict[str, Any]:
 
 def run_throughput(work: Path, bundle: Path, frames_dir: Path, camera: str, clients: list[int], rate_hz: float,
                    duration_s: float, workers: int, progress=None) -> dict[str, Any]:
-    from ..server.bench import BenchInput, bench_clients
+    from ..bench.transport import BenchInput, bench_clients
 
     frames = sorted(p for p in Path(frames_dir).iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png"))
     if not frames:

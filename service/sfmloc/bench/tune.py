@@ -24,7 +24,7 @@ import numpy as np
 
 from ..eval.metrics import RECALL_POSITION_M, RECALL_ROTATION_DEG
 from ..io.frames import FrameSource
-from ..mapping.bundle import read_manifest
+from ..map.bundle import read_manifest
 from ..transforms import pose_errors
 from .sift_peer import SiftLocalizer, SiftMap, SiftPeerConf, build_index
 

@@ -46,7 +46,7 @@ class JobState(str, enum.Enum):
 
 @dataclass
 class BuildSpec:
-    """What to build: the arguments of ``sfmloc.mapping.build.main`` (paths on this machine)."""
+    """What to build: the arguments of ``sfmloc.builder.build.main`` (paths on this machine)."""
 
     name: str
     out_dir: str
@@ -61,7 +61,7 @@ class BuildSpec:
     config: dict[str, Any] = field(default_factory=dict)
 
     def validate(self) -> None:
-        from ..mapping.bundle import validate_name
+        from ..map.bundle import validate_name
 
         validate_name(self.name)
         if self.input_kind not in ("colmap", "posed_images", "images_only"):
@@ -138,9 +138,9 @@ def _child_main(spec_bytes: bytes, conn, cancel_event, workdir: str) -> None:
     try:
         from ..config import merge_presets
         from ..errors import BuildCancelled, BuildError
-        from ..mapping.build import main, preset
-        from ..mapping.bundle import read_manifest
-        from ..mapping.sfm import sfm_conf
+        from ..builder.build import main, preset
+        from ..map.bundle import read_manifest
+        from ..builder.sfm import sfm_conf
 
         spec = BuildSpec(**msgpack.unpackb(spec_bytes))
         conf = preset(spec.preset)

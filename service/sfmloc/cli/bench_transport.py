@@ -61,6 +61,6 @@ def run(args: argparse.Namespace) -> int:
     # before numpy loads (the benchmark module imports it).
     for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ[var] = "1"
-    from ..server.bench import run as bench
+    from ..bench.transport import run as bench
 
     return bench(args)

@@ -91,10 +91,10 @@ def run(args: argparse.Namespace) -> int:
 
     from ..config import merge_presets, read_config_file
     from ..errors import InputError
-    from ..mapping.build import main, preset
-    from ..mapping.bundle import MapBundle
-    from ..mapping.report import report_lines
-    from ..mapping.sfm import sfm_conf
+    from ..builder.build import main, preset
+    from ..map.bundle import MapBundle
+    from ..map.report import report_lines
+    from ..builder.sfm import sfm_conf
     from .progress import ProgressPrinter
 
     if args.colmap and args.poses:
@@ -164,7 +164,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _build_video(args: argparse.Namespace, conf, sconf, bar):
-    from ..mapping.video import VideoConf, build_from_video
+    from ..builder.video import VideoConf, build_from_video
 
     changes = {
         k: v for k, v in (

@@ -76,8 +76,8 @@ def run(args: argparse.Namespace) -> int:
     from sfmloc_client import CameraSpec, FrameStreamer, LocalizationClient, PoseSubscriber, SourceFrame, make_zenoh_config
 
     from ..io.poses import read_poses
-    from ..mapping.build import BuildConf
-    from ..mapping.build import main as build_map
+    from ..builder.build import BuildConf
+    from ..builder.build import main as build_map
     from ..server.app import ServerProcess
     from ..synth import preset
     from ..synth.main import run as synth_run

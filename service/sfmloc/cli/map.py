@@ -32,7 +32,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def _load(path: str):
     from ..errors import BundleError
-    from ..mapping.bundle import MapBundle, verify_bundle
+    from ..map.bundle import MapBundle, verify_bundle
 
     problems = verify_bundle(path)
     if problems:
@@ -49,7 +49,7 @@ def run_inspect(args: argparse.Namespace) -> int:
         for p in problems:
             print(f"CORRUPT: {p}")
         return 1
-    from ..mapping.report import report_lines
+    from ..map.report import report_lines
 
     s = bundle.summary()
     s["report"] = bundle.report()

@@ -114,7 +114,7 @@ def run(args: argparse.Namespace) -> int:
     from ..eval.replay import replay
     from ..io.frames import FrameSource
     from ..io.poses import write_tum, write_tum_covariances
-    from ..mapping.bundle import MapBundle
+    from ..map.bundle import MapBundle
     from .progress import ProgressPrinter
 
     camera = Camera.parse(args.camera)

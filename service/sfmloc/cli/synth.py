@@ -29,7 +29,7 @@ conventions:
   quaternions   COLMAP files qw qx qy qz, TUM qx qy qz qw
 
 Same options and seed give byte-identical images and model. Render speed only (no disk
-I/O): python -m sfmloc.synth.bench.
+I/O): python -m sfmloc.bench.synth.
 """
 
 

@@ -34,7 +34,7 @@ import numpy as np
 from ..cameras import Camera
 from ..features.daisy import DaisyExtractor
 from ..features.harris import detect_corners
-from ..mapping.bundle import MapBundle
+from ..map.bundle import MapBundle
 from ..transforms import Rigid3d, rotation_angle_deg
 from .config import EngineConf
 from .frame import to_gray, to_working, working_scale

@@ -21,8 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..mapping.bundle import MapBundle
-from ..mapping.index import bitmap_from_ranges
+from ..map.bundle import MapBundle
+from ..map.index import bitmap_from_ranges
 from .config import EngineConf
 from .pose import reprojection_errors
 from ..transforms import Rigid3d

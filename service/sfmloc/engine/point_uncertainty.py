@@ -21,7 +21,7 @@ import weakref
 
 import numpy as np
 
-from ..mapping.bundle import MapBundle
+from ..map.bundle import MapBundle
 
 # Pixel noise of the mapping views' keypoints (the map points' triangulation inputs).
 MAP_NOISE_PX = 1.0

@@ -24,7 +24,7 @@ from sfmloc.cameras import Camera
 from sfmloc.engine import EngineConf, Localizer
 from sfmloc.eval.groundtruth import load_groundtruth
 from sfmloc.io.frames import FrameSource
-from sfmloc.mapping.bundle import MapBundle
+from sfmloc.map.bundle import MapBundle
 from sfmloc.transforms import Rigid3d, pose_errors
 
 

@@ -12,7 +12,7 @@ from collections.abc import Callable
 from ..cameras import Camera
 from ..engine import EngineConf, Localizer
 from ..io.frames import FrameSource
-from ..mapping.bundle import MapBundle
+from ..map.bundle import MapBundle
 from ..transforms import Rigid3d
 from .metrics import FrameRecord, attach_errors
 

@@ -22,7 +22,7 @@ from typing import Any
 import os
 
 from ..errors import BundleError, MapNotFoundError, MessageError, PermissionDeniedError
-from ..mapping.bundle import MANIFEST, read_manifest, validate_name, verify_bundle
+from ..map.bundle import MANIFEST, read_manifest, validate_name, verify_bundle
 from .logfmt import event
 from .workers import WorkerPool
 

@@ -137,7 +137,7 @@ class _Worker:
 
     # ------------------------------------------------------------------ maps
     def op_load(self, m: dict[str, Any], data: bytes | None) -> None:
-        from ..mapping.bundle import MapBundle
+        from ..map.bundle import MapBundle
 
         t0 = time.perf_counter()
         try:

@@ -20,7 +20,7 @@ Modules (one stage each)::
     trajectory  make_trajectory(kind, n_frames, seed, scene) -> [cam_from_world], mapping_views
     model       build_reconstruction(scene, camera, poses, names) -> Reconstruction
     main        main(conf, out) -> Path: the data set layout of ``sfmloc synth``
-    bench       python -m sfmloc.synth.bench: render speed
+    bench       python -m sfmloc.bench.synth: render speed
 
 Typical use::
 

@@ -165,7 +165,7 @@ class Manifest(BaseModel):
     timings_s: dict[str, float] = {}
     counts: Counts
     index: dict[str, Any] = {}
-    # Points per image, track lengths, coverage, sparse-map warnings (``mapping.report``).
+    # Points per image, track lengths, coverage, sparse-map warnings (``map.report``).
     report: dict[str, Any] = {}
     cameras: list[dict[str, Any]]
     image_names: list[str]

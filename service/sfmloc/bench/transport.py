@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from .app import ServerProcess
+from ..server.app import ServerProcess
 
 
 def _free_port() -> int:
@@ -144,7 +144,7 @@ def bench_overhead(inp: BenchInput, n: int) -> dict[str, Any]:
 
     from ..cameras import Camera
     from ..engine import Localizer
-    from ..mapping.bundle import MapBundle
+    from ..map.bundle import MapBundle
 
     cv2.setNumThreads(1)
     faiss.omp_set_num_threads(1)
@@ -420,7 +420,7 @@ def _engine_job(maps: str, map_name: str, frames: list[str], camera: str, start_
 
     from ..cameras import Camera
     from ..engine import Localizer
-    from ..mapping.bundle import MapBundle
+    from ..map.bundle import MapBundle
 
     cv2.setNumThreads(1)
     faiss.omp_set_num_threads(1)

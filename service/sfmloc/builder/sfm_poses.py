@@ -25,7 +25,7 @@ Matching pose entries to files:
 Images without a pose are skipped with a warning; poses without an image are ignored.
 
 Measured on 100 redkitchen frames (every 10th of seq-01, 640x480, 2 cores): see the table
-above ``SFM_PRESETS`` in ``sfm_common``; reproduce with ``python -m sfmloc.mapping.sfm_bench``.
+above ``SFM_PRESETS`` in ``sfm_common``; reproduce with ``python -m sfmloc.bench.sfm``.
 Pairs: k=3 gave 5% fewer points and shorter tracks (5.3), k=8 3% more points at 2x the
 matching time; min track 2 adds ~7k two-view points whose depth is the least reliable (on the
 synthetic scenes their surface error is ~1.5x that of longer tracks).

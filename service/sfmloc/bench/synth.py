@@ -1,4 +1,4 @@
-"""Render-speed benchmark: ``python -m sfmloc.synth.bench [--frames N] [--trajectory KIND] ...``.
+"""Render-speed benchmark: ``python -m sfmloc.bench.synth [--frames N] [--trajectory KIND] ...``.
 
 Times ``render`` (colour, depth, noise; no disk I/O) along a trajectory and prints frames/s
 (wall clock) and the CPU time per frame summed over OpenCV's threads, which other load on
@@ -16,10 +16,10 @@ import numpy as np
 def bench(kind: str = "walk", frames: int = 300, seed: int = 0, width: int = 640, height: int = 480,
           **render_kw) -> dict:
     from ..cameras import Camera
-    from .config import RenderConf
-    from .renderer import prepare, render
-    from .scene import Scene
-    from .trajectory import make_trajectory
+    from ..synth.config import RenderConf
+    from ..synth.renderer import prepare, render
+    from ..synth.scene import Scene
+    from ..synth.trajectory import make_trajectory
 
     scene = Scene.room(seed)
     f = 525.0 * width / 640.0
@@ -42,7 +42,7 @@ def bench(kind: str = "walk", frames: int = 300, seed: int = 0, width: int = 640
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m sfmloc.synth.bench", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="python -m sfmloc.bench.synth", description=__doc__.splitlines()[0])
     p.add_argument("--trajectory", default="all", choices=["all", "walk", "flight", "orbit"])
     p.add_argument("--frames", type=int, default=300)
     p.add_argument("--seed", type=int, default=0)

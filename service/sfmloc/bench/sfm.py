@@ -1,4 +1,4 @@
-"""Time the SfM front-end on real frames: ``python -m sfmloc.mapping.sfm_bench [options]``.
+"""Time the SfM front-end on real frames: ``python -m sfmloc.bench.sfm [options]``.
 
 Defaults: the 7-Scenes redkitchen seq-01 frames in ``../shared/data`` (beside the repo),
 every 10th frame (0, 10, ..., 990), both paths (known poses from ``pgt_sfm_seq01.txt``, then
@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io.poses import name_stem, read_poses
-from . import sfm
+from ..builder import sfm
 
 DEFAULT_DATA = Path(__file__).resolve().parents[3].parent / "shared" / "data" / "redkitchen-seq01"
 DEFAULT_CAMERA = "PINHOLE 640 480 525.505 525.505 320 240"
@@ -70,7 +70,7 @@ def run_one(mode: str, data: Path, names: list[str], conf: sfm.SfmConf, camera: 
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m sfmloc.mapping.sfm_bench", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog="python -m sfmloc.bench.sfm", description=__doc__.split("\n")[0])
     p.add_argument("--data", type=Path, default=DEFAULT_DATA, help="image folder (default: redkitchen seq-01)")
     p.add_argument("--poses", type=Path, default=None, help="pose file (default: DATA/pgt_sfm_seq01.txt)")
     p.add_argument("--camera", default=DEFAULT_CAMERA, help="camera spec or camera.json ('none': guess, images only)")

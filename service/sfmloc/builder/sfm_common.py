@@ -3,7 +3,7 @@ pycolmap feature/matching stages, progress, cancellation and the work directory.
 
 The three inputs (``sfm_colmap``, ``sfm_poses``, ``sfm_images``) build on this; ``sfm`` is the
 public facade. pycolmap's own (glog) chatter is turned down to warnings while we run and our
-messages go to the ``sfmloc.mapping.sfm`` logger.
+messages go to the ``sfmloc.builder.sfm`` logger.
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ from ..cameras import Camera
 from ..config import StrictModel, merge_presets
 from ..errors import BuildCancelled, BuildError, ConfigError, ImageDecodeError, InputError
 
-log = logging.getLogger("sfmloc.mapping.sfm")
+log = logging.getLogger("sfmloc.builder.sfm")
 
 Progress = Callable[[str, float, str], None]
 CancelCheck = Callable[[], bool]

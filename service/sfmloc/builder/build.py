@@ -35,15 +35,15 @@ from ..features.daisy import RAW_DIM, DaisyExtractor
 from ..features.pyramid import level_scales
 from ..io.colmap import Reconstruction
 from ..transforms import Rigid3d
-from .bundle import MapData, validate_name, write_bundle
+from ..map.bundle import MapData, validate_name, write_bundle
 from .clusters import ClusterConf, cluster_images
 from .desc_store import RawStore
 from .descriptors import DescriptorConf, extract_image_descriptors
-from .index import DescriptorIndex, IndexConf
-from .keypoint_scales import keypoint_scales
+from ..map.index import DescriptorIndex, IndexConf
+from ..map.keypoint_scales import keypoint_scales
 from .pca import project_store
 from .refine import RefineConf, refine_points
-from .report import map_report
+from ..map.report import map_report
 
 log = logging.getLogger(__name__)
 
