@@ -90,7 +90,7 @@ def fake_records(n: int = 50, method: str = OURS, seed: int = 0) -> list[FrameRe
         if i == 30:
             est, status = None, "LOST"
         r = FrameRecord(i, f"frame-{i:06d}.png", i / 30.0, status, matching, 10.0 + i % 5 + (90 if i == 0 else 0),
-                        50, 900, 500, 120, timings_ms={"keypoints": 5.0, "track": 3.0, "total": 10.0}, cpu_ms=9.0)
+                        50, 900, 500, 120, timings_ms={"detect": 5.0, "track": 3.0, "total": 10.0}, cpu_ms=9.0)
         r.cam_from_world, r.gt_cam_from_world = est, gt
         if est is not None:
             r.position_error_m, r.rotation_error_deg = pose_errors(est, gt)
@@ -145,8 +145,12 @@ def test_suite_summary_report_figures_and_readme_on_fabricated_records(tmp_path)
     assert {t["target"].split(":")[0] for t in results["targets"]} == {"redkitchen"}
     text = report.summary_text(results)
     assert "redkitchen" in text and "pycolmap-sift" in text and "target" in text
+    assert "Where our time goes, redkitchen" in text
     md = report.write_report(results, tmp_path).read_text()
     assert "fig-per-frame.png" in md and "| 8 |" in md
+    # the per-stage table: detect 5 ms in every frame of 10, track 3 (50% and 30%)
+    assert "| detect | 5.00 | 50% | 50 | 5.0 | 5.0 | 5.0 | 5.0 |" in md
+    assert "| track | 3.00 | 30% | 50 |" in md
     block = readme.render_block(results)
     assert block.startswith(readme.BEGIN) and block.endswith(readme.END) and "pycolmap-sift" in block
 

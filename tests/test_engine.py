@@ -22,6 +22,7 @@ from sfmloc.engine.pose import (
     project,
     reprojection_errors,
 )
+from sfmloc.engine.timing import STAGES
 from sfmloc.engine.track_table import TrackTable
 from sfmloc.engine.tracker import extract_keypoints, track_2d
 from sfmloc.errors import ImageDecodeError
@@ -294,9 +295,17 @@ def test_localizer_end_to_end_on_a_synthetic_video(world, bundle, cam):
     for r in res:
         assert r.detected >= r.tracked >= 0 and r.tracked_3d <= max(r.tracked, r.tracked_3d)
         assert "total" in r.timings_ms and r.latency_ms > 0
+        # every lap is a named stage
+        assert set(r.timings_ms) - {"total"} <= set(STAGES) and {"detect", "track", "filter"} <= set(r.timings_ms)
         if r.filtered_cam_from_world is not None:
             dp, _ = pose_errors(r.filtered_cam_from_world, r.cam_from_world)
             assert dp < 0.2
+    # the stages account for the frames' time (over all frames: a preemption after the last lap
+    # of one frame does not decide it)
+    laps = sum(v for r in res for k, v in r.timings_ms.items() if k != "total")
+    assert 0.97 * sum(r.latency_ms for r in res) <= laps <= sum(r.latency_ms for r in res)
+    assert all("reloc" in r.timings_ms for r in res if r.matching == "global")
+    assert all({"match", "reloc"} & set(r.timings_ms) for r in res if r.matching == "guided")
 
 
 def test_localizer_on_100_real_frames(redkitchen, tmp_path_factory):

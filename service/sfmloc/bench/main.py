@@ -104,7 +104,7 @@ def summarize_suite(recs: dict[str, list[FrameRecord]], peer_idx: list[int], str
     peer_stages = {}
     for m in peers:
         st = stage_times(recs[m])
-        peer_stages[m] = {k: v for k, v in st.items() if k in ("keypoints", "global", "extract", "match", "pose")}
+        peer_stages[m] = {k: v["mean"] for k, v in st.items() if k != "total"}
     return {
         "kind": "localization", "scene_scale": scene_scale,
         "peer_frames": {"count": len(peer_idx), "stride": stride},

@@ -8,6 +8,7 @@ import math
 from pathlib import Path
 
 from ..eval.metrics import RECALL_POSITION_FRACTION, FrameRecord
+from ..eval.stages import STAGE_COLUMNS, stage_rows
 from ..io.poses import write_tum
 from .config import OURS, PEERS, SUITE_HELP
 
@@ -157,6 +158,12 @@ def summary_text(results: dict) -> str:
         parts += ["Table 2 (our engine, all frames of each suite)", text_table(TABLE2_HEADER, table2_rows(results)), "",
                   "Side by side on the same frames", text_table(COMPARE_HEADER, compare_rows(results)), ""]
         parts += ratio_lines(results) + [""]
+        for name in localization_suites(results):
+            st = results["suites"][name].get("stages_ms", {})
+            if st and all(isinstance(v, dict) for v in st.values()):
+                parts += [f"Where our time goes, {name} (ms; mean/frame over all frames, the other "
+                          "columns over the frames the stage ran in)",
+                          text_table(list(STAGE_COLUMNS), stage_rows(st)), ""]
     from .robust_report import ROBUST_HEADER, robust_rows
 
     if robust_rows(results):
@@ -225,11 +232,7 @@ def _suite_section(name: str, s: dict) -> list[str]:
            for m in (OURS, *PEERS)]
     lines += ["", "Median pose inliers per localized frame (on the same frames): "
               + ", ".join(f"{m} {f1(v, 0)}" for m, v in inl) + "."]
-    st = s.get("stages_ms", {})
-    if st:
-        tot = sum(st.values())
-        lines += ["", "Where our time goes (mean ms per frame over all frames): " + ", ".join(
-            f"{k} {v:.1f} ({100 * v / tot:.0f}%)" for k, v in st.items()) + "."]
+    lines += stage_lines(s.get("stages_ms", {}))
     for m, st in s.get("peer_stages_ms", {}).items():
         if st:
             lines.append(f"{m}: " + ", ".join(f"{k} {v:.1f}" for k, v in st.items()) + " ms per frame.")
@@ -244,6 +247,19 @@ def _suite_section(name: str, s: dict) -> list[str]:
         lines.append("Trajectories (TUM, world_from_cam, estimate and ground truth at the same timestamps; "
                      "`evo_ape tum GT EST -a`): " + ", ".join(f"`{p}`" for p in f["tum"]) + ".")
     return lines + [""]
+
+
+def stage_lines(st: dict) -> list[str]:
+    """Where our time goes: the per-stage table (``eval.stages``); results before it kept only
+    the mean per stage."""
+    if not st:
+        return []
+    if all(isinstance(v, dict) for v in st.values()):
+        return ["", "Where our time goes (ms; mean/frame over all frames, the other columns over the "
+                "frames the stage ran in):", "", markdown_table(list(STAGE_COLUMNS), stage_rows(st))]
+    tot = sum(st.values())
+    return ["", "Where our time goes (mean ms per frame over all frames): " + ", ".join(
+        f"{k} {v:.1f} ({100 * v / tot:.0f}%)" for k, v in st.items()) + "."]
 
 
 def write_report(results: dict, out: Path) -> Path:

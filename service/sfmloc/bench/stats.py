@@ -9,9 +9,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from ..eval.metrics import FrameRecord, absolute_trajectory_error, is_pose, summarize
-
-# Our engine's per-stage timers (``FrameResult.timings_ms``), in pipeline order.
-STAGES = ("filter", "keypoints", "track", "pose", "guided", "global")
+from ..eval.stages import stage_stats
 
 
 def _ms(x: Sequence[float]) -> tuple[float, float]:
@@ -67,14 +65,10 @@ def method_summary(records: list[FrameRecord], scene_scale: float) -> dict:
     }
 
 
-def stage_times(records: list[FrameRecord]) -> dict[str, float]:
-    """Mean ms per frame spent in each stage (over all frames; a stage absent in a frame
-    counts as 0), and the share of the total."""
-    n = max(1, len(records))
-    keys = [k for k in STAGES if any(k in r.timings_ms for r in records)]
-    keys += sorted({k for r in records for k in r.timings_ms} - set(keys) - {"total"})
-    out = {k: sum(r.timings_ms.get(k, 0.0) for r in records) / n for k in keys}
-    return out
+def stage_times(records: list[FrameRecord]) -> dict[str, dict[str, float]]:
+    """Per stage of the engine's timers (``eval.stages.stage_stats``): mean ms per frame over
+    all frames, share of the total, and mean / p95 / p99 / max over the frames it ran in."""
+    return stage_stats([r.timings_ms for r in records])
 
 
 def ratios(ours: dict, peer: dict) -> dict:

@@ -13,8 +13,11 @@ truth (median, mean; rotation error is the angle of R_est R_gt^T), wrong poses (
 but LOST with a position error over 5% of the scene scale, the map's median camera-to-point
 depth, or a rotation error over 10 degrees), the share of frames within 5 cm / 5 degrees and
 within 2.5% of the scene scale / 5 degrees, per-frame latency (mean, std,
-p50, p95, p99, max; the engine's time per frame, decoding excluded), and how many frames ran
-guided or global matching.
+p50, p95, p99, max; the engine's time per frame, decoding excluded), how many frames ran
+guided or global matching, and where the time goes: per stage (detect: Harris + BRIEF; track:
+TRACK-2D; match: guided matching; pose: pose estimation and its covariance; filter: the motion
+filter and input checks; reloc: recovery around the prediction and global matching) the mean
+per frame, its share, and the mean, p95, p99 and max over the frames it ran in.
 
 FRAMES is a folder whose .jpg/.png images are taken in name order (other files are ignored) or
 a video file. Ground truth is a COLMAP list ('name qw qx qy qz tx ty tz [f]', cam_from_world,
@@ -112,6 +115,7 @@ def run(args: argparse.Namespace) -> int:
     from ..eval.groundtruth import load_groundtruth
     from ..eval.metrics import absolute_trajectory_error, summarize
     from ..eval.replay import replay
+    from ..eval.stages import format_stage_table, stage_stats
     from ..io.frames import FrameSource
     from ..io.poses import write_tum, write_tum_covariances
     from ..map.bundle import MapBundle
@@ -137,6 +141,10 @@ def run(args: argparse.Namespace) -> int:
     summary = summarize(records, bundle.scene_scale)
     summary["ate_m"] = absolute_trajectory_error(records)
     print(format_summary(summary, decode_ms))
+    stages = stage_stats([r.timings_ms for r in records])
+    summary["stages_ms"] = stages
+    print("time per stage (ms; mean/frame over all frames, the others over the frames it ran in)")
+    print(format_stage_table(stages))
     summary["clock"] = source.clock
     summary["clock_fps"] = source.nominal_fps
     gaps = source.gaps_over(conf.max_frame_gap_s)

@@ -27,7 +27,6 @@ Stored one-to-many hypotheses of tracked keypoints are re-verified against every
 from __future__ import annotations
 
 import logging
-import time
 
 import numpy as np
 
@@ -42,27 +41,12 @@ from .matching import global_matching, guided_matching, verify_hypotheses
 from .motion_filter import make_pose_filter
 from .point_uncertainty import PointUncertainty
 from .pose import PoseEstimate, estimate_pose, estimate_pose_one_to_many, pose_covariance, project
+from .timing import StageTimer
 from .track_table import TrackTable
 from .tracker import Keypoints, extract_keypoints, free_candidates, map_subpixel, track_2d
 from .types import FrameResult, Status
 
 log = logging.getLogger(__name__)
-
-
-class _Timer:
-    def __init__(self) -> None:
-        self.t0 = time.perf_counter()
-        self.last = self.t0
-        self.ms: dict[str, float] = {}
-
-    def lap(self, name: str) -> None:
-        now = time.perf_counter()
-        self.ms[name] = self.ms.get(name, 0.0) + (now - self.last) * 1e3
-        self.last = now
-
-    def total(self) -> dict[str, float]:
-        self.ms["total"] = (time.perf_counter() - self.t0) * 1e3
-        return self.ms
 
 
 def _working_scale(camera: Camera, bundle: MapBundle, conf: EngineConf) -> float:
@@ -184,7 +168,7 @@ class Localizer:
     # ------------------------------------------------------------------ algorithm 1
     def localize(self, frame: np.ndarray, stamp: float) -> FrameResult:
         c = self.conf
-        timer = _Timer()
+        timer = StageTimer()
         gray = to_gray(frame, self.input_camera)
         if self.last_stamp is not None and (stamp - self.last_stamp > c.max_frame_gap_s or stamp < self.last_stamp):
             self.reset()  # a long gap (or time going back): motion and tracks are stale
@@ -199,7 +183,7 @@ class Localizer:
         kps = extract_keypoints(gray, thr, c, self.subpixel)
         if kps.max_response > 0:
             self.prev_max_response = kps.max_response
-        timer.lap("keypoints")
+        timer.lap("detect")
 
         # TRACK-2D
         T = self.table
@@ -236,19 +220,19 @@ class Localizer:
                     prepared = self.extractor.prepare(gray)
                     self._guided(prepared, pending, est.cam_from_world)
                     matching = "guided"
-                    timer.lap("guided")
+                    timer.lap("match")
         if est is None and pred is not None and c.prior_recovery and len(self.scope_points):
             prepared = prepared if prepared is not None else self.extractor.prepare(gray)
             est = self._recover(prepared, kps, pred)
             if est is not None:
                 matching = "guided"
-            timer.lap("guided")
+            timer.lap("reloc")  # the whole frame around the prediction: a relocalization
         if est is None:
             prepared = prepared if prepared is not None else self.extractor.prepare(gray)
             est = self._global(prepared, kps)
             matching = "global"
             relocalized = est is not None
-            timer.lap("global")
+            timer.lap("reloc")
         T = self.table  # recovery and global matching restart the table
         c2_ids = set(T.track_id[T.point >= 0].tolist())
         if len(c2_ids) > c.kappa2 and c2_ids != c1_ids and not relocalized:
@@ -262,6 +246,7 @@ class Localizer:
         cov = None if est is None else _covariance(est, self.K, self.bundle, c)
         sd = np.inf if cov is None else _position_sd(cov) / self.bundle.scene_scale
         verified = est is not None and _verified(est, sd, c)
+        timer.lap("pose")
         message = ""
         recent = self.last_posed_stamp is not None and stamp - self.last_posed_stamp <= c.max_frame_gap_s
         if est is not None and relocalized and not verified and pred is not None and recent:
@@ -472,7 +457,7 @@ def relocalize(
     matches are verified against it, as in guided matching; without a pose from the scoped
     search it falls back to global matching."""
     conf = conf or EngineConf()
-    timer = _Timer()
+    timer = StageTimer()
     gray = to_gray(image, camera)
     # A fine image is described at about the map's resolution (see ``Localizer``); the pose
     # does not depend on the scaling of the intrinsics.
@@ -483,7 +468,7 @@ def relocalize(
         gray, rel_threshold=conf.gamma, max_corners=conf.global_max_keypoints, border=conf.mu // 2,
         subpixel=map_subpixel(conf, bundle.manifest.params),
     )
-    timer.lap("keypoints")
+    timer.lap("detect")
     result = FrameResult(Status.LOST, 0.0, detected=len(corners), matching="global")
     if len(corners) < conf.min_inliers:
         result.timings_ms = timer.total()
@@ -500,10 +485,11 @@ def relocalize(
     if est is None:
         res = _pose_from_global(desc, xy_u, bundle, K, conf)
         est = None if res is None else res[0]
-    timer.lap("global")
+    timer.lap("reloc")
     if est is not None:
         cov = _covariance(est, K, bundle, conf)
         sd = _position_sd(cov) / bundle.scene_scale
+        timer.lap("pose")
         result.inliers = est.num_inliers
         if sd > conf.max_position_sd:
             result.message = (f"pose withheld: centre sd {sd * 100:.1f}% of the scene scale "
