@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test bench bench-publish proto lint clean
+.PHONY: demo test lint bench bench-publish proto clean
 
 $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -15,8 +15,13 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/sfmloc demo
 
-test: $(STAMP)
+# The guards run first (seconds), then the suite.
+test: lint
 	$(BIN)/python -m pytest -q
+
+# Style and likely bugs: ruff at the configured width with import order (pyproject [tool.ruff]).
+lint: $(STAMP)
+	$(BIN)/ruff check .
 
 # All suites (redkitchen needs ../shared/data); prints the summary and its wall time.
 bench: $(STAMP)

@@ -3,12 +3,10 @@ roles (a test per rule), TLS, mutual TLS, and the configuration errors that guar
 
 from __future__ import annotations
 
-import json
 import shutil
 import subprocess
 from pathlib import Path
 
-import grpc
 import pytest
 from server_helpers import build_world, camera, running_server, server_config, zenoh_endpoint
 from sfmloc_client import LocalizationClient, RemoteError

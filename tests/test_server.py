@@ -687,7 +687,7 @@ def test_a_worker_killed_under_streams_answers_every_frame(world, z, srv):
         assert f1.wait_for_server(30) and f2.wait_for_server(30)
         for f, cid in streams:  # open both sessions
             f.publish(data=world.png[0], encoding="png", seq=0, stamp_ns=0)
-            assert wait_until(lambda: any(p.seq == 0 for p in got[cid]), 60)
+            assert wait_until(lambda cid=cid: any(p.seq == 0 for p in got[cid]), 60)
         workers = {s.worker for s in srv.server.sessions.list("room") if s.client_id in ("k1", "k2")}
         victim = pool.workers[sorted(workers)[0]]
         restarts = pool.restarts
@@ -697,7 +697,7 @@ def test_a_worker_killed_under_streams_answers_every_frame(world, z, srv):
             if k == 5:
                 os.kill(victim.pid, signal.SIGKILL)
             for _, cid in streams:
-                assert wait_until(lambda: any(p.seq == k for p in got[cid]), 60), (cid, k)
+                assert wait_until(lambda k=k, cid=cid: any(p.seq == k for p in got[cid]), 60), (cid, k)
         moved = {s.worker for s in srv.server.sessions.list("room") if s.client_id in ("k1", "k2")}
     for cid in ("k1", "k2"):
         seqs = sorted({p.seq for p in got[cid]})

@@ -111,7 +111,7 @@ def test_max_pending_keeps_the_newest_frames(world):
     from sfmloc_client import FrameStreamer, PoseSubscriber
 
     ep = zenoh_endpoint()
-    with running_server(server_config(world, ep, max_pending=3)) as srv, client_zenoh(ep) as z:
+    with running_server(server_config(world, ep, max_pending=3)), client_zenoh(ep) as z:
         got: list = []
         n = 30
         with PoseSubscriber(z, "room", "burst3", callback=got.append) as poses, \

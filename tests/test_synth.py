@@ -317,12 +317,12 @@ def test_no_occluded_point_in_a_track_and_visible_points_present(scene, camera, 
         k = conf.occlusion_margin_px
         grid = np.array([[di, dj] for dj in range(-k, k + 1) for di in range(-k, k + 1)]) + 0.5
 
-        def first_faces(idx):
+        def first_faces(idx, xy=xy, grid=grid, T=T):
             px = (np.floor(xy[idx])[:, None, :] + grid[None]).reshape(-1, 2)
             d = np.column_stack([(px - camera.K[:2, 2]) / camera.K[0, 0], np.ones(len(px))]) @ T.rotation
             return raycast_independent(scene, T.center, d, np.inf)[0].reshape(len(idx), -1)
 
-        def sizes_of(idx):
+        def sizes_of(idx, xy=xy, T=T):
             faces = [scene.faces[i] for i in F.face[idx]]
             u = np.stack([f.u_axis / np.linalg.norm(f.u_axis) for f in faces])
             v = np.stack([f.v_axis / np.linalg.norm(f.v_axis) for f in faces])

@@ -198,7 +198,7 @@ def main(argv: list[str] | None = None) -> int:
     for kv in a.set:
         k, v = kv.split("=", 1)
         over[k] = json.loads(v) if v[:1] in "0123456789-[{tf" else v
-    conf = EngineConf(**over)
+    EngineConf(**over)  # a bad --set fails here, before the long run
     work = Path(a.work)
     runs = [(a.min_track_length, over)]
     if a.before_after:

@@ -102,12 +102,13 @@ def bench_wire(inp: BenchInput, n: int = 300) -> dict[str, Any]:
             got: dict[int, float] = {}
             ev = threading.Event()
 
-            def on_env(s: Any) -> None:
+            # got/ev bound now: a callback must not see a later iteration's objects
+            def on_env(s: Any, got: dict[int, float] = got, ev: threading.Event = ev) -> None:
                 f = decode_frame(s.payload.to_bytes())
                 got[f.seq] = time.perf_counter()
                 ev.set()
 
-            def on_att(s: Any) -> None:
+            def on_att(s: Any, got: dict[int, float] = got, ev: threading.Event = ev) -> None:
                 h = msgpack.unpackb(s.attachment.to_bytes())
                 CameraSpec.from_wire(h["camera"])
                 s.payload.to_bytes()
@@ -169,7 +170,8 @@ def bench_overhead(inp: BenchInput, n: int) -> dict[str, Any]:
             recv: dict[int, tuple[float, Any]] = {}
             cond = threading.Condition()
 
-            def on_pose(p: Any) -> None:
+            def on_pose(p: Any, recv: dict[int, tuple[float, Any]] = recv,
+                        cond: threading.Condition = cond) -> None:
                 with cond:
                     recv[p.seq] = (time.perf_counter(), p)
                     cond.notify_all()
@@ -181,7 +183,7 @@ def bench_overhead(inp: BenchInput, n: int) -> dict[str, Any]:
                     t0 = time.perf_counter()
                     fs.publish(data=data, encoding=enc, seq=k, stamp_ns=int(k * 1e9 / 30))
                     with cond:
-                        cond.wait_for(lambda: k in recv, 10)
+                        cond.wait_for(lambda k=k, recv=recv: k in recv, 10)
                     if k not in recv or k < 5:
                         continue
                     t1, p = recv[k]

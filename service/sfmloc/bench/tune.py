@@ -95,7 +95,7 @@ def tune_sift(prep, conf, progress: Callable[[str, float, str], None] | None = N
         loc = SiftLocalizer(sift_map, prep.camera, base.model_copy(update={"descriptors": mode, "search": "exact"}),
                             {(mode, "exact", base.hnsw_m): exact})
         searched, t_search = [], []
-        for xy, desc in feats:
+        for _xy, desc in feats:
             t0 = time.perf_counter()
             searched.append(loc.search(desc, base.k))
             t_search.append((time.perf_counter() - t0) * 1e3)
@@ -103,7 +103,7 @@ def tune_sift(prep, conf, progress: Callable[[str, float, str], None] | None = N
             if progress:
                 progress("tune-sift", done / total, f"{mode}: exact search")
         per = {c: {"err": [], "t_pose": [], "loc": 0} for c in combos if c[0] == mode}
-        for (xy, desc), (dist, nn), i in zip(feats, searched, frames):
+        for (xy, _desc), (dist, nn), i in zip(feats, searched, frames):
             gt = prep.groundtruth[i]
             for c in per:
                 _, ratio, max_err = c
@@ -130,7 +130,7 @@ def tune_sift(prep, conf, progress: Callable[[str, float, str], None] | None = N
         for ef in conf.tune_ef:
             hnsw.hnsw.efSearch = ef
             agree, nq, t = 0, 0, []
-            for (xy, desc), (_d, nn) in zip(feats, searched):
+            for (_xy, desc), (_d, nn) in zip(feats, searched):
                 t0 = time.perf_counter()
                 _dh, nh = hnsw.search(np.ascontiguousarray(desc, np.float32), base.k)
                 t.append((time.perf_counter() - t0) * 1e3)

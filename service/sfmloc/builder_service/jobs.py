@@ -137,7 +137,7 @@ def _child_main(spec_bytes: bytes, conn, cancel_event, workdir: str) -> None:
 
     try:
         from ..config import merge_presets
-        from ..errors import BuildCancelled, BuildError
+        from ..errors import BuildCancelled
         from ..builder.build import main, preset
         from ..map.bundle import read_manifest
         from ..builder.sfm import sfm_conf

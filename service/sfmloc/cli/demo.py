@@ -4,6 +4,10 @@ from __future__ import annotations
 
 import argparse
 import textwrap
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # numpy loads lazily: `sfmloc --help` stays fast
+    import numpy as np
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -184,7 +188,8 @@ def run(args: argparse.Namespace) -> int:
         eng = np.array([p.engine_ms for p in got if p.error is None]) if got else np.array([np.nan])
         n = len(frames)
         print()
-        print("sfmloc demo: synthetic room, 640x480 walk at %g Hz, one Zenoh client, %s frames" % (args.fps, args.encoding))
+        print(f"sfmloc demo: synthetic room, 640x480 walk at {args.fps:g} Hz, one Zenoh client, "
+              f"{args.encoding} frames")
         processed = [p for p in got if p.error is None]
         errored = len(got) - len(processed)
         stale = stats.sent - len(got)

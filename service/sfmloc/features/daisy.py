@@ -211,8 +211,8 @@ def _pooling_matrix(p: DaisyParams) -> np.ndarray:
     gx, gy = np.meshgrid(c, c)
     pts = np.stack([gx.ravel(), gy.ravel()], axis=1)
     centers = [(0.0, 0.0, p.sigmas[0])]
-    for ring, (radius, sigma, phase) in enumerate(
-        ((p.ring_radii[0], p.sigmas[1], 0.0), (p.ring_radii[1], p.sigmas[2], np.pi / 6))
+    for radius, sigma, phase in (
+        (p.ring_radii[0], p.sigmas[1], 0.0), (p.ring_radii[1], p.sigmas[2], np.pi / 6)
     ):
         for k in range(6):
             a = phase + k * np.pi / 3

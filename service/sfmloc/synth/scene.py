@@ -324,7 +324,7 @@ def room_layout(seed: int, conf: SceneConf | None = None) -> RoomLayout:
                 placed.append(Box(f"table_leg{k}", "table_leg", (float(c[0]), float(c[1])),
                                   (0.05, 0.05, 0.72), yaw))
         elif kind == "shelf":
-            def make_shelf() -> Box:
+            def make_shelf(n: int = n) -> Box:
                 sx, sy, sz = rng.uniform(1.2, 1.8), 0.3, rng.uniform(1.6, 2.0)
                 x = rng.uniform(0.2 + sx / 2, L - 0.2 - sx / 2)
                 if long_wall_y == 0:
@@ -332,7 +332,7 @@ def room_layout(seed: int, conf: SceneConf | None = None) -> RoomLayout:
                 return Box(f"box{n}", "shelf", (x, W - 0.03 - sy / 2), (sx, sy, sz), np.pi)
             try_place(make_shelf)
         elif kind in ("cabinet", "tall"):
-            def make_cab(kind=kind) -> Box:
+            def make_cab(kind: str = kind, n: int = n) -> Box:
                 if kind == "cabinet":
                     sx, sy, sz = rng.uniform(0.8, 1.2), rng.uniform(0.35, 0.5), rng.uniform(0.8, 1.1)
                 else:
@@ -344,7 +344,7 @@ def room_layout(seed: int, conf: SceneConf | None = None) -> RoomLayout:
                 return Box(f"box{n}", "cabinet", (L - 0.03 - sy / 2, y), (sx, sy, sz), np.pi / 2)
             try_place(make_cab)
         elif kind == "crate":
-            def make_crate() -> Box:
+            def make_crate(n: int = n) -> Box:
                 sx, sy, sz = rng.uniform(0.45, 0.8), rng.uniform(0.45, 0.8), rng.uniform(0.4, 0.9)
                 corner = rng.integers(4)
                 cx = rng.uniform(0.45, 1.3) if corner % 2 == 0 else L - rng.uniform(0.45, 1.3)
