@@ -24,7 +24,7 @@ from sfmloc.errors import BuildCancelled, BuildError, CameraModelError, ImageDec
 from sfmloc.io.colmap import Reconstruction, read_model, write_model
 from sfmloc.io.poses import read_poses, write_colmap_list, write_tum
 from sfmloc.builder import sfm
-from sfmloc.builder.sfm_common import opencv_sift
+from sfmloc.builder.sfm.stages import opencv_sift
 from sfmloc.transforms import Rigid3d
 
 CAM = Camera.pinhole(320, 240, 250.0, 250.0, 160.0, 120.0)
@@ -649,7 +649,7 @@ def test_known_poses_on_redkitchen_frames(redkitchen):
 def test_token_cancelled_reads_the_installed_pycolmap_token():
     """pycolmap 4.2 made ``is_cancelled`` a property; calling it raised TypeError and turned
     every failure of an SfM stage (and Ctrl-C) into that TypeError."""
-    from sfmloc.builder.sfm_common import token_cancelled
+    from sfmloc.builder.sfm.run import token_cancelled
 
     token = pycolmap.CancellationToken()
     assert token_cancelled(token) is False
@@ -661,7 +661,7 @@ def test_token_cancelled_reads_the_installed_pycolmap_token():
 def test_a_failing_pycolmap_stage_names_its_error(tmp_path, polling):
     """A real pycolmap call that fails (no such database folder) comes back as a BuildError
     naming the stage and pycolmap's own reason, with or without a cancel poller."""
-    from sfmloc.builder.sfm_common import Reporter
+    from sfmloc.builder.sfm.run import Reporter
 
     images = tmp_path / "images"
     images.mkdir()

@@ -6,7 +6,7 @@ point keeps the SIFT descriptors of its track's observations, read from the COLM
 the front-end leaves in its kept work folder (``SiftMap.from_sfm_workdir``).
 
 Per frame (``SiftLocalizer.localize``): SIFT with the extractor and settings the map was built
-with (``sfmloc.builder.sfm_common.opencv_sift``: OpenCV's SIFT in COLMAP's keypoint convention,
+with (``sfmloc.builder.sfm.stages.opencv_sift``: OpenCV's SIFT in COLMAP's keypoint convention,
 RootSIFT), nearest neighbours among the map's descriptors (exact, or faiss HNSW at a recall
 measured against exact search), Lowe's ratio test against the nearest *other* 3D point, and
 ``pycolmap.estimate_and_refine_absolute_pose`` (P3P LO-RANSAC + refinement). A pose with
@@ -124,7 +124,7 @@ class SiftLocalizer:
     ) -> None:
         import pycolmap
 
-        from ..builder.sfm_common import to_pycolmap_camera
+        from ..builder.sfm.stages import to_pycolmap_camera
 
         self.map = sift_map
         self.conf = conf or SiftPeerConf()
@@ -151,7 +151,7 @@ class SiftLocalizer:
 
     # The three stages, separately callable (tuning reuses extraction and search across settings).
     def extract(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        from ..builder.sfm_common import opencv_sift
+        from ..builder.sfm.stages import opencv_sift
 
         kp, desc = opencv_sift(gray, self.sfm_conf)
         return kp[:, :2].astype(np.float64), desc
@@ -170,7 +170,7 @@ class SiftLocalizer:
     def pose(self, xy: np.ndarray, X: np.ndarray, max_error: float | None = None) -> tuple[Rigid3d | None, int]:
         import pycolmap
 
-        from ..builder.sfm_convert import rigid3d_from_pycolmap
+        from ..builder.sfm.convert import rigid3d_from_pycolmap
 
         if len(xy) < max(4, self.conf.min_inliers):
             return None, 0

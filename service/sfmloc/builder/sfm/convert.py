@@ -14,10 +14,10 @@ from collections.abc import Iterable
 import numpy as np
 import pycolmap
 
-from ..cameras import CAMERA_MODELS, Camera
-from ..errors import CameraModelError
-from ..io.colmap import INVALID_POINT3D_ID, Image, Point3D, Reconstruction
-from ..transforms import Rigid3d
+from ...cameras import CAMERA_MODELS, Camera
+from ...errors import CameraModelError
+from ...io.colmap import INVALID_POINT3D_ID, Image, Point3D, Reconstruction
+from ...transforms import Rigid3d
 
 _PYCOLMAP_INVALID = int(pycolmap.INVALID_POINT3D_ID)
 

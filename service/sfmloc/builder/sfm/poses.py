@@ -25,7 +25,7 @@ Matching pose entries to files:
 Images without a pose are skipped with a warning; poses without an image are ignored.
 
 Measured on 100 redkitchen frames (every 10th of seq-01, 640x480, 2 cores): see the table
-above ``SFM_PRESETS`` in ``sfm_common``; reproduce with ``python -m sfmloc.bench.sfm``.
+above ``SFM_PRESETS`` in ``sfm.conf``; reproduce with ``python -m sfmloc.bench.sfm``.
 Pairs: k=3 gave 5% fewer points and shorter tracks (5.3), k=8 3% more points at 2x the
 matching time; min track 2 adds ~7k two-view points whose depth is the least reliable (on the
 synthetic scenes their surface error is ~1.5x that of longer tracks).
@@ -34,6 +34,7 @@ synthetic scenes their surface error is ~1.5x that of longer tracks).
 from __future__ import annotations
 
 import bisect
+import logging
 import math
 import shutil
 from collections.abc import Sequence
@@ -42,29 +43,23 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from ..cameras import Camera
-from ..errors import BuildError, InputError
-from ..io.colmap import Reconstruction
-from ..io.poses import PoseList, name_stem, read_poses
-from ..transforms import Rigid3d
-from .sfm_common import (
-    CancelCheck,
-    Progress,
-    Reporter,
-    SfmConf,
-    check_images,
-    check_names,
-    extract_features,
-    incremental_options,
-    list_images,
-    log,
-    match_pairs,
-    quiet_colmap,
-    select_images,
-    to_pycolmap_camera,
-    work_directory,
+from ...cameras import Camera
+from ...errors import BuildError, InputError
+from ...io.colmap import Reconstruction
+from ...io.poses import PoseList, name_stem, read_poses
+from ...transforms import Rigid3d
+from .conf import SfmConf, incremental_options
+from .convert import (
+    filter_points,
+    reconstruction_from_pycolmap,
+    reconstruction_stats,
+    rigid3d_to_pycolmap,
 )
-from .sfm_convert import filter_points, reconstruction_from_pycolmap, reconstruction_stats, rigid3d_to_pycolmap
+from .inputs import check_images, check_names, list_images, select_images
+from .run import CancelCheck, Progress, Reporter, quiet_colmap, work_directory
+from .stages import extract_features, match_pairs, to_pycolmap_camera
+
+log = logging.getLogger(__name__)
 
 MAX_TIME_DIFF_S = 0.02  # TUM RGB-D's associate.py default
 

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..errors import InputError
-from ..io.colmap import Reconstruction, read_model
-from .sfm_common import CancelCheck, Progress, Reporter, SfmConf, check_images, list_images, quiet_colmap
+from ...errors import InputError
+from ...io.colmap import Reconstruction, read_model
+from .conf import SfmConf
+from .inputs import check_images, list_images
+from .run import CancelCheck, Progress, Reporter, quiet_colmap
 
 _SHOW = 5
 

@@ -21,27 +21,16 @@ from pathlib import Path
 
 import pycolmap
 
-from ..cameras import Camera
-from ..errors import BuildError, ImageDecodeError
-from ..io.colmap import Reconstruction
-from .sfm_common import (
-    CancelCheck,
-    Progress,
-    Reporter,
-    SfmConf,
-    check_images,
-    check_names,
-    extract_features,
-    incremental_options,
-    list_images,
-    log,
-    match_pairs,
-    quiet_colmap,
-    select_images,
-    to_pycolmap_camera,
-    work_directory,
-)
-from .sfm_convert import filter_points, reconstruction_from_pycolmap, reconstruction_stats
+from ...cameras import Camera
+from ...errors import BuildError, ImageDecodeError
+from ...io.colmap import Reconstruction
+from .conf import SfmConf, incremental_options
+from .convert import filter_points, reconstruction_from_pycolmap, reconstruction_stats
+from .inputs import check_images, check_names, list_images, select_images
+from .run import CancelCheck, Progress, Reporter, quiet_colmap, work_directory
+from .stages import extract_features, match_pairs, to_pycolmap_camera
+
+log = logging.getLogger(__name__)
 
 
 def sequential_pairs(names: Sequence[str], overlap: int, quadratic: bool) -> list[tuple[str, str]]:

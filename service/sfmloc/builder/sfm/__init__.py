@@ -1,12 +1,12 @@
 """The SfM front-end of the map builder: three inputs, one COLMAP-style reconstruction.
 
 - ``load_colmap_input(model_dir, image_dir)``: an existing COLMAP model, checked against its
-  images (``sfm_colmap``).
+  images (``colmap``).
 - ``triangulate_known_poses(image_dir, poses_file, camera)``: images with known poses (COLMAP
   list or TUM); SIFT, pose-guided pairs, matching and point triangulation with pycolmap, the
-  poses kept exactly: a metric map in the poses' frame (``sfm_poses``).
+  poses kept exactly: a metric map in the poses' frame (``poses``).
 - ``reconstruct_images_only(image_dir, camera=None)``: full incremental SfM with pycolmap; the
-  map's frame and scale are arbitrary (``sfm_images``).
+  map's frame and scale are arbitrary (``images``).
 
 SIFT comes from OpenCV by default (about 40% of pycolmap's SIFT CPU time for as many and as
 accurate points; keypoints converted to COLMAP's pixel convention, descriptors to RootSIFT) or
@@ -27,9 +27,9 @@ when given) removed afterwards unless ``keep_workdir``.
 
 from __future__ import annotations
 
-from .sfm_colmap import load_colmap_input
-from .sfm_common import SFM_PRESETS, CancelCheck, Progress, SfmConf, sfm_conf
-from .sfm_convert import (
+from .colmap import load_colmap_input
+from .conf import SFM_PRESETS, SfmConf, sfm_conf
+from .convert import (
     filter_points,
     reconstruction_from_pycolmap,
     reconstruction_stats,
@@ -37,8 +37,9 @@ from .sfm_convert import (
     rigid3d_from_pycolmap,
     rigid3d_to_pycolmap,
 )
-from .sfm_images import exhaustive_pairs, reconstruct_images_only, sequential_pairs
-from .sfm_poses import match_poses_to_images, pairs_from_poses, triangulate_known_poses
+from .images import exhaustive_pairs, reconstruct_images_only, sequential_pairs
+from .poses import match_poses_to_images, pairs_from_poses, triangulate_known_poses
+from .run import CancelCheck, Progress
 
 __all__ = [
     "SFM_PRESETS",
