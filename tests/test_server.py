@@ -418,7 +418,7 @@ def test_workers_share_one_mapped_index_and_all_see_a_replacement_under_load(wor
     pool = srv.server.pool
     probe = pool.load_map("probe", 10**6, str(old_dir), "")  # each worker: how it holds the index
     pool.drop_map("probe", 10**6)
-    assert probe["index_in_place"] is True
+    assert probe.index_in_place is True
     old = grpc_client.load_map(str(old_dir), "shared")
     pids = [h.pid for h in pool.workers]  # stream workers and the relocalization lane
     assert len(pids) == pool.n + pool.reloc_workers == 3

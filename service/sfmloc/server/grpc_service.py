@@ -39,7 +39,8 @@ from ..errors import ConfigError, InputError, MapNotFoundError, MessageError, Pe
 from .auth import AuthInterceptor, caller
 from .interceptors import MalformedRequestInterceptor
 from .logfmt import event
-from .sessions import pose_from_result, validate_camera
+from .protocol import Relocalize, camera_tuple, pose_message
+from .sessions import validate_camera
 from .status import abort, error_info
 
 if TYPE_CHECKING:
@@ -109,16 +110,13 @@ class LocalizationService(pb_grpc.LocalizationServicer):
         enc, data = image_from_pb(request.image, cam)
         prior = None
         if request.HasField("prior_cam_from_world"):
-            p = transform_from_pb(request.prior_cam_from_world, True)
-            assert p is not None
-            prior = [list(p.quat_xyzw), list(p.t)]
-        msg = {"map": entry.name, "gen": entry.generation, "camera": [cam.model, cam.width, cam.height, list(cam.params)],
-               "enc": enc, "prior": prior}
-        result = await asyncio.wrap_future(srv.pool.relocalize(msg, bytes(data)))
-        res = result["res"]
-        pose = pose_from_result({"seq": None, "res": res}, map_name=entry.name, build_id=entry.build_id,
-                                server_id=srv.server_id, latency_ms=(time.perf_counter() - t0) * 1e3)
-        srv.metrics.relocalize.inc(entry.name, res["status"])
+            prior = transform_from_pb(request.prior_cam_from_world, True)
+        msg = Relocalize(0, entry.name, entry.generation, camera_tuple(cam), enc, prior, bytes(data))
+        result = await asyncio.wrap_future(srv.pool.relocalize(msg))
+        pose = pose_message(result.pose, result.error, seq=None, stamp_ns=0, map_name=entry.name,
+                            build_id=entry.build_id, server_id=srv.server_id,
+                            latency_ms=(time.perf_counter() - t0) * 1e3)
+        srv.metrics.relocalize.inc(entry.name, pose.status)
         srv.metrics.relocalize_latency.observe(entry.name, value=pose.latency_ms / 1e3)
         return pb.RelocalizeResponse(pose=pose_to_estimate_pb(pose))
 

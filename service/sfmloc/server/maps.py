@@ -121,9 +121,8 @@ class MapRegistry:
             summary = self.pool.load_map(name, gen, str(path), manifest.build_id)
             entry = MapEntry(
                 name=name, path=str(path), build_id=manifest.build_id, generation=gen,
-                points=int(summary["points"]), descriptors=int(summary["descriptors"]),
-                images=int(summary["images"]), clusters=int(summary["clusters"]),
-                memory_mb=float(summary["memory_mb"]),
+                points=summary.points, descriptors=summary.descriptors,
+                images=summary.images, clusters=summary.clusters, memory_mb=summary.memory_mb,
                 loaded_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
             )
             with self._lock:

@@ -24,14 +24,15 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
-from sfmloc_client.wire import ErrorInfo, Frame, PoseMessage, Transform
+from sfmloc_client.wire import ErrorInfo, Frame, PoseMessage
 
 from ..cameras import Camera
 from ..errors import OverloadError, PermissionDeniedError
 from .logfmt import event
 from .maps import MapRegistry
 from .metrics import ServerMetrics
-from .status import error_from_wire, error_info
+from .protocol import LocalizeFrame, Result, camera_tuple, pose_message
+from .status import error_info
 from .workers import WorkerPool
 
 log = logging.getLogger(__name__)
@@ -202,21 +203,20 @@ class SessionManager:
                 self._send(s, self.error_pose(s.map, s.client_id, frame.seq, frame.stamp_ns, UnavailableError(
                     "no engine worker is running (one is restarting); retry")))
                 return
-        c = frame.camera
-        msg = {"sid": s.sid, "map": s.map, "gen": gen, "seq": frame.seq, "stamp_ns": frame.stamp_ns,
-               "camera": [c.model, c.width, c.height, list(c.params)], "enc": frame.encoding}
-        self.pool.submit_frame(s.worker, msg, bytes(frame.data))
+        self.pool.submit_frame(s.worker, LocalizeFrame(
+            s.sid, s.map, gen, frame.seq, frame.stamp_ns, camera_tuple(frame.camera), frame.encoding,
+            bytes(frame.data)))
 
     # ------------------------------------------------------------------ results
-    def on_result(self, msg: dict[str, Any]) -> None:
+    def on_result(self, msg: Result) -> None:
         """A worker finished a frame (called on the pool's pump thread)."""
         now = time.perf_counter()
         nxt: _Pending | None = None
         with self._lock:
-            s = self._by_sid.get(msg["sid"])
+            s = self._by_sid.get(msg.sid)
             if s is None:
                 return  # closed meanwhile
-            t_recv = s.inflight_t_recv.pop(msg["seq"], now)
+            t_recv = s.inflight_t_recv.pop(msg.seq, now)
             s.busy = False
             if s.pending:
                 if self.draining or s.closed:
@@ -231,10 +231,10 @@ class SessionManager:
             s.processed += 1
             s.last_latency_ms = latency_ms
             s.latency_sum_ms += latency_ms
-            res = msg.get("res")
+            res = msg.pose
             if res is not None:
-                s.last_status = res["status"]
-                s.localized += res["status"] != "LOST"
+                s.last_status = res.status
+                s.localized += res.status != "LOST"
             else:
                 s.errors += 1
                 s.last_status = "LOST"
@@ -249,8 +249,8 @@ class SessionManager:
                 self._dispatch(s, nxt.frame, entry.generation)
         pose = self._pose(s, msg, latency_ms, dropped)
         if res is not None:
-            self.metrics.frames_done.inc(s.map, res["status"])
-            self.metrics.engine_latency.observe(s.map, value=res["engine_ms"] / 1e3)
+            self.metrics.frames_done.inc(s.map, res.status)
+            self.metrics.engine_latency.observe(s.map, value=res.engine_ms / 1e3)
         else:
             self.metrics.frame_errors.inc(s.map, pose.error.code if pose.error else "INTERNAL")
         self.metrics.latency.observe(s.map, value=latency_ms / 1e3)
@@ -272,11 +272,12 @@ class SessionManager:
         except Exception as exc:  # noqa: BLE001 - a broken sink ends that session only
             event(log, logging.WARNING, "sink_failed", map=s.map, client=s.client_id, error=str(exc))
 
-    def _pose(self, s: Session, msg: dict[str, Any], latency_ms: float, dropped: int) -> PoseMessage:
+    def _pose(self, s: Session, msg: Result, latency_ms: float, dropped: int) -> PoseMessage:
         entry = self.registry.find(s.map)
-        build_id = entry.build_id if entry is not None and entry.generation == msg.get("gen") else ""
-        return pose_from_result(msg, map_name=s.map, client_id=s.client_id, build_id=build_id,
-                                server_id=self.server_id, latency_ms=latency_ms, dropped=dropped)
+        build_id = entry.build_id if entry is not None and entry.generation == msg.gen else ""
+        return pose_message(msg.pose, msg.error, seq=msg.seq, stamp_ns=msg.stamp_ns, map_name=s.map,
+                            client_id=s.client_id, build_id=build_id, server_id=self.server_id,
+                            latency_ms=latency_ms, dropped=dropped)
 
     def error_pose(self, map_name: str, client_id: str, seq: int | None, stamp_ns: int, exc: BaseException,
                    dropped: int = 0) -> PoseMessage:
@@ -438,36 +439,6 @@ class SessionManager:
 
     def __len__(self) -> int:
         return len(self._by_sid)
-
-
-def pose_from_result(
-    msg: dict[str, Any], *, map_name: str, client_id: str = "", build_id: str = "", server_id: str = "",
-    latency_ms: float = 0.0, dropped: int = 0,
-) -> PoseMessage:
-    """A worker's result (or error) for one frame or image as a ``PoseMessage``."""
-    p = PoseMessage(
-        seq=msg.get("seq"), stamp_ns=msg.get("stamp_ns", 0), status="LOST", latency_ms=latency_ms, dropped=dropped,
-        map=map_name, client_id=client_id, build_id=build_id, server_id=server_id,
-    )
-    res = msg.get("res")
-    if res is None:
-        p.error = error_info(error_from_wire(msg.get("error") or {}))
-        p.message = p.error.message
-        return p
-
-    def tf(v: list[float] | None) -> Transform | None:
-        return None if v is None else Transform(tuple(v[:4]), tuple(v[4:]))  # type: ignore[arg-type]
-
-    p.status = res["status"]
-    p.cam_from_world, p.world_from_cam = tf(res["cfw"]), tf(res["wfc"])
-    p.filtered_cam_from_world, p.filtered_world_from_cam = tf(res["fcfw"]), tf(res["fwfc"])
-    p.inliers = res["inliers"]
-    p.engine_ms = res["engine_ms"]
-    p.counts = {"detected": res["detected"], "tracked": res["tracked"], "tracked_3d": res["tracked_3d"]}
-    p.matching = res["matching"]
-    p.message = res["message"]
-    p.covariance = None if res.get("cov") is None else tuple(res["cov"])
-    return p
 
 
 def validate_camera(cam: Any, max_pixels: int) -> Camera:

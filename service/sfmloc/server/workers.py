@@ -11,18 +11,14 @@ serializes those across threads; measured with ``sfmloc bench-transport --only e
 (numbers in ``app.py``). ``worker_kind="thread"`` exists for that comparison only.
 
 A worker process is a fresh interpreter (``python -m sfmloc.server.workers``) holding one end
-of a socket pair. Messages are msgpack, framed by ``multiprocessing.connection.Connection``
-(``send_bytes``/``recv_bytes``); frame bytes follow their header as a second message. Nothing
-is pickled anywhere (no ``multiprocessing`` queues, which pickle, and no spawn arguments).
-
-Protocol (server -> worker): ``load`` (name, gen, path), ``drop`` (name, gen), ``frame`` (sid,
-map, gen, seq, stamp, camera, encoding; + data), ``reloc`` (req, map, gen, camera, encoding,
-prior; + data), ``reset`` (sid), ``close`` (sid), ``stop``. Worker -> server: ``ready``,
-``loaded`` (req, summary | error), ``result`` (sid, seq, res | error), ``reloc_result``.
+of a socket pair. The messages are the dataclasses of ``protocol.py`` (msgpack arrays framed by
+``multiprocessing.connection.Connection``; frame bytes follow their header as a second frame).
+Nothing is pickled anywhere (no ``multiprocessing`` queues, which pickle, and no spawn arguments).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import logging
 import os
@@ -39,25 +35,15 @@ from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from typing import Any
 
-import msgpack
-
 from ..errors import BundleError, OverloadError, UnavailableError
+from . import protocol as P
 from .logfmt import event
-from .status import error_from_wire, error_to_wire
 
 log = logging.getLogger(__name__)
 
 SOCKET_BUFFER = 4 * 1024 * 1024  # per direction: a few raw frames fit in one write
 # One thread per worker for BLAS/OpenMP: in the worker's environment before numpy loads.
 THREAD_ENV = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS")
-
-
-def _pack(obj: Any) -> bytes:
-    return msgpack.packb(obj, use_bin_type=True)
-
-
-def _unpack(raw: bytes) -> Any:
-    return msgpack.unpackb(raw, raw=False)
 
 
 # ============================================================================ worker side
@@ -100,7 +86,7 @@ def worker_main(conn: Any, index: int, engine_conf_json: str, log_level: int, lo
 class _SessionState:
     localizer: Any
     map_key: tuple[str, int]
-    camera_key: tuple
+    camera_key: P.CameraTuple
 
 
 class _Worker:
@@ -112,143 +98,152 @@ class _Worker:
         self.conf = EngineConf.model_validate_json(engine_conf_json)
         self.bundles: dict[tuple[str, int], Any] = {}
         self.sessions: dict[int, _SessionState] = {}
-        self._cameras: dict[tuple, Any] = {}
+        self._cameras: dict[P.CameraTuple, Any] = {}
 
-    def send(self, msg: dict[str, Any]) -> None:
-        self.conn.send_bytes(_pack(msg))
+    def send(self, msg: P.Message) -> None:
+        P.TO_SERVER.send(self.conn, msg)
 
     def run(self) -> None:
-        self.send({"op": "ready", "index": self.index, "pid": os.getpid()})
+        self.send(P.Ready(self.index, os.getpid()))
+        handlers: dict[type, Callable[[Any], None]] = {
+            P.Load: self.on_load, P.Drop: self.on_drop, P.LocalizeFrame: self.on_frame,
+            P.Relocalize: self.on_relocalize, P.Reset: self.on_reset, P.Close: self.on_close,
+        }
         while True:
             try:
-                msg = _unpack(self.conn.recv_bytes())
-                data = self.conn.recv_bytes() if msg.get("has_data") else None
+                msg = P.TO_WORKER.recv(self.conn)
             except (EOFError, OSError):
                 return  # the server is gone
-            op = msg.get("op")
-            if op == "stop":
+            if isinstance(msg, P.Stop):
                 return
             try:
-                getattr(self, f"op_{op}")(msg, data)
+                handlers[type(msg)](msg)
             except (EOFError, OSError, BrokenPipeError):
                 return
             except Exception:  # noqa: BLE001 - a bug in one handler must not end the worker
-                log.exception("worker %d: %s failed", self.index, op)
+                log.exception("worker %d: %s failed", self.index, msg.OP)
 
     # ------------------------------------------------------------------ maps
-    def op_load(self, m: dict[str, Any], data: bytes | None) -> None:
+    def on_load(self, m: P.Load) -> None:
         from ..map.bundle import MapBundle
 
         t0 = time.perf_counter()
         try:
             # The server verified the checksums once; here only the structure is checked.
-            b = MapBundle(m["path"], verify=False)
-            if m.get("build_id") and b.build_id != m["build_id"]:
+            b = MapBundle(m.path, verify=False)
+            if m.build_id and b.build_id != m.build_id:
                 raise BundleError(
-                    f"map bundle {m['path']} changed while loading (build {b.build_id}, expected {m['build_id']}); retry"
+                    f"map bundle {m.path} changed while loading (build {b.build_id}, "
+                    f"expected {m.build_id}); retry"
                 )
             _warm_up(b, self.conf)
-            self.bundles[(m["name"], m["gen"])] = b
+            self.bundles[(m.name, m.gen)] = b
             s = b.summary()
-            summary = {k: s[k] for k in ("points", "descriptors", "images", "clusters", "memory_mb", "build_id")}
             # The index reads the bundle's mapped file in place: every worker shares one copy.
-            summary["index_in_place"] = b.index.shared_buffer is not None
-            self.send({"op": "loaded", "req": m["req"], "summary": summary, "ms": (time.perf_counter() - t0) * 1e3})
+            summary = P.MapSummary(
+                points=int(s["points"]), descriptors=int(s["descriptors"]), images=int(s["images"]),
+                clusters=int(s["clusters"]), memory_mb=float(s["memory_mb"]),
+                build_id=str(s["build_id"]), index_in_place=b.index.shared_buffer is not None,
+            )
+            self.send(P.Loaded(m.req, summary, None, (time.perf_counter() - t0) * 1e3))
         except Exception as exc:  # noqa: BLE001
-            self.send({"op": "loaded", "req": m["req"], "error": error_to_wire(exc)})
+            self.send(P.Loaded(m.req, None, P.WorkerError.of(exc), (time.perf_counter() - t0) * 1e3))
 
-    def op_drop(self, m: dict[str, Any], data: bytes | None) -> None:
-        key = (m["name"], m["gen"])
+    def on_drop(self, m: P.Drop) -> None:
+        key = (m.name, m.gen)
         self.bundles.pop(key, None)
         for sid in [s for s, st in self.sessions.items() if st.map_key == key]:
             del self.sessions[sid]  # its next frame (on the new generation) starts afresh
 
     # ------------------------------------------------------------------ sessions
-    def _camera(self, c: list[Any]) -> Any:
+    def _camera(self, c: P.CameraTuple) -> Any:
         from ..cameras import Camera
 
-        key = (c[0], c[1], c[2], tuple(c[3]))
-        cam = self._cameras.get(key)
+        cam = self._cameras.get(c)
         if cam is None:
             cam = Camera(c[0], c[1], c[2], list(c[3]))
             if len(self._cameras) > 64:
                 self._cameras.clear()
-            self._cameras[key] = cam
+            self._cameras[c] = cam
         return cam
 
-    def op_frame(self, m: dict[str, Any], data: bytes | None) -> None:
+    def _bundle(self, name: str, gen: int) -> Any:
+        from ..errors import MapNotFoundError
+
+        bundle = self.bundles.get((name, gen))
+        if bundle is None:
+            raise MapNotFoundError(f"map {name!r} is not loaded (it was unloaded or replaced)")
+        return bundle
+
+    def on_frame(self, m: P.LocalizeFrame) -> None:
         from sfmloc_client.images import decode_image
 
         from ..engine import Localizer
-        from ..errors import MapNotFoundError, SfmlocError
 
         t0 = time.perf_counter()
-        sid = m["sid"]
-        out: dict[str, Any] = {"op": "result", "sid": sid, "seq": m["seq"], "stamp_ns": m["stamp_ns"], "gen": m["gen"]}
+        pose: P.PoseResult | None = None
+        error: P.WorkerError | None = None
+        decode_ms = 0.0
         try:
-            key = (m["map"], m["gen"])
-            bundle = self.bundles.get(key)
-            if bundle is None:
-                raise MapNotFoundError(f"map {m['map']!r} is not loaded (it was unloaded or replaced)")
-            cam = self._camera(m["camera"])
-            ckey = (cam.model, cam.width, cam.height, tuple(cam.params.tolist()))
-            st = self.sessions.get(sid)
-            if st is None or st.map_key != key or st.camera_key != ckey:
+            key = (m.map, m.gen)
+            bundle = self._bundle(m.map, m.gen)
+            cam = self._camera(m.camera)
+            st = self.sessions.get(m.sid)
+            if st is None or st.map_key != key or st.camera_key != m.camera:
                 # New session, a replaced map or another camera: a fresh Localizer (relocalizes).
-                st = _SessionState(Localizer(bundle, cam, self.conf), key, ckey)
-                self.sessions[sid] = st
-            img = decode_image(m["enc"], data or b"", cam.width, cam.height)
-            out["decode_ms"] = (time.perf_counter() - t0) * 1e3
-            out["res"] = result_to_wire(st.localizer.localize(img, m["stamp_ns"] * 1e-9))
+                st = _SessionState(Localizer(bundle, cam, self.conf), key, m.camera)
+                self.sessions[m.sid] = st
+            img = decode_image(m.encoding, m.data, cam.width, cam.height)
+            decode_ms = (time.perf_counter() - t0) * 1e3
+            pose = P.PoseResult.of(st.localizer.localize(img, m.stamp_ns * 1e-9))
         except Exception as exc:  # noqa: BLE001 - reported to the client, never fatal
-            from sfmloc_client.errors import WireError
+            if not _expected(exc):
+                log.exception("worker %d: frame %s of session %d failed", self.index, m.seq, m.sid)
+                self.sessions.pop(m.sid, None)  # do not keep state an exception may have corrupted
+            error = P.WorkerError.of(exc)
+        self.send(P.Result(m.sid, m.seq, m.stamp_ns, m.gen, pose, error, decode_ms,
+                           (time.perf_counter() - t0) * 1e3))
 
-            if not isinstance(exc, (SfmlocError, WireError)):
-                log.exception("worker %d: frame %s of session %d failed", self.index, m.get("seq"), sid)
-                self.sessions.pop(sid, None)  # do not keep state an exception may have corrupted
-            out["error"] = error_to_wire(exc)
-        out["worker_ms"] = (time.perf_counter() - t0) * 1e3
-        self.send(out)
-
-    def op_reset(self, m: dict[str, Any], data: bytes | None) -> None:
-        st = self.sessions.get(m["sid"])
+    def on_reset(self, m: P.Reset) -> None:
+        st = self.sessions.get(m.sid)
         if st is not None:
             st.localizer.reset()
 
-    def op_close(self, m: dict[str, Any], data: bytes | None) -> None:
-        self.sessions.pop(m["sid"], None)
+    def on_close(self, m: P.Close) -> None:
+        self.sessions.pop(m.sid, None)
 
     # ------------------------------------------------------------------ single images
-    def op_reloc(self, m: dict[str, Any], data: bytes | None) -> None:
+    def on_relocalize(self, m: P.Relocalize) -> None:
         from sfmloc_client.images import decode_image
 
         from ..engine import relocalize
-        from ..errors import MapNotFoundError
         from ..transforms import Rigid3d
 
         t0 = time.perf_counter()
-        out: dict[str, Any] = {"op": "reloc_result", "req": m["req"]}
+        pose: P.PoseResult | None = None
+        error: P.WorkerError | None = None
         try:
-            bundle = self.bundles.get((m["map"], m["gen"]))
-            if bundle is None:
-                raise MapNotFoundError(f"map {m['map']!r} is not loaded (it was unloaded or replaced)")
-            cam = self._camera(m["camera"])
-            img = decode_image(m["enc"], data or b"", cam.width, cam.height)
+            bundle = self._bundle(m.map, m.gen)
+            cam = self._camera(m.camera)
+            img = decode_image(m.encoding, m.data, cam.width, cam.height)
             prior = None
-            if m.get("prior"):
-                q, t = m["prior"]
-                prior = Rigid3d.from_quat_xyzw(q, t)
-            out["res"] = result_to_wire(relocalize(img, cam, bundle, self.conf, prior=prior))
+            if m.prior is not None:
+                prior = Rigid3d.from_quat_xyzw(list(m.prior.quat_xyzw), list(m.prior.t))
+            pose = P.PoseResult.of(relocalize(img, cam, bundle, self.conf, prior=prior))
         except Exception as exc:  # noqa: BLE001
-            from sfmloc_client.errors import WireError
-
-            from ..errors import SfmlocError
-
-            if not isinstance(exc, (SfmlocError, WireError)):
+            if not _expected(exc):
                 log.exception("worker %d: relocalize failed", self.index)
-            out["error"] = error_to_wire(exc)
-        out["worker_ms"] = (time.perf_counter() - t0) * 1e3
-        self.send(out)
+            error = P.WorkerError.of(exc)
+        self.send(P.RelocResult(m.req, pose, error, (time.perf_counter() - t0) * 1e3))
+
+
+def _expected(exc: BaseException) -> bool:
+    """A failure the client caused or the server reports (not a bug worth a traceback)."""
+    from sfmloc_client.errors import WireError
+
+    from ..errors import SfmlocError
+
+    return isinstance(exc, (SfmlocError, WireError))
 
 
 def _warm_up(bundle: Any, conf: Any) -> None:
@@ -270,33 +265,6 @@ def _warm_up(bundle: Any, conf: Any) -> None:
         log.debug("warm-up failed: %s", exc)
 
 
-def _tf(T: Any) -> list[float] | None:
-    """Rigid3d -> [qx, qy, qz, qw, tx, ty, tz]."""
-    if T is None:
-        return None
-    return [*(float(v) for v in T.quat_xyzw), *(float(v) for v in T.translation)]
-
-
-def result_to_wire(r: Any) -> dict[str, Any]:
-    """An engine ``FrameResult`` as plain values (all four transforms: the inverse is computed
-    here, on the worker, rather than in the server's intake thread)."""
-    return {
-        "status": r.status.value,
-        "cfw": _tf(r.cam_from_world),
-        "wfc": _tf(r.world_from_cam),
-        "fcfw": _tf(r.filtered_cam_from_world),
-        "fwfc": _tf(r.filtered_world_from_cam),
-        "inliers": int(r.inliers),
-        "detected": int(r.detected),
-        "tracked": int(r.tracked),
-        "tracked_3d": int(r.tracked_3d),
-        "matching": r.matching,
-        "engine_ms": float(r.latency_ms),
-        "message": r.message,
-        "cov": None if r.covariance is None else [float(v) for v in r.covariance.ravel()],
-    }
-
-
 # ============================================================================ server side
 @dataclass
 class WorkerHandle:
@@ -315,7 +283,7 @@ class WorkerHandle:
 class WorkerPool:
     """``n`` workers, their message pumps, and request/response bookkeeping.
 
-    ``on_result(msg)`` is called (on a pump thread) with every frame result; ``on_lost(index)``
+    ``on_result(result)`` is called (on a pump thread) with every frame result; ``on_lost(index)``
     when a worker died (it is restarted and its maps reloaded; its sessions lose their state).
     """
 
@@ -325,7 +293,7 @@ class WorkerPool:
         kind: str,
         engine_conf_json: str,
         *,
-        on_result: Callable[[dict[str, Any]], None],
+        on_result: Callable[[P.Result], None],
         on_lost: Callable[[int], None] | None = None,
         on_dead: Callable[[int], None] | None = None,
         log_level: int = logging.INFO,
@@ -421,7 +389,7 @@ class WorkerPool:
     def stop(self, timeout: float = 10.0) -> None:
         self._stopping = True
         for h in self.workers:
-            h.outbox.put((_pack({"op": "stop"}), None))
+            h.outbox.put(P.TO_WORKER.frames(P.Stop()))
             h.outbox.put(None)
         deadline = time.monotonic() + timeout
         for h in self.workers:
@@ -460,9 +428,12 @@ class WorkerPool:
     def _reader(self, h: WorkerHandle) -> None:
         while True:
             try:
-                msg = _unpack(h.conn.recv_bytes())
+                msg = P.TO_SERVER.recv(h.conn)
             except (EOFError, OSError, ValueError, TypeError):  # TypeError: closed by stop()
                 break
+            except P.ProtocolError:
+                log.exception("worker %d sent a malformed message", h.index)
+                continue
             try:
                 self._dispatch(h, msg)
             except Exception:  # noqa: BLE001 - keep pumping
@@ -470,27 +441,26 @@ class WorkerPool:
         if not self._stopping:
             self._worker_lost(h)
 
-    def _dispatch(self, h: WorkerHandle, msg: dict[str, Any]) -> None:
-        op = msg.get("op")
-        if op == "result":
+    def _dispatch(self, h: WorkerHandle, msg: P.Message) -> None:
+        if isinstance(msg, P.Result):
             with self._lock:
                 h.inflight -= 1
-                h.busy_ms += msg.get("worker_ms", 0.0)
+                h.busy_ms += msg.worker_ms
             self.on_result(msg)
-        elif op in ("loaded", "reloc_result"):
+        elif isinstance(msg, (P.Loaded, P.RelocResult)):
             with self._lock:
-                entry = self._futures.pop(msg["req"], None)
-                if op == "reloc_result":
+                entry = self._futures.pop(msg.req, None)
+                if isinstance(msg, P.RelocResult):
                     h.inflight -= 1
-                    h.busy_ms += msg.get("worker_ms", 0.0)
+                    h.busy_ms += msg.worker_ms
             if entry is not None:
                 fut = entry[1]
-                if "error" in msg:
-                    fut.set_exception(error_from_wire(msg["error"]))
+                if msg.error is not None:
+                    fut.set_exception(msg.error.exception())
                 else:
                     fut.set_result(msg)
-        elif op == "ready":
-            h.pid = msg.get("pid", 0)
+        elif isinstance(msg, P.Ready):
+            h.pid = msg.pid
             h.ready.set()
             self._ready[h.index].set()
 
@@ -548,8 +518,7 @@ class WorkerPool:
                 if (name, gen) in loaded:
                     continue
                 try:
-                    self._request(new, {"op": "load", "name": name, "gen": gen, "path": path,
-                                        "build_id": build_id}).result(120)
+                    self._request(new, P.Load(0, name, gen, path, build_id)).result(120)
                     loaded.add((name, gen))
                 except Exception as exc:  # noqa: BLE001
                     log.error("worker %d: reloading map %s failed: %s", h.index, name, exc)
@@ -561,76 +530,76 @@ class WorkerPool:
             if not new.alive or self._stopping:
                 return
         for name, gen in stale:
-            self._send(new, {"op": "drop", "name": name, "gen": gen})
+            self._send(new, P.Drop(name, gen))
         event(log, logging.INFO, "worker_restarted", worker=h.index, pid=new.pid, maps=len(loaded - stale))
         self.on_lost(h.index)
 
     # ------------------------------------------------------------------ requests
-    def _send(self, h: WorkerHandle, msg: dict[str, Any], data: bytes | None = None) -> None:
-        if data is not None:
-            msg["has_data"] = True
-        h.outbox.put((_pack(msg), data))
+    def _send(self, h: WorkerHandle, msg: P.Message) -> None:
+        h.outbox.put(P.TO_WORKER.frames(msg))
 
-    def _request(self, h: WorkerHandle, msg: dict[str, Any], data: bytes | None = None) -> Future:
+    def _request(self, h: WorkerHandle, msg: P.Load | P.Relocalize) -> Future:
+        """Send ``msg`` with a fresh request number; the future gets the answer."""
         fut: Future = Future()
         with self._lock:
             req = next(self._req)
             self._futures[req] = (h.index, fut)
-        msg["req"] = req
+        msg.req = req
         if not h.alive:  # its pump is gone: nothing would ever answer
             with self._lock:
                 self._futures.pop(req, None)
             fut.set_exception(UnavailableError(f"worker {h.index} is restarting; retry"))
             return fut
-        self._send(h, msg, data)
+        self._send(h, msg)
         return fut
 
-    def load_map(self, name: str, gen: int, path: str, build_id: str, timeout: float = 300.0) -> dict[str, Any]:
+    def load_map(self, name: str, gen: int, path: str, build_id: str,
+                 timeout: float = 300.0) -> P.MapSummary:
         """Load a bundle on every worker; returns the first worker's summary. All or nothing."""
-        msg = {"op": "load", "name": name, "gen": gen, "path": path, "build_id": build_id}
         with self._lock:
             self._maps[(name, gen)] = (path, build_id)  # a worker restarting meanwhile loads it too
             self._maps_version += 1
             live = [h for h in self.workers if h.alive]  # a dead one's replacement loads it
-        futures = [self._request(h, dict(msg)) for h in live]
+        futures = [self._request(h, P.Load(0, name, gen, path, build_id)) for h in live]
         try:
             if not futures:
                 raise UnavailableError("no engine worker is running (one is restarting); retry")
-            results = [f.result(timeout) for f in futures]
+            results: list[P.Loaded] = [f.result(timeout) for f in futures]
         except BaseException:
             self.drop_map(name, gen)
             raise
-        summary = dict(results[0]["summary"])
-        summary["index_in_place"] = all(r["summary"].get("index_in_place", False) for r in results)
-        return summary
+        summaries = [r.summary for r in results if r.summary is not None]
+        if len(summaries) != len(results):
+            raise P.ProtocolError("a worker answered a load with neither a summary nor an error")
+        return dataclasses.replace(summaries[0],
+                                   index_in_place=all(s.index_in_place for s in summaries))
 
     def drop_map(self, name: str, gen: int) -> None:
         with self._lock:
             self._maps.pop((name, gen), None)
             self._maps_version += 1
         for h in self.workers:
-            self._send(h, {"op": "drop", "name": name, "gen": gen})
+            self._send(h, P.Drop(name, gen))
 
     def is_alive(self, worker: int) -> bool:
         """Whether worker ``worker`` is up (False from its death until its replacement is ready)."""
         return 0 <= worker < len(self.workers) and self.workers[worker].alive
 
-    def submit_frame(self, worker: int, msg: dict[str, Any], data: bytes) -> None:
+    def submit_frame(self, worker: int, msg: P.LocalizeFrame) -> None:
         h = self.workers[worker]
         with self._lock:
             h.inflight += 1
-        msg["op"] = "frame"
-        self._send(h, msg, data)
+        self._send(h, msg)
 
     def reset_session(self, worker: int, sid: int) -> None:
-        self._send(self.workers[worker], {"op": "reset", "sid": sid})
+        self._send(self.workers[worker], P.Reset(sid))
 
     def close_session(self, worker: int, sid: int) -> None:
-        self._send(self.workers[worker], {"op": "close", "sid": sid})
+        self._send(self.workers[worker], P.Close(sid))
 
-    def relocalize(self, msg: dict[str, Any], data: bytes) -> Future:
+    def relocalize(self, msg: P.Relocalize) -> Future:
         """Single-image relocalization on the least busy worker of the relocalization lane
-        (of all workers when it has none)."""
+        (of all workers when it has none). The future gets the ``RelocResult``."""
         with self._lock:
             pending = self._reloc_pending
             if pending >= self.max_pending_relocalize:
@@ -641,8 +610,7 @@ class WorkerPool:
             h = min(lane, key=lambda w: (w.inflight, w.index))
             h.inflight += 1
             self._reloc_pending += 1
-        msg["op"] = "reloc"
-        fut = self._request(h, msg, data)
+        fut = self._request(h, msg)
         fut.add_done_callback(self._reloc_done)
         return fut
 

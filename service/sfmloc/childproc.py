@@ -1,0 +1,126 @@
+"""Typed messages to and from a child process: one framing for every child sfmloc starts.
+
+A message is a dataclass with an ``OP`` name; on the wire it is one msgpack array
+``[op, field, field, ...]`` (fields in declaration order, nested messages as their own arrays),
+framed by ``multiprocessing.connection.Connection`` (``send_bytes``/``recv_bytes``). A message
+with ``HAS_DATA`` carries a bytes payload (an image) as a second frame, so the payload is never
+copied into the msgpack buffer. Nothing is pickled: a child reads only the types its
+``Protocol`` lists.
+
+Used by the localization server's engine workers (``server/protocol.py``) and by the builder
+service's build jobs (``builder_service/jobs.py``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields
+from typing import Any, ClassVar, TypeVar
+
+import msgpack
+
+from .errors import SfmlocError
+
+M = TypeVar("M", bound="Message")
+
+
+class ProtocolError(SfmlocError):
+    """A message between the server (or builder) and its child process is malformed: a bug on
+    one side, never the client's fault."""
+
+
+def payload() -> Any:
+    """The bytes payload of a ``HAS_DATA`` message: sent as its own frame, not in the array."""
+    return field(default=b"", repr=False, metadata={"wire": False})
+
+
+class Part:
+    """A value nested in a message (encoded as an array of its fields)."""
+
+    def to_wire(self) -> list[Any]:
+        return [_plain(getattr(self, f)) for f in _field_names(type(self))]
+
+    @classmethod
+    def from_wire(cls: type[M], values: Any) -> M:  # type: ignore[misc]
+        names = _field_names(cls)
+        if not isinstance(values, (list, tuple)) or len(values) != len(names):
+            raise ProtocolError(f"{cls.__name__}: expected {len(names)} fields, got {values!r:.80}")
+        return cls(*values)
+
+
+class Message(Part):
+    """A top-level message: ``OP`` names it on the wire."""
+
+    OP: ClassVar[str] = ""
+    HAS_DATA: ClassVar[bool] = False
+
+
+_NAMES: dict[type, tuple[str, ...]] = {}
+
+
+def _field_names(cls: type) -> tuple[str, ...]:
+    names = _NAMES.get(cls)
+    if names is None:
+        names = _NAMES[cls] = tuple(f.name for f in fields(cls) if f.metadata.get("wire", True))
+    return names
+
+
+def _plain(v: Any) -> Any:
+    if isinstance(v, Part):
+        return v.to_wire()
+    if isinstance(v, (list, tuple)):
+        return [_plain(x) for x in v]
+    return v
+
+
+class Protocol:
+    """The messages one side may receive, and the framing (``send``/``recv``)."""
+
+    def __init__(self, *messages: type[Message]) -> None:
+        self._by_op: dict[str, type[Message]] = {}
+        for cls in messages:
+            if not cls.OP or cls.OP in self._by_op:
+                raise ValueError(f"{cls.__name__}: OP must be set and unique")
+            self._by_op[cls.OP] = cls
+
+    @staticmethod
+    def encode(msg: Message) -> bytes:
+        return msgpack.packb([msg.OP, *msg.to_wire()], use_bin_type=True)
+
+    def decode(self, raw: bytes) -> Message:
+        try:
+            arr = msgpack.unpackb(raw, raw=False)
+        except Exception as exc:  # noqa: BLE001 - msgpack raises several types
+            raise ProtocolError(f"undecodable message: {exc}") from None
+        if not isinstance(arr, list) or not arr:
+            raise ProtocolError(f"a message must be a non-empty array, got {type(arr).__name__}")
+        cls = self._by_op.get(arr[0])
+        if cls is None:
+            raise ProtocolError(f"unknown message {arr[0]!r}")
+        try:
+            return cls.from_wire(arr[1:])
+        except ProtocolError:
+            raise
+        except (TypeError, ValueError, IndexError) as exc:
+            raise ProtocolError(f"malformed {cls.__name__}: {exc}") from None
+
+    @classmethod
+    def frames(cls, msg: Message) -> tuple[bytes, bytes | None]:
+        """The frames ``send`` writes: the header, and the payload of a ``HAS_DATA`` message."""
+        return cls.encode(msg), (bytes(getattr(msg, "data")) if msg.HAS_DATA else None)
+
+    @classmethod
+    def send(cls, conn: Any, msg: Message) -> None:
+        header, data = cls.frames(msg)
+        conn.send_bytes(header)
+        if data is not None:
+            conn.send_bytes(data)
+
+    def recv(self, conn: Any) -> Message:
+        """The next message (its payload read too). EOFError/OSError when the peer is gone."""
+        msg = self.decode(conn.recv_bytes())
+        if msg.HAS_DATA:
+            msg.data = conn.recv_bytes()  # type: ignore[attr-defined]
+        return msg
+
+
+__all__ = ["Message", "Part", "Protocol", "ProtocolError", "dataclass", "payload"]
