@@ -9,6 +9,7 @@ Descriptors are (N, 4) uint64 so that Hamming distance is XOR + popcount on 4 wo
 
 from __future__ import annotations
 
+import threading
 from functools import lru_cache
 
 import cv2
@@ -27,30 +28,66 @@ def brief_pattern(patch_size: int = 32, seed: int = 2012) -> np.ndarray:
     return np.clip(pts, -half, half).astype(np.int64)
 
 
-def smooth_for_brief(gray: np.ndarray) -> np.ndarray:
-    """The smoothing BRIEF needs before its pixel tests (Calonder: a 9x9 Gaussian, sigma 2)."""
-    return cv2.GaussianBlur(gray, (9, 9), 2.0)
+def smooth_for_brief(gray: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """The smoothing BRIEF needs before its pixel tests (Calonder: a 9x9 Gaussian, sigma 2);
+    into ``out`` when given (a buffer of ``gray``'s shape and dtype)."""
+    return cv2.GaussianBlur(gray, (9, 9), 2.0, dst=out)
+
+
+# Keypoints are described this many at a time through per-thread buffers (1 MiB of indices):
+# one (N, 512) index array per frame is megabytes of fresh pages, which cost more than the
+# gathers themselves.
+_CHUNK = 256
+_local = threading.local()
+
+
+@lru_cache(maxsize=16)
+def _flat_offsets(patch_size: int, width: int) -> np.ndarray:
+    """(512,) offsets in a row-major image of ``width`` columns: the first pixel of each of
+    the 256 tests, then the second."""
+    pat = brief_pattern(patch_size)
+    off = np.concatenate([pat[:, 1] * width + pat[:, 0], pat[:, 3] * width + pat[:, 2]])
+    off = off.astype(np.intp)
+    off.setflags(write=False)  # shared through the cache
+    return off
+
+
+def _buffers() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    bufs = getattr(_local, "bufs", None)
+    if bufs is None:
+        bufs = (
+            np.empty((_CHUNK, 2 * N_BITS), np.intp),
+            np.empty((_CHUNK, 2 * N_BITS), np.uint8),
+            np.empty((_CHUNK, N_BITS), bool),
+        )
+        _local.bufs = bufs
+    return bufs
 
 
 def compute_brief(smoothed: np.ndarray, xy: np.ndarray, patch_size: int = 32) -> np.ndarray:
     """BRIEF descriptors (N, 4) uint64 at keypoints ``xy`` (COLMAP convention) of a smoothed
     image. Keypoints must lie at least ``patch_size // 2`` pixels from the border (callers
-    detect with that border)."""
+    detect with that border); nearer ones read clamped flat indices."""
     n = len(xy)
     if n == 0:
         return np.zeros((0, N_WORDS), np.uint64)
     h, w = smoothed.shape
-    pat = brief_pattern(patch_size)
     # COLMAP coordinates -> nearest array index.
-    cx = np.clip(np.floor(xy[:, 0]).astype(np.int64), 0, w - 1)
-    cy = np.clip(np.floor(xy[:, 1]).astype(np.int64), 0, h - 1)
-    flat = smoothed.reshape(-1)
-    base = (cy * w + cx)[:, None]
-    i1 = np.clip(base + pat[None, :, 1] * w + pat[None, :, 0], 0, flat.size - 1)
-    i2 = np.clip(base + pat[None, :, 3] * w + pat[None, :, 2], 0, flat.size - 1)
-    bits = flat[i1] < flat[i2]
-    packed = np.packbits(bits, axis=1)  # (N, 32) uint8
-    return np.ascontiguousarray(packed).view(np.uint64)
+    cx = np.clip(np.floor(xy[:, 0]).astype(np.intp), 0, w - 1)
+    cy = np.clip(np.floor(xy[:, 1]).astype(np.intp), 0, h - 1)
+    base = cy * w + cx
+    flat = np.ascontiguousarray(smoothed).reshape(-1)
+    off = _flat_offsets(patch_size, w)
+    idx, vals, bits = _buffers()
+    packed = np.empty((n, N_BITS // 8), np.uint8)
+    for s in range(0, n, _CHUNK):
+        e = min(n, s + _CHUNK)
+        i, v, t = idx[: e - s], vals[: e - s], bits[: e - s]
+        np.add(base[s:e, None], off, out=i)
+        np.take(flat, i, mode="clip", out=v)  # "clip": indices clamped to the image
+        np.less(v[:, :N_BITS], v[:, N_BITS:], out=t)
+        packed[s:e] = np.packbits(t, axis=1)
+    return packed.view(np.uint64)
 
 
 def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
