@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test lint bench bench-publish proto clean
+.PHONY: demo test lint typecheck bench bench-publish proto clean
 
 $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -22,6 +22,10 @@ test: lint
 # Style and likely bugs: ruff at the configured width with import order (pyproject [tool.ruff]).
 lint: $(STAMP)
 	$(BIN)/ruff check .
+
+# Types of the online path (engine, map, server, client: pyproject [tool.mypy]); cache in .venv.
+typecheck: $(STAMP)
+	$(BIN)/mypy --cache-dir $(VENV)/.mypy_cache
 
 # All suites (redkitchen needs ../shared/data); prints the summary and its wall time.
 bench: $(STAMP)

@@ -53,8 +53,8 @@ def decode_image(encoding: str, data: bytes | bytearray | memoryview, width: int
         arr = np.frombuffer(data, np.uint8)
         if encoding == "gray8":
             return arr.reshape(height, width)
-        img = arr.reshape(height, width, 3)
-        return _cv2().cvtColor(img, _cv2().COLOR_BGR2GRAY) if gray else img
+        bgr = arr.reshape(height, width, 3)
+        return _cv2().cvtColor(bgr, _cv2().COLOR_BGR2GRAY) if gray else bgr
     if encoding not in ENCODINGS:
         raise WireError(f"encoding must be one of {', '.join(ENCODINGS)}, got {encoding!r}")
     cv2 = _cv2()

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, TypeVar
@@ -39,11 +40,11 @@ def read_config_file(path: str | Path) -> dict[str, Any]:
         raise ConfigError(f"cannot read config file {path}: {exc}") from None
     try:
         if path.suffix.lower() == ".toml":
-            try:
+            if sys.version_info >= (3, 11):
                 import tomllib
-            except ModuleNotFoundError:  # Python 3.10
-                raise ConfigError(f"{path}: TOML config files need Python 3.11+; use JSON") from None
-            return tomllib.loads(text)
+
+                return tomllib.loads(text)
+            raise ConfigError(f"{path}: TOML config files need Python 3.11+; use JSON")
         return json.loads(text)
     except ConfigError:
         raise

@@ -142,6 +142,7 @@ class Se3PoseFilter:
 
     def update(self, cam_from_world: Rigid3d) -> Rigid3d:
         """Fuse a measured pose; return the filtered ``cam_from_world``."""
+        assert self.stamp is not None, "update() before reset()"
         z = se3_log(cam_from_world * self.T.inverse())
         self.kf.update(z.reshape(6, 1))
         self._fold()
@@ -253,6 +254,7 @@ class DecoupledPoseFilter:
         return self.current()
 
     def update(self, cam_from_world: Rigid3d) -> Rigid3d:
+        assert self.stamp is not None, "update() before reset()"
         world_from_cam = cam_from_world.inverse()
         self.pos.update(world_from_cam.translation.reshape(3, 1))
         z = rotvec_from_rotmat(world_from_cam.rotation @ self.R_ref.T)
@@ -277,7 +279,7 @@ class DecoupledPoseFilter:
 
 
 PoseFilter = Se3PoseFilter | DecoupledPoseFilter
-MODELS = {"se3": Se3PoseFilter, "paper": DecoupledPoseFilter}
+MODELS: dict[str, type[PoseFilter]] = {"se3": Se3PoseFilter, "paper": DecoupledPoseFilter}
 
 
 def make_pose_filter(

@@ -88,7 +88,7 @@ class DaisyExtractor:
     def prepare(self, gray: np.ndarray) -> np.ndarray:
         """The image the extractor samples from (float32, lightly smoothed). Compute once per
         image and pass it to ``orientations`` and ``describe``."""
-        img = gray.astype(np.float32)
+        img: np.ndarray = gray.astype(np.float32)
         if self.params.pre_smooth > 0:
             img = cv2.GaussianBlur(img, (0, 0), self.params.pre_smooth)
         return img

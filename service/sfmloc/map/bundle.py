@@ -517,7 +517,7 @@ class MapBundle:
             _level_scales_of(self.manifest.params),
         )
         try:
-            self.native_focal_px = float(self.keypoint_scales.get("native_focal_px"))
+            self.native_focal_px = float(self.keypoint_scales.get("native_focal_px", float("nan")))
         except (TypeError, ValueError):
             self.native_focal_px = float("nan")
         if not np.isfinite(self.native_focal_px) or self.native_focal_px <= 0:

@@ -70,21 +70,25 @@ class DescriptorIndex:
         nlist = conf.nlist or choose_nlist(n)
         if kind != "flat" and nlist < 4:
             kind = "flat"  # too few descriptors for an inverted file
+        index: faiss.Index
         if kind == "flat":
             index = faiss.IndexFlatL2(d)
         else:
             quantizer = faiss.IndexFlatL2(d)
+            ivf: faiss.IndexIVF
             if kind == "ivf-sq8":
-                index = faiss.IndexIVFScalarQuantizer(quantizer, d, nlist, faiss.ScalarQuantizer.QT_8bit)
+                ivf = faiss.IndexIVFScalarQuantizer(quantizer, d, nlist, faiss.ScalarQuantizer.QT_8bit)
             else:
-                index = faiss.IndexIVFFlat(quantizer, d, nlist)
-            index.cp.seed = seed  # deterministic k-means
+                ivf = faiss.IndexIVFFlat(quantizer, d, nlist)
+            ivf.cp.seed = seed  # deterministic k-means
             train = x
             if n > conf.train_samples:
                 train = x[np.random.default_rng(seed).choice(n, conf.train_samples, replace=False)]
-            index.train(np.ascontiguousarray(train, dtype=np.float32))
-            index.own_fields = True
-            quantizer.this.disown()  # the IVF index owns its quantizer from here on
+            ivf.train(np.ascontiguousarray(train, dtype=np.float32))
+            ivf.own_fields = True
+            # the IVF index owns its quantizer from here on (`this`: SWIG's proxy, not in stubs)
+            quantizer.this.disown()  # type: ignore[attr-defined]
+            index = ivf
         for start in range(0, n, max(1, chunk_rows)):
             index.add(np.ascontiguousarray(x[start : start + chunk_rows], dtype=np.float32))
         return cls(index, conf.nprobe)
@@ -159,15 +163,17 @@ class DescriptorIndex:
         if len(q) == 0:
             return np.zeros((0, k), np.float32), np.zeros((0, k), np.int64)
         npr = nprobe or self.nprobe
-        params = None
+        # faiss's SearchParameters take keyword arguments (and keep the selector alive); its
+        # stubs declare only __init__(self).
+        params: faiss.SearchParameters | None = None
         if allowed is not None:
             sel = faiss.IDSelectorBitmap(len(allowed), faiss.swig_ptr(allowed))
             if self._ivf is not None:
-                params = faiss.SearchParametersIVF(sel=sel, nprobe=npr)
+                params = faiss.SearchParametersIVF(sel=sel, nprobe=npr)  # type: ignore[call-arg]
             else:
-                params = faiss.SearchParameters(sel=sel)
+                params = faiss.SearchParameters(sel=sel)  # type: ignore[call-arg]
         elif self._ivf is not None:
-            params = faiss.SearchParametersIVF(nprobe=npr)
+            params = faiss.SearchParametersIVF(nprobe=npr)  # type: ignore[call-arg]
         D, I = self._index.search(q, k, params=params)
         D = np.sqrt(np.maximum(D, 0.0), dtype=np.float32)
         D[I < 0] = np.inf

@@ -43,7 +43,8 @@ class KeyValueFormatter(logging.Formatter):
     def format(self, record: logging.LogRecord) -> str:
         head = f"ts={_ts(record)} level={record.levelname.lower()} logger={record.name}"
         if hasattr(record, "event"):
-            line = f"{head} event={_quote(record.event)} {kv(**record.fields)}".rstrip()
+            fields: dict[str, Any] = getattr(record, "fields", {})  # set by event() through extra=
+            line = f"{head} event={_quote(record.event)} {kv(**fields)}".rstrip()
         else:
             line = f"{head} msg={_quote(record.getMessage())}"
         if record.exc_info:
@@ -57,7 +58,7 @@ class JsonFormatter(logging.Formatter):
         if hasattr(record, "event"):
             d["event"] = record.event
             d.update({k: v if isinstance(v, (int, float, str, bool, list, dict)) or v is None else str(v)
-                      for k, v in record.fields.items()})
+                      for k, v in getattr(record, "fields", {}).items()})
         else:
             d["msg"] = record.getMessage()
         if record.exc_info:

@@ -11,6 +11,7 @@ flight on the old map finishes on it). The old generation is then dropped from t
 
 from __future__ import annotations
 
+import builtins
 import logging
 import threading
 import time
@@ -146,11 +147,13 @@ class MapRegistry:
         self.on_change(name, entry, None)
         return entry
 
-    def load_dir(self, folder: str | Path) -> tuple[list[MapEntry], list[str]]:
+    # builtins.list: inside this class `list` is the method below
+    def load_dir(self, folder: str | Path) -> tuple[builtins.list[MapEntry], builtins.list[str]]:
         """Every bundle directly inside ``folder`` (hidden and temporary folders skipped).
         A broken bundle is reported and skipped: the others still load."""
         folder = Path(folder)
-        loaded, failed = [], []
+        loaded: builtins.list[MapEntry] = []
+        failed: builtins.list[str] = []
         if not folder.is_dir():
             log.warning("maps folder %s does not exist: starting without maps", folder)
             return loaded, failed

@@ -8,6 +8,7 @@ import logging
 import threading
 from collections.abc import Callable, Sequence
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from typing import TypeVar
 
 log = logging.getLogger(__name__)
 
@@ -41,6 +42,12 @@ class _Metric:
 
     def header(self) -> list[str]:
         return [f"# HELP {self.name} {self.help}", f"# TYPE {self.name} {self.kind}"]
+
+    def render(self) -> list[str]:
+        raise NotImplementedError
+
+
+M = TypeVar("M", bound=_Metric)  # Registry.add returns the metric's own type (Counter, ...)
 
 
 class Counter(_Metric):
@@ -129,7 +136,7 @@ class Registry:
     def __init__(self) -> None:
         self._metrics: list[_Metric] = []
 
-    def add(self, metric: _Metric) -> _Metric:
+    def add(self, metric: M) -> M:
         self._metrics.append(metric)
         return metric
 

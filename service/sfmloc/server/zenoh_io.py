@@ -48,7 +48,7 @@ from .sessions import SessionManager
 
 log = logging.getLogger(__name__)
 
-POSE_QOS = {
+POSE_QOS: dict[str, Any] = {
     "priority": zenoh.Priority.REAL_TIME,
     "express": True,
     "congestion_control": zenoh.CongestionControl.DROP,
@@ -143,6 +143,8 @@ class ZenohFrontend:
     # ------------------------------------------------------------------ frames
     def _on_frame(self, sample: zenoh.Sample) -> None:
         t_recv = time.perf_counter()
+        z = self.z
+        assert z is not None  # frames come through a subscriber on the open session
         key = str(sample.key_expr)
         try:
             map_name, client_id = parse_frame_key(key)
@@ -160,7 +162,7 @@ class ZenohFrontend:
             frame = decode_frame(payload, self.conf.max_frame_bytes)
             self.sessions.submit(
                 map_name, client_id, "zenoh", frame, t_recv,
-                make_sink=lambda: ZenohPoseSink(self.z, f"sfmloc/{map_name}/{client_id}/pose"),
+                make_sink=lambda: ZenohPoseSink(z, f"sfmloc/{map_name}/{client_id}/pose"),
             )
         except MapNotFoundError as exc:
             self.sessions.count_error(map_name, exc)
