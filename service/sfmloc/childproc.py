@@ -20,7 +20,7 @@ import msgpack
 
 from .errors import SfmlocError
 
-M = TypeVar("M", bound="Message")
+P = TypeVar("P", bound="Part")
 
 
 class ProtocolError(SfmlocError):
@@ -40,7 +40,7 @@ class Part:
         return [_plain(getattr(self, f)) for f in _field_names(type(self))]
 
     @classmethod
-    def from_wire(cls: type[M], values: Any) -> M:  # type: ignore[misc]
+    def from_wire(cls: type[P], values: Any) -> P:
         names = _field_names(cls)
         if not isinstance(values, (list, tuple)) or len(values) != len(names):
             raise ProtocolError(f"{cls.__name__}: expected {len(names)} fields, got {values!r:.80}")
@@ -106,7 +106,8 @@ class Protocol:
     @classmethod
     def frames(cls, msg: Message) -> tuple[bytes, bytes | None]:
         """The frames ``send`` writes: the header, and the payload of a ``HAS_DATA`` message."""
-        return cls.encode(msg), (bytes(getattr(msg, "data")) if msg.HAS_DATA else None)
+        data = getattr(msg, "data", b"")  # declared by the HAS_DATA messages only
+        return cls.encode(msg), (bytes(data) if msg.HAS_DATA else None)
 
     @classmethod
     def send(cls, conn: Any, msg: Message) -> None:

@@ -48,6 +48,7 @@ from .config import ServerConfig
 from .logfmt import event
 from .maps import MapEntry, MapRegistry, resolve_bundle_path
 from .metrics import MetricsServer, ServerMetrics
+from .protocol import Result
 from .sessions import SessionManager
 from .workers import WorkerPool
 
@@ -104,7 +105,7 @@ class Server:
         self._rate = (time.monotonic(), 0.0, [0.0] * n)  # for the load figures of ServerInfo
 
     # ------------------------------------------------------------------ wiring
-    def _on_result(self, msg: dict[str, Any]) -> None:
+    def _on_result(self, msg: Result) -> None:
         self.sessions.on_result(msg)
 
     def _on_worker_dead(self, index: int) -> None:

@@ -220,6 +220,7 @@ class LocalizationService(pb_grpc.LocalizationServicer):
     @_unary
     async def ListSessions(self, request: pb.ListSessionsRequest, context: grpc.aio.ServicerContext) -> pb.ListSessionsResponse:
         from sfmloc_client.convert import STATUS_TO_PB
+        from sfmloc_client.pb.common_pb2 import LOCALIZATION_STATUS_UNSPECIFIED
 
         now = time.monotonic()
         out = []
@@ -230,7 +231,7 @@ class LocalizationService(pb_grpc.LocalizationServicer):
             out.append(pb.SessionInfo(
                 client_id=s.client_id, map=s.map, transport=s.transport, frames=s.frames, localized=s.localized,
                 dropped=s.dropped, last_latency_ms=s.last_latency_ms, mean_latency_ms=s.mean_latency_ms,
-                status=STATUS_TO_PB.get(s.last_status, 0), idle_s=max(0.0, now - s.last_seen),
+                status=STATUS_TO_PB.get(s.last_status, LOCALIZATION_STATUS_UNSPECIFIED), idle_s=max(0.0, now - s.last_seen),
             ))
         return pb.ListSessionsResponse(sessions=out)
 

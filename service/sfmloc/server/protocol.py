@@ -43,7 +43,7 @@ def _tf_from_wire(v: Any) -> Transform | None:
         return None
     if len(v) != 7:
         raise ProtocolError(f"a transform has 7 values (quat_xyzw, t), got {len(v)}")
-    return Transform(tuple(v[:4]), tuple(v[4:]))  # type: ignore[arg-type]
+    return Transform(tuple(v[:4]), tuple(v[4:]))
 
 
 def transform_of(T: Any) -> Transform | None:

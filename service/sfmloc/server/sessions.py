@@ -15,6 +15,7 @@ Zenoh sessions end after ``idle_timeout_s`` without frames; gRPC sessions end wi
 
 from __future__ import annotations
 
+import builtins
 import itertools
 import logging
 from collections import deque
@@ -23,6 +24,8 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
+
+import numpy as np
 
 from sfmloc_client.wire import ErrorInfo, Frame, PoseMessage
 
@@ -416,7 +419,8 @@ class SessionManager:
             self._send(s, self.error_pose(s.map, s.client_id, seq, 0,
                                           UnavailableError("the worker processing this frame died; it was restarted")))
 
-    def wait_idle(self, timeout: float, sessions: list[Session] | None = None) -> bool:
+    # builtins.list: inside this class `list` is the method below
+    def wait_idle(self, timeout: float, sessions: builtins.list[Session] | None = None) -> bool:
         """Wait until no session (or none of ``sessions``) has a frame in a worker."""
         deadline = time.monotonic() + timeout
         with self._lock:
@@ -450,4 +454,4 @@ def validate_camera(cam: Any, max_pixels: int) -> Camera:
         raise MessageTooLargeError(
             f"a {cam.width}x{cam.height} camera exceeds this server's limit of {max_pixels} pixels per image"
         )
-    return Camera(cam.model, cam.width, cam.height, list(cam.params))
+    return Camera(cam.model, cam.width, cam.height, np.asarray(cam.params, dtype=np.float64))

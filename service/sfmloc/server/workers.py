@@ -157,11 +157,13 @@ class _Worker:
 
     # ------------------------------------------------------------------ sessions
     def _camera(self, c: P.CameraTuple) -> Any:
+        import numpy as np
+
         from ..cameras import Camera
 
         cam = self._cameras.get(c)
         if cam is None:
-            cam = Camera(c[0], c[1], c[2], list(c[3]))
+            cam = Camera(c[0], c[1], c[2], np.asarray(c[3], dtype=np.float64))
             if len(self._cameras) > 64:
                 self._cameras.clear()
             self._cameras[c] = cam
@@ -214,6 +216,7 @@ class _Worker:
 
     # ------------------------------------------------------------------ single images
     def on_relocalize(self, m: P.Relocalize) -> None:
+        import numpy as np
         from sfmloc_client.images import decode_image
 
         from ..engine import relocalize
@@ -228,7 +231,7 @@ class _Worker:
             img = decode_image(m.encoding, m.data, cam.width, cam.height)
             prior = None
             if m.prior is not None:
-                prior = Rigid3d.from_quat_xyzw(list(m.prior.quat_xyzw), list(m.prior.t))
+                prior = Rigid3d.from_quat_xyzw(np.asarray(m.prior.quat_xyzw), np.asarray(m.prior.t))
             pose = P.PoseResult.of(relocalize(img, cam, bundle, self.conf, prior=prior))
         except Exception as exc:  # noqa: BLE001
             if not _expected(exc):
