@@ -75,7 +75,8 @@ def test_bundle_lookups_are_consistent(world):
         lo, hi = b.image_desc_ptr[i], b.image_desc_ptr[i + 1]
         assert np.all(b.desc_image[lo:hi] == i)
         assert np.all(np.isin(b.desc_point[lo:hi], b.image_points(i)))
-    # every cluster an image's points belong to contains... each point's clusters hold one of its views
+    # every cluster an image's points belong to contains... each point's clusters hold one of
+    # its views
     pi_ptr, pi_idx = b.point_images()
     for p in range(0, b.n_points, 97):
         views = set(pi_idx[pi_ptr[p]:pi_ptr[p + 1]].tolist())

@@ -262,7 +262,8 @@ def test_track_points_show_their_face_and_texture(scene, camera, mapping):
             fi = fidx[int(pid)]
             i, j = int(np.floor(xy[0])), int(np.floor(xy[1]))
             assert r.face_id[j, i] == F.face[fi]
-            # Depth at the pixel centre vs the point's own depth: same plane, a fraction of a pixel away.
+            # Depth at the pixel centre vs the point's own depth: same plane, a fraction of a
+            # pixel away.
             z = (T.apply(F.xyz[fi]))[2]
             assert abs(r.depth[j, i] - z) < 0.02 * z
             if F.radius[fi] * camera.K[0, 0] / z < 12:

@@ -1,4 +1,5 @@
-"""Publishing frames: ``FrameStreamer`` sends one client's frames to ``sfmloc/<map>/<client>/frame``.
+"""Publishing frames: ``FrameStreamer`` sends one client's frames to
+``sfmloc/<map>/<client>/frame``.
 
 Two pacing modes in ``run()``: at a fixed rate (``fps``; the server drops stale frames when
 it cannot keep up, latest-frame-only), or in lockstep (``lockstep=True``: the next frame goes

@@ -41,7 +41,8 @@ def rotmat_from_quat_xyzw(quat_xyzw: np.ndarray) -> np.ndarray:
 
 
 def quat_wxyz_from_rotmat(R: np.ndarray) -> np.ndarray:
-    """Unit quaternion ``[w, x, y, z]`` with ``w >= 0`` from a rotation matrix (Shepperd's method)."""
+    """Unit quaternion ``[w, x, y, z]`` with ``w >= 0`` from a rotation matrix
+    (Shepperd's method)."""
     R = np.asarray(R, dtype=np.float64)
     tr = R[0, 0] + R[1, 1] + R[2, 2]
     if tr > 0:

@@ -19,7 +19,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         ListSessions and ResetSession of its own sessions
               admin     everything: LoadMap, UnloadMap, other clients' sessions
 
-            Clients pass the token with --token (or $SFMLOC_TOKEN), or LocalizationClient(token=...).
+            Clients pass the token with --token (or $SFMLOC_TOKEN) or LocalizationClient(token=...).
             Without TLS (--tls-cert/--tls-key) the server accepts tokens only on loopback."""),
     )
     ss = p.add_subparsers(dest="auth_command", metavar="ACTION", required=True)

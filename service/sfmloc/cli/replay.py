@@ -89,7 +89,8 @@ def format_summary(s: dict, decode_ms: float | None = None) -> str:
         f"or > {WRONG_ROTATION_DEG:g} deg)",
         f"within 5 cm / 5 deg  {pct(s['within_5cm_5deg_fraction'])} of the frames with "
         "ground truth",
-        f"{f'within {RECALL_POSITION_FRACTION:.1%} / 5 deg':21s}{pct(s['within_relative_fraction'])} "
+        f"{f'within {RECALL_POSITION_FRACTION:.1%} / 5 deg':21s}"
+        f"{pct(s['within_relative_fraction'])} "
         f"(position within {s['within_relative_position_limit']:.3g} map units = "
         f"{RECALL_POSITION_FRACTION:.1%} of the scene scale)",
         f"latency (ms)         mean {lat['mean']:.1f}, std {lat['std']:.1f}, p50 {lat['p50']:.1f}, p95 {lat['p95']:.1f}, "

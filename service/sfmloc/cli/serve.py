@@ -34,7 +34,8 @@ EPILOG = textwrap.dedent(
     """\
     examples:
       sfmloc serve --maps maps/ --zenoh-listen tcp/0.0.0.0:7447 --grpc 0.0.0.0:50051
-      sfmloc serve --maps maps/ --zenoh-mode client --zenoh-connect tcp/router:7447 --metrics-port 9100
+      sfmloc serve --maps maps/ --zenoh-mode client --zenoh-connect tcp/router:7447 \\
+          --metrics-port 9100
     """
 )
 

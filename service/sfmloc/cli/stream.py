@@ -26,7 +26,8 @@ EPILOG = textwrap.dedent(
     """\
     examples:
       sfmloc stream --map lab --source frames/ --camera camera.json --fps 30 --out lab.tum
-      sfmloc stream --map lab --source 0 --camera "PINHOLE 640 480 525 525 320 240" --zenoh-connect tcp/server:7447
+      sfmloc stream --map lab --source 0 --camera "PINHOLE 640 480 525 525 320 240" \\
+          --zenoh-connect tcp/server:7447
     """
 )
 

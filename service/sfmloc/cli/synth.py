@@ -47,7 +47,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("out", metavar="OUT", help="output folder (must not exist or be empty, unless --overwrite)")
     p.add_argument("--scene", default="room", choices=["room"],
-                   help="scene: 'room' is an 8 x 5 x 3 m room with textured walls and furniture (default room)")
+                   help="scene: 'room' is an 8 x 5 x 3 m room with textured walls and furniture "
+                        "(default room)")
     p.add_argument("--trajectory", choices=["walk", "flight", "orbit"], default=None,
                    help="video motion: walk (a person at ~1.2 m/s, eyes at ~1.5 m), flight (quadrotor with "
                         "fast yaw bursts up to ~120 deg/s), orbit (circle around the room centre looking "

@@ -68,7 +68,8 @@ def _lines(path: Path):
 
 
 def detect_pose_format(path: str | Path) -> str:
-    """``"tum"`` when the first data line starts with a number and has 8 fields, else ``"colmap"``."""
+    """``"tum"`` when the first data line starts with a number and has 8 fields, else
+    ``"colmap"``."""
     path = Path(path)
     for _, line in _lines(path):
         parts = line.split()

@@ -387,7 +387,8 @@ class ServerThread:
         return self
 
     def call(self, coro: Any, timeout: float = 60.0) -> Any:
-        """Run a coroutine on the server's loop (e.g. ``srv.call(srv.server.load_initial_maps())``)."""
+        """Run a coroutine on the server's loop
+        (e.g. ``srv.call(srv.server.load_initial_maps())``)."""
         assert self.loop is not None
         return asyncio.run_coroutine_threadsafe(coro, self.loop).result(timeout)
 

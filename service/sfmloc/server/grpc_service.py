@@ -144,7 +144,8 @@ class LocalizationService(pb_grpc.LocalizationServicer):
                         state["client"] = check_name(req.client_id, "client id") if req.client_id else f"grpc-{stream_id}"
                         who = caller(srv.tokens, context)
                         if who is not None and not who.admin:
-                            # A caller's sessions carry its identity: it cannot pose as another client.
+                            # A caller's sessions carry its identity: it cannot pose as
+                            # another client.
                             if req.client_id and req.client_id != who.name:
                                 raise PermissionDeniedError(
                                     f"{who.name!r} may stream only as client {who.name!r}, not {req.client_id!r}"

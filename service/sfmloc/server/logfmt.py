@@ -1,9 +1,10 @@
 """Structured log lines. Library code calls ``event(log, level, "name", key=value, ...)``; the
 entry point (``sfmloc serve``, a worker process) picks the format with ``setup_logging``:
 
-``kv`` (default)::
+``kv`` (default), one line per event (shown here on two)::
 
-    ts=2026-11-21T06:30:00.123Z level=info logger=sfmloc.server.sessions event=session_open map=lab client=drone1 worker=0
+    ts=2026-11-21T06:30:00.123Z level=info logger=sfmloc.server.sessions
+    event=session_open map=lab client=drone1 worker=0
 
 ``json``: one object per line, ``{"ts", "level", "logger", "event" | "msg", ...fields}``.
 Plain log calls (``log.info("...")``) appear as ``msg="..."``.

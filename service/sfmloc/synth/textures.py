@@ -640,7 +640,8 @@ def _wall_high_band(cv: Canvas, rng: np.random.Generator, row) -> None:
 def compose_floor(width_m: float, depth_m: float, rng: np.random.Generator, texel: float,
                   grain: float, rug: tuple[float, float, float, float] | None = None
                   ) -> tuple[np.ndarray, np.ndarray]:
-    """Checkerboard-like tiles (repeated pattern) and a patterned rug at ``rug`` (x0, y0, x1, y1 m)."""
+    """Checkerboard-like tiles (repeated pattern) and a patterned rug at ``rug``
+    (x0, y0, x1, y1 m)."""
     cv = Canvas(int(round(width_m / texel)), int(round(depth_m / texel)), (128, 128, 128), texel)
     a = jitter((170, 180, 185), rng, 15)
     b = jitter((95, 105, 115), rng, 15)
@@ -699,7 +700,8 @@ def compose_box_face(kind: str, role: str, width_m: float, height_m: float, rng:
                      texel: float, grain: float, labels: list[Canvas]) -> tuple[np.ndarray, np.ndarray]:
     """Texture of one face of a piece of furniture.
 
-    ``kind``: shelf | cabinet | crate | table_top | table_leg; ``role``: front | side | top | bottom.
+    ``kind``: shelf | cabinet | crate | table_top | table_leg;
+    ``role``: front | side | top | bottom.
     """
     W, H = max(1, int(round(width_m / texel))), max(1, int(round(height_m / texel)))
     if kind == "shelf":

@@ -22,7 +22,8 @@ Progress = Callable[[str, float, str], None]
 CancelCheck = Callable[[], bool]
 
 class Reporter:
-    """Progress and cancellation for one run: ``report(stage, fraction, message)``, ``check(stage)``."""
+    """Progress and cancellation for one run: ``report(stage, fraction, message)``,
+    ``check(stage)``."""
 
     def __init__(self, progress: Progress | None, should_cancel: CancelCheck | None) -> None:
         self.progress = progress
