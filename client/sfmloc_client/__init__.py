@@ -36,7 +36,16 @@ server uses the same functions.
 
 import logging
 
-from .errors import ClientError, ImageDataError, MessageTooLargeError, RemoteError, WireError
+from .errors import (
+    ClientError,
+    ImageDataError,
+    ImageDecodeError,
+    InputError,
+    MessageTooLargeError,
+    RemoteError,
+    SfmlocError,
+    WireError,
+)
 from .grpc_client import AsyncLocalizationClient, LocalizationClient
 from .images import decode_image, encode_image
 from .sources import SourceFrame, open_source
@@ -73,6 +82,8 @@ __all__ = [
     "Frame",
     "FrameStreamer",
     "ImageDataError",
+    "ImageDecodeError",
+    "InputError",
     "LocalizationClient",
     "MapAnnouncement",
     "MessageTooLargeError",
@@ -80,6 +91,7 @@ __all__ = [
     "PoseSubscriber",
     "RemoteError",
     "ServerInfo",
+    "SfmlocError",
     "SourceFrame",
     "StreamStats",
     "Transform",

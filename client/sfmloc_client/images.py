@@ -6,7 +6,7 @@ from typing import Any
 
 import numpy as np
 
-from .errors import ImageDataError, WireError
+from .errors import ImageDecodeError, WireError
 from .wire import ENCODINGS, raw_size
 
 
@@ -22,11 +22,11 @@ def encode_image(image: np.ndarray, encoding: str = "jpeg", jpeg_quality: int = 
         raise WireError(f"encoding must be one of {', '.join(ENCODINGS)}, got {encoding!r}")
     img = np.asarray(image)
     if img.dtype != np.uint8:
-        raise ImageDataError(f"image must be uint8, got {img.dtype}")
+        raise ImageDecodeError(f"image must be uint8, got {img.dtype}")
     if img.ndim == 3 and img.shape[2] == 1:
         img = img[:, :, 0]
     if img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] != 3):
-        raise ImageDataError(f"image must be HxW or HxWx3, got shape {img.shape}")
+        raise ImageDecodeError(f"image must be HxW or HxWx3, got shape {img.shape}")
     if encoding == "gray8":
         if img.ndim == 3:
             img = _cv2().cvtColor(img, _cv2().COLOR_BGR2GRAY)
@@ -39,7 +39,7 @@ def encode_image(image: np.ndarray, encoding: str = "jpeg", jpeg_quality: int = 
     params = [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)] if encoding == "jpeg" else [cv2.IMWRITE_PNG_COMPRESSION, 1]
     ok, buf = cv2.imencode(".jpg" if encoding == "jpeg" else ".png", img, params)
     if not ok:
-        raise ImageDataError(f"OpenCV could not encode the image as {encoding}")
+        raise ImageDecodeError(f"OpenCV could not encode the image as {encoding}")
     return buf.tobytes()
 
 
@@ -49,7 +49,7 @@ def decode_image(encoding: str, data: bytes | bytearray | memoryview, width: int
     n = raw_size(encoding, width, height)
     if encoding in ("gray8", "bgr8"):
         if len(data) != n:
-            raise ImageDataError(f"{encoding} data of {len(data)} bytes does not match {width}x{height} ({n} bytes expected)")
+            raise ImageDecodeError(f"{encoding} data of {len(data)} bytes does not match {width}x{height} ({n} bytes expected)")
         arr = np.frombuffer(data, np.uint8)
         if encoding == "gray8":
             return arr.reshape(height, width)
@@ -66,9 +66,9 @@ def decode_image(encoding: str, data: bytes | bytearray | memoryview, width: int
         img = cv2.imdecode(buf, flag) if buf.size else None
     except cv2.error as exc:  # e.g. larger than OPENCV_IO_MAX_IMAGE_PIXELS allows
         reason = "larger than the decoder allows" if "MAX_IMAGE_PIXELS" in str(exc) else str(exc).strip().splitlines()[-1]
-        raise ImageDataError(f"the {encoding} data ({len(data)} bytes) cannot be decoded: {reason}") from None
+        raise ImageDecodeError(f"the {encoding} data ({len(data)} bytes) cannot be decoded: {reason}") from None
     if img is None:
-        raise ImageDataError(f"the {encoding} data ({len(data)} bytes) cannot be decoded (corrupt or not {encoding})")
+        raise ImageDecodeError(f"the {encoding} data ({len(data)} bytes) cannot be decoded (corrupt or not {encoding})")
     if img.shape[:2] != (height, width):
-        raise ImageDataError(f"the {encoding} image is {img.shape[1]}x{img.shape[0]}, the camera is {width}x{height}")
+        raise ImageDecodeError(f"the {encoding} image is {img.shape[1]}x{img.shape[0]}, the camera is {width}x{height}")
     return img

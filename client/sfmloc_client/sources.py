@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from .errors import ClientError
+from .errors import ImageDecodeError, InputError
 
 IMAGE_SUFFIXES = {".jpg": "jpeg", ".jpeg": "jpeg", ".png": "png", ".bmp": None, ".tif": None, ".tiff": None}
 
@@ -42,7 +42,7 @@ def list_images(folder: str | Path, pattern: str = "*") -> list[Path]:
         if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES and fnmatch.fnmatch(p.name, pattern)
     ]
     if not files:
-        raise ClientError(f"no images matching {pattern!r} in {folder}")
+        raise InputError(f"no images matching {pattern!r} in {folder}")
     return files
 
 
@@ -57,7 +57,7 @@ def folder_frames(folder: str | Path, *, pattern: str = "*", passthrough: str | 
         # Stored pixels, no EXIF rotation (as the server decodes what the client sends).
         img = cv2.imread(str(p), (cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR) | cv2.IMREAD_IGNORE_ORIENTATION)
         if img is None:
-            raise ClientError(f"cannot read image {p}")
+            raise ImageDecodeError(f"cannot read image {p}")
         yield SourceFrame(image=img, name=p.name)
 
 
@@ -66,7 +66,7 @@ def video_frames(source: str | int, *, gray: bool = False) -> Iterator[SourceFra
     cv2 = _cv2()
     cap = cv2.VideoCapture(source)
     if not cap.isOpened():
-        raise ClientError(f"cannot open video source {source!r}")
+        raise InputError(f"cannot open video source {source!r}")
     is_file = isinstance(source, str)
     fps = (cap.get(cv2.CAP_PROP_FPS) or 30.0) if is_file else 0.0
     try:
@@ -102,7 +102,7 @@ def open_source(source: Any, *, pattern: str = "*", passthrough: str | None = No
     image folder, a video file, or a camera index (an int or a string of digits)."""
     if isinstance(source, np.ndarray):
         if source.ndim not in (3, 4):
-            raise ClientError(f"a numpy source must be a stack (N, H, W[, 3]), got shape {source.shape}")
+            raise InputError(f"a numpy source must be a stack (N, H, W[, 3]), got shape {source.shape}")
         return array_frames(source)
     if isinstance(source, int) or (isinstance(source, str) and source.isdigit()):
         return video_frames(int(source), gray=gray)
@@ -112,7 +112,7 @@ def open_source(source: Any, *, pattern: str = "*", passthrough: str | None = No
             return folder_frames(p, pattern=pattern, passthrough=passthrough, gray=gray)
         if p.is_file():
             return video_frames(str(p), gray=gray)
-        raise ClientError(f"source {source} is neither a folder, a video file nor a camera index")
+        raise InputError(f"source {source} is neither a folder, a video file nor a camera index")
     if isinstance(source, Iterable):
         return array_frames(source)
-    raise ClientError(f"unsupported frame source {type(source).__name__}")
+    raise InputError(f"unsupported frame source {type(source).__name__}")

@@ -94,7 +94,7 @@ from typing import Any
 
 import msgpack
 
-from .errors import ImageDataError, MessageTooLargeError, WireError
+from .errors import MessageTooLargeError, WireError
 
 WIRE_VERSION = 1
 ROOT = "sfmloc"
@@ -311,10 +311,10 @@ class Frame:
         if self.encoding not in ENCODINGS:
             raise WireError(f"encoding must be one of {', '.join(ENCODINGS)}, got {self.encoding!r}")
         if not isinstance(self.data, (bytes, bytearray, memoryview)) or len(self.data) == 0:
-            raise ImageDataError("data must be non-empty bytes")
+            raise WireError("data must be non-empty bytes")
         n = raw_size(self.encoding, self.camera.width, self.camera.height)
         if n is not None and len(self.data) != n:
-            raise ImageDataError(
+            raise WireError(
                 f"{self.encoding} data of {len(self.data)} bytes does not match the camera's "
                 f"{self.camera.width}x{self.camera.height} ({n} bytes expected)"
             )

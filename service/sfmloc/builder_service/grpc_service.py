@@ -1,7 +1,8 @@
 """The ``MapBuilder`` gRPC servicer (proto/sfmloc/v1/builder.proto) over a ``JobManager``.
 
-Errors map to status codes through the one table in ``sfmloc.server.status``; an unknown job
-id is NOT_FOUND, a bad request (bad name, missing folder or file) INVALID_ARGUMENT.
+Handlers raise; ``SyncErrorStatusInterceptor`` ends the call with the status the one table
+(``sfmloc_client.errors``) gives the error: an unknown job id is NOT_FOUND
+(``JobNotFoundError``), a bad request (bad name, missing folder or file) INVALID_ARGUMENT.
 """
 
 from __future__ import annotations
@@ -15,8 +16,7 @@ import grpc
 from sfmloc_client.pb import builder_pb2 as pb
 from sfmloc_client.pb import builder_pb2_grpc as pb_grpc
 
-from ..errors import InputError, SfmlocError
-from ..server.status import message_of, status_of
+from ..errors import InputError, JobNotFoundError
 from .jobs import BuildEvent, BuildSpec, Job, JobManager, JobState
 
 log = logging.getLogger(__name__)
@@ -103,25 +103,18 @@ class MapBuilderServicer(pb_grpc.MapBuilderServicer):
         self.jobs = jobs
         self.default_out = default_out
 
-    def _abort(self, context: grpc.ServicerContext, exc: BaseException) -> None:
-        context.abort(status_of(exc), message_of(exc))
-
-    def _job(self, job_id: str, context: grpc.ServicerContext) -> Job:
+    def _job(self, job_id: str) -> Job:
         try:
             return self.jobs.get(job_id)
         except KeyError:
-            context.abort(grpc.StatusCode.NOT_FOUND, f"no build job {job_id!r}")
-            raise  # unreachable: abort raises
+            raise JobNotFoundError(f"no build job {job_id!r}") from None
 
     def SubmitBuild(self, request, context):
-        try:
-            job = self.jobs.submit(spec_from_request(request, self.default_out))
-        except SfmlocError as exc:
-            self._abort(context, exc)
+        job = self.jobs.submit(spec_from_request(request, self.default_out))
         return pb.SubmitBuildResponse(job_id=job.job_id)
 
     def WatchBuild(self, request, context):
-        self._job(request.job_id, context)
+        self._job(request.job_id)
         i = 0
         while context.is_active():
             events, done = self.jobs.wait_events(request.job_id, i, timeout=1.0)
@@ -135,8 +128,8 @@ class MapBuilderServicer(pb_grpc.MapBuilderServicer):
         return pb.ListBuildsResponse(jobs=[job_to_pb(j) for j in self.jobs.list()])
 
     def GetBuild(self, request, context):
-        return job_to_pb(self._job(request.job_id, context))
+        return job_to_pb(self._job(request.job_id))
 
     def CancelBuild(self, request, context):
-        self._job(request.job_id, context)
+        self._job(request.job_id)
         return pb.CancelBuildResponse(cancelled=self.jobs.cancel(request.job_id))

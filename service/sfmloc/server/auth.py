@@ -30,7 +30,7 @@ from typing import Any
 import grpc
 
 from ..errors import ConfigError
-from .interceptors import same_kind
+from ..interceptors import same_kind
 
 ROLES = ("localize", "admin")
 SERVICE = "/sfmloc.v1.Localization/"

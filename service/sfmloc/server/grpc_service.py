@@ -1,9 +1,9 @@
 """The gRPC ``sfmloc.v1.Localization`` service (grpc.aio), with health and reflection.
 
 Handlers validate requests on the event loop (cheap) and hand the engine work to the worker
-pool, awaiting its futures; blocking registry calls (LoadMap) run in an executor. Every
-failure ends the call with the status ``status.STATUS_TABLE`` gives it. Per-frame failures of
-a ``StreamLocalize`` stream (a corrupt image) come back as a LOST ``PoseUpdate`` with
+pool, awaiting its futures; blocking registry calls (LoadMap) run in an executor. Handlers
+raise; ``ErrorStatusInterceptor`` ends the call with the status the one table gives the error.
+Per-frame failures of a ``StreamLocalize`` stream (a corrupt image) come back as a LOST ``PoseUpdate`` with
 ``error_code``/``error_message`` and the stream goes on; failures of the stream itself (unknown
 map, first frame without camera) end it with their status.
 """
@@ -11,11 +11,10 @@ map, first frame without camera) end it with their status.
 from __future__ import annotations
 
 import asyncio
-import functools
 import logging
 import time
 import uuid
-from collections.abc import AsyncIterator, Awaitable, Callable
+from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -36,12 +35,12 @@ from sfmloc_client.pb import localization_pb2_grpc as pb_grpc
 from sfmloc_client.wire import Frame, PoseMessage, check_name
 
 from ..errors import ConfigError, InputError, MapNotFoundError, MessageError, PermissionDeniedError, SessionNotFoundError, UnavailableError
+from ..interceptors import ErrorStatusInterceptor, MalformedRequestInterceptor
 from .auth import AuthInterceptor, caller
-from .interceptors import MalformedRequestInterceptor
 from .logfmt import event
 from .protocol import Relocalize, camera_tuple, pose_message
 from .sessions import validate_camera
-from .status import abort, error_info
+from .status import error_info
 
 if TYPE_CHECKING:
     from .app import Server
@@ -49,24 +48,6 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 SERVICE_NAME = pb.DESCRIPTOR.services_by_name["Localization"].full_name
-
-
-def _unary(fn: Callable[..., Awaitable[Any]]) -> Callable[..., Awaitable[Any]]:
-    """Map any exception of a unary handler to its status (one table, ``status.py``)."""
-
-    @functools.wraps(fn)
-    async def wrapper(self: "LocalizationService", request: Any, context: grpc.aio.ServicerContext) -> Any:
-        try:
-            return await fn(self, request, context)
-        except asyncio.CancelledError:
-            raise
-        except Exception as exc:  # noqa: BLE001
-            if type(exc).__name__ == "AbortError":  # context.abort() already chose the status
-                raise
-            event(log, logging.INFO, "rpc_failed", method=fn.__name__, code=error_info(exc).code, error=str(exc))
-            await abort(context, exc)
-
-    return wrapper
 
 
 class _StreamSink:
@@ -101,7 +82,6 @@ class LocalizationService(pb_grpc.LocalizationServicer):
         self.server = server
 
     # ------------------------------------------------------------------ single images
-    @_unary
     async def Relocalize(self, request: pb.RelocalizeRequest, context: grpc.aio.ServicerContext) -> pb.RelocalizeResponse:
         t0 = time.perf_counter()
         srv = self.server
@@ -188,7 +168,7 @@ class LocalizationService(pb_grpc.LocalizationServicer):
                 if isinstance(item, BaseException):
                     event(log, logging.INFO, "stream_failed", client=state["client"], map=state["map"],
                           code=error_info(item).code, error=str(item))
-                    await abort(context, item)
+                    raise item  # ErrorStatusInterceptor ends the stream with its status
                 yield pose_to_update_pb(item)
         finally:
             reader.cancel()
@@ -196,15 +176,12 @@ class LocalizationService(pb_grpc.LocalizationServicer):
                 srv.sessions.close(state["session"], "stream_end")
 
     # ------------------------------------------------------------------ maps
-    @_unary
     async def ListMaps(self, request: pb.ListMapsRequest, context: grpc.aio.ServicerContext) -> pb.ListMapsResponse:
         return pb.ListMapsResponse(maps=[_map_info(self.server, e) for e in self.server.registry.list()])
 
-    @_unary
     async def GetMap(self, request: pb.GetMapRequest, context: grpc.aio.ServicerContext) -> pb.MapInfo:
         return _map_info(self.server, self.server.registry.get(request.name))
 
-    @_unary
     async def LoadMap(self, request: pb.LoadMapRequest, context: grpc.aio.ServicerContext) -> pb.MapInfo:
         if not request.path:
             raise MessageError("LoadMap needs a map name or the path of a bundle folder in the maps folders")
@@ -212,13 +189,11 @@ class LocalizationService(pb_grpc.LocalizationServicer):
         entry = await loop.run_in_executor(self.server.executor, self.server.load_map, request.path, request.name or None)
         return _map_info(self.server, entry)
 
-    @_unary
     async def UnloadMap(self, request: pb.UnloadMapRequest, context: grpc.aio.ServicerContext) -> pb.UnloadMapResponse:
         closed = self.server.unload_map(request.name)
         return pb.UnloadMapResponse(unloaded=True, sessions_closed=closed)
 
     # ------------------------------------------------------------------ sessions
-    @_unary
     async def ListSessions(self, request: pb.ListSessionsRequest, context: grpc.aio.ServicerContext) -> pb.ListSessionsResponse:
         from sfmloc_client.convert import STATUS_TO_PB
         from sfmloc_client.pb.common_pb2 import LOCALIZATION_STATUS_UNSPECIFIED
@@ -236,7 +211,6 @@ class LocalizationService(pb_grpc.LocalizationServicer):
             ))
         return pb.ListSessionsResponse(sessions=out)
 
-    @_unary
     async def ResetSession(self, request: pb.ResetSessionRequest, context: grpc.aio.ServicerContext) -> pb.ResetSessionResponse:
         if not request.client_id:
             raise MessageError("ResetSession needs a client_id")
@@ -277,7 +251,7 @@ def make_grpc_server(server: "Server") -> tuple[grpc.aio.Server, health_aio.Heal
     reflection; returns (server, health servicer, bound port)."""
     gc = server.conf.grpc
     n = int(gc.max_message_mb * 1024 * 1024)
-    interceptors: list[grpc.aio.ServerInterceptor] = [MalformedRequestInterceptor()]
+    interceptors: list[grpc.aio.ServerInterceptor] = [MalformedRequestInterceptor(), ErrorStatusInterceptor()]
     if server.tokens is not None:
         interceptors.insert(0, AuthInterceptor(server.tokens))
     creds = _server_credentials(gc)
