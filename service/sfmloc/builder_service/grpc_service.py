@@ -12,7 +12,6 @@ import logging
 import time
 from pathlib import Path
 
-import grpc
 from sfmloc_client.pb import builder_pb2 as pb
 from sfmloc_client.pb import builder_pb2_grpc as pb_grpc
 
