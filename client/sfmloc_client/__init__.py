@@ -34,79 +34,66 @@ The wire formats (``sfmloc_client.wire``) are the specification of the Zenoh mes
 server uses the same functions.
 """
 
+import importlib
 import logging
+from typing import Any
 
-from .errors import (
-    ClientError,
-    ImageDataError,
-    ImageDecodeError,
-    InputError,
-    MessageTooLargeError,
-    RemoteError,
-    SfmlocError,
-    WireError,
-)
-from .grpc_client import AsyncLocalizationClient, LocalizationClient
-from .images import decode_image, encode_image
-from .sources import SourceFrame, open_source
-from .streamer import FrameStreamer, StreamStats
-from .subscriber import PoseSubscriber
-from .trajectory import TumWriter
-from .wire import (
-    CameraSpec,
-    ErrorInfo,
-    Frame,
-    MapAnnouncement,
-    PoseMessage,
-    ServerInfo,
-    Transform,
-    decode_frame,
-    decode_map_announcement,
-    decode_pose,
-    encode_frame,
-    encode_map_announcement,
-    encode_pose,
-)
-from .zconfig import make_zenoh_config
-from .discovery import list_server_ids, query_servers
+# Public name -> submodule. Loaded on first use (PEP 562), so that importing the contract
+# modules (``errors``, ``cameras``, ``keys``, ``rotations``), as the service's per-frame core
+# does, loads neither grpc nor zenoh.
+_EXPORTS = {
+    "ClientError": "errors",
+    "ImageDataError": "errors",
+    "ImageDecodeError": "errors",
+    "InputError": "errors",
+    "MessageTooLargeError": "errors",
+    "RemoteError": "errors",
+    "SfmlocError": "errors",
+    "WireError": "errors",
+    "AsyncLocalizationClient": "grpc_client",
+    "LocalizationClient": "grpc_client",
+    "decode_image": "images",
+    "encode_image": "images",
+    "SourceFrame": "sources",
+    "open_source": "sources",
+    "FrameStreamer": "streamer",
+    "StreamStats": "streamer",
+    "PoseSubscriber": "subscriber",
+    "TumWriter": "trajectory",
+    "CameraSpec": "wire",
+    "ErrorInfo": "wire",
+    "Frame": "wire",
+    "MapAnnouncement": "wire",
+    "PoseMessage": "wire",
+    "ServerInfo": "wire",
+    "Transform": "wire",
+    "decode_frame": "wire",
+    "decode_map_announcement": "wire",
+    "decode_pose": "wire",
+    "encode_frame": "wire",
+    "encode_map_announcement": "wire",
+    "encode_pose": "wire",
+    "make_zenoh_config": "zconfig",
+    "list_server_ids": "discovery",
+    "query_servers": "discovery",
+}
+
+
+def __getattr__(name: str) -> Any:
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{module}"), name)
+    globals()[name] = value  # once loaded, a plain attribute
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_EXPORTS))
+
 
 __version__ = "0.1.0"
 
 logging.getLogger(__name__).addHandler(logging.NullHandler())
 
-__all__ = [
-    "AsyncLocalizationClient",
-    "CameraSpec",
-    "ClientError",
-    "ErrorInfo",
-    "Frame",
-    "FrameStreamer",
-    "ImageDataError",
-    "ImageDecodeError",
-    "InputError",
-    "LocalizationClient",
-    "MapAnnouncement",
-    "MessageTooLargeError",
-    "PoseMessage",
-    "PoseSubscriber",
-    "RemoteError",
-    "ServerInfo",
-    "SfmlocError",
-    "SourceFrame",
-    "StreamStats",
-    "Transform",
-    "TumWriter",
-    "WireError",
-    "decode_frame",
-    "decode_image",
-    "decode_map_announcement",
-    "decode_pose",
-    "encode_frame",
-    "encode_image",
-    "encode_map_announcement",
-    "encode_pose",
-    "list_server_ids",
-    "make_zenoh_config",
-    "open_source",
-    "query_servers",
-]
+__all__ = sorted(_EXPORTS)
