@@ -363,7 +363,7 @@ def test_workers_start_from_a_folder_that_shadows_the_package(tmp_path, monkeypa
     """A server started where a folder named ``sfmloc`` exists (the parent of a clone): its
     worker processes still import the installed package (they drop the working directory from
     sys.path) and the pool starts."""
-    from sfmloc.server.workers import WorkerPool
+    from sfmloc.server.pool import WorkerPool
 
     (tmp_path / "sfmloc").mkdir()  # found first on sys.path when the working directory is on it
     (tmp_path / "sfmloc" / "__init__.py").write_text("raise ImportError('the shadow was imported')\n")
@@ -380,7 +380,7 @@ def test_a_worker_that_cannot_start_fails_the_pool_loudly(tmp_path, monkeypatch)
     """Workers that die before they are ready are retried a bounded number of times with
     back-off, then the pool gives up with the child's own error in one line; every dead
     child is reaped (no zombie)."""
-    from sfmloc.server.workers import MAX_START_FAILURES, WorkerPool
+    from sfmloc.server.pool import MAX_START_FAILURES, WorkerPool
 
     broken = tmp_path / "broken" / "sfmloc"
     broken.mkdir(parents=True)

@@ -169,7 +169,7 @@ class Server:
             except (OSError, ValueError):
                 continue
             out.append({"pid": int(d.name), "state": rest[0], "nice": int(rest[16]),
-                        "worker": "sfmloc.server.workers" in cmd or "sfmloc-worker" in cmd
+                        "worker": "sfmloc.server.worker" in cmd or "sfmloc-worker" in cmd
                         or rest[0] == "Z"})
         return out
 

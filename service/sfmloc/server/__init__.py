@@ -6,14 +6,14 @@ One responsibility per module::
     status       the one table: exception -> gRPC status code (also the Zenoh error codes)
     logfmt       structured log lines (key=value or JSON), set up by entry points only
     metrics      Prometheus text metrics and their HTTP endpoint
-    workers      the worker pool: processes (or threads) each holding the maps and the
-                 Localizers of the sessions assigned to it
+    protocol     the messages between the server and its engine workers (typed, msgpack)
+    worker       the engine worker program: holds the maps and the Localizers of its sessions
+    pool         the worker pool: starts, feeds and restarts the workers (processes or threads)
     maps         the map registry: load / replace / unload bundles on every worker
     sessions     per-client sessions, latest-frame-only intake, idle expiry
     zenoh_io     Zenoh: frames in, poses out, liveliness token, info queryable, builder maps
     grpc_service the gRPC Localization service, health and reflection
     app          wiring, start-up, graceful shutdown; ``ServerThread`` for tests and tools
-    bench        ``sfmloc bench-transport``
 
 Nothing here is imported by the engine; only this package talks Zenoh and gRPC.
 """

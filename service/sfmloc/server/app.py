@@ -50,7 +50,7 @@ from .maps import MapEntry, MapRegistry, resolve_bundle_path
 from .metrics import MetricsServer, ServerMetrics
 from .protocol import Result
 from .sessions import SessionManager
-from .workers import WorkerPool
+from .pool import WorkerPool
 
 log = logging.getLogger(__name__)
 

@@ -25,7 +25,7 @@ import os
 from ..errors import BundleError, MapNotFoundError, MessageError, PermissionDeniedError
 from ..map.bundle import MANIFEST, read_manifest, validate_name, verify_bundle
 from .logfmt import event
-from .workers import WorkerPool
+from .pool import WorkerPool
 
 log = logging.getLogger(__name__)
 

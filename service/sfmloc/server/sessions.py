@@ -36,7 +36,7 @@ from .maps import MapRegistry
 from .metrics import ServerMetrics
 from .protocol import LocalizeFrame, Result, camera_tuple, pose_message
 from .status import error_info
-from .workers import WorkerPool
+from .pool import WorkerPool
 
 log = logging.getLogger(__name__)
 

@@ -1,0 +1,269 @@
+"""An engine worker: the program each worker process runs (``pool.py`` starts and feeds it).
+
+A worker holds every loaded map (memory-mapped arrays; the faiss index read in place from the
+bundle's mapped file, so all workers share one copy) and the ``Localizer`` of each session
+assigned to it, and processes one message at a time, so a frame runs start to end on one core
+and its latency does not depend on what other threads do. It speaks the messages of
+``protocol.py`` over its end of a socket pair; nothing is pickled.
+
+It is a fresh interpreter started by module path (``pool._BOOTSTRAP``), or a thread of the
+server for measurements (``worker_kind="thread"``).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from multiprocessing.connection import Connection
+from typing import Any
+
+from ..errors import BundleError
+from . import protocol as P
+
+log = logging.getLogger(__name__)
+
+# One thread per worker for BLAS/OpenMP: in the worker's environment before numpy loads.
+THREAD_ENV = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS")
+
+
+def worker_main(conn: Any, index: int, engine_conf_json: str, log_level: int, log_format: str,
+                is_process: bool, nice: int = 0) -> None:
+    """Entry point of a worker (a process, or a thread for measurements). ``nice`` > 0 lowers
+    the process's CPU priority (the relocalization lane: streams' frames win the CPU)."""
+    if is_process and nice > 0:
+        try:
+            os.nice(nice)
+        except OSError:  # not permitted: run at the normal priority
+            pass
+    if is_process:
+        # The server process coordinates shutdown: Ctrl-C in a terminal signals the whole
+        # process group, and a worker must not die mid-frame. It exits on "stop" or when its
+        # pipe closes (the server went away).
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        for var in THREAD_ENV:
+            os.environ.setdefault(var, "1")
+        from .logfmt import setup_logging
+
+        setup_logging(log_format, log_level)
+    import cv2  # noqa: E402 - after the thread environment is set
+    import faiss
+
+    cv2.setNumThreads(1)
+    faiss.omp_set_num_threads(1)
+    from .. import engine  # noqa: F401 - imported now (scipy, filterpy...), not on the first frame
+    try:
+        _Worker(conn, index, engine_conf_json).run()
+    finally:
+        try:
+            conn.close()
+        except OSError:
+            pass
+
+
+@dataclass
+class _SessionState:
+    localizer: Any
+    map_key: tuple[str, int]
+    camera_key: P.CameraTuple
+
+
+class _Worker:
+    def __init__(self, conn: Any, index: int, engine_conf_json: str) -> None:
+        from ..engine.config import EngineConf
+
+        self.conn = conn
+        self.index = index
+        self.conf = EngineConf.model_validate_json(engine_conf_json)
+        self.bundles: dict[tuple[str, int], Any] = {}
+        self.sessions: dict[int, _SessionState] = {}
+        self._cameras: dict[P.CameraTuple, Any] = {}
+
+    def send(self, msg: P.Message) -> None:
+        P.TO_SERVER.send(self.conn, msg)
+
+    def run(self) -> None:
+        self.send(P.Ready(self.index, os.getpid()))
+        handlers: dict[type, Callable[[Any], None]] = {
+            P.Load: self.on_load, P.Drop: self.on_drop, P.LocalizeFrame: self.on_frame,
+            P.Relocalize: self.on_relocalize, P.Reset: self.on_reset, P.Close: self.on_close,
+        }
+        while True:
+            try:
+                msg = P.TO_WORKER.recv(self.conn)
+            except (EOFError, OSError):
+                return  # the server is gone
+            if isinstance(msg, P.Stop):
+                return
+            try:
+                handlers[type(msg)](msg)
+            except (EOFError, OSError, BrokenPipeError):
+                return
+            except Exception:  # noqa: BLE001 - a bug in one handler must not end the worker
+                log.exception("worker %d: %s failed", self.index, msg.OP)
+
+    # ------------------------------------------------------------------ maps
+    def on_load(self, m: P.Load) -> None:
+        from ..map.bundle import MapBundle
+
+        t0 = time.perf_counter()
+        try:
+            # The server verified the checksums once; here only the structure is checked.
+            b = MapBundle(m.path, verify=False)
+            if m.build_id and b.build_id != m.build_id:
+                raise BundleError(
+                    f"map bundle {m.path} changed while loading (build {b.build_id}, "
+                    f"expected {m.build_id}); retry"
+                )
+            _warm_up(b, self.conf)
+            self.bundles[(m.name, m.gen)] = b
+            s = b.summary()
+            # The index reads the bundle's mapped file in place: every worker shares one copy.
+            summary = P.MapSummary(
+                points=int(s["points"]), descriptors=int(s["descriptors"]), images=int(s["images"]),
+                clusters=int(s["clusters"]), memory_mb=float(s["memory_mb"]),
+                build_id=str(s["build_id"]), index_in_place=b.index.shared_buffer is not None,
+            )
+            self.send(P.Loaded(m.req, summary, None, (time.perf_counter() - t0) * 1e3))
+        except Exception as exc:  # noqa: BLE001
+            self.send(P.Loaded(m.req, None, P.WorkerError.of(exc), (time.perf_counter() - t0) * 1e3))
+
+    def on_drop(self, m: P.Drop) -> None:
+        key = (m.name, m.gen)
+        self.bundles.pop(key, None)
+        for sid in [s for s, st in self.sessions.items() if st.map_key == key]:
+            del self.sessions[sid]  # its next frame (on the new generation) starts afresh
+
+    # ------------------------------------------------------------------ sessions
+    def _camera(self, c: P.CameraTuple) -> Any:
+        import numpy as np
+
+        from ..cameras import Camera
+
+        cam = self._cameras.get(c)
+        if cam is None:
+            cam = Camera(c[0], c[1], c[2], np.asarray(c[3], dtype=np.float64))
+            if len(self._cameras) > 64:
+                self._cameras.clear()
+            self._cameras[c] = cam
+        return cam
+
+    def _bundle(self, name: str, gen: int) -> Any:
+        from ..errors import MapNotFoundError
+
+        bundle = self.bundles.get((name, gen))
+        if bundle is None:
+            raise MapNotFoundError(f"map {name!r} is not loaded (it was unloaded or replaced)")
+        return bundle
+
+    def on_frame(self, m: P.LocalizeFrame) -> None:
+        from sfmloc_client.images import decode_image
+
+        from ..engine import Localizer
+
+        t0 = time.perf_counter()
+        pose: P.PoseResult | None = None
+        error: P.WorkerError | None = None
+        decode_ms = 0.0
+        try:
+            key = (m.map, m.gen)
+            bundle = self._bundle(m.map, m.gen)
+            cam = self._camera(m.camera)
+            st = self.sessions.get(m.sid)
+            if st is None or st.map_key != key or st.camera_key != m.camera:
+                # New session, a replaced map or another camera: a fresh Localizer (relocalizes).
+                st = _SessionState(Localizer(bundle, cam, self.conf), key, m.camera)
+                self.sessions[m.sid] = st
+            img = decode_image(m.encoding, m.data, cam.width, cam.height)
+            decode_ms = (time.perf_counter() - t0) * 1e3
+            pose = P.PoseResult.of(st.localizer.localize(img, m.stamp_ns * 1e-9))
+        except Exception as exc:  # noqa: BLE001 - reported to the client, never fatal
+            if not _expected(exc):
+                log.exception("worker %d: frame %s of session %d failed", self.index, m.seq, m.sid)
+                self.sessions.pop(m.sid, None)  # do not keep state an exception may have corrupted
+            error = P.WorkerError.of(exc)
+        self.send(P.Result(m.sid, m.seq, m.stamp_ns, m.gen, pose, error, decode_ms,
+                           (time.perf_counter() - t0) * 1e3))
+
+    def on_reset(self, m: P.Reset) -> None:
+        st = self.sessions.get(m.sid)
+        if st is not None:
+            st.localizer.reset()
+
+    def on_close(self, m: P.Close) -> None:
+        self.sessions.pop(m.sid, None)
+
+    # ------------------------------------------------------------------ single images
+    def on_relocalize(self, m: P.Relocalize) -> None:
+        import numpy as np
+        from sfmloc_client.images import decode_image
+
+        from ..engine import relocalize
+        from ..transforms import Rigid3d
+
+        t0 = time.perf_counter()
+        pose: P.PoseResult | None = None
+        error: P.WorkerError | None = None
+        try:
+            bundle = self._bundle(m.map, m.gen)
+            cam = self._camera(m.camera)
+            img = decode_image(m.encoding, m.data, cam.width, cam.height)
+            prior = None
+            if m.prior is not None:
+                prior = Rigid3d.from_quat_xyzw(np.asarray(m.prior.quat_xyzw), np.asarray(m.prior.t))
+            pose = P.PoseResult.of(relocalize(img, cam, bundle, self.conf, prior=prior))
+        except Exception as exc:  # noqa: BLE001
+            if not _expected(exc):
+                log.exception("worker %d: relocalize failed", self.index)
+            error = P.WorkerError.of(exc)
+        self.send(P.RelocResult(m.req, pose, error, (time.perf_counter() - t0) * 1e3))
+
+
+def _expected(exc: BaseException) -> bool:
+    """A failure the client caused or the server reports (not a bug worth a traceback)."""
+    from sfmloc_client.errors import WireError
+
+    from ..errors import SfmlocError
+
+    return isinstance(exc, (SfmlocError, WireError))
+
+
+def _warm_up(bundle: Any, conf: Any) -> None:
+    """One relocalization of a textured dummy image: first-call costs (allocations, caches,
+    the index's first search) are paid at load time rather than by a client's first frame."""
+    import numpy as np
+
+    from ..engine import relocalize
+
+    if not bundle.cameras:
+        return
+    cam = bundle.cameras[0]
+    rng = np.random.default_rng(0)
+    img = (rng.random((cam.height // 8 + 1, cam.width // 8 + 1)) * 255).astype(np.uint8)
+    img = np.kron(img, np.ones((8, 8), np.uint8))[: cam.height, : cam.width]
+    try:
+        relocalize(np.ascontiguousarray(img), cam, bundle, conf)
+    except Exception as exc:  # noqa: BLE001 - a warm-up failure is not a load failure
+        log.debug("warm-up failed: %s", exc)
+
+
+def _main() -> None:
+    import argparse
+
+    ap = argparse.ArgumentParser(description="sfmloc engine worker (started by the server, not by hand)")
+    ap.add_argument("--fd", type=int, required=True)
+    ap.add_argument("--index", type=int, required=True)
+    ap.add_argument("--log-level", type=int, default=logging.INFO)
+    ap.add_argument("--log-format", default="kv")
+    ap.add_argument("--engine-conf", default="{}")
+    ap.add_argument("--nice", type=int, default=0)
+    a = ap.parse_args()
+    worker_main(Connection(a.fd), a.index, a.engine_conf, a.log_level, a.log_format, True, a.nice)
+
+
+if __name__ == "__main__":
+    _main()
