@@ -51,7 +51,10 @@ class WorkerHandle:
     outbox: "queue.SimpleQueue[tuple[bytes, bytes | None] | None]" = field(default_factory=queue.SimpleQueue)
     inflight: int = 0  # frames and relocalizations sent, not yet answered
     busy_ms: float = 0.0  # engine time so far (load reporting)
-    alive: bool = True
+    alive: bool = True  # its pumps run (False once it died)
+    # Takes part: frames, sessions and LoadMap go to it. A replacement is stored in the pool at
+    # once (stop and drops reach it) but serves only once it has reloaded the current maps.
+    serving: bool = False
     pid: int = 0
     threads: list[threading.Thread] = field(default_factory=list)
     ready: threading.Event = field(default_factory=threading.Event)  # this process said "ready"
@@ -79,6 +82,7 @@ class WorkerPool:
         max_image_pixels: int = 4096 * 4096,
         reloc_workers: int = 0,
         reloc_nice: int = 5,
+        thread_target: Callable[..., None] = worker_main,
     ) -> None:
         self.n = n  # stream workers (sessions live on workers 0..n-1)
         # Workers n..n+reloc_workers-1 only serve single-image relocalizations (their own
@@ -87,6 +91,8 @@ class WorkerPool:
         self.reloc_workers = reloc_workers
         self.reloc_nice = reloc_nice
         self.kind = kind
+        # What a thread worker runs: ``worker_main``, or a fake speaking the protocol (tests).
+        self.thread_target = thread_target
         self.engine_conf_json = engine_conf_json
         self.on_result = on_result
         self.on_lost = on_lost or (lambda i: None)
@@ -98,7 +104,6 @@ class WorkerPool:
         self._lock = threading.Lock()
         self._req = itertools.count(1)
         self._futures: dict[int, tuple[int, Future]] = {}  # req -> (worker, future)
-        self._ready: dict[int, threading.Event] = {}
         self._maps: dict[tuple[str, int], tuple[str, str]] = {}  # (name, gen) -> (path, build_id)
         self._stopping = False
         self._reloc_pending = 0
@@ -114,6 +119,7 @@ class WorkerPool:
             os.environ.setdefault(var, "1")
         for i in range(self.n + self.reloc_workers):
             self.workers.append(self._spawn(i))
+            self.workers[i].serving = True  # no map is loaded before start() returns
         deadline = time.monotonic() + timeout
         for i in range(self.n + self.reloc_workers):
             # A worker that dies while starting is restarted (with back-off) by its reader
@@ -151,9 +157,8 @@ class WorkerPool:
         else:
             conn = Connection(theirs.detach())
             args = (conn, i, self.engine_conf_json, self.log_level, self.log_format, False)
-            runner = threading.Thread(target=worker_main, args=args, name=f"sfmloc-worker-{i}", daemon=True)
+            runner = threading.Thread(target=self.thread_target, args=args, name=f"sfmloc-worker-{i}", daemon=True)
             runner.start()
-        self._ready[i] = threading.Event()
         h = WorkerHandle(i, Connection(ours.detach()), runner)
         h.threads = [
             threading.Thread(target=self._sender, args=(h,), name=f"sfmloc-worker-{i}-send", daemon=True),
@@ -239,7 +244,6 @@ class WorkerPool:
         elif isinstance(msg, P.Ready):
             h.pid = msg.pid
             h.ready.set()
-            self._ready[h.index].set()
 
     def _worker_lost(self, h: WorkerHandle) -> None:
         """A worker died (a crash in native code, killed): fail what it had, restart it with
@@ -278,10 +282,15 @@ class WorkerPool:
         if fails:
             time.sleep(min(5.0, 0.25 * 2**fails))  # back-off before the next attempt
         self.restarts += 1
+        reload = self._started  # before start() returns there are no maps to reload
         new = self._spawn(h.index)
-        if not self._started:
-            self.workers[h.index] = new  # start() waits on the replacement
-            return
+        new.serving = not reload
+        with self._lock:
+            # At once, not after the reload: stop() must reach the replacement, and a handle
+            # stored late could overwrite the replacement of a replacement that died meanwhile.
+            self.workers[h.index] = new
+        if not reload:
+            return  # start() waits on the replacement
         while not new.ready.wait(0.1):
             if not new.alive or self._stopping:
                 return  # the replacement died too: its own reader thread handles that
@@ -300,8 +309,10 @@ class WorkerPool:
                 except Exception as exc:  # noqa: BLE001
                     log.error("worker %d: reloading map %s failed: %s", h.index, name, exc)
             with self._lock:
+                if self.workers[h.index] is not new or not new.alive:
+                    return  # it died while reloading: its own reader thread restarts it
                 if self._maps_version == version:
-                    self.workers[h.index] = new
+                    new.serving = True
                     stale = loaded - set(self._maps)
                     break
             if not new.alive or self._stopping:
@@ -336,7 +347,8 @@ class WorkerPool:
         with self._lock:
             self._maps[(name, gen)] = (path, build_id)  # a worker restarting meanwhile loads it too
             self._maps_version += 1
-            live = [h for h in self.workers if h.alive]  # a dead one's replacement loads it
+            # A restarting worker's replacement loads it when it reloads the current maps.
+            live = [h for h in self.workers if h.alive and h.serving]
         futures = [self._request(h, P.Load(0, name, gen, path, build_id)) for h in live]
         try:
             if not futures:
@@ -359,8 +371,12 @@ class WorkerPool:
             self._send(h, P.Drop(name, gen))
 
     def is_alive(self, worker: int) -> bool:
-        """Whether worker ``worker`` is up (False from its death until its replacement is ready)."""
-        return 0 <= worker < len(self.workers) and self.workers[worker].alive
+        """Whether worker ``worker`` is up (False from its death until its replacement has
+        reloaded the maps)."""
+        if not 0 <= worker < len(self.workers):
+            return False
+        h = self.workers[worker]
+        return h.alive and h.serving
 
     def submit_frame(self, worker: int, msg: P.LocalizeFrame) -> None:
         h = self.workers[worker]
@@ -384,6 +400,7 @@ class WorkerPool:
                     f"{pending} relocalizations are already queued (limit {self.max_pending_relocalize}); retry later"
                 )
             lane = self.workers[self.n:] or self.workers
+            lane = [w for w in lane if w.alive and w.serving] or lane  # a dead one answers at once
             h = min(lane, key=lambda w: (w.inflight, w.index))
             h.inflight += 1
             self._reloc_pending += 1
