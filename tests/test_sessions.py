@@ -1,0 +1,176 @@
+"""The session manager and the map registry against a fake pool (``fake_workers.FakePool``):
+latest-frame-only intake, worker loss, and the generation swap of a replaced map. The test
+plays the worker by calling ``on_result``; nothing waits on time."""
+
+from __future__ import annotations
+
+import threading
+
+import pytest
+from sfmloc_client.errors import MessageTooLargeError
+from sfmloc_client.wire import CameraSpec, Frame
+
+from fake_workers import FakePool, ListSink, pose
+from sfmloc.errors import BundleError, MapNotFoundError
+from sfmloc.server import protocol as P
+from sfmloc.server.maps import MapEntry, MapRegistry
+from sfmloc.server.metrics import ServerMetrics
+from sfmloc.server.sessions import SessionManager
+
+CAM = CameraSpec("PINHOLE", 64, 48, (50.0, 50.0, 32.0, 24.0))
+
+
+class _Registry:
+    """The registry's read side with entries set by the test (the real one needs bundles)."""
+
+    def __init__(self) -> None:
+        self.entries: dict[str, MapEntry] = {}
+
+    def set(self, name: str, gen: int, build_id: str) -> None:
+        self.entries[name] = MapEntry(name, f"/maps/{name}", build_id, gen, 1, 1, 1, 1, 1.0, "")
+
+    def find(self, name: str) -> MapEntry | None:
+        return self.entries.get(name)
+
+    def get(self, name: str) -> MapEntry:
+        if name not in self.entries:
+            raise MapNotFoundError(f"map {name!r} is not loaded on this server")
+        return self.entries[name]
+
+
+@pytest.fixture
+def env():
+    pool, reg = FakePool(n=2), _Registry()
+    reg.set("room", 1, "build-1")
+    sm = SessionManager(pool, reg, ServerMetrics(), server_id="srv", max_image_pixels=64 * 48)
+    sinks: dict[str, ListSink] = {}
+
+    def submit(client: str, seq: int, map_name: str = "room", camera: CameraSpec = CAM):
+        frame = Frame(seq, seq * 1000, camera, "gray8", bytes(64 * 48))
+        return sm.submit(map_name, client, "zenoh", frame, 0.0,
+                         make_sink=lambda: sinks.setdefault(client, ListSink()))
+
+    return pool, reg, sm, sinks, submit
+
+
+def _answer(sm: SessionManager, msg: P.LocalizeFrame, status: str = "TRACKING") -> None:
+    """The worker's answer to ``msg``."""
+    sm.on_result(P.Result(msg.sid, msg.seq, msg.stamp_ns, msg.gen, pose(status), None, 0.1, 1.0))
+
+
+def test_latest_frame_only_one_in_the_worker_and_the_newest_waiting(env):
+    pool, _, sm, sinks, submit = env
+    s = submit("c", 0)
+    for seq in (1, 2, 3):  # the worker is busy with frame 0: only the newest waits
+        submit("c", seq)
+    assert [m.seq for _, m in pool.frames] == [0]
+    assert [p.frame.seq for p in s.pending] == [3] and s.dropped == 2
+    _answer(sm, pool.frames[0][1])
+    assert [m.seq for _, m in pool.frames] == [0, 3]  # the waiting frame went on at once
+    _answer(sm, pool.frames[1][1])
+    got = sinks["c"].poses
+    assert [(p.seq, p.status, p.dropped) for p in got] == [(0, "TRACKING", 2), (3, "TRACKING", 2)]
+    assert got[0].build_id == "build-1" and got[0].server_id == "srv" and got[0].map == "room"
+    assert sm.wait_idle(0) and (s.frames, s.processed, s.localized) == (4, 2, 2)
+
+
+def test_sessions_spread_over_workers_and_other_clients_never_wait(env):
+    pool, _, sm, sinks, submit = env
+    a, b = submit("a", 0), submit("b", 0)
+    assert {a.worker, b.worker} == {0, 1}
+    submit("a", 1)  # a is busy: waits; b's next frame goes straight to its worker
+    _answer(sm, pool.frames[1][1])
+    submit("b", 1)
+    assert [(w, m.sid, m.seq) for w, m in pool.frames] == [
+        (a.worker, a.sid, 0), (b.worker, b.sid, 0), (b.worker, b.sid, 1)]
+
+
+def test_a_dead_worker_answers_its_frames_and_its_sessions_move_on(env):
+    pool, _, sm, sinks, submit = env
+    a, b = submit("a", 0), submit("b", 0)
+    submit("a", 1)  # waits behind frame 0
+    dead = a.worker
+    pool.alive[dead] = False
+    sm.on_worker_dead(dead)
+    err = [p for p in sinks["a"].poses if p.error is not None]
+    assert [(p.seq, p.error.code) for p in err] == [(0, "UNAVAILABLE")]
+    assert a.worker == b.worker != dead  # moved to the live worker
+    assert pool.frames[-1] == (a.worker, pool.frames[-1][1]) and pool.frames[-1][1].seq == 1
+    assert not sinks.get("b", ListSink()).poses  # b was not touched
+    _answer(sm, pool.frames[-1][1])
+    assert sinks["a"].poses[-1].seq == 1 and sinks["a"].poses[-1].localized
+
+
+def test_every_worker_dead_answers_the_frame_now(env):
+    pool, _, sm, sinks, submit = env
+    pool.alive = [False, False]
+    submit("c", 0)
+    assert not pool.frames
+    assert [(p.seq, p.error.code) for p in sinks["c"].poses] == [(0, "UNAVAILABLE")]
+    assert sm.wait_idle(0)
+
+
+def test_frames_follow_a_replaced_map_to_its_new_generation(env):
+    pool, reg, sm, sinks, submit = env
+    submit("c", 0)
+    submit("c", 1)  # waits
+    reg.set("room", 2, "build-2")  # the registry's swap
+    _answer(sm, pool.frames[0][1])  # frame 0 ran on generation 1, which is no longer current
+    assert [m.gen for _, m in pool.frames] == [1, 2]  # the waiting frame went to generation 2
+    _answer(sm, pool.frames[1][1])
+    assert [(p.seq, p.build_id) for p in sinks["c"].poses] == [(0, ""), (1, "build-2")]
+
+
+def test_unknown_map_and_oversized_camera_are_refused_before_any_work(env):
+    pool, _, sm, _, submit = env
+    with pytest.raises(MapNotFoundError, match="not loaded"):
+        submit("c", 0, map_name="nope")
+    with pytest.raises(MessageTooLargeError, match="exceeds"):
+        submit("c", 0, camera=CameraSpec("PINHOLE", 640, 480, (500.0, 500.0, 320.0, 240.0)))
+    assert not pool.frames
+
+
+def test_an_unloaded_map_answers_its_frames_not_found_and_ends_its_sessions(env):
+    pool, reg, sm, sinks, submit = env
+    s = submit("c", 0)
+    del reg.entries["room"]
+    assert sm.close_map("room") == 1
+    assert [(p.seq, p.error.code) for p in sinks["c"].poses] == [(0, "NOT_FOUND")]
+    assert sinks["c"].closed and pool.closed == [(s.worker, s.sid)] and len(sm) == 0
+    _answer(sm, pool.frames[0][1])  # its late result finds no session: nothing more is sent
+    assert len(sinks["c"].poses) == 1
+
+
+# ============================================================================ map registry
+def test_registry_swaps_generations_in_one_step_and_drops_the_old_one(world):
+    pool = FakePool()
+    changes: list[tuple[str, int | None, int | None]] = []
+    reg = MapRegistry(pool, on_change=lambda n, o, e: changes.append(
+        (n, o and o.generation, e and e.generation)))
+    first = reg.load(world.maps_dir / "room")
+    assert (first.name, first.generation) == ("room", 1) and pool.maps == {("room", 1): first.path}
+    pool.loading[("room", 2)] = release = threading.Event()
+    done: list[MapEntry] = []
+    loader = threading.Thread(target=lambda: done.append(reg.load(world.room_rebuilt, "room")))
+    loader.start()
+    # While generation 2 loads on the workers, frames keep going to generation 1.
+    assert reg.get("room") is first and not pool.dropped
+    release.set()
+    loader.join(30)
+    second = done[0]
+    assert second.generation == 2 and reg.get("room") is second
+    assert second.build_id != first.build_id
+    assert pool.dropped == [("room", 1)] and set(pool.maps) == {("room", 2)}
+    assert changes == [("room", None, 1), ("room", 1, 2)]
+    reg.unload("room")
+    assert pool.dropped[-1] == ("room", 2) and changes[-1] == ("room", 2, None)
+    with pytest.raises(MapNotFoundError, match="no maps are loaded"):
+        reg.get("room")
+
+
+def test_registry_refuses_a_corrupt_bundle_before_any_worker_sees_it(world):
+    pool = FakePool()
+    reg = MapRegistry(pool)
+    with pytest.raises(BundleError, match="corrupt"):
+        reg.load(world.corrupt)
+    assert not pool.maps and reg.list() == []
