@@ -41,6 +41,7 @@ from .desc_store import RawStore
 from .descriptors import DescriptorConf, extract_image_descriptors
 from ..map.index import DescriptorIndex, IndexConf
 from ..map.keypoint_scales import keypoint_scales
+from .harris_points import HarrisPointsConf, harris_points
 from .pca import project_store
 from .refine import RefineConf, refine_points
 from ..map.report import map_report
@@ -53,6 +54,7 @@ CancelCheck = Callable[[], bool]
 
 class BuildConf(StrictModel):
     descriptors: DescriptorConf = DescriptorConf()
+    harris_points: HarrisPointsConf = HarrisPointsConf()
     refine: RefineConf = RefineConf()
     clusters: ClusterConf = ClusterConf()
     index: IndexConf = IndexConf()
@@ -133,6 +135,17 @@ def _assemble(
     timings: dict[str, float] = {}
     if not rec.points3D:
         raise BuildError("the reconstruction has no 3D points", stage="sfm")
+    hp_stats: dict[str, int] = {}
+    if conf.harris_points.enabled:
+        t0 = time.perf_counter()
+        dc = conf.descriptors
+        detector = {"rel_threshold": dc.harris_rel_threshold, "border": dc.border, "subpixel": dc.subpixel}
+        rec, hp_stats = harris_points(rec, image_dir, load_gray, conf.harris_points, detector, progress,
+                                      should_cancel)
+        timings["harris_points"] = time.perf_counter() - t0
+        log.info("Harris points: %s", hp_stats)
+        if not rec.points3D:
+            raise BuildError("no Harris point could be triangulated", stage="harris_points")
     # Stable row order: points by id, images by name (so bundles are deterministic).
     point_ids = np.array(sorted(rec.points3D), dtype=np.int64)
     row_of_point = {int(pid): r for r, pid in enumerate(point_ids)}
@@ -263,6 +276,7 @@ def _assemble(
     info = {
         **index_info, "corners_detected": n_corners,
         "points_refined": int(moved.sum()),
+        **{f"harris_{k}": v for k, v in hp_stats.items()},
     }
     return data, timings, info
 

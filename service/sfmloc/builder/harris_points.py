@@ -1,0 +1,388 @@
+"""Map points triangulated from Harris corners matched across posed images (a builder stage).
+
+SfM puts its points at SIFT blobs; the engine observes a map point through a Harris corner. On
+redkitchen (map from every 10th frame) only 8.7% of the SfM points' observations have an
+online Harris corner within 1 px of their projection, and the corners the engine matches sit
+1.34 px (median) from their points' projections at the ground-truth pose: every 2D-3D match
+carries that offset. This stage replaces (or adds to) the SfM points with points triangulated
+from the Harris corners themselves, with the image poses fixed:
+
+- corners: full-resolution Harris of every image (the descriptor stage's detector settings),
+  each with its oriented raw DAISY;
+- pairs: each image with the ``neighbors`` images sharing most SfM points with it;
+- matches: mutual best DAISY matches among the corners within ``epipolar_px`` of the epipolar
+  line (both ways) whose triangulated depth lies in the image's SfM depth range, with a ratio
+  test against the second best of those candidates;
+- tracks: connected matches (union-find); a track seeing one image twice is dropped;
+- points: multi-view Gauss-Newton triangulation; observations reprojecting over
+  ``max_error_px`` are dropped once; a point needs ``min_track_length`` observations and a
+  triangulation angle of ``min_angle_deg``.
+
+The result is a ``Reconstruction`` with the same cameras and images whose observations are the
+corners of the tracks, so the descriptor stage assigns each point the very corner it comes from.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from ..cameras import Camera
+from ..config import StrictModel
+from ..errors import BuildCancelled
+from ..features.daisy import DaisyExtractor
+from ..features.harris import detect_corners
+from ..io.colmap import Image, Point3D, Reconstruction
+from ..transforms import Rigid3d
+
+Progress = Callable[[str, float, str], None]
+
+
+class HarrisPointsConf(StrictModel):
+    enabled: bool = False
+    # "replace": the map's points are the Harris points only; "add": SfM points are kept too.
+    mode: Literal["replace", "add"] = "replace"
+    neighbors: int = 8  # images matched with each image (most shared SfM points first)
+    min_shared_points: int = 10  # a pair must share this many SfM points
+    max_corners: int = 4000  # strongest corners per image
+    epipolar_px: float = 1.5
+    ratio: float = 0.8  # best / second-best DAISY distance among the epipolar candidates
+    max_descriptor_distance: float = 0.7  # raw DAISY is unit length: 0 same, 1.41 orthogonal
+    depth_margin: float = 1.5  # depths within [min / m, max * m] of the image's SfM points
+    max_error_px: float = 1.0
+    min_track_length: int = 2
+    min_angle_deg: float = 1.0
+    iterations: int = 6
+
+
+def _fundamental_normalized(pose_a: Rigid3d, pose_b: Rigid3d) -> np.ndarray:
+    """Essential matrix E with ``x_b^T E x_a = 0`` for normalized coordinates."""
+    R = pose_b.rotation @ pose_a.rotation.T
+    t = pose_b.translation - R @ pose_a.translation
+    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    return tx @ R
+
+
+def _line_distances(E: np.ndarray, xa: np.ndarray, xb: np.ndarray) -> np.ndarray:
+    """(Na, Nb) distances (normalized units) of points b to the epipolar lines of points a."""
+    ha = np.c_[xa, np.ones(len(xa))]
+    lines = ha @ E.T  # (Na, 3): l = E x_a
+    norm = np.maximum(np.hypot(lines[:, 0], lines[:, 1]), 1e-12)
+    return np.abs(lines[:, :2] @ xb.T + lines[:, 2:3]) / norm[:, None]
+
+
+def _midpoint_depths(pose_a: Rigid3d, pose_b: Rigid3d, xa: np.ndarray, xb: np.ndarray) -> tuple:
+    """Depths in a and b of the closest points of the two rays (pairs of normalized points)."""
+    Ra, Rb = pose_a.rotation, pose_b.rotation
+    ca, cb = -Ra.T @ pose_a.translation, -Rb.T @ pose_b.translation
+    da = np.c_[xa, np.ones(len(xa))] @ Ra  # world directions (rows: R^T x)
+    db = np.c_[xb, np.ones(len(xb))] @ Rb
+    w = ca - cb
+    a, b, c = (da * da).sum(1), (da * db).sum(1), (db * db).sum(1)
+    d, e = da @ w, db @ w
+    den = a * c - b * b
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = (b * e - c * d) / den  # along a (depth, since the direction's z is 1)
+        u = (a * e - b * d) / den
+    return s, u
+
+
+def match_pair(
+    pose_a: Rigid3d, pose_b: Rigid3d, xa: np.ndarray, xb: np.ndarray, da: np.ndarray, db: np.ndarray,
+    focal: float, depth_a: tuple[float, float], depth_b: tuple[float, float], conf: HarrisPointsConf,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Index pairs (ia, ib) of mutual best epipolar-consistent DAISY matches between the corners
+    of two posed images (``xa``, ``xb``: undistorted normalized coordinates; ``da``, ``db``:
+    unit raw DAISY), and their descriptor distances."""
+    none = np.zeros(0, np.int64)
+    if len(xa) == 0 or len(xb) == 0:
+        return none, none, np.zeros(0)
+    E = _fundamental_normalized(pose_a, pose_b)
+    tol = conf.epipolar_px / focal
+    ia_list, ib_list = [], []
+    for s in range(0, len(xa), 1024):  # bounded (1024, Nb) temporaries
+        d_ab = _line_distances(E, xa[s:s + 1024], xb)
+        ia, ib = np.nonzero(d_ab < tol)
+        ia_list.append(ia + s)
+        ib_list.append(ib)
+    ia, ib = np.concatenate(ia_list), np.concatenate(ib_list)
+    if len(ia) == 0:
+        return none, none, np.zeros(0)
+    # Symmetric: a within the band of b's line too.
+    lb = np.c_[xb[ib], np.ones(len(ib))] @ E  # l' = E^T x_b (rows)
+    dist_ba = np.abs((lb[:, :2] * xa[ia]).sum(1) + lb[:, 2]) / np.maximum(np.hypot(lb[:, 0], lb[:, 1]), 1e-12)
+    za, zb = _midpoint_depths(pose_a, pose_b, xa[ia], xb[ib])
+    m = dist_ba < tol
+    m &= (za > depth_a[0] / conf.depth_margin) & (za < depth_a[1] * conf.depth_margin)
+    m &= (zb > depth_b[0] / conf.depth_margin) & (zb < depth_b[1] * conf.depth_margin)
+    ia, ib = ia[m], ib[m]
+    if len(ia) == 0:
+        return none, none, np.zeros(0)
+    dist = np.sqrt(np.maximum(2.0 - 2.0 * np.einsum("ij,ij->i", da[ia].astype(np.float32),
+                                                      db[ib].astype(np.float32)), 0.0))
+    best_a, ratio_a = _best_per_group(ia, dist, len(xa))
+    best_b, ratio_b = _best_per_group(ib, dist, len(xb))
+    # a candidate pair k is kept when it is the best of both its corners, passes both ratios
+    k = np.arange(len(ia))
+    keep = (best_a[ia] == k) & (best_b[ib] == k) & (dist < conf.max_descriptor_distance)
+    keep &= (ratio_a[ia] < conf.ratio) & (ratio_b[ib] < conf.ratio)
+    return ia[keep], ib[keep], dist[keep]
+
+
+def _best_per_group(group: np.ndarray, dist: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per group id: the index (into ``dist``) of its smallest distance (-1 if none), and the
+    ratio best / second best (0 with a single candidate)."""
+    order = np.lexsort((dist, group))
+    g = group[order]
+    first = np.ones(len(g), bool)
+    first[1:] = g[1:] != g[:-1]
+    best = np.full(n, -1, np.int64)
+    best[g[first]] = order[first]
+    second = np.full(n, np.inf)
+    has2 = np.zeros(len(g), bool)
+    has2[1:] = first[:-1] & ~first[1:]  # the element right after a group's first
+    second[g[has2]] = dist[order[has2]]
+    d1 = np.full(n, np.inf)
+    d1[g[first]] = dist[order[first]]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.where(np.isfinite(second), d1 / np.maximum(second, 1e-12), 0.0)
+    return best, ratio
+
+
+def _union_find_tracks(n_nodes: int, a: np.ndarray, b: np.ndarray, node_img: np.ndarray) -> np.ndarray:
+    """Track label per node from edges (a, b), taken in the given order (best first); an edge
+    that would put two corners of one image in a track is skipped (a chain of matches through
+    one wrong match would otherwise merge two physical points)."""
+    parent = list(range(n_nodes))
+    images: dict[int, set[int]] = {}
+
+    def find(x: int) -> int:
+        root = x
+        while parent[root] != root:
+            root = parent[root]
+        while parent[x] != root:
+            parent[x], x = root, parent[x]
+        return root
+
+    node_img_l = node_img.tolist()
+    for u, v in zip(a.tolist(), b.tolist()):
+        ru, rv = find(u), find(v)
+        if ru == rv:
+            continue
+        iu = images.get(ru) or {node_img_l[u]}
+        iv = images.get(rv) or {node_img_l[v]}
+        if iu & iv:
+            continue
+        lo, hi = min(ru, rv), max(ru, rv)
+        parent[hi] = lo
+        images[lo] = iu | iv
+        images.pop(hi, None)
+    return np.array([find(i) for i in range(n_nodes)])
+
+
+def triangulate_tracks(
+    obs: np.ndarray, R: np.ndarray, t: np.ndarray, valid: np.ndarray, iterations: int = 6
+) -> np.ndarray:
+    """Points (C, 3) from padded observations: ``obs`` (C, M, 2) normalized coordinates in
+    cameras ``R`` (C, M, 3, 3), ``t`` (C, M, 3); ``valid`` (C, M). Linear (DLT) start, then
+    Gauss-Newton on the normalized reprojection error."""
+    w = valid.astype(np.float64)
+    P = np.concatenate([R, t[..., None]], axis=3)  # (C, M, 3, 4)
+    A = np.concatenate([obs[..., 0:1] * P[..., 2, :] - P[..., 0, :],
+                        obs[..., 1:2] * P[..., 2, :] - P[..., 1, :]], axis=1)  # (C, 2M, 4)
+    A = A * np.concatenate([w, w], axis=1)[..., None]
+    _, _, vt = np.linalg.svd(A)
+    Xh = vt[:, -1, :]
+    X = Xh[:, :3] / np.where(np.abs(Xh[:, 3:4]) > 1e-12, Xh[:, 3:4], 1e-12)
+    bad = ~np.all(np.isfinite(X), axis=1)
+    X[bad] = 0.0
+    for _ in range(iterations):
+        pc = np.einsum("cmij,cj->cmi", R, X) + t
+        z = np.where(np.abs(pc[..., 2]) > 1e-9, pc[..., 2], 1e-9)
+        proj = pc[..., :2] / z[..., None]
+        r = (proj - obs) * w[..., None]
+        J = (R[..., :2, :] - proj[..., :, None] * R[..., 2:3, :]) / z[..., None, None]
+        J = (J * w[..., None, None]).reshape(len(X), -1, 3)
+        r = r.reshape(len(X), -1)
+        H = np.einsum("cki,ckj->cij", J, J)
+        # a small damping keeps near-degenerate (far, low-parallax) points solvable
+        H = H + (1e-6 * np.trace(H, axis1=1, axis2=2) + 1e-12)[:, None, None] * np.eye(3)
+        g = np.einsum("cki,ck->ci", J, r)
+        step = np.linalg.solve(H, g[..., None])[..., 0]
+        X = X - np.where(np.isfinite(step), step, 0.0)
+    X[bad] = np.nan
+    return X
+
+
+def _errors_px(X, obs, R, t, focal):
+    pc = np.einsum("cmij,cj->cmi", R, X) + t
+    z = pc[..., 2]
+    proj = pc[..., :2] / np.where(np.abs(z) > 1e-9, z, 1e-9)[..., None]
+    return np.linalg.norm(proj - obs, axis=2) * focal, z
+
+
+def harris_points(
+    rec: Reconstruction,
+    image_dir: Path,
+    load_gray: Callable[[Path, Camera], np.ndarray],
+    conf: HarrisPointsConf,
+    detector: dict,
+    progress: Progress | None = None,
+    should_cancel: Callable[[], bool] | None = None,
+) -> tuple[Reconstruction, dict]:
+    """A reconstruction with the same cameras and images and points triangulated from matched
+    Harris corners (``mode`` "add": the SfM points too); and stats. ``detector``: keyword
+    arguments of ``detect_corners`` (the descriptor stage's settings)."""
+    images = sorted(rec.images.values(), key=lambda im: im.name)
+    n_img = len(images)
+    extractor = DaisyExtractor()
+    xy_px, xn, desc, grays = [], [], [], []
+    depth_range = []
+    for i, im in enumerate(images):
+        if should_cancel and should_cancel():
+            raise BuildCancelled("cancelled", stage="harris_points")
+        cam = rec.cameras[im.camera_id]
+        gray = load_gray(image_dir / im.name, cam)
+        c = detect_corners(gray, max_corners=conf.max_corners, **detector)
+        _, d = extractor.compute(gray, c.xy)
+        xy_px.append(c.xy)
+        xn.append(cam.cam_from_img(c.xy))
+        desc.append(d.astype(np.float16))
+        grays.append(gray)
+        ids = im.point3D_ids[im.point3D_ids >= 0]
+        pts = np.array([rec.points3D[int(p)].xyz for p in ids if int(p) in rec.points3D]).reshape(-1, 3)
+        z = im.cam_from_world.apply(pts)[:, 2] if len(pts) else np.zeros(0)
+        z = z[z > 0]
+        depth_range.append((float(np.percentile(z, 1)), float(np.percentile(z, 99))) if len(z) else (1e-6, 1e9))
+        if progress:
+            progress("harris_points", 0.4 * (i + 1) / n_img, f"{im.name}: {len(c)} corners")
+    # Pairs by shared SfM points.
+    index_of = {im.image_id: i for i, im in enumerate(images)}
+    shared = np.zeros((n_img, n_img), np.int64)
+    for p in rec.points3D.values():
+        ii = np.unique([index_of[int(x)] for x in p.track_image_ids if int(x) in index_of])
+        shared[np.ix_(ii, ii)] += 1
+    np.fill_diagonal(shared, 0)
+    pairs = set()
+    for i in range(n_img):
+        order = np.argsort(-shared[i])[: conf.neighbors]
+        for j in order:
+            if shared[i, j] >= conf.min_shared_points:
+                pairs.add((min(i, int(j)), max(i, int(j))))
+    pairs_sorted = sorted(pairs)
+    offset = np.zeros(n_img + 1, np.int64)
+    offset[1:] = np.cumsum([len(x) for x in xy_px])
+    ea, eb, ed = [], [], []
+    for k, (i, j) in enumerate(pairs_sorted):
+        if should_cancel and should_cancel():
+            raise BuildCancelled("cancelled", stage="harris_points")
+        ci, cj = rec.cameras[images[i].camera_id], rec.cameras[images[j].camera_id]
+        focal = 0.5 * (sum(ci.focal) + sum(cj.focal)) / 2
+        ia, ib, dist = match_pair(images[i].cam_from_world, images[j].cam_from_world, xn[i], xn[j], desc[i], desc[j],
+                            focal, depth_range[i], depth_range[j], conf)
+        ea.append(ia + offset[i])
+        eb.append(ib + offset[j])
+        ed.append(dist)
+        if progress and (k + 1) % 20 == 0:
+            progress("harris_points", 0.4 + 0.4 * (k + 1) / len(pairs_sorted), f"{k + 1} of {len(pairs_sorted)} pairs")
+    a = np.concatenate(ea) if ea else np.zeros(0, np.int64)
+    b = np.concatenate(eb) if eb else np.zeros(0, np.int64)
+    order = np.argsort(np.concatenate(ed), kind="stable") if ed else np.zeros(0, np.int64)
+    a, b = a[order], b[order]
+    node_img = np.repeat(np.arange(n_img), np.diff(offset))
+    label = _union_find_tracks(int(offset[-1]), a, b, node_img)
+    # Nodes in tracks of >= 2, grouped by track; drop tracks seeing an image twice.
+    in_edge = np.zeros(len(label), bool)
+    in_edge[a] = True
+    in_edge[b] = True
+    nodes = np.nonzero(in_edge)[0]
+    nodes = nodes[np.lexsort((node_img[nodes], label[nodes]))]
+    lab, img = label[nodes], node_img[nodes]
+    dup = np.zeros(len(nodes), bool)
+    dup[1:] = (lab[1:] == lab[:-1]) & (img[1:] == img[:-1])
+    bad = np.unique(lab[dup])
+    keep = ~np.isin(lab, bad)
+    nodes, lab, img = nodes[keep], lab[keep], img[keep]
+    uniq, start, counts = np.unique(lab, return_index=True, return_counts=True)
+    stats = {"corners": int(offset[-1]), "pairs": len(pairs_sorted), "matches": int(len(a)),
+             "tracks": int(len(uniq)), "tracks_conflicting": int(len(bad))}
+    pts_xyz, obs_nodes = _triangulate_all(nodes, start, counts, img, images, rec, xn, offset, conf)
+    stats["points"] = len(pts_xyz)
+    if progress:
+        progress("harris_points", 1.0, f"{len(pts_xyz)} Harris points from {stats['tracks']} tracks")
+    return _reconstruction(rec, images, pts_xyz, obs_nodes, node_img, xy_px, offset, grays, conf), stats
+
+
+def _triangulate_all(nodes, start, counts, img, images, rec, xn, offset, conf):
+    M = int(min(counts.max(), 32)) if len(counts) else 0
+    if M == 0:
+        return np.zeros((0, 3)), []
+    R_all = np.stack([im.cam_from_world.rotation for im in images])
+    t_all = np.stack([im.cam_from_world.translation for im in images])
+    f_all = np.array([0.5 * sum(rec.cameras[im.camera_id].focal) for im in images])
+    c_all = np.stack([im.cam_from_world.inverse().translation for im in images])
+    xn_all = np.concatenate(xn) if xn else np.zeros((0, 2))
+    n_obs = np.minimum(counts, M)
+    idx = start[:, None] + np.arange(M)[None, :]
+    valid = np.arange(M)[None, :] < n_obs[:, None]
+    idx = np.where(valid, idx, start[:, None])
+    node = nodes[idx]
+    im_i = img[idx]
+    R, t, f = R_all[im_i], t_all[im_i], f_all[im_i]
+    obs = xn_all[node]
+    X = triangulate_tracks(obs, R, t, valid, conf.iterations)
+    err, _ = _errors_px(X, obs, R, t, f)
+    valid = valid & (err < 3 * conf.max_error_px)  # drop gross outliers, then re-solve
+    ok = valid.sum(1) >= max(2, conf.min_track_length)
+    X, obs, R, t, f, valid, node, im_i = (a[ok] for a in (X, obs, R, t, f, valid, node, im_i))
+    X = triangulate_tracks(obs, R, t, valid, conf.iterations)
+    err, z = _errors_px(X, obs, R, t, f)
+    valid = valid & (err < conf.max_error_px) & (z > 0)
+    good = valid.sum(1) >= max(2, conf.min_track_length)
+    rays = X[:, None, :] - c_all[im_i]
+    rays /= np.maximum(np.linalg.norm(rays, axis=2, keepdims=True), 1e-12)
+    cos = np.einsum("cmi,cni->cmn", rays, rays)
+    cos = np.where(valid[:, :, None] & valid[:, None, :], cos, 1.0)
+    good &= np.degrees(np.arccos(np.clip(cos.min(axis=(1, 2)), -1, 1))) >= conf.min_angle_deg
+    good &= np.all(np.isfinite(X), axis=1)
+    obs_nodes = [node[c][valid[c]] for c in np.nonzero(good)[0]]
+    return X[good], obs_nodes
+
+
+def _reconstruction(rec, images, pts_xyz, obs_nodes, node_img, xy_px, offset, grays, conf) -> Reconstruction:
+    """The new reconstruction: images keep their poses; their observations are the corners of
+    the Harris points (and, in "add" mode, their SfM observations)."""
+    first_id = (max(rec.points3D) + 1) if (conf.mode == "add" and rec.points3D) else 1
+    per_img_xy: list[list[np.ndarray]] = [[] for _ in images]
+    per_img_id: list[list[np.ndarray]] = [[] for _ in images]
+    points: dict[int, Point3D] = {}
+    if conf.mode == "add":
+        points.update(rec.points3D)
+        for k, im in enumerate(images):
+            per_img_xy[k].append(im.points2D)
+            per_img_id[k].append(im.point3D_ids)
+    n_obs = [sum(len(a) for a in per_img_xy[k]) for k in range(len(images))]
+    for p, nodes in enumerate(obs_nodes):
+        pid = first_id + p
+        imgs = node_img[nodes]
+        tr_i, tr_k = [], []
+        for n, k in zip(nodes.tolist(), imgs.tolist()):
+            xy = xy_px[k][n - offset[k]]
+            tr_i.append(images[k].image_id)
+            tr_k.append(n_obs[k])
+            n_obs[k] += 1
+            per_img_xy[k].append(xy[None, :])
+            per_img_id[k].append(np.array([pid]))
+        k0, n0 = int(imgs[0]), int(nodes[0])
+        x, y = xy_px[k0][n0 - offset[k0]]
+        g = int(grays[k0][min(int(y), grays[k0].shape[0] - 1), min(int(x), grays[k0].shape[1] - 1)])
+        points[pid] = Point3D(pid, pts_xyz[p], np.array([g, g, g], np.uint8), 0.0, np.array(tr_i), np.array(tr_k))
+    new_images = {}
+    for k, im in enumerate(images):
+        xy = np.concatenate(per_img_xy[k]) if per_img_xy[k] else np.zeros((0, 2))
+        ids = np.concatenate(per_img_id[k]) if per_img_id[k] else np.zeros(0, np.int64)
+        new_images[im.image_id] = Image(im.image_id, im.name, im.camera_id, im.cam_from_world, xy, ids)
+    return Reconstruction(cameras=dict(rec.cameras), images=new_images, points3D=points)
