@@ -22,8 +22,13 @@ ROOTS = {"sfmloc": REPO / "service" / "sfmloc", "sfmloc_client": REPO / "client"
 TRANSPORTS = ("zenoh", "grpc")
 # The client's contract modules (errors and their status table, camera models, names and keys,
 # rotations), shared by client, server and builder: the only client code the core may load.
-CLIENT_CONTRACT = ("sfmloc_client", "sfmloc_client.errors", "sfmloc_client.cameras",
-                   "sfmloc_client.keys", "sfmloc_client.rotations")
+CLIENT_CONTRACT = (
+    "sfmloc_client",
+    "sfmloc_client.errors",
+    "sfmloc_client.cameras",
+    "sfmloc_client.keys",
+    "sfmloc_client.rotations",
+)
 
 # (importer, forbidden, why): every module under `importer` never reaches any under `forbidden`.
 CONTRACTS = [
@@ -36,6 +41,13 @@ CONTRACTS = [
     ("sfmloc.map", "sfmloc.server", "the map format is apart from its readers"),
     ("sfmloc.builder", "sfmloc.server", "the offline builder runs without the server"),
     ("sfmloc.builder", "sfmloc.engine", "the offline builder does not localize"),
+    ("sfmloc.builder_service", "sfmloc.server", "the two services share the contract, not code"),
+    (
+        "sfmloc.server",
+        "sfmloc.builder",
+        "the server reads maps (sfmloc.map), it does not build them",
+    ),
+    ("sfmloc.server", "sfmloc.builder_service", "the two services share the contract, not code"),
     ("sfmloc_client", "sfmloc", "the client installs without the service"),
 ]
 
@@ -193,8 +205,12 @@ def _loaded(*packages: str) -> list[str]:
 def test_loading_the_per_frame_core_loads_no_transport():
     loaded = _loaded("sfmloc.features", "sfmloc.engine")
     assert "sfmloc.engine.localizer" in loaded  # the probe did import the core
-    found = [m for m in loaded if m.split(".")[0] in TRANSPORTS
-             or (_under(m, "sfmloc_client") and m not in CLIENT_CONTRACT)]
+    found = [
+        m
+        for m in loaded
+        if m.split(".")[0] in TRANSPORTS
+        or (_under(m, "sfmloc_client") and m not in CLIENT_CONTRACT)
+    ]
     assert not found, found
     assert not [m for m in loaded if _under(m, "sfmloc.builder") or _under(m, "sfmloc.server")]
 

@@ -198,7 +198,7 @@ class ErrorStatusInterceptor(grpc.aio.ServerInterceptor):
 
 def _aborted(context: grpc.ServicerContext, exc: BaseException) -> bool:
     # grpc's thread-pool server signals abort() with a bare Exception after setting the code.
-    return type(exc) is Exception and context.code() is not None  # type: ignore[attr-defined]
+    return type(exc) is Exception and context.code() is not None
 
 
 def _sync_error_wrap(method: str) -> Callable[[Callable[..., Any], bool], Callable[..., Any]]:
