@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test lint typecheck bench bench-publish proto clean
+.PHONY: demo test lint format typecheck bench bench-publish proto clean
 
 $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -22,6 +22,14 @@ test: lint
 # Style and likely bugs: ruff at the configured width with import order (pyproject [tool.ruff]).
 lint: $(STAMP)
 	$(BIN)/ruff check .
+
+# Rewrite the tree to the style `make lint` checks: format, safe fixes (import order, ...), and
+# string literals split where the formatter leaves lines over 100 columns.
+format: $(STAMP)
+	$(BIN)/ruff format .
+	$(BIN)/ruff check --fix --exit-zero --quiet .
+	$(BIN)/python tools/split_long_strings.py $$(git ls-files '*.py' ':!:client/sfmloc_client/pb')
+	$(BIN)/ruff format .
 
 # Types of the online path (engine, map, server, client: pyproject [tool.mypy]); cache in .venv.
 typecheck: $(STAMP)
