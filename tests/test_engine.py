@@ -103,6 +103,42 @@ def test_final_refinement_lowers_the_error_of_noisy_matches_with_outliers():
     assert robust[:, 1].mean() < 0.6 * plain[:, 1].mean(), (robust.mean(0), plain.mean(0))
 
 
+def test_a_prior_that_is_this_frames_estimate_is_refined_without_ransac(monkeypatch):
+    """The tracker's second estimate (after guided matching) starts from the frame's own pose:
+    refinement alone, as accurate as the full estimator, and RANSAC is never called."""
+    import sfmloc.engine.pose as pose_mod
+    from sfmloc.engine.pose import RansacParams
+
+    params = RansacParams(loss_scale=1.0)
+    rng = np.random.default_rng(7)
+    gt = Rigid3d(rotmat_from_rotvec([0.05, 0.2, -0.1]), [0.2, 0.1, 0.8])
+    X, uv = scene_points(rng, 120, gt)
+    uv = uv + rng.normal(0, 0.3, uv.shape)
+    # a third of the matches 3-6 px off (verified within 6 px, like guided matches), a few
+    # gross outliers
+    off = rng.random(120) < 0.33
+    ang = rng.uniform(0, 2 * np.pi, off.sum())
+    uv[off] += rng.uniform(3.0, 6.0, off.sum())[:, None] * np.stack([np.cos(ang), np.sin(ang)], 1)
+    uv[:5] = rng.uniform([0, 0], [640, 480], (5, 2))
+    full = estimate_pose(uv, X, K, params)
+    prior = Rigid3d(rotmat_from_rotvec([0.051, 0.199, -0.1]), [0.201, 0.099, 0.802])
+
+    def no_ransac(*a, **k):
+        raise AssertionError("RANSAC ran from this frame's own pose")
+
+    monkeypatch.setattr(pose_mod.cv2, "solvePnPRansac", no_ransac)
+    est = estimate_pose(uv, X, K, params, prior=prior, prior_threshold=20.0, prior_is_estimate=True)
+    assert est is not None and full is not None
+    dp, dr = pose_errors(est.cam_from_world, gt)
+    dp_full, dr_full = pose_errors(full.cam_from_world, gt)
+    assert dp < max(1.5 * dp_full, 2e-3) and dr < max(1.5 * dr_full, 0.05), (dp, dr, dp_full, dr_full)
+    err = reprojection_errors(est.cam_from_world, K, uv, X)
+    assert np.array_equal(est.inlier_mask, err < params.refine_threshold)
+    # too few matches explained by it: no pose; no prior: no pose
+    assert estimate_pose(uv[:12], X[::10][:12], K, params, prior=prior, prior_is_estimate=True) is None
+    assert estimate_pose(uv, X, K, params, prior=None, prior_is_estimate=True) is None
+
+
 def test_one_to_many_ransac_uses_ambiguous_hypotheses():
     rng = np.random.default_rng(1)
     gt = Rigid3d(rotmat_from_rotvec([-0.2, 0.4, 0.0]), [1.0, 0.5, 2.0])

@@ -141,14 +141,16 @@ class Localizer:
         turn = c.max_angular_speed_rad_s * slack + np.radians(c.jump_tolerance_deg)
         return dpos <= reach and drot <= turn
 
-    def _estimate_from_table(self, pred: Rigid3d | None = None, dt: float = 0.0) -> PoseEstimate | None:
+    def _estimate_from_table(
+        self, pred: Rigid3d | None = None, dt: float = 0.0, pred_is_estimate: bool = False
+    ) -> PoseEstimate | None:
         rows, pts = self.table.matches()
         if len(rows) <= self.conf.kappa2:
             return None
         c = self.conf
         est = estimate_pose(
             self._undistort(self.table.xy[rows]), self.bundle.points_xyz[pts], self.K, c.ransac(), prior=pred,
-            prior_threshold=c.prior_threshold_px,
+            prior_threshold=c.prior_threshold_px, prior_is_estimate=pred_is_estimate,
         )
         if est is not None and not self._plausible(est.cam_from_world, pred, dt):
             log.debug("rejected a pose %.3g units / %.1f deg from the prediction",
@@ -237,7 +239,8 @@ class Localizer:
         c2_ids = set(T.track_id[T.point >= 0].tolist())
         if len(c2_ids) > c.kappa2 and c2_ids != c1_ids and not relocalized:
             # The new matches were verified against this frame's pose: it is the better prior.
-            est2 = self._estimate_from_table(est.cam_from_world if est is not None else pred, dt)
+            est2 = self._estimate_from_table(est.cam_from_world if est is not None else pred, dt,
+                                             pred_is_estimate=est is not None)
             if est2 is not None:
                 est = est2
             timer.lap("pose")
