@@ -253,7 +253,7 @@ def estimate_pose(
         # redkitchen, 250 frames: worst 7.9 -> 2.5 cm, median unchanged).
         pose = prior
         loose = prior_threshold is not None and prior_threshold > threshold
-        if loose:
+        if loose and prior_threshold is not None:  # (`loose` implies it; mypy needs it said)
             pose, _ = refine(pose, K, xy, X, prior_threshold, rounds=1)
         if params.loss_scale > 0 and loose:
             # The robust final refinement follows: a least-squares round at the tighter
