@@ -33,8 +33,15 @@ def reference_response(gray: np.ndarray, sigma: float = 1.0, k: float = 0.04) ->
     return a * b - c * c - k * tr * tr
 
 
-def reference_corners(gray, threshold=None, rel_threshold=0.001, max_corners=0, border=0,
-                      mask=None, subpixel="quadratic"):
+def reference_corners(
+    gray,
+    threshold=None,
+    rel_threshold=0.001,
+    max_corners=0,
+    border=0,
+    mask=None,
+    subpixel="quadratic",
+):
     """Integer maxima, responses and max of the plain implementation; sub-pixel offsets from
     the module's own per-corner functions (unchanged, they read the same response/gradients)."""
     R = reference_response(gray)
