@@ -162,7 +162,7 @@ def position_errors(world: World, poses: list[Any]) -> np.ndarray:
 
 @contextlib.contextmanager
 def running_server(conf: Any, load_maps: bool = True):
-    from sfmloc.server.app import ServerThread
+    from sfmloc.testing import ServerThread
 
     srv = ServerThread(conf, load_maps=load_maps).start()
     try:

@@ -111,7 +111,7 @@ def test_localize_role_localizes_as_itself_and_admin_manages(world, authed):
 
 
 def test_tokens_without_tls_off_loopback_refuse_to_start(world, tokens):
-    from sfmloc.server.app import ServerThread
+    from sfmloc.testing import ServerThread
 
     path, _ = tokens
     conf = server_config(world, zenoh_endpoint(), grpc={"address": "0.0.0.0:0", "tokens_file": str(path)})
@@ -156,7 +156,7 @@ def test_tls_and_mutual_tls(world, pki, tokens):
 
 
 def test_tls_files_are_checked_at_start(world, pki):
-    from sfmloc.server.app import ServerThread
+    from sfmloc.testing import ServerThread
 
     conf = server_config(world, zenoh_endpoint(), grpc={"address": "127.0.0.1:0", "tls_cert": str(pki / "server.pem")})
     with pytest.raises(Exception, match="tls_key"):

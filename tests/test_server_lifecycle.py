@@ -188,7 +188,7 @@ def test_relocalizations_run_on_their_own_lane_beside_a_stream(world):
 
 # ----------------------------------------------------------------------------- shutdown
 def test_stop_finishes_in_flight_relocalizations(world):
-    from sfmloc.server.app import ServerThread
+    from sfmloc.testing import ServerThread
 
     s = ServerThread(server_config(world, zenoh_endpoint(), workers=1, worker_kind="process")).start()
     results: list = []

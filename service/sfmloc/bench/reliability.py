@@ -133,10 +133,10 @@ def pingpong(n: int, k: int) -> int:
 
 # ============================================================================ the server
 class Server:
-    """``sfmloc serve`` subprocess (app.ServerProcess) plus what we watch of it."""
+    """``sfmloc serve`` subprocess (testing.ServerProcess) plus what we watch of it."""
 
     def __init__(self, world: World, workers: int, extra: tuple[str, ...] = ()) -> None:
-        from ..server.app import ServerProcess
+        from ..testing import ServerProcess
 
         self.sp = ServerProcess(world.maps_dir, workers=workers, extra_args=extra)
 

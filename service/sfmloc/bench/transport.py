@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from ..server.app import ServerProcess
+from ..testing import ServerProcess
 
 
 def _free_port() -> int:

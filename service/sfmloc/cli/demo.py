@@ -82,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
     from ..io.poses import read_poses
     from ..builder.build import BuildConf
     from ..builder.build import main as build_map
-    from ..server.app import ServerProcess
+    from ..testing import ServerProcess
     from ..synth import preset
     from ..synth.main import run as synth_run
     from ..transforms import Rigid3d, rotation_angle_deg

@@ -13,7 +13,8 @@ One responsibility per module::
     sessions     per-client sessions, latest-frame-only intake, idle expiry
     zenoh_io     Zenoh: frames in, poses out, liveliness token, info queryable, builder maps
     grpc_service the gRPC Localization service, health and reflection
-    app          wiring, start-up, graceful shutdown; ``ServerThread`` for tests and tools
+    facade       ``Localization``: all the front ends may ask (frames, images, maps, sessions)
+    app          wiring, start-up, graceful shutdown (test servers: ``sfmloc.testing``)
 
 Nothing here is imported by the engine; only this package talks Zenoh and gRPC.
 """

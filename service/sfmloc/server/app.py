@@ -32,8 +32,6 @@ import logging
 import os
 import signal
 import socket
-import subprocess
-import sys
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -45,8 +43,9 @@ from .. import __version__
 from ..errors import ConfigError
 from .auth import TokenTable
 from .config import ServerConfig
+from .facade import Localization
 from .logfmt import event
-from .maps import MapEntry, MapRegistry, resolve_bundle_path
+from .maps import MapEntry, MapRegistry
 from .metrics import MetricsServer, ServerMetrics
 from .protocol import Result
 from .sessions import SessionManager
@@ -62,7 +61,8 @@ def default_server_id() -> str:
 
 class Server:
     """One localization server. ``await start()``, ``await stop()``; or ``run_server`` for the
-    CLI and ``ServerThread`` for tests and tools."""
+    CLI, and ``sfmloc.testing.ServerThread`` for tests and tools. Its front ends (Zenoh,
+    gRPC) see only ``self.facade``."""
 
     def __init__(self, conf: ServerConfig) -> None:
         self.conf = conf
@@ -83,6 +83,12 @@ class Server:
             self.pool, self.registry, self.metrics, server_id=self.server_id,
             max_sessions=conf.max_sessions, idle_timeout_s=conf.idle_timeout_s,
             max_image_pixels=conf.max_image_pixels, max_pending=conf.max_pending,
+        )
+        # All the front ends see of the server.
+        self.facade = Localization(
+            sessions=self.sessions, registry=self.registry, pool=self.pool, metrics=self.metrics,
+            server_id=self.server_id, map_roots=[conf.maps, *conf.map_roots],
+            max_image_pixels=conf.max_image_pixels,
         )
         self.metrics.gauges(
             sessions=self.sessions.counts_by_map,
@@ -115,28 +121,13 @@ class Server:
         self.metrics.worker_restarts.inc()
         self.sessions.on_worker_lost(index)
 
-    def load_map(self, path: str, name: str | None = None) -> MapEntry:
-        """Load a bundle given by name or by a path inside the maps folders (LoadMap,
-        builder announcements); anything else is refused before it is read."""
-        try:
-            entry = self.registry.load(resolve_bundle_path(path, [self.conf.maps, *self.conf.map_roots]), name)
-        except Exception:
-            self.metrics.map_loads.inc("failed")
-            raise
-        self.metrics.map_loads.inc("ok")
-        return entry
-
-    def unload_map(self, name: str) -> int:
-        self.registry.unload(name)
-        return self.sessions.close_map(name)
-
     def _on_announcement(self, ann: MapAnnouncement) -> None:
         current = self.registry.find(ann.name)
         if current is not None and current.build_id == ann.build_id:
             return
         event(log, logging.INFO, "map_announced", map=ann.name, build_id=ann.build_id, path=ann.path)
         try:
-            self.load_map(ann.path, ann.name)
+            self.facade.load_map(ann.path, ann.name)
         except Exception as exc:  # noqa: BLE001 - keep serving the current map
             event(log, logging.ERROR, "map_announced_load_failed", map=ann.name, path=ann.path, error=str(exc))
 
@@ -187,14 +178,15 @@ class Server:
         if c.zenoh.enabled:
             from .zenoh_io import ZenohFrontend
 
-            self.zenoh = ZenohFrontend(c, self.sessions, self.server_id, self.info, self._on_announcement)
+            self.zenoh = ZenohFrontend(c, self.facade, self.server_id, self.info, self._on_announcement)
             await loop.run_in_executor(self.executor, self.zenoh.open)
         if c.grpc.address:
             from grpc_health.v1 import health_pb2
 
             from .grpc_service import SERVICE_NAME, make_grpc_server
 
-            self.grpc, self.health, self.grpc_port = make_grpc_server(self)
+            self.grpc, self.health, self.grpc_port = make_grpc_server(
+                self.facade, c.grpc, self.tokens, self.executor, c.grace_s)
             for svc in ("", SERVICE_NAME):
                 await self.health.set(svc, health_pb2.HealthCheckResponse.NOT_SERVING)
             await self.grpc.start()
@@ -335,124 +327,3 @@ def run_server(conf: ServerConfig) -> int:
     if conf.workers < 0:
         raise ConfigError("workers must be >= 0")
     return asyncio.run(_serve(conf))
-
-
-class ServerThread:
-    """A server on a background thread with its own event loop (tests, the demo, benchmarks)::
-
-        with ServerThread(conf) as srv:     # returns once SERVING
-            srv.grpc_port, srv.server.registry ...
-    """
-
-    def __init__(self, conf: ServerConfig, load_maps: bool = True) -> None:
-        self.conf = conf
-        self.load_maps = load_maps
-        self.server: Server | None = None
-        self.loop: asyncio.AbstractEventLoop | None = None
-        self._thread = threading.Thread(target=self._run, name="sfmloc-server", daemon=True)
-        self._started = threading.Event()
-        self._error: BaseException | None = None
-        self._done = threading.Event()
-
-    def _run(self) -> None:
-        self.loop = asyncio.new_event_loop()
-        asyncio.set_event_loop(self.loop)
-        try:
-            self.server = Server(self.conf)
-            self.loop.run_until_complete(self.server.start(load_maps=self.load_maps))
-        except BaseException as exc:  # noqa: BLE001 - handed to start()
-            self._error = exc
-            self._started.set()
-            if self.server is not None:
-                try:
-                    self.loop.run_until_complete(self.server.stop(0))
-                except Exception:  # noqa: BLE001
-                    pass
-            self.loop.close()
-            self._done.set()
-            return
-        self._started.set()
-        try:
-            self.loop.run_until_complete(self.server.wait_stopped())
-        finally:
-            self.loop.close()
-            self._done.set()
-
-    def start(self, timeout: float = 120.0) -> "ServerThread":
-        self._thread.start()
-        if not self._started.wait(timeout):
-            raise TimeoutError("the server did not start in time")
-        if self._error is not None:
-            raise self._error
-        return self
-
-    def call(self, coro: Any, timeout: float = 60.0) -> Any:
-        """Run a coroutine on the server's loop
-        (e.g. ``srv.call(srv.server.load_initial_maps())``)."""
-        assert self.loop is not None
-        return asyncio.run_coroutine_threadsafe(coro, self.loop).result(timeout)
-
-    def stop(self, grace: float | None = None, timeout: float = 60.0) -> None:
-        if self.server is not None and self.loop is not None and not self._done.is_set():
-            self.call(self.server.stop(grace), timeout)
-        self._done.wait(timeout)
-        self._thread.join(timeout)
-
-    @property
-    def grpc_port(self) -> int | None:
-        return None if self.server is None else self.server.grpc_port
-
-    def __enter__(self) -> "ServerThread":
-        return self.start()
-
-    def __exit__(self, *exc: Any) -> None:
-        self.stop()
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-class ServerProcess:
-    """``sfmloc serve`` in a subprocess on free loopback ports (the demo, benchmarks)::
-
-        with ServerProcess(maps_dir, workers=2) as srv:   # returns once SERVING
-            srv.endpoint (Zenoh), srv.grpc (host:port)
-    """
-
-    def __init__(self, maps: str | os.PathLike, workers: int = 0, kind: str = "process", quiet: bool = True,
-                 extra_args: tuple[str, ...] = (), env: dict[str, str] | None = None) -> None:
-        self.endpoint = f"tcp/127.0.0.1:{free_port()}"
-        self.grpc = f"127.0.0.1:{free_port()}"
-        cmd = [sys.executable, "-m", "sfmloc", *(["-q"] if quiet else []), "serve", "--maps", str(maps),
-               "--zenoh-listen", self.endpoint, "--no-multicast", "--grpc", self.grpc,
-               "--workers", str(workers), "--worker-kind", kind, *extra_args]
-        self.proc = subprocess.Popen(cmd, env=env)  # env: e.g. another checkout's PYTHONPATH
-
-    def __enter__(self) -> "ServerProcess":
-        from sfmloc_client import LocalizationClient
-
-        from ..errors import UnavailableError
-
-        with LocalizationClient(self.grpc) as c:
-            if not c.wait_ready(180):
-                self.proc.kill()
-                self.proc.wait()
-                raise UnavailableError(f"the server did not become ready (exit code {self.proc.returncode})")
-        return self
-
-    def stop(self, timeout: float = 60.0) -> int | None:
-        """SIGTERM (graceful shutdown); the exit code (0 after a clean stop)."""
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(timeout)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-        return self.proc.returncode
-
-    def __exit__(self, *exc: Any) -> None:
-        self.stop()

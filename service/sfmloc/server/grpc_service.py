@@ -16,7 +16,8 @@ import time
 import uuid
 from collections.abc import AsyncIterator
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from concurrent.futures import Executor
+from typing import Any
 
 import grpc
 from grpc_health.v1 import health_pb2, health_pb2_grpc
@@ -37,13 +38,11 @@ from sfmloc_client.wire import Frame, PoseMessage, check_name
 from ..errors import ConfigError, InputError, MapNotFoundError, MessageError, PermissionDeniedError, SessionNotFoundError, UnavailableError
 from ..interceptors import ErrorStatusInterceptor, MalformedRequestInterceptor
 from .auth import AuthInterceptor, caller
+from .auth import TokenTable
+from .config import GrpcConf
+from .facade import Localization
 from .logfmt import event
-from .protocol import Relocalize, camera_tuple, pose_message
-from .sessions import validate_camera
 from .status import error_info
-
-if TYPE_CHECKING:
-    from .app import Server
 
 log = logging.getLogger(__name__)
 
@@ -63,48 +62,47 @@ class _StreamSink:
         pass
 
 
-def _checked_camera(msg: Any, max_pixels: int) -> Any:
+def _checked_camera(loc: Localization, msg: Any) -> Any:
     """The request's camera as a ``CameraSpec``, validated like the engine's (WireError or
     CameraModelError: INVALID_ARGUMENT; too large: RESOURCE_EXHAUSTED)."""
-    cam = camera_from_pb(msg)
-    validate_camera(cam, max_pixels)
-    return cam
+    return loc.check_camera(camera_from_pb(msg))
 
 
-def _map_info(server: "Server", e: Any) -> pb.MapInfo:
-    n = sum(1 for s in server.sessions.list(e.name))
+def _map_info(loc: Localization, e: Any) -> pb.MapInfo:
+    n = len(loc.list_sessions(e.name))
     return pb.MapInfo(name=e.name, path=e.path, build_id=e.build_id, points=e.points, descriptors=e.descriptors,
                       images=e.images, clusters=e.clusters, memory_mb=e.memory_mb, sessions=n, loaded_utc=e.loaded_utc)
 
 
 class LocalizationService(pb_grpc.LocalizationServicer):
-    def __init__(self, server: "Server") -> None:
-        self.server = server
+    """The gRPC API over the server's ``Localization`` facade (``executor``: blocking calls
+    such as LoadMap; ``grace_s``: how long a finished stream waits for its last poses)."""
+
+    def __init__(self, loc: Localization, tokens: TokenTable | None, executor: Executor,
+                 grace_s: float) -> None:
+        self.loc = loc
+        self.tokens = tokens
+        self.executor = executor
+        self.grace_s = grace_s
 
     # ------------------------------------------------------------------ single images
     async def Relocalize(self, request: pb.RelocalizeRequest, context: grpc.aio.ServicerContext) -> pb.RelocalizeResponse:
         t0 = time.perf_counter()
-        srv = self.server
-        entry = srv.registry.get(request.map)
-        cam = _checked_camera(request.camera, srv.conf.max_image_pixels)
+        loc = self.loc
+        loc.get_map(request.map)  # NOT_FOUND before any complaint about the image
+        cam = _checked_camera(loc, request.camera)
         enc, data = image_from_pb(request.image, cam)
         prior = None
         if request.HasField("prior_cam_from_world"):
             prior = transform_from_pb(request.prior_cam_from_world, True)
-        msg = Relocalize(0, entry.name, entry.generation, camera_tuple(cam), enc, prior, bytes(data))
-        result = await asyncio.wrap_future(srv.pool.relocalize(msg))
-        pose = pose_message(result.pose, result.error, seq=None, stamp_ns=0, map_name=entry.name,
-                            build_id=entry.build_id, server_id=srv.server_id,
-                            latency_ms=(time.perf_counter() - t0) * 1e3)
-        srv.metrics.relocalize.inc(entry.name, pose.status)
-        srv.metrics.relocalize_latency.observe(entry.name, value=pose.latency_ms / 1e3)
+        pose = await loc.relocalize(request.map, cam, enc, bytes(data), prior, t0=t0)
         return pb.RelocalizeResponse(pose=pose_to_estimate_pb(pose))
 
     # ------------------------------------------------------------------ streams
     async def StreamLocalize(
         self, request_iterator: AsyncIterator[pb.StreamFrame], context: grpc.aio.ServicerContext
     ) -> AsyncIterator[pb.PoseUpdate]:
-        srv = self.server
+        loc = self.loc
         loop = asyncio.get_running_loop()
         q: asyncio.Queue[Any] = asyncio.Queue()
         state: dict[str, Any] = {"session": None, "map": "", "client": "", "camera": None}
@@ -119,10 +117,10 @@ class LocalizationService(pb_grpc.LocalizationServicer):
                         # Stream-level checks: failing them ends the stream.
                         if not req.map:
                             raise MessageError("the first frame of a stream must name the map")
-                        srv.registry.get(req.map)
+                        loc.get_map(req.map)
                         state["map"] = req.map
                         state["client"] = check_name(req.client_id, "client id") if req.client_id else f"grpc-{stream_id}"
-                        who = caller(srv.tokens, context)
+                        who = caller(self.tokens, context)
                         if who is not None and not who.admin:
                             # A caller's sessions carry its identity: it cannot pose as
                             # another client.
@@ -133,26 +131,25 @@ class LocalizationService(pb_grpc.LocalizationServicer):
                             state["client"] = who.name
                         if not req.HasField("camera"):
                             raise MessageError("the first frame of a stream must carry the camera")
-                        state["camera"] = _checked_camera(req.camera, srv.conf.max_image_pixels)  # no camera, no stream
+                        state["camera"] = _checked_camera(loc, req.camera)  # no camera, no stream
                     try:
                         if req.map and req.map != state["map"]:
                             raise MessageError(f"a stream stays on one map ({state['map']!r}), this frame names {req.map!r}")
                         if req.HasField("camera") and not first:
-                            state["camera"] = _checked_camera(req.camera, srv.conf.max_image_pixels)
+                            state["camera"] = _checked_camera(loc, req.camera)
                         cam = state["camera"]
                         enc, data = image_from_pb(req.image, cam)
                         frame = Frame(req.seq, req.stamp_ns or time.time_ns(), cam, enc, data)
-                        s = srv.sessions.submit(state["map"], state["client"], "grpc", frame, t_recv,
-                                                make_sink=lambda: _StreamSink(loop, q), key_suffix=f":{stream_id}")
+                        s = loc.submit_frame(state["map"], state["client"], "grpc", frame, t_recv,
+                                             make_sink=lambda: _StreamSink(loop, q), key_suffix=f":{stream_id}")
                         state["session"] = s
                     except (WireError, InputError, MapNotFoundError) as exc:  # this frame only: the stream goes on
                         # (an unloaded map too: its frames are answered NOT_FOUND until it is back)
-                        srv.sessions.count_error(state["map"], exc)
-                        q.put_nowait(srv.sessions.error_pose(state["map"], state["client"], req.seq, req.stamp_ns, exc))
+                        q.put_nowait(loc.refuse_frame(state["map"], state["client"], req.seq, req.stamp_ns, exc))
                 # The client is done sending: let the last frames finish, then end the stream.
                 s = state["session"]
                 if s is not None:
-                    await loop.run_in_executor(None, srv.sessions.wait_idle, srv.conf.grace_s + 30.0, [s])
+                    await loop.run_in_executor(None, loc.wait_idle, [s], self.grace_s + 30.0)
                 q.put_nowait(None)
             except asyncio.CancelledError:
                 raise
@@ -173,24 +170,24 @@ class LocalizationService(pb_grpc.LocalizationServicer):
         finally:
             reader.cancel()
             if state["session"] is not None:
-                srv.sessions.close(state["session"], "stream_end")
+                loc.end_session(state["session"], "stream_end")
 
     # ------------------------------------------------------------------ maps
     async def ListMaps(self, request: pb.ListMapsRequest, context: grpc.aio.ServicerContext) -> pb.ListMapsResponse:
-        return pb.ListMapsResponse(maps=[_map_info(self.server, e) for e in self.server.registry.list()])
+        return pb.ListMapsResponse(maps=[_map_info(self.loc, e) for e in self.loc.list_maps()])
 
     async def GetMap(self, request: pb.GetMapRequest, context: grpc.aio.ServicerContext) -> pb.MapInfo:
-        return _map_info(self.server, self.server.registry.get(request.name))
+        return _map_info(self.loc, self.loc.get_map(request.name))
 
     async def LoadMap(self, request: pb.LoadMapRequest, context: grpc.aio.ServicerContext) -> pb.MapInfo:
         if not request.path:
             raise MessageError("LoadMap needs a map name or the path of a bundle folder in the maps folders")
         loop = asyncio.get_running_loop()
-        entry = await loop.run_in_executor(self.server.executor, self.server.load_map, request.path, request.name or None)
-        return _map_info(self.server, entry)
+        entry = await loop.run_in_executor(self.executor, self.loc.load_map, request.path, request.name or None)
+        return _map_info(self.loc, entry)
 
     async def UnloadMap(self, request: pb.UnloadMapRequest, context: grpc.aio.ServicerContext) -> pb.UnloadMapResponse:
-        closed = self.server.unload_map(request.name)
+        closed = self.loc.unload_map(request.name)
         return pb.UnloadMapResponse(unloaded=True, sessions_closed=closed)
 
     # ------------------------------------------------------------------ sessions
@@ -200,8 +197,8 @@ class LocalizationService(pb_grpc.LocalizationServicer):
 
         now = time.monotonic()
         out = []
-        who = caller(self.server.tokens, context)
-        for s in self.server.sessions.list(request.map):
+        who = caller(self.tokens, context)
+        for s in self.loc.list_sessions(request.map):
             if who is not None and not who.admin and s.client_id != who.name:
                 continue  # a localize caller sees its own sessions only
             out.append(pb.SessionInfo(
@@ -214,10 +211,10 @@ class LocalizationService(pb_grpc.LocalizationServicer):
     async def ResetSession(self, request: pb.ResetSessionRequest, context: grpc.aio.ServicerContext) -> pb.ResetSessionResponse:
         if not request.client_id:
             raise MessageError("ResetSession needs a client_id")
-        who = caller(self.server.tokens, context)
+        who = caller(self.tokens, context)
         if who is not None and not who.admin and request.client_id != who.name:
             raise PermissionDeniedError(f"{who.name!r} may reset only its own sessions (needs the admin role)")
-        if not self.server.sessions.reset(request.client_id, request.map):
+        if not self.loc.reset_sessions(request.client_id, request.map):
             raise SessionNotFoundError(
                 f"no session of client {request.client_id!r}" + (f" on map {request.map!r}" if request.map else "")
             )
@@ -246,16 +243,16 @@ def _is_loopback(address: str) -> bool:
     return host in ("localhost", "::1") or host.startswith("127.")
 
 
-def make_grpc_server(server: "Server") -> tuple[grpc.aio.Server, health_aio.HealthServicer, int]:
-    """The grpc.aio server with our service, health (NOT_SERVING until maps are loaded) and
-    reflection; returns (server, health servicer, bound port)."""
-    gc = server.conf.grpc
+def make_grpc_server(loc: Localization, gc: GrpcConf, tokens: TokenTable | None, executor: Executor,
+                     grace_s: float) -> tuple[grpc.aio.Server, health_aio.HealthServicer, int]:
+    """The grpc.aio server with our service over ``loc``, health (NOT_SERVING until maps are
+    loaded) and reflection; returns (server, health servicer, bound port)."""
     n = int(gc.max_message_mb * 1024 * 1024)
     interceptors: list[grpc.aio.ServerInterceptor] = [MalformedRequestInterceptor(), ErrorStatusInterceptor()]
-    if server.tokens is not None:
-        interceptors.insert(0, AuthInterceptor(server.tokens))
+    if tokens is not None:
+        interceptors.insert(0, AuthInterceptor(tokens))
     creds = _server_credentials(gc)
-    if server.tokens is not None and creds is None and not _is_loopback(gc.address):
+    if tokens is not None and creds is None and not _is_loopback(gc.address):
         raise ConfigError(
             f"gRPC tokens without TLS would travel in the clear on {gc.address}: set grpc.tls_cert and "
             "grpc.tls_key (--tls-cert/--tls-key), or listen on loopback only"
@@ -265,7 +262,7 @@ def make_grpc_server(server: "Server") -> tuple[grpc.aio.Server, health_aio.Heal
         ("grpc.max_send_message_length", n),
         ("grpc.so_reuseport", 0),
     ])
-    pb_grpc.add_LocalizationServicer_to_server(LocalizationService(server), g)
+    pb_grpc.add_LocalizationServicer_to_server(LocalizationService(loc, tokens, executor, grace_s), g)
     health = health_aio.HealthServicer()
     health_pb2_grpc.add_HealthServicer_to_server(health, g)
     reflection.enable_server_reflection(
@@ -274,9 +271,9 @@ def make_grpc_server(server: "Server") -> tuple[grpc.aio.Server, health_aio.Heal
     try:
         port = g.add_insecure_port(gc.address) if creds is None else g.add_secure_port(gc.address, creds)
     except RuntimeError as exc:  # grpc's way of saying the address is taken or invalid
-        raise UnavailableError(f"cannot listen for gRPC on {server.conf.grpc.address}: {exc}") from None
+        raise UnavailableError(f"cannot listen for gRPC on {gc.address}: {exc}") from None
     if port == 0:
-        raise UnavailableError(f"cannot listen for gRPC on {server.conf.grpc.address}")
+        raise UnavailableError(f"cannot listen for gRPC on {gc.address}")
     return g, health, port
 
 

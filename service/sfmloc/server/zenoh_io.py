@@ -44,7 +44,7 @@ from ..errors import ConfigError, MapNotFoundError, OverloadError, UnavailableEr
 from .config import ServerConfig
 from .limits import LogLimiter, RateLimiter
 from .logfmt import event
-from .sessions import SessionManager
+from .facade import Localization
 
 log = logging.getLogger(__name__)
 
@@ -75,13 +75,13 @@ class ZenohFrontend:
     def __init__(
         self,
         conf: ServerConfig,
-        sessions: SessionManager,
+        loc: Localization,
         server_id: str,
         info: Callable[[], ServerInfo],
         on_announcement: Callable[[MapAnnouncement], None] | None = None,
     ) -> None:
         self.conf = conf
-        self.sessions = sessions
+        self.loc = loc
         self.server_id = server_id
         self.info = info
         self.on_announcement = on_announcement
@@ -155,26 +155,28 @@ class ZenohFrontend:
             check_name(map_name, "map name")
             check_name(client_id, "client id")
             if not self._rate.allow(f"{map_name}/{client_id}"):
-                self.sessions.metrics.frames_refused.inc("rate")
+                self.loc.count_refused("rate")
                 raise OverloadError(
                     f"client {client_id!r} sends more than {self.conf.max_client_fps:g} frames/s: frame refused"
                 )
             frame = decode_frame(payload, self.conf.max_frame_bytes)
-            self.sessions.submit(
+            self.loc.submit_frame(
                 map_name, client_id, "zenoh", frame, t_recv,
                 make_sink=lambda: ZenohPoseSink(z, f"sfmloc/{map_name}/{client_id}/pose"),
             )
         except MapNotFoundError as exc:
-            self.sessions.count_error(map_name, exc)
-            if self.conf.zenoh.reply_unknown_maps:
-                self._reply_error(map_name, client_id, payload, exc)
+            self._reply_error(map_name, client_id, payload, exc,
+                              publish=self.conf.zenoh.reply_unknown_maps)
         except Exception as exc:  # noqa: BLE001 - every failure is answered, none is fatal
-            self.sessions.count_error(map_name, exc)
             self._reply_error(map_name, client_id, payload, exc)
 
-    def _reply_error(self, map_name: str, client_id: str, payload: bytes, exc: BaseException) -> None:
+    def _reply_error(self, map_name: str, client_id: str, payload: bytes, exc: BaseException,
+                     publish: bool = True) -> None:
+        """Count the refused frame; log it (rate-limited) and publish its error pose."""
         seq = peek_seq(payload) if len(payload) <= self.conf.max_frame_bytes else None
-        pose = self.sessions.error_pose(map_name, client_id, seq, 0, exc)
+        pose = self.loc.refuse_frame(map_name, client_id, seq, 0, exc)
+        if not publish:
+            return
         code = pose.error.code if pose.error else ""
         if self.rejections.allow(client_id, code):
             event(log, logging.INFO, "frame_rejected", map=map_name, client=client_id, seq=seq,

@@ -1,0 +1,141 @@
+"""Servers for tests, the demo and benchmarks (not used by the server itself).
+
+- ``ServerThread``: a ``Server`` on a background thread with its own event loop, in this
+  process (tests reach into ``srv.server``).
+- ``ServerProcess``: ``sfmloc serve`` in a subprocess on free loopback ports.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+from typing import Any
+
+from .server.app import Server
+from .server.config import ServerConfig
+
+
+class ServerThread:
+    """A server on a background thread with its own event loop (tests, the demo, benchmarks)::
+
+        with ServerThread(conf) as srv:     # returns once SERVING
+            srv.grpc_port, srv.server.registry ...
+    """
+
+    def __init__(self, conf: ServerConfig, load_maps: bool = True) -> None:
+        self.conf = conf
+        self.load_maps = load_maps
+        self.server: Server | None = None
+        self.loop: asyncio.AbstractEventLoop | None = None
+        self._thread = threading.Thread(target=self._run, name="sfmloc-server", daemon=True)
+        self._started = threading.Event()
+        self._error: BaseException | None = None
+        self._done = threading.Event()
+
+    def _run(self) -> None:
+        self.loop = asyncio.new_event_loop()
+        asyncio.set_event_loop(self.loop)
+        try:
+            self.server = Server(self.conf)
+            self.loop.run_until_complete(self.server.start(load_maps=self.load_maps))
+        except BaseException as exc:  # noqa: BLE001 - handed to start()
+            self._error = exc
+            self._started.set()
+            if self.server is not None:
+                try:
+                    self.loop.run_until_complete(self.server.stop(0))
+                except Exception:  # noqa: BLE001
+                    pass
+            self.loop.close()
+            self._done.set()
+            return
+        self._started.set()
+        try:
+            self.loop.run_until_complete(self.server.wait_stopped())
+        finally:
+            self.loop.close()
+            self._done.set()
+
+    def start(self, timeout: float = 120.0) -> "ServerThread":
+        self._thread.start()
+        if not self._started.wait(timeout):
+            raise TimeoutError("the server did not start in time")
+        if self._error is not None:
+            raise self._error
+        return self
+
+    def call(self, coro: Any, timeout: float = 60.0) -> Any:
+        """Run a coroutine on the server's loop
+        (e.g. ``srv.call(srv.server.load_initial_maps())``)."""
+        assert self.loop is not None
+        return asyncio.run_coroutine_threadsafe(coro, self.loop).result(timeout)
+
+    def stop(self, grace: float | None = None, timeout: float = 60.0) -> None:
+        if self.server is not None and self.loop is not None and not self._done.is_set():
+            self.call(self.server.stop(grace), timeout)
+        self._done.wait(timeout)
+        self._thread.join(timeout)
+
+    @property
+    def grpc_port(self) -> int | None:
+        return None if self.server is None else self.server.grpc_port
+
+    def __enter__(self) -> "ServerThread":
+        return self.start()
+
+    def __exit__(self, *exc: Any) -> None:
+        self.stop()
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class ServerProcess:
+    """``sfmloc serve`` in a subprocess on free loopback ports (the demo, benchmarks)::
+
+        with ServerProcess(maps_dir, workers=2) as srv:   # returns once SERVING
+            srv.endpoint (Zenoh), srv.grpc (host:port)
+    """
+
+    def __init__(self, maps: str | os.PathLike, workers: int = 0, kind: str = "process", quiet: bool = True,
+                 extra_args: tuple[str, ...] = (), env: dict[str, str] | None = None) -> None:
+        self.endpoint = f"tcp/127.0.0.1:{free_port()}"
+        self.grpc = f"127.0.0.1:{free_port()}"
+        cmd = [sys.executable, "-m", "sfmloc", *(["-q"] if quiet else []), "serve", "--maps", str(maps),
+               "--zenoh-listen", self.endpoint, "--no-multicast", "--grpc", self.grpc,
+               "--workers", str(workers), "--worker-kind", kind, *extra_args]
+        self.proc = subprocess.Popen(cmd, env=env)  # env: e.g. another checkout's PYTHONPATH
+
+    def __enter__(self) -> "ServerProcess":
+        from sfmloc_client import LocalizationClient
+
+        from .errors import UnavailableError
+
+        with LocalizationClient(self.grpc) as c:
+            if not c.wait_ready(180):
+                self.proc.kill()
+                self.proc.wait()
+                raise UnavailableError(f"the server did not become ready (exit code {self.proc.returncode})")
+        return self
+
+    def stop(self, timeout: float = 60.0) -> int | None:
+        """SIGTERM (graceful shutdown); the exit code (0 after a clean stop)."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        return self.proc.returncode
+
+    def __exit__(self, *exc: Any) -> None:
+        self.stop()
