@@ -2,7 +2,8 @@
 
 A crash in a build (an exception, a segfault in native code, the OOM killer) ends that
 process, never the service: the job is marked FAILED with what is known. Progress events come
-back over a pipe as msgpack (no pickle). Cancellation sets an event the build polls between
+back over a pipe as typed messages (``sfmloc.childproc``, the framing the server's engine workers
+use: msgpack arrays, no pickle). Cancellation sets an event the build polls between
 steps (``BuildCancelled`` unwinds it and the bundle writer removes its temporary folder); a
 build stuck inside native code is terminated after a grace period, and the parent removes what
 the child left (its SfM work folder and any ``.NAME.tmp-<pid>-*`` bundle folder).
@@ -25,8 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import msgpack
-
+from ..childproc import Message, Protocol, ProtocolError
 from ..errors import InputError, SfmlocError
 
 log = logging.getLogger(__name__)
@@ -45,8 +45,11 @@ class JobState(str, enum.Enum):
 
 
 @dataclass
-class BuildSpec:
-    """What to build: the arguments of ``sfmloc.builder.build.main`` (paths on this machine)."""
+class BuildSpec(Message):
+    """What to build: the arguments of ``sfmloc.builder.build.main`` (paths on this machine).
+    Also the message that starts a build process."""
+
+    OP = "build"
 
     name: str
     out_dir: str
@@ -74,6 +77,39 @@ class BuildSpec:
             raise InputError("a posed-images input needs poses_file and camera")
         if self.stride < 1:
             raise InputError(f"stride must be >= 1, got {self.stride}")
+
+
+# ---------------------------------------------------------------- build process -> manager
+@dataclass
+class Progress(Message):
+    OP = "progress"
+    stage: str
+    fraction: float
+    message: str
+
+
+@dataclass
+class Done(Message):
+    OP = "done"
+    path: str
+    build_id: str
+    warnings: list[str]
+
+
+@dataclass
+class Cancelled(Message):
+    OP = "cancelled"
+
+
+@dataclass
+class Failed(Message):
+    OP = "failed"
+    error: str
+    stage: str
+
+
+TO_BUILD = Protocol(BuildSpec)
+FROM_BUILD = Protocol(Progress, Done, Cancelled, Failed)
 
 
 @dataclass
@@ -129,9 +165,9 @@ def _child_main(spec_bytes: bytes, conn, cancel_event, workdir: str) -> None:
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     os.environ.setdefault("OMP_NUM_THREADS", "1")
 
-    def send(kind: str, **payload: Any) -> None:
+    def send(msg: Message) -> None:
         try:
-            conn.send_bytes(msgpack.packb({"kind": kind, **payload}))
+            FROM_BUILD.send(conn, msg)
         except (BrokenPipeError, OSError):
             pass
 
@@ -142,7 +178,8 @@ def _child_main(spec_bytes: bytes, conn, cancel_event, workdir: str) -> None:
         from ..map.bundle import read_manifest
         from ..builder.sfm import sfm_conf
 
-        spec = BuildSpec(**msgpack.unpackb(spec_bytes))
+        spec = TO_BUILD.decode(spec_bytes)
+        assert isinstance(spec, BuildSpec)
         conf = preset(spec.preset)
         if spec.config:
             conf = merge_presets(conf, **spec.config)
@@ -154,7 +191,7 @@ def _child_main(spec_bytes: bytes, conn, cancel_event, workdir: str) -> None:
             # Throttle to ~10 events/s per stage, but never drop a stage change or its end.
             if stage != last[1] or fraction >= 1.0 or now - last[0] > 0.1:
                 last[0], last[1] = now, stage
-                send("progress", stage=stage, fraction=float(fraction), message=str(message))
+                send(Progress(stage, float(fraction), str(message)))
 
         path = main(
             conf,
@@ -171,14 +208,13 @@ def _child_main(spec_bytes: bytes, conn, cancel_event, workdir: str) -> None:
             should_cancel=cancel_event.is_set,
         )
         manifest = read_manifest(path)
-        send("done", path=str(path), build_id=manifest.build_id,
-             warnings=list(manifest.report.get("warnings", [])))
+        send(Done(str(path), manifest.build_id, [str(w) for w in manifest.report.get("warnings", [])]))
     except BuildCancelled:
-        send("cancelled")
+        send(Cancelled())
     except SfmlocError as exc:
-        send("failed", error=str(exc), stage=getattr(exc, "stage", "") or "")
+        send(Failed(str(exc), getattr(exc, "stage", "") or ""))
     except Exception as exc:  # noqa: BLE001 - a bug in a build must reach the client, not vanish
-        send("failed", error=f"internal error: {type(exc).__name__}: {exc}", stage="")
+        send(Failed(f"internal error: {type(exc).__name__}: {exc}", ""))
     finally:
         conn.close()
 
@@ -315,7 +351,7 @@ class JobManager:
         job.cancel_event = self._ctx.Event()
         job.workdir = str(self.work_root / f"job-{job.job_id}")
         Path(job.workdir).mkdir(parents=True, exist_ok=True)
-        spec_bytes = msgpack.packb(job.spec.__dict__)
+        spec_bytes = TO_BUILD.encode(job.spec)
         proc = self._ctx.Process(
             target=_child_main, args=(spec_bytes, child, job.cancel_event, job.workdir),
             name=f"build-{job.job_id}", daemon=True,
@@ -364,26 +400,28 @@ class JobManager:
             try:
                 if not job.conn.poll():
                     return
-                msg = msgpack.unpackb(job.conn.recv_bytes())
+                msg = FROM_BUILD.recv(job.conn)
             except (EOFError, OSError):
                 return
+            except ProtocolError:
+                log.exception("job %s: malformed message from its build process", job.job_id)
+                continue
             with self._cond:
-                kind = msg.get("kind")
-                if kind == "progress":
-                    job.stage, job.fraction, job.message = msg["stage"], msg["fraction"], msg["message"]
+                if isinstance(msg, Progress):
+                    job.stage, job.fraction, job.message = msg.stage, msg.fraction, msg.message
                     self._emit(job)
-                elif kind == "done":
-                    job.bundle_path, job.build_id = msg["path"], msg["build_id"]
+                elif isinstance(msg, Done):
+                    job.bundle_path, job.build_id = msg.path, msg.build_id
                     job.stage, job.fraction = "done", 1.0
-                    warn = "".join(f"; WARNING: {w}" for w in msg.get("warnings", []))
+                    warn = "".join(f"; WARNING: {w}" for w in msg.warnings)
                     self._finish(job, JobState.SUCCEEDED, message=f"bundle written to {job.bundle_path}{warn}")
-                elif kind == "cancelled":
+                elif isinstance(msg, Cancelled):
                     self._finish(job, JobState.CANCELLED, message="cancelled")
-                elif kind == "failed":
-                    job.stage = msg.get("stage") or job.stage
-                    self._finish(job, JobState.FAILED, error=msg["error"])
+                elif isinstance(msg, Failed):
+                    job.stage = msg.stage or job.stage
+                    self._finish(job, JobState.FAILED, error=msg.error)
                 self._cond.notify_all()
-            if kind == "done" and self.on_success is not None:
+            if isinstance(msg, Done) and self.on_success is not None:
                 try:
                     self.on_success(job)
                 except Exception:  # noqa: BLE001 - announcing must not break the build record
