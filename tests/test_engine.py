@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from sfmloc.cameras import Camera
-from sfmloc.engine import EngineConf, Localizer, Status, relocalize
-from sfmloc.engine.localizer import describe
+from sfmloc.engine import EngineConf, Localizer, Matching, Status, relocalize
+from sfmloc.engine.relocalize import describe
 from sfmloc.engine.matching import global_matching, guided_matching
 from sfmloc.engine.motion_filter import DecoupledPoseFilter
 from sfmloc.engine.pose import (
@@ -312,9 +312,18 @@ def test_localizer_end_to_end_on_a_synthetic_video(world, bundle, cam):
     loc = Localizer(bundle, cam)
     first = loc.localize(world.gray[0], 0.0)
     # the result and the state describe the table global matching just built
-    assert first.status is Status.RELOCALIZED and first.matching == "global"
+    assert first.status is Status.RELOCALIZED and first.matching is Matching.GLOBAL
     assert first.tracked_3d == loc.table.n_3d() >= first.inliers > 0
     assert np.array_equal(np.sort(loc.scope_points), np.sort(loc.table.point[loc.table.point >= 0]))
+    # each frame makes its own table: the previous frame's is never modified (no alias of it
+    # can go stale while the frame runs)
+    prev = loc.table
+    fields = ("track_id", "xy", "brief", "age", "point", "hyp", "pending")
+    saved = {k: getattr(prev, k).copy() for k in fields}
+    second = loc.localize(world.gray[1], 1 / 30)
+    assert second.status is Status.TRACKING and second.matching is not Matching.GLOBAL
+    assert loc.table is not prev and second.tracked_3d == loc.table.n_3d() > 0
+    assert all(np.array_equal(getattr(prev, k), v) for k, v in saved.items())
     loc.reset()
     res = run_sequence(loc, world.gray, [i / 30 for i in range(len(world.gray))])
     assert res[0].status is Status.RELOCALIZED and res[0].matching == "global"
@@ -559,6 +568,24 @@ def test_bad_frames_are_errors_or_lost_never_a_made_up_pose(world, bundle, cam):
     assert ok[-1].status is not Status.LOST
     dp, _ = pose_errors(ok[-1].cam_from_world, world.gt_cam_from_world[9])
     assert dp < 0.1
+
+
+def test_status_and_matching_are_enums_read_as_their_wire_strings():
+    """Statuses and matching kinds are enums in the engine and plain strings on every wire:
+    equal to, printed, formatted, JSON- and msgpack-encoded as their values, which are the
+    client's wire statuses."""
+    import json
+
+    import msgpack
+    from sfmloc_client.wire import STATUSES
+
+    assert tuple(s.value for s in Status) == STATUSES
+    assert [m.value for m in Matching] == ["none", "guided", "global"]
+    for e in (*Status, *Matching):
+        assert e == e.value and str(e) == f"{e}" == e.value
+        assert json.dumps({e: e}) == f'{{"{e.value}": "{e.value}"}}'
+        assert msgpack.unpackb(msgpack.packb(e)) == e.value
+    assert Status("LOST") is Status.LOST and Matching("guided") is Matching.GUIDED
 
 
 def test_engine_imports_no_transport():

@@ -7,8 +7,9 @@ from __future__ import annotations
 import numpy as np
 from test_mapping_sfm import Corner, look_at
 
+from sfmloc.cameras import Camera
 from sfmloc.engine import EngineConf, Status, relocalize
-from sfmloc.engine.localizer import _match_near_prior, describe
+from sfmloc.engine.relocalize import describe, match_near_prior, visible_points
 from sfmloc.engine.matching import global_matching
 from sfmloc.engine.pose import estimate_pose_one_to_many
 from sfmloc.features.daisy import DaisyExtractor
@@ -48,7 +49,7 @@ def test_verification_confirms_right_relocalizations_with_more_inliers(world, bu
         assert r.inliers >= r0.inliers, (i, r.inliers, r0.inliers)
         # every verified match reprojects within the guided threshold under the exact pose
         xy, desc = _features(world.gray[i], bundle, on)
-        res = _match_near_prior(desc, xy, bundle, cam.K, on, r0.cam_from_world)
+        res = match_near_prior(desc, xy, bundle, cam, on, r0.cam_from_world)
         assert res is not None
         est, point = res
         q = np.nonzero(point >= 0)[0]
@@ -65,7 +66,7 @@ def test_verification_rejects_chance_poses(world, bundle, cam):
     turn = rotmat_from_rotvec([0.0, np.radians(20.0), 0.0])
     off = Rigid3d(turn @ gt.rotation, gt.translation + [1.0, 0.0, 0.0])
     xy, desc = _features(world.gray[i], bundle, conf)
-    assert _match_near_prior(desc, xy, bundle, cam.K, conf, off) is None
+    assert match_near_prior(desc, xy, bundle, cam, conf, off) is None
     # Images of another scene and noise: whatever RANSAC finds (no inlier-ratio floor) is not
     # confirmed, and relocalization gives no pose.
     view = look_at(np.array([2.8, 2.2, 1.4]), (0.6, 0.8, 0.6))
@@ -75,5 +76,36 @@ def test_verification_rejects_chance_poses(world, bundle, cam):
     for img in (other_scene, noise):
         xy, desc, est = _ransac_pose(img, bundle, cam, no_floor)
         if est is not None:
-            assert _match_near_prior(desc, xy, bundle, cam.K, conf, est.cam_from_world) is None
+            assert match_near_prior(desc, xy, bundle, cam, conf, est.cam_from_world) is None
         assert relocalize(img, cam, bundle, conf).status is Status.LOST
+
+
+def test_matching_near_a_prior_covers_the_whole_frame_with_an_off_centre_principal_point(
+    world, bundle, cam
+):
+    """The points visible from a prior are those inside the frame's own width x height, not
+    inside 2*cx x 2*cy (the old rule): with the principal point at a third of the width, the
+    old rule dropped the right third of the image from matching near a prior."""
+    i = 30
+    gt = world.gt_cam_from_world[i]
+    fx, fy, cx, cy = (float(v) for v in cam.params)
+    left = int(cx) // 2  # crop the left columns: cx moves to a third of the width
+    crop = np.ascontiguousarray(world.gray[i][:, left:])
+    ccam = Camera.parse(f"PINHOLE {cam.width - left} {cam.height} {fx!r} {fy!r} {cx - left!r} {cy!r}")
+    right = 2 * ccam.params[2]  # where the old rule cut the image
+    assert right < ccam.width - 100
+    vis = visible_points(ccam, gt, bundle.points_xyz)
+    uv, z = ccam.project(gt, bundle.points_xyz[vis])
+    assert np.all(z > 0) and np.all((uv >= 0) & (uv < [ccam.width, ccam.height]))
+    assert np.count_nonzero(uv[:, 0] >= right) >= 50
+    conf = EngineConf()
+    xy, desc = _features(crop, bundle, conf)
+    res = match_near_prior(desc, xy, bundle, ccam, conf, gt)
+    assert res is not None
+    est, point = res
+    q = point >= 0
+    assert np.count_nonzero(xy[q, 0] >= right) >= conf.min_inliers
+    assert pose_errors(est.cam_from_world, gt)[0] < 0.05 * bundle.scene_scale
+    r = relocalize(crop, ccam, bundle, conf, prior=gt)
+    assert r.status is Status.RELOCALIZED
+    assert pose_errors(r.cam_from_world, gt)[0] < 0.05 * bundle.scene_scale

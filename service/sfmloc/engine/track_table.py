@@ -37,6 +37,15 @@ class TrackTable:
     def __len__(self) -> int:
         return len(self.track_id)
 
+    def take(self, mask_or_index: np.ndarray) -> "TrackTable":
+        """A new table of the given rows (boolean mask or indices), in that order; this one is
+        left as it is."""
+        return TrackTable(
+            self.track_id[mask_or_index], self.xy[mask_or_index], self.brief[mask_or_index],
+            self.age[mask_or_index], self.point[mask_or_index], self.hyp[mask_or_index],
+            self.pending[mask_or_index], self.n_hyp,
+        )
+
     def keep(self, mask_or_index: np.ndarray) -> None:
         """Keep only the given rows (boolean mask or indices), in that order."""
         for name in ("track_id", "xy", "brief", "age", "point", "hyp", "pending"):

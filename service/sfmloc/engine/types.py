@@ -10,13 +10,34 @@ import numpy as np
 from ..transforms import Rigid3d
 
 
-class Status(str, enum.Enum):
+class _WireEnum(str, enum.Enum):
+    """An enum whose members are their wire strings: equal to them, and printed, formatted,
+    JSON-encoded and msgpack-packed as them (``enum.StrEnum`` needs Python 3.11)."""
+
+    def __str__(self) -> str:
+        return str(self.value)
+
+    def __format__(self, format_spec: str) -> str:
+        return format(str(self.value), format_spec)
+
+
+class Status(_WireEnum):
+    """A frame's localization status; the value is the wire string."""
+
     TRACKING = "TRACKING"  # pose from tracked keypoints with verified 2D-3D matches
     RELOCALIZED = "RELOCALIZED"  # pose from global matching this frame, verified
     # A pose from global matching this frame that is not verified yet (weak geometric support):
     # the following frames confirm it by tracking from it. Its covariance is inflated.
     UNVERIFIED = "UNVERIFIED"
     LOST = "LOST"  # no pose
+
+
+class Matching(_WireEnum):
+    """How a frame's 2D-3D matches were found; the value is the wire string."""
+
+    NONE = "none"  # only matches tracked from the previous frame
+    GUIDED = "guided"  # guided matching around a pose (the tracked one, or the prediction)
+    GLOBAL = "global"  # global matching: relocalization from scratch
 
 
 @dataclass
@@ -29,7 +50,7 @@ class FrameResult:
     detected: int = 0  # Harris keypoints this frame
     tracked: int = 0  # keypoints tracked from the previous frame
     tracked_3d: int = 0  # tracked keypoints with a verified 2D-3D match
-    matching: str = "none"  # "none", "guided" or "global"
+    matching: Matching = Matching.NONE
     timings_ms: dict[str, float] = field(default_factory=dict)
     message: str = ""  # why a frame is LOST, when known
     # 6x6 covariance of ``cam_from_world`` (None when LOST), order [rotation (rad, a small
@@ -43,7 +64,8 @@ class FrameResult:
 
     @property
     def filtered_world_from_cam(self) -> Rigid3d | None:
-        return None if self.filtered_cam_from_world is None else self.filtered_cam_from_world.inverse()
+        fcfw = self.filtered_cam_from_world
+        return None if fcfw is None else fcfw.inverse()
 
     @property
     def localized(self) -> bool:

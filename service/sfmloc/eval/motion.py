@@ -31,10 +31,10 @@ from sfmloc.transforms import Rigid3d, pose_errors
 class ProbedLocalizer(Localizer):
     """Records the prediction and the 3D points tracked into each frame."""
 
-    def _predict_positions(self, pred):  # noqa: ANN001, ANN202 - the engine's signature
-        rows = np.nonzero(self.table.point >= 0)[0]
-        self.probe = (pred, self.bundle.points_xyz[self.table.point[rows]])
-        return super()._predict_positions(pred)
+    def _predict_positions(self, table, pred):  # noqa: ANN001, ANN202 - the engine's signature
+        rows = np.nonzero(table.point >= 0)[0]
+        self.probe = (pred, self.bundle.points_xyz[table.point[rows]])
+        return super()._predict_positions(table, pred)
 
 
 def scale_bundle(bundle: MapBundle, s: float) -> MapBundle:

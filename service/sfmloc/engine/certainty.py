@@ -1,0 +1,64 @@
+"""How far a pose can be trusted: its covariance, the strict "verified" test, and the rule
+that withholds a pose too uncertain to publish (a pose is a promise). Shared by the tracker's
+Algorithm 1 (``localizer``) and single-image relocalization (``relocalize``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..map.bundle import MapBundle
+from .config import EngineConf
+from .point_uncertainty import PointUncertainty
+from .pose import PoseEstimate, pose_covariance
+
+
+@dataclass(frozen=True)
+class Certainty:
+    covariance: np.ndarray  # 6x6 of cam_from_world (``engine.pose.COVARIANCE_ORDER``)
+    position_sd: float  # centre sd in its worst direction, in scene scales (inf: unknown)
+    verified: bool  # passes the strict test (``EngineConf.verified_position_sd``)
+
+
+def certainty(est: PoseEstimate, K: np.ndarray, bundle: MapBundle, conf: EngineConf) -> Certainty:
+    """The covariance of ``est`` and what it says about the pose."""
+    cov = covariance(est, K, bundle, conf)
+    sd = position_sd(cov) / bundle.scene_scale
+    return Certainty(cov, sd, is_verified(est, sd, conf))
+
+
+def covariance(est: PoseEstimate, K: np.ndarray, bundle: MapBundle, conf: EngineConf) -> np.ndarray:
+    """The pose's 6x6 covariance from its final refinement's inliers (``pose_covariance``),
+    with the map points' own uncertainty (``point_uncertainty``) unless switched off."""
+    if est.inlier_xy is None or est.inlier_X is None:
+        return np.full((6, 6), np.inf)
+    extra = None
+    if conf.map_noise_px > 0:
+        z = est.inlier_X @ est.cam_from_world.rotation[2] + est.cam_from_world.translation[2]
+        extra = PointUncertainty.for_bundle(bundle).sigma_px(est.inlier_X, z, conf.map_noise_px)
+    return pose_covariance(
+        est.cam_from_world, K, est.inlier_xy, est.inlier_X, point_sigma_px=extra
+    )
+
+
+def is_verified(est: PoseEstimate, sd: float, conf: EngineConf) -> bool:
+    """The strict test: certain enough (centre sd, a fraction of the scene scale) on enough
+    inliers."""
+    return sd <= conf.verified_position_sd and est.num_inliers >= conf.verified_min_inliers
+
+
+def position_sd(cov: np.ndarray) -> float:
+    """Standard deviation of the camera centre in its worst direction (map units)."""
+    if not np.all(np.isfinite(cov)):
+        return float("inf")
+    return float(np.sqrt(max(np.linalg.eigvalsh(cov[3:, 3:]).max(), 0.0)))
+
+
+def withheld(sd: float, inliers: int, conf: EngineConf) -> str | None:
+    """Why a pose is too uncertain to publish (centre sd over ``max_position_sd`` scene
+    scales), or None when it may be published."""
+    if not sd > conf.max_position_sd:
+        return None
+    return (f"pose withheld: centre sd {sd * 100:.1f}% of the scene scale "
+            f"(limit {conf.max_position_sd * 100:.1f}%), {inliers} inliers")

@@ -1,0 +1,189 @@
+"""Localizing an image from scratch: GLOBAL-MATCHING to a pose (the tracker's relocalization
+step), the pose near an approximate prior (the tracker's recovery, a prior given with a
+single image), and ``relocalize``, the stateless single-image query."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..cameras import Camera
+from ..features.daisy import DaisyExtractor
+from ..features.harris import detect_corners
+from ..map.bundle import MapBundle
+from ..transforms import Rigid3d
+from .certainty import certainty, withheld
+from .config import EngineConf
+from .frame import to_gray, to_working, working_scale
+from .matching import global_matching, guided_matching, verify_hypotheses
+from .pose import PoseEstimate, estimate_pose, estimate_pose_one_to_many, project
+from .timing import StageTimer
+from .tracker import map_subpixel
+from .types import FrameResult, Matching, Status
+
+
+def map_working_scale(camera: Camera, bundle: MapBundle, conf: EngineConf) -> float:
+    """The factor a frame of ``camera`` is resized by before it meets ``bundle``
+    (``frame.working_scale`` with the map's focal lengths)."""
+    return working_scale(
+        camera, bundle.native_focal_px, conf.working_scale, conf.max_working_pixels,
+        bundle.coarsest_focal_px,
+    )
+
+
+def describe(
+    extractor: DaisyExtractor, bundle: MapBundle, gray_prepared: np.ndarray, xy: np.ndarray
+) -> np.ndarray:
+    """PCA-32 DAISY at keypoints of a frame (same descriptor and projection as the bundle)."""
+    theta = extractor.orientations(gray_prepared, xy)
+    return bundle.pca.project(extractor.describe(gray_prepared, xy, theta))
+
+
+def visible_points(camera: Camera, cam_from_world: Rigid3d, points_xyz: np.ndarray) -> np.ndarray:
+    """Rows of the map points in front of the camera whose (undistorted) projection falls
+    inside its ``width`` x ``height`` image."""
+    uv, z = project(cam_from_world, camera.K, points_xyz)
+    u, v = uv[:, 0], uv[:, 1]
+    inside = (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+    return np.nonzero((z > 0) & inside)[0]
+
+
+def pose_from_global(
+    desc: np.ndarray, xy_u: np.ndarray, bundle: MapBundle, camera: Camera, conf: EngineConf
+) -> tuple[PoseEstimate, np.ndarray, np.ndarray, np.ndarray] | None:
+    """GLOBAL-MATCHING + one-to-many RANSAC: (pose, inlier keypoints, their points, every
+    keypoint's hypotheses), or None."""
+    gm = global_matching(desc, bundle, conf)
+    if len(gm.set1_q) < 3:
+        return None
+    K = camera.K
+    hyp = np.full((len(desc), conf.max_hypotheses), -1, np.int64)
+    if len(gm.set2_q):
+        rank = np.arange(len(gm.set2_q)) - np.searchsorted(gm.set2_q, gm.set2_q)
+        hyp[gm.set2_q, rank] = gm.set2_p
+    X = bundle.points_xyz
+    res = estimate_pose_one_to_many(
+        xy_u[gm.set1_q], X[gm.set1_p], gm.set2_q, xy_u[gm.set2_q], X[gm.set2_p], K, conf.ransac()
+    )
+    if res is None:
+        return None
+    est, chosen = res
+    if conf.global_verify:
+        # Guided matching of the whole frame around the RANSAC pose (scope: the map points it
+        # makes visible). A right pose gathers the matches the ratio test dropped; a chance one
+        # does not reach ``recover_min_inliers``. See ``EngineConf.global_verify``.
+        ver = match_near_prior(desc, xy_u, bundle, camera, conf, est.cam_from_world)
+        if ver is not None:
+            vest, point = ver
+            if vest.num_inliers >= est.num_inliers:
+                q = np.nonzero(point >= 0)[0]
+                return vest, q, point[q], hyp
+            # Confirmed, and the RANSAC pose has the more inliers (the narrower covariance).
+            return est, gm.set2_q[chosen], gm.set2_p[chosen], hyp
+    # Among hundreds of candidate matches, ten that agree can be chance: demand a fraction too.
+    if est.num_inliers < conf.global_min_inlier_ratio * len(gm.set1_q):
+        return None
+    return est, gm.set2_q[chosen], gm.set2_p[chosen], hyp
+
+
+def pose_from_hypotheses(
+    hyp: np.ndarray, xy_u: np.ndarray, bundle: MapBundle, K: np.ndarray, conf: EngineConf,
+    prior: Rigid3d,
+) -> tuple[PoseEstimate, np.ndarray] | None:
+    """A pose from one-to-many hypotheses around an approximate ``prior``, in two passes:
+    verification within ``prior_threshold_px`` of the prior and a first pose, then every
+    keypoint's hypotheses re-verified against that pose within ``guided_threshold_px`` and the
+    pose re-estimated (wrong matches that fit the loose window drop out). Returns the pose and
+    the verified point of every keypoint (-1: none)."""
+    params = conf.ransac(conf.recover_min_inliers)
+    best: tuple[PoseEstimate, np.ndarray] | None = None
+    for threshold in (conf.prior_threshold_px, conf.guided_threshold_px):
+        cur = np.full(len(hyp), -1, np.int64)
+        verify_hypotheses(hyp, xy_u, bundle.points_xyz, prior, K, threshold, cur)
+        q = np.nonzero(cur >= 0)[0]
+        if len(q) < params.min_inliers:
+            break
+        nxt = estimate_pose(xy_u[q], bundle.points_xyz[cur[q]], K, params, prior=prior)
+        if nxt is None:
+            break
+        prior = nxt.cam_from_world
+        point = np.full(len(hyp), -1, np.int64)
+        point[q[nxt.inlier_mask]] = cur[q[nxt.inlier_mask]]
+        best = (nxt, point)
+    return best
+
+
+def match_near_prior(
+    desc: np.ndarray, xy_u: np.ndarray, bundle: MapBundle, camera: Camera, conf: EngineConf,
+    prior: Rigid3d,
+) -> tuple[PoseEstimate, np.ndarray] | None:
+    """Matches scoped by the points visible from the prior (in ``camera``'s image), verified
+    against it with a loose threshold (the prior is approximate), then a pose with the prior as
+    a hypothesis; the same rules as the tracker's recovery (``prior_threshold_px``,
+    ``recover_min_inliers``). Returns the pose and the verified point of every keypoint (-1:
+    none)."""
+    visible = visible_points(camera, prior, bundle.points_xyz)
+    if len(visible) < conf.min_inliers:
+        return None
+    K = camera.K
+    loose = conf.model_copy(update={"guided_threshold_px": conf.prior_threshold_px})
+    gm = guided_matching(desc, xy_u, bundle, visible, prior, K, loose)
+    return pose_from_hypotheses(gm.hyp, xy_u, bundle, K, conf, prior)
+
+
+def relocalize(
+    image: np.ndarray,
+    camera: Camera,
+    bundle: MapBundle,
+    conf: EngineConf | None = None,
+    prior: Rigid3d | None = None,
+) -> FrameResult:
+    """Localize a single image from scratch (stateless). With a ``prior`` (cam_from_world),
+    the search is scoped to the database images that see the points the prior sees, and
+    matches are verified against it, as in guided matching; without a pose from the scoped
+    search it falls back to global matching."""
+    conf = conf or EngineConf()
+    timer = StageTimer()
+    gray = to_gray(image, camera)
+    # A fine image is described at about the map's resolution (see ``Localizer``); the pose
+    # does not depend on the scaling of the intrinsics.
+    scale = map_working_scale(camera, bundle, conf)
+    if scale != 1.0:
+        gray, camera = to_working(gray, scale), camera.scaled(scale)
+    corners = detect_corners(
+        gray, rel_threshold=conf.gamma, max_corners=conf.global_max_keypoints,
+        border=conf.mu // 2, subpixel=map_subpixel(conf, bundle.manifest.params),
+    )
+    timer.lap("detect")
+    result = FrameResult(Status.LOST, 0.0, detected=len(corners), matching=Matching.GLOBAL)
+    if len(corners) < conf.min_inliers:
+        result.timings_ms = timer.total()
+        result.message = f"only {len(corners)} keypoints in the image"
+        return result
+    extractor = DaisyExtractor()
+    prepared = extractor.prepare(gray)
+    xy_u = camera.undistort_points(corners.xy) if camera.is_distorted else corners.xy
+    desc = describe(extractor, bundle, prepared, corners.xy)
+    est = None
+    if prior is not None:
+        near = match_near_prior(desc, xy_u, bundle, camera, conf, prior)
+        est = None if near is None else near[0]
+    if est is None:
+        res = pose_from_global(desc, xy_u, bundle, camera, conf)
+        est = None if res is None else res[0]
+    timer.lap("reloc")
+    if est is not None:
+        cert = certainty(est, camera.K, bundle, conf)
+        timer.lap("pose")
+        result.inliers = est.num_inliers
+        why = withheld(cert.position_sd, est.num_inliers, conf)
+        if why is not None:
+            result.message = why
+        else:
+            # a single image has no next frame to confirm it: only the strict test verifies
+            result.status = Status.RELOCALIZED if cert.verified else Status.UNVERIFIED
+            result.cam_from_world = est.cam_from_world
+            result.covariance = cert.covariance
+    else:
+        result.message = "no pose: too few consistent 2D-3D matches"
+    result.timings_ms = timer.total()
+    return result
