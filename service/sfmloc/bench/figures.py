@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..engine.types import Matching, Status
 from ..eval.metrics import FrameRecord
 
 COLORS = {"sfmloc": "tab:red", "global-every-frame": "tab:blue", "pycolmap-sift": "tab:green"}
@@ -47,8 +48,8 @@ def per_frame(records: list[FrameRecord], title: str, path: str | Path) -> Path:
     ax = axes[1]
     t = np.array([r.latency_ms for r in records])
     top = max(60.0, float(np.percentile(t, 99)) * 1.3) if len(t) else 60.0
-    guided = idx[[r.matching == "guided" for r in records]]
-    glob = idx[[r.matching == "global" for r in records]]
+    guided = idx[[r.matching == Matching.GUIDED for r in records]]
+    glob = idx[[r.matching == Matching.GLOBAL for r in records]]
     # Matching frames as bars in a band under the time axis (short grey: guided, tall black:
     # global), so they never hide the time curve.
     band = 0.16 * top
@@ -69,7 +70,7 @@ def per_frame(records: list[FrameRecord], title: str, path: str | Path) -> Path:
     ax = axes[2]
     pe = np.array([_nan(r.position_error_m) for r in records], float) * 100
     re_ = np.array([_nan(r.rotation_error_deg) for r in records], float)
-    lost = np.array([r.status == "LOST" for r in records])
+    lost = np.array([r.status == Status.LOST for r in records])
     for i in idx[lost]:
         ax.axvspan(i - 0.5, i + 0.5, color="0.85", lw=0)
     ax.plot(idx, pe, color="tab:purple", lw=0.8, label="position error (cm)")
@@ -141,7 +142,7 @@ def trajectory(records: list[FrameRecord], title: str, path: str | Path, points_
             E = np.array([e[0] for e in est])
             e2 = np.stack([E @ a, E @ b], 1)
             ax.plot(e2[:, 0], e2[:, 1], ".", color="tab:red", ms=2.0, label=f"estimate ({len(est)} frames)")
-        lost = [r.gt_cam_from_world.center for r in records if r.status == "LOST" and r.gt_cam_from_world is not None]
+        lost = [r.gt_cam_from_world.center for r in records if r.status == Status.LOST and r.gt_cam_from_world is not None]
         if lost:
             L = np.array(lost)
             ax.plot(L @ a, L @ b, "x", color="tab:blue", ms=3.5, mew=0.9, label=f"lost ({len(lost)} frames)")

@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 
 from ..errors import ImageDecodeError
+from ..engine.types import Matching, Status
 from ..eval.metrics import FrameRecord, attach_errors
 from ..io.frames import FrameSource
 from ..transforms import Rigid3d
@@ -85,8 +86,8 @@ def run_peer(
         wall = (time.perf_counter() - t0) * 1e3
         cpu = (time.process_time() - cpu0) * 1e3
         rec = FrameRecord(
-            index=i, name=fname, stamp=stamp, status="LOST" if out.cam_from_world is None else "RELOCALIZED",
-            matching="global", latency_ms=wall, inliers=out.inliers, detected=out.detected, tracked=0,
+            index=i, name=fname, stamp=stamp, status=Status.LOST if out.cam_from_world is None else Status.RELOCALIZED,
+            matching=Matching.GLOBAL, latency_ms=wall, inliers=out.inliers, detected=out.detected, tracked=0,
             tracked_3d=out.matches, timings_ms=dict(out.timings_ms or {}), cpu_ms=cpu,
         )
         gt = groundtruth[i] if groundtruth is not None and i < len(groundtruth) else None

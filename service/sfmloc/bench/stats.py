@@ -8,6 +8,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from ..engine.types import Matching
 from ..eval.metrics import FrameRecord, absolute_trajectory_error, is_pose, summarize
 from ..eval.stages import stage_stats
 
@@ -23,7 +24,7 @@ def method_summary(records: list[FrameRecord], scene_scale: float) -> dict:
     n = len(records)
     lat = [r.latency_ms for r in records]
     cpu = [r.cpu_ms for r in records if r.cpu_ms is not None]
-    matched = [r.latency_ms for r in records if r.matching in ("guided", "global")]
+    matched = [r.latency_ms for r in records if r.matching in (Matching.GUIDED, Matching.GLOBAL)]
     t_mean, t_std = _ms(lat)
     tm_mean, tm_std = _ms(matched)
     with_gt = s["frames_with_groundtruth"]

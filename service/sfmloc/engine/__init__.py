@@ -10,7 +10,7 @@ from scratch (global matching, or matching near a prior), for the tracker and si
 
 from .config import EngineConf
 from .localizer import Localizer
-from .relocalize import relocalize
+from .relocalize import relocalize  # the function (it shadows its module's name here)
 from .types import FrameResult, Matching, Status
 
 __all__ = ["EngineConf", "FrameResult", "Localizer", "Matching", "Status", "relocalize"]

@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..engine.types import Matching, Status
 from ..transforms import Rigid3d, pose_errors
 
 # A wrong pose: any status but LOST (a client acts on every pose it receives, whatever the
@@ -31,8 +32,8 @@ class FrameRecord:
     index: int
     name: str
     stamp: float
-    status: str
-    matching: str
+    status: Status
+    matching: Matching
     latency_ms: float
     inliers: int
     detected: int
@@ -56,9 +57,9 @@ def attach_errors(rec: FrameRecord, est: Rigid3d | None, gt: Rigid3d | None) -> 
         rec.position_error_m, rec.rotation_error_deg = pose_errors(est, gt)
 
 
-def is_pose(status: str) -> bool:
+def is_pose(status: Status | str) -> bool:
     """Every status but LOST reports a pose (TRACKING, RELOCALIZED and any status added later)."""
-    return status != "LOST"
+    return status != Status.LOST
 
 
 def wrong_position_limit(scene_scale: float) -> float:
@@ -116,8 +117,8 @@ def summarize(records: list[FrameRecord], scene_scale: float) -> dict:
     pe = np.array([r.position_error_m for r in with_gt], np.float64)
     re_ = np.array([r.rotation_error_deg for r in with_gt], np.float64)
     wrong = wrong_poses(records, scale)
-    guided = [r for r in records if r.matching == "guided"]
-    glob = [r for r in records if r.matching == "global"]
+    guided = [r for r in records if r.matching == Matching.GUIDED]
+    glob = [r for r in records if r.matching == Matching.GLOBAL]
     frames_with_gt = sum(1 for r in records if r.gt_cam_from_world is not None)
 
     def share(k: int) -> float:
@@ -144,7 +145,7 @@ def summarize(records: list[FrameRecord], scene_scale: float) -> dict:
         "guided_latency_ms_mean": float(np.mean([r.latency_ms for r in guided])) if guided else float("nan"),
         "global_latency_ms_mean": float(np.mean([r.latency_ms for r in glob])) if glob else float("nan"),
         # The usual three first, then any other status seen, in order of appearance.
-        "status_counts": _counts(["TRACKING", "RELOCALIZED", "LOST"], records),
+        "status_counts": _counts([Status.TRACKING, Status.RELOCALIZED, Status.LOST], records),
         "confident_wrong_frames": [r.name for r in wrong][:50],
         "wrong_statuses": _counts([], wrong),
         "scene_scale": scale,

@@ -21,7 +21,7 @@ import time
 import numpy as np
 
 from sfmloc.cameras import Camera
-from sfmloc.engine import EngineConf, Localizer
+from sfmloc.engine import EngineConf, Localizer, Matching, Status
 from sfmloc.eval.groundtruth import load_groundtruth
 from sfmloc.io.frames import FrameSource
 from sfmloc.map.bundle import MapBundle
@@ -105,9 +105,9 @@ def run(bundle: MapBundle, source: FrameSource, camera: Camera, gt: list, conf: 
         "still_px_median": float(np.median(still_px)) if still_px else float("nan"),
         "tracked_mean": float(np.mean(tracked)),
         "tracked_3d_mean": float(np.mean(tracked_3d)),
-        "localized": sum(s != "LOST" for s in statuses) / max(1, n),
-        "tracking": sum(s == "TRACKING" for s in statuses) / max(1, n),
-        "global_frames": sum(m == "global" for m in matching),
+        "localized": sum(s != Status.LOST for s in statuses) / max(1, n),
+        "tracking": sum(s == Status.TRACKING for s in statuses) / max(1, n),
+        "global_frames": sum(m == Matching.GLOBAL for m in matching),
         "median_pos_err": float(np.median(errs_a[:, 0])),
         "median_rot_err_deg": float(np.median(errs_a[:, 1])),
         "max_pos_err": float(np.max(errs_a[:, 0])),
