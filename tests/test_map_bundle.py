@@ -197,6 +197,24 @@ def test_bundle_round_trip(tmp_path):
         np.load(path / entry.file, allow_pickle=False)
 
 
+def test_bundle_timings_include_the_write_itself(tmp_path):
+    """The write stage is timed once the arrays are on disk (the builder used to record it
+    before writing): "write" grows by the write and so does "total"."""
+    import time
+
+    data = small_map()
+    given = {"sfm": 2.0, "write": 0.25, "total": 3.0}
+    t0 = time.perf_counter()
+    path = write_bundle(data, tmp_path, "lab", timings_s=given)
+    wall = time.perf_counter() - t0
+    t = read_manifest(path).timings_s
+    spent = t["write"] - 0.25
+    assert 0 < spent <= wall, (spent, wall)
+    assert t["total"] == pytest.approx(3.0 + spent) and t["sfm"] == 2.0
+    assert given == {"sfm": 2.0, "write": 0.25, "total": 3.0}  # the caller's dict is not changed
+    assert read_manifest(write_bundle(small_map(), tmp_path, "none")).timings_s == {}
+
+
 def test_bundle_detects_corruption(tmp_path):
     path = write_bundle(small_map(), tmp_path, "lab")
     f = path / "desc_point.npy"

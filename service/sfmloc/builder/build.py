@@ -368,6 +368,8 @@ def main(
         )
         for w in report["warnings"]:
             log.warning("%s: %s", name, w)
+        # The write stage so far (the map report); write_bundle adds the write itself to
+        # "write" and "total" once the arrays are on disk (both were recorded here, before).
         timings["write"] = time.perf_counter() - t0
         timings["total"] = time.perf_counter() - t_all
         path = write_bundle(
