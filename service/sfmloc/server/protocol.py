@@ -18,6 +18,7 @@ from typing import Any
 from sfmloc_client.wire import CameraSpec, PoseMessage, Transform
 
 from ..childproc import Message, Part, Protocol, ProtocolError, payload
+from ..engine.types import Status
 from .status import error_from_wire, error_info, error_to_wire
 
 # A camera as the worker needs it: (model, width, height, params). Hashable: the worker caches
@@ -113,7 +114,7 @@ class PoseResult(Part):
             filtered_cam_from_world=transform_of(r.filtered_cam_from_world),
             filtered_world_from_cam=transform_of(r.filtered_world_from_cam),
             inliers=int(r.inliers), detected=int(r.detected), tracked=int(r.tracked),
-            tracked_3d=int(r.tracked_3d), matching=str(r.matching), engine_ms=float(r.latency_ms),
+            tracked_3d=int(r.tracked_3d), matching=r.matching.value, engine_ms=float(r.latency_ms),
             message=r.message,
             covariance=None if r.covariance is None else tuple(float(v) for v in r.covariance.ravel()),
         )
@@ -300,7 +301,7 @@ def pose_message(
 ) -> PoseMessage:
     """A worker's pose (or error) for one frame or image as the ``PoseMessage`` clients get."""
     p = PoseMessage(
-        seq=seq, stamp_ns=stamp_ns, status="LOST", latency_ms=latency_ms, dropped=dropped,
+        seq=seq, stamp_ns=stamp_ns, status=Status.LOST.value, latency_ms=latency_ms, dropped=dropped,
         map=map_name, client_id=client_id, build_id=build_id, server_id=server_id,
     )
     if pose is None:

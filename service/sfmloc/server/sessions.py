@@ -30,6 +30,7 @@ import numpy as np
 from sfmloc_client.wire import ErrorInfo, Frame, PoseMessage
 
 from ..cameras import Camera
+from ..engine.types import Status
 from ..errors import OverloadError, PermissionDeniedError
 from .logfmt import event
 from .maps import MapRegistry
@@ -237,10 +238,10 @@ class SessionManager:
             res = msg.pose
             if res is not None:
                 s.last_status = res.status
-                s.localized += res.status != "LOST"
+                s.localized += res.status != Status.LOST
             else:
                 s.errors += 1
-                s.last_status = "LOST"
+                s.last_status = Status.LOST.value
             dropped = s.dropped
             if not s.busy:
                 self._idle.notify_all()
@@ -285,7 +286,7 @@ class SessionManager:
     def error_pose(self, map_name: str, client_id: str, seq: int | None, stamp_ns: int, exc: BaseException,
                    dropped: int = 0) -> PoseMessage:
         info: ErrorInfo = error_info(exc)
-        return PoseMessage(seq=seq, stamp_ns=stamp_ns, status="LOST", map=map_name, client_id=client_id,
+        return PoseMessage(seq=seq, stamp_ns=stamp_ns, status=Status.LOST.value, map=map_name, client_id=client_id,
                            server_id=self.server_id, dropped=dropped, message=info.message, error=info)
 
     def count_error(self, map_name: str, exc: BaseException) -> None:
