@@ -210,8 +210,9 @@ class Localizer:
         c2 = _match_ids(table)
         if len(c2) > c.kappa2 and c2 != c1 and not relocalized:
             # The new matches were verified against this frame's pose: it is the better prior.
+            own = est is not None
             prior = est.cam_from_world if est is not None else pred.cam_from_world
-            table, est2 = self._estimate_pose(table, prior, pred.dt, prior_is_estimate=est is not None)
+            table, est2 = self._estimate_pose(table, prior, pred.dt, prior_is_estimate=own)
             if est2 is not None:
                 est = est2
             timer.lap("pose")
