@@ -12,6 +12,7 @@ import signal
 import threading
 from concurrent import futures
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import grpc
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
@@ -31,6 +32,9 @@ from ..config import StrictModel
 from ..interceptors import SyncErrorStatusInterceptor
 from .grpc_service import MapBuilderServicer
 from .jobs import Job, JobManager
+
+if TYPE_CHECKING:  # imported when announcing (start)
+    import zenoh
 
 log = logging.getLogger(__name__)
 
@@ -57,7 +61,7 @@ class BuilderService:
 
     def __init__(self, config: BuilderConfig) -> None:
         self.config = config
-        self.session = None
+        self.session: zenoh.Session | None = None
         self._zenoh_lock = threading.Lock()
         self.jobs = JobManager(
             config.out, config.workdir, config.max_concurrent, config.cancel_grace_s, on_success=self._announce

@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 from sfmloc_client.pb import builder_pb2 as pb
+from sfmloc_client.pb import common_pb2
 from sfmloc_client.pb import builder_pb2_grpc as pb_grpc
 
 from ..errors import InputError, JobNotFoundError
@@ -29,7 +30,7 @@ _STATE = {
 }
 
 
-def camera_to_string(cam: pb.Camera) -> str | None:
+def camera_to_string(cam: common_pb2.Camera) -> str | None:
     if not cam.model:
         return None
     return " ".join([cam.model, str(cam.width), str(cam.height)] + [repr(float(p)) for p in cam.params])

@@ -11,6 +11,7 @@ the child left (its SfM work folder and any ``.NAME.tmp-<pid>-*`` bundle folder)
 
 from __future__ import annotations
 
+import builtins
 import enum
 import logging
 import multiprocessing as mp
@@ -184,7 +185,7 @@ def _child_main(spec_bytes: bytes, conn, cancel_event, workdir: str) -> None:
         if spec.config:
             conf = merge_presets(conf, **spec.config)
         sconf = sfm_conf("default", **({"matching": spec.matching} if spec.matching else {}))
-        last = [0.0, ""]
+        last: list[Any] = [0.0, ""]  # time and stage of the last event sent
 
         def progress(stage: str, fraction: float, message: str) -> None:
             now = time.monotonic()
@@ -296,7 +297,10 @@ class JobManager:
             self._cond.notify_all()
             return True
 
-    def wait_events(self, job_id: str, start: int, timeout: float | None = None) -> tuple[list[BuildEvent], bool]:
+    # builtins.list: inside this class `list` is the method below
+    def wait_events(
+        self, job_id: str, start: int, timeout: float | None = None
+    ) -> tuple[builtins.list[BuildEvent], bool]:
         """Events of a job from index ``start`` on (blocking until there is one, or timeout),
         and whether the job has ended."""
         deadline = None if timeout is None else time.monotonic() + timeout
