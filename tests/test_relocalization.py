@@ -10,7 +10,7 @@ from test_mapping_sfm import Corner, look_at
 from sfmloc.cameras import Camera
 from sfmloc.engine import EngineConf, Status, relocalize
 from sfmloc.engine.relocalize import describe, match_near_prior, visible_points
-from sfmloc.engine.matching import global_matching
+from sfmloc.engine.matching import global_matching, neighbour_strengths, restrict_neighbours
 from sfmloc.engine.pose import estimate_pose_one_to_many
 from sfmloc.features.daisy import DaisyExtractor
 from sfmloc.features.harris import detect_corners
@@ -49,13 +49,15 @@ def test_verification_confirms_right_relocalizations_with_more_inliers(world, bu
         assert r.inliers >= r0.inliers, (i, r.inliers, r0.inliers)
         # every verified match reprojects within the guided threshold under the exact pose
         xy, desc = _features(world.gray[i], bundle, on)
-        res = match_near_prior(desc, xy, bundle, cam, on, r0.cam_from_world)
-        assert res is not None
-        est, point = res
-        q = np.nonzero(point >= 0)[0]
-        assert len(q) >= on.recover_min_inliers
-        uv, _ = cam.project(gt, bundle.points_xyz[point[q]])
-        assert np.median(np.linalg.norm(uv - xy[q], axis=1)) < 2.0
+        # ... with a scoped search, and with global matching's search restricted to the scope
+        for reuse in (None, global_matching(desc, bundle, on).neighbours):
+            res = match_near_prior(desc, xy, bundle, cam, on, r0.cam_from_world, reuse)
+            assert res is not None
+            est, point = res
+            q = np.nonzero(point >= 0)[0]
+            assert len(q) >= on.recover_min_inliers
+            uv, _ = cam.project(gt, bundle.points_xyz[point[q]])
+            assert np.median(np.linalg.norm(uv - xy[q], axis=1)) < 2.0
 
 
 def test_verification_rejects_chance_poses(world, bundle, cam):
@@ -67,6 +69,8 @@ def test_verification_rejects_chance_poses(world, bundle, cam):
     off = Rigid3d(turn @ gt.rotation, gt.translation + [1.0, 0.0, 0.0])
     xy, desc = _features(world.gray[i], bundle, conf)
     assert match_near_prior(desc, xy, bundle, cam, conf, off) is None
+    reuse = global_matching(desc, bundle, conf).neighbours
+    assert match_near_prior(desc, xy, bundle, cam, conf, off, reuse) is None
     # Images of another scene and noise: whatever RANSAC finds (no inlier-ratio floor) is not
     # confirmed, and relocalization gives no pose.
     view = look_at(np.array([2.8, 2.2, 1.4]), (0.6, 0.8, 0.6))
@@ -77,7 +81,27 @@ def test_verification_rejects_chance_poses(world, bundle, cam):
         xy, desc, est = _ransac_pose(img, bundle, cam, no_floor)
         if est is not None:
             assert match_near_prior(desc, xy, bundle, cam, conf, est.cam_from_world) is None
-        assert relocalize(img, cam, bundle, conf).status is Status.LOST
+            reuse = global_matching(desc, bundle, conf).neighbours
+            assert match_near_prior(desc, xy, bundle, cam, conf, est.cam_from_world, reuse) is None
+        for search in ("reuse", "scoped"):
+            c = conf.model_copy(update={"global_verify_search": search})
+            assert relocalize(img, cam, bundle, c).status is Status.LOST
+
+
+def test_restricted_neighbours_keep_their_order_at_the_front():
+    D = np.array([[1.0, 2.0, 3.0, 4.0], [1.0, 1.5, np.inf, np.inf]], np.float32)
+    I = np.array([[10, 11, 12, 13], [11, 13, -1, -1]])
+    allowed = np.zeros(20, bool)
+    allowed[[11, 13]] = True
+    D2, I2 = restrict_neighbours(D, I, allowed)
+    assert I2.tolist() == [[11, 13, -1, -1], [11, 13, -1, -1]]
+    assert D2[0, :2].tolist() == [2.0, 4.0] and np.isinf(D2[0, 2:]).all()
+    assert D2.dtype == np.float32
+    # nothing allowed: a row without neighbours has no strengths (and no warning)
+    D3, I3 = restrict_neighbours(D, I, np.zeros(20, bool))
+    assert (I3 == -1).all() and np.isinf(D3).all()
+    with np.errstate(all="raise"):
+        assert not neighbour_strengths(D3, I3, 2.0).any()
 
 
 def test_matching_near_a_prior_covers_the_whole_frame_with_an_off_centre_principal_point(

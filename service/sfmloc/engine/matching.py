@@ -48,11 +48,24 @@ class PointCandidates:
 
 def neighbour_strengths(D: np.ndarray, I: np.ndarray, sigma: float) -> np.ndarray:
     """s_i0 / s_ij for neighbours within sigma * s_i0 (0 elsewhere, and for missing ones)."""
-    s0 = np.maximum(D[:, :1], 1e-6)
+    s0 = np.broadcast_to(np.maximum(D[:, :1], 1e-6), D.shape)
     valid = (I >= 0) & np.isfinite(D) & (D < sigma * s0)
     w = np.zeros(D.shape, np.float64)
-    w[valid] = (s0 / np.maximum(D, 1e-6))[valid]
+    w[valid] = s0[valid] / np.maximum(D[valid], 1e-6)
     return w
+
+
+def restrict_neighbours(
+    D: np.ndarray, I: np.ndarray, allowed: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The neighbours whose descriptor is ``allowed`` (bool per descriptor row), in their order
+    at the front of each row; the rest missing (id -1, distance inf): a scoped search's
+    answer from an unscoped one, as far as its k neighbours reach."""
+    ok = (I >= 0) & allowed[np.maximum(I, 0)]
+    order = np.argsort(~ok, axis=1, kind="stable")
+    D = np.where(ok, D, np.inf).astype(D.dtype, copy=False)
+    I = np.where(ok, I, -1)
+    return np.take_along_axis(D, order, 1), np.take_along_axis(I, order, 1)
 
 
 def point_candidates(I: np.ndarray, w: np.ndarray, desc_point: np.ndarray) -> PointCandidates:
@@ -105,6 +118,9 @@ class GlobalMatches:
     set2_p: np.ndarray
     clusters: np.ndarray  # selected clusters
     n_images: int  # |S|
+    # The k-ANN search over the whole map behind them, (distances, ids) (N, k): verification
+    # restricts it to its scope instead of searching again (``guided_matching``).
+    neighbours: tuple[np.ndarray, np.ndarray] | None = None
 
 
 def global_matching(desc: np.ndarray, bundle: MapBundle, conf: EngineConf) -> GlobalMatches:
@@ -119,7 +135,7 @@ def global_matching(desc: np.ndarray, bundle: MapBundle, conf: EngineConf) -> Gl
     total = int(cnt.sum())
     empty = np.zeros(0, np.int64)
     if total == 0:
-        return GlobalMatches(empty, empty, empty, empty, empty, 0)
+        return GlobalMatches(empty, empty, empty, empty, empty, 0, (D, I))
     offs = np.arange(total) - np.repeat(np.cumsum(cnt) - cnt, cnt)
     clus = bundle.point_clusters_idx[np.repeat(ptr[pts], cnt) + offs]
     votes = np.repeat(ws, cnt)
@@ -141,7 +157,7 @@ def global_matching(desc: np.ndarray, bundle: MapBundle, conf: EngineConf) -> Gl
     w = np.where(in_s[bundle.desc_image[np.maximum(I, 0)]] & (I >= 0), w, 0.0)
     cands = point_candidates(I, w, bundle.desc_point)
     s1q, s1p, s2q, s2p = match_sets(cands, conf.ratio, conf.max_hypotheses)
-    return GlobalMatches(s1q, s1p, s2q, s2p, selected, int(in_s.sum()))
+    return GlobalMatches(s1q, s1p, s2q, s2p, selected, int(in_s.sum()), (D, I))
 
 
 def scope_images(bundle: MapBundle, matched_points: np.ndarray, top: int) -> np.ndarray:
@@ -174,9 +190,13 @@ def guided_matching(
     cam_from_world: Rigid3d,
     K: np.ndarray,
     conf: EngineConf,
+    neighbours: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> GuidedMatches:
     """Match a batch of keypoints (descriptors ``desc``, undistorted positions ``xy_u``) within
-    the scope of the already-matched points, verify against ``cam_from_world``."""
+    the scope of the already-matched points, verify against ``cam_from_world``.
+
+    ``neighbours``: an unscoped k-ANN search of these same descriptors (global matching's),
+    restricted to the scope instead of a second search (``restrict_neighbours``)."""
     nq = len(desc)
     H = conf.max_hypotheses
     out = GuidedMatches(np.full(nq, -1, np.int64), np.full((nq, H), -1, np.int64), 0)
@@ -184,9 +204,14 @@ def guided_matching(
     if nq == 0 or len(imgs) == 0:
         return out
     out.n_images = len(imgs)
-    ptr = bundle.image_desc_ptr
-    allowed = bitmap_from_ranges(bundle.n_descriptors, ptr[imgs], ptr[imgs + 1])
-    D, I = bundle.index.search(desc, conf.k, allowed=allowed, nprobe=conf.nprobe)
+    if neighbours is not None:
+        in_scope = np.zeros(bundle.n_images, bool)
+        in_scope[imgs] = True
+        D, I = restrict_neighbours(*neighbours, in_scope[bundle.desc_image])
+    else:
+        ptr = bundle.image_desc_ptr
+        allowed = bitmap_from_ranges(bundle.n_descriptors, ptr[imgs], ptr[imgs + 1])
+        D, I = bundle.index.search(desc, conf.k, allowed=allowed, nprobe=conf.nprobe)
     w = neighbour_strengths(D, I, conf.sigma)
     cands = point_candidates(I, w, bundle.desc_point)
     _, _, q2, p2 = match_sets(cands, conf.ratio, H)

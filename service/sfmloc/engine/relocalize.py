@@ -71,7 +71,8 @@ def pose_from_global(
         # Guided matching of the whole frame around the RANSAC pose (scope: the map points it
         # makes visible). A right pose gathers the matches the ratio test dropped; a chance one
         # does not reach ``recover_min_inliers``. See ``EngineConf.global_verify``.
-        ver = match_near_prior(desc, xy_u, bundle, camera, conf, est.cam_from_world)
+        reuse = gm.neighbours if conf.global_verify_search == "reuse" else None
+        ver = match_near_prior(desc, xy_u, bundle, camera, conf, est.cam_from_world, reuse)
         if ver is not None:
             vest, point = ver
             if vest.num_inliers >= est.num_inliers:
@@ -114,19 +115,20 @@ def pose_from_hypotheses(
 
 def match_near_prior(
     desc: np.ndarray, xy_u: np.ndarray, bundle: MapBundle, camera: Camera, conf: EngineConf,
-    prior: Rigid3d,
+    prior: Rigid3d, neighbours: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[PoseEstimate, np.ndarray] | None:
     """Matches scoped by the points visible from the prior (in ``camera``'s image), verified
     against it with a loose threshold (the prior is approximate), then a pose with the prior as
     a hypothesis; the same rules as the tracker's recovery (``prior_threshold_px``,
     ``recover_min_inliers``). Returns the pose and the verified point of every keypoint (-1:
-    none)."""
+    none). ``neighbours``: global matching's search of ``desc``, restricted to the scope
+    instead of a second search (``guided_matching``)."""
     visible = visible_points(camera, prior, bundle.points_xyz)
     if len(visible) < conf.min_inliers:
         return None
     K = camera.K
     loose = conf.model_copy(update={"guided_threshold_px": conf.prior_threshold_px})
-    gm = guided_matching(desc, xy_u, bundle, visible, prior, K, loose)
+    gm = guided_matching(desc, xy_u, bundle, visible, prior, K, loose, neighbours)
     return pose_from_hypotheses(gm.hyp, xy_u, bundle, K, conf, prior)
 
 
