@@ -4,8 +4,8 @@ Handlers validate requests on the event loop (cheap) and hand the engine work to
 pool, awaiting its futures; blocking registry calls (LoadMap) run in an executor. Handlers
 raise; ``ErrorStatusInterceptor`` ends the call with the status the one table gives the error.
 Per-frame failures of a ``StreamLocalize`` stream (a corrupt image) come back as a LOST
-``PoseUpdate`` with ``error_code``/``error_message`` and the stream goes on; failures of the stream itself (unknown
-map, first frame without camera) end it with their status.
+``PoseUpdate`` with ``error_code``/``error_message`` and the stream goes on; failures of the
+stream itself (unknown map, first frame without camera) end it with their status.
 """
 
 from __future__ import annotations
