@@ -25,6 +25,7 @@ TRANSPORTS = ("zenoh", "grpc")
 CLIENT_CONTRACT = (
     "sfmloc_client",
     "sfmloc_client.errors",
+    "sfmloc_client.enums",
     "sfmloc_client.cameras",
     "sfmloc_client.keys",
     "sfmloc_client.rotations",

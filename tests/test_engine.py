@@ -571,16 +571,20 @@ def test_bad_frames_are_errors_or_lost_never_a_made_up_pose(world, bundle, cam):
 
 
 def test_status_and_matching_are_enums_read_as_their_wire_strings():
-    """Statuses and matching kinds are enums in the engine and plain strings on every wire:
-    equal to, printed, formatted, JSON- and msgpack-encoded as their values, which are the
-    client's wire statuses."""
+    """Statuses and matching kinds are one pair of enums (the contract's, which the engine
+    re-exports) and plain strings on every wire: equal to, printed, formatted, JSON- and
+    msgpack-encoded as their values; every status has its gRPC enum value."""
     import json
 
     import msgpack
+    import sfmloc_client.enums as contract
+    from sfmloc_client.convert import STATUS_FROM_PB, STATUS_TO_PB
     from sfmloc_client.wire import STATUSES
 
-    assert tuple(s.value for s in Status) == STATUSES
+    assert Status is contract.Status and Matching is contract.Matching
+    assert STATUSES == ("TRACKING", "RELOCALIZED", "UNVERIFIED", "LOST")  # the wire's values
     assert [m.value for m in Matching] == ["none", "guided", "global"]
+    assert set(STATUS_TO_PB) == set(STATUSES) and set(STATUS_FROM_PB.values()) == set(STATUSES)
     for e in (*Status, *Matching):
         assert e == e.value and str(e) == f"{e}" == e.value
         assert json.dumps({e: e}) == f'{{"{e.value}": "{e.value}"}}'

@@ -39,9 +39,11 @@ import logging
 from typing import Any
 
 # Public name -> submodule. Loaded on first use (PEP 562), so that importing the contract
-# modules (``errors``, ``cameras``, ``keys``, ``rotations``), as the service's per-frame core
-# does, loads neither grpc nor zenoh.
+# modules (``errors``, ``enums``, ``cameras``, ``keys``, ``rotations``), as the service's
+# per-frame core does, loads neither grpc nor zenoh.
 _EXPORTS = {
+    "Matching": "enums",
+    "Status": "enums",
     "ClientError": "errors",
     "ImageDataError": "errors",
     "ImageDecodeError": "errors",

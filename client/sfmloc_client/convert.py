@@ -5,15 +5,16 @@ from __future__ import annotations
 import math
 from typing import Any
 
+from .enums import Matching, Status
 from .errors import WireError
 from .pb import common_pb2, localization_pb2
 from .wire import ENCODINGS, CameraSpec, ErrorInfo, PoseMessage, Transform, raw_size
 
 STATUS_TO_PB = {
-    "TRACKING": common_pb2.LOCALIZATION_STATUS_TRACKING,
-    "RELOCALIZED": common_pb2.LOCALIZATION_STATUS_RELOCALIZED,
-    "UNVERIFIED": common_pb2.LOCALIZATION_STATUS_UNVERIFIED,
-    "LOST": common_pb2.LOCALIZATION_STATUS_LOST,
+    Status.TRACKING.value: common_pb2.LOCALIZATION_STATUS_TRACKING,
+    Status.RELOCALIZED.value: common_pb2.LOCALIZATION_STATUS_RELOCALIZED,
+    Status.UNVERIFIED.value: common_pb2.LOCALIZATION_STATUS_UNVERIFIED,
+    Status.LOST.value: common_pb2.LOCALIZATION_STATUS_LOST,
 }
 STATUS_FROM_PB = {v: k for k, v in STATUS_TO_PB.items()}
 ENCODING_TO_PB = {
@@ -104,7 +105,7 @@ def pose_from_estimate_pb(est: common_pb2.PoseEstimate, seq: int | None = None, 
     return PoseMessage(
         seq=seq,
         stamp_ns=stamp_ns,
-        status=STATUS_FROM_PB.get(est.status, "LOST"),
+        status=STATUS_FROM_PB.get(est.status, Status.LOST.value),
         cam_from_world=tf("cam_from_world"),
         world_from_cam=tf("world_from_cam"),
         filtered_cam_from_world=tf("filtered_cam_from_world"),
@@ -112,7 +113,7 @@ def pose_from_estimate_pb(est: common_pb2.PoseEstimate, seq: int | None = None, 
         inliers=est.inliers,
         latency_ms=est.latency_ms,
         counts={"detected": est.counts.detected, "tracked": est.counts.tracked, "tracked_3d": est.counts.tracked_3d},
-        matching=est.matching or "none",
+        matching=est.matching or Matching.NONE.value,
         message=est.message,
         covariance=_covariance_from_pb(est.covariance),
     )

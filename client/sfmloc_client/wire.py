@@ -94,12 +94,13 @@ from typing import Any
 
 import msgpack
 
+from .enums import Status
 from .errors import MessageTooLargeError, WireError
 
 WIRE_VERSION = 1
 ROOT = "sfmloc"
 ENCODINGS: tuple[str, ...] = ("gray8", "bgr8", "jpeg", "png")
-STATUSES: tuple[str, ...] = ("TRACKING", "RELOCALIZED", "UNVERIFIED", "LOST")
+STATUSES: tuple[str, ...] = tuple(s.value for s in Status)
 # Order of the covariance's rows and columns (see the module docstring).
 COVARIANCE_ORDER: tuple[str, ...] = ("rot_x", "rot_y", "rot_z", "center_x", "center_y", "center_z")
 # Frames larger than this are rejected (RESOURCE_EXHAUSTED) unless the server is configured
@@ -456,7 +457,7 @@ class PoseMessage:
 
     @property
     def localized(self) -> bool:
-        return self.status != "LOST" and self.cam_from_world is not None
+        return self.status != Status.LOST and self.cam_from_world is not None
 
     @property
     def covariance_matrix(self) -> Any:

@@ -2,42 +2,14 @@
 
 from __future__ import annotations
 
-import enum
 from dataclasses import dataclass, field
 
 import numpy as np
+from sfmloc_client.enums import Matching, Status
 
 from ..transforms import Rigid3d
 
-
-class _WireEnum(str, enum.Enum):
-    """An enum whose members are their wire strings: equal to them, and printed, formatted,
-    JSON-encoded and msgpack-packed as them (``enum.StrEnum`` needs Python 3.11)."""
-
-    def __str__(self) -> str:
-        return str(self.value)
-
-    def __format__(self, format_spec: str) -> str:
-        return format(str(self.value), format_spec)
-
-
-class Status(_WireEnum):
-    """A frame's localization status; the value is the wire string."""
-
-    TRACKING = "TRACKING"  # pose from tracked keypoints with verified 2D-3D matches
-    RELOCALIZED = "RELOCALIZED"  # pose from global matching this frame, verified
-    # A pose from global matching this frame that is not verified yet (weak geometric support):
-    # the following frames confirm it by tracking from it. Its covariance is inflated.
-    UNVERIFIED = "UNVERIFIED"
-    LOST = "LOST"  # no pose
-
-
-class Matching(_WireEnum):
-    """How a frame's 2D-3D matches were found; the value is the wire string."""
-
-    NONE = "none"  # only matches tracked from the previous frame
-    GUIDED = "guided"  # guided matching around a pose (the tracked one, or the prediction)
-    GLOBAL = "global"  # global matching: relocalization from scratch
+__all__ = ["FrameResult", "Matching", "Status"]  # the enums are the contract's (sfmloc_client)
 
 
 @dataclass
