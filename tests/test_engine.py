@@ -163,6 +163,18 @@ def test_one_to_many_ransac_uses_ambiguous_hypotheses():
     assert chosen.sum() > 140
 
 
+def test_batched_rodrigues_matches_opencv():
+    import cv2
+
+    from sfmloc.engine.pose import _rotations_from_rotvecs
+
+    rng = np.random.default_rng(5)
+    r = np.vstack([rng.normal(0, 1.5, (50, 3)), np.zeros((1, 3)), [[np.pi, 0, 0]], [[1e-9, 0, 0]]])
+    R = _rotations_from_rotvecs(r)
+    for v, Rb in zip(r, R):
+        assert np.abs(Rb - cv2.Rodrigues(v.reshape(3, 1))[0]).max() < 1e-12
+
+
 def test_pose_prior_resolves_the_planar_mirror_ambiguity():
     """Points on one small distant plane: minimal solvers can return the mirrored pose; the
     prior (the motion filter's prediction) selects the right one."""

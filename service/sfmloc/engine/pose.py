@@ -352,6 +352,18 @@ def estimate_pose_one_to_many(
     n_kp = int(kp_dense.max()) + 1
     obj = hyp_X.astype(np.float64)
     img = hyp_xy.astype(np.float64)
+    # Scoring as one GEMM per batch: with P = [R | t] and Xh = [X, 1], a pair's pixel error
+    # times its depth is linear in P: z (u - x) = (fx p1 + (cx - x) p3) . Xh, likewise for v,
+    # and z = p3 . Xh; so the rows kron((fx, 0, cx - x), Xh), kron((0, fy, cy - y), Xh) and
+    # kron((0, 0, 1), Xh) against the stacked vec(P) give all three for every hypothesis at
+    # once, without dividing (the same inliers: |error| < threshold with z > 0).
+    Xh = np.hstack([ver_X.astype(np.float64), np.ones((len(ver_X), 1))])
+    zero, one = np.zeros(len(Xh)), np.ones(len(Xh))
+    rows_u = np.stack([np.full(len(Xh), K[0, 0]), zero, K[0, 2] - ver_xy[:, 0]], 1)
+    rows_v = np.stack([zero, np.full(len(Xh), K[1, 1]), K[1, 2] - ver_xy[:, 1]], 1)
+    rows_z = np.stack([zero, zero, one], 1)
+    F = np.concatenate([(r[:, :, None] * Xh[:, None, :]).reshape(-1, 12) for r in (rows_u, rows_v, rows_z)])
+    n_ver = len(Xh)
     best_score, best_pose = 0, None
     needed = max_iterations
     thr2 = threshold * threshold
@@ -366,22 +378,18 @@ def estimate_pose_one_to_many(
                 n_sol, rvecs, tvecs = cv2.solveP3P(obj[s], img[s], K, None, flags=cv2.SOLVEPNP_P3P)
             except cv2.error:
                 continue
-            for r, t in zip(rvecs[:n_sol], tvecs[:n_sol]):
-                R, _ = cv2.Rodrigues(r)
-                Rs.append(R)
-                ts.append(t.reshape(3))
+            Rs += rvecs[:n_sol]
+            ts += tvecs[:n_sol]
         if not Rs:
             continue
         B = len(Rs)
-        R = np.stack(Rs)  # (B, 3, 3)
-        T = np.stack(ts)  # (B, 3)
-        # One GEMM for all hypotheses: (M, 3) @ (3, 3B) -> (M, B, 3)
-        pc = (ver_X @ R.reshape(3 * B, 3).T).reshape(-1, B, 3) + T[None]
-        z = pc[..., 2]
-        zs = np.where(z > 1e-9, z, 1e-9)
-        du = K[0, 0] * pc[..., 0] / zs + (K[0, 2] - ver_xy[:, 0:1])
-        dv = K[1, 1] * pc[..., 1] / zs + (K[1, 2] - ver_xy[:, 1:2])
-        inl = (du * du + dv * dv < thr2) & (z > 1e-6)  # (M, B)
+        R = _rotations_from_rotvecs(np.asarray(Rs, np.float64).reshape(B, 3))  # (B, 3, 3)
+        T = np.asarray(ts, np.float64).reshape(B, 3)
+        # One GEMM for all hypotheses: (3M, 12) @ (12, B) -> z*du, z*dv, z, each (M, B)
+        P = np.concatenate([R, T[:, :, None]], 2).reshape(B, 12)
+        E = F @ P.T
+        eu, ev, z = E[:n_ver], E[n_ver : 2 * n_ver], E[2 * n_ver :]
+        inl = (eu * eu + ev * ev < thr2 * (z * z)) & (z > 1e-6)  # (M, B)
         # distinct keypoints with at least one inlier hypothesis
         hit = np.zeros((B, n_kp), bool)
         m_idx, b_idx = np.nonzero(inl)
@@ -427,6 +435,21 @@ def estimate_pose_one_to_many(
         return None
     est.inlier_mask = chosen
     return est, chosen
+
+
+def _rotations_from_rotvecs(r: np.ndarray) -> np.ndarray:
+    """Rodrigues' formula for a batch of rotation vectors (B, 3) -> (B, 3, 3) (one
+    ``cv2.Rodrigues`` call per RANSAC solution cost as much as the P3P solve)."""
+    theta = np.linalg.norm(r, axis=1)
+    small = theta < 1e-12
+    k = r / np.where(small, 1.0, theta)[:, None]
+    Kx = np.zeros((len(r), 3, 3))
+    Kx[:, 0, 1], Kx[:, 0, 2], Kx[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
+    Kx[:, 1, 0], Kx[:, 2, 0], Kx[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
+    s, c = np.sin(theta)[:, None, None], np.cos(theta)[:, None, None]
+    R = np.eye(3) + s * Kx + (1.0 - c) * (Kx @ Kx)
+    R[small] = np.eye(3)
+    return R
 
 
 def _closest_per_keypoint(pose, K, kp_dense, xy, X, threshold) -> np.ndarray:
