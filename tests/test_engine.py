@@ -636,3 +636,30 @@ def test_frames_localize_keypoints_as_the_map_did(bundle, cam):
     assert map_subpixel(EngineConf(subpixel="none"), params) == "none"
     # a bundle without build parameters: the builder's default
     assert Localizer(bundle, cam).subpixel == BuildConf().descriptors.subpixel == "quadratic"
+
+
+def test_a_failed_recovery_and_its_global_matching_describe_the_keypoints_once(
+    world, bundle, cam, monkeypatch
+):
+    """Recovery around the prediction and the global matching that follows it describe the
+    same keypoints: DAISY runs once for both."""
+    from sfmloc.engine.types import Matching
+    from sfmloc.features.daisy import DaisyExtractor
+
+    loc = Localizer(bundle, cam)
+    for i in range(4):
+        loc.localize(world.gray[i], i / 30)
+    assert len(loc.scope_points) > 0
+    calls = []
+    orig = DaisyExtractor.describe
+
+    def counting(self, *a, **k):
+        calls.append(len(a[1]))
+        return orig(self, *a, **k)
+
+    monkeypatch.setattr(DaisyExtractor, "describe", counting)
+    far = len(world.gray) - 1  # far from the prediction: recovery finds too few matches
+    r = loc.localize(world.gray[far], 4 / 30)
+    assert r.matching == Matching.GLOBAL and "reloc" in r.timings_ms
+    assert len(calls) == 1, calls
+    assert pose_errors(r.cam_from_world, world.gt_cam_from_world[far])[0] < 0.05 * bundle.scene_scale

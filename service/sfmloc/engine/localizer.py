@@ -76,12 +76,20 @@ class _FrameImage:
         self.gray = gray
         self._extractor = extractor
         self._prepared: np.ndarray | None = None
+        self._described: tuple[np.ndarray, np.ndarray] | None = None
 
     @property
     def prepared(self) -> np.ndarray:
         if self._prepared is None:
             self._prepared = self._extractor.prepare(self.gray)
         return self._prepared
+
+    def describe_all(self, bundle: MapBundle, xy: np.ndarray) -> np.ndarray:
+        """``describe`` of the frame's keypoints ``xy``, once: a recovery that fails is followed
+        by global matching of the same keypoints (a second DAISY pass was ~10 ms)."""
+        if self._described is None or not np.array_equal(self._described[0], xy):
+            self._described = (xy.copy(), describe(self._extractor, bundle, self.prepared, xy))
+        return self._described[1]
 
 
 def _match_ids(table: TrackTable) -> set[int]:
@@ -377,7 +385,7 @@ class Localizer:
         if len(table) < c.min_inliers:
             return None
         xy_u = self._undistort(table.xy)
-        desc = describe(self.extractor, self.bundle, image.prepared, table.xy)
+        desc = image.describe_all(self.bundle, table.xy)
         loose = c.model_copy(update={"guided_threshold_px": c.prior_threshold_px})
         gm = guided_matching(desc, xy_u, self.bundle, scope_points, pred, self.K, loose)
         res = pose_from_hypotheses(gm.hyp, xy_u, self.bundle, self.K, c, pred)
@@ -399,7 +407,7 @@ class Localizer:
         if len(table) < c.min_inliers:
             return table, None
         xy_u = self._undistort(table.xy)
-        desc = describe(self.extractor, self.bundle, image.prepared, table.xy)
+        desc = image.describe_all(self.bundle, table.xy)
         res = pose_from_global(desc, xy_u, self.bundle, self.camera, c)
         if res is None:
             return table, None
