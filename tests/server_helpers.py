@@ -124,8 +124,38 @@ def camera(world: World) -> Any:
     return CameraSpec.parse(world.camera_spec)
 
 
+class Collected:
+    """What a callback collects (e.g. ``PoseSubscriber(callback=poses.append)``), with a wait
+    on a condition notified per item: no polling, no sleep."""
+
+    def __init__(self) -> None:
+        self.items: list[Any] = []
+        self._cond = threading.Condition()
+
+    def append(self, item: Any) -> None:
+        with self._cond:
+            self.items.append(item)
+            self._cond.notify_all()
+
+    def wait_for(self, pred: Any, timeout: float = 30.0) -> bool:
+        """Wait until ``pred(items)`` holds (checked at each new item); False on timeout."""
+        with self._cond:
+            return self._cond.wait_for(lambda: pred(self.items), timeout)
+
+    def has_seq(self, seq: int, timeout: float = 60.0) -> bool:
+        return self.wait_for(lambda items: any(p.seq == seq for p in items), timeout)
+
+    def __iter__(self) -> Any:
+        with self._cond:
+            return iter(list(self.items))
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+
 def wait_until(pred: Any, timeout: float = 30.0, every: float = 0.02) -> bool:
-    """Poll ``pred`` until true; the tests assert on the outcome, never on the time taken."""
+    """Poll ``pred`` until true, for state with nothing to wait on (another process, a file,
+    a remote health status); the tests assert on the outcome, never on the time taken."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if pred():

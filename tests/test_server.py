@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 import zenoh
 from server_helpers import (
+    Collected,
     build_world,
     camera,
     client_zenoh,
@@ -436,7 +437,7 @@ def test_workers_share_one_mapped_index_and_all_see_a_replacement_under_load(wor
     assert {s.worker for s in sessions.list("shared")} == set(range(pool.n))
 
     n, switch_at = 40, 12
-    half = threading.Event()
+    half, swapped = threading.Event(), threading.Event()
     results: dict[str, list] = {}
 
     def client(cid: str) -> None:
@@ -449,10 +450,7 @@ def test_workers_share_one_mapped_index_and_all_see_a_replacement_under_load(wor
                 assert sub.wait_for(seq, 60)
                 if k == switch_at:
                     half.set()
-                    def switched() -> bool:
-                        return grpc_client.get_map("shared").build_id != old.build_id
-
-                    assert wait_until(switched, 120)
+                    assert swapped.wait(120)  # LoadMap returned: the registry has swapped
         results[cid] = got
 
     threads = [threading.Thread(target=client, args=(c,)) for c in clients]
@@ -460,6 +458,7 @@ def test_workers_share_one_mapped_index_and_all_see_a_replacement_under_load(wor
         t.start()
     assert half.wait(120)
     new = grpc_client.load_map(str(new_dir), "shared")  # replaces "shared" while they stream
+    swapped.set()
     for t in threads:
         t.join(180)
     assert new.build_id != old.build_id
@@ -555,10 +554,10 @@ def test_a_second_device_under_the_same_client_id_is_refused(world, zep, srv):
 
     cam = camera(world)
     with client_zenoh(zep) as za, client_zenoh(zep) as zb:
-        got: list = []
+        got = Collected()
 
         def answered(k: int) -> bool:  # wait_for(seq) means "up to seq": the seqs interleave here
-            return wait_until(lambda: any(p.seq == k for p in got), 60)
+            return got.has_seq(k)
 
         with PoseSubscriber(za, "room", "twin", callback=got.append), \
                 FrameStreamer(za, "room", "twin", cam) as a, FrameStreamer(zb, "room", "twin", cam) as b:
@@ -663,7 +662,7 @@ def test_a_crashed_worker_is_restarted_and_other_clients_carry_on(world, z, srv)
     victim = pool.workers[0]
     pid = victim.pid
     os.kill(pid, signal.SIGKILL)
-    assert wait_until(lambda: pool.workers[0].pid not in (0, pid) and pool.restarts >= 1, 120)
+    assert pool.wait_for(lambda: pool.workers[0].pid not in (0, pid) and pool.is_alive(0), 120)
     after = stream_lockstep(z, "room", "survivor", world, n=10)
     assert [p.seq for p in after] == list(range(10))
     assert sum(p.localized for p in after) >= 8
@@ -677,9 +676,9 @@ def test_a_worker_killed_under_streams_answers_every_frame(world, z, srv):
     import signal
 
     pool = srv.server.pool
-    assert wait_until(lambda: all(h.alive and h.ready.is_set() for h in pool.workers), 120)
+    assert pool.wait_for(lambda: all(h.alive and h.serving and h.ready.is_set() for h in pool.workers), 120)
     cam = camera(world)
-    got: dict[str, list] = {"k1": [], "k2": []}
+    got = {"k1": Collected(), "k2": Collected()}
     with PoseSubscriber(z, "room", "k1", callback=got["k1"].append), \
             PoseSubscriber(z, "room", "k2", callback=got["k2"].append), \
             FrameStreamer(z, "room", "k1", cam) as f1, FrameStreamer(z, "room", "k2", cam) as f2:
@@ -687,7 +686,7 @@ def test_a_worker_killed_under_streams_answers_every_frame(world, z, srv):
         assert f1.wait_for_server(30) and f2.wait_for_server(30)
         for f, cid in streams:  # open both sessions
             f.publish(data=world.png[0], encoding="png", seq=0, stamp_ns=0)
-            assert wait_until(lambda cid=cid: any(p.seq == 0 for p in got[cid]), 60)
+            assert got[cid].has_seq(0)
         workers = {s.worker for s in srv.server.sessions.list("room") if s.client_id in ("k1", "k2")}
         victim = pool.workers[sorted(workers)[0]]
         restarts = pool.restarts
@@ -697,7 +696,7 @@ def test_a_worker_killed_under_streams_answers_every_frame(world, z, srv):
             if k == 5:
                 os.kill(victim.pid, signal.SIGKILL)
             for _, cid in streams:
-                assert wait_until(lambda k=k, cid=cid: any(p.seq == k for p in got[cid]), 60), (cid, k)
+                assert got[cid].has_seq(k), (cid, k)
         moved = {s.worker for s in srv.server.sessions.list("room") if s.client_id in ("k1", "k2")}
     for cid in ("k1", "k2"):
         seqs = sorted({p.seq for p in got[cid]})
@@ -707,7 +706,7 @@ def test_a_worker_killed_under_streams_answers_every_frame(world, z, srv):
         assert sum(p.localized for p in got[cid] if p.seq >= 30) >= 8  # it went on
     assert pool.restarts >= restarts + 1
     assert victim.index not in moved  # the sessions left the dead worker and stayed away
-    assert wait_until(lambda: pool.workers[victim.index].alive and pool.workers[victim.index].ready.is_set(), 120)
+    assert pool.wait_for(lambda: pool.is_alive(victim.index) and pool.workers[victim.index].ready.is_set(), 120)
 
 
 def test_load_map_while_a_worker_restarts(world, z, srv, grpc_client):
@@ -717,14 +716,14 @@ def test_load_map_while_a_worker_restarts(world, z, srv, grpc_client):
     import signal
 
     pool = srv.server.pool
-    assert wait_until(lambda: all(h.alive and h.ready.is_set() for h in pool.workers), 120)
+    assert pool.wait_for(lambda: all(h.alive and h.serving and h.ready.is_set() for h in pool.workers), 120)
     victim = pool.workers[0]
     restarts = pool.restarts
     os.kill(victim.pid, signal.SIGKILL)
-    assert wait_until(lambda: not pool.is_alive(0), 60)
+    assert pool.wait_for(lambda: not pool.is_alive(0), 60)
     info = grpc_client.load_map("room2", "window", timeout=60)  # answered by the live worker
     assert info.name == "window"
-    assert wait_until(lambda: pool.restarts > restarts and pool.is_alive(0) and pool.workers[0].ready.is_set(), 120)
+    assert pool.wait_for(lambda: pool.restarts > restarts and pool.is_alive(0) and pool.workers[0].ready.is_set(), 120)
     # two new sessions: one lands on the replacement, which must hold "window"
     for cid in ("win-a", "win-b"):
         poses = stream_lockstep(z, "window", cid, world, n=4)
@@ -754,7 +753,7 @@ def test_a_stream_reports_an_outage_and_resumes_by_itself(world, z, srv):
             src = [SourceFrame(data=d, encoding="png", stamp_ns=int(k * 1e9 / 30)) for k, d in enumerate(world.png[:70])]
             stats = fs.run(src, fps=15, poses=poses, on_sent=on_sent)
             # answers come back (the server keeps the newest frame of a busy session)
-            assert wait_until(lambda: any(p.seq is not None and p.seq >= 45 for p in got), 60)
+            assert poses.wait_for(45, 60)
     finally:
         if fe._frame_sub is None:
             fe.start_intake()

@@ -102,6 +102,8 @@ class WorkerPool:
         self.max_image_pixels = max_image_pixels
         self.workers: list[WorkerHandle] = []
         self._lock = threading.Lock()
+        # Notified whenever a worker's state changes (ready, died, replaced, serving).
+        self._changed = threading.Condition(self._lock)
         self._req = itertools.count(1)
         self._futures: dict[int, tuple[int, Future]] = {}  # req -> (worker, future)
         self._maps: dict[tuple[str, int], tuple[str, str]] = {}  # (name, gen) -> (path, build_id)
@@ -242,8 +244,10 @@ class WorkerPool:
                 else:
                     fut.set_result(msg)
         elif isinstance(msg, P.Ready):
-            h.pid = msg.pid
-            h.ready.set()
+            with self._changed:
+                h.pid = msg.pid
+                h.ready.set()
+                self._changed.notify_all()
 
     def _worker_lost(self, h: WorkerHandle) -> None:
         """A worker died (a crash in native code, killed): fail what it had, restart it with
@@ -257,6 +261,7 @@ class WorkerPool:
               during_start=not started, stderr=getattr(h.runner, "last_line", ""))
         with self._lock:
             h.alive = False
+            self._changed.notify_all()
             h.outbox.put(None)
             lost = [r for r, (w, _) in self._futures.items() if w == h.index]
             futures = [self._futures.pop(r)[1] for r in lost]
@@ -281,7 +286,6 @@ class WorkerPool:
             return
         if fails:
             time.sleep(min(5.0, 0.25 * 2**fails))  # back-off before the next attempt
-        self.restarts += 1
         reload = self._started  # before start() returns there are no maps to reload
         new = self._spawn(h.index)
         new.serving = not reload
@@ -289,6 +293,8 @@ class WorkerPool:
             # At once, not after the reload: stop() must reach the replacement, and a handle
             # stored late could overwrite the replacement of a replacement that died meanwhile.
             self.workers[h.index] = new
+            self.restarts += 1
+            self._changed.notify_all()
         if not reload:
             return  # start() waits on the replacement
         while not new.ready.wait(0.1):
@@ -313,6 +319,7 @@ class WorkerPool:
                     return  # it died while reloading: its own reader thread restarts it
                 if self._maps_version == version:
                     new.serving = True
+                    self._changed.notify_all()
                     stale = loaded - set(self._maps)
                     break
             if not new.alive or self._stopping:
@@ -369,6 +376,12 @@ class WorkerPool:
             self._maps_version += 1
         for h in self.workers:
             self._send(h, P.Drop(name, gen))
+
+    def wait_for(self, pred: Callable[[], bool], timeout: float) -> bool:
+        """Wait until ``pred()`` holds; it is evaluated, under the pool's lock, whenever a
+        worker's state changes (ready, died, replaced, serving). False on timeout."""
+        with self._changed:
+            return self._changed.wait_for(pred, timeout)
 
     def is_alive(self, worker: int) -> bool:
         """Whether worker ``worker`` is up (False from its death until its replacement has
