@@ -369,7 +369,8 @@ def estimate_pose_one_to_many(
     thr2 = threshold * threshold
     it = 0
     while it < min(needed, max_iterations):
-        Rs, ts = [], []
+        Rs: list[np.ndarray] = []  # rotation vectors of this batch's P3P solutions
+        ts: list[np.ndarray] = []
         pool = min(n1, max(8, n1 // 5) + (n1 * it) // growth)
         for _ in range(batch):
             it += 1
