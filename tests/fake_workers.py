@@ -78,7 +78,7 @@ class FakeWorkers:
             elif isinstance(msg, P.LocalizeFrame):
                 if msg.encoding == "die":  # a crash: the socket closes, nothing is answered
                     return
-                P.TO_SERVER.send(conn, P.Result(msg.sid, msg.seq, msg.stamp_ns, msg.gen, pose(),
+                P.TO_SERVER.send(conn, P.Result(msg.sid, msg.seq, msg.stamp_ns, msg.gen, "b", pose(),
                                                 None, 0.1, 1.0))
             elif isinstance(msg, P.Relocalize):
                 if msg.encoding == "die":

@@ -54,8 +54,9 @@ def env():
 
 
 def _answer(sm: SessionManager, msg: P.LocalizeFrame, status: str = "TRACKING") -> None:
-    """The worker's answer to ``msg``."""
-    sm.on_result(P.Result(msg.sid, msg.seq, msg.stamp_ns, msg.gen, pose(status), None, 0.1, 1.0))
+    """The worker's answer to ``msg`` (it ran on build ``build-<generation>``)."""
+    sm.on_result(P.Result(msg.sid, msg.seq, msg.stamp_ns, msg.gen, f"build-{msg.gen}", pose(status),
+                          None, 0.1, 1.0))
 
 
 def test_latest_frame_only_one_in_the_worker_and_the_newest_waiting(env):
@@ -118,7 +119,8 @@ def test_frames_follow_a_replaced_map_to_its_new_generation(env):
     _answer(sm, pool.frames[0][1])  # frame 0 ran on generation 1, which is no longer current
     assert [m.gen for _, m in pool.frames] == [1, 2]  # the waiting frame went to generation 2
     _answer(sm, pool.frames[1][1])
-    assert [(p.seq, p.build_id) for p in sinks["c"].poses] == [(0, ""), (1, "build-2")]
+    # each pose names the build it was computed on
+    assert [(p.seq, p.build_id) for p in sinks["c"].poses] == [(0, "build-1"), (1, "build-2")]
 
 
 def test_unknown_map_and_oversized_camera_are_refused_before_any_work(env):

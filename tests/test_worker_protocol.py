@@ -31,8 +31,8 @@ MESSAGES = [
     (P.TO_SERVER, P.Ready(1, 4242)),
     (P.TO_SERVER, P.Loaded(7, P.MapSummary(10, 20, 3, 2, 1.5, "b1", True), None, 12.0)),
     (P.TO_SERVER, P.Loaded(7, None, P.WorkerError("BundleError", "corrupt"), 1.0)),
-    (P.TO_SERVER, P.Result(5, 11, 123456789, 3, POSE, None, 1.0, 11.0)),
-    (P.TO_SERVER, P.Result(5, 12, 0, 3, None, P.WorkerError("ImageDecodeError", "bad png"), 0.0, 1.0)),
+    (P.TO_SERVER, P.Result(5, 11, 123456789, 3, "b1", POSE, None, 1.0, 11.0)),
+    (P.TO_SERVER, P.Result(5, 12, 0, 3, "", None, P.WorkerError("ImageDecodeError", "bad png"), 0.0, 1.0)),
     (P.TO_SERVER, P.RelocResult(8, POSE, None, 80.0)),
 ]
 

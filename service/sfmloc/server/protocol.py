@@ -259,6 +259,7 @@ class Result(Message):
     seq: int
     stamp_ns: int
     gen: int
+    build_id: str  # of the map the frame ran on ("" when it was not loaded)
     pose: PoseResult | None
     error: WorkerError | None
     decode_ms: float

@@ -277,10 +277,10 @@ class SessionManager:
             event(log, logging.WARNING, "sink_failed", map=s.map, client=s.client_id, error=str(exc))
 
     def _pose(self, s: Session, msg: Result, latency_ms: float, dropped: int) -> PoseMessage:
-        entry = self.registry.find(s.map)
-        build_id = entry.build_id if entry is not None and entry.generation == msg.gen else ""
+        # The build the frame ran on, as the worker says: a frame in flight while its map was
+        # replaced keeps the old build id (the registry's current entry would be the new one).
         return pose_message(msg.pose, msg.error, seq=msg.seq, stamp_ns=msg.stamp_ns, map_name=s.map,
-                            client_id=s.client_id, build_id=build_id, server_id=self.server_id,
+                            client_id=s.client_id, build_id=msg.build_id, server_id=self.server_id,
                             latency_ms=latency_ms, dropped=dropped)
 
     def error_pose(self, map_name: str, client_id: str, seq: int | None, stamp_ns: int, exc: BaseException,

@@ -169,9 +169,11 @@ class _Worker:
         pose: P.PoseResult | None = None
         error: P.WorkerError | None = None
         decode_ms = 0.0
+        build_id = ""
         try:
             key = (m.map, m.gen)
             bundle = self._bundle(m.map, m.gen)
+            build_id = bundle.build_id
             cam = self._camera(m.camera)
             st = self.sessions.get(m.sid)
             if st is None or st.map_key != key or st.camera_key != m.camera:
@@ -186,7 +188,7 @@ class _Worker:
                 log.exception("worker %d: frame %s of session %d failed", self.index, m.seq, m.sid)
                 self.sessions.pop(m.sid, None)  # do not keep state an exception may have corrupted
             error = P.WorkerError.of(exc)
-        self.send(P.Result(m.sid, m.seq, m.stamp_ns, m.gen, pose, error, decode_ms,
+        self.send(P.Result(m.sid, m.seq, m.stamp_ns, m.gen, build_id, pose, error, decode_ms,
                            (time.perf_counter() - t0) * 1e3))
 
     def on_reset(self, m: P.Reset) -> None:
