@@ -165,7 +165,7 @@ def test_relocalizations_run_on_their_own_lane_beside_a_stream(world):
         for t in callers:
             t.start()
         try:
-            assert wait_until(lambda: pool.workers[1].inflight > 0, 60)
+            assert pool.wait_for(lambda: pool.workers[1].inflight > 0, 60)
             got: list = []
             during: list[int] = []  # lane requests in flight when each pose came back
             with PoseSubscriber(z, "room", "beside", callback=got.append) as sub, \

@@ -102,7 +102,8 @@ class WorkerPool:
         self.max_image_pixels = max_image_pixels
         self.workers: list[WorkerHandle] = []
         self._lock = threading.Lock()
-        # Notified whenever a worker's state changes (ready, died, replaced, serving).
+        # Notified whenever a worker's state changes (ready, died, replaced, serving) and when
+        # a relocalization is queued.
         self._changed = threading.Condition(self._lock)
         self._req = itertools.count(1)
         self._futures: dict[int, tuple[int, Future]] = {}  # req -> (worker, future)
@@ -379,7 +380,8 @@ class WorkerPool:
 
     def wait_for(self, pred: Callable[[], bool], timeout: float) -> bool:
         """Wait until ``pred()`` holds; it is evaluated, under the pool's lock, whenever a
-        worker's state changes (ready, died, replaced, serving). False on timeout."""
+        worker's state changes (ready, died, replaced, serving) or a relocalization is queued.
+        False on timeout."""
         with self._changed:
             return self._changed.wait_for(pred, timeout)
 
@@ -417,6 +419,7 @@ class WorkerPool:
             h = min(lane, key=lambda w: (w.inflight, w.index))
             h.inflight += 1
             self._reloc_pending += 1
+            self._changed.notify_all()  # a relocalization is queued (rare: not per frame)
         fut = self._request(h, msg)
         fut.add_done_callback(self._reloc_done)
         return fut
