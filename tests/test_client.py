@@ -19,6 +19,7 @@ from server_helpers import (
     server_config,
     zenoh_endpoint,
 )
+from sfmloc_client.errors import CameraModelError
 from sfmloc_client import (
     CameraSpec,
     ErrorInfo,
@@ -90,7 +91,7 @@ def _env(**changes):
         (_env(seq=True), "seq must be a non-negative integer"),
         (_env(stamp_ns=1.5), "stamp_ns"),
         (_env(camera=...), "missing key 'camera'"),
-        (_env(camera={"model": "PINHOLE", "width": 64, "height": 48, "params": [1, 2, 3]}), "4 numbers"),
+        (_env(camera={"model": "PINHOLE", "width": 64, "height": 48, "params": [1, 2, 3]}), "takes 4 parameters"),
         (_env(camera={"model": "PINHOLE", "width": 0, "height": 48, "params": [1, 1, 1, 1]}), "out of range"),
         (_env(camera={"model": "FISHEYE", "width": 64, "height": 48, "params": [1]}), "unsupported camera model"),
         (_env(camera={"model": "PINHOLE", "width": 64, "height": 48, "params": [1, 1, float("nan"), 1]}), "finite"),
@@ -200,7 +201,7 @@ def test_camera_spec_parse(tmp_path):
                              "param_names": ["fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"]}))
     assert CameraSpec.parse(p).model == "OPENCV"
     for bad in ("PINHOLE 640", "PINHOLE a b 1 1 1 1", "PINHOLE 640 480 1 1 1"):
-        with pytest.raises(WireError):
+        with pytest.raises(CameraModelError):
             CameraSpec.parse(bad)
 
 

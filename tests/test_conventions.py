@@ -14,6 +14,7 @@ from sfmloc.errors import CameraModelError, ConfigError, ModelFormatError, Sfmlo
 from sfmloc.io.poses import detect_pose_format, name_stem, read_poses, write_colmap_list, write_tum
 from sfmloc.transforms import (
     Rigid3d,
+    align_umeyama,
     pose_errors,
     quat_wxyz_from_rotmat,
     quat_xyzw_from_rotmat,
@@ -142,6 +143,41 @@ def test_camera_parse_forms_and_errors(tmp_path):
     with pytest.raises(CameraModelError, match="needs 'model'"):
         Camera.parse(tmp_path / "bad.json")
     assert issubclass(CameraModelError, SfmlocError)
+
+
+@pytest.mark.parametrize("spec", [
+    "PINHOLE 640 480 525 525 320 240", "simple_radial 64 48 50 32 24 0.01",
+    "FISHEYE 64 48 1 2 3", "PINHOLE 64 48 1 1 1", "PINHOLE 0 48 1 1 1 1",
+    "PINHOLE 99999 48 1 1 1 1", "PINHOLE 64 48 -5 5 32 24", "RADIAL 64 48 50 32 24 nan 0",
+])
+def test_client_and_service_cameras_share_one_rule(spec):
+    """One table and one validation (sfmloc_client.cameras): the client's CameraSpec and the
+    service's Camera accept the same cameras and refuse the others with the same message."""
+    from sfmloc_client import CameraSpec
+
+    try:
+        spec_client = CameraSpec.parse(spec)
+    except CameraModelError as exc:
+        with pytest.raises(CameraModelError) as e:
+            Camera.parse(spec)
+        assert str(e.value) == str(exc)
+        return
+    cam = Camera.parse(spec)
+    assert (cam.model, cam.width, cam.height, tuple(cam.params)) == (
+        spec_client.model, spec_client.width, spec_client.height, spec_client.params)
+    assert cam.to_string() == spec_client.to_string()
+    assert Camera.parse(spec_client.to_string()) == cam
+
+
+def test_umeyama_recovers_a_similarity_exactly():
+    rng = np.random.default_rng(3)
+    src = rng.normal(size=(20, 3))
+    R = Rigid3d.from_rotvec([0.3, -1.2, 0.5], [0, 0, 0]).rotation
+    t = np.array([1.0, -2.0, 0.5])
+    s, R_est, t_est = align_umeyama(src, 2.5 * src @ R.T + t)
+    assert np.isclose(s, 2.5) and np.allclose(R_est, R) and np.allclose(t_est, t)
+    s, R_est, t_est = align_umeyama(src, src @ R.T + t, with_scale=False)
+    assert s == 1.0 and np.allclose(R_est, R) and np.allclose(t_est, t)
 
 
 # ----------------------------------------------------------------------------- pose files

@@ -25,7 +25,7 @@ from sfmloc.io.colmap import Reconstruction, read_model, write_model
 from sfmloc.io.poses import read_poses, write_colmap_list, write_tum
 from sfmloc.builder import sfm
 from sfmloc.builder.sfm.stages import opencv_sift
-from sfmloc.transforms import Rigid3d
+from sfmloc.transforms import Rigid3d, align_umeyama
 
 CAM = Camera.pinhole(320, 240, 250.0, 250.0, 160.0, 120.0)
 N_VIEWS = 8
@@ -136,18 +136,6 @@ def corner_scene(tmp_path_factory) -> dict:
 @pytest.fixture(scope="module")
 def known_poses_rec(corner_scene) -> Reconstruction:
     return sfm.triangulate_known_poses(corner_scene["images"], corner_scene["pose_file"], CAM)
-
-
-def _umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Similarity (s, R, t) minimizing |dst - (s R src + t)|."""
-    ms, md = src.mean(0), dst.mean(0)
-    a, b = src - ms, dst - md
-    U, S, Vt = np.linalg.svd(b.T @ a / len(src))
-    D = np.eye(3)
-    D[2, 2] = np.sign(np.linalg.det(U @ Vt))
-    R = U @ D @ Vt
-    s = float(np.trace(np.diag(S) @ D) / (a**2).sum(1).mean())
-    return s, R, md - s * R @ ms
 
 
 def _reproj_errors(rec: Reconstruction) -> np.ndarray:
@@ -347,7 +335,7 @@ def test_images_only_recovers_poses_up_to_similarity(corner_scene):
     names = [im.name for im in rec.images.values()]
     est = np.array([im.cam_from_world.center for im in rec.images.values()])
     gt = np.array([given[n].center for n in names])
-    s, R, t = _umeyama(est, gt)
+    s, R, t = align_umeyama(est, gt)
     assert np.max(np.linalg.norm((s * est @ R.T + t) - gt, axis=1)) < 0.03  # 3 cm on a 1.7 m arc
     for im in rec.images.values():  # rotations agree after the similarity too
         R_gt = given[im.name].rotation

@@ -17,7 +17,7 @@ from sfmloc.cameras import Camera
 from sfmloc.errors import BuildError, InputError
 from sfmloc.io.poses import read_poses, write_tum
 from sfmloc.builder.video import VideoConf, extract_keyframes, interpolate_pose, read_pose_log
-from sfmloc.transforms import pose_errors, rotation_angle_deg
+from sfmloc.transforms import align_umeyama, pose_errors, rotation_angle_deg
 
 W, H, N_FRAMES = 320, 240, 120
 
@@ -256,17 +256,6 @@ def test_other_frame_rates_and_sparser_pose_logs(walk, tmp_path):
         assert dp < 0.01 and dr < 0.5, (k, dp, dr)
 
 
-def _similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """s, R, t minimizing ||dst - (s R src + t)|| (Umeyama)."""
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    a, b = src - mu_s, dst - mu_d
-    U, D, Vt = np.linalg.svd(b.T @ a / len(src))
-    S = np.diag([1.0, 1.0, np.sign(np.linalg.det(U) * np.linalg.det(Vt))])
-    R = U @ S @ Vt
-    s = float(np.trace(np.diag(D) @ S) / (a**2).sum(1).mean())
-    return s, R, mu_d - s * R @ mu_s
-
-
 def test_a_map_built_from_a_video_without_poses(walk, video, tmp_path):
     """Images only: keyframes by image motion, full SfM; every keyframe registered and the
     camera centres equal to the true ones up to a similarity (2% of the path's extent)."""
@@ -285,6 +274,6 @@ def test_a_map_built_from_a_video_without_poses(walk, video, tmp_path):
     idx = [int(n.split("-")[1].split(".")[0]) for n in bundle.image_names]
     est = np.array([T.center for T in bundle.image_cam_from_world])
     true = np.array([gt[i].center for i in idx])
-    s, R, t = _similarity(est, true)
+    s, R, t = align_umeyama(est, true)
     extent = np.linalg.norm(true.max(0) - true.min(0))
     assert np.max(np.linalg.norm(s * est @ R.T + t - true, axis=1)) < 0.02 * extent

@@ -98,4 +98,4 @@ __version__ = "0.1.0"
 
 logging.getLogger(__name__).addHandler(logging.NullHandler())
 
-__all__ = sorted(_EXPORTS)
+__all__ = list(_EXPORTS)

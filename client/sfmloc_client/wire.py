@@ -84,9 +84,7 @@ and bridge (storages keep payloads; other languages need only msgpack).
 
 from __future__ import annotations
 
-import json
 import math
-import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -94,11 +92,38 @@ from typing import Any
 
 import msgpack
 
+from .cameras import CAMERA_MODELS, MAX_IMAGE_SIDE, camera_to_string, check_camera, parse_camera
 from .enums import Status
-from .errors import MessageTooLargeError, WireError
+from .errors import CameraModelError, MessageTooLargeError, WireError
+from .keys import (
+    FRAME_KEYEXPR,
+    MAPS_KEYEXPR,
+    NAME_RE,
+    ROOT,
+    SERVER_INFO_KEYEXPR,
+    SERVERS_KEYEXPR,
+    check_name,
+    frame_key,
+    map_announce_key,
+    parse_frame_key,
+    pose_key,
+    server_info_key,
+    server_token_key,
+)
+# The name rule, key expressions and camera table are defined in keys.py and cameras.py and
+# re-exported here: this module is the specification of the Zenoh messages.
+__all__ = [
+    "CAMERA_MODELS", "COVARIANCE_ORDER", "DEFAULT_MAX_FRAME_BYTES", "ENCODINGS", "FRAME_KEYEXPR",
+    "MAPS_KEYEXPR", "MAX_IMAGE_SIDE", "NAME_RE", "ROOT", "SERVERS_KEYEXPR", "SERVER_INFO_KEYEXPR",
+    "STATUSES", "WIRE_VERSION", "CameraSpec", "ErrorInfo", "Frame", "MapAnnouncement",
+    "PoseMessage", "ServerInfo", "Transform", "check_name", "decode_frame",
+    "decode_map_announcement", "decode_pose", "decode_server_info", "encode_frame",
+    "encode_map_announcement", "encode_pose", "encode_server_info", "frame_key",
+    "map_announce_key", "parse_frame_key", "peek_seq", "pose_key", "raw_size",
+    "server_info_key", "server_token_key", "transform_from_lists",
+]
 
 WIRE_VERSION = 1
-ROOT = "sfmloc"
 ENCODINGS: tuple[str, ...] = ("gray8", "bgr8", "jpeg", "png")
 STATUSES: tuple[str, ...] = tuple(s.value for s in Status)
 # Order of the covariance's rows and columns (see the module docstring).
@@ -106,64 +131,6 @@ COVARIANCE_ORDER: tuple[str, ...] = ("rot_x", "rot_y", "rot_z", "center_x", "cen
 # Frames larger than this are rejected (RESOURCE_EXHAUSTED) unless the server is configured
 # otherwise; 16 MiB holds a raw 4K BGR frame.
 DEFAULT_MAX_FRAME_BYTES = 16 * 1024 * 1024
-MAX_IMAGE_SIDE = 16384
-
-NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
-
-# COLMAP camera models and their parameter counts (validated here so a client learns about a
-# wrong camera before streaming; the server validates again with its own camera class).
-CAMERA_PARAM_COUNTS: dict[str, int] = {
-    "SIMPLE_PINHOLE": 3,
-    "PINHOLE": 4,
-    "SIMPLE_RADIAL": 4,
-    "RADIAL": 5,
-    "OPENCV": 8,
-    "FULL_OPENCV": 12,
-}
-
-FRAME_KEYEXPR = f"{ROOT}/*/*/frame"
-SERVERS_KEYEXPR = f"{ROOT}/servers/*"
-SERVER_INFO_KEYEXPR = f"{ROOT}/servers/*/info"
-MAPS_KEYEXPR = f"{ROOT}/maps/*"
-
-
-# ============================================================================ key expressions
-def check_name(value: str, what: str = "name") -> str:
-    """A map name or client id: one key-expression chunk of plain characters."""
-    if not isinstance(value, str) or not NAME_RE.match(value):
-        raise WireError(
-            f"invalid {what} {value!r}: use 1-64 letters, digits, '_', '-' or '.', starting with a letter or digit"
-        )
-    return value
-
-
-def frame_key(map_name: str, client_id: str) -> str:
-    return f"{ROOT}/{check_name(map_name, 'map name')}/{check_name(client_id, 'client id')}/frame"
-
-
-def pose_key(map_name: str, client_id: str) -> str:
-    return f"{ROOT}/{check_name(map_name, 'map name')}/{check_name(client_id, 'client id')}/pose"
-
-
-def parse_frame_key(key: str) -> tuple[str, str]:
-    """``(map, client)`` of a ``sfmloc/<map>/<client>/frame`` key (names not yet validated)."""
-    parts = str(key).split("/")
-    if len(parts) != 4 or parts[0] != ROOT or parts[3] != "frame":
-        raise WireError(f"not a frame key: {key!r}")
-    return parts[1], parts[2]
-
-
-def server_token_key(server_id: str) -> str:
-    return f"{ROOT}/servers/{check_name(server_id, 'server id')}"
-
-
-def server_info_key(server_id: str) -> str:
-    return f"{server_token_key(server_id)}/info"
-
-
-def map_announce_key(name: str) -> str:
-    return f"{ROOT}/maps/{check_name(name, 'map name')}"
-
 
 # ============================================================================ helpers
 def _unpack(payload: bytes | bytearray | memoryview, max_bytes: int, what: str) -> dict[str, Any]:
@@ -237,50 +204,37 @@ class CameraSpec:
     params: tuple[float, ...]
 
     def __post_init__(self) -> None:
-        model = _str(self.model, "camera.model").upper()
-        if model not in CAMERA_PARAM_COUNTS:
-            raise WireError(f"unsupported camera model {self.model!r}; supported: {', '.join(CAMERA_PARAM_COUNTS)}")
-        w, h = _uint(self.width, "camera.width"), _uint(self.height, "camera.height")
-        if not (0 < w <= MAX_IMAGE_SIDE and 0 < h <= MAX_IMAGE_SIDE):
-            raise WireError(f"camera size {w}x{h} is out of range (1..{MAX_IMAGE_SIDE})")
-        params = _floats(self.params, CAMERA_PARAM_COUNTS[model], f"camera.params of {model}")
+        model, w, h, params = check_camera(self.model, self.width, self.height, self.params)
         object.__setattr__(self, "model", model)
         object.__setattr__(self, "width", w)
         object.__setattr__(self, "height", h)
         object.__setattr__(self, "params", params)
 
     def to_wire(self) -> dict[str, Any]:
-        return {"model": self.model, "width": self.width, "height": self.height, "params": list(self.params)}
+        return {"model": self.model, "width": self.width, "height": self.height,
+                "params": list(self.params)}
 
     @classmethod
-    def from_wire(cls, d: Any) -> "CameraSpec":
+    def from_wire(cls, d: Any) -> CameraSpec:
+        """The camera of a message; a bad one makes the message malformed (``WireError``)."""
         if not isinstance(d, dict):
-            raise WireError(f"camera must be a map with model, width, height, params; got {type(d).__name__}")
-        return cls(
-            _get(d, "model", "camera"), _get(d, "width", "camera"), _get(d, "height", "camera"),
-            _get(d, "params", "camera"),
-        )
+            raise WireError(
+                f"camera must be a map with model, width, height, params; got {type(d).__name__}"
+            )
+        fields = [_get(d, k, "camera") for k in ("model", "width", "height", "params")]
+        try:
+            return cls(*fields)
+        except CameraModelError as exc:
+            raise WireError(str(exc)) from None
 
     @classmethod
-    def parse(cls, spec: str | Path) -> "CameraSpec":
-        """From a ``camera.json`` path or a ``"MODEL width height params..."`` string."""
-        s = str(spec).strip()
-        if s.lower().endswith(".json") or Path(s).is_file():
-            try:
-                d = json.loads(Path(s).read_text())
-            except (OSError, json.JSONDecodeError) as exc:
-                raise WireError(f"cannot read camera file {s}: {exc}") from None
-            return cls.from_wire({k: d.get(k) for k in ("model", "width", "height", "params")})
-        parts = s.split()
-        if len(parts) < 4:
-            raise WireError(f"camera spec {s!r} must be 'MODEL width height params...', e.g. 'PINHOLE 640 480 525 525 320 240'")
-        try:
-            return cls(parts[0], int(parts[1]), int(parts[2]), tuple(float(p) for p in parts[3:]))
-        except ValueError as exc:
-            raise WireError(f"camera spec {s!r}: {exc}") from None
+    def parse(cls, spec: str | Path) -> CameraSpec:
+        """From a ``camera.json`` path or a ``"MODEL width height params..."`` string
+        (``CameraModelError`` names the problem)."""
+        return cls(*parse_camera(spec))
 
     def to_string(self) -> str:
-        return " ".join([self.model, str(self.width), str(self.height), *(repr(p) for p in self.params)])
+        return camera_to_string(self.model, self.width, self.height, self.params)
 
 
 # ============================================================================ frames
@@ -384,18 +338,9 @@ class Transform:
 
     def rotation_matrix(self) -> "Any":
         """3x3 numpy rotation matrix."""
-        import numpy as np
+        from .rotations import rotmat_from_quat_xyzw  # numpy, loaded when needed
 
-        x, y, z, w = self.quat_xyzw
-        n = math.sqrt(x * x + y * y + z * z + w * w) or 1.0
-        x, y, z, w = x / n, y / n, z / n, w / n
-        return np.array(
-            [
-                [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-            ]
-        )
+        return rotmat_from_quat_xyzw(self.quat_xyzw)
 
     def matrix(self) -> "Any":
         """4x4 homogeneous numpy matrix."""

@@ -18,22 +18,22 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import CameraModelError
+from sfmloc_client.cameras import (
+    CAMERA_MODELS,
+    MODEL_NAME_FROM_ID,
+    SINGLE_FOCAL_MODELS,
+    camera_from_dict,
+    camera_to_string,
+    check_camera,
+    parse_camera,
+)
+
 from .transforms import Rigid3d
+
+__all__ = ["CAMERA_MODELS", "MODEL_NAME_FROM_ID", "PIXEL_CENTER_OFFSET", "Camera"]
 
 # Add to OpenCV array-index coordinates to get COLMAP image coordinates.
 PIXEL_CENTER_OFFSET = 0.5
-
-# name -> (COLMAP model id, parameter names)
-CAMERA_MODELS: dict[str, tuple[int, tuple[str, ...]]] = {
-    "SIMPLE_PINHOLE": (0, ("f", "cx", "cy")),
-    "PINHOLE": (1, ("fx", "fy", "cx", "cy")),
-    "SIMPLE_RADIAL": (2, ("f", "cx", "cy", "k")),
-    "RADIAL": (3, ("f", "cx", "cy", "k1", "k2")),
-    "OPENCV": (4, ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2")),
-    "FULL_OPENCV": (6, ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")),
-}
-MODEL_NAME_FROM_ID = {mid: name for name, (mid, _) in CAMERA_MODELS.items()}
 
 
 @dataclass(frozen=True)
@@ -46,28 +46,13 @@ class Camera:
     params: np.ndarray = field(repr=False)
 
     def __post_init__(self) -> None:
-        model = str(self.model).upper()
-        if model not in CAMERA_MODELS:
-            raise CameraModelError(
-                f"unsupported camera model {self.model!r}; supported: {', '.join(CAMERA_MODELS)}"
-            )
+        # The one validation shared with the client's CameraSpec (sfmloc_client.cameras).
         params = np.asarray(self.params, dtype=np.float64).reshape(-1)
-        names = CAMERA_MODELS[model][1]
-        if params.size != len(names):
-            raise CameraModelError(
-                f"camera model {model} takes {len(names)} parameters ({' '.join(names)}), got {params.size}"
-            )
-        if not np.all(np.isfinite(params)):
-            raise CameraModelError(f"camera parameters must be finite, got {params.tolist()}")
-        if int(self.width) <= 0 or int(self.height) <= 0:
-            raise CameraModelError(f"camera size must be positive, got {self.width}x{self.height}")
+        model, width, height, _ = check_camera(self.model, self.width, self.height, params)
         object.__setattr__(self, "model", model)
-        object.__setattr__(self, "width", int(self.width))
-        object.__setattr__(self, "height", int(self.height))
+        object.__setattr__(self, "width", width)
+        object.__setattr__(self, "height", height)
         object.__setattr__(self, "params", params)
-        fx, fy = self.focal
-        if fx <= 0 or fy <= 0:
-            raise CameraModelError(f"focal length must be positive, got {fx}, {fy}")
 
     # ----- construction -------------------------------------------------------------------
     @classmethod
@@ -77,42 +62,20 @@ class Camera:
     @classmethod
     def from_string(cls, spec: str) -> "Camera":
         """Parse ``"MODEL width height p1 p2 ..."`` (COLMAP cameras.txt order, without the id)."""
-        parts = spec.split()
-        if len(parts) < 4:
-            raise CameraModelError(
-                f"camera spec {spec!r} must be 'MODEL width height params...', e.g. 'PINHOLE 640 480 525 525 320 240'"
-            )
-        try:
-            width, height = int(parts[1]), int(parts[2])
-            params = np.array([float(p) for p in parts[3:]])
-        except ValueError as exc:
-            raise CameraModelError(f"camera spec {spec!r}: {exc}") from None
-        return cls(parts[0], width, height, params)
+        return cls.parse(spec)
 
     @classmethod
     def from_dict(cls, d: dict) -> "Camera":
-        try:
-            return cls(d["model"], d["width"], d["height"], np.asarray(d["params"], dtype=np.float64))
-        except (KeyError, TypeError) as exc:
-            raise CameraModelError(
-                f"camera JSON needs 'model', 'width', 'height' and 'params' ({exc})"
-            ) from None
+        return cls(*camera_from_dict(d))
 
     @classmethod
     def from_json(cls, path: str | Path) -> "Camera":
-        path = Path(path)
-        try:
-            return cls.from_dict(json.loads(path.read_text()))
-        except (OSError, json.JSONDecodeError) as exc:
-            raise CameraModelError(f"cannot read camera file {path}: {exc}") from None
+        return cls.parse(Path(path))
 
     @classmethod
     def parse(cls, spec: str | Path) -> "Camera":
         """A camera from a ``camera.json`` path or a ``"MODEL w h params..."`` string."""
-        s = str(spec).strip()
-        if s.lower().endswith(".json") or Path(s).is_file():
-            return cls.from_json(s)
-        return cls.from_string(s)
+        return cls(*parse_camera(spec))
 
     def to_dict(self) -> dict:
         names = CAMERA_MODELS[self.model][1]
@@ -128,7 +91,7 @@ class Camera:
         Path(path).write_text(json.dumps(self.to_dict(), indent=2) + "\n")
 
     def to_string(self) -> str:
-        return " ".join([self.model, str(self.width), str(self.height)] + [repr(float(p)) for p in self.params])
+        return camera_to_string(self.model, self.width, self.height, self.params)
 
     # ----- properties ---------------------------------------------------------------------
     @property
@@ -138,14 +101,14 @@ class Camera:
     @property
     def focal(self) -> tuple[float, float]:
         p = self.params
-        if self.model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL"):
+        if self.model in SINGLE_FOCAL_MODELS:
             return float(p[0]), float(p[0])
         return float(p[0]), float(p[1])
 
     @property
     def principal_point(self) -> tuple[float, float]:
         p = self.params
-        if self.model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL"):
+        if self.model in SINGLE_FOCAL_MODELS:
             return float(p[1]), float(p[2])
         return float(p[2]), float(p[3])
 
@@ -186,7 +149,7 @@ class Camera:
         pixel-corner convention); distortion is in normalized coordinates and does not change.
         """
         p = self.params.copy()
-        n_lin = 3 if self.model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL") else 4
+        n_lin = 3 if self.model in SINGLE_FOCAL_MODELS else 4
         p[:n_lin] *= factor
         return Camera(self.model, max(1, round(self.width * factor)), max(1, round(self.height * factor)), p)
 

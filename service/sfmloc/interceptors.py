@@ -13,12 +13,11 @@ status code themselves.
 
 from __future__ import annotations
 
+import asyncio
 import inspect
+import logging
 from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
 from typing import Any
-
-import asyncio
-import logging
 
 import grpc
 

@@ -1,7 +1,8 @@
-"""Rigid transforms and rotation conventions.
+"""Rigid transforms (``Rigid3d``), rotation vectors and alignment.
 
-Names follow pycolmap: a transform ``tgt_from_src`` maps points in frame ``src`` into frame
-``tgt``: ``x_tgt = R @ x_src + t``. ``cam_from_world`` is what COLMAP stores per image (and
+The quaternion conventions and conversions are the contract shared with the client
+(``sfmloc_client.rotations``, re-exported here). Names follow pycolmap: a transform
+``tgt_from_src`` maps points in frame ``src`` into frame ``tgt``: ``x_tgt = R @ x_src + t``. ``cam_from_world`` is what COLMAP stores per image (and
 what the ``images.txt`` ``qw qx qy qz tx ty tz`` line means); ``world_from_cam`` is the camera
 pose in the world (TUM files, trajectories). Quaternion element order is always in the name:
 ``quat_wxyz`` (COLMAP files) or ``quat_xyzw`` (TUM files, scipy, our wire format). Quaternions
@@ -13,58 +14,25 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from sfmloc_client.rotations import (
+    quat_wxyz_from_rotmat,
+    quat_xyzw_from_rotmat,
+    rotmat_from_quat_wxyz,
+    rotmat_from_quat_xyzw,
+)
 
-
-def _normalize_quat(q: np.ndarray) -> np.ndarray:
-    n = float(np.linalg.norm(q))
-    if not np.isfinite(n) or n < 1e-12:
-        raise ValueError(f"not a rotation quaternion: {q!r}")
-    return q / n
-
-
-def rotmat_from_quat_wxyz(quat_wxyz: np.ndarray) -> np.ndarray:
-    """3x3 rotation matrix from a (not necessarily unit) quaternion ``[w, x, y, z]``."""
-    w, x, y, z = _normalize_quat(np.asarray(quat_wxyz, dtype=np.float64))
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
-def rotmat_from_quat_xyzw(quat_xyzw: np.ndarray) -> np.ndarray:
-    """3x3 rotation matrix from ``[x, y, z, w]``."""
-    q = np.asarray(quat_xyzw, dtype=np.float64)
-    return rotmat_from_quat_wxyz(np.array([q[3], q[0], q[1], q[2]]))
-
-
-def quat_wxyz_from_rotmat(R: np.ndarray) -> np.ndarray:
-    """Unit quaternion ``[w, x, y, z]`` with ``w >= 0`` from a rotation matrix
-    (Shepperd's method)."""
-    R = np.asarray(R, dtype=np.float64)
-    tr = R[0, 0] + R[1, 1] + R[2, 2]
-    if tr > 0:
-        s = 2.0 * np.sqrt(tr + 1.0)
-        q = np.array([0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s])
-    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
-        q = np.array([(R[2, 1] - R[1, 2]) / s, 0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s])
-    elif R[1, 1] > R[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2])
-        q = np.array([(R[0, 2] - R[2, 0]) / s, (R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s])
-    else:
-        s = 2.0 * np.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1])
-        q = np.array([(R[1, 0] - R[0, 1]) / s, (R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s])
-    q = _normalize_quat(q)
-    return -q if q[0] < 0 else q
-
-
-def quat_xyzw_from_rotmat(R: np.ndarray) -> np.ndarray:
-    """Unit quaternion ``[x, y, z, w]`` with ``w >= 0`` from a rotation matrix."""
-    w, x, y, z = quat_wxyz_from_rotmat(R)
-    return np.array([x, y, z, w])
+__all__ = [
+    "Rigid3d",
+    "align_umeyama",
+    "pose_errors",
+    "quat_wxyz_from_rotmat",
+    "quat_xyzw_from_rotmat",
+    "rotation_angle_deg",
+    "rotmat_from_quat_wxyz",
+    "rotmat_from_quat_xyzw",
+    "rotmat_from_rotvec",
+    "rotvec_from_rotmat",
+]
 
 
 def rotmat_from_rotvec(rotvec: np.ndarray) -> np.ndarray:
@@ -197,3 +165,21 @@ def pose_errors(est_cam_from_world: Rigid3d, gt_cam_from_world: Rigid3d) -> tupl
     """
     dpos = float(np.linalg.norm(est_cam_from_world.center - gt_cam_from_world.center))
     return dpos, rotation_angle_deg(est_cam_from_world.rotation, gt_cam_from_world.rotation)
+
+
+def align_umeyama(
+    src: np.ndarray, dst: np.ndarray, with_scale: bool = True
+) -> tuple[float, np.ndarray, np.ndarray]:
+    """``(s, R, t)`` minimizing ``sum ||dst - (s R src + t)||^2`` over points (N, 3)
+    (Umeyama 1991); ``with_scale=False`` fixes ``s = 1`` (SE(3) alignment)."""
+    src = np.asarray(src, dtype=np.float64)
+    dst = np.asarray(dst, dtype=np.float64)
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    a, b = src - mu_s, dst - mu_d
+    U, D, Vt = np.linalg.svd(b.T @ a / len(src))
+    S = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        S[2, 2] = -1.0  # a reflection is not a rotation
+    R = U @ S @ Vt
+    s = float(np.trace(np.diag(D) @ S) / (a**2).sum(1).mean()) if with_scale else 1.0
+    return s, R, mu_d - s * R @ mu_s

@@ -20,6 +20,7 @@ import numpy as np
 
 from ..io.poses import name_stem, read_poses
 from ..builder import sfm
+from ..transforms import align_umeyama
 
 DEFAULT_DATA = Path(__file__).resolve().parents[3].parent / "shared" / "data" / "redkitchen-seq01"
 DEFAULT_CAMERA = "PINHOLE 640 480 525.505 525.505 320 240"
@@ -27,15 +28,8 @@ DEFAULT_CAMERA = "PINHOLE 640 480 525.505 525.505 320 240"
 
 def _sim3_residuals(est: np.ndarray, gt: np.ndarray) -> np.ndarray:
     """Distances after the least-squares similarity (Umeyama) est -> gt."""
-    ms, md = est.mean(0), gt.mean(0)
-    a, b = est - ms, gt - md
-    U, S, Vt = np.linalg.svd(b.T @ a / len(est))
-    D = np.eye(3)
-    D[2, 2] = np.sign(np.linalg.det(U @ Vt))
-    R = U @ D @ Vt
-    s = np.trace(np.diag(S) @ D) / (a**2).sum(1).mean()
-    return np.linalg.norm(s * a @ R.T + md - gt, axis=1)
-
+    s, R, t = align_umeyama(est, gt)
+    return np.linalg.norm(s * est @ R.T + t - gt, axis=1)
 
 def run_one(mode: str, data: Path, names: list[str], conf: sfm.SfmConf, camera: str | None, poses: Path) -> None:
     stages: dict[str, list[float]] = {}

@@ -12,6 +12,7 @@ import logging
 import time
 from pathlib import Path
 
+from sfmloc_client.cameras import camera_to_string
 from sfmloc_client.pb import builder_pb2 as pb
 from sfmloc_client.pb import common_pb2
 from sfmloc_client.pb import builder_pb2_grpc as pb_grpc
@@ -30,10 +31,11 @@ _STATE = {
 }
 
 
-def camera_to_string(cam: common_pb2.Camera) -> str | None:
+def camera_of(cam: common_pb2.Camera) -> str | None:
+    """The request's camera as a camera string (None when the request has none)."""
     if not cam.model:
         return None
-    return " ".join([cam.model, str(cam.width), str(cam.height)] + [repr(float(p)) for p in cam.params])
+    return camera_to_string(cam.model, cam.width, cam.height, cam.params)
 
 
 def spec_from_request(req: pb.SubmitBuildRequest, default_out: str) -> BuildSpec:
@@ -57,13 +59,13 @@ def spec_from_request(req: pb.SubmitBuildRequest, default_out: str) -> BuildSpec
         _must_exist(spec.colmap, "model_dir", folder=True)
     elif kind == "posed_images":
         spec.images, spec.poses = req.posed_images.image_dir, req.posed_images.poses_file
-        spec.camera = camera_to_string(req.posed_images.camera)
+        spec.camera = camera_of(req.posed_images.camera)
         _must_exist(spec.poses, "poses_file", folder=False)
         if spec.camera is None:
             raise InputError("posed_images needs a camera")
     else:
         spec.images = req.images_only.image_dir
-        spec.camera = camera_to_string(req.images_only.camera)
+        spec.camera = camera_of(req.images_only.camera)
         spec.matching = req.images_only.matching or None
         if spec.matching not in (None, "sequential", "exhaustive"):
             raise InputError(f"matching must be 'sequential' or 'exhaustive', got {spec.matching!r}")

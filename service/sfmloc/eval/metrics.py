@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..engine.types import Matching, Status
-from ..transforms import Rigid3d, pose_errors
+from ..transforms import Rigid3d, align_umeyama, pose_errors
 
 # A wrong pose: any status but LOST (a client acts on every pose it receives, whatever the
 # status says) off by more than this fraction of the scene's scale (MapBundle.scene_scale,
@@ -159,18 +159,6 @@ def summarize(records: list[FrameRecord], scene_scale: float) -> dict:
     }
 
 
-def align_umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rotation R and translation t minimizing ||dst - (R src + t)|| (SE(3), no scale)."""
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    C = (dst - mu_d).T @ (src - mu_s) / len(src)
-    U, _, Vt = np.linalg.svd(C)
-    S = np.eye(3)
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
-        S[2, 2] = -1
-    R = U @ S @ Vt
-    return R, mu_d - R @ mu_s
-
-
 def absolute_trajectory_error(records: list[FrameRecord]) -> float:
     """RMSE of camera centres after SE(3) alignment of estimate to ground truth (ATE)."""
     pairs = [(r.cam_from_world.center, r.gt_cam_from_world.center) for r in records
@@ -179,5 +167,5 @@ def absolute_trajectory_error(records: list[FrameRecord]) -> float:
         return float("nan")
     est = np.array([p[0] for p in pairs])
     gt = np.array([p[1] for p in pairs])
-    R, t = align_umeyama(est, gt)
+    _, R, t = align_umeyama(est, gt, with_scale=False)  # SE(3): no scale
     return float(np.sqrt(np.mean(np.sum((est @ R.T + t - gt) ** 2, axis=1))))

@@ -61,10 +61,11 @@ from typing import Any
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, ValidationError, field_validator
+from sfmloc_client.keys import check_name
 
 from .. import __version__
 from ..cameras import Camera
-from ..errors import BundleError, InputError
+from ..errors import BundleError
 from ..features.daisy import RAW_DIM, Pca
 from ..transforms import Rigid3d
 from .index import DescriptorIndex
@@ -76,7 +77,6 @@ MANIFEST = "manifest.json"
 MANIFEST_SHA256 = "manifest.sha256"
 MAX_MANIFEST_BYTES = 64 << 20  # image names and cameras of a very large map fit many times over
 _ARRAY_FILE_RE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,127}\.npy")
-NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 
 # name -> (dtype, number of dimensions); shapes are checked against the counts on load.
 ARRAY_SPECS: dict[str, tuple[str, int]] = {
@@ -116,12 +116,9 @@ def _computed_keypoint_scales(data: "MapData", params: dict[str, Any]) -> dict[s
 
 
 def validate_name(name: str) -> str:
-    """Map names appear in file paths and Zenoh key expressions: keep them plain."""
-    if not NAME_RE.match(name or ""):
-        raise InputError(
-            f"invalid map name {name!r}: use 1-64 letters, digits, '_', '-' or '.', starting with a letter or digit"
-        )
-    return name
+    """Map names appear in file paths and Zenoh key expressions: the one name rule
+    (``sfmloc_client.keys``; ``WireError``, an ``InputError``, names it)."""
+    return check_name(name, "map name")
 
 
 class ArrayEntry(BaseModel):

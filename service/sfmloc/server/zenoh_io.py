@@ -35,6 +35,7 @@ from sfmloc_client.wire import (
     encode_server_info,
     parse_frame_key,
     peek_seq,
+    pose_key,
     server_info_key,
     server_token_key,
 )
@@ -162,7 +163,7 @@ class ZenohFrontend:
             frame = decode_frame(payload, self.conf.max_frame_bytes)
             self.loc.submit_frame(
                 map_name, client_id, "zenoh", frame, t_recv,
-                make_sink=lambda: ZenohPoseSink(z, f"sfmloc/{map_name}/{client_id}/pose"),
+                make_sink=lambda: ZenohPoseSink(z, pose_key(map_name, client_id)),
             )
         except MapNotFoundError as exc:
             self._reply_error(map_name, client_id, payload, exc,
@@ -184,7 +185,8 @@ class ZenohFrontend:
         if self.z is None:
             return
         try:
-            # The frame key matched sfmloc/*/*/frame, so its pose key is a valid key too.
+            # The frame key matched sfmloc/*/*/frame, so its pose key is a valid key too, even
+            # when the names break the rule (pose_key would refuse them: that is the error).
             self.z.put(f"sfmloc/{map_name}/{client_id}/pose", encode_pose(pose), **POSE_QOS)
         except Exception as e:  # noqa: BLE001
             log.warning("cannot publish an error reply to %s/%s: %s", map_name, client_id, e)

@@ -1,0 +1,58 @@
+"""The name rule and the Zenoh key expressions (the table is in ``sfmloc_client.wire``'s
+docstring).
+
+A map name, client id or server id is 1-64 characters of ``[A-Za-z0-9_.-]`` starting with a
+letter or digit: each is a single key-expression chunk and appears in file names. The server,
+the builder and the map bundle check names with ``check_name``.
+"""
+
+from __future__ import annotations
+
+import re
+
+from .errors import WireError
+
+ROOT = "sfmloc"
+NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+NAME_RULE = "use 1-64 letters, digits, '_', '-' or '.', starting with a letter or digit"
+
+FRAME_KEYEXPR = f"{ROOT}/*/*/frame"
+SERVERS_KEYEXPR = f"{ROOT}/servers/*"
+SERVER_INFO_KEYEXPR = f"{ROOT}/servers/*/info"
+MAPS_KEYEXPR = f"{ROOT}/maps/*"
+
+
+def check_name(value: str, what: str = "name") -> str:
+    """``value`` when it is a valid map name, client id or server id; ``WireError`` naming the
+    rule otherwise."""
+    if not isinstance(value, str) or not NAME_RE.match(value):
+        raise WireError(f"invalid {what} {value!r}: {NAME_RULE}")
+    return value
+
+
+def frame_key(map_name: str, client_id: str) -> str:
+    return f"{ROOT}/{check_name(map_name, 'map name')}/{check_name(client_id, 'client id')}/frame"
+
+
+def pose_key(map_name: str, client_id: str) -> str:
+    return f"{ROOT}/{check_name(map_name, 'map name')}/{check_name(client_id, 'client id')}/pose"
+
+
+def parse_frame_key(key: str) -> tuple[str, str]:
+    """``(map, client)`` of a ``sfmloc/<map>/<client>/frame`` key (names not yet validated)."""
+    parts = str(key).split("/")
+    if len(parts) != 4 or parts[0] != ROOT or parts[3] != "frame":
+        raise WireError(f"not a frame key: {key!r}")
+    return parts[1], parts[2]
+
+
+def server_token_key(server_id: str) -> str:
+    return f"{ROOT}/servers/{check_name(server_id, 'server id')}"
+
+
+def server_info_key(server_id: str) -> str:
+    return f"{server_token_key(server_id)}/info"
+
+
+def map_announce_key(name: str) -> str:
+    return f"{ROOT}/maps/{check_name(name, 'map name')}"
