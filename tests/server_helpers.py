@@ -10,7 +10,6 @@ test_server*.py and test_client*.py use it.
 from __future__ import annotations
 
 import contextlib
-import socket
 import threading
 import time
 from dataclasses import dataclass, field
@@ -18,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from sfmloc.testing import free_port
 
 WIDTH, HEIGHT = 640, 480
 N_MAPPING, N_FRAMES = 40, 60
@@ -85,12 +85,6 @@ def build_world(base: Path) -> World:
         )
         _worlds[base] = world
         return world
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def zenoh_endpoint() -> str:

@@ -227,7 +227,7 @@ def _notes(results: dict, conf: BenchConf) -> list[str]:
 
 def main(conf: BenchConf, out: str | Path, *, progress: Progress | None = None, command: str | None = None) -> Path:
     """Run the suites of ``conf``; write results.json, report.md and figures under ``out``."""
-    from ..cli.runtime import pin_threads_env, pin_threads_runtime
+    from ..threads import pin_threads_env, pin_threads_runtime
 
     pin_threads_env()
     pin_threads_runtime()

@@ -32,7 +32,7 @@ def _status_kib() -> dict[str, int]:
 def probe(bundle: str, frames: list[str], camera: str, verify: bool = True) -> dict[str, Any]:
     """Run inside the fresh process: memory before/after loading, after touching what the
     engine reads, after localizing frames; load time."""
-    from ..cli.runtime import pin_threads_env, pin_threads_runtime
+    from ..threads import pin_threads_env, pin_threads_runtime
 
     pin_threads_env()
     import cv2

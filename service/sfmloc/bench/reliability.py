@@ -764,7 +764,7 @@ def table(res: dict) -> list[str]:
 
 def run(args: argparse.Namespace, world: World | None = None) -> dict:
     """The parts named in ``args.parts``; ``world``: a prepared map (default: ``--work``'s)."""
-    from ..cli.runtime import pin_threads_env
+    from ..threads import pin_threads_env
 
     pin_threads_env()
     t0 = time.monotonic()

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import json
 import os
-import socket
 import threading
 import time
 from dataclasses import dataclass, field
@@ -33,13 +32,8 @@ from typing import Any
 
 import numpy as np
 
-from ..testing import ServerProcess
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from ..testing import ServerProcess, free_port
+from ..threads import pin_threads_env, pin_threads_runtime
 
 
 def _pct(v: list[float], q: float) -> float:
@@ -96,7 +90,7 @@ def bench_wire(inp: BenchInput, n: int = 300) -> dict[str, Any]:
         out[f"{enc}_attachment_codec_us_p50"] = _pct(t_att, 50)
 
         # Loopback: publish -> decoded in the subscriber's callback.
-        ep = f"tcp/127.0.0.1:{_free_port()}"
+        ep = f"tcp/127.0.0.1:{free_port()}"
         with zenoh.open(make_zenoh_config("peer", listen=[ep], multicast=False)) as a, \
                 zenoh.open(make_zenoh_config("peer", connect=[ep], multicast=False)) as b:
             got: dict[int, float] = {}
@@ -139,16 +133,13 @@ def bench_wire(inp: BenchInput, n: int = 300) -> dict[str, Any]:
 
 # ============================================================================ overhead
 def bench_overhead(inp: BenchInput, n: int) -> dict[str, Any]:
-    import cv2
-    import faiss
     from sfmloc_client import CameraSpec, FrameStreamer, PoseSubscriber, encode_image
 
     from ..cameras import Camera
     from ..engine import Localizer
     from ..map.bundle import MapBundle
 
-    cv2.setNumThreads(1)
-    faiss.omp_set_num_threads(1)
+    pin_threads_runtime()
     out: dict[str, Any] = {}
     # In-process engine, one thread, decoded frames.
     cam = Camera.parse(inp.camera)
@@ -415,17 +406,14 @@ def _engine_job(maps: str, map_name: str, frames: list[str], camera: str, start_
     """Localize ``frames`` in sequence (one Localizer): (start, end) wall times and per-frame
     engine milliseconds. Runs in a worker thread or process; all start at ``start_at`` (wall
     time), after their imports and loading."""
-    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ.setdefault(var, "1")
+    pin_threads_env()
     import cv2
-    import faiss
 
     from ..cameras import Camera
     from ..engine import Localizer
     from ..map.bundle import MapBundle
 
-    cv2.setNumThreads(1)
-    faiss.omp_set_num_threads(1)
+    pin_threads_runtime()
     loc = Localizer(MapBundle(Path(maps) / map_name, verify=False), Camera.parse(camera))
     imgs = [cv2.imread(f, cv2.IMREAD_GRAYSCALE) for f in frames]
     loc.localize(imgs[0], 0.0)  # the first frame relocalizes: not part of the steady state

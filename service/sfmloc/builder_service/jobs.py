@@ -16,7 +16,6 @@ import enum
 import logging
 import multiprocessing as mp
 import multiprocessing.connection
-import os
 import shutil
 import tempfile
 import threading
@@ -163,8 +162,9 @@ class Job:
 # ============================================================================ child process
 def _child_main(spec_bytes: bytes, conn, cancel_event, workdir: str) -> None:
     """Entry point of a build worker process (spawned: a fresh interpreter)."""
-    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    from ..threads import pin_threads_env
+
+    pin_threads_env()  # before numpy loads
 
     def send(msg: Message) -> None:
         try:

@@ -77,7 +77,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from .runtime import pin_threads_env, pin_threads_runtime
+    from ..threads import pin_threads_env, pin_threads_runtime
 
     pin_threads_env()
     pin_threads_runtime()

@@ -55,12 +55,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import os
-
     # The in-process measurements must run like a server worker: one BLAS/OpenMP thread, set
     # before numpy loads (the benchmark module imports it).
-    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ[var] = "1"
+    from ..threads import pin_threads_env
+
+    pin_threads_env(force=True)
     from ..bench.transport import run as bench
 
     return bench(args)

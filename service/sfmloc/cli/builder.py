@@ -66,7 +66,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run_serve(args: argparse.Namespace) -> int:
-    from .runtime import pin_threads_env
+    from ..threads import pin_threads_env
 
     pin_threads_env()
     from ..builder_service.app import BuilderConfig, serve

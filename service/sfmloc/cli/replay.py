@@ -104,7 +104,7 @@ def format_summary(s: dict, decode_ms: float | None = None) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from .runtime import pin_threads_env, pin_threads_runtime
+    from ..threads import pin_threads_env, pin_threads_runtime
 
     pin_threads_env()
     pin_threads_runtime()

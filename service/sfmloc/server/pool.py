@@ -34,9 +34,10 @@ from multiprocessing.connection import Connection
 from typing import Any
 
 from ..errors import OverloadError, UnavailableError
+from ..threads import pin_threads_env, single_thread_env
 from . import protocol as P
 from .logfmt import event
-from .worker import THREAD_ENV, worker_main
+from .worker import worker_main
 
 log = logging.getLogger(__name__)
 
@@ -118,8 +119,7 @@ class WorkerPool:
 
     # ------------------------------------------------------------------ lifecycle
     def start(self, timeout: float = 120.0) -> None:
-        for var in THREAD_ENV:
-            os.environ.setdefault(var, "1")
+        pin_threads_env()
         for i in range(self.n + self.reloc_workers):
             self.workers.append(self._spawn(i))
             self.workers[i].serving = True  # no map is loaded before start() returns
@@ -145,7 +145,7 @@ class WorkerPool:
             # A fresh interpreter (not multiprocessing's spawn): it does not re-import the
             # caller's __main__, nothing is pickled, and the one-thread environment is in place
             # before numpy loads.
-            env = dict(os.environ, **{var: "1" for var in THREAD_ENV})
+            env = single_thread_env()
             # OpenCV refuses to decode larger images (decompression bombs: a small JPEG that
             # claims a huge size would otherwise be decoded before its size is checked).
             env["OPENCV_IO_MAX_IMAGE_PIXELS"] = str(self.max_image_pixels)

@@ -22,12 +22,10 @@ from multiprocessing.connection import Connection
 from typing import Any
 
 from ..errors import BundleError
+from ..threads import pin_threads_env, pin_threads_runtime
 from . import protocol as P
 
 log = logging.getLogger(__name__)
-
-# One thread per worker for BLAS/OpenMP: in the worker's environment before numpy loads.
-THREAD_ENV = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS")
 
 
 def worker_main(conn: Any, index: int, engine_conf_json: str, log_level: int, log_format: str,
@@ -45,16 +43,11 @@ def worker_main(conn: Any, index: int, engine_conf_json: str, log_level: int, lo
         # pipe closes (the server went away).
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
-        for var in THREAD_ENV:
-            os.environ.setdefault(var, "1")
+        pin_threads_env()  # one thread per worker for BLAS/OpenMP, before numpy loads
         from .logfmt import setup_logging
 
         setup_logging(log_format, log_level)
-    import cv2  # noqa: E402 - after the thread environment is set
-    import faiss
-
-    cv2.setNumThreads(1)
-    faiss.omp_set_num_threads(1)
+    pin_threads_runtime()  # after the thread environment is set
     from .. import engine  # noqa: F401 - imported now (scipy, filterpy...), not on the first frame
     try:
         _Worker(conn, index, engine_conf_json).run()
