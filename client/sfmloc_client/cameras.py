@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 import math
 import numbers
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -42,7 +42,7 @@ def _side(v: Any, name: str) -> int:
     return int(v)
 
 
-def check_camera(model: Any, width: Any, height: Any, params: Sequence[float] | Any) -> CameraFields:
+def check_camera(model: Any, width: Any, height: Any, params: Any) -> CameraFields:
     """``(model, width, height, params)`` validated: a known model (any case), the model's
     number of finite parameters, a size in 1..MAX_IMAGE_SIDE and a positive focal length;
     ``CameraModelError`` names the problem."""
@@ -108,6 +108,6 @@ def parse_camera(spec: str | Path) -> CameraFields:
     return check_camera(parts[0], width, height, params)
 
 
-def camera_to_string(model: str, width: int, height: int, params: Sequence[float]) -> str:
+def camera_to_string(model: str, width: int, height: int, params: Iterable[float]) -> str:
     """The ``"MODEL width height params..."`` form (``parse_camera`` reads it back exactly)."""
     return " ".join([model, str(width), str(height), *(repr(float(p)) for p in params)])

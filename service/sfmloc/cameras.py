@@ -66,7 +66,8 @@ class Camera:
 
     @classmethod
     def from_dict(cls, d: dict) -> "Camera":
-        return cls(*camera_from_dict(d))
+        model, width, height, params = camera_from_dict(d)
+        return cls(model, width, height, np.asarray(params))
 
     @classmethod
     def from_json(cls, path: str | Path) -> "Camera":
@@ -75,7 +76,8 @@ class Camera:
     @classmethod
     def parse(cls, spec: str | Path) -> "Camera":
         """A camera from a ``camera.json`` path or a ``"MODEL w h params..."`` string."""
-        return cls(*parse_camera(spec))
+        model, width, height, params = parse_camera(spec)
+        return cls(model, width, height, np.asarray(params))
 
     def to_dict(self) -> dict:
         names = CAMERA_MODELS[self.model][1]
