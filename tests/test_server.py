@@ -43,6 +43,7 @@ from sfmloc_client import (
     query_servers,
 )
 from sfmloc_client.discovery import list_server_ids
+from sfmloc_client.errors import CameraModelError
 from sfmloc_client.wire import frame_key, map_announce_key
 
 
@@ -176,10 +177,21 @@ def test_grpc_stream_on_an_unknown_map_or_without_camera_ends_with_its_status(wo
     with pytest.raises(RemoteError) as e:
         list(grpc_client.stream(iter(world.png[:2]), "no-such-map", camera(world), encoding="png"))
     assert e.value.code == "NOT_FOUND" and "no-such-map" in e.value.message
-    bad_cam = CameraSpec("PINHOLE", 640, 480, (-1.0, 525.0, 320.0, 240.0))
-    with pytest.raises(RemoteError) as e:
-        list(grpc_client.stream(iter(world.png[:2]), "room", bad_cam, encoding="png"))
-    assert e.value.code == "INVALID_ARGUMENT" and "focal" in e.value.message
+    # The client refuses a bad camera before sending (the same rule as the server's), so the
+    # server's answer is checked with raw requests.
+    with pytest.raises(CameraModelError, match="focal"):
+        CameraSpec("PINHOLE", 640, 480, (-1.0, 525.0, 320.0, 240.0))
+    from sfmloc_client.convert import image_to_pb
+    from sfmloc_client.pb import common_pb2
+    from sfmloc_client.pb import localization_pb2 as lpb
+
+    bad_cam = common_pb2.Camera(model="PINHOLE", width=640, height=480,
+                                params=[-1.0, 525.0, 320.0, 240.0])
+    reqs = [lpb.StreamFrame(map="room", seq=k, camera=bad_cam,
+                            image=image_to_pb("png", world.png[k], 640, 480)) for k in range(2)]
+    with pytest.raises(grpc.RpcError) as err:
+        list(grpc_client.stub.StreamLocalize(iter(reqs), timeout=60))
+    assert err.value.code().name == "INVALID_ARGUMENT" and "focal" in err.value.details()
 
 
 # ----------------------------------------------------------------------------- bad input
