@@ -20,7 +20,6 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import logging
-import os
 import queue
 import socket
 import subprocess
