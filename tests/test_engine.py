@@ -638,11 +638,11 @@ def test_frames_localize_keypoints_as_the_map_did(bundle, cam):
     assert Localizer(bundle, cam).subpixel == BuildConf().descriptors.subpixel == "quadratic"
 
 
-def test_a_failed_recovery_and_its_global_matching_describe_the_keypoints_once(
+def test_a_failed_recovery_and_its_global_matching_describe_and_search_once(
     world, bundle, cam, monkeypatch
 ):
     """Recovery around the prediction and the global matching that follows it describe the
-    same keypoints: DAISY runs once for both."""
+    same keypoints: DAISY runs once for both, and so does the k-ANN search of the map."""
     from sfmloc.engine.types import Matching
     from sfmloc.features.daisy import DaisyExtractor
 
@@ -658,8 +658,36 @@ def test_a_failed_recovery_and_its_global_matching_describe_the_keypoints_once(
         return orig(self, *a, **k)
 
     monkeypatch.setattr(DaisyExtractor, "describe", counting)
+    searches = []
+    search = bundle.index.search
+
+    def counting_search(q, k, allowed=None, nprobe=None):
+        searches.append(allowed is None)
+        return search(q, k, allowed=allowed, nprobe=nprobe)
+
+    monkeypatch.setattr(bundle.index, "search", counting_search)
     far = len(world.gray) - 1  # far from the prediction: recovery finds too few matches
     r = loc.localize(world.gray[far], 4 / 30)
     assert r.matching == Matching.GLOBAL and "reloc" in r.timings_ms
     assert len(calls) == 1, calls
+    # ... and search the map once (recovery, global matching and its verification share it)
+    assert searches == [True], searches
     assert pose_errors(r.cam_from_world, world.gt_cam_from_world[far])[0] < 0.05 * bundle.scene_scale
+
+
+def test_recovery_around_the_prediction_with_either_search(world, bundle, cam):
+    """Tracks lost, motion known: the frame is recovered by guided matching of all its
+    keypoints around the prediction (not global matching), whether the candidates come from
+    the search over the whole map restricted to the scope or from a scoped search."""
+    from sfmloc.engine.types import Matching
+
+    for search in ("global", "scoped"):
+        loc = Localizer(bundle, cam, EngineConf(recovery_search=search))
+        for i in range(4):
+            loc.localize(world.gray[i], i / 30)
+        loc.table = TrackTable.empty(loc.conf.max_hypotheses)  # every track lost
+        r = loc.localize(world.gray[4], 4 / 30)
+        assert r.matching == Matching.GUIDED and r.status is Status.TRACKING, (search, r.message)
+        assert "reloc" in r.timings_ms
+        dp, dr = pose_errors(r.cam_from_world, world.gt_cam_from_world[4])
+        assert dp < 0.02 * bundle.scene_scale and dr < 1.0, (search, dp, dr)

@@ -48,7 +48,7 @@ from ..transforms import Rigid3d, rotation_angle_deg
 from .certainty import Certainty, certainty, withheld
 from .config import EngineConf
 from .frame import to_gray, to_working
-from .matching import guided_matching, verify_hypotheses
+from .matching import guided_matching, search_all, verify_hypotheses
 from .motion_filter import make_pose_filter
 from .pose import PoseEstimate, estimate_pose
 from .relocalize import describe, map_working_scale, pose_from_global, pose_from_hypotheses
@@ -77,6 +77,7 @@ class _FrameImage:
         self._extractor = extractor
         self._prepared: np.ndarray | None = None
         self._described: tuple[np.ndarray, np.ndarray] | None = None
+        self._searched: tuple[np.ndarray, tuple[np.ndarray, np.ndarray]] | None = None
 
     @property
     def prepared(self) -> np.ndarray:
@@ -90,6 +91,16 @@ class _FrameImage:
         if self._described is None or not np.array_equal(self._described[0], xy):
             self._described = (xy.copy(), describe(self._extractor, bundle, self.prepared, xy))
         return self._described[1]
+
+    def search_all(
+        self, bundle: MapBundle, conf: EngineConf, xy: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The k-ANN search over the whole map of those keypoints' descriptors, once: recovery
+        restricts it to its scope and global matching uses it as is (``recovery_search``)."""
+        desc = self.describe_all(bundle, xy)
+        if self._searched is None or self._searched[0] is not desc:
+            self._searched = (desc, search_all(desc, bundle, conf))
+        return self._searched[1]
 
 
 def _match_ids(table: TrackTable) -> set[int]:
@@ -387,7 +398,8 @@ class Localizer:
         xy_u = self._undistort(table.xy)
         desc = image.describe_all(self.bundle, table.xy)
         loose = c.model_copy(update={"guided_threshold_px": c.prior_threshold_px})
-        gm = guided_matching(desc, xy_u, self.bundle, scope_points, pred, self.K, loose)
+        reuse = image.search_all(self.bundle, c, table.xy) if c.recovery_search == "global" else None
+        gm = guided_matching(desc, xy_u, self.bundle, scope_points, pred, self.K, loose, reuse)
         res = pose_from_hypotheses(gm.hyp, xy_u, self.bundle, self.K, c, pred)
         if res is None:
             return None
@@ -408,7 +420,8 @@ class Localizer:
             return table, None
         xy_u = self._undistort(table.xy)
         desc = image.describe_all(self.bundle, table.xy)
-        res = pose_from_global(desc, xy_u, self.bundle, self.camera, c)
+        res = pose_from_global(desc, xy_u, self.bundle, self.camera, c,
+                               image.search_all(self.bundle, c, table.xy))
         if res is None:
             return table, None
         est, q, p, hyp = res

@@ -55,6 +55,13 @@ def neighbour_strengths(D: np.ndarray, I: np.ndarray, sigma: float) -> np.ndarra
     return w
 
 
+def search_all(
+    desc: np.ndarray, bundle: MapBundle, conf: EngineConf
+) -> tuple[np.ndarray, np.ndarray]:
+    """The k-ANN search of ``desc`` over the whole map (global matching's)."""
+    return bundle.index.search(desc, conf.k, nprobe=conf.nprobe)
+
+
 def restrict_neighbours(
     D: np.ndarray, I: np.ndarray, allowed: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -76,7 +83,8 @@ def point_candidates(I: np.ndarray, w: np.ndarray, desc_point: np.ndarray) -> Po
         return PointCandidates(np.zeros(nq + 1, np.int64), np.zeros(0, np.int64), np.zeros(0))
     pts = desc_point[I[q_idx, j_idx]].astype(np.int64)
     ws = w[q_idx, j_idx]
-    order = np.lexsort((pts, q_idx))
+    # by (query, point): one stable sort of a combined key (q_idx is already sorted)
+    order = np.argsort(q_idx * (int(pts.max()) + 1) + pts, kind="stable")
     q_s, p_s, w_s = q_idx[order], pts[order], ws[order]
     new = np.ones(len(q_s), bool)
     new[1:] = (q_s[1:] != q_s[:-1]) | (p_s[1:] != p_s[:-1])
@@ -86,8 +94,8 @@ def point_candidates(I: np.ndarray, w: np.ndarray, desc_point: np.ndarray) -> Po
     order = np.lexsort((-sums, uq))
     uq, up, sums = uq[order], up[order], sums[order]
     ptr = np.zeros(nq + 1, np.int64)
-    np.add.at(ptr, uq + 1, 1)
-    return PointCandidates(np.cumsum(ptr), up, sums)
+    ptr[1:] = np.cumsum(np.bincount(uq, minlength=nq))
+    return PointCandidates(ptr, up, sums)
 
 
 def match_sets(cands: PointCandidates, ratio: float, max_hyp: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -123,8 +131,15 @@ class GlobalMatches:
     neighbours: tuple[np.ndarray, np.ndarray] | None = None
 
 
-def global_matching(desc: np.ndarray, bundle: MapBundle, conf: EngineConf) -> GlobalMatches:
-    D, I = bundle.index.search(desc, conf.k, nprobe=conf.nprobe)
+def global_matching(
+    desc: np.ndarray,
+    bundle: MapBundle,
+    conf: EngineConf,
+    neighbours: tuple[np.ndarray, np.ndarray] | None = None,
+) -> GlobalMatches:
+    """GLOBAL-MATCHING of ``desc``; ``neighbours``: their k-ANN search over the whole map when
+    already made (``search_all``), else it is made here."""
+    D, I = neighbours if neighbours is not None else search_all(desc, bundle, conf)
     w = neighbour_strengths(D, I, conf.sigma)
     qi, ji = np.nonzero(w > 0)
     pts = bundle.desc_point[I[qi, ji]]

@@ -48,11 +48,13 @@ def visible_points(camera: Camera, cam_from_world: Rigid3d, points_xyz: np.ndarr
 
 
 def pose_from_global(
-    desc: np.ndarray, xy_u: np.ndarray, bundle: MapBundle, camera: Camera, conf: EngineConf
+    desc: np.ndarray, xy_u: np.ndarray, bundle: MapBundle, camera: Camera, conf: EngineConf,
+    neighbours: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[PoseEstimate, np.ndarray, np.ndarray, np.ndarray] | None:
     """GLOBAL-MATCHING + one-to-many RANSAC: (pose, inlier keypoints, their points, every
-    keypoint's hypotheses), or None."""
-    gm = global_matching(desc, bundle, conf)
+    keypoint's hypotheses), or None. ``neighbours``: the search of ``desc`` over the whole map,
+    when already made (``matching.search_all``)."""
+    gm = global_matching(desc, bundle, conf, neighbours)
     if len(gm.set1_q) < 3:
         return None
     K = camera.K
