@@ -3,9 +3,12 @@
 For a user whose poses come from motion capture or a dataset's ground truth: the map is
 metric and in their world frame. Steps: match pose entries to image files; SIFT (OpenCV's by
 default, ``sift_backend``) into a COLMAP database;
-choose pairs from the poses (each image with its ``pair_neighbors`` nearest cameras that look
-within ``pair_max_angle_deg`` of the same direction, plus its ``pair_sequential`` next images
-in pose-file order); match and verify them; ``pycolmap.triangulate_points`` with the given
+choose pairs from the poses (``pair_selection="geometric"``, ``sfm.pairs``: each image with its
+``pair_near`` nearest cameras, matched first to estimate its scene depth, then one partner per
+target triangulation angle among the cameras whose frustum overlaps its view; ``"nearest"``:
+its ``pair_neighbors`` nearest cameras that look within ``pair_max_angle_deg`` of the same
+direction, plus its ``pair_sequential`` next images in pose-file order); match and verify
+them; ``pycolmap.triangulate_points`` with the given
 poses and intrinsics held fixed (it triangulates, merges and completes tracks, and refines the
 points only by bundle adjustment, filtering by reprojection error and triangulation angle);
 drop points seen in fewer than ``min_track_length`` images (where that would leave the median
@@ -26,8 +29,8 @@ Images without a pose are skipped with a warning; poses without an image are ign
 
 Measured on 100 redkitchen frames (every 10th of seq-01, 640x480, 2 cores): see the table
 above ``SFM_PRESETS`` in ``sfm.conf``; reproduce with ``python -m sfmloc.bench.sfm``.
-Pairs: k=3 gave 5% fewer points and shorter tracks (5.3), k=8 3% more points at 2x the
-matching time; min track 2 adds ~7k two-view points whose depth is the least reliable (on the
+Nearest pairs: k=3 gave 5% fewer points and shorter tracks (5.3), k=8 3% more points at 2x
+the matching time; min track 2 adds ~7k two-view points whose depth is the least reliable (on the
 synthetic scenes their surface error is ~1.5x that of longer tracks).
 """
 
@@ -56,6 +59,7 @@ from .convert import (
     rigid3d_to_pycolmap,
 )
 from .inputs import check_images, check_names, list_images, select_images
+from .pairs import depths_from_matches, near_pairs, wide_pairs
 from .run import CancelCheck, Progress, Reporter, quiet_colmap, work_directory
 from .stages import extract_features, match_pairs, to_pycolmap_camera
 
@@ -198,6 +202,37 @@ def pairs_from_poses(
     return [(names[a], names[b]) for a, b in sorted(pairs)]
 
 
+def match_geometric_pairs(
+    db_path: Path, work: Path, names: Sequence[str], cam_from_worlds: Sequence[Rigid3d],
+    camera: Camera, conf: SfmConf, rep: Reporter,
+) -> list[tuple[str, str]]:
+    """``sfm.pairs``' selection, matched in two rounds: the near pairs first (their matches
+    give each image's scene depth), then the wide pairs that depth implies. Returns all pairs."""
+    near = sorted(near_pairs(cam_from_worlds, conf.pair_near, conf.pair_max_angle_deg))
+    if not near:  # pair_near=0: still need depths, from each image's nearest view
+        near = sorted(near_pairs(cam_from_worlds, 1, conf.pair_max_angle_deg))
+    log.info("matching %d near image pairs", len(near))
+    match_pairs(db_path, work, [(names[a], names[b]) for a, b in near], conf, rep)
+    depths = depths_from_matches(db_path, names, cam_from_worlds, camera, near)
+    if not np.isfinite(depths).any():
+        log.warning("no scene depth from the near pairs' matches: matching near pairs only")
+        return [(names[a], names[b]) for a, b in near]
+    wide = wide_pairs(
+        camera, cam_from_worlds, depths, conf.pair_angles_deg, conf.pair_min_overlap,
+        conf.pair_max_angle_deg,
+    )
+    extra = sorted(wide - set(near))
+    log.info(
+        "scene depth median %.3g (per image %.3g-%.3g); matching %d wide pairs (angles %s deg)",
+        float(np.median(depths)), float(np.min(depths)), float(np.max(depths)), len(extra),
+        "/".join(f"{a:g}" for a in conf.pair_angles_deg),
+    )
+    if extra:
+        rep.report("matching", 0.0, f"matching {len(extra)} wide pairs")
+        match_pairs(db_path, work, [(names[a], names[b]) for a, b in extra], conf, rep)
+    return [(names[a], names[b]) for a, b in sorted(set(near) | wide)]
+
+
 # --------------------------------------------------------------------------- pipeline
 def triangulate_known_poses(
     image_dir: str | Path,
@@ -246,11 +281,16 @@ def triangulate_known_poses(
             db_path = work / "database.db"
             extract_features(db_path, image_dir, names, to_pycolmap_camera(cam), conf, rep)
             rep.check("matching")
-            pairs = pairs_from_poses(
-                names, [pose_of[n] for n in names], conf.pair_neighbors, conf.pair_sequential, conf.pair_max_angle_deg
-            )
-            log.info("matching %d image pairs chosen from the poses", len(pairs))
-            match_pairs(db_path, work, pairs, conf, rep)
+            poses_in_order = [pose_of[n] for n in names]
+            if conf.pair_selection == "nearest":
+                pairs = pairs_from_poses(
+                    names, poses_in_order, conf.pair_neighbors, conf.pair_sequential,
+                    conf.pair_max_angle_deg,
+                )
+                log.info("matching %d image pairs chosen from the poses", len(pairs))
+                match_pairs(db_path, work, pairs, conf, rep)
+            else:
+                match_geometric_pairs(db_path, work, names, poses_in_order, cam, conf, rep)
             rep.check("triangulate")
             rep.report("triangulate", 0.0, "triangulating with fixed poses")
             min_track = conf.min_track_length
