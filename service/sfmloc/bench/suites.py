@@ -185,7 +185,7 @@ def prepare_synthetic(conf: BenchConf, work: Path, kind: str, progress: Progress
     sconf = synth_conf(conf, kind)
     stamp = suite_work / "synth-conf.json"
     same_data = conf.reuse and (data / "scene.json").is_file() and stamp.is_file() and \
-        json.loads(stamp.read_text()) == sconf.model_dump()
+        json.loads(stamp.read_text()) == json.loads(json.dumps(sconf.model_dump()))
     if not same_data:
         progress(name, 0.0, "rendering the synthetic data set")
         t0 = time.perf_counter()
