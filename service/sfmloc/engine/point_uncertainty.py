@@ -9,6 +9,10 @@ frame: median half-angle 3.3 deg). Each correspondence's variance therefore gets
 error projected into the query, treated as isotropic (an upper bound: a depth error along the
 query's own ray does not move the projection).
 
+The frame's own residuals already hold each point's independent error; this term stands for
+what they do not show (errors shared by neighbouring points, the map's poses). Its scale,
+``EngineConf.map_noise_px``, is fitted on exact synthetic ground truth (``sfmloc.eval.calibration``).
+
 ``PointUncertainty.for_bundle(bundle)`` computes ``kappa = d / sin(theta)`` per point once per
 bundle (cached); ``sigma_px(X, z)`` gives the extra pixel standard deviation of correspondences
 with world points ``X`` at depths ``z`` in the query.

@@ -68,6 +68,7 @@ def pose_covariance(
     X: np.ndarray,
     min_noise_px: float = MIN_NOISE_PX,
     point_sigma_px: np.ndarray | None = None,
+    loss_scale: float = 0.0,
 ) -> np.ndarray:
     """6x6 covariance of a refined pose (order ``COVARIANCE_ORDER``) from its inlier
     correspondences (undistorted pixels ``xy`` (N,2), world points ``X`` (N,3)): the
@@ -96,12 +97,19 @@ def pose_covariance(
     dpc = np.concatenate([np.einsum("ij,njk->nik", R_cw, skew), np.broadcast_to(-R_cw, (n, 3, 3))], 2)
     J = np.einsum("nij,njk->nik", dproj, dpc).reshape(2 * n, 6)
     uv = np.stack([fx * x / z + K[0, 2], fy * y / z + K[1, 2]], 1)
-    dof = max(2 * n - 6, 1)
-    var = max(float(np.sum((uv - xy) ** 2)) / dof, min_noise_px**2)
-    if point_sigma_px is None:
-        H = J.T @ J / var
+    r2 = np.sum((uv - xy) ** 2, axis=1)
+    if loss_scale > 0:
+        # The robust refinement's Cauchy weights: the noise is what its weighted residuals say,
+        # not inflated by the near-outliers (2-3 px) it down-weights.
+        rw = 1.0 / (1.0 + r2 / loss_scale**2)
     else:
-        w = np.repeat(1.0 / (var + np.asarray(point_sigma_px, np.float64) ** 2), 2)
+        rw = np.ones(n)
+    dof = max(2 * float(rw.sum()) - 6, 1.0)
+    var = max(float(np.sum(rw * r2)) / dof, min_noise_px**2)
+    if point_sigma_px is None:
+        H = (J * np.repeat(rw, 2)[:, None]).T @ J / var
+    else:
+        w = np.repeat(rw / (var + np.asarray(point_sigma_px, np.float64) ** 2), 2)
         H = (J * w[:, None]).T @ J
     if not np.all(np.isfinite(H)) or np.linalg.cond(H) > 1e12:
         return np.full((6, 6), np.inf)
