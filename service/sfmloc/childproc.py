@@ -13,6 +13,8 @@ service's build jobs (``builder_service/jobs.py``).
 
 from __future__ import annotations
 
+import operator
+from collections.abc import Callable
 from dataclasses import dataclass, field, fields
 from typing import Any, ClassVar, TypeVar
 
@@ -37,7 +39,8 @@ class Part:
     """A value nested in a message (encoded as an array of its fields)."""
 
     def to_wire(self) -> list[Any]:
-        return [_plain(getattr(self, f)) for f in _field_names(type(self))]
+        values = _getter(type(self))(self)
+        return [v.to_wire() if isinstance(v, Part) else v for v in values]
 
     @classmethod
     def from_wire(cls: type[P], values: Any) -> P:
@@ -55,6 +58,7 @@ class Message(Part):
 
 
 _NAMES: dict[type, tuple[str, ...]] = {}
+_GETTERS: dict[type, Callable[[Any], tuple[Any, ...]]] = {}
 
 
 def _field_names(cls: type) -> tuple[str, ...]:
@@ -64,12 +68,21 @@ def _field_names(cls: type) -> tuple[str, ...]:
     return names
 
 
-def _plain(v: Any) -> Any:
-    if isinstance(v, Part):
-        return v.to_wire()
-    if isinstance(v, (list, tuple)):
-        return [_plain(x) for x in v]
-    return v
+def _getter(cls: type) -> Callable[[Any], tuple[Any, ...]]:
+    """The wire fields' values of an instance of ``cls``, as a tuple. Per frame, so one C call
+    (``attrgetter``) rather than a getattr per field; plain values (a 36-value covariance,
+    a camera's parameters) go to msgpack as they are, only nested parts are converted."""
+    get = _GETTERS.get(cls)
+    if get is None:
+        names = _field_names(cls)
+        if not names:
+            get = _GETTERS[cls] = lambda obj: ()
+        elif len(names) == 1:
+            one = operator.attrgetter(names[0])
+            get = _GETTERS[cls] = lambda obj: (one(obj),)
+        else:
+            get = _GETTERS[cls] = operator.attrgetter(*names)
+    return get
 
 
 class Protocol:
