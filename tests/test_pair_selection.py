@@ -4,6 +4,8 @@
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
 
 import cv2
 import numpy as np
@@ -19,6 +21,7 @@ from sfmloc.builder.sfm.pairs import (
 )
 from sfmloc.cameras import Camera
 from sfmloc.io.poses import write_colmap_list
+from sfmloc.map.bundle import MapBundle
 from sfmloc.transforms import Rigid3d
 
 CAM = Camera.pinhole(320, 240, 250.0, 250.0, 160.0, 120.0)
@@ -113,13 +116,13 @@ def test_wide_pairs_skip_views_that_look_away_or_do_not_overlap():
     assert (0, 3) in wide  # atan(0.35 / 2) = 9.9 deg
 
 
-def _walk_images(tmp_path, n: int):
+def _walk_images(tmp_path, n: int, every: int = 1):
     synth = pytest.importorskip("sfmloc.synth", reason="sfmloc.synth (the synthetic room) is not available")
     scene = synth.Scene.room(seed=0)
     cam = Camera.pinhole(320, 240, 262.5, 262.5, 160.0, 120.0)
-    poses = synth.make_trajectory("walk", n, seed=0, scene=scene, fps=30.0)
+    poses = synth.make_trajectory("walk", n, seed=0, scene=scene, fps=30.0)[::every]
     (tmp_path / "img").mkdir()
-    names = [f"f{k:03d}.png" for k in range(n)]
+    names = [f"f{k:03d}.png" for k in range(len(poses))]
     for name, T in zip(names, poses):
         bgr, _ = synth.render(scene, cam, T)
         cv2.imwrite(str(tmp_path / "img" / name), bgr)
@@ -139,3 +142,17 @@ def test_adding_in_between_frames_never_lowers_the_point_count(tmp_path):
         counts[stride] = len(rec.points3D)
     assert counts[4] > 100, counts
     assert counts[4] <= counts[2] <= counts[1], counts
+
+
+def test_cli_pairs_flag_reaches_the_build(tmp_path):
+    """``sfmloc build --pairs nearest`` builds with the old rule (recorded in the manifest)."""
+    cam, names, poses = _walk_images(tmp_path, 60, every=10)
+    pose_file = write_colmap_list(tmp_path / "p.txt", names, poses)
+    posed = ["--images", str(tmp_path / "img"), "--poses", str(pose_file), "--camera", cam.to_string()]
+    r = subprocess.run([sys.executable, "-m", "sfmloc", "build", "old", "--out", str(tmp_path), *posed,
+                        "--pairs", "nearest", "--preset", "fast"], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert MapBundle(tmp_path / "old", verify=False).manifest.params["sfm"]["pair_selection"] == "nearest"
+    r = subprocess.run([sys.executable, "-m", "sfmloc", "build", "bad", "--out", str(tmp_path), *posed,
+                        "--pairs", "random"], capture_output=True, text=True, timeout=300)
+    assert r.returncode != 0 and "--pairs" in r.stderr

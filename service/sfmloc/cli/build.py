@@ -76,6 +76,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "from the same matches. Not used with --colmap",
     )
     p.add_argument("--matching", choices=["sequential", "exhaustive"], help="images only: pair selection")
+    p.add_argument(
+        "--pairs", choices=["geometric", "nearest"],
+        help="known poses: pair selection. geometric (default): each image's 2 nearest cameras plus "
+        "one per target triangulation angle among cameras that see the same part of the scene, a "
+        "budget that does not grow with the frame rate; nearest: the 5 nearest cameras and the next "
+        "2 images (in dense video these are too close to triangulate)",
+    )
     p.add_argument("--config", help="JSON/TOML file of builder settings merged over the preset")
     p.add_argument("--threads", type=int, help="threads for pycolmap (default: all cores)")
     p.add_argument("--workdir", help="parent folder for temporary SfM files (default: system temp)")
@@ -115,6 +122,8 @@ def run(args: argparse.Namespace) -> int:
         overrides["matching"] = args.matching
     if args.keep_workdir:
         overrides["keep_workdir"] = True
+    if args.pairs:
+        overrides["pair_selection"] = args.pairs
     if args.min_track_length is not None:
         if args.colmap:
             raise InputError(
