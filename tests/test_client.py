@@ -193,6 +193,25 @@ def test_image_encodings_round_trip():
         encode_image(gray.astype(np.float32), "png")
 
 
+def test_one_exception_hierarchy_with_one_status_table():
+    """Client, server and builder raise the same classes (sfmloc.errors re-exports them); the
+    client's older names are the same classes, not twins; every error knows its status code."""
+    import sfmloc.errors as service_errors
+    from sfmloc_client import errors as E
+
+    assert service_errors.SfmlocError is E.SfmlocError is E.ClientError
+    assert service_errors.MessageError is E.WireError and E.ImageDataError is E.ImageDecodeError
+    assert all(issubclass(cls, E.SfmlocError) for cls, _ in E.STATUS_TABLE)
+    assert E.WireError("x").code == E.CameraModelError("x").code == "INVALID_ARGUMENT"
+    assert E.MessageTooLargeError("x").code == "RESOURCE_EXHAUSTED"
+    assert E.JobNotFoundError("x").code == E.MapNotFoundError("x").code == "NOT_FOUND"
+    assert E.code_of(KeyError("x")) == "INTERNAL" and "internal error" in E.message_of(KeyError(1))
+    remote = E.RemoteError("UNAVAILABLE", "restarting")
+    assert remote.code == E.code_of(remote) == "UNAVAILABLE" and remote.message == "restarting"
+    assert E.error_class("BundleError") is E.BundleError
+    assert E.error_class("os.system") is E.error_class("RemoteError") is E.InternalError
+
+
 def test_camera_spec_parse(tmp_path):
     c = CameraSpec.parse("pinhole 640 480 525 525 320 240")
     assert c == CameraSpec("PINHOLE", 640, 480, (525.0, 525.0, 320.0, 240.0))

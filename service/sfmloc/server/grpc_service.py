@@ -30,12 +30,19 @@ from sfmloc_client.convert import (
     pose_to_update_pb,
     transform_from_pb,
 )
-from sfmloc_client.errors import WireError
 from sfmloc_client.pb import localization_pb2 as pb
 from sfmloc_client.pb import localization_pb2_grpc as pb_grpc
 from sfmloc_client.wire import Frame, PoseMessage, check_name
 
-from ..errors import ConfigError, InputError, MapNotFoundError, MessageError, PermissionDeniedError, SessionNotFoundError, UnavailableError
+from ..errors import (
+    ConfigError,
+    InputError,
+    MapNotFoundError,
+    PermissionDeniedError,
+    SessionNotFoundError,
+    UnavailableError,
+    WireError,
+)
 from ..interceptors import ErrorStatusInterceptor, MalformedRequestInterceptor
 from .auth import AuthInterceptor, caller
 from .auth import TokenTable
@@ -63,8 +70,8 @@ class _StreamSink:
 
 
 def _checked_camera(loc: Localization, msg: Any) -> Any:
-    """The request's camera as a ``CameraSpec``, validated like the engine's (WireError or
-    CameraModelError: INVALID_ARGUMENT; too large: RESOURCE_EXHAUSTED)."""
+    """The request's camera as a ``CameraSpec``, validated like the engine's (an InputError:
+    INVALID_ARGUMENT; too large: RESOURCE_EXHAUSTED)."""
     return loc.check_camera(camera_from_pb(msg))
 
 
@@ -116,7 +123,7 @@ class LocalizationService(pb_grpc.LocalizationServicer):
                     if first:
                         # Stream-level checks: failing them ends the stream.
                         if not req.map:
-                            raise MessageError("the first frame of a stream must name the map")
+                            raise WireError("the first frame of a stream must name the map")
                         loc.get_map(req.map)
                         state["map"] = req.map
                         state["client"] = check_name(req.client_id, "client id") if req.client_id else f"grpc-{stream_id}"
@@ -130,11 +137,11 @@ class LocalizationService(pb_grpc.LocalizationServicer):
                                 )
                             state["client"] = who.name
                         if not req.HasField("camera"):
-                            raise MessageError("the first frame of a stream must carry the camera")
+                            raise WireError("the first frame of a stream must carry the camera")
                         state["camera"] = _checked_camera(loc, req.camera)  # no camera, no stream
                     try:
                         if req.map and req.map != state["map"]:
-                            raise MessageError(f"a stream stays on one map ({state['map']!r}), this frame names {req.map!r}")
+                            raise WireError(f"a stream stays on one map ({state['map']!r}), this frame names {req.map!r}")
                         if req.HasField("camera") and not first:
                             state["camera"] = _checked_camera(loc, req.camera)
                         cam = state["camera"]
@@ -143,7 +150,7 @@ class LocalizationService(pb_grpc.LocalizationServicer):
                         s = loc.submit_frame(state["map"], state["client"], "grpc", frame, t_recv,
                                              make_sink=lambda: _StreamSink(loop, q), key_suffix=f":{stream_id}")
                         state["session"] = s
-                    except (WireError, InputError, MapNotFoundError) as exc:  # this frame only: the stream goes on
+                    except (InputError, MapNotFoundError) as exc:  # this frame only: the stream goes on
                         # (an unloaded map too: its frames are answered NOT_FOUND until it is back)
                         q.put_nowait(loc.refuse_frame(state["map"], state["client"], req.seq, req.stamp_ns, exc))
                 # The client is done sending: let the last frames finish, then end the stream.
@@ -181,7 +188,7 @@ class LocalizationService(pb_grpc.LocalizationServicer):
 
     async def LoadMap(self, request: pb.LoadMapRequest, context: grpc.aio.ServicerContext) -> pb.MapInfo:
         if not request.path:
-            raise MessageError("LoadMap needs a map name or the path of a bundle folder in the maps folders")
+            raise WireError("LoadMap needs a map name or the path of a bundle folder in the maps folders")
         loop = asyncio.get_running_loop()
         entry = await loop.run_in_executor(self.executor, self.loc.load_map, request.path, request.name or None)
         return _map_info(self.loc, entry)
@@ -210,7 +217,7 @@ class LocalizationService(pb_grpc.LocalizationServicer):
 
     async def ResetSession(self, request: pb.ResetSessionRequest, context: grpc.aio.ServicerContext) -> pb.ResetSessionResponse:
         if not request.client_id:
-            raise MessageError("ResetSession needs a client_id")
+            raise WireError("ResetSession needs a client_id")
         who = caller(self.tokens, context)
         if who is not None and not who.admin and request.client_id != who.name:
             raise PermissionDeniedError(f"{who.name!r} may reset only its own sessions (needs the admin role)")

@@ -22,7 +22,7 @@ from typing import Any
 
 import os
 
-from ..errors import BundleError, MapNotFoundError, MessageError, PermissionDeniedError
+from ..errors import BundleError, MapNotFoundError, PermissionDeniedError, WireError
 from ..map.bundle import MANIFEST, read_manifest, validate_name, verify_bundle
 from .logfmt import event
 from .pool import WorkerPool
@@ -39,7 +39,7 @@ def resolve_bundle_path(spec: str, roots: list[str | Path]) -> Path:
     alone: nothing outside the roots is opened, and the message does not say whether it exists.
     """
     if not spec or "\x00" in spec:
-        raise MessageError("LoadMap needs a map name or the path of a bundle folder in the maps folders")
+        raise WireError("LoadMap needs a map name or the path of a bundle folder in the maps folders")
     real_roots = [Path(os.path.realpath(r)) for r in roots]
     if "/" not in spec:
         validate_name(spec)

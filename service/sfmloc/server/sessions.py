@@ -449,7 +449,7 @@ class SessionManager:
 def validate_camera(cam: Any, max_pixels: int) -> Camera:
     """A client's ``CameraSpec`` checked as the engine will use it (``CameraModelError``), and
     against the server's image size limit (``MessageTooLargeError``)."""
-    from sfmloc_client.errors import MessageTooLargeError
+    from ..errors import MessageTooLargeError
 
     if cam.width * cam.height > max_pixels:
         raise MessageTooLargeError(

@@ -220,11 +220,9 @@ class _Worker:
 
 def _expected(exc: BaseException) -> bool:
     """A failure the client caused or the server reports (not a bug worth a traceback)."""
-    from sfmloc_client.errors import WireError
-
     from ..errors import SfmlocError
 
-    return isinstance(exc, (SfmlocError, WireError))
+    return isinstance(exc, SfmlocError)
 
 
 def _warm_up(bundle: Any, conf: Any) -> None:

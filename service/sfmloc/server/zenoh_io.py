@@ -21,7 +21,6 @@ from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import zenoh
-from sfmloc_client.errors import WireError
 from sfmloc_client.wire import (
     FRAME_KEYEXPR,
     MAPS_KEYEXPR,
@@ -41,7 +40,7 @@ from sfmloc_client.wire import (
 )
 from sfmloc_client.zconfig import make_zenoh_config
 
-from ..errors import ConfigError, MapNotFoundError, OverloadError, UnavailableError
+from ..errors import ConfigError, MapNotFoundError, OverloadError, UnavailableError, WireError
 from .config import ServerConfig
 from .limits import LogLimiter, RateLimiter
 from .logfmt import event
