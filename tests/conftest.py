@@ -3,11 +3,9 @@ runs), so tests behave the same on a 2-core CI machine as here."""
 
 from __future__ import annotations
 
-import os
+from sfmloc.threads import pin_threads_env  # imports no numpy
 
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-os.environ.setdefault("OMP_NUM_THREADS", "1")
-os.environ.setdefault("MKL_NUM_THREADS", "1")
+pin_threads_env()
 
 from pathlib import Path  # noqa: E402
 

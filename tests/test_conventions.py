@@ -260,3 +260,20 @@ def test_library_logging_has_null_handler():
     assert any(isinstance(h, logging.NullHandler) for h in logging.getLogger("sfmloc").handlers)
     assert any(isinstance(h, logging.NullHandler) for h in logging.getLogger("sfmloc_client").handlers)
     assert sfmloc.__version__ == sfmloc_client.__version__
+
+
+def test_one_thread_pinning_helper(monkeypatch):
+    """Commands, workers and build jobs pin the same variables; a user's value wins unless a
+    measurement forces one thread."""
+    import os
+
+    from sfmloc.threads import THREAD_VARS, pin_threads_env, single_thread_env
+
+    monkeypatch.setenv("OMP_NUM_THREADS", "4")
+    monkeypatch.delenv("MKL_NUM_THREADS", raising=False)
+    pin_threads_env()
+    assert os.environ["OMP_NUM_THREADS"] == "4" and os.environ["MKL_NUM_THREADS"] == "1"
+    pin_threads_env(force=True)
+    assert all(os.environ[v] == "1" for v in THREAD_VARS)
+    env = single_thread_env({"PATH": "/bin", "OPENBLAS_NUM_THREADS": "8"})
+    assert env["PATH"] == "/bin" and all(env[v] == "1" for v in THREAD_VARS)
