@@ -232,6 +232,24 @@ def test_bad_submissions_are_invalid_argument(world, builder, mutate, words):
     assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT and words in e.value.details()
 
 
+@pytest.mark.parametrize("method, kind", [
+    ("/sfmloc.v1.MapBuilder/SubmitBuild", "unary"), ("/sfmloc.v1.MapBuilder/GetBuild", "unary"),
+    ("/sfmloc.v1.MapBuilder/WatchBuild", "stream"),
+])
+def test_builder_unparsable_request_bytes_are_invalid_argument(builder, method, kind):
+    """As on the localization server: INVALID_ARGUMENT with a message, not grpc's UNKNOWN."""
+    svc, _, _ = builder
+    with grpc.insecure_channel(f"127.0.0.1:{svc.port}") as ch:
+        for data in (b"\xff\xff\xff\xff", b"\x0a\xff\x01"):
+            with pytest.raises(grpc.RpcError) as e:
+                if kind == "unary":
+                    ch.unary_unary(method)(data, timeout=30)
+                else:
+                    list(ch.unary_stream(method)(data, timeout=30))
+            assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT, (method, e.value.details())
+            assert "malformed request" in e.value.details()
+
+
 # ----------------------------------------------------------------------------- bad input, CLI
 def run_cli(*args):
     return subprocess.run([sys.executable, "-m", "sfmloc", *args], capture_output=True, text=True, timeout=300)

@@ -1,6 +1,6 @@
 """gRPC server interceptors shared by our two services (localization server and builder).
 
-``MalformedRequestInterceptor``: a request that is not a valid protobuf message of the method's
+``MalformedRequestInterceptor`` (and ``SyncMalformedRequestInterceptor``): a request that is not a valid protobuf message of the method's
 type ends with INVALID_ARGUMENT and a message saying so. Without it grpc answers such bytes
 with UNKNOWN or INTERNAL (its deserializer raises before any handler of ours runs), which tells
 a client nothing and looks like a server bug.
@@ -134,6 +134,20 @@ class MalformedRequestInterceptor(grpc.aio.ServerInterceptor):
         handler_call_details: grpc.HandlerCallDetails,
     ) -> grpc.RpcMethodHandler:
         handler = await continuation(handler_call_details)
+        if handler is None:
+            return handler
+        return same_kind(handler, _wrap, _safe(handler.request_deserializer))
+
+
+class SyncMalformedRequestInterceptor(grpc.ServerInterceptor):
+    """``MalformedRequestInterceptor`` for grpc's thread-pool server (the builder service)."""
+
+    def intercept_service(
+        self,
+        continuation: Callable[[grpc.HandlerCallDetails], grpc.RpcMethodHandler],
+        handler_call_details: grpc.HandlerCallDetails,
+    ) -> grpc.RpcMethodHandler:
+        handler = continuation(handler_call_details)
         if handler is None:
             return handler
         return same_kind(handler, _wrap, _safe(handler.request_deserializer))

@@ -29,7 +29,7 @@ from sfmloc_client.wire import (
 from sfmloc_client.zconfig import make_zenoh_config
 
 from ..config import StrictModel
-from ..interceptors import SyncErrorStatusInterceptor
+from ..interceptors import SyncErrorStatusInterceptor, SyncMalformedRequestInterceptor
 from .grpc_service import MapBuilderServicer
 from .jobs import Job, JobManager
 
@@ -116,7 +116,8 @@ class BuilderService:
         limit = c.max_message_mb * 1024 * 1024
         self.server = grpc.server(
             futures.ThreadPoolExecutor(max_workers=16),
-            interceptors=[SyncErrorStatusInterceptor()],  # errors -> the one status table
+            # Unparsable requests: INVALID_ARGUMENT; errors: the one status table.
+            interceptors=[SyncMalformedRequestInterceptor(), SyncErrorStatusInterceptor()],
             options=[("grpc.max_receive_message_length", limit), ("grpc.max_send_message_length", limit)],
         )
         builder_pb2_grpc.add_MapBuilderServicer_to_server(MapBuilderServicer(self.jobs, c.out), self.server)
