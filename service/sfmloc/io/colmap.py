@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import numpy.typing as npt
 
 from ..cameras import CAMERA_MODELS, MODEL_NAME_FROM_ID, Camera
 from ..errors import CameraModelError, ModelFormatError
@@ -79,11 +80,13 @@ class Reconstruction:
                 raise ModelFormatError(f"image {im.name} refers to missing camera {im.camera_id}")
         for pid, p in self.points3D.items():
             for iid, idx in zip(p.track_image_ids, p.track_point2D_idxs):
-                im = self.images.get(int(iid))
-                if im is None:
+                seen_in = self.images.get(int(iid))
+                if seen_in is None:
                     raise ModelFormatError(f"point3D {pid} track refers to missing image {iid}")
-                if not 0 <= idx < len(im.points2D):
-                    raise ModelFormatError(f"point3D {pid} track refers to point2D {idx} of image {im.name}")
+                if not 0 <= idx < len(seen_in.points2D):
+                    raise ModelFormatError(
+                        f"point3D {pid} track refers to point2D {idx} of image {seen_in.name}"
+                    )
 
 
 # --------------------------------------------------------------------------- detection
@@ -290,12 +293,12 @@ class _Reader:
         self.pos += size
         return vals
 
-    def array(self, dtype: np.dtype, count: int) -> np.ndarray:
-        dtype = np.dtype(dtype).newbyteorder("<")
-        size = dtype.itemsize * count
+    def array(self, dtype: npt.DTypeLike, count: int) -> np.ndarray:
+        le = np.dtype(dtype).newbyteorder("<")
+        size = le.itemsize * count
         if self.pos + size > len(self.data):
             raise ModelFormatError(f"{self.path}: truncated at byte {self.pos}")
-        arr = np.frombuffer(self.data, dtype=dtype, count=count, offset=self.pos)
+        arr = np.frombuffer(self.data, dtype=le, count=count, offset=self.pos)
         self.pos += size
         return arr
 

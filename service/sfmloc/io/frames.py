@@ -88,14 +88,14 @@ def _stamps_from_file(path: Path, names: list[str] | None, count: int) -> list[f
     if not rows:
         raise InputError(f"timestamps file {path} has no timestamps")
     if names is not None and all(n is not None for _, n in rows):
-        by_name = {Path(n).name: t for t, n in rows}
-        by_stem = {Path(n).stem: t for t, n in rows}
+        by_name = {Path(n).name: t for t, n in rows if n is not None}  # (all are: mypy)
+        by_stem = {Path(n).stem: t for t, n in rows if n is not None}
         out = []
         for n in names:
-            t = by_name.get(n, by_stem.get(Path(n).stem))
-            if t is None:
+            stamp = by_name.get(n, by_stem.get(Path(n).stem))
+            if stamp is None:
                 raise InputError(f"timestamps file {path} has no line for frame {n!r}")
-            out.append(t)
+            out.append(stamp)
         return out
     if len(rows) != count:
         raise InputError(
@@ -142,7 +142,6 @@ class FrameSource:
             self.kind = "folder"
         elif self.path.is_file() and self.path.suffix.lower() in VIDEO_SUFFIXES:
             self.files = []
-            self._stamps = None
             self.kind = "video"
             cap = cv2.VideoCapture(str(self.path))
             if not cap.isOpened():
