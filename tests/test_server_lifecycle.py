@@ -321,6 +321,16 @@ def test_status_table_and_worker_error_round_trip(exc, code):
     assert type(back) is (type(exc) if isinstance(exc, E.SfmlocError) else E.InternalError)
 
 
+def test_a_foreign_error_named_like_ours_crosses_the_worker_boundary_as_internal():
+    from sfmloc.server.status import error_from_wire, error_to_wire
+
+    class BundleError(Exception):  # not sfmloc's, same name
+        pass
+
+    back = error_from_wire(error_to_wire(BundleError("x")))
+    assert type(back) is E.InternalError and back.code == "INTERNAL"
+
+
 def test_log_lines_key_value_and_json():
     from sfmloc.server.logfmt import JsonFormatter, KeyValueFormatter, event
 

@@ -1,4 +1,5 @@
-"""gRPC status codes and worker-boundary encoding of the one exception table.
+"""The one exception table's server side: Zenoh error replies and errors across the
+worker-process boundary.
 
 The table itself (``sfmloc_client.errors.STATUS_TABLE``) is shared with the client and the
 builder; gRPC calls end with its code (``sfmloc.interceptors`` applies it), Zenoh error
@@ -9,7 +10,6 @@ is unpickled).
 
 from __future__ import annotations
 
-import grpc
 from sfmloc_client.errors import InternalError, code_of, error_class, message_of
 from sfmloc_client.wire import ErrorInfo
 
@@ -17,7 +17,6 @@ from ..interceptors import status_of
 
 __all__ = [
     "InternalError",
-    "abort",
     "error_from_wire",
     "error_info",
     "error_to_wire",
@@ -32,15 +31,11 @@ def error_info(exc: BaseException) -> ErrorInfo:
 
 
 def error_to_wire(exc: BaseException) -> dict[str, str]:
-    name = type(exc).__name__
-    name = name if error_class(name).__name__ == name else "InternalError"
-    return {"type": name, "message": message_of(exc)}
+    # Only our own classes keep their name (a foreign KeyError is an internal error).
+    ours = error_class(type(exc).__name__) is type(exc)
+    return {"type": type(exc).__name__ if ours else "InternalError", "message": message_of(exc)}
 
 
 def error_from_wire(d: dict[str, str]) -> Exception:
     return error_class(str(d.get("type")))(str(d.get("message", "")))
 
-
-async def abort(context: "grpc.aio.ServicerContext", exc: BaseException) -> None:
-    """End a gRPC call with the status the table gives ``exc`` (raises, as ``abort`` does)."""
-    await context.abort(status_of(exc), message_of(exc))
