@@ -650,7 +650,7 @@ def test_a_failed_recovery_and_its_global_matching_describe_and_search_once(
     from sfmloc.engine.types import Matching
     from sfmloc.features.daisy import DaisyExtractor
 
-    loc = Localizer(bundle, cam)
+    loc = Localizer(bundle, cam, EngineConf(recovery_search="global"))
     for i in range(4):
         loc.localize(world.gray[i], i / 30)
     assert len(loc.scope_points) > 0
@@ -674,7 +674,8 @@ def test_a_failed_recovery_and_its_global_matching_describe_and_search_once(
     r = loc.localize(world.gray[far], 4 / 30)
     assert r.matching == Matching.GLOBAL and "reloc" in r.timings_ms
     assert len(calls) == 1, calls
-    # ... and search the map once (recovery, global matching and its verification share it)
+    # ... and, with recovery_search "global", search the map once (recovery, global matching
+    # and its verification share it)
     assert searches == [True], searches
     assert pose_errors(r.cam_from_world, world.gt_cam_from_world[far])[0] < 0.05 * bundle.scene_scale
 
