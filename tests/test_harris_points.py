@@ -78,10 +78,12 @@ def test_harris_points_lie_on_the_scene_surfaces(world):
 
     rec = read_model(world.root / "synth" / "sparse")
     dc = BuildConf().descriptors
-    conf = HarrisPointsConf(enabled=True)
+    conf = HarrisPointsConf(enabled=True, extend_px=1.0)
     detector = {"rel_threshold": dc.harris_rel_threshold, "border": dc.border, "subpixel": dc.subpixel}
     new, stats = harris_points(rec, world.root / "synth" / "images", load_gray, conf, detector)
     assert stats["points"] == len(new.points3D) > 1000, stats
+    # tracks are extended beyond the matched image pairs (checked against the depth maps below)
+    assert stats["observations"] > stats["observations_before_extension"], stats
     assert set(new.images) == set(rec.images)
     sconf = SynthConf.model_validate(json.loads((world.root / "synth" / "scene.json").read_text())["config"])
     scene = Scene.room(sconf.seed, sconf.scene)
