@@ -78,7 +78,7 @@ def test_harris_points_lie_on_the_scene_surfaces(world):
 
     rec = read_model(world.root / "synth" / "sparse")
     dc = BuildConf().descriptors
-    conf = HarrisPointsConf(enabled=True, extend_px=1.0)
+    conf = HarrisPointsConf(enabled=True, mode="replace", extend_px=1.0)
     detector = {"rel_threshold": dc.harris_rel_threshold, "border": dc.border, "subpixel": dc.subpixel}
     new, stats = harris_points(rec, world.root / "synth" / "images", load_gray, conf, detector)
     assert stats["points"] == len(new.points3D) > 1000, stats
@@ -115,16 +115,26 @@ def test_harris_points_lie_on_the_scene_surfaces(world):
     assert np.mean(rel_err < 0.02) > 0.98, np.mean(rel_err < 0.02)
 
 
-def test_harris_points_switch_builds_a_map_of_harris_points(world, tmp_path):
-    """The builder option end to end: the bundle's points are the Harris points, each with
+def test_harris_points_switch_builds_a_map_of_harris_points(world):
+    """The builder option end to end: "replace" keeps the Harris points only, "add" keeps the
+    SfM points (same ids, same positions before refinement) beside them; each point has
     descriptors, and the build info records the stage's counts."""
-    from sfmloc.builder.build import BuildConf, assemble
+    from sfmloc.builder.build import BuildConf, assemble, preset
     from sfmloc.config import merge_presets
     from sfmloc.io.colmap import read_model
 
+    assert preset("default").harris_points.enabled and not preset("paper").harris_points.enabled
     rec = read_model(world.root / "synth" / "sparse")
-    conf = merge_presets(BuildConf(), harris_points={"enabled": True})
-    data, timings, info = assemble(rec, world.root / "synth" / "images", conf)
+    images = world.root / "synth" / "images"
+    conf = merge_presets(BuildConf(), harris_points={"enabled": True, "mode": "replace"})
+    data, timings, info = assemble(rec, images, conf)
     assert info["harris_points"] == len(data.points_xyz) > 1000
     assert "harris_points" in timings
     assert len(np.unique(data.desc_point)) > 0.9 * len(data.points_xyz)
+    conf = merge_presets(conf, harris_points={"mode": "add"}, refine={"enabled": False})
+    both, _, info_add = assemble(rec, images, conf)
+    assert len(both.points_xyz) == len(rec.points3D) + info_add["harris_points"]
+    sfm_ids = np.array(sorted(rec.points3D))
+    rows = np.searchsorted(both.point_ids, sfm_ids)
+    assert np.array_equal(both.point_ids[rows], sfm_ids)
+    assert np.allclose(both.points_xyz[rows], np.stack([rec.points3D[int(p)].xyz for p in sfm_ids]))

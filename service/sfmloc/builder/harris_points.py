@@ -42,27 +42,28 @@ Progress = Callable[[str, float, str], None]
 
 
 class HarrisPointsConf(StrictModel):
-    # Measured (same run, 2 cores at load 12-18; `sfmloc replay`-equivalent, errors against the
-    # ground truth; off -> on with the defaults below):
-    # - redkitchen, map from every 10th frame (1000 frames): points 10971 -> 4590, descriptors
-    #   110k -> 179k; median error 0.47 -> 0.36 cm, mean 0.68 -> 0.48 cm; within 5 cm / 5 deg
-    #   96.7% -> 99.8%; localized 97.2% -> 100%; wrong poses 1 -> 0; median inliers 49 -> 70;
-    #   matched corners' offset from their points' projections at the true pose 1.34 -> 0.80 px.
-    # - synthetic walk (exact model, 120 views, 300 frames): median 0.40 -> 0.27 cm, mean 0.83
-    #   -> 0.56 cm, within 5 cm / 5 deg 96.7% -> 100%; offset 0.66 -> 0.45 px.
-    # - redkitchen every 60th frame (17 images, 300 frames): points 2471 -> 478; localized 89.7%
-    #   -> 100%, within 5 cm / 5 deg 89.0% -> 100%, but median 0.68 -> 0.76 cm: a thin map keeps
-    #   few tracks of three.
-    # - mode "add" (SfM points kept): redkitchen every 10th 15561 points, median 0.34 cm, mean
-    #   0.48 cm, within 99.8%, localized 100%; every 60th 2949 points, median 0.55 cm, mean
-    #   0.72 cm, within 100%, localized 100%: better than off on both. It is not the default
-    #   yet: the per-frame time of a map with ~1.5x the points and ~2x the descriptors was not
-    #   measured on a quiet machine, and the sparse-map warning tests build with the default
-    #   preset. Turn it on with `--config` {"harris_points": {"enabled": true, "mode": "add"}}.
-    # Build time about x5 (the pairwise matching; redkitchen every 10th: 17 -> 85 s loaded).
+    # On in the builder's default preset (mode "add"). Measured (2 cores at load 12-18; the
+    # engine replayed in-process, errors against the ground truth; off -> add):
+    # - redkitchen, map from every 10th frame (1000 frames): points 10971 -> 15561, descriptors
+    #   110k -> 234k; median error 0.47 -> 0.34 cm, mean 0.68 -> 0.48 cm; within 5 cm / 5 deg
+    #   96.7% -> 99.8%; localized 97.2% -> 100%; wrong poses 1 -> 0; median inliers 49 -> 65;
+    #   matched corners' offset from their points' projections at the true pose 1.34 -> 0.84 px;
+    #   CPU per frame x0.85 (300 frames, maps interleaved frame by frame, load 6).
+    # - redkitchen every 60th frame (17 images, 300 frames): points 2471 -> 2949; median 0.68 ->
+    #   0.55 cm, localized 89.7% -> 100%, within 5 cm / 5 deg 89.0% -> 100%; single-image
+    #   relocalization of 40 non-map frames 35 -> 38, 0 wrong.
+    # - synthetic walk (exact model, 120 views, 300 frames): median 0.40 -> 0.33 cm, within 5 cm
+    #   / 5 deg 96.7% -> 98.7%; localized 100% -> 98.7% (4 poses withheld for their covariance,
+    #   frames 80-83, where the off map's poses were 5-12 cm off); flight (same map) median
+    #   0.26 -> 0.27 cm (a tie), mean 0.43 -> 0.35 cm, localized and within 99.7% -> 100%.
+    # Mode "replace" (Harris points only): every 10th 4590 points, median 0.36 cm, within 99.8%;
+    # synthetic walk 0.27 cm, within 100%; but every 60th 478 points, median 0.76 cm: a thin map
+    # keeps few tracks of three views.
+    # The stage adds about 30 s per 100 images of 640x480 (the pairwise matching).
     enabled: bool = False
-    # "replace": the map's points are the Harris points only; "add": SfM points are kept too.
-    mode: Literal["replace", "add"] = "replace"
+    # "add": beside the SfM points (a corner goes to the nearest projection, so the Harris
+    # point takes the descriptors at its corner); "replace": the Harris points only.
+    mode: Literal["replace", "add"] = "add"
     neighbors: int = 8  # images matched with each image (most shared SfM points first)
     min_shared_points: int = 10  # a pair must share this many SfM points
     max_corners: int = 4000  # strongest corners per image

@@ -64,8 +64,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--stride", type=int, default=1, help="posed/images-only inputs: use every N-th image (default 1)")
     p.add_argument(
         "--preset", default="default",
-        help="builder preset: default (2 octaves down, 2 sub-octaves up, points refined), paper (the paper's "
-        "map exactly), fast, dense (default: default)",
+        help="builder preset: default (2 octaves down, 2 sub-octaves up, points refined, Harris-corner "
+        "points added to the SfM points), paper (the paper's map exactly), fast (SfM points only), dense "
+        "(default: default)",
     )
     p.add_argument("--sfm-preset", default="default", help="SfM preset: default, fast, accurate (default: default)")
     p.add_argument(
