@@ -66,3 +66,29 @@ def test_reliability_tiny_run_computes_every_field(world, tmp_path):
     lines = rel.table(res)
     assert any(line.startswith("fuzz: crashes / hangs") for line in lines)
     assert any(line.startswith("bundle: refused by verify / load") for line in lines)
+
+
+def test_reliability_reloc_part_computes_every_field(world, tmp_path):
+    """The isolation part (issue 16): streams alone, then beside Relocalize callers."""
+    from sfmloc.bench import reliability as rel
+    from sfmloc.map.bundle import MapBundle
+
+    w = rel.World(maps_dir=world.maps_dir, camera=world.camera_spec, gray=world.gray,
+                  gt_cam_from_world=[np.asarray(g.matrix()) for g in world.gt_cam_from_world],
+                  scene_scale=MapBundle(world.maps_dir / "room", verify=False).scene_scale)
+    images = rel.reloc_images(w, 256)
+    assert [(k, e) for k, e, _, _ in images] == [("blank", "png"), ("textured", "jpeg")]
+    assert all(c.split()[1:3] == ["256", "256"] for *_, c in images)
+    args = rel.parser().parse_args([
+        "--parts", "reloc", "--clients", "1", "--reloc-callers", "1", "--reloc-rate", "5",
+        "--reloc-duration", "3", "--reloc-side", "1024", "--baseline", "1.5",
+        "--work", str(tmp_path)])
+    res = rel.run(args, world=w)
+    r = res["reloc"]
+    assert r["server_alive"] and r["clients"] == 1 and r["side"] == 1024
+    assert sum(r["reloc_codes"].values()) >= 1  # the caller got answers (or refusals)
+    for p in (*r["clients_detail"], *r["clients_alone"]):
+        assert p["sent"] >= 1 and p["localized"] <= p["answered"] <= p["sent"]
+    assert 0.0 < r["poses_frac_min_alone"] <= 1.0 and 0.0 <= r["poses_frac_min"] <= 1.0
+    assert r["p99_ms_max_alone"] > 0
+    assert any(line.startswith("reloc: p99 latency") for line in rel.table(res))

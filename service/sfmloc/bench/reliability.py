@@ -1,8 +1,9 @@
-"""The ``reliability`` measurement (issues 12 and 16): bad input, dying workers, edited bundles.
+"""The ``reliability`` measurement (issues 12 and 16): bad input, dying workers, edited bundles,
+streams beside saturated relocalization.
 
     python -m sfmloc.bench.reliability [--fuzz N] [--kills K] [--clients M] [--json OUT]
 
-Three parts, each bounded in count and time, against a real ``sfmloc serve`` subprocess on
+Four parts, each bounded in count and time, against a real ``sfmloc serve`` subprocess on
 loopback (Zenoh peer mode, no multicast) holding a small synthetic map with exact ground truth
 (rendered with ``sfmloc.synth``, built once under ``--work``):
 
@@ -19,6 +20,12 @@ loopback (Zenoh peer mode, no multicast) holding a small synthetic map with exac
 ``bundle``   one-byte flips (byte XOR 0xFF) of every file of a bundle (all positions of small
              files, a sample of larger ones): each must be refused by ``verify_bundle`` (what
              ``sfmloc map verify`` runs) and by ``MapBundle`` loading; a few by the CLI itself.
+
+``reloc``    (not in the default parts) M clients streaming at R Hz, first alone, then while
+             callers send 4096x4096 images (a blank PNG, a textured JPEG) to Relocalize back to
+             back: each client's poses per frame sent and p99 latency, beside its value alone.
+             ``--redkitchen DIR`` streams the real frames against the built kitchen bundle;
+             ``--server-arg=--relocalize-workers=0`` measures without the relocalization lane.
 
 Nothing here asserts the targets: the table shows measured values beside them.
 """
@@ -64,10 +71,12 @@ class World:
     gray: list[np.ndarray]
     gt_cam_from_world: list[np.ndarray]  # 4x4 per frame
     scene_scale: float
+    name: str = MAP  # the map's name in maps_dir
+
 
     @property
     def bundle(self) -> Path:
-        return self.maps_dir / MAP
+        return self.maps_dir / self.name
 
 
 def prepare(work: Path, n_frames: int = 60, mapping_views: int = 40) -> World:
@@ -103,6 +112,31 @@ def prepare(work: Path, n_frames: int = 60, mapping_views: int = 40) -> World:
         gray=[cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) for f in frames],
         gt_cam_from_world=[np.asarray(gt[f.stem].matrix()) for f in frames],
         scene_scale=MapBundle(maps_dir / MAP, verify=False).scene_scale,
+    )
+
+
+def prepare_redkitchen(maps_dir: Path, frames_dir: Path, n_frames: int = 150,
+                       name: str = "redkitchen") -> World:
+    """A built redkitchen bundle (``maps_dir/name``) and its first ``n_frames`` frames with the
+    pseudo ground truth (``pgt_sfm_seq01.txt``) instead of the synthetic room."""
+    import cv2
+
+    from ..cameras import Camera
+    from ..io.poses import read_poses
+    from ..map.bundle import MapBundle
+
+    bundle = MapBundle(Path(maps_dir) / name, verify=False)
+    frames = sorted(Path(frames_dir).glob("frame-*.color.jpg"))[:n_frames]
+    if not frames:
+        raise FileNotFoundError(f"no frame-*.color.jpg in {frames_dir}")
+    gt = read_poses(Path(frames_dir) / "pgt_sfm_seq01.txt").by_stem()
+    cam: Camera = bundle.cameras[0]
+    return World(
+        maps_dir=Path(maps_dir),
+        camera=f"PINHOLE {cam.width} {cam.height} " + " ".join(repr(float(p)) for p in cam.params),
+        gray=[cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) for f in frames],
+        gt_cam_from_world=[np.asarray(gt[f.stem].matrix()) for f in frames],
+        scene_scale=bundle.scene_scale, name=name,
     )
 
 
@@ -257,8 +291,8 @@ class StreamClient(threading.Thread):
         n = len(self.world.gray)
         conf = make_zenoh_config("peer", connect=[self.endpoint], multicast=False)
         with zenoh.open(conf) as z, \
-                PoseSubscriber(z, MAP, self.log.client_id, callback=self._on_pose), \
-                FrameStreamer(z, MAP, self.log.client_id, cam, encoding="gray8") as fs:
+                PoseSubscriber(z, self.world.name, self.log.client_id, callback=self._on_pose), \
+                FrameStreamer(z, self.world.name, self.log.client_id, cam, encoding="gray8") as fs:
             if not fs.wait_for_server(30):
                 raise RuntimeError("no server subscribed to the frames")
             self.ready.set()
@@ -293,6 +327,7 @@ class StreamClient(threading.Thread):
             answered = sum(q in lg.answered for q in seqs)
             wrong = [d for d in lg.wrong_detail if d[0] in set(seqs)]
             localized = sum(q in lg.localized for q in seqs)
+            lat = [1e3 * (lg.answered[q] - lg.sent[q]) for q in seqs if q in lg.answered]
         dropped = max(0, max(within, default=0) - max(before, default=0))
         marks = [t0, *times, t1]
         gap = max((b - a for a, b in zip(marks, marks[1:])), default=float("nan"))
@@ -302,6 +337,8 @@ class StreamClient(threading.Thread):
             "localized": localized, "errors": dict(lg.errors), "wrong": len(wrong),
             "wrong_detail": wrong[:20],
             "duplicates": lg.duplicates, "max_gap_s": gap, "failure": self.failure,
+            "latency_ms_p50": float(np.percentile(lat, 50)) if lat else float("nan"),
+            "latency_ms_p99": float(np.percentile(lat, 99)) if lat else float("nan"),
         }
 
 
@@ -628,6 +665,111 @@ def run_kill(world: World, kills: int, clients: int, rate_hz: float, interval_s:
         "clients_detail": per,
     }
 
+# ============================================================================ part: reloc
+def reloc_images(world: World, side: int = 4096) -> list[tuple[str, str, bytes, str]]:
+    """(kind, encoding, bytes, camera) of ``side`` x ``side`` Relocalize requests: a blank PNG
+    (no keypoint: the cheapest to refuse, the largest to decode) and a textured JPEG (the
+    first frame scaled up: keypoints everywhere, the costliest to describe)."""
+    import cv2
+
+    w, h, fx, fy, cx, cy = (float(v) for v in world.camera.split()[1:7])
+    s = side / w
+    cam = f"PINHOLE {side} {side} {fx * s!r} {fy * s!r} {cx * s!r} {side / 2!r}"
+    blank = cv2.imencode(".png", np.full((side, side), 128, np.uint8))[1].tobytes()
+    big = cv2.resize(world.gray[0], (side, side), interpolation=cv2.INTER_LINEAR)
+    textured = cv2.imencode(".jpg", big, [cv2.IMWRITE_JPEG_QUALITY, 90])[1].tobytes()
+    return [("blank", "png", blank, cam), ("textured", "jpeg", textured, cam)]
+
+
+class RelocCaller(threading.Thread):
+    """Relocalize calls back to back (blank and textured in turn) until ``stop``."""
+
+    def __init__(self, world: World, grpc_addr: str, images: list, stop: threading.Event,
+                 deadline_s: float, offset: int = 0) -> None:
+        super().__init__(daemon=True)
+        self.world, self.addr, self.images, self.stop_ev = world, grpc_addr, images, stop
+        self.deadline_s, self.k = deadline_s, offset
+        self.codes: Counter = Counter()
+        self.ms: dict[str, list[float]] = {kind: [] for kind, *_ in images}
+
+    def run(self) -> None:
+        from sfmloc_client import CameraSpec, LocalizationClient
+        from sfmloc_client.errors import SfmlocError
+
+        with LocalizationClient(self.addr, timeout=self.deadline_s) as c:
+            while not self.stop_ev.is_set():
+                kind, enc, data, cam = self.images[self.k % len(self.images)]
+                self.k += 1
+                t0 = time.monotonic()
+                try:
+                    p = c.relocalize(data, self.world.name, CameraSpec.parse(cam), encoding=enc)
+                    self.codes[f"OK {p.status}"] += 1
+                except SfmlocError as exc:
+                    self.codes[exc.code] += 1
+                    if exc.code == "RESOURCE_EXHAUSTED":
+                        self.stop_ev.wait(0.05)  # refused at once: do not spin
+                self.ms[kind].append((time.monotonic() - t0) * 1e3)
+
+
+def run_reloc(world: World, clients: int, rate_hz: float, callers: int, duration_s: float,
+              workers: int, baseline_s: float, deadline_s: float,
+              extra: tuple[str, ...] = (), side: int = 4096) -> dict:
+    """``clients`` streams at ``rate_hz``: ``baseline_s`` alone, then ``duration_s`` while
+    ``callers`` saturate Relocalize with ``side`` x ``side`` images (issue 16's isolation
+    target: 4096)."""
+    stop, stop_callers = threading.Event(), threading.Event()
+    images = reloc_images(world, side)
+    with Server(world, workers, extra) as srv:
+        cl = [StreamClient(world, srv.sp.endpoint, f"reloc-client-{i}", stop, rate_hz=rate_hz)
+              for i in range(clients)]
+        for c in cl:
+            c.start()
+        for c in cl:
+            c.ready.wait(60)
+        time.sleep(2.0)  # warm up: every session tracking
+        tb = time.monotonic()
+        _log(f"reloc: {clients} streams alone for {baseline_s:g} s")
+        time.sleep(baseline_s)
+        t0 = time.monotonic()
+        rc = [RelocCaller(world, srv.sp.grpc, images, stop_callers, deadline_s, offset=i)
+              for i in range(callers)]
+        for r in rc:
+            r.start()
+        _log(f"reloc: {clients} streams beside {callers} Relocalize callers for {duration_s:g} s")
+        time.sleep(duration_s)
+        t1 = time.monotonic()
+        stop_callers.set()
+        stop.set()
+        for c in cl:
+            c.join(10)
+        for r in rc:
+            r.join(deadline_s + 5)
+        alive = srv.alive()
+    base = [c.summary(tb, t0) for c in cl]
+    per = [c.summary(t0, t1) for c in cl]
+    codes: Counter = Counter()
+    ms: dict[str, list[float]] = {}
+    for r in rc:
+        codes.update(r.codes)
+        for kind, v in r.ms.items():
+            ms.setdefault(kind, []).extend(v)
+
+    def frac(p: dict) -> float:
+        return p["localized"] / max(1, p["sent"])
+
+    return {
+        "clients": clients, "rate_hz": rate_hz, "callers": callers, "server_alive": alive,
+        "side": side, "map": world.name, "baseline_s": baseline_s, "duration_s": duration_s,
+        "poses_frac_min": min(frac(p) for p in per), "poses_frac_min_alone":
+            min(frac(p) for p in base),
+        "p99_ms_max": max(p["latency_ms_p99"] for p in per),
+        "p99_ms_max_alone": max(p["latency_ms_p99"] for p in base),
+        "reloc_codes": dict(codes),
+        "reloc_ms_p50": {k: float(np.percentile(v, 50)) for k, v in ms.items() if v},
+        "reloc_ms_max": {k: float(np.max(v)) for k, v in ms.items() if v},
+        "clients_detail": per, "clients_alone": base,
+    }
+
 
 def _totals(per: list[dict]) -> dict:
     keys = ("sent", "answered", "dropped_stale", "unanswered", "localized", "duplicates", "wrong")
@@ -746,6 +888,23 @@ def table(res: dict) -> list[str]:
             ("kill: zombies 1 s after a kill (max)", str(k["zombies_after_1s_max"]), "0"),
             ("kill: worker restarts seen", str(k["restarts"]), f"{k['kills']}"),
         ]
+    r = res.get("reloc")
+    if r:
+        rows += [
+            ("reloc: streams beside Relocalize", f"{r['clients']} clients at {r['rate_hz']:g} Hz "
+             f"({r['map']}), {r['callers']} callers of {r['side']}x{r['side']}",
+             "4 at 15 Hz, 2 callers of 4096x4096"),
+            ("reloc: poses / frames sent (worst client)", f"{100 * r['poses_frac_min']:.1f}% "
+             f"(alone {100 * r['poses_frac_min_alone']:.1f}%)", ">= 95%"),
+            ("reloc: p99 latency (worst client)", f"{r['p99_ms_max']:.0f} ms (alone "
+             f"{r['p99_ms_max_alone']:.0f} ms: x{r['p99_ms_max'] / r['p99_ms_max_alone']:.2f})",
+             "<= x2 alone"),
+            ("reloc: Relocalize answers", ", ".join(f"{k} {v}" for k, v in
+                                                    sorted(r["reloc_codes"].items())), "-"),
+            ("reloc: Relocalize ms p50 (max)", ", ".join(
+                f"{k} {v:.0f} ({r['reloc_ms_max'][k]:.0f})"
+                for k, v in r["reloc_ms_p50"].items()), "-"),
+        ]
     b = res.get("bundle")
     if b:
         rows += [
@@ -769,6 +928,8 @@ def run(args: argparse.Namespace, world: World | None = None) -> dict:
     pin_threads_env()
     t0 = time.monotonic()
     load0 = os.getloadavg()
+    if world is None and args.redkitchen:
+        world = prepare_redkitchen(Path(args.redkitchen_maps), Path(args.redkitchen))
     world = world or prepare(Path(args.work))
     res: dict[str, Any] = {"command": " ".join(sys.argv), "load_start": load0}
     parts = set(args.parts.split(","))
@@ -780,6 +941,11 @@ def run(args: argparse.Namespace, world: World | None = None) -> dict:
         _log(f"kill: {args.kills} kills under {args.clients} clients")
         res["kill"] = run_kill(world, args.kills, args.clients, args.rate, args.interval,
                                args.workers, args.baseline)
+    if "reloc" in parts:
+        _log(f"reloc: {args.clients} clients beside {args.reloc_callers} Relocalize callers")
+        res["reloc"] = run_reloc(world, args.clients, args.reloc_rate, args.reloc_callers,
+                                 args.reloc_duration, args.workers, args.baseline, args.deadline,
+                                 tuple(args.server_arg), args.reloc_side)
     if "bundle" in parts:
         res["bundle"] = run_bundle(world, Path(args.work), args.flips_per_file,
                                    args.cli_checks, args.seed, args.every_byte_under,
@@ -795,7 +961,8 @@ def parser() -> argparse.ArgumentParser:
         description=__doc__.split("\n\n", 2)[2] if __doc__ else None,
         formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--parts", default="fuzz,kill,bundle",
-                   help="comma-separated parts to run (default: fuzz,kill,bundle)")
+                   help="comma-separated parts to run: fuzz, kill, bundle, reloc (default: "
+                   "fuzz,kill,bundle)")
     p.add_argument("--work", default="/tmp/sfmloc-reliability",
                    help="where the synthetic map is built and reused (default: %(default)s)")
     p.add_argument("--fuzz", type=int, default=20_000, help="fuzz inputs (default %(default)s; "
@@ -831,6 +998,24 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--cli-checks", type=int, default=1,
                    help="flips per file also checked with `sfmloc map verify` (default "
                    "%(default)s)")
+    p.add_argument("--reloc-callers", type=int, default=2,
+                   help="reloc part: callers sending 4096x4096 images to Relocalize back to back "
+                   "(default %(default)s)")
+    p.add_argument("--reloc-rate", type=float, default=15.0,
+                   help="reloc part: frames per second per streaming client (default %(default)s)")
+    p.add_argument("--reloc-side", type=int, default=4096,
+                   help="reloc part: width and height of the Relocalize images (default "
+                   "%(default)s)")
+    p.add_argument("--reloc-duration", type=float, default=20.0,
+                   help="reloc part: seconds of streaming beside the callers (default %(default)s)")
+    p.add_argument("--server-arg", action="append", default=[],
+                   help="extra `sfmloc serve` argument for the reloc part (repeatable), e.g. "
+                   "--server-arg=--relocalize-workers=0")
+    p.add_argument("--redkitchen", default="",
+                   help="stream these redkitchen frames (a folder with pgt_sfm_seq01.txt) "
+                   "instead of the synthetic room; the bundle is --redkitchen-maps/redkitchen")
+    p.add_argument("--redkitchen-maps", default="/tmp/speedsrv/maps",
+                   help="maps folder holding the redkitchen bundle (default %(default)s)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", help="also write the full results to this file")
     return p
