@@ -1,9 +1,9 @@
 """gRPC server interceptors shared by our two services (localization server and builder).
 
-``MalformedRequestInterceptor`` (and ``SyncMalformedRequestInterceptor``): a request that is not a valid protobuf message of the method's
-type ends with INVALID_ARGUMENT and a message saying so. Without it grpc answers such bytes
-with UNKNOWN or INTERNAL (its deserializer raises before any handler of ours runs), which tells
-a client nothing and looks like a server bug.
+``MalformedRequestInterceptor`` (and ``SyncMalformedRequestInterceptor``): a request that is
+not a valid protobuf message of the method's type ends with INVALID_ARGUMENT and a message
+saying so. Without it grpc answers such bytes with UNKNOWN or INTERNAL (its deserializer raises
+before any handler of ours runs), which tells a client nothing and looks like a server bug.
 
 ``ErrorStatusInterceptor`` (grpc.aio) and ``SyncErrorStatusInterceptor`` (grpc's thread-pool
 server, the builder): an exception a handler raises ends the call with the status the one table

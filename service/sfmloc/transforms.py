@@ -2,11 +2,12 @@
 
 The quaternion conventions and conversions are the contract shared with the client
 (``sfmloc_client.rotations``, re-exported here). Names follow pycolmap: a transform
-``tgt_from_src`` maps points in frame ``src`` into frame ``tgt``: ``x_tgt = R @ x_src + t``. ``cam_from_world`` is what COLMAP stores per image (and
-what the ``images.txt`` ``qw qx qy qz tx ty tz`` line means); ``world_from_cam`` is the camera
-pose in the world (TUM files, trajectories). Quaternion element order is always in the name:
-``quat_wxyz`` (COLMAP files) or ``quat_xyzw`` (TUM files, scipy, our wire format). Quaternions
-are returned normalized with a non-negative scalar part.
+``tgt_from_src`` maps points in frame ``src`` into frame ``tgt``: ``x_tgt = R @ x_src + t``.
+``cam_from_world`` is what COLMAP stores per image (and what the ``images.txt`` ``qw qx qy qz
+tx ty tz`` line means); ``world_from_cam`` is the camera pose in the world (TUM files,
+trajectories). Quaternion element order is always in the name: ``quat_wxyz`` (COLMAP files) or
+``quat_xyzw`` (TUM files, scipy, our wire format). Quaternions are returned normalized with a
+non-negative scalar part.
 """
 
 from __future__ import annotations

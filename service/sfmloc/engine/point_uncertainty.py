@@ -11,7 +11,8 @@ query's own ray does not move the projection).
 
 The frame's own residuals already hold each point's independent error; this term stands for
 what they do not show (errors shared by neighbouring points, the map's poses). Its scale,
-``EngineConf.map_noise_px``, is fitted on exact synthetic ground truth (``sfmloc.eval.calibration``).
+``EngineConf.map_noise_px``, is fitted on exact synthetic ground truth
+(``sfmloc.eval.calibration``).
 
 ``PointUncertainty.for_bundle(bundle)`` computes ``kappa = d / sin(theta)`` per point once per
 bundle (cached); ``sigma_px(X, z)`` gives the extra pixel standard deviation of correspondences
