@@ -28,13 +28,16 @@ WRONG_FRACTION = 0.05  # of scene_scale
 WRONG_DEG = 10.0
 
 
-def build_map(work: Path, data: Path, frames: int, stride: int, pairs: str) -> tuple[Path, float]:
+def build_map(work: Path, data: Path, frames: int, stride: int, pairs: str,
+              sfm_over: dict | None = None) -> tuple[Path, float]:
     """The bundle of every ``stride``-th of the first ``frames`` frames, built with
-    ``pair_selection=pairs`` (reused when present); (bundle path, build seconds or 0)."""
+    ``pair_selection=pairs`` and ``sfm_over`` (reused when present); (bundle path, build
+    seconds or 0)."""
     from ..builder import build, sfm
     from ..io.frames import FrameSource
 
-    name = f"rk{frames}-s{stride}-{pairs}"
+    sfm_over = sfm_over or {}
+    name = f"rk{frames}-s{stride}-{pairs}" + "".join(f"-{k}{v}" for k, v in sorted(sfm_over.items()))
     bundle = work / name
     if (bundle / "manifest.json").is_file():
         return bundle, 0.0
@@ -46,7 +49,7 @@ def build_map(work: Path, data: Path, frames: int, stride: int, pairs: str) -> t
             (subset / n).symlink_to((data / n).resolve())
     t0 = time.perf_counter()
     build.main(build.preset("default"), name, work, images=subset, poses=data / REDKITCHEN_POSES,
-               camera=REDKITCHEN_CAMERA, stride=stride, sfm_conf=sfm.sfm_conf(pair_selection=pairs))
+               camera=REDKITCHEN_CAMERA, stride=stride, sfm_conf=sfm.sfm_conf(pair_selection=pairs, **sfm_over))
     return bundle, time.perf_counter() - t0
 
 
@@ -94,16 +97,19 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--strides", type=int, nargs="+", default=[10, 4, 2, 1])
     p.add_argument("--pairs", nargs="+", default=["nearest", "geometric"], help="SfmConf.pair_selection values")
     p.add_argument("--reloc", type=int, default=40)
+    p.add_argument("--sfm", nargs="*", default=[], metavar="KEY=VALUE", help="SfmConf overrides (JSON values)")
     p.add_argument("--build-only", action="store_true")
     p.add_argument("--json", help="append results as JSON lines here")
     a = p.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     work, data = Path(a.work), Path(a.data)
     work.mkdir(parents=True, exist_ok=True)
+    sfm_over = {k: json.loads(v) for k, v in (kv.split("=", 1) for kv in a.sfm)}
     for pairs in a.pairs:
         for stride in a.strides:
-            bundle, secs = build_map(work, data, a.frames, stride, pairs)
-            res = {"pairs": pairs, "stride": stride, "frames": a.frames, "build_s": round(secs)}
+            bundle, secs = build_map(work, data, a.frames, stride, pairs, sfm_over)
+            res = {"pairs": pairs, "sfm": sfm_over, "stride": stride, "frames": a.frames,
+                   "build_s": round(secs)}
             if not a.build_only:
                 res.update(evaluate(bundle, data, a.frames, a.reloc))
             print(json.dumps(res), flush=True)
