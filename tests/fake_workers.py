@@ -44,6 +44,7 @@ class FakeWorkers:
         self.received: list[tuple[int, int, P.Message]] = []  # (index, incarnation, message)
         self.hold_start: dict[tuple[int, int], threading.Event] = {}  # wait before "ready"
         self.hold_load: dict[tuple[int, int], threading.Event] = {}  # wait before answering loads
+        self.hold_reloc: threading.Event | None = None  # a "hold" relocalization waits on it
 
     def __call__(self, conn: Any, index: int, *_: Any) -> None:
         with self.cond:
@@ -83,6 +84,8 @@ class FakeWorkers:
             elif isinstance(msg, P.Relocalize):
                 if msg.encoding == "die":
                     return
+                if msg.encoding == "hold" and self.hold_reloc is not None:
+                    self.hold_reloc.wait(60)
                 P.TO_SERVER.send(conn, P.RelocResult(msg.req, pose("RELOCALIZED"), None, 2.0))
 
     def messages(self, index: int, incarnation: int, kind: type) -> list[Any]:

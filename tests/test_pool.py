@@ -4,11 +4,12 @@ real socket pairs, no engine): requests and answers, worker loss and the restart
 from __future__ import annotations
 
 import threading
+import time
 
 import pytest
 
 from fake_workers import FakeWorkers
-from sfmloc.errors import UnavailableError
+from sfmloc.errors import DeadlineExceededError, UnavailableError
 from sfmloc.server import protocol as P
 from sfmloc.server.pool import WorkerPool
 
@@ -18,7 +19,7 @@ CAM = ("PINHOLE", 64, 48, (50.0, 50.0, 32.0, 24.0))
 class _Pool:
     """A started pool of thread workers running ``FakeWorkers``, with its callbacks as events."""
 
-    def __init__(self, n: int = 2) -> None:
+    def __init__(self, n: int = 2, reloc_workers: int = 0) -> None:
         self.fake = FakeWorkers()
         self.results: list[P.Result] = []
         self.dead: list[int] = []
@@ -26,7 +27,8 @@ class _Pool:
         self.died = threading.Event()
         self.got_result = threading.Condition()
         self.pool = WorkerPool(n, "thread", "{}", on_result=self._on_result, on_dead=self._on_dead,
-                               on_lost=lambda i: self.restarted.set(), thread_target=self.fake)
+                               on_lost=lambda i: self.restarted.set(), thread_target=self.fake,
+                               reloc_workers=reloc_workers)
         self.pool.start(timeout=30)
 
     def _on_result(self, r: P.Result) -> None:
@@ -71,7 +73,7 @@ def test_load_reaches_every_worker_and_relocalize_answers_with_its_pose(fp):
     assert s.build_id == "build-1" and s.index_in_place
     for i in range(2):
         assert [(m.name, m.gen, m.path) for m in fp.fake.messages(i, 1, P.Load)] == [("a", 1, "/maps/a")]
-    r = fp.pool.relocalize(P.Relocalize(0, "a", 1, CAM, "gray8", None, b"img")).result(30)
+    r = fp.pool.relocalize(P.Relocalize(0, "a", 1, CAM, "gray8", None, data=b"img")).result(30)
     assert isinstance(r, P.RelocResult) and r.pose.status == "RELOCALIZED"
     fp.pool.drop_map("a", 1)
     assert fp.fake.wait_for(lambda: all(fp.fake.messages(i, 1, P.Drop) for i in range(2)))
@@ -118,9 +120,37 @@ def test_stop_reaches_a_replacement_that_is_still_reloading(fp):
 
 
 def test_a_relocalization_in_a_worker_that_dies_fails_with_unavailable(fp):
-    fut = fp.pool.relocalize(P.Relocalize(0, "a", 1, CAM, "die", None, b""))
+    fut = fp.pool.relocalize(P.Relocalize(0, "a", 1, CAM, "die", None, data=b""))
     with pytest.raises(UnavailableError, match="died"):
         fut.result(30)
     assert fp.died.is_set() and fp.restarted.wait(30)
-    ok = fp.pool.relocalize(P.Relocalize(0, "a", 1, CAM, "gray8", None, b"img")).result(30)
+    ok = fp.pool.relocalize(P.Relocalize(0, "a", 1, CAM, "gray8", None, data=b"img")).result(30)
     assert ok.pose.status == "RELOCALIZED"
+
+
+def test_relocalizations_wait_for_an_idle_lane_worker_and_dropped_ones_never_reach_it():
+    """Issue 16: with a relocalization lane, requests wait in the pool (not in the worker's
+    socket), one per lane worker at a time; one cancelled by its caller, or whose deadline
+    passed while it waited, is dropped before any work."""
+    fp = _Pool(n=1, reloc_workers=1)
+    try:
+        fp.fake.hold_reloc = gate = threading.Event()
+        first = fp.pool.relocalize(P.Relocalize(0, "a", 1, CAM, "hold", None, data=b"x"))
+        assert fp.fake.wait_for(lambda: len(fp.fake.messages(1, 1, P.Relocalize)) == 1)
+        cancelled = fp.pool.relocalize(P.Relocalize(0, "a", 1, CAM, "gray8", None, data=b"x"))
+        expired = fp.pool.relocalize(P.Relocalize(0, "a", 1, CAM, "gray8", None,
+                                                  deadline=time.monotonic(), data=b"x"))
+        last = fp.pool.relocalize(P.Relocalize(0, "a", 1, CAM, "gray8", None, data=b"x"))
+        assert cancelled.cancel()
+        assert len(fp.fake.messages(1, 1, P.Relocalize)) == 1  # the others wait in the pool
+        gate.set()
+        assert first.result(30).pose.status == "RELOCALIZED"
+        assert last.result(30).pose.status == "RELOCALIZED"
+        with pytest.raises(DeadlineExceededError, match="deadline passed while"):
+            expired.result(30)
+        assert len(fp.fake.messages(1, 1, P.Relocalize)) == 2  # first and last only
+        assert not fp.fake.messages(0, 1, P.Relocalize)  # never on the stream worker
+        assert fp.pool.wait_for(lambda: fp.pool._reloc_pending == 0, 30)
+    finally:
+        fp.fake.hold_reloc = None
+        fp.pool.stop(timeout=10)

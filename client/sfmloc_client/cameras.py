@@ -42,6 +42,9 @@ def _side(v: Any, name: str) -> int:
     return int(v)
 
 
+MIN_FOCAL_PER_SIDE = 1e-3
+
+
 def check_camera(model: Any, width: Any, height: Any, params: Any) -> CameraFields:
     """``(model, width, height, params)`` validated: a known model (any case), the model's
     number of finite parameters, a size in 1..MAX_IMAGE_SIDE and a positive focal length;
@@ -73,6 +76,12 @@ def check_camera(model: Any, width: Any, height: Any, params: Any) -> CameraFiel
     fx, fy = (values[0], values[0]) if model in SINGLE_FOCAL_MODELS else values[:2]
     if fx <= 0 or fy <= 0:
         raise CameraModelError(f"focal length must be positive, got {fx}, {fy}")
+    # Below this a pinhole image would span more than 179.9 degrees: no camera, and a focal
+    # of 1e-300 px made the engine divide by zero (INTERNAL; issue 16).
+    if min(fx, fy) < MIN_FOCAL_PER_SIDE * max(w, h):
+        raise CameraModelError(
+            f"focal length {min(fx, fy):g} px is too small for a {w}x{h} image (at least "
+            f"{MIN_FOCAL_PER_SIDE:g} x its larger side, {MIN_FOCAL_PER_SIDE * max(w, h):g} px)")
     return model, w, h, values
 
 

@@ -17,6 +17,7 @@ PERMISSION_DENIED = "PERMISSION_DENIED"
 RESOURCE_EXHAUSTED = "RESOURCE_EXHAUSTED"
 FAILED_PRECONDITION = "FAILED_PRECONDITION"
 UNAVAILABLE = "UNAVAILABLE"
+DEADLINE_EXCEEDED = "DEADLINE_EXCEEDED"
 INTERNAL = "INTERNAL"
 
 
@@ -94,6 +95,10 @@ class OverloadError(SfmlocError):
     """The server is at capacity and rejects new work."""
 
 
+class DeadlineExceededError(SfmlocError):
+    """The caller's deadline passed before the work started (the work was dropped)."""
+
+
 class UnavailableError(SfmlocError):
     """The server cannot do this now (shutting down, a worker restarting); retry later."""
 
@@ -133,6 +138,7 @@ STATUS_TABLE: tuple[tuple[type[BaseException], str], ...] = (
     (PermissionDeniedError, PERMISSION_DENIED),
     (BundleError, FAILED_PRECONDITION),
     (UnavailableError, UNAVAILABLE),
+    (DeadlineExceededError, DEADLINE_EXCEEDED),
     (InputError, INVALID_ARGUMENT),  # wire, camera, image, model file
     (ConfigError, INVALID_ARGUMENT),
     (BuildError, FAILED_PRECONDITION),

@@ -4,6 +4,8 @@ single image), and ``relocalize``, the stateless single-image query."""
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from ..cameras import Camera
@@ -19,6 +21,20 @@ from .pose import PoseEstimate, estimate_pose, estimate_pose_one_to_many, projec
 from .timing import StageTimer
 from .tracker import map_subpixel
 from .types import FrameResult, Matching, Status
+
+
+class _OutOfTime(Exception):
+    """The time budget ran out after ``stage`` (caught in ``relocalize``: a LOST result)."""
+
+    def __init__(self, stage: str) -> None:
+        super().__init__(stage)
+        self.stage = stage
+
+
+def check_deadline(deadline: float | None, stage: str) -> None:
+    """Between stages: past ``deadline`` (``time.monotonic()``), stop after ``stage``."""
+    if deadline is not None and time.monotonic() > deadline:
+        raise _OutOfTime(stage)
 
 
 def map_working_scale(camera: Camera, bundle: MapBundle, conf: EngineConf) -> float:
@@ -49,12 +65,13 @@ def visible_points(camera: Camera, cam_from_world: Rigid3d, points_xyz: np.ndarr
 
 def pose_from_global(
     desc: np.ndarray, xy_u: np.ndarray, bundle: MapBundle, camera: Camera, conf: EngineConf,
-    neighbours: tuple[np.ndarray, np.ndarray] | None = None,
+    neighbours: tuple[np.ndarray, np.ndarray] | None = None, deadline: float | None = None,
 ) -> tuple[PoseEstimate, np.ndarray, np.ndarray, np.ndarray] | None:
     """GLOBAL-MATCHING + one-to-many RANSAC: (pose, inlier keypoints, their points, every
     keypoint's hypotheses), or None. ``neighbours``: the search of ``desc`` over the whole map,
-    when already made (``matching.search_all``)."""
+    when already made (``matching.search_all``). ``deadline``: see ``relocalize``."""
     gm = global_matching(desc, bundle, conf, neighbours)
+    check_deadline(deadline, "search")
     if len(gm.set1_q) < 3:
         return None
     K = camera.K
@@ -69,6 +86,7 @@ def pose_from_global(
     if res is None:
         return None
     est, chosen = res
+    check_deadline(deadline, "RANSAC")
     if conf.global_verify:
         # Guided matching of the whole frame around the RANSAC pose (scope: the map points it
         # makes visible). A right pose gathers the matches the ratio test dropped; a chance one
@@ -140,24 +158,46 @@ def relocalize(
     bundle: MapBundle,
     conf: EngineConf | None = None,
     prior: Rigid3d | None = None,
+    deadline: float | None = None,
 ) -> FrameResult:
     """Localize a single image from scratch (stateless). With a ``prior`` (cam_from_world),
     the search is scoped to the database images that see the points the prior sees, and
     matches are verified against it, as in guided matching; without a pose from the scoped
-    search it falls back to global matching."""
+    search it falls back to global matching.
+
+    ``deadline`` (``time.monotonic()``): checked between stages (image preparation, detection,
+    description, search, RANSAC); past it the result is LOST, its message saying "time budget
+    exceeded" and after which stage (a huge image or absurd intrinsics cannot hold a worker
+    for seconds: issue 16)."""
     conf = conf or EngineConf()
     timer = StageTimer()
+    try:
+        return _relocalize(image, camera, bundle, conf, prior, deadline, timer)
+    except _OutOfTime as exc:
+        result = FrameResult(Status.LOST, 0.0, matching=Matching.GLOBAL)
+        result.message = f"time budget exceeded after {exc.stage}"
+        result.timings_ms = timer.total()
+        return result
+
+
+def _relocalize(
+    image: np.ndarray, camera: Camera, bundle: MapBundle, conf: EngineConf,
+    prior: Rigid3d | None, deadline: float | None, timer: StageTimer,
+) -> FrameResult:
+    check_deadline(deadline, "decoding")
     gray = to_gray(image, camera)
     # A fine image is described at about the map's resolution (see ``Localizer``); the pose
     # does not depend on the scaling of the intrinsics.
     scale = map_working_scale(camera, bundle, conf)
     if scale != 1.0:
         gray, camera = to_working(gray, scale), camera.scaled(scale)
+    check_deadline(deadline, "image preparation")
     corners = detect_corners(
         gray, rel_threshold=conf.gamma, max_corners=conf.global_max_keypoints,
         border=conf.mu // 2, subpixel=map_subpixel(conf, bundle.manifest.params),
     )
     timer.lap("detect")
+    check_deadline(deadline, "detection")
     result = FrameResult(Status.LOST, 0.0, detected=len(corners), matching=Matching.GLOBAL)
     if len(corners) < conf.min_inliers:
         result.timings_ms = timer.total()
@@ -167,12 +207,14 @@ def relocalize(
     prepared = extractor.prepare(gray)
     xy_u = camera.undistort_points(corners.xy) if camera.is_distorted else corners.xy
     desc = describe(extractor, bundle, prepared, corners.xy)
+    check_deadline(deadline, "description")
     est = None
     if prior is not None:
         near = match_near_prior(desc, xy_u, bundle, camera, conf, prior)
         est = None if near is None else near[0]
+        check_deadline(deadline, "the search near the prior")
     if est is None:
-        res = pose_from_global(desc, xy_u, bundle, camera, conf)
+        res = pose_from_global(desc, xy_u, bundle, camera, conf, deadline=deadline)
         est = None if res is None else res[0]
     timer.lap("reloc")
     if est is not None:

@@ -89,6 +89,8 @@ class Server:
             sessions=self.sessions, registry=self.registry, pool=self.pool, metrics=self.metrics,
             server_id=self.server_id, map_roots=[conf.maps, *conf.map_roots],
             max_image_pixels=conf.max_image_pixels,
+            max_relocalize_per_client=conf.max_relocalize_per_client,
+            relocalize_budget_ms=conf.relocalize_budget_ms,
         )
         self.metrics.gauges(
             sessions=self.sessions.counts_by_map,

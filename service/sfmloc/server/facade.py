@@ -9,12 +9,14 @@ and hands it to each front end.
 from __future__ import annotations
 
 import asyncio
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
 
 from sfmloc_client.wire import CameraSpec, Frame, PoseMessage, Transform
 
+from ..errors import DeadlineExceededError, OverloadError
 from .maps import MapEntry, MapRegistry, resolve_bundle_path
 from .metrics import ServerMetrics
 from .pool import WorkerPool
@@ -25,7 +27,8 @@ from .sessions import Session, SessionManager, Sink, validate_camera
 class Localization:
     def __init__(self, *, sessions: SessionManager, registry: MapRegistry, pool: WorkerPool,
                  metrics: ServerMetrics, server_id: str, map_roots: list[str | Path],
-                 max_image_pixels: int) -> None:
+                 max_image_pixels: int, max_relocalize_per_client: int = 4,
+                 relocalize_budget_ms: float = 0.0) -> None:
         self._sessions = sessions
         self._registry = registry
         self._pool = pool
@@ -33,6 +36,10 @@ class Localization:
         self._roots = map_roots
         self.server_id = server_id
         self.max_image_pixels = max_image_pixels
+        self.max_relocalize_per_client = max_relocalize_per_client
+        self.relocalize_budget_ms = relocalize_budget_ms
+        self._reloc_by_caller: dict[str, int] = {}  # queued or running, per caller
+        self._reloc_lock = threading.Lock()
 
     # ------------------------------------------------------------------ frames
     def check_camera(self, cam: CameraSpec) -> CameraSpec:
@@ -67,13 +74,32 @@ class Localization:
 
     # ------------------------------------------------------------------ single images
     async def relocalize(self, map_name: str, cam: CameraSpec, encoding: str, data: bytes,
-                         prior: Transform | None = None, t0: float | None = None) -> PoseMessage:
+                         prior: Transform | None = None, t0: float | None = None,
+                         caller: str = "", deadline: float = 0.0) -> PoseMessage:
         """One image, no session, on the relocalization lane (``cam`` checked by the caller;
-        ``t0``: the request's receipt, ``time.perf_counter()``, for its latency)."""
+        ``t0``: the request's receipt, ``time.perf_counter()``, for its latency). ``caller``:
+        who asks (admission: ``max_relocalize_per_client`` at a time); ``deadline``: the
+        caller's, ``time.monotonic()`` (0: none). Cancelling the call drops queued work."""
         t0 = time.perf_counter() if t0 is None else t0
         entry = self._registry.get(map_name)
-        msg = Relocalize(0, entry.name, entry.generation, camera_tuple(cam), encoding, prior, bytes(data))
-        result = await asyncio.wrap_future(self._pool.relocalize(msg))
+        if deadline and time.monotonic() >= deadline:
+            raise DeadlineExceededError("the call's deadline passed before it was queued")
+        msg = Relocalize(0, entry.name, entry.generation, camera_tuple(cam), encoding, prior,
+                         deadline=deadline, budget_ms=self.relocalize_budget_ms, data=bytes(data))
+        with self._reloc_lock:
+            n = self._reloc_by_caller.get(caller, 0)
+            if n >= self.max_relocalize_per_client:
+                raise OverloadError(
+                    f"this caller already has {n} relocalizations queued or running (limit "
+                    f"{self.max_relocalize_per_client}); wait for their answers")
+            self._reloc_by_caller[caller] = n + 1
+        try:
+            result = await asyncio.wrap_future(self._pool.relocalize(msg))
+        finally:
+            with self._reloc_lock:
+                n = self._reloc_by_caller.pop(caller) - 1
+                if n:
+                    self._reloc_by_caller[caller] = n
         pose = pose_message(result.pose, result.error, seq=None, stamp_ns=0, map_name=entry.name,
                             build_id=entry.build_id, server_id=self.server_id,
                             latency_ms=(time.perf_counter() - t0) * 1e3)

@@ -102,7 +102,12 @@ class LocalizationService(pb_grpc.LocalizationServicer):
         prior = None
         if request.HasField("prior_cam_from_world"):
             prior = transform_from_pb(request.prior_cam_from_world, True)
-        pose = await loc.relocalize(request.map, cam, enc, bytes(data), prior, t0=t0)
+        who = caller(self.tokens, context)
+        remaining = context.time_remaining()  # None: the caller set no deadline
+        deadline = 0.0 if remaining is None else time.monotonic() + remaining
+        pose = await loc.relocalize(request.map, cam, enc, bytes(data), prior, t0=t0,
+                                    caller=who.name if who is not None else context.peer(),
+                                    deadline=deadline)
         return pb.RelocalizeResponse(pose=pose_to_estimate_pb(pose))
 
     # ------------------------------------------------------------------ streams

@@ -17,6 +17,7 @@ pickle, and no spawn arguments).
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import itertools
 import logging
@@ -27,12 +28,12 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import Future
+from concurrent.futures import Future, InvalidStateError
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from typing import Any
 
-from ..errors import OverloadError, UnavailableError
+from ..errors import DeadlineExceededError, OverloadError, UnavailableError
 from ..threads import pin_threads_env, single_thread_env
 from . import protocol as P
 from .logfmt import event
@@ -110,6 +111,10 @@ class WorkerPool:
         self._maps: dict[tuple[str, int], tuple[str, str]] = {}  # (name, gen) -> (path, build_id)
         self._stopping = False
         self._reloc_pending = 0
+        # With a relocalization lane, requests wait here (not in a worker's socket) until a
+        # lane worker is idle: one whose caller went away or whose deadline passed meanwhile
+        # is dropped before any work (issue 16).
+        self._reloc_queue: collections.deque[tuple[P.Relocalize, Future]] = collections.deque()
         self.restarts = 0
         self._start_failures = [0] * (n + reloc_workers)  # deaths before "ready", per worker index
         self._maps_version = 0  # bumped by every load/drop (a restart reloads until it is stable)
@@ -240,9 +245,11 @@ class WorkerPool:
             if entry is not None:
                 fut = entry[1]
                 if msg.error is not None:
-                    fut.set_exception(msg.error.exception())
+                    _settle(fut, exc=msg.error.exception())
                 else:
-                    fut.set_result(msg)
+                    _settle(fut, result=msg)
+            if isinstance(msg, P.RelocResult):
+                self._pump_reloc()
         elif isinstance(msg, P.Ready):
             with self._changed:
                 h.pid = msg.pid
@@ -266,7 +273,7 @@ class WorkerPool:
             lost = [r for r, (w, _) in self._futures.items() if w == h.index]
             futures = [self._futures.pop(r)[1] for r in lost]
         for f in futures:
-            f.set_exception(UnavailableError(f"worker {h.index} died; retry"))
+            _settle(f, exc=UnavailableError(f"worker {h.index} died; retry"))
         if self._stopping:
             return
         if started:
@@ -326,6 +333,7 @@ class WorkerPool:
                 return
         for name, gen in stale:
             self._send(new, P.Drop(name, gen))
+        self._pump_reloc()  # relocalizations queued while the lane's worker was restarting
         event(log, logging.INFO, "worker_restarted", worker=h.index, pid=new.pid, maps=len(loaded - stale))
         self.on_lost(h.index)
 
@@ -405,14 +413,28 @@ class WorkerPool:
         self._send(self.workers[worker], P.Close(sid))
 
     def relocalize(self, msg: P.Relocalize) -> Future:
-        """Single-image relocalization on the least busy worker of the relocalization lane
-        (of all workers when it has none). The future gets the ``RelocResult``."""
+        """Single-image relocalization on an idle worker of the relocalization lane (queued
+        until one is; cancel the future to drop it), or, without a lane, on the least busy
+        worker. The future gets the ``RelocResult``."""
         with self._lock:
             pending = self._reloc_pending
             if pending >= self.max_pending_relocalize:
                 raise OverloadError(
                     f"{pending} relocalizations are already queued (limit {self.max_pending_relocalize}); retry later"
                 )
+            if self.reloc_workers:
+                fut: Future = Future()
+                self._reloc_pending += 1
+                if len(self._reloc_queue) > 2 * self.max_pending_relocalize:  # cancelled ones
+                    self._reloc_queue = collections.deque(
+                        e for e in self._reloc_queue if not e[1].done())
+                self._reloc_queue.append((msg, fut))
+                self._changed.notify_all()
+        if self.reloc_workers:
+            fut.add_done_callback(self._reloc_done)
+            self._pump_reloc()
+            return fut
+        with self._lock:
             lane = self.workers[self.n:] or self.workers
             lane = [w for w in lane if w.alive and w.serving] or lane  # a dead one answers at once
             h = min(lane, key=lambda w: (w.inflight, w.index))
@@ -427,19 +449,57 @@ class WorkerPool:
         with self._lock:
             self._reloc_pending -= 1
 
+    def _pump_reloc(self) -> None:
+        """Send queued relocalizations to idle lane workers, one each; drop those whose
+        caller went away (future cancelled) or whose deadline passed while queued."""
+        expired: list[Future] = []
+        with self._lock:
+            while self._reloc_queue:
+                idle = [w for w in self.workers[self.n:]
+                        if w.alive and w.serving and w.inflight == 0]
+                if not idle:
+                    break
+                msg, fut = self._reloc_queue.popleft()
+                if fut.done():  # cancelled by its caller
+                    continue
+                if msg.deadline and time.monotonic() >= msg.deadline:
+                    expired.append(fut)
+                    continue
+                h = idle[0]
+                h.inflight += 1
+                msg.req = next(self._req)
+                self._futures[msg.req] = (h.index, fut)
+                self._send(h, msg)
+        for f in expired:
+            _settle(f, exc=DeadlineExceededError(
+                "the caller's deadline passed while the relocalization was queued"))
+
     def _fail_all(self, exc: Exception) -> None:
         with self._lock:
             futures = [f for _, f in self._futures.values()]
             self._futures.clear()
+        with self._lock:
+            futures += [f for _, f in self._reloc_queue]
+            self._reloc_queue.clear()
         for f in futures:
-            if not f.done():
-                f.set_exception(exc)
+            _settle(f, exc=exc)
 
     def inflight(self) -> list[int]:
         return [h.inflight for h in self.workers]
 
     def busy_ms(self) -> list[float]:
         return [h.busy_ms for h in self.workers]
+
+
+def _settle(fut: Future, result: Any = None, exc: BaseException | None = None) -> None:
+    """Complete ``fut`` unless its caller cancelled it (or it is already done)."""
+    try:
+        if exc is not None:
+            fut.set_exception(exc)
+        else:
+            fut.set_result(result)
+    except InvalidStateError:
+        pass
 
 
 # How a worker process starts: by module path, with the working directory (sys.path[0] of

@@ -194,6 +194,11 @@ class Relocalize(Message):
     camera: CameraTuple
     encoding: str
     prior: Transform | None  # cam_from_world prior, or None
+    # The caller's deadline (time.monotonic(), one clock for every process of the machine; 0:
+    # none): past it the work is dropped before it starts. budget_ms: the most time the work
+    # may take once started (0: no limit), checked between the engine's stages.
+    deadline: float = 0.0
+    budget_ms: float = 0.0
     data: bytes = payload()
 
     def to_wire(self) -> list[Any]:

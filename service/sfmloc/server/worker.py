@@ -200,17 +200,26 @@ class _Worker:
         from ..engine import relocalize
         from ..transforms import Rigid3d
 
+        from ..errors import DeadlineExceededError
+
         t0 = time.perf_counter()
         pose: P.PoseResult | None = None
         error: P.WorkerError | None = None
         try:
+            start = time.monotonic()
+            if m.deadline and start >= m.deadline:
+                raise DeadlineExceededError("the caller's deadline passed before the work started")
+            # The work ends at the budget or at the caller's deadline, whichever comes first.
+            ends = [d for d in (m.deadline, start + m.budget_ms / 1e3 if m.budget_ms else 0) if d]
             bundle = self._bundle(m.map, m.gen)
             cam = self._camera(m.camera)
             img = decode_image(m.encoding, m.data, cam.width, cam.height)
             prior = None
             if m.prior is not None:
                 prior = Rigid3d.from_quat_xyzw(np.asarray(m.prior.quat_xyzw), np.asarray(m.prior.t))
-            pose = P.PoseResult.of(relocalize(img, cam, bundle, self.conf, prior=prior))
+            result = relocalize(img, cam, bundle, self.conf, prior=prior,
+                                deadline=min(ends) if ends else None)
+            pose = P.PoseResult.of(result)
         except Exception as exc:  # noqa: BLE001
             if not _expected(exc):
                 log.exception("worker %d: relocalize failed", self.index)
