@@ -457,6 +457,23 @@ def test_reported_covariance_is_calibrated_on_a_synthetic_video(world, bundle, c
     assert 2.0 < np.mean(centre) < 4.0, np.mean(centre)
 
 
+def test_withholding_judges_the_sd_at_the_upper_bound_of_its_noise_estimate():
+    """With few inliers the pixel noise rests on few residuals: the withholding rule takes the
+    one-sided 95% bound of a chi-square variance estimate with 2N - 6 dof (reference values
+    from scipy.stats.chi2.ppf(0.05, dof)), so a 2.5%-sd pose on 12 inliers is withheld and
+    the same sd on 200 inliers is published; z = 0 is the plain rule."""
+    from sfmloc.engine.certainty import small_sample_factor, withheld
+
+    for n, ref in ((12, 1.3845), (18, 1.2737), (50, 1.1376), (200, 1.0625)):
+        assert abs(small_sample_factor(n, 1.645) - ref) < 2e-3
+    conf = EngineConf()
+    assert conf.max_position_sd == 0.03
+    assert "upper bound 3.5%" in withheld(0.025, 12, conf)
+    assert withheld(0.025, 200, conf) is None
+    assert withheld(0.025, 12, EngineConf(withhold_noise_z=0)) is None
+    assert withheld(0.031, 10_000, EngineConf(withhold_noise_z=0)) is not None
+
+
 def test_unverified_relocalization_and_its_confirmation(world, bundle, cam):
     """A relocalization failing the strict test is UNVERIFIED, and so are the frames tracked
     from it, until one passes the test (then TRACKING); a verified one is RELOCALIZED."""

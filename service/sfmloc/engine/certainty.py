@@ -58,10 +58,21 @@ def position_sd(cov: np.ndarray) -> float:
     return float(np.sqrt(max(np.linalg.eigvalsh(cov[3:, 3:]).max(), 0.0)))
 
 
+def small_sample_factor(inliers: int, z: float) -> float:
+    """How much larger the centre sd may be, at one-sided normal quantile ``z`` (1.645: 95%),
+    given that the pixel noise was estimated from only ``2 * inliers - 6`` residual degrees of
+    freedom: sqrt(dof / chi2 quantile), the quantile by Wilson-Hilferty. 1 for ``z`` = 0."""
+    dof = max(2 * inliers - 6, 1)
+    a = 2.0 / (9.0 * dof)
+    q = dof * max(1.0 - a - z * np.sqrt(a), 1e-3) ** 3
+    return float(np.sqrt(dof / q)) if z > 0 else 1.0
+
+
 def withheld(sd: float, inliers: int, conf: EngineConf) -> str | None:
-    """Why a pose is too uncertain to publish (centre sd over ``max_position_sd`` scene
-    scales), or None when it may be published."""
-    if not sd > conf.max_position_sd:
+    """Why a pose is too uncertain to publish (centre sd, at the upper bound of its noise
+    estimate, over ``max_position_sd`` scene scales), or None when it may be published."""
+    bound = sd * small_sample_factor(inliers, conf.withhold_noise_z)
+    if not bound > conf.max_position_sd:
         return None
-    return (f"pose withheld: centre sd {sd * 100:.1f}% of the scene scale "
-            f"(limit {conf.max_position_sd * 100:.1f}%), {inliers} inliers")
+    return (f"pose withheld: centre sd {sd * 100:.1f}% of the scene scale (upper bound "
+            f"{bound * 100:.1f}%, limit {conf.max_position_sd * 100:.1f}%), {inliers} inliers")

@@ -188,6 +188,13 @@ class EngineConf(StrictModel):
     # (> 5%) had sd 3.7-9.2%; limit 2%: 46 frames withheld (28 of them within 5 cm), 3%: 25
     # (10), 3.5%: 16 (3) with the wrong one at 3.7% close. Synthetic videos peak at 1.2%.
     max_position_sd: float = 0.03
+    # ... judged at the upper bound of the pose's noise estimate (one-sided normal quantile;
+    # 0: the sd as reported): the pixel noise comes from 2N - 6 residuals, and the poses that
+    # calibration cannot catch (a consistent set of wrong matches) have few inliers. Measured
+    # with sfmloc.eval.calibration (wrong poses published / right poses published), z 0 ->
+    # 1.645: redkitchen map every 60th 1/289 -> 0/276, walk at 3 Hz 4/26 -> 3/26, walk on the 6x
+    # map 0/85 -> 0/72 (the previous covariance model with z 0: 0/58 of 120 on an older map).
+    withhold_noise_z: float = 1.645
     # A relocalization is RELOCALIZED (verified) only when its sd is at most this and it has at
     # least ``verified_min_inliers`` inliers, else UNVERIFIED, and the frames tracked from it
     # stay UNVERIFIED until one passes the same test. Redkitchen single-image relocalizations

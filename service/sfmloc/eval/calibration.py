@@ -6,7 +6,8 @@ e^T C^-1 e over the 6 dof (expected 6), the centre alone (expected 3) and the ro
 The replay publishes every pose (``max_position_sd`` = inf: withholding changes a frame's status
 only, never what the tracker does next), so the poses that the default limit would withhold are
 measured too, and the limit can be judged: how many correct poses it withholds, and whether every
-wrong pose (``metrics.wrong_poses``' rule) is among them.
+wrong pose (``metrics.wrong_poses``' rule) is among them. The ``sd_*`` keys are the centre sd
+as that rule judges it (in % of the scene scale, at the bound of its noise estimate).
 
     python -m sfmloc.eval.calibration MAP FRAMES POSES [--fps 30] [--frames 150]
 """
@@ -25,7 +26,7 @@ import numpy as np
 from ..cameras import Camera
 from ..engine import EngineConf
 from ..engine import localizer as localizer_module
-from ..engine.certainty import position_sd
+from ..engine.certainty import position_sd, small_sample_factor
 from ..engine.pose import PoseEstimate, pose_error_vector
 from ..io.frames import FrameSource
 from ..map.bundle import MapBundle, load_bundle
@@ -98,8 +99,12 @@ def replay_samples(
     return out, n
 
 
-def summarize(samples: list[Sample], scene_scale: float, max_position_sd: float) -> dict:
-    """NEES statistics, and what the withholding limit does to right and wrong poses."""
+def summarize(
+    samples: list[Sample], scene_scale: float, max_position_sd: float, noise_z: float = 0.0
+) -> dict:
+    """NEES statistics, and what the withholding rule (``certainty.withheld``: the centre sd at
+    the ``noise_z`` bound of its noise estimate over ``max_position_sd``) does to right and
+    wrong poses."""
     if not samples:
         return {"poses": 0}
     n6, npos, nrot, z, sds, wrong = [], [], [], [], [], []
@@ -112,7 +117,7 @@ def summarize(samples: list[Sample], scene_scale: float, max_position_sd: float)
         R = s.est.rotation
         Cc = R @ C[3:, 3:] @ R.T
         z.append((R @ e[3:]) / np.sqrt(np.diag(Cc)))
-        sds.append(position_sd(C) / scene_scale)
+        sds.append(position_sd(C) / scene_scale * small_sample_factor(s.inliers, noise_z))
         dp, dr = pose_errors(s.est, s.gt)
         wrong.append(dp > WRONG_POSITION_FRACTION * scene_scale or dr > WRONG_ROTATION_DEG)
     n6a, npa, nra = np.array(n6), np.array(npos), np.array(nrot)
@@ -168,7 +173,10 @@ def main(argv: list[str] | None = None) -> int:
     conf = EngineConf(**overrides)
     bundle = load_bundle(a.map)
     samples, frames = replay_samples(bundle, source, camera, gt, conf, n)
-    out = {"frames": frames, **summarize(samples, bundle.scene_scale, conf.max_position_sd)}
+    out = {
+        "frames": frames,
+        **summarize(samples, bundle.scene_scale, conf.max_position_sd, conf.withhold_noise_z),
+    }
     json.dump(out, sys.stdout, indent=1)
     print()
     return 0
