@@ -1,6 +1,6 @@
 """The online localization engine: the paper's Algorithm 1 for one camera.
 
-Plain numpy/OpenCV/scipy/filterpy; no transport imports. The data flow of one frame follows the
+Plain numpy/OpenCV/scipy; no transport imports. The data flow of one frame follows the
 files: ``frame`` (validation) -> ``tracker`` (Harris + BRIEF, TRACK-2D, ADD-GOOD-FEATURES)
 -> ``track_table`` -> ``matching`` (global and guided 2D-to-3D matching) -> ``pose``
 (P3P RANSAC + refinement) -> ``motion_filter`` (Kalman) -> ``certainty`` (covariance, the

@@ -6,7 +6,7 @@ pose ``cam_from_world`` (T) and the camera's velocity as a twist in its own fram
 ``xi = [v, w]`` (translation rate, angular rate): over ``dt`` the pose moves to
 ``exp(dt xi) T``, so a camera that keeps turning while it moves (an orbit, a car taking a bend)
 is predicted along its arc instead of along a straight line with an independently extrapolated
-orientation. The filter is an error-state Kalman filter (filterpy): its 12-vector is
+orientation. The filter is an error-state Kalman filter (``kalman``): its 12-vector is
 ``[delta, xi]`` with ``T_true = exp(delta) T``; a measured pose enters as
 ``z = log(T_meas T^-1)``, and after each update ``delta`` is folded into ``T`` and reset to 0.
 
@@ -26,29 +26,10 @@ matching for the next frame.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 
 from ..transforms import Rigid3d, rotmat_from_rotvec, rotvec_from_rotmat
-
-if TYPE_CHECKING:
-    from filterpy.kalman import KalmanFilter
-
-
-def import_filterpy() -> None:
-    """Import filterpy now. It is imported on first use, not with the engine: filterpy.kalman
-    pulls in scipy.stats (0.5-0.9 s), which the server process, importing the engine only for
-    its config and types, never needs (start to SERVING, issue 16); a worker calls this at
-    start so that its first frame does not pay it."""
-    import filterpy.common  # noqa: F401
-    import filterpy.kalman  # noqa: F401
-
-
-def _kalman_filter(dim_x: int, dim_z: int) -> KalmanFilter:
-    from filterpy.kalman import KalmanFilter
-
-    return KalmanFilter(dim_x=dim_x, dim_z=dim_z)
+from .kalman import KalmanFilter, white_noise_cv
 
 
 def _hat(w: np.ndarray) -> np.ndarray:
@@ -115,7 +96,7 @@ class Se3PoseFilter:
     ) -> None:
         self.scale = _scene_scale(scale)
         self.accel_var = np.array([(accel_noise * scale) ** 2] * 3 + [angular_accel_noise**2] * 3)
-        self.kf = _kalman_filter(12, 6)
+        self.kf = KalmanFilter(12, 6)
         self.kf.H = np.hstack([np.eye(6), np.zeros((6, 6))])
         self.kf.R = np.diag([(position_noise * scale) ** 2] * 3 + [orientation_noise**2] * 3)
         self.T = Rigid3d(np.eye(3), np.zeros(3))  # cam_from_world
@@ -195,7 +176,7 @@ class Se3PoseFilter:
 
 
 def _cv_filter(meas_sigma: float) -> KalmanFilter:
-    kf = _kalman_filter(6, 3)
+    kf = KalmanFilter(6, 3)
     kf.H = np.hstack([np.eye(3), np.zeros((3, 3))])
     kf.R = np.eye(3) * meas_sigma**2
     return kf
@@ -209,11 +190,7 @@ def _transition(dt: float) -> np.ndarray:
 
 def _cv_noise(dt: float, accel_sigma: float) -> np.ndarray:
     # order_by_dim=False: [x y z x' y' z']
-    from filterpy.common import Q_discrete_white_noise
-
-    return Q_discrete_white_noise(
-        dim=2, dt=max(dt, 1e-4), var=accel_sigma**2, block_size=3, order_by_dim=False
-    )
+    return white_noise_cv(max(dt, 1e-4), accel_sigma**2, 3)
 
 
 class DecoupledPoseFilter:

@@ -48,10 +48,7 @@ def worker_main(conn: Any, index: int, engine_conf_json: str, log_level: int, lo
 
         setup_logging(log_format, log_level)
     pin_threads_runtime()  # after the thread environment is set
-    from .. import engine  # noqa: F401 - imported now (scipy, filterpy...), not on the first frame
-    from ..engine.motion_filter import import_filterpy
-
-    import_filterpy()  # the engine imports it on first use (the server process never does)
+    from .. import engine  # noqa: F401 - imported now (scipy, faiss...), not on the first frame
     try:
         _Worker(conn, index, engine_conf_json).run()
     finally:
