@@ -138,3 +138,9 @@ def test_harris_points_switch_builds_a_map_of_harris_points(world):
     rows = np.searchsorted(both.point_ids, sfm_ids)
     assert np.array_equal(both.point_ids[rows], sfm_ids)
     assert np.allclose(both.points_xyz[rows], np.stack([rec.points3D[int(p)].xyz for p in sfm_ids]))
+    # The Harris points' ids never name an SfM point, not even one the front end's filtering
+    # removed (its kept work folder still holds those: the bench's SIFT peer reads it).
+    from sfmloc.builder.harris_points import HARRIS_POINT_ID_BASE
+
+    new = np.setdiff1d(both.point_ids, sfm_ids)
+    assert len(new) == info_add["harris_points"] and new.min() >= HARRIS_POINT_ID_BASE

@@ -51,7 +51,9 @@ class SiftMap:
         cls, workdir: str | Path, point_ids: np.ndarray | None = None, sfm: dict | None = None
     ) -> "SiftMap":
         """Points (restricted to ``point_ids`` when given, in that order) and their observations'
-        descriptors from a kept SfM work folder (``database.db`` + ``sparse/``)."""
+        descriptors from a kept SfM work folder (``database.db`` + ``sparse/``). Ids the folder
+        does not hold are skipped: a bundle's Harris points (``HARRIS_POINT_ID_BASE`` and up)
+        have no SIFT observation, so the peer keeps the points SfM triangulated."""
         import pycolmap
 
         workdir = Path(workdir)
@@ -63,7 +65,11 @@ class SiftMap:
             descs = {int(iid): np.asarray(db.read_descriptors(iid).data, np.uint8) for iid in rec.images}
         finally:
             db.close()
-        ids = np.array(sorted(rec.points3D), np.int64) if point_ids is None else np.asarray(point_ids, np.int64)
+        if point_ids is None:
+            ids = np.array(sorted(rec.points3D), np.int64)
+        else:
+            ids = np.array([p for p in np.asarray(point_ids, np.int64).tolist() if p in rec.points3D],
+                           np.int64)
         xyz = np.empty((len(ids), 3), np.float64)
         rows: list[np.ndarray] = []
         owner: list[np.ndarray] = []

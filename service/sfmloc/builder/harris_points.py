@@ -41,6 +41,13 @@ from ..transforms import Rigid3d
 Progress = Callable[[str, float, str], None]
 
 
+# In mode "add" the Harris points' ids start here, apart from any id the SfM front end gives
+# (its kept work folder holds points that filtering removed, with ids above the map's largest):
+# an id below this names the same SfM point in the bundle and in that folder (the bench's SIFT
+# peer relies on it).
+HARRIS_POINT_ID_BASE = 1 << 32
+
+
 class HarrisPointsConf(StrictModel):
     # On in the builder's default preset (mode "add"). Measured (2 cores at load 12-18; the
     # engine replayed in-process, errors against the ground truth; off -> add):
@@ -456,7 +463,9 @@ def _extend(X: np.ndarray, tracks: list[np.ndarray], node_img: np.ndarray, xy_px
 def _reconstruction(rec, images, pts_xyz, obs_nodes, node_img, xy_px, offset, grays, conf) -> Reconstruction:
     """The new reconstruction: images keep their poses; their observations are the corners of
     the Harris points (and, in "add" mode, their SfM observations)."""
-    first_id = (max(rec.points3D) + 1) if (conf.mode == "add" and rec.points3D) else 1
+    first_id = 1
+    if conf.mode == "add":
+        first_id = max(HARRIS_POINT_ID_BASE, max(rec.points3D, default=0) + 1)
     per_img_xy: list[list[np.ndarray]] = [[] for _ in images]
     per_img_id: list[list[np.ndarray]] = [[] for _ in images]
     points: dict[int, Point3D] = {}
