@@ -234,3 +234,37 @@ def test_a_prediction_beyond_the_inlier_threshold_still_seeds_the_pose():
                         prior_threshold=20.0)
     dp, dr = pose_errors(est.cam_from_world, gt)
     assert est.num_inliers >= 55 and dp < 0.02 and dr < 0.3
+
+
+def _shifted(T: Rigid3d, d: np.ndarray) -> Rigid3d:
+    """``T`` with its camera centre moved by ``d`` (world frame), orientation kept."""
+    return Rigid3d(T.rotation, T.translation - T.rotation @ d)
+
+
+@pytest.mark.parametrize("s", [1.0, 0.01, 100.0])
+def test_jump_gate_is_bounded_at_low_frame_rates(world, s):
+    """A tracked pose far from the motion prediction is rejected however long the frame
+    interval: at 3 Hz the speed term alone allowed 0.92 scene scales (a 12-inlier pose 0.25
+    scales off was published on the 3 Hz walk). True poses of synthetic walk, flight and orbit
+    at 3, 10 and 30 Hz stay plausible against the SE(3) filter's prediction; at 30 Hz the
+    reach is what it was. Scale-free: the same verdicts in the room at 0.01x and 100x."""
+    loc = Localizer(scale_bundle(MapBundle(world.maps_dir / "room"), s),
+                    Camera.parse(world.camera_spec))
+    scale = loc.bundle.scene_scale
+    for kind in ("walk", "flight", "orbit"):
+        for fps in (3.0, 10.0, 30.0):
+            poses = [Rigid3d(T.rotation, T.translation * s)
+                     for T in make_trajectory(kind, 12, 0, fps=fps)]
+            f = Se3PoseFilter(scale=scale)
+            f.reset(poses[0], 0.0)
+            for i, T in enumerate(poses[1:], 1):
+                pred = f.predict(i / fps)
+                assert loc._plausible(T, pred, 1 / fps), (kind, fps, i)
+                f.update(T)
+    T = make_trajectory("walk", 2, 0, fps=3.0)[1]
+    T = Rigid3d(T.rotation, T.translation * s)
+    off = np.array([0.25, 0.0, 0.0]) * scale
+    assert not loc._plausible(_shifted(T, off), T, 1 / 3)  # admitted before: reach 0.92
+    assert not loc._plausible(_shifted(T, off), T, 1 / 10)  # before: reach 0.31
+    assert loc._plausible(_shifted(T, off * 0.5), T, 1 / 30)  # 0.125 < 0.137, as before
+    assert not loc._plausible(_shifted(T, off * 0.6), T, 1 / 30)  # 0.15 > 0.137, as before

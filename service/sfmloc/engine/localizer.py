@@ -493,7 +493,9 @@ class Localizer:
         dpos = float(np.linalg.norm(pose.center - pred.center))
         drot = np.radians(rotation_angle_deg(pose.rotation, pred.rotation))
         slack = max(dt, 1.0 / 30.0)
-        reach_scales = c.max_speed_scales_per_s * slack + c.jump_tolerance_scales
+        # Bounded: far from the prediction is implausible however long the frame interval.
+        reach_scales = min(c.max_speed_scales_per_s * slack, c.max_jump_scales)
+        reach_scales += c.jump_tolerance_scales
         reach = reach_scales * self.bundle.scene_scale
         turn = c.max_angular_speed_rad_s * slack + np.radians(c.jump_tolerance_deg)
         return dpos <= reach and drot <= turn
