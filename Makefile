@@ -22,6 +22,7 @@ test: lint typecheck
 # Style and likely bugs: ruff at the configured width with import order (pyproject [tool.ruff]).
 lint: $(STAMP)
 	$(BIN)/ruff check .
+	$(BIN)/ruff format --check --quiet .
 
 # Rewrite the tree to the style `make lint` checks: format, safe fixes (import order, ...), and
 # string literals split where the formatter leaves lines over 100 columns.

@@ -21,7 +21,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent
 REPO = ROOT.parent
 OUT = REPO / "client" / "sfmloc_client" / "pb"
-INIT = '"""Generated protobuf/gRPC code for the sfmloc v1 API. Do not edit: run\n`make proto` (proto/generate.py)."""\n'
+INIT = (
+    '"""Generated protobuf/gRPC code for the sfmloc v1 API. Do not edit: run\n`make proto` '
+    '(proto/generate.py)."""\n'
+)
 
 
 def generate(dest: Path) -> list[Path]:
@@ -59,8 +62,12 @@ def generate(dest: Path) -> list[Path]:
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--check", action="store_true", help="compare with the committed code instead of writing")
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument(
+        "--check", action="store_true", help="compare with the committed code instead of writing"
+    )
     args = ap.parse_args()
     if not args.check:
         for p in generate(OUT):
@@ -68,7 +75,9 @@ def main() -> int:
         return 0
     with tempfile.TemporaryDirectory() as tmp:
         fresh = {p.name: p.read_text() for p in generate(Path(tmp))}
-    committed = {p.name: p.read_text() for p in OUT.glob("*") if p.is_file() and p.suffix in (".py", ".pyi")}
+    committed = {
+        p.name: p.read_text() for p in OUT.glob("*") if p.is_file() and p.suffix in (".py", ".pyi")
+    }
     stale = sorted(n for n in fresh.keys() | committed.keys() if fresh.get(n) != committed.get(n))
     if stale:
         print("generated code is stale (run `make proto`): " + ", ".join(stale), file=sys.stderr)

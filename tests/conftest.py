@@ -20,7 +20,10 @@ REDKITCHEN = SHARED_DATA / "redkitchen-seq01"
 def redkitchen() -> Path:
     """The real 7-Scenes redkitchen frames, read in place (never copied into the repo)."""
     if not (REDKITCHEN / "pgt_sfm_seq01.txt").is_file():
-        pytest.skip(f"real data not present: {REDKITCHEN} (7-Scenes redkitchen seq-01 is read from ../shared/data)")
+        pytest.skip(
+            f"real data not present: {REDKITCHEN} (7-Scenes redkitchen seq-01 is read from "
+            "../shared/data)"
+        )
     return REDKITCHEN
 
 

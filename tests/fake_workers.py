@@ -16,23 +16,41 @@ import threading
 from collections import defaultdict
 from typing import Any
 
-from sfmloc_client.wire import Transform
-
 from sfmloc.server import protocol as P
+from sfmloc_client.wire import Transform
 
 TF = Transform((0.0, 0.0, 0.0, 1.0), (0.0, 0.0, 0.0))
 
 
 def pose(status: str = "TRACKING") -> P.PoseResult:
     located = status != "LOST"
-    return P.PoseResult(status, TF if located else None, TF if located else None, None, None,
-                        30 if located else 0, 100, 80, 40, "guided", 5.0, "",
-                        tuple([0.0] * 36) if located else None)
+    return P.PoseResult(
+        status,
+        TF if located else None,
+        TF if located else None,
+        None,
+        None,
+        30 if located else 0,
+        100,
+        80,
+        40,
+        "guided",
+        5.0,
+        "",
+        tuple([0.0] * 36) if located else None,
+    )
 
 
 def summary(build_id: str = "b") -> P.MapSummary:
-    return P.MapSummary(points=100, descriptors=200, images=10, clusters=4, memory_mb=1.0,
-                        build_id=build_id, index_in_place=True)
+    return P.MapSummary(
+        points=100,
+        descriptors=200,
+        images=10,
+        clusters=4,
+        memory_mb=1.0,
+        build_id=build_id,
+        index_in_place=True,
+    )
 
 
 class FakeWorkers:
@@ -79,8 +97,10 @@ class FakeWorkers:
             elif isinstance(msg, P.LocalizeFrame):
                 if msg.encoding == "die":  # a crash: the socket closes, nothing is answered
                     return
-                P.TO_SERVER.send(conn, P.Result(msg.sid, msg.seq, msg.stamp_ns, msg.gen, "b", pose(),
-                                                None, 0.1, 1.0))
+                P.TO_SERVER.send(
+                    conn,
+                    P.Result(msg.sid, msg.seq, msg.stamp_ns, msg.gen, "b", pose(), None, 0.1, 1.0),
+                )
             elif isinstance(msg, P.Relocalize):
                 if msg.encoding == "die":
                     return
@@ -90,7 +110,11 @@ class FakeWorkers:
 
     def messages(self, index: int, incarnation: int, kind: type) -> list[Any]:
         with self.cond:
-            return [m for i, k, m in self.received if (i, k) == (index, incarnation) and isinstance(m, kind)]
+            return [
+                m
+                for i, k, m in self.received
+                if (i, k) == (index, incarnation) and isinstance(m, kind)
+            ]
 
     def wait_for(self, pred: Any, timeout: float = 30.0) -> bool:
         with self.cond:

@@ -17,12 +17,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
 from sfmloc.testing import free_port
 
 WIDTH, HEIGHT = 640, 480
 N_MAPPING, N_FRAMES = 40, 60
 _lock = threading.Lock()
-_worlds: dict[Path, "World"] = {}
+_worlds: dict[Path, World] = {}
 
 
 @dataclass
@@ -52,16 +53,22 @@ def build_world(base: Path) -> World:
             return _worlds[base]
         import cv2
 
+        from sfmloc.builder.build import BuildConf, assemble
         from sfmloc.cameras import Camera
         from sfmloc.io.colmap import read_model
         from sfmloc.io.poses import read_poses
-        from sfmloc.builder.build import BuildConf, assemble
         from sfmloc.map.bundle import write_bundle
         from sfmloc.synth import preset
         from sfmloc.synth.main import run
 
         root = base / "sfmloc-world"
-        conf = preset("small", width=WIDTH, height=HEIGHT, mapping_views=N_MAPPING, trajectory={"n_frames": N_FRAMES})
+        conf = preset(
+            "small",
+            width=WIDTH,
+            height=HEIGHT,
+            mapping_views=N_MAPPING,
+            trajectory={"n_frames": N_FRAMES},
+        )
         run(conf, root / "synth", overwrite=True)
         rec = read_model(root / "synth" / "sparse")
         data, timings, info = assemble(rec, root / "synth" / "images", BuildConf())
@@ -77,9 +84,13 @@ def build_world(base: Path) -> World:
         frames = sorted((root / "synth" / "video").glob("frame-*.png"))
         gt = read_poses(root / "synth" / "video_poses.txt").by_stem()
         world = World(
-            root=root, maps_dir=maps_dir, spare_dir=spare,
-            camera_spec=f"PINHOLE {cam.width} {cam.height} " + " ".join(repr(float(p)) for p in cam.params),
-            frames=frames, gt_cam_from_world=[gt[f.stem] for f in frames],
+            root=root,
+            maps_dir=maps_dir,
+            spare_dir=spare,
+            camera_spec=f"PINHOLE {cam.width} {cam.height} "
+            + " ".join(repr(float(p)) for p in cam.params),
+            frames=frames,
+            gt_cam_from_world=[gt[f.stem] for f in frames],
             png=[f.read_bytes() for f in frames],
             gray=[cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) for f in frames],
         )
@@ -96,10 +107,14 @@ def server_config(world: World, zenoh_listen: str, **changes: Any) -> Any:
     from sfmloc.server.config import ServerConfig
 
     base = ServerConfig(
-        maps=str(world.maps_dir), workers=1, worker_kind="thread", idle_timeout_s=60.0,
+        maps=str(world.maps_dir),
+        workers=1,
+        worker_kind="thread",
+        idle_timeout_s=60.0,
         zenoh={"listen": [zenoh_listen], "multicast": False},
         grpc={"address": "127.0.0.1:0", "max_message_mb": 4.0},
-        max_frame_bytes=4 * 1024 * 1024, grace_s=10.0,
+        max_frame_bytes=4 * 1024 * 1024,
+        grace_s=10.0,
     )
     return merge_presets(base, **changes) if changes else base
 
@@ -158,17 +173,29 @@ def wait_until(pred: Any, timeout: float = 30.0, every: float = 0.02) -> bool:
     return bool(pred())
 
 
-def stream_lockstep(z: Any, map_name: str, client_id: str, world: World, n: int | None = None,
-                    encoding: str = "png", timeout: float = 30.0) -> list[Any]:
+def stream_lockstep(
+    z: Any,
+    map_name: str,
+    client_id: str,
+    world: World,
+    n: int | None = None,
+    encoding: str = "png",
+    timeout: float = 30.0,
+) -> list[Any]:
     """Stream the video frame by frame (each after the previous pose) and return the poses."""
     from sfmloc_client import FrameStreamer, PoseSubscriber, SourceFrame
 
     frames = world.png[: n or len(world.png)]
     got: list[Any] = []
-    with PoseSubscriber(z, map_name, client_id, callback=got.append) as poses, \
-            FrameStreamer(z, map_name, client_id, camera(world), encoding=encoding) as fs:
+    with (
+        PoseSubscriber(z, map_name, client_id, callback=got.append) as poses,
+        FrameStreamer(z, map_name, client_id, camera(world), encoding=encoding) as fs,
+    ):
         assert fs.wait_for_server(timeout), "no server subscribed to the frames"
-        src = [SourceFrame(data=d, encoding="png", stamp_ns=int(k * 1e9 / 30)) for k, d in enumerate(frames)]
+        src = [
+            SourceFrame(data=d, encoding="png", stamp_ns=int(k * 1e9 / 30))
+            for k, d in enumerate(frames)
+        ]
         stats = fs.run(src, lockstep=True, poses=poses, pose_timeout=timeout)
         poses.wait_for(stats.last_seq, timeout)
     return got

@@ -8,11 +8,11 @@ import subprocess
 from pathlib import Path
 
 import pytest
-from server_helpers import build_world, camera, running_server, server_config, zenoh_endpoint
-from sfmloc_client import LocalizationClient, RemoteError
 
+from server_helpers import build_world, camera, running_server, server_config, zenoh_endpoint
 from sfmloc.errors import ConfigError
 from sfmloc.server.auth import TokenTable, add_token, token_sha256
+from sfmloc_client import LocalizationClient, RemoteError
 
 
 @pytest.fixture(scope="module")
@@ -35,18 +35,27 @@ def test_token_table_identifies_by_hash_only(tokens):
     assert tok["drone"] not in raw and token_sha256(tok["drone"]) in raw  # only hashes stored
     table = TokenTable.load(path)
     who = table.identify([("authorization", f"Bearer {tok['drone']}")])
-    assert who is not None and who.name == "drone-1" and who.may("localize") and not who.may("admin")
+    assert (
+        who is not None and who.name == "drone-1" and who.may("localize") and not who.may("admin")
+    )
     assert table.identify([("authorization", f"Bearer {tok['ops']}")]).admin
     assert table.identify([("authorization", "Bearer nope")]) is None
     assert table.identify([("authorization", tok["drone"])]) is None  # no "Bearer "
     assert table.identify(None) is None
 
 
-@pytest.mark.parametrize("content, match", [
-    ("{not json", "unreadable"), ('{"tokens": 3}', "expected"),
-    ('{"tokens": [{"identity": "a", "roles": ["localize"], "sha256": "xx"}]}', "sha256"),
-    ('{"tokens": [{"identity": "a", "roles": ["root"], "sha256": "' + "0" * 64 + '"}]}', "roles"),
-])
+@pytest.mark.parametrize(
+    "content, match",
+    [
+        ("{not json", "unreadable"),
+        ('{"tokens": 3}', "expected"),
+        ('{"tokens": [{"identity": "a", "roles": ["localize"], "sha256": "xx"}]}', "sha256"),
+        (
+            '{"tokens": [{"identity": "a", "roles": ["root"], "sha256": "' + "0" * 64 + '"}]}',
+            "roles",
+        ),
+    ],
+)
 def test_a_broken_tokens_file_is_a_clear_error(tmp_path, content, match):
     p = tmp_path / "t.json"
     p.write_text(content)
@@ -57,7 +66,9 @@ def test_a_broken_tokens_file_is_a_clear_error(tmp_path, content, match):
 @pytest.fixture(scope="module")
 def authed(world, tokens):
     path, tok = tokens
-    conf = server_config(world, zenoh_endpoint(), grpc={"address": "127.0.0.1:0", "tokens_file": str(path)})
+    conf = server_config(
+        world, zenoh_endpoint(), grpc={"address": "127.0.0.1:0", "tokens_file": str(path)}
+    )
     with running_server(conf) as srv:
         yield srv, tok
 
@@ -77,9 +88,15 @@ def test_no_or_unknown_token_is_unauthenticated(world, authed):
     for token in (None, "not-a-token"):
         with _client(srv, token) as c:
             assert _code(c.list_maps) == "UNAUTHENTICATED"
-            assert _code(lambda: c.relocalize(world.png[0], "room", camera(world), encoding="png")) == "UNAUTHENTICATED"
+            assert (
+                _code(lambda: c.relocalize(world.png[0], "room", camera(world), encoding="png"))
+                == "UNAUTHENTICATED"
+            )
             assert _code(lambda: c.load_map("room2", "x")) == "UNAUTHENTICATED"
-            assert _code(lambda: list(c.stream(world.png[:2], "room", camera(world), encoding="png"))) == "UNAUTHENTICATED"
+            assert (
+                _code(lambda: list(c.stream(world.png[:2], "room", camera(world), encoding="png")))
+                == "UNAUTHENTICATED"
+            )
             assert c.health() == "SERVING"  # probes need no token
 
 
@@ -91,8 +108,11 @@ def test_localize_role_may_not_do_admin_things(world, authed, call):
             "load": lambda: c.load_map("room2", "x"),
             "unload": lambda: c.unload_map("room2"),
             "reset-other": lambda: c.reset_session("someone-else"),
-            "stream-as-other": lambda: list(c.stream(world.png[:2], "room", camera(world), encoding="png",
-                                                     client_id="someone-else")),
+            "stream-as-other": lambda: list(
+                c.stream(
+                    world.png[:2], "room", camera(world), encoding="png", client_id="someone-else"
+                )
+            ),
         }[call]
         assert _code(fn) == "PERMISSION_DENIED"
 
@@ -114,7 +134,9 @@ def test_tokens_without_tls_off_loopback_refuse_to_start(world, tokens):
     from sfmloc.testing import ServerThread
 
     path, _ = tokens
-    conf = server_config(world, zenoh_endpoint(), grpc={"address": "0.0.0.0:0", "tokens_file": str(path)})
+    conf = server_config(
+        world, zenoh_endpoint(), grpc={"address": "0.0.0.0:0", "tokens_file": str(path)}
+    )
     with pytest.raises(Exception, match="in the clear"):
         ServerThread(conf).start()
 
@@ -131,37 +153,98 @@ def pki(tmp_path_factory):
         pytest.skip("openssl is not installed: TLS certificates cannot be made for the test")
     d = tmp_path_factory.mktemp("pki")
     ec = ["-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes"]
-    _openssl("req", "-x509", *ec, "-keyout", "ca.key", "-out", "ca.pem", "-days", "2", "-subj", "/CN=sfmloc-test-ca", cwd=d)
+    _openssl(
+        "req",
+        "-x509",
+        *ec,
+        "-keyout",
+        "ca.key",
+        "-out",
+        "ca.pem",
+        "-days",
+        "2",
+        "-subj",
+        "/CN=sfmloc-test-ca",
+        cwd=d,
+    )
     (d / "san.ext").write_text("subjectAltName=DNS:localhost,IP:127.0.0.1\n")
     for name in ("server", "client"):
-        _openssl("req", *ec, "-keyout", f"{name}.key", "-out", f"{name}.csr", "-subj", f"/CN={name}", cwd=d)
-        _openssl("x509", "-req", "-in", f"{name}.csr", "-CA", "ca.pem", "-CAkey", "ca.key", "-CAcreateserial",
-                 "-out", f"{name}.pem", "-days", "2", "-extfile", "san.ext", cwd=d)
+        _openssl(
+            "req",
+            *ec,
+            "-keyout",
+            f"{name}.key",
+            "-out",
+            f"{name}.csr",
+            "-subj",
+            f"/CN={name}",
+            cwd=d,
+        )
+        _openssl(
+            "x509",
+            "-req",
+            "-in",
+            f"{name}.csr",
+            "-CA",
+            "ca.pem",
+            "-CAkey",
+            "ca.key",
+            "-CAcreateserial",
+            "-out",
+            f"{name}.pem",
+            "-days",
+            "2",
+            "-extfile",
+            "san.ext",
+            cwd=d,
+        )
     return d
 
 
 def test_tls_and_mutual_tls(world, pki, tokens):
     path, tok = tokens
-    grpc_conf = {"address": "127.0.0.1:0", "tls_cert": str(pki / "server.pem"), "tls_key": str(pki / "server.key"),
-                 "tls_client_ca": str(pki / "ca.pem"), "tokens_file": str(path)}
+    grpc_conf = {
+        "address": "127.0.0.1:0",
+        "tls_cert": str(pki / "server.pem"),
+        "tls_key": str(pki / "server.key"),
+        "tls_client_ca": str(pki / "ca.pem"),
+        "tokens_file": str(path),
+    }
     with running_server(server_config(world, zenoh_endpoint(), grpc=grpc_conf)) as srv:
         target = f"localhost:{srv.grpc_port}"
         ca, cert, key = str(pki / "ca.pem"), str(pki / "client.pem"), str(pki / "client.key")
-        with LocalizationClient(target, timeout=20, token=tok["drone"], tls_ca=ca, tls_cert=cert, tls_key=key) as c:
+        with LocalizationClient(
+            target, timeout=20, token=tok["drone"], tls_ca=ca, tls_cert=cert, tls_key=key
+        ) as c:
             assert {m.name for m in c.list_maps()} == {"room", "room2"}
-        with LocalizationClient(target, timeout=20, token=tok["drone"], tls_ca=ca) as c:  # no client cert
+        with LocalizationClient(
+            target, timeout=20, token=tok["drone"], tls_ca=ca
+        ) as c:  # no client cert
             assert _code(c.list_maps) == "UNAVAILABLE"
-        with LocalizationClient(target, timeout=20, token=tok["drone"]) as c:  # plaintext to a TLS port
+        with LocalizationClient(
+            target, timeout=20, token=tok["drone"]
+        ) as c:  # plaintext to a TLS port
             assert _code(c.list_maps) == "UNAVAILABLE"
 
 
 def test_tls_files_are_checked_at_start(world, pki):
     from sfmloc.testing import ServerThread
 
-    conf = server_config(world, zenoh_endpoint(), grpc={"address": "127.0.0.1:0", "tls_cert": str(pki / "server.pem")})
+    conf = server_config(
+        world,
+        zenoh_endpoint(),
+        grpc={"address": "127.0.0.1:0", "tls_cert": str(pki / "server.pem")},
+    )
     with pytest.raises(Exception, match="tls_key"):
         ServerThread(conf).start()
-    conf = server_config(world, zenoh_endpoint(),
-                         grpc={"address": "127.0.0.1:0", "tls_cert": str(pki / "nope.pem"), "tls_key": str(pki / "server.key")})
+    conf = server_config(
+        world,
+        zenoh_endpoint(),
+        grpc={
+            "address": "127.0.0.1:0",
+            "tls_cert": str(pki / "nope.pem"),
+            "tls_key": str(pki / "server.key"),
+        },
+    )
     with pytest.raises(Exception, match="cannot read the TLS certificate"):
         ServerThread(conf).start()

@@ -27,7 +27,9 @@ PNG = b"\x89PNG\r\n\x1a\n"
 def test_readme_results_block_matches_the_committed_results():
     results = json.loads(RESULTS.read_text())
     block = readme.current_block((REPO / "README.md").read_text())
-    assert block is not None, "README.md has no <!-- results:begin --> ... <!-- results:end --> block"
+    assert block is not None, (
+        "README.md has no <!-- results:begin --> ... <!-- results:end --> block"
+    )
     expected = readme.render_block(results, "docs/results.json")
     assert block == expected, (
         "README.md's results block differs from docs/results.json: run "
@@ -54,7 +56,13 @@ def test_committed_results_are_summary_numbers_only():
 
 def test_update_text_touches_only_the_block():
     block = readme.BEGIN + "\nnew\n" + readme.END
-    text = "# Title\n\nintro\n\n## Results\n\n" + readme.BEGIN + "\nold\n" + readme.END + "\n\n## Later\nmore\n"
+    text = (
+        "# Title\n\nintro\n\n## Results\n\n"
+        + readme.BEGIN
+        + "\nold\n"
+        + readme.END
+        + "\n\n## Later\nmore\n"
+    )
     out = readme.update_text(text, block)
     assert out == text.replace("\nold\n", "\nnew\n")
     appended = readme.update_text("# Title\n\nintro\n", block)
@@ -62,8 +70,13 @@ def test_update_text_touches_only_the_block():
     assert readme.update_text(appended, block) == appended
     assert readme.update_text("", block) == "## Results\n\n" + block + "\n"
     # An existing heading without markers gets them (no second heading); text after it stays.
-    assert readme.update_text("# T\n\n## Results\n", block) == "# T\n\n## Results\n\n" + block + "\n"
-    assert readme.update_text("# T\n## Results\n\nkept\n", block) == "# T\n## Results\n\n" + block + "\n\nkept\n"
+    assert (
+        readme.update_text("# T\n\n## Results\n", block) == "# T\n\n## Results\n\n" + block + "\n"
+    )
+    assert (
+        readme.update_text("# T\n## Results\n\nkept\n", block)
+        == "# T\n## Results\n\n" + block + "\n\nkept\n"
+    )
 
 
 # ----------------------------------------------------------------------------- writers
@@ -89,8 +102,20 @@ def fake_records(n: int = 50, method: str = OURS, seed: int = 0) -> list[FrameRe
             est = Rigid3d(gt.rotation, gt.translation + np.array([1.0, 0, 0]))
         if i == 30:
             est, status = None, "LOST"
-        r = FrameRecord(i, f"frame-{i:06d}.png", i / 30.0, status, matching, 10.0 + i % 5 + (90 if i == 0 else 0),
-                        50, 900, 500, 120, timings_ms={"detect": 5.0, "track": 3.0, "total": 10.0}, cpu_ms=9.0)
+        r = FrameRecord(
+            i,
+            f"frame-{i:06d}.png",
+            i / 30.0,
+            status,
+            matching,
+            10.0 + i % 5 + (90 if i == 0 else 0),
+            50,
+            900,
+            500,
+            120,
+            timings_ms={"detect": 5.0, "track": 3.0, "total": 10.0},
+            cpu_ms=9.0,
+        )
         r.cam_from_world, r.gt_cam_from_world = est, gt
         if est is not None:
             r.position_error_m, r.rotation_error_deg = pose_errors(est, gt)
@@ -103,43 +128,83 @@ def test_method_summary_has_the_table2_columns():
     s = method_summary(recs, scene_scale=2.0)
     assert s["F"] == 50 and s["F_loc"] == 49
     assert s["M"] == 1 + len([i for i in range(1, 50) if i % 7 == 0])
-    assert s["T_M_ms_mean"] == pytest.approx(np.mean([r.latency_ms for r in recs if r.matching != "none"]))
+    assert s["T_M_ms_mean"] == pytest.approx(
+        np.mean([r.latency_ms for r in recs if r.matching != "none"])
+    )
     assert s["T_ms_mean"] == pytest.approx(np.mean([r.latency_ms for r in recs]))
     assert s["wrong_poses"] == 1 and s["wrong_statuses"] == {"TRACKING": 1}
     assert 0.005 < s["median_position_error_m"] < 0.03
-    assert s["recall_5cm_5deg_pct"] == pytest.approx(100 * 48 / 50)  # all but the lost and the wrong frame
+    assert s["recall_5cm_5deg_pct"] == pytest.approx(
+        100 * 48 / 50
+    )  # all but the lost and the wrong frame
     assert s["recall_relative_pct"] == pytest.approx(100 * 48 / 50)  # 2.5% of 2.0 is 5 cm
     assert s["median_position_error_rel"] == pytest.approx(s["median_position_error_m"] / 2.0)
     assert s["cpu_ms_mean"] == pytest.approx(9.0)
 
 
 def test_suite_summary_report_figures_and_readme_on_fabricated_records(tmp_path):
-    recs = {OURS: fake_records(), "global-every-frame": fake_records(method="x", seed=1)[::5],
-            "pycolmap-sift": fake_records(method="x", seed=2)[::5]}
+    recs = {
+        OURS: fake_records(),
+        "global-every-frame": fake_records(method="x", seed=1)[::5],
+        "pycolmap-sift": fake_records(method="x", seed=2)[::5],
+    }
     for r in recs["pycolmap-sift"]:
         r.latency_ms *= 20
     idx = [r.index for r in recs["pycolmap-sift"]]
     suite = summarize_suite(recs, idx, 5, 2.0)
     assert suite["same_frames"][OURS]["F"] == len(idx)
     assert suite["ratios"]["pycolmap-sift"]["rate_ratio"] > 10
-    files = write_suite_files("fake", recs, suite, idx, tmp_path, np.random.default_rng(0).normal(size=(500, 3)))
+    files = write_suite_files(
+        "fake", recs, suite, idx, tmp_path, np.random.default_rng(0).normal(size=(500, 3))
+    )
     for key in ("fig_per_frame", "fig_trajectory", "fig_compare"):
         data = (tmp_path / files[key]).read_bytes()
         assert data[:8] == PNG and len(data) > 10_000
     est = (tmp_path / "fake" / f"{OURS}.tum").read_text().splitlines()[1:]
     gt = (tmp_path / "fake" / f"{OURS}.gt.tum").read_text().splitlines()[1:]
     assert len(est) == len(gt) == 49 and [a.split()[0] for a in est] == [b.split()[0] for b in gt]
-    thr = [{"clients": n, "offered_hz": 30.0 * n, "delivered_hz_total": min(30.0 * n, 70.0),
-            "delivered_hz_per_client": min(30.0, 70.0 / n), "dropped_pct": max(0.0, 100 - 7000 / (30 * n)),
-            "latency_ms_p50": 20.0 * n, "latency_ms_p99": 60.0 * n} for n in (1, 2, 4, 8)]
+    thr = [
+        {
+            "clients": n,
+            "offered_hz": 30.0 * n,
+            "delivered_hz_total": min(30.0 * n, 70.0),
+            "delivered_hz_per_client": min(30.0, 70.0 / n),
+            "dropped_pct": max(0.0, 100 - 7000 / (30 * n)),
+            "latency_ms_p50": 20.0 * n,
+            "latency_ms_p99": 60.0 * n,
+        }
+        for n in (1, 2, 4, 8)
+    ]
     assert figures.throughput(thr, "fake", tmp_path / "t.png").read_bytes()[:8] == PNG
     results = {
-        "format": "sfmloc-bench-results", "command": "sfmloc bench --quick", "created_utc": "now", "wall_s": 1.0,
-        "machine": {"cpus": 2, "cpu_model": "test", "load_average_start": 0.5, "load_average_end": 0.6},
-        "suites": {"redkitchen": {**suite, "data": "synthetic", "frames_replayed": 50, "start": 0, "files": files,
-                                  "map": {"map_images": "fake", "images": 3, "points": 500, "descriptors": 4000}},
-                   "throughput": {"kind": "throughput", "rows": thr, "rate_hz": 30.0, "workers": 2,
-                                  "duration_s": 1.0, "server": "fake"}},
+        "format": "sfmloc-bench-results",
+        "command": "sfmloc bench --quick",
+        "created_utc": "now",
+        "wall_s": 1.0,
+        "machine": {
+            "cpus": 2,
+            "cpu_model": "test",
+            "load_average_start": 0.5,
+            "load_average_end": 0.6,
+        },
+        "suites": {
+            "redkitchen": {
+                **suite,
+                "data": "synthetic",
+                "frames_replayed": 50,
+                "start": 0,
+                "files": files,
+                "map": {"map_images": "fake", "images": 3, "points": 500, "descriptors": 4000},
+            },
+            "throughput": {
+                "kind": "throughput",
+                "rows": thr,
+                "rate_hz": 30.0,
+                "workers": 2,
+                "duration_s": 1.0,
+                "server": "fake",
+            },
+        },
     }
     results["targets"] = targets(results)
     assert {t["target"].split(":")[0] for t in results["targets"]} == {"redkitchen"}
@@ -152,7 +217,9 @@ def test_suite_summary_report_figures_and_readme_on_fabricated_records(tmp_path)
     assert "| detect | 5.00 | 50% | 50 | 5.0 | 5.0 | 5.0 | 5.0 |" in md
     assert "| track | 3.00 | 30% | 50 |" in md
     block = readme.render_block(results)
-    assert block.startswith(readme.BEGIN) and block.endswith(readme.END) and "pycolmap-sift" in block
+    assert (
+        block.startswith(readme.BEGIN) and block.endswith(readme.END) and "pycolmap-sift" in block
+    )
 
 
 def test_per_frame_figure_of_a_run_without_ground_truth(tmp_path):
@@ -178,18 +245,30 @@ def test_wrong_poses_count_every_status_but_lost():
     """A pose under any status but LOST (including statuses added later) counts when it is off
     by more than 5% of the scene scale or 10 deg; LOST frames never do."""
     recs = [
-        _record(0, "TRACKING", 0.2), _record(1, "RELOCALIZED", 0.2), _record(2, "UNVERIFIED", 0.2),
-        _record(3, "RELOCALIZED", 0.01, 11.0), _record(4, "LOST", None),
+        _record(0, "TRACKING", 0.2),
+        _record(1, "RELOCALIZED", 0.2),
+        _record(2, "UNVERIFIED", 0.2),
+        _record(3, "RELOCALIZED", 0.01, 11.0),
+        _record(4, "LOST", None),
         _record(5, "TRACKING", 0.01),
         _record(6, "NEW_STATUS", 0.01, 10.5),
     ]
     s = summarize(recs, scene_scale=2.0)  # limit 0.1 units
     assert s["confident_wrong"] == 5
     assert s["confident_wrong_frames"] == ["f0", "f1", "f2", "f3", "f6"]
-    assert s["wrong_statuses"] == {"TRACKING": 1, "RELOCALIZED": 2, "UNVERIFIED": 1,
-                                   "NEW_STATUS": 1}
-    assert s["status_counts"] == {"TRACKING": 2, "RELOCALIZED": 2, "LOST": 1, "UNVERIFIED": 1,
-                                  "NEW_STATUS": 1}
+    assert s["wrong_statuses"] == {
+        "TRACKING": 1,
+        "RELOCALIZED": 2,
+        "UNVERIFIED": 1,
+        "NEW_STATUS": 1,
+    }
+    assert s["status_counts"] == {
+        "TRACKING": 2,
+        "RELOCALIZED": 2,
+        "LOST": 1,
+        "UNVERIFIED": 1,
+        "NEW_STATUS": 1,
+    }
     assert s["localized_frames"] == 6 and s["wrong_position_limit"] == pytest.approx(0.1)
     # A LOST frame with a (stale) pose error attached is still not a wrong pose.
     stale = _record(7, "LOST", 5.0)
@@ -220,8 +299,12 @@ def test_wrong_pose_limit_scales_with_the_scene():
 def test_replay_summary_prints_wrong_poses_and_every_status():
     from sfmloc.cli.replay import format_summary
 
-    recs = [_record(0, "TRACKING", 0.2), _record(1, "UNVERIFIED", 0.3), _record(2, "LOST", None),
-            _record(3, "TRACKING", 0.01)]
+    recs = [
+        _record(0, "TRACKING", 0.2),
+        _record(1, "UNVERIFIED", 0.3),
+        _record(2, "LOST", None),
+        _record(3, "TRACKING", 0.01),
+    ]
     text = format_summary(summarize(recs, 2.0))
     assert "wrong poses          2 [TRACKING 1, UNVERIFIED 1]" in text
     assert "UNVERIFIED 1" in text.splitlines()[1] and "LOST 1" in text.splitlines()[1]
@@ -243,21 +326,24 @@ def test_ratio_test_compares_against_the_nearest_other_point():
 @pytest.fixture(scope="module")
 def sift_world(tmp_path_factory):
     from server_helpers import build_world
-
     from sfmloc.bench.sift_peer import SiftMap
+    from sfmloc.builder import sfm
     from sfmloc.cameras import Camera
     from sfmloc.io.colmap import read_model
     from sfmloc.io.poses import write_colmap_list
-    from sfmloc.builder import sfm
 
     world = build_world(tmp_path_factory.getbasetemp())
     work = tmp_path_factory.mktemp("sift-peer")
     model = read_model(world.root / "synth" / "sparse")
     ims = sorted(model.images.values(), key=lambda im: im.name)
-    poses = write_colmap_list(work / "poses.txt", [im.name for im in ims], [im.cam_from_world for im in ims])
+    poses = write_colmap_list(
+        work / "poses.txt", [im.name for im in ims], [im.cam_from_world for im in ims]
+    )
     cam = Camera.parse(world.camera_spec)
     conf = sfm.SfmConf(keep_workdir=True)
-    rec = sfm.triangulate_known_poses(world.root / "synth" / "images", poses, cam, conf=conf, workdir=work / "sfm")
+    rec = sfm.triangulate_known_poses(
+        world.root / "synth" / "images", poses, cam, conf=conf, workdir=work / "sfm"
+    )
     kept = next((work / "sfm").glob("sfmloc-sfm-*"))
     sm = SiftMap.from_sfm_workdir(kept, np.array(sorted(rec.points3D)), conf.model_dump())
     sm = SiftMap.load(sm.save(work / "sift-map.npz"))  # through the file, as the bench does

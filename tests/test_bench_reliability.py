@@ -21,18 +21,43 @@ def test_reliability_tiny_run_computes_every_field(world, tmp_path):
     from sfmloc.bench import reliability as rel
     from sfmloc.map.bundle import MapBundle
 
-    w = rel.World(maps_dir=world.maps_dir, camera=world.camera_spec, gray=world.gray,
-                  gt_cam_from_world=[np.asarray(g.matrix()) for g in world.gt_cam_from_world],
-                  scene_scale=MapBundle(world.maps_dir / "room", verify=False).scene_scale)
+    w = rel.World(
+        maps_dir=world.maps_dir,
+        camera=world.camera_spec,
+        gray=world.gray,
+        gt_cam_from_world=[np.asarray(g.matrix()) for g in world.gt_cam_from_world],
+        scene_scale=MapBundle(world.maps_dir / "room", verify=False).scene_scale,
+    )
     # The exact ground truth scores itself as right, and a pose 10% of the scene off as wrong.
     assert not rel.pose_is_wrong(0.0, 0.0) and rel.pose_is_wrong(0.1, 0.0)
     assert [rel.pingpong(4, k) for k in range(8)] == [0, 1, 2, 3, 2, 1, 0, 1]
-    args = rel.parser().parse_args([
-        "--fuzz", "200", "--kills", "1", "--clients", "1", "--interval", "2.5", "--rate", "5",
-        "--baseline", "1",
-        "--flips-per-file", "2", "--every-byte-under", "0", "--no-all-manifest-bytes",
-        "--header-bytes", "0",
-        "--cli-checks", "0", "--work", str(tmp_path)])
+    args = rel.parser().parse_args(
+        [
+            "--fuzz",
+            "200",
+            "--kills",
+            "1",
+            "--clients",
+            "1",
+            "--interval",
+            "2.5",
+            "--rate",
+            "5",
+            "--baseline",
+            "1",
+            "--flips-per-file",
+            "2",
+            "--every-byte-under",
+            "0",
+            "--no-all-manifest-bytes",
+            "--header-bytes",
+            "0",
+            "--cli-checks",
+            "0",
+            "--work",
+            str(tmp_path),
+        ]
+    )
     res = rel.run(args, world=w)
 
     f = res["fuzz"]
@@ -73,16 +98,36 @@ def test_reliability_reloc_part_computes_every_field(world, tmp_path):
     from sfmloc.bench import reliability as rel
     from sfmloc.map.bundle import MapBundle
 
-    w = rel.World(maps_dir=world.maps_dir, camera=world.camera_spec, gray=world.gray,
-                  gt_cam_from_world=[np.asarray(g.matrix()) for g in world.gt_cam_from_world],
-                  scene_scale=MapBundle(world.maps_dir / "room", verify=False).scene_scale)
+    w = rel.World(
+        maps_dir=world.maps_dir,
+        camera=world.camera_spec,
+        gray=world.gray,
+        gt_cam_from_world=[np.asarray(g.matrix()) for g in world.gt_cam_from_world],
+        scene_scale=MapBundle(world.maps_dir / "room", verify=False).scene_scale,
+    )
     images = rel.reloc_images(w, 256)
     assert [(k, e) for k, e, _, _ in images] == [("blank", "png"), ("textured", "jpeg")]
     assert all(c.split()[1:3] == ["256", "256"] for *_, c in images)
-    args = rel.parser().parse_args([
-        "--parts", "reloc", "--clients", "1", "--reloc-callers", "1", "--reloc-rate", "5",
-        "--reloc-duration", "3", "--reloc-side", "1024", "--baseline", "1.5",
-        "--work", str(tmp_path)])
+    args = rel.parser().parse_args(
+        [
+            "--parts",
+            "reloc",
+            "--clients",
+            "1",
+            "--reloc-callers",
+            "1",
+            "--reloc-rate",
+            "5",
+            "--reloc-duration",
+            "3",
+            "--reloc-side",
+            "1024",
+            "--baseline",
+            "1.5",
+            "--work",
+            str(tmp_path),
+        ]
+    )
     res = rel.run(args, world=w)
     r = res["reloc"]
     assert r["server_alive"] and r["clients"] == 1 and r["side"] == 1024

@@ -10,6 +10,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+
 from sfmloc.bench import robust, robust_data
 from sfmloc.bench.config import BenchConf
 from sfmloc.bench.suites import Prepared

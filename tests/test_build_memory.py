@@ -13,10 +13,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sfmloc.config import merge_presets
-from sfmloc.features.daisy import Pca
 from sfmloc.builder.desc_store import RawStore
 from sfmloc.builder.pca import fit_pca
+from sfmloc.config import merge_presets
+from sfmloc.features.daisy import Pca
 
 BYTES_PER_DESCRIPTOR = 300  # issue 17's target: peak RSS <= 1 GiB + 300 B per descriptor
 
@@ -67,8 +67,8 @@ def room(tmp_path_factory):
 def test_streamed_build_equals_the_in_memory_build(room, tmp_path):
     """Small chunks and samples smaller than the map, so every sampled and chunked path runs:
     the same points, lookups and PCA, descriptors equal to float16 rounding, the same index."""
-    from sfmloc.io.colmap import read_model
     from sfmloc.builder.build import BuildConf, assemble
+    from sfmloc.io.colmap import read_model
     from sfmloc.map.index import DescriptorIndex
 
     rec = read_model(room / "sparse")
@@ -81,13 +81,26 @@ def test_streamed_build_equals_the_in_memory_build(room, tmp_path):
     assert n > 3 * 1500, n  # the samples are a fraction of the map
     assert list((tmp_path / "w").iterdir()) == []  # the raw file is removed
     assert info_s == info_m
-    for name in ("points_xyz", "point_ids", "desc_point", "desc_image", "desc_level", "desc_xy",
-                 "image_desc_ptr", "image_points_idx", "cluster_images_idx", "point_clusters_idx",
-                 "pca_mean", "pca_basis"):
+    for name in (
+        "points_xyz",
+        "point_ids",
+        "desc_point",
+        "desc_image",
+        "desc_level",
+        "desc_xy",
+        "image_desc_ptr",
+        "image_points_idx",
+        "cluster_images_idx",
+        "point_clusters_idx",
+        "pca_mean",
+        "pca_basis",
+    ):
         assert np.array_equal(getattr(streamed, name), getattr(memory, name)), name
     np.testing.assert_allclose(
-        streamed.descriptors.astype(np.float32), memory.descriptors.astype(np.float32),
-        rtol=2**-10, atol=1e-4,
+        streamed.descriptors.astype(np.float32),
+        memory.descriptors.astype(np.float32),
+        rtol=2**-10,
+        atol=1e-4,
     )
     a = DescriptorIndex.deserialize(streamed.index_faiss)
     b = DescriptorIndex.deserialize(memory.index_faiss)
@@ -127,7 +140,9 @@ print(json.dumps({"base": base * 1024, "peak": status_kb("VmHWM") * 1024,
 def _peak(n: int, folder: Path | None) -> dict:
     out = subprocess.run(
         [sys.executable, "-c", CHILD, str(n), str(folder) if folder else "-"],
-        capture_output=True, text=True, timeout=300,
+        capture_output=True,
+        text=True,
+        timeout=300,
     )
     assert out.returncode == 0, out.stderr[-2000:]
     return json.loads(out.stdout.strip().splitlines()[-1])

@@ -17,8 +17,8 @@ import grpc
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
-from server_helpers import build_world, free_port, wait_until, zenoh_endpoint
 
+from server_helpers import build_world, free_port, wait_until, zenoh_endpoint
 from sfmloc.cameras import Camera
 from sfmloc.map.bundle import MapBundle, verify_bundle
 
@@ -38,7 +38,9 @@ def test_descriptors_are_assigned_to_the_right_3d_points(world):
     from sfmloc.synth import Scene, SynthConf, render_geometry
     from sfmloc.synth.model import feature_index_of_points
 
-    conf = SynthConf.model_validate(json.loads((world.root / "synth" / "scene.json").read_text())["config"])
+    conf = SynthConf.model_validate(
+        json.loads((world.root / "synth" / "scene.json").read_text())["config"]
+    )
     scene = Scene.room(conf.seed, conf.scene)
     bundle = MapBundle(world.maps_dir / "room")
     # Points are identified by their source (COLMAP) id: the builder's refinement moves them
@@ -54,12 +56,16 @@ def test_descriptors_are_assigned_to_the_right_3d_points(world):
         depth, _ = render_geometry(scene, cam, pose)
         lo, hi = bundle.image_desc_ptr[i], bundle.image_desc_ptr[i + 1]
         xy = desc_xy[lo:hi]
-        z = depth[np.clip(np.floor(xy[:, 1]).astype(int), 0, cam.height - 1),
-                  np.clip(np.floor(xy[:, 0]).astype(int), 0, cam.width - 1)]
+        z = depth[
+            np.clip(np.floor(xy[:, 1]).astype(int), 0, cam.height - 1),
+            np.clip(np.floor(xy[:, 0]).astype(int), 0, cam.width - 1),
+        ]
         xc = np.hstack([cam.cam_from_img(xy) * z[:, None], z[:, None]])
         surface = pose.inverse().apply(xc)
         _, nearest = features.query(surface)
-        assigned = np.array([feature_of_id[int(pid)] for pid in point_ids[bundle.desc_point[lo:hi]]])
+        assigned = np.array(
+            [feature_of_id[int(pid)] for pid in point_ids[bundle.desc_point[lo:hi]]]
+        )
         ok = nearest == assigned
         correct += int(ok.sum())
         total += len(ok)
@@ -79,10 +85,12 @@ def test_bundle_lookups_are_consistent(world):
     # its views
     pi_ptr, pi_idx = b.point_images()
     for p in range(0, b.n_points, 97):
-        views = set(pi_idx[pi_ptr[p]:pi_ptr[p + 1]].tolist())
+        views = set(pi_idx[pi_ptr[p] : pi_ptr[p + 1]].tolist())
         for c in b.point_clusters(p):
             assert views & set(b.cluster_images(int(c)).tolist())
-    assert b.manifest.counts.descriptors / b.manifest.counts.points > 3  # many descriptors per point
+    assert (
+        b.manifest.counts.descriptors / b.manifest.counts.points > 3
+    )  # many descriptors per point
 
 
 # ----------------------------------------------------------------------------- service
@@ -92,8 +100,13 @@ def builder(tmp_path_factory):
 
     out = tmp_path_factory.mktemp("builder-out")
     ep = zenoh_endpoint()
-    conf = BuilderConfig(out=str(out), grpc=f"127.0.0.1:{free_port()}", zenoh_listen=[ep], zenoh_multicast=False,
-                         cancel_grace_s=5.0)
+    conf = BuilderConfig(
+        out=str(out),
+        grpc=f"127.0.0.1:{free_port()}",
+        zenoh_listen=[ep],
+        zenoh_multicast=False,
+        cancel_grace_s=5.0,
+    )
     svc = BuilderService(conf)
     svc.start()
     yield svc, ep, out
@@ -111,12 +124,18 @@ def _colmap_request(world, name, **kw):
     from sfmloc_client.pb import builder_pb2 as pb
 
     return pb.SubmitBuildRequest(
-        name=name, colmap=pb.ColmapInput(model_dir=str(world.root / "synth" / "sparse"),
-                                         image_dir=str(world.root / "synth" / "images")), **kw)
+        name=name,
+        colmap=pb.ColmapInput(
+            model_dir=str(world.root / "synth" / "sparse"),
+            image_dir=str(world.root / "synth" / "images"),
+        ),
+        **kw,
+    )
 
 
 def test_submit_watch_and_zenoh_announcement(world, builder):
     import zenoh
+
     from sfmloc_client import make_zenoh_config
     from sfmloc_client.pb import builder_pb2 as pb
     from sfmloc_client.wire import decode_map_announcement
@@ -124,7 +143,10 @@ def test_submit_watch_and_zenoh_announcement(world, builder):
     svc, ep, out = builder
     announced = []
     with zenoh.open(make_zenoh_config("peer", connect=[ep], multicast=False)) as z:
-        sub = z.declare_subscriber("sfmloc/maps/*", lambda s: announced.append(decode_map_announcement(s.payload.to_bytes())))
+        sub = z.declare_subscriber(
+            "sfmloc/maps/*",
+            lambda s: announced.append(decode_map_announcement(s.payload.to_bytes())),
+        )
         time.sleep(0.5)  # let the subscription reach the builder's session
         ch, stub = _stub(svc)
         with ch:
@@ -147,7 +169,9 @@ def test_submit_watch_and_zenoh_announcement(world, builder):
     assert a.name == "synthroom" and Path(a.path) == path.resolve()
     assert a.build_id == MapBundle(path).build_id
     # nothing but bundles in the maps folder once the worker is reaped
-    assert wait_until(lambda: sorted(p.name for p in out.iterdir() if p.name.startswith(".")) == [], 20)
+    assert wait_until(
+        lambda: sorted(p.name for p in out.iterdir() if p.name.startswith(".")) == [], 20
+    )
     assert wait_until(lambda: not any(svc.jobs.work_root.iterdir()), 20)
 
 
@@ -155,6 +179,7 @@ def test_a_server_started_after_the_announcement_loads_the_map(world, builder, t
     """The builder repeats its announcements when a server appears, and answers queries for
     them: a server that starts after a build (following the builder) still loads the map."""
     import zenoh
+
     from server_helpers import running_server, server_config
     from sfmloc_client import LocalizationClient, make_zenoh_config
     from sfmloc_client.pb import builder_pb2 as pb
@@ -164,15 +189,29 @@ def test_a_server_started_after_the_announcement_loads_the_map(world, builder, t
     ch, stub = _stub(svc)
     with ch:
         job_id = stub.SubmitBuild(_colmap_request(world, "latecomer")).job_id
-        assert list(stub.WatchBuild(pb.WatchBuildRequest(job_id=job_id)))[-1].state == pb.BUILD_STATE_SUCCEEDED
+        assert (
+            list(stub.WatchBuild(pb.WatchBuildRequest(job_id=job_id)))[-1].state
+            == pb.BUILD_STATE_SUCCEEDED
+        )
     with zenoh.open(make_zenoh_config("peer", connect=[ep], multicast=False)) as z:
-        assert wait_until(lambda: any(
-            decode_map_announcement(r.ok.payload.to_bytes()).name == "latecomer"
-            for r in z.get("sfmloc/maps/*", timeout=5) if r.ok is not None), 20)
+        assert wait_until(
+            lambda: any(
+                decode_map_announcement(r.ok.payload.to_bytes()).name == "latecomer"
+                for r in z.get("sfmloc/maps/*", timeout=5)
+                if r.ok is not None
+            ),
+            20,
+        )
     empty = tmp_path / "maps"
     empty.mkdir()
-    conf = server_config(world, zenoh_endpoint(), maps=str(empty), map_roots=[str(out)], follow_builder=True,
-                         zenoh={"listen": [zenoh_endpoint()], "connect": [ep], "multicast": False})
+    conf = server_config(
+        world,
+        zenoh_endpoint(),
+        maps=str(empty),
+        map_roots=[str(out)],
+        follow_builder=True,
+        zenoh={"listen": [zenoh_endpoint()], "connect": [ep], "multicast": False},
+    )
     with running_server(conf) as srv, LocalizationClient(f"127.0.0.1:{srv.grpc_port}") as c:
         assert wait_until(lambda: "latecomer" in {m.name for m in c.list_maps()}, 60)
         assert c.get_map("latecomer").build_id == MapBundle(out / "latecomer").build_id
@@ -186,7 +225,12 @@ def test_cancel_leaves_no_bundle(world, builder, tmp_path):
     ch, stub = _stub(svc)
     with ch:
         job_id = stub.SubmitBuild(_colmap_request(world, "cancelled")).job_id
-        wait_until(lambda: stub.GetBuild(pb.GetBuildRequest(job_id=job_id)).state == pb.BUILD_STATE_RUNNING, 30)
+        wait_until(
+            lambda: (
+                stub.GetBuild(pb.GetBuildRequest(job_id=job_id)).state == pb.BUILD_STATE_RUNNING
+            ),
+            30,
+        )
         assert stub.CancelBuild(pb.CancelBuildRequest(job_id=job_id)).cancelled
         events = list(stub.WatchBuild(pb.WatchBuildRequest(job_id=job_id)))
         assert events[-1].state == pb.BUILD_STATE_CANCELLED
@@ -194,7 +238,9 @@ def test_cancel_leaves_no_bundle(world, builder, tmp_path):
         with pytest.raises(grpc.RpcError) as e:
             stub.GetBuild(pb.GetBuildRequest(job_id="nope"))
         assert e.value.code() == grpc.StatusCode.NOT_FOUND
-    assert wait_until(lambda: not any(p.name.startswith(".cancelled.tmp") for p in out.iterdir()), 20)
+    assert wait_until(
+        lambda: not any(p.name.startswith(".cancelled.tmp") for p in out.iterdir()), 20
+    )
     assert not (out / "cancelled").exists()
 
 
@@ -205,7 +251,10 @@ def test_a_killed_build_worker_does_not_take_the_service_down(world, builder):
     ch, stub = _stub(svc)
     with ch:
         job_id = stub.SubmitBuild(_colmap_request(world, "crashing")).job_id
-        assert wait_until(lambda: svc.jobs.get(job_id).process is not None and svc.jobs.get(job_id).process.pid, 30)
+        assert wait_until(
+            lambda: svc.jobs.get(job_id).process is not None and svc.jobs.get(job_id).process.pid,
+            30,
+        )
         os.kill(svc.jobs.get(job_id).process.pid, signal.SIGKILL)  # as the OOM killer would
         events = list(stub.WatchBuild(pb.WatchBuildRequest(job_id=job_id)))
         assert events[-1].state == pb.BUILD_STATE_FAILED
@@ -217,11 +266,14 @@ def test_a_killed_build_worker_does_not_take_the_service_down(world, builder):
     assert not (out / "crashing").exists()
 
 
-@pytest.mark.parametrize("mutate, words", [
-    (lambda r: r.colmap.__setattr__("image_dir", "/nonexistent/images"), "image_dir"),
-    (lambda r: r.__setattr__("name", "bad/name"), "invalid map name"),
-    (lambda r: r.__setattr__("config_json", "{oops"), "config_json"),
-])
+@pytest.mark.parametrize(
+    "mutate, words",
+    [
+        (lambda r: r.colmap.__setattr__("image_dir", "/nonexistent/images"), "image_dir"),
+        (lambda r: r.__setattr__("name", "bad/name"), "invalid map name"),
+        (lambda r: r.__setattr__("config_json", "{oops"), "config_json"),
+    ],
+)
 def test_bad_submissions_are_invalid_argument(world, builder, mutate, words):
     svc, _, _ = builder
     req = _colmap_request(world, "x")
@@ -232,10 +284,14 @@ def test_bad_submissions_are_invalid_argument(world, builder, mutate, words):
     assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT and words in e.value.details()
 
 
-@pytest.mark.parametrize("method, kind", [
-    ("/sfmloc.v1.MapBuilder/SubmitBuild", "unary"), ("/sfmloc.v1.MapBuilder/GetBuild", "unary"),
-    ("/sfmloc.v1.MapBuilder/WatchBuild", "stream"),
-])
+@pytest.mark.parametrize(
+    "method, kind",
+    [
+        ("/sfmloc.v1.MapBuilder/SubmitBuild", "unary"),
+        ("/sfmloc.v1.MapBuilder/GetBuild", "unary"),
+        ("/sfmloc.v1.MapBuilder/WatchBuild", "stream"),
+    ],
+)
 def test_builder_unparsable_request_bytes_are_invalid_argument(builder, method, kind):
     """As on the localization server: INVALID_ARGUMENT with a message, not grpc's UNKNOWN."""
     svc, _, _ = builder
@@ -252,7 +308,9 @@ def test_builder_unparsable_request_bytes_are_invalid_argument(builder, method, 
 
 # ----------------------------------------------------------------------------- bad input, CLI
 def run_cli(*args):
-    return subprocess.run([sys.executable, "-m", "sfmloc", *args], capture_output=True, text=True, timeout=300)
+    return subprocess.run(
+        [sys.executable, "-m", "sfmloc", *args], capture_output=True, text=True, timeout=300
+    )
 
 
 def test_cli_build_with_a_missing_image_fails_clearly_and_leaves_nothing(world, tmp_path):
@@ -261,8 +319,16 @@ def test_cli_build_with_a_missing_image_fails_clearly_and_leaves_nothing(world, 
     victim = sorted(images.iterdir())[3]
     victim.unlink()
     out = tmp_path / "maps"
-    r = run_cli("build", "room", "--out", str(out), "--colmap", str(world.root / "synth" / "sparse"),
-                "--images", str(images))
+    r = run_cli(
+        "build",
+        "room",
+        "--out",
+        str(out),
+        "--colmap",
+        str(world.root / "synth" / "sparse"),
+        "--images",
+        str(images),
+    )
     assert r.returncode != 0
     assert victim.name in r.stderr and "Traceback" not in r.stderr
     assert not out.exists() or not any(out.iterdir())
@@ -274,8 +340,16 @@ def test_cli_build_with_an_unreadable_image_fails_clearly(world, tmp_path):
     victim = sorted(images.iterdir())[5]
     victim.write_bytes(b"\x89PNG\r\n\x1a\n garbage")
     out = tmp_path / "maps"
-    r = run_cli("build", "room", "--out", str(out), "--colmap", str(world.root / "synth" / "sparse"),
-                "--images", str(images))
+    r = run_cli(
+        "build",
+        "room",
+        "--out",
+        str(out),
+        "--colmap",
+        str(world.root / "synth" / "sparse"),
+        "--images",
+        str(images),
+    )
     assert r.returncode != 0 and victim.name in r.stderr
     assert not (out / "room").exists()
 
@@ -284,8 +358,16 @@ def test_cli_build_keeps_an_existing_bundle_when_a_rebuild_fails(world, tmp_path
     out = tmp_path / "maps"
     shutil.copytree(world.maps_dir / "room", out / "room")
     before = MapBundle(out / "room").build_id
-    r = run_cli("build", "room", "--out", str(out), "--colmap", str(tmp_path / "no-model"),
-                "--images", str(world.root / "synth" / "images"))
+    r = run_cli(
+        "build",
+        "room",
+        "--out",
+        str(out),
+        "--colmap",
+        str(tmp_path / "no-model"),
+        "--images",
+        str(world.root / "synth" / "images"),
+    )
     assert r.returncode != 0 and "no-model" in r.stderr
     assert MapBundle(out / "room").build_id == before and verify_bundle(out / "room") == []
     assert sorted(p.name for p in out.iterdir()) == ["room"]
@@ -295,20 +377,30 @@ def _small_tmpfs(path: Path, size: str) -> bool:
     if os.geteuid() != 0 or shutil.which("mount") is None:
         return False
     path.mkdir(parents=True, exist_ok=True)
-    return subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(path)],
-                          capture_output=True).returncode == 0
+    return (
+        subprocess.run(
+            ["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(path)], capture_output=True
+        ).returncode
+        == 0
+    )
 
 
 def test_a_full_disk_is_a_write_error_and_leaves_nothing(world, tmp_path):
-    from sfmloc.errors import BuildError
     from sfmloc.builder.build import BuildConf, main
+    from sfmloc.errors import BuildError
 
     disk = tmp_path / "tiny"
     if not _small_tmpfs(disk, "4m"):
         pytest.skip("needs root and mount to create a 1 MB tmpfs (a real full disk)")
     try:
         with pytest.raises(BuildError) as e:
-            main(BuildConf(), "room", disk, colmap=world.root / "synth" / "sparse", images=world.root / "synth" / "images")
+            main(
+                BuildConf(),
+                "room",
+                disk,
+                colmap=world.root / "synth" / "sparse",
+                images=world.root / "synth" / "images",
+            )
         assert e.value.stage == "write"
         assert "No space left on device" in str(e.value) and str(disk) in str(e.value)
         assert list(disk.iterdir()) == []
@@ -318,17 +410,25 @@ def test_a_full_disk_is_a_write_error_and_leaves_nothing(world, tmp_path):
 
 def test_zero_descriptors_is_a_descriptor_stage_error(world, tmp_path):
     """Poses that do not fit the images: no corner lies near any projected point."""
+    from sfmloc.builder.build import BuildConf, main
     from sfmloc.errors import BuildError
     from sfmloc.io.colmap import read_model, write_model
-    from sfmloc.builder.build import BuildConf, main
     from sfmloc.transforms import Rigid3d
 
     rec = read_model(world.root / "synth" / "sparse")
     for im in rec.images.values():  # every camera moved 100 m away: nothing projects in view
-        im.cam_from_world = Rigid3d(im.cam_from_world.rotation, im.cam_from_world.translation + [0, 0, -100.0])
+        im.cam_from_world = Rigid3d(
+            im.cam_from_world.rotation, im.cam_from_world.translation + [0, 0, -100.0]
+        )
     write_model(rec, tmp_path / "model", ".txt")
     with pytest.raises(BuildError) as e:
-        main(BuildConf(), "room", tmp_path / "maps", colmap=tmp_path / "model", images=world.root / "synth" / "images")
+        main(
+            BuildConf(),
+            "room",
+            tmp_path / "maps",
+            colmap=tmp_path / "model",
+            images=world.root / "synth" / "images",
+        )
     assert e.value.stage == "descriptors"
     assert not (tmp_path / "maps" / "room").exists()
 
@@ -341,12 +441,19 @@ def test_points_are_refined_to_their_keypoints_exactly_and_only_when_consistent(
     rng = np.random.default_rng(0)
     cam = Camera("OPENCV", 640, 480, [500, 500, 320, 240, -0.05, 0.01, 0.0, 0.0])
     poses = [Rigid3d(rotmat_from_rotvec([0, 0.1 * k, 0]), [-0.3 * k, 0, 0]) for k in range(4)]
-    truth = np.column_stack([rng.uniform(-1, 1, 50), rng.uniform(-0.7, 0.7, 50), rng.uniform(3, 5, 50)])
+    truth = np.column_stack(
+        [rng.uniform(-1, 1, 50), rng.uniform(-0.7, 0.7, 50), rng.uniform(3, 5, 50)]
+    )
     # keypoints exactly at the true projections (distorted pixels), at level 0
     dp, di, dl, dxy = [], [], [], []
     for i, T in enumerate(poses):
         uv, _ = cam.project(T, truth)
-        dp.append(np.arange(50)), di.append(np.full(50, i)), dl.append(np.zeros(50, np.uint8)), dxy.append(uv)
+        (
+            dp.append(np.arange(50)),
+            di.append(np.full(50, i)),
+            dl.append(np.zeros(50, np.uint8)),
+            dxy.append(uv),
+        )
     dp, di, dl, dxy = (np.concatenate(a) for a in (dp, di, dl, dxy))
     # SfM positions off by ~1 px in the images
     start = truth + rng.normal(0, 0.004, truth.shape)

@@ -37,10 +37,14 @@ def test_nees_of_a_calibrated_covariance_is_its_expected_value():
     assert np.allclose(s["z_sd_xyz_cam"], 1.0, atol=0.06)
     assert s["wrong"] == 0 and s["withheld"] == 0
     # the same errors with a covariance 4x too large (pessimistic) or too small (optimistic)
-    assert abs(summarize(samples(np.random.default_rng(0), 2000, 0.25), 10.0, 1.0)["nees6_mean"]
-               - 1.5) < 0.1
-    assert abs(summarize(samples(np.random.default_rng(0), 2000, 4.0), 10.0, 1.0)["nees6_mean"]
-               - 24) < 1.5
+    assert (
+        abs(summarize(samples(np.random.default_rng(0), 2000, 0.25), 10.0, 1.0)["nees6_mean"] - 1.5)
+        < 0.1
+    )
+    assert (
+        abs(summarize(samples(np.random.default_rng(0), 2000, 4.0), 10.0, 1.0)["nees6_mean"] - 24)
+        < 1.5
+    )
 
 
 def test_wrong_and_withheld_poses_are_counted_by_the_stated_rules():
@@ -48,8 +52,11 @@ def test_wrong_and_withheld_poses_are_counted_by_the_stated_rules():
     cov = np.diag([1e-6] * 3 + [0.04**2] * 3)  # centre sd 0.04 = 4% of a scene scale of 1
     far = perturbed(gt, np.array([0, 0, 0, 0.06, 0, 0]))  # 6% off: wrong
     near = perturbed(gt, np.array([0, 0, 0, 0.01, 0, 0]))
-    s = summarize([Sample(0, "TRACKING", far, gt, cov, 20), Sample(1, "TRACKING", near, gt,
-                   cov * 0.25, 20)], scene_scale=1.0, max_position_sd=0.03)
+    s = summarize(
+        [Sample(0, "TRACKING", far, gt, cov, 20), Sample(1, "TRACKING", near, gt, cov * 0.25, 20)],
+        scene_scale=1.0,
+        max_position_sd=0.03,
+    )
     assert s["wrong"] == 1 and s["wrong_published"] == 0 and s["wrong_sd_pct"] == [4.0]
     assert s["withheld"] == 1 and s["withheld_right"] == 0
     s = summarize([Sample(0, "TRACKING", far, gt, cov * 0.25, 20)], 1.0, 0.03)

@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
+import argparse
 import subprocess
 import sys
 
 import pytest
-
-import argparse
 
 from sfmloc.cli.main import COMMANDS, build_parser, main
 

@@ -11,6 +11,7 @@ import sys
 import msgpack
 import numpy as np
 import pytest
+
 from server_helpers import (
     build_world,
     camera,
@@ -19,7 +20,6 @@ from server_helpers import (
     server_config,
     zenoh_endpoint,
 )
-from sfmloc_client.errors import CameraModelError
 from sfmloc_client import (
     CameraSpec,
     ErrorInfo,
@@ -45,7 +45,14 @@ from sfmloc_client import (
     make_zenoh_config,
 )
 from sfmloc_client.convert import pose_from_estimate_pb, pose_to_estimate_pb
-from sfmloc_client.wire import decode_server_info, encode_server_info, frame_key, parse_frame_key, pose_key
+from sfmloc_client.errors import CameraModelError
+from sfmloc_client.wire import (
+    decode_server_info,
+    encode_server_info,
+    frame_key,
+    parse_frame_key,
+    pose_key,
+)
 
 CAM = CameraSpec("PINHOLE", 64, 48, (50.0, 50.0, 32.0, 24.0))
 
@@ -54,10 +61,13 @@ CAM = CameraSpec("PINHOLE", 64, 48, (50.0, 50.0, 32.0, 24.0))
 def test_client_imports_nothing_of_the_server_or_heavy_libraries():
     code = (
         "import sys\n"
-        "import sfmloc_client, sfmloc_client.wire, sfmloc_client.grpc_client, sfmloc_client.streamer\n"
-        "import sfmloc_client.subscriber, sfmloc_client.sources, sfmloc_client.images, sfmloc_client.convert\n"
+        "import sfmloc_client, sfmloc_client.wire, sfmloc_client.grpc_client, "
+        "sfmloc_client.streamer\n"
+        "import sfmloc_client.subscriber, sfmloc_client.sources, sfmloc_client.images, "
+        "sfmloc_client.convert\n"
         "import sfmloc_client.discovery, sfmloc_client.trajectory, sfmloc_client.zconfig\n"
-        "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('sfmloc', 'scipy', 'faiss', 'pycolmap', 'cv2'))\n"
+        "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('sfmloc', 'scipy', 'faiss', "
+        "'pycolmap', 'cv2'))\n"
         "print(','.join(bad))\n"
     )
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
@@ -70,14 +80,26 @@ def test_frame_round_trip_and_unknown_keys_are_ignored():
     data = bytes(range(256)) * 12
     f = Frame(7, 123456789, CAM, "gray8", data[: 64 * 48])
     back = decode_frame(encode_frame(f))
-    assert (back.seq, back.stamp_ns, back.camera, back.encoding, back.data) == (7, 123456789, CAM, "gray8", data[:3072])
+    assert (back.seq, back.stamp_ns, back.camera, back.encoding, back.data) == (
+        7,
+        123456789,
+        CAM,
+        "gray8",
+        data[:3072],
+    )
     extended = msgpack.unpackb(encode_frame(f))
     extended["future_field"] = {"x": 1}
     assert decode_frame(msgpack.packb(extended)).seq == 7
 
 
 def _env(**changes):
-    d = {"seq": 1, "stamp_ns": 2, "camera": CAM.to_wire(), "encoding": "gray8", "data": b"\x00" * (64 * 48)}
+    d = {
+        "seq": 1,
+        "stamp_ns": 2,
+        "camera": CAM.to_wire(),
+        "encoding": "gray8",
+        "data": b"\x00" * (64 * 48),
+    }
     d.update(changes)
     return msgpack.packb({k: v for k, v in d.items() if v is not ...})
 
@@ -91,10 +113,29 @@ def _env(**changes):
         (_env(seq=True), "seq must be a non-negative integer"),
         (_env(stamp_ns=1.5), "stamp_ns"),
         (_env(camera=...), "missing key 'camera'"),
-        (_env(camera={"model": "PINHOLE", "width": 64, "height": 48, "params": [1, 2, 3]}), "takes 4 parameters"),
-        (_env(camera={"model": "PINHOLE", "width": 0, "height": 48, "params": [1, 1, 1, 1]}), "out of range"),
-        (_env(camera={"model": "FISHEYE", "width": 64, "height": 48, "params": [1]}), "unsupported camera model"),
-        (_env(camera={"model": "PINHOLE", "width": 64, "height": 48, "params": [1, 1, float("nan"), 1]}), "finite"),
+        (
+            _env(camera={"model": "PINHOLE", "width": 64, "height": 48, "params": [1, 2, 3]}),
+            "takes 4 parameters",
+        ),
+        (
+            _env(camera={"model": "PINHOLE", "width": 0, "height": 48, "params": [1, 1, 1, 1]}),
+            "out of range",
+        ),
+        (
+            _env(camera={"model": "FISHEYE", "width": 64, "height": 48, "params": [1]}),
+            "unsupported camera model",
+        ),
+        (
+            _env(
+                camera={
+                    "model": "PINHOLE",
+                    "width": 64,
+                    "height": 48,
+                    "params": [1, 1, float("nan"), 1],
+                }
+            ),
+            "finite",
+        ),
         (_env(encoding="webp"), "encoding must be one of"),
         (_env(data=b"\x00" * 100), "does not match the camera"),
         (_env(encoding="jpeg", data=b""), "non-empty"),
@@ -110,15 +151,32 @@ def test_frame_validation_names_the_problem(payload, words):
 def test_oversized_frames_are_refused_before_parsing():
     with pytest.raises(MessageTooLargeError) as e:
         decode_frame(_env(), max_bytes=1000)
-    assert e.value.code == "RESOURCE_EXHAUSTED" and "exceeds the limit of 1000 bytes" in str(e.value)
+    assert e.value.code == "RESOURCE_EXHAUSTED" and "exceeds the limit of 1000 bytes" in str(
+        e.value
+    )
 
 
 def test_pose_round_trip_with_filtered_and_error():
     T = Transform((0.0, 0.0, math.sin(0.25), math.cos(0.25)), (1.0, 2.0, 3.0))
-    p = PoseMessage(seq=5, stamp_ns=99, status="TRACKING", cam_from_world=T, world_from_cam=T.inverse(),
-                    filtered_cam_from_world=T, filtered_world_from_cam=T.inverse(), inliers=42, latency_ms=9.5,
-                    engine_ms=8.0, counts={"detected": 500, "tracked": 300, "tracked_3d": 120}, matching="guided",
-                    dropped=3, map="lab", client_id="drone", build_id="b1", server_id="s1")
+    p = PoseMessage(
+        seq=5,
+        stamp_ns=99,
+        status="TRACKING",
+        cam_from_world=T,
+        world_from_cam=T.inverse(),
+        filtered_cam_from_world=T,
+        filtered_world_from_cam=T.inverse(),
+        inliers=42,
+        latency_ms=9.5,
+        engine_ms=8.0,
+        counts={"detected": 500, "tracked": 300, "tracked_3d": 120},
+        matching="guided",
+        dropped=3,
+        map="lab",
+        client_id="drone",
+        build_id="b1",
+        server_id="s1",
+    )
     assert decode_pose(encode_pose(p)) == p
     # the covariance (36 values, row-major 6x6) survives the Zenoh wire and the protobuf form
     cov = np.diag([1e-4, 2e-4, 3e-4, 1e-6, 2e-6, 3e-6])
@@ -127,13 +185,17 @@ def test_pose_round_trip_with_filtered_and_error():
     p.status = "UNVERIFIED"
     back = decode_pose(encode_pose(p))
     assert back == p and np.array_equal(back.covariance_matrix, cov)
-    assert pose_from_estimate_pb(pose_to_estimate_pb(p), seq=5, stamp_ns=99).covariance == p.covariance
+    assert (
+        pose_from_estimate_pb(pose_to_estimate_pb(p), seq=5, stamp_ns=99).covariance == p.covariance
+    )
     assert pose_from_estimate_pb(pose_to_estimate_pb(p), seq=5, stamp_ns=99).status == "UNVERIFIED"
     with pytest.raises(WireError, match="covariance must have 36"):
         decode_pose(msgpack.packb({"status": "TRACKING", "covariance": [1.0] * 35}))
     with pytest.raises(WireError, match="covariance"):
         decode_pose(msgpack.packb({"status": "TRACKING", "covariance": [float("nan")] * 36}))
-    e = PoseMessage(seq=None, stamp_ns=0, status="LOST", error=ErrorInfo("NOT_FOUND", "map 'x' is not loaded"))
+    e = PoseMessage(
+        seq=None, stamp_ns=0, status="LOST", error=ErrorInfo("NOT_FOUND", "map 'x' is not loaded")
+    )
     back = decode_pose(encode_pose(e))
     assert back == e and not back.localized and back.error.code == "NOT_FOUND"
     with pytest.raises(WireError):
@@ -159,7 +221,16 @@ def test_announcement_and_server_info_round_trip():
         decode_map_announcement(msgpack.packb({"name": "bad name", "build_id": "x", "path": "/p"}))
     with pytest.raises(WireError):
         decode_map_announcement(msgpack.packb({"name": "lab", "build_id": "x"}))
-    i = ServerInfo("srv-1", "0.1.0", "host:50051", [{"name": "lab", "build_id": "b"}], 3, 2, {"busy": 0.5}, True)
+    i = ServerInfo(
+        "srv-1",
+        "0.1.0",
+        "host:50051",
+        [{"name": "lab", "build_id": "b"}],
+        3,
+        2,
+        {"busy": 0.5},
+        True,
+    )
     assert decode_server_info(encode_server_info(i)) == i
 
 
@@ -183,7 +254,12 @@ def test_image_encodings_round_trip():
     assert np.array_equal(decode_image("bgr8", encode_image(bgr, "bgr8"), 64, 48, gray=False), bgr)
     assert np.array_equal(decode_image("png", encode_image(gray, "png"), 64, 48), gray)
     smooth = np.tile(np.linspace(0, 255, 64, dtype=np.uint8), (48, 1))
-    assert np.abs(decode_image("jpeg", encode_image(smooth, "jpeg"), 64, 48).astype(int) - smooth).max() < 8
+    assert (
+        np.abs(
+            decode_image("jpeg", encode_image(smooth, "jpeg"), 64, 48).astype(int) - smooth
+        ).max()
+        < 8
+    )
     with pytest.raises(ImageDataError):
         decode_image("jpeg", b"\xff\xd8\xff" + b"\x00" * 100, 64, 48)
     with pytest.raises(ImageDataError) as e:
@@ -216,8 +292,17 @@ def test_camera_spec_parse(tmp_path):
     c = CameraSpec.parse("pinhole 640 480 525 525 320 240")
     assert c == CameraSpec("PINHOLE", 640, 480, (525.0, 525.0, 320.0, 240.0))
     p = tmp_path / "camera.json"
-    p.write_text(json.dumps({"model": "OPENCV", "width": 10, "height": 8, "params": [1, 1, 5, 4, 0, 0, 0, 0],
-                             "param_names": ["fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"]}))
+    p.write_text(
+        json.dumps(
+            {
+                "model": "OPENCV",
+                "width": 10,
+                "height": 8,
+                "params": [1, 1, 5, 4, 0, 0, 0, 0],
+                "param_names": ["fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"],
+            }
+        )
+    )
     assert CameraSpec.parse(p).model == "OPENCV"
     for bad in ("PINHOLE 640", "PINHOLE a b 1 1 1 1", "PINHOLE 640 480 1 1 1"):
         with pytest.raises(CameraModelError):
@@ -227,7 +312,9 @@ def test_camera_spec_parse(tmp_path):
 def test_tum_writer_writes_localized_world_from_cam(tmp_path):
     T = Transform((0.0, 0.0, 0.0, 1.0), (1.0, 2.0, 3.0))
     with TumWriter(tmp_path / "t.tum") as w:
-        assert w.write(PoseMessage(1, 1_500_000_000, "TRACKING", cam_from_world=T.inverse(), world_from_cam=T))
+        assert w.write(
+            PoseMessage(1, 1_500_000_000, "TRACKING", cam_from_world=T.inverse(), world_from_cam=T)
+        )
         assert not w.write(PoseMessage(2, 1_533_000_000, "LOST"))
     lines = (tmp_path / "t.tum").read_text().splitlines()
     assert lines[0].startswith("#") and len(lines) == 2
@@ -235,16 +322,28 @@ def test_tum_writer_writes_localized_world_from_cam(tmp_path):
     # the covariance side file: one line per pose line, timestamp, status, 36 values
     cov = tuple(float(v) for v in np.eye(6).ravel() * 1e-4)
     with TumWriter(tmp_path / "c.tum") as w:
-        w.write(PoseMessage(1, 1_500_000_000, "UNVERIFIED", cam_from_world=T.inverse(), world_from_cam=T,
-                            covariance=cov))
-        w.write(PoseMessage(2, 1_533_000_000, "TRACKING", cam_from_world=T.inverse(), world_from_cam=T))
+        w.write(
+            PoseMessage(
+                1,
+                1_500_000_000,
+                "UNVERIFIED",
+                cam_from_world=T.inverse(),
+                world_from_cam=T,
+                covariance=cov,
+            )
+        )
+        w.write(
+            PoseMessage(2, 1_533_000_000, "TRACKING", cam_from_world=T.inverse(), world_from_cam=T)
+        )
     rows = [r.split() for r in (tmp_path / "c.tum.cov").read_text().splitlines()]
     assert rows[0][0] == "#" and "rx ry rz cx cy cz" in " ".join(rows[0])
-    assert rows[1][:2] == ["1.500000000", "UNVERIFIED"] and tuple(float(v) for v in rows[1][2:]) == cov
+    assert (
+        rows[1][:2] == ["1.500000000", "UNVERIFIED"] and tuple(float(v) for v in rows[1][2:]) == cov
+    )
     assert rows[2][1] == "TRACKING" and len(rows[2]) == 38 and all(v == "nan" for v in rows[2][2:])
     from sfmloc.io.poses import COVARIANCE_HEADER
-
     from sfmloc_client.trajectory import COVARIANCE_HEADER as CLIENT_HEADER
+
     assert COVARIANCE_HEADER == CLIENT_HEADER
 
 
@@ -274,7 +373,10 @@ def test_streamer_from_a_numpy_stack_and_the_pose_iterator(world, server):
     srv, ep = server
     stack = np.stack([np.dstack([g, g, g]) for g in world.gray[:8]])  # BGR frames, sent as JPEG
     with client_zenoh(ep) as z:
-        with PoseSubscriber(z, "room", "numpy") as poses, FrameStreamer(z, "room", "numpy", camera(world)) as fs:
+        with (
+            PoseSubscriber(z, "room", "numpy") as poses,
+            FrameStreamer(z, "room", "numpy", camera(world)) as fs,
+        ):
             assert fs.wait_for_server(30)
             stats = fs.run(stack, lockstep=True, poses=poses)
             got = [poses.get(30) for _ in range(stats.sent)]
@@ -294,8 +396,12 @@ def test_streamer_from_a_video_file_uses_its_clock(world, server, tmp_path):
     w.release()
     stamps: list[int] = []
     with client_zenoh(ep) as z:
-        with PoseSubscriber(z, "room", "video", callback=lambda p: stamps.append(p.stamp_ns)) as poses, \
-                FrameStreamer(z, "room", "video", camera(world)) as fs:
+        with (
+            PoseSubscriber(
+                z, "room", "video", callback=lambda p: stamps.append(p.stamp_ns)
+            ) as poses,
+            FrameStreamer(z, "room", "video", camera(world)) as fs,
+        ):
             assert fs.wait_for_server(30)
             stats = fs.run(str(video), lockstep=True, poses=poses)
             assert poses.wait_for(stats.last_seq, 30)
@@ -305,16 +411,36 @@ def test_streamer_from_a_video_file_uses_its_clock(world, server, tmp_path):
 
 
 def _cli(*args: str, timeout: float = 180) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "sfmloc", *args], capture_output=True, text=True, timeout=timeout)
+    return subprocess.run(
+        [sys.executable, "-m", "sfmloc", *args], capture_output=True, text=True, timeout=timeout
+    )
 
 
 def test_cli_stream_writes_a_tum_trajectory(world, server, tmp_path):
     srv, ep = server
     out = tmp_path / "room.tum"
-    r = _cli("stream", "--map", "room", "--source", str(world.frames[0].parent), "--camera",
-             str(world.root / "synth" / "camera.json"), "--fps", "20", "--max-frames", "30",
-             "--zenoh-connect", ep, "--no-multicast", "--client-id", "cli-walker", "--encoding", "png",
-             "--out", str(out))
+    r = _cli(
+        "stream",
+        "--map",
+        "room",
+        "--source",
+        str(world.frames[0].parent),
+        "--camera",
+        str(world.root / "synth" / "camera.json"),
+        "--fps",
+        "20",
+        "--max-frames",
+        "30",
+        "--zenoh-connect",
+        ep,
+        "--no-multicast",
+        "--client-id",
+        "cli-walker",
+        "--encoding",
+        "png",
+        "--out",
+        str(out),
+    )
     assert r.returncode == 0, r.stderr
     assert "poses received for 30 frames sent" in r.stdout
     n_received = int(r.stdout.split(" poses received")[0].split()[-1])
@@ -329,25 +455,63 @@ def test_cli_stream_writes_a_tum_trajectory(world, server, tmp_path):
     assert [row[0] for row in cov_rows] == [row[0] for row in rows]
     for row in cov_rows:
         C = np.array([float(v) for v in row[2:]]).reshape(6, 6)
-        assert row[1] in ("TRACKING", "RELOCALIZED", "UNVERIFIED") and np.linalg.eigvalsh(C).min() > 0
+        assert (
+            row[1] in ("TRACKING", "RELOCALIZED", "UNVERIFIED") and np.linalg.eigvalsh(C).min() > 0
+        )
     assert "sent 30 poses" in r.stderr  # the live status line
 
 
 def test_cli_stream_without_a_server_fails_clearly(world, tmp_path):
-    r = _cli("stream", "--map", "room", "--source", str(world.frames[0].parent), "--camera", world.camera_spec,
-             "--zenoh-connect", zenoh_endpoint(), "--no-multicast", "--wait-server", "1", "--max-frames", "2")
+    r = _cli(
+        "stream",
+        "--map",
+        "room",
+        "--source",
+        str(world.frames[0].parent),
+        "--camera",
+        world.camera_spec,
+        "--zenoh-connect",
+        zenoh_endpoint(),
+        "--no-multicast",
+        "--wait-server",
+        "1",
+        "--max-frames",
+        "2",
+    )
     assert r.returncode == 1 and "no server" in r.stderr
 
 
 def test_cli_relocalize_maps_sessions_servers(world, server):
     srv, ep = server
     target = f"127.0.0.1:{srv.grpc_port}"
-    r = _cli("relocalize", str(world.frames[15]), "--map", "room", "--camera", world.camera_spec, "--grpc", target, "--json")
+    r = _cli(
+        "relocalize",
+        str(world.frames[15]),
+        "--map",
+        "room",
+        "--camera",
+        world.camera_spec,
+        "--grpc",
+        target,
+        "--json",
+    )
     assert r.returncode == 0, r.stderr
     d = json.loads(r.stdout)
     gt = world.gt_cam_from_world[15].inverse().translation
-    assert d["status"] == "RELOCALIZED" and np.linalg.norm(np.array(d["world_from_cam"]["t"]) - gt) < 0.1
-    r = _cli("relocalize", str(world.frames[15]), "--map", "atlantis", "--camera", world.camera_spec, "--grpc", target)
+    assert (
+        d["status"] == "RELOCALIZED"
+        and np.linalg.norm(np.array(d["world_from_cam"]["t"]) - gt) < 0.1
+    )
+    r = _cli(
+        "relocalize",
+        str(world.frames[15]),
+        "--map",
+        "atlantis",
+        "--camera",
+        world.camera_spec,
+        "--grpc",
+        target,
+    )
     assert r.returncode == 2 and "NOT_FOUND" in r.stderr
     r = _cli("maps", "list", "--grpc", target)
     assert r.returncode == 0 and "room2" in r.stdout

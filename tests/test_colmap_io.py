@@ -8,7 +8,14 @@ import pytest
 
 from sfmloc.cameras import Camera
 from sfmloc.errors import CameraModelError, ModelFormatError
-from sfmloc.io.colmap import Image, Point3D, Reconstruction, detect_model_format, read_model, write_model
+from sfmloc.io.colmap import (
+    Image,
+    Point3D,
+    Reconstruction,
+    detect_model_format,
+    read_model,
+    write_model,
+)
 from sfmloc.transforms import Rigid3d, rotmat_from_rotvec
 
 
@@ -22,8 +29,14 @@ def random_model(seed=0, n_images=5, n_points=60) -> Reconstruction:
     for i in range(n_images):
         iid = i * 2 + 1
         pose = Rigid3d(rotmat_from_rotvec(rng.normal(0, 0.5, 3)), rng.normal(0, 2, 3))
-        images[iid] = Image(iid, f"sub/im {i}.png", 1 if i % 2 == 0 else 3, pose,
-                            rng.uniform(0, 600, (20, 2)), np.full(20, -1))
+        images[iid] = Image(
+            iid,
+            f"sub/im {i}.png",
+            1 if i % 2 == 0 else 3,
+            pose,
+            rng.uniform(0, 600, (20, 2)),
+            np.full(20, -1),
+        )
     pts = {}
     for p in range(n_points):
         pid = 100 + p
@@ -39,8 +52,14 @@ def random_model(seed=0, n_images=5, n_points=60) -> Reconstruction:
             idxs.append((iid, j))
         if not idxs:
             continue
-        pts[pid] = Point3D(pid, rng.normal(0, 3, 3), rng.integers(0, 255, 3), float(rng.uniform(0, 2)),
-                           [a for a, _ in idxs], [b for _, b in idxs])
+        pts[pid] = Point3D(
+            pid,
+            rng.normal(0, 3, 3),
+            rng.integers(0, 255, 3),
+            float(rng.uniform(0, 2)),
+            [a for a, _ in idxs],
+            [b for _, b in idxs],
+        )
     return Reconstruction(cams, images, pts)
 
 
@@ -50,7 +69,9 @@ def assert_same(a: Reconstruction, b: Reconstruction, atol=0.0):
     for iid, im in a.images.items():
         other = b.images[iid]
         assert other.name == im.name and other.camera_id == im.camera_id
-        assert np.allclose(other.cam_from_world.matrix(), im.cam_from_world.matrix(), atol=1e-12 + atol)
+        assert np.allclose(
+            other.cam_from_world.matrix(), im.cam_from_world.matrix(), atol=1e-12 + atol
+        )
         assert np.allclose(other.points2D, im.points2D, atol=atol)
         assert np.array_equal(other.point3D_ids, im.point3D_ids)
     assert set(a.points3D) == set(b.points3D)

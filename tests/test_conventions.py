@@ -66,7 +66,9 @@ def test_rigid3d_compose_inverse_apply_center():
     assert np.allclose(cam_from_world.apply(cam_from_world.center), 0, atol=1e-12)
     assert np.allclose(cam_from_world.inverse().translation, cam_from_world.center)
     T = Rigid3d.from_matrix(cam_from_world.matrix4())
-    assert np.allclose(T.rotation, cam_from_world.rotation) and np.allclose(T.translation, cam_from_world.translation)
+    assert np.allclose(T.rotation, cam_from_world.rotation) and np.allclose(
+        T.translation, cam_from_world.translation
+    )
     with pytest.raises(ValueError):
         Rigid3d.from_matrix(np.eye(2))
 
@@ -76,7 +78,9 @@ def test_pose_errors():
     R_off = rotmat_from_rotvec([0, 0, np.radians(2.0)])
     # rotate the camera by 2 degrees about its centre and move the centre 10 cm
     world_from_cam = gt.inverse()
-    est_world_from_cam = Rigid3d(world_from_cam.rotation @ R_off, world_from_cam.translation + [0.1, 0, 0])
+    est_world_from_cam = Rigid3d(
+        world_from_cam.rotation @ R_off, world_from_cam.translation + [0.1, 0, 0]
+    )
     dp, dr = pose_errors(est_world_from_cam.inverse(), gt)
     assert np.isclose(dp, 0.1) and np.isclose(dr, 2.0)
 
@@ -88,7 +92,12 @@ CAMERAS = [
     Camera("SIMPLE_RADIAL", 640, 480, [500, 320, 240, -0.08]),
     Camera("RADIAL", 640, 480, [500, 320, 240, -0.1, 0.02]),
     Camera("OPENCV", 640, 480, [500, 505, 320, 240, -0.12, 0.03, 0.001, -0.002]),
-    Camera("FULL_OPENCV", 640, 480, [500, 505, 320, 240, -0.1, 0.02, 0.001, -0.001, 0.001, 0.01, 0.0, 0.0]),
+    Camera(
+        "FULL_OPENCV",
+        640,
+        480,
+        [500, 505, 320, 240, -0.1, 0.02, 0.001, -0.001, 0.001, 0.01, 0.0, 0.0],
+    ),
 ]
 
 
@@ -145,11 +154,19 @@ def test_camera_parse_forms_and_errors(tmp_path):
     assert issubclass(CameraModelError, SfmlocError)
 
 
-@pytest.mark.parametrize("spec", [
-    "PINHOLE 640 480 525 525 320 240", "simple_radial 64 48 50 32 24 0.01",
-    "FISHEYE 64 48 1 2 3", "PINHOLE 64 48 1 1 1", "PINHOLE 0 48 1 1 1 1",
-    "PINHOLE 99999 48 1 1 1 1", "PINHOLE 64 48 -5 5 32 24", "RADIAL 64 48 50 32 24 nan 0",
-])
+@pytest.mark.parametrize(
+    "spec",
+    [
+        "PINHOLE 640 480 525 525 320 240",
+        "simple_radial 64 48 50 32 24 0.01",
+        "FISHEYE 64 48 1 2 3",
+        "PINHOLE 64 48 1 1 1",
+        "PINHOLE 0 48 1 1 1 1",
+        "PINHOLE 99999 48 1 1 1 1",
+        "PINHOLE 64 48 -5 5 32 24",
+        "RADIAL 64 48 50 32 24 nan 0",
+    ],
+)
 def test_client_and_service_cameras_share_one_rule(spec):
     """One table and one validation (sfmloc_client.cameras): the client's CameraSpec and the
     service's Camera accept the same cameras and refuse the others with the same message."""
@@ -164,7 +181,11 @@ def test_client_and_service_cameras_share_one_rule(spec):
         return
     cam = Camera.parse(spec)
     assert (cam.model, cam.width, cam.height, tuple(cam.params)) == (
-        spec_client.model, spec_client.width, spec_client.height, spec_client.params)
+        spec_client.model,
+        spec_client.width,
+        spec_client.height,
+        spec_client.params,
+    )
     assert cam.to_string() == spec_client.to_string()
     assert Camera.parse(spec_client.to_string()) == cam
 
@@ -258,7 +279,9 @@ def test_library_logging_has_null_handler():
     import sfmloc_client
 
     assert any(isinstance(h, logging.NullHandler) for h in logging.getLogger("sfmloc").handlers)
-    assert any(isinstance(h, logging.NullHandler) for h in logging.getLogger("sfmloc_client").handlers)
+    assert any(
+        isinstance(h, logging.NullHandler) for h in logging.getLogger("sfmloc_client").handlers
+    )
     assert sfmloc.__version__ == sfmloc_client.__version__
 
 

@@ -11,7 +11,6 @@ import pytest
 
 from sfmloc.cameras import Camera
 from sfmloc.engine import EngineConf, Localizer, Matching, Status, relocalize
-from sfmloc.engine.relocalize import describe
 from sfmloc.engine.matching import global_matching, guided_matching
 from sfmloc.engine.motion_filter import DecoupledPoseFilter
 from sfmloc.engine.pose import (
@@ -22,6 +21,7 @@ from sfmloc.engine.pose import (
     project,
     reprojection_errors,
 )
+from sfmloc.engine.relocalize import describe
 from sfmloc.engine.timing import STAGES
 from sfmloc.engine.track_table import TrackTable
 from sfmloc.engine.tracker import extract_keypoints, track_2d
@@ -68,7 +68,7 @@ def test_robust_refine_converges_to_the_exact_pose():
     rng = np.random.default_rng(3)
     gt = Rigid3d(rotmat_from_rotvec([0.2, -0.1, 0.3]), [0.5, 0.1, -0.4])
     X, uv = scene_points(rng, 60, gt)
-    start = Rigid3d(rotmat_from_rotvec([0.21, -0.11, 0.29]) , [0.52, 0.09, -0.38])
+    start = Rigid3d(rotmat_from_rotvec([0.21, -0.11, 0.29]), [0.52, 0.09, -0.38])
     est = robust_refine(start, K, uv, X, 1.0, iterations=8)
     dp, dr = pose_errors(est, gt)
     assert dp < 1e-6 and dr < 1e-5, (dp, dr)
@@ -88,7 +88,9 @@ def test_final_refinement_lowers_the_error_of_noisy_matches_with_outliers():
         kind = rng.random(80)
         near = kind < 0.25
         ang = rng.uniform(0, 2 * np.pi, near.sum())
-        uv[near] += rng.uniform(2.0, 3.0, near.sum())[:, None] * np.stack([np.cos(ang), np.sin(ang)], 1)
+        uv[near] += rng.uniform(2.0, 3.0, near.sum())[:, None] * np.stack(
+            [np.cos(ang), np.sin(ang)], 1
+        )
         far = kind > 0.8
         uv[far] = rng.uniform([0, 0], [640, 480], (far.sum(), 2))
         for params, out in ((RansacParams(), plain), (RansacParams(loss_scale=1.0), robust)):
@@ -131,11 +133,18 @@ def test_a_prior_that_is_this_frames_estimate_is_refined_without_ransac(monkeypa
     assert est is not None and full is not None
     dp, dr = pose_errors(est.cam_from_world, gt)
     dp_full, dr_full = pose_errors(full.cam_from_world, gt)
-    assert dp < max(1.5 * dp_full, 2e-3) and dr < max(1.5 * dr_full, 0.05), (dp, dr, dp_full, dr_full)
+    assert dp < max(1.5 * dp_full, 2e-3) and dr < max(1.5 * dr_full, 0.05), (
+        dp,
+        dr,
+        dp_full,
+        dr_full,
+    )
     err = reprojection_errors(est.cam_from_world, K, uv, X)
     assert np.array_equal(est.inlier_mask, err < params.refine_threshold)
     # too few matches explained by it: no pose; no prior: no pose
-    assert estimate_pose(uv[:12], X[::10][:12], K, params, prior=prior, prior_is_estimate=True) is None
+    assert (
+        estimate_pose(uv[:12], X[::10][:12], K, params, prior=prior, prior_is_estimate=True) is None
+    )
     assert estimate_pose(uv, X, K, params, prior=None, prior_is_estimate=True) is None
 
 
@@ -185,7 +194,9 @@ def test_pose_prior_resolves_the_planar_mirror_ambiguity():
     Xc = np.hstack([(uv - K[:2, 2]) / K[0, 0] * z[:, None], z[:, None]])
     X = gt.inverse().apply(Xc)
     noisy = uv + rng.normal(0, 1.0, uv.shape)
-    prior = Rigid3d(gt.rotation @ rotmat_from_rotvec([0.01, -0.01, 0.0]), gt.translation + [0.02, 0.0, 0.01])
+    prior = Rigid3d(
+        gt.rotation @ rotmat_from_rotvec([0.01, -0.01, 0.0]), gt.translation + [0.02, 0.0, 0.01]
+    )
     est = estimate_pose(noisy, X, K, prior=prior)
     dp, dr = pose_errors(est.cam_from_world, gt)
     assert dp < 0.1 and dr < 1.5, (dp, dr)
@@ -197,7 +208,9 @@ def test_kalman_filter_follows_constant_velocity_and_angular_velocity():
     v = np.array([0.8, -0.3, 0.1])  # m/s
     w = np.array([0.0, 0.0, 1.2])  # rad/s (world frame yaw rate)
     R0 = rotmat_from_rotvec([0.2, 0.1, 0.0])
-    f = DecoupledPoseFilter()  # the paper's model: exact for this motion (tests/test_motion.py: SE(3))
+    f = (
+        DecoupledPoseFilter()
+    )  # the paper's model: exact for this motion (tests/test_motion.py: SE(3))
 
     def truth(t):
         world_from_cam = Rigid3d(rotmat_from_rotvec(w * t) @ R0, v * t)
@@ -209,7 +222,10 @@ def test_kalman_filter_follows_constant_velocity_and_angular_velocity():
         t = i * dt
         f.predict(t)
         meas = truth(t).inverse()
-        noisy = Rigid3d(rotmat_from_rotvec(rng.normal(0, 0.005, 3)) @ meas.rotation, meas.translation + rng.normal(0, 0.01, 3))
+        noisy = Rigid3d(
+            rotmat_from_rotvec(rng.normal(0, 0.005, 3)) @ meas.rotation,
+            meas.translation + rng.normal(0, 0.01, 3),
+        )
         f.update(noisy.inverse())
     # velocities learned
     assert np.allclose(f.velocity, v, atol=0.05)
@@ -265,14 +281,20 @@ def test_global_matching_finds_the_right_place_and_correct_matches(world, bundle
     for i in (0, 20, 40, 59):
         gray = world.gray[i]
         gt = world.gt_cam_from_world[i]
-        c = detect_corners(gray, rel_threshold=conf.gamma, max_corners=conf.global_max_keypoints, border=16)
+        c = detect_corners(
+            gray, rel_threshold=conf.gamma, max_corners=conf.global_max_keypoints, border=16
+        )
         desc = describe(ex, bundle, ex.prepare(gray), c.xy)
         gm = global_matching(desc, bundle, conf)
         # the selected images include the map view that sees most of what this frame sees
         uv, z = cam.project(gt, bundle.points_xyz)
         seen = np.nonzero((z > 0) & cam.in_image(uv))[0]
-        counts = np.array([np.intersect1d(bundle.image_points(j), seen).size for j in range(bundle.n_images)])
-        selected_images = np.unique(np.concatenate([bundle.cluster_images(int(cl)) for cl in gm.clusters]))
+        counts = np.array(
+            [np.intersect1d(bundle.image_points(j), seen).size for j in range(bundle.n_images)]
+        )
+        selected_images = np.unique(
+            np.concatenate([bundle.cluster_images(int(cl)) for cl in gm.clusters])
+        )
         assert np.argmax(counts) in selected_images
         # the ratio-test set holds enough correct matches (under the exact pose) for RANSAC;
         # repeated textures make many of the others wrong, which RANSAC must survive
@@ -308,7 +330,9 @@ def test_guided_matching_with_the_pose_gives_correct_matches(world, bundle, cam)
 
 def test_relocalize_with_a_prior(world, bundle, cam):
     gt = world.gt_cam_from_world[45]
-    prior = Rigid3d(gt.rotation @ rotmat_from_rotvec([0.02, -0.03, 0.01]), gt.translation + [0.05, -0.03, 0.04])
+    prior = Rigid3d(
+        gt.rotation @ rotmat_from_rotvec([0.02, -0.03, 0.01]), gt.translation + [0.05, -0.03, 0.04]
+    )
     r = relocalize(world.gray[45], cam, bundle, prior=prior)
     assert r.status is Status.RELOCALIZED
     dp, dr = pose_errors(r.cam_from_world, gt)
@@ -341,10 +365,20 @@ def test_localizer_end_to_end_on_a_synthetic_video(world, bundle, cam):
     assert res[0].status is Status.RELOCALIZED and res[0].matching == "global"
     localized = [r for r in res if r.status is not Status.LOST]
     assert len(localized) >= 0.95 * len(res)
-    errs = np.array([pose_errors(r.cam_from_world, g) for r, g in zip(res, world.gt_cam_from_world) if r.cam_from_world])
+    errs = np.array(
+        [
+            pose_errors(r.cam_from_world, g)
+            for r, g in zip(res, world.gt_cam_from_world)
+            if r.cam_from_world
+        ]
+    )
     assert np.median(errs[:, 0]) < 0.03 and np.median(errs[:, 1]) < 0.5
-    wrong = [r for r, g in zip(res, world.gt_cam_from_world)
-             if r.status is Status.TRACKING and (pose_errors(r.cam_from_world, g)[0] > 0.5 or pose_errors(r.cam_from_world, g)[1] > 10)]
+    wrong = [
+        r
+        for r, g in zip(res, world.gt_cam_from_world)
+        if r.status is Status.TRACKING
+        and (pose_errors(r.cam_from_world, g)[0] > 0.5 or pose_errors(r.cam_from_world, g)[1] > 10)
+    ]
     assert not wrong
     # tracking carries most frames (guided matching distributed, global rarely)
     assert sum(r.status is Status.TRACKING for r in res) > 0.8 * len(res)
@@ -353,7 +387,11 @@ def test_localizer_end_to_end_on_a_synthetic_video(world, bundle, cam):
         assert r.detected >= r.tracked >= 0 and r.tracked_3d <= max(r.tracked, r.tracked_3d)
         assert "total" in r.timings_ms and r.latency_ms > 0
         # every lap is a named stage
-        assert set(r.timings_ms) - {"total"} <= set(STAGES) and {"detect", "track", "filter"} <= set(r.timings_ms)
+        assert set(r.timings_ms) - {"total"} <= set(STAGES) and {
+            "detect",
+            "track",
+            "filter",
+        } <= set(r.timings_ms)
         if r.filtered_cam_from_world is not None:
             dp, _ = pose_errors(r.filtered_cam_from_world, r.cam_from_world)
             assert dp < 0.2
@@ -370,13 +408,20 @@ def test_localizer_on_100_real_frames(redkitchen, tmp_path_factory):
     sequence replayed: mostly localized, centimetre-level errors, nothing wrong reported."""
     import cv2
 
-    from sfmloc.io.poses import read_poses
     from sfmloc.builder.build import BuildConf, main
+    from sfmloc.io.poses import read_poses
 
     out = tmp_path_factory.mktemp("rk")
     cam_spec = "PINHOLE 640 480 525.505 525.505 320 240"
-    path = main(BuildConf(), "rk", out, images=redkitchen, poses=redkitchen / "pgt_sfm_seq01.txt",
-                camera=cam_spec, stride=25)
+    path = main(
+        BuildConf(),
+        "rk",
+        out,
+        images=redkitchen,
+        poses=redkitchen / "pgt_sfm_seq01.txt",
+        camera=cam_spec,
+        stride=25,
+    )
     bundle = MapBundle(path)
     gt = read_poses(redkitchen / "pgt_sfm_seq01.txt").by_stem()
     loc = Localizer(bundle, Camera.parse(cam_spec))
@@ -416,7 +461,9 @@ def test_pose_covariance_jacobian_and_calibration_with_known_pixel_noise():
         return project(Rigid3d(R, world_from_cam.translation + p[3:]).inverse(), K, X)[0].ravel()
 
     eps = 1e-6
-    J = np.stack([(uv_at(eps * np.eye(6)[i]) - uv_at(-eps * np.eye(6)[i])) / (2 * eps) for i in range(6)], 1)
+    J = np.stack(
+        [(uv_at(eps * np.eye(6)[i]) - uv_at(-eps * np.eye(6)[i])) / (2 * eps) for i in range(6)], 1
+    )
     cov = pose_covariance(gt, K, uv, X, min_noise_px=1.0)  # exact points: variance = floor = 1
     assert np.allclose(cov, np.linalg.inv(J.T @ J), rtol=1e-5, atol=1e-12)
     values = []
@@ -483,7 +530,13 @@ def test_unverified_relocalization_and_its_confirmation(world, bundle, cam):
     assert [r.status for r in res] == [Status.UNVERIFIED] * 5
     for r, gt in zip(res, world.gt_cam_from_world):
         dp, dr = pose_errors(r.cam_from_world, gt)
-        assert dp < 0.05 and dr < 1 and r.covariance is not None and r.matching != "global" or r is res[0]
+        assert (
+            dp < 0.05
+            and dr < 1
+            and r.covariance is not None
+            and r.matching != "global"
+            or r is res[0]
+        )
     loc.conf = EngineConf()  # the next tracked frame passes: confirmed
     r = loc.localize(world.gray[5], 5 / 30)
     assert r.status is Status.TRACKING and r.matching != "global"
@@ -498,14 +551,21 @@ def test_weak_relocalization_against_the_motion_is_rejected(world, bundle, cam):
     far = len(world.gray) - 1
     gt_far = world.gt_cam_from_world[far]
     assert pose_errors(gt_far, world.gt_cam_from_world[9])[0] > 0.05 * bundle.scene_scale
-    for conf, expected in ((EngineConf(), Status.RELOCALIZED), (EngineConf(verified_min_inliers=10_000), Status.LOST)):
+    for conf, expected in (
+        (EngineConf(), Status.RELOCALIZED),
+        (EngineConf(verified_min_inliers=10_000), Status.LOST),
+    ):
         loc = Localizer(bundle, cam, conf)
         for i in range(10):
             assert loc.localize(world.gray[i], i / 30).localized
         r = loc.localize(world.gray[far], 10 / 30)
         assert r.status is expected and r.matching == "global", (r.status, r.message)
         if expected is Status.LOST:
-            assert r.cam_from_world is None and r.covariance is None and "motion prediction" in r.message
+            assert (
+                r.cam_from_world is None
+                and r.covariance is None
+                and "motion prediction" in r.message
+            )
             assert loc.table.n_3d() == 0  # not adopted: the next frame relocalizes again
             # frames 0.6 s apart (no reset): rejected while the last pose (frame 9) is recent
             assert loc.localize(world.gray[far], 10 / 30 + 0.6).status is Status.LOST
@@ -519,23 +579,34 @@ def ambiguous_world(tmp_path_factory):
     """A square room whose four walls carry the same texture (``repeat_walls``), two boxes."""
     import cv2
 
+    from sfmloc.builder.build import BuildConf, assemble
     from sfmloc.io.colmap import read_model
     from sfmloc.io.poses import read_poses
-    from sfmloc.builder.build import BuildConf, assemble
     from sfmloc.map.bundle import write_bundle
     from sfmloc.synth import preset
     from sfmloc.synth.main import run
 
     root = tmp_path_factory.mktemp("ambiguous")
-    conf = preset("small", mapping_views=40, trajectory={"n_frames": 60},
-                  scene={"size": (5.0, 5.0, 3.0), "repeat_walls": True, "n_boxes": 2})
+    conf = preset(
+        "small",
+        mapping_views=40,
+        trajectory={"n_frames": 60},
+        scene={"size": (5.0, 5.0, 3.0), "repeat_walls": True, "n_boxes": 2},
+    )
     run(conf, root / "synth")
-    data, timings, info = assemble(read_model(root / "synth" / "sparse"), root / "synth" / "images", BuildConf())
+    data, timings, info = assemble(
+        read_model(root / "synth" / "sparse"), root / "synth" / "images", BuildConf()
+    )
     bundle = MapBundle(write_bundle(data, root / "maps", "amb", timings_s=timings, index_info=info))
     frames = sorted((root / "synth" / "video").glob("frame-*.png"))
     gt = read_poses(root / "synth" / "video_poses.txt").by_stem()
     gray = [cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) for f in frames]
-    return bundle, Camera.from_json(root / "synth" / "camera.json"), gray, [gt[f.stem] for f in frames]
+    return (
+        bundle,
+        Camera.from_json(root / "synth" / "camera.json"),
+        gray,
+        [gt[f.stem] for f in frames],
+    )
 
 
 def test_no_wrong_pose_on_a_scene_with_identical_walls(ambiguous_world):
@@ -550,8 +621,14 @@ def test_no_wrong_pose_on_a_scene_with_identical_walls(ambiguous_world):
     limit = 0.05 * bundle.scene_scale
     loc = Localizer(bundle, cam)
     res = [loc.localize(img, i / 30) for i, img in enumerate(gray)]
-    wrong = [(i, r.status.value, *pose_errors(r.cam_from_world, g)) for i, (r, g) in enumerate(zip(res, gt))
-             if r.localized and (pose_errors(r.cam_from_world, g)[0] > limit or pose_errors(r.cam_from_world, g)[1] > 10)]
+    wrong = [
+        (i, r.status.value, *pose_errors(r.cam_from_world, g))
+        for i, (r, g) in enumerate(zip(res, gt))
+        if r.localized
+        and (
+            pose_errors(r.cam_from_world, g)[0] > limit or pose_errors(r.cam_from_world, g)[1] > 10
+        )
+    ]
     assert not wrong
     assert sum(r.localized for r in res) >= 0.8 * len(res)
 
@@ -561,12 +638,27 @@ def test_replay_cli_writes_tum_and_covariance_side_file(world, tmp_path, capsys)
     from sfmloc.io.poses import read_poses
 
     traj = tmp_path / "t.tum"
-    rc = cli(["replay", str(world.maps_dir / "room"), str(world.frames[0].parent), "--camera",
-              world.camera_spec, "--max-frames", "20", "--trajectory", str(traj)])
+    rc = cli(
+        [
+            "replay",
+            str(world.maps_dir / "room"),
+            str(world.frames[0].parent),
+            "--camera",
+            world.camera_spec,
+            "--max-frames",
+            "20",
+            "--trajectory",
+            str(traj),
+        ]
+    )
     assert rc == 0
     assert len(read_poses(traj, "tum")) >= 19  # a valid TUM file, untouched by the covariance
     tum = [line.split() for line in traj.read_text().splitlines() if not line.startswith("#")]
-    cov = [line.split() for line in (tmp_path / "t.tum.cov").read_text().splitlines() if not line.startswith("#")]
+    cov = [
+        line.split()
+        for line in (tmp_path / "t.tum.cov").read_text().splitlines()
+        if not line.startswith("#")
+    ]
     assert [r[0] for r in cov] == [r[0] for r in tum]
     for r in cov:
         C = np.array([float(v) for v in r[2:]]).reshape(6, 6)
@@ -610,6 +702,7 @@ def test_status_and_matching_are_enums_read_as_their_wire_strings():
     import json
 
     import msgpack
+
     import sfmloc_client.enums as contract
     from sfmloc_client.convert import STATUS_FROM_PB, STATUS_TO_PB
     from sfmloc_client.wire import STATUSES
@@ -628,7 +721,8 @@ def test_status_and_matching_are_enums_read_as_their_wire_strings():
 def test_engine_imports_no_transport():
     code = (
         "import sys, sfmloc.engine, sfmloc.features.daisy, sfmloc.map.bundle;"
-        "bad = [m for m in ('zenoh', 'grpc') if m in sys.modules]; print(bad); sys.exit(1 if bad else 0)"
+        "bad = [m for m in ('zenoh', 'grpc') if m in sys.modules]; print(bad); sys.exit(1 if bad "
+        "else 0)"
     )
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert r.returncode == 0, r.stdout + r.stderr
@@ -638,15 +732,35 @@ def test_engine_config_has_the_paper_defaults_and_env_overrides():
     from sfmloc.config import load_config
 
     c = EngineConf()
-    assert (c.k, c.sigma, c.beta, c.mu, c.rho, c.psi, c.kappa1, c.kappa2) == (50, 2.0, 0.8, 32, 48, 0.8, 25, 10)
-    assert (c.batch_min, c.batch_max, c.top_images, c.min_inliers, c.ratio, c.gamma) == (100, 150, 30, 10, 0.75, 0.001)
-    c = load_config(EngineConf, environ={"SFMLOC_ENGINE__K": "64", "SFMLOC_ENGINE__VOTE": "sum"}, prefix="SFMLOC_ENGINE__")
+    assert (c.k, c.sigma, c.beta, c.mu, c.rho, c.psi, c.kappa1, c.kappa2) == (
+        50,
+        2.0,
+        0.8,
+        32,
+        48,
+        0.8,
+        25,
+        10,
+    )
+    assert (c.batch_min, c.batch_max, c.top_images, c.min_inliers, c.ratio, c.gamma) == (
+        100,
+        150,
+        30,
+        10,
+        0.75,
+        0.001,
+    )
+    c = load_config(
+        EngineConf,
+        environ={"SFMLOC_ENGINE__K": "64", "SFMLOC_ENGINE__VOTE": "sum"},
+        prefix="SFMLOC_ENGINE__",
+    )
     assert c.k == 64 and c.vote == "sum"
 
 
 def test_frames_localize_keypoints_as_the_map_did(bundle, cam):
-    from sfmloc.engine.tracker import map_subpixel
     from sfmloc.builder.build import BuildConf
+    from sfmloc.engine.tracker import map_subpixel
 
     # The map's points were triangulated at its keypoints: frames must share their sub-pixel
     # method, read from the bundle (maps built before it was recorded used the quadratic fit).
@@ -694,7 +808,9 @@ def test_a_failed_recovery_and_its_global_matching_describe_and_search_once(
     # ... and, with recovery_search "global", search the map once (recovery, global matching
     # and its verification share it)
     assert searches == [True], searches
-    assert pose_errors(r.cam_from_world, world.gt_cam_from_world[far])[0] < 0.05 * bundle.scene_scale
+    assert (
+        pose_errors(r.cam_from_world, world.gt_cam_from_world[far])[0] < 0.05 * bundle.scene_scale
+    )
 
 
 def test_recovery_around_the_prediction_with_either_search(world, bundle, cam):

@@ -13,12 +13,14 @@ from sfmloc.features.harris import detect_corners
 from sfmloc.features.pyramid import build_pyramid, level_scales
 
 
-def checker_corner_image(cx: float, cy: float, size=(160, 200), angle_deg: float = 0.0) -> np.ndarray:
+def checker_corner_image(
+    cx: float, cy: float, size=(160, 200), angle_deg: float = 0.0
+) -> np.ndarray:
     """A corner of a dark square on a bright background at (cx, cy) (COLMAP convention),
     rendered with 8x supersampling so the true corner position is known to sub-pixel."""
     h, w = size
     s = 8
-    ys, xs = np.mgrid[0:h * s, 0:w * s]
+    ys, xs = np.mgrid[0 : h * s, 0 : w * s]
     # sample centres in COLMAP coordinates
     u = (xs + 0.5) / s
     v = (ys + 0.5) / s
@@ -103,10 +105,17 @@ def test_detect_corners_rejects_an_unknown_subpixel_method():
 def test_harris_subpixel_refinement_beats_integer_positions():
     def err(subpixel):
         base = best_corner(checker_corner_image(100.0, 80.0), subpixel)
-        return np.mean([
-            np.linalg.norm(best_corner(checker_corner_image(100.0 + dx, 80.0 + dy), subpixel) - base - [dx, dy])
-            for dx, dy in SHIFTS
-        ])
+        return np.mean(
+            [
+                np.linalg.norm(
+                    best_corner(checker_corner_image(100.0 + dx, 80.0 + dy), subpixel)
+                    - base
+                    - [dx, dy]
+                )
+                for dx, dy in SHIFTS
+            ]
+        )
+
     assert err(True) < 0.6 * err(False)
 
 
@@ -158,7 +167,9 @@ def textured_image(seed=0, shape=(240, 320)):
     for _ in range(150):
         x, y = rng.integers(0, shape[1]), rng.integers(0, shape[0])
         w, h = rng.integers(5, 40, size=2)
-        cv2.rectangle(img, (int(x), int(y)), (int(x + w), int(y + h)), int(rng.integers(0, 255)), -1)
+        cv2.rectangle(
+            img, (int(x), int(y)), (int(x + w), int(y + h)), int(rng.integers(0, 255)), -1
+        )
     return cv2.GaussianBlur(img, (3, 3), 0.8)
 
 
@@ -218,11 +229,14 @@ def test_daisy_on_5000_keypoints_equals_small_chunks():
     # Different keypoints get different descriptors (the chunks are not one patch repeated).
     assert len(np.unique(d, axis=0)) == 5000
 
+
 def test_daisy_on_an_image_wider_than_opencvs_remap_limit():
     """cv2.remap refuses sources of 32767 pixels or more: a 40000-pixel-wide strip is read
     through crops, with exactly the samples of the whole image."""
     rng = np.random.default_rng(6)
-    strip = cv2.resize(textured_image(7, shape=(120, 4000)), (40000, 120), interpolation=cv2.INTER_LINEAR)
+    strip = cv2.resize(
+        textured_image(7, shape=(120, 4000)), (40000, 120), interpolation=cv2.INTER_LINEAR
+    )
     strip = np.clip(strip + rng.normal(0, 6, strip.shape), 0, 255).astype(np.uint8)
     ex = DaisyExtractor()
     xy = np.column_stack([rng.uniform(15, 39985, 400), rng.uniform(30, 90, 400)]).astype(np.float32)
@@ -239,6 +253,7 @@ def test_daisy_on_an_image_wider_than_opencvs_remap_limit():
         local = xy[sel] - np.float32([a, 0])
         np.testing.assert_allclose(ex.orientations(win, local), theta[sel], atol=1e-3)
         np.testing.assert_allclose(ex.describe(win, local, theta[sel]), d[sel], atol=1e-3)
+
 
 def test_pca_projects_to_principal_subspace():
     rng = np.random.default_rng(3)

@@ -8,8 +8,8 @@ import json
 
 import numpy as np
 import pytest
-from server_helpers import build_world
 
+from server_helpers import build_world
 from sfmloc.cameras import Camera
 from sfmloc.transforms import Rigid3d, rotmat_from_rotvec
 
@@ -31,9 +31,13 @@ def test_epipolar_matching_and_triangulation_recover_exact_points():
 
     rng = np.random.default_rng(1)
     cam = Camera("OPENCV", 640, 480, [500, 500, 320, 240, -0.05, 0.01, 0.0, 0.0])
-    poses = [Rigid3d(rotmat_from_rotvec([0, 0.08 * k, 0]), [-0.25 * k, 0.02 * k, 0]) for k in range(3)]
+    poses = [
+        Rigid3d(rotmat_from_rotvec([0, 0.08 * k, 0]), [-0.25 * k, 0.02 * k, 0]) for k in range(3)
+    ]
     n = 200
-    truth = np.column_stack([rng.uniform(-1, 1, n), rng.uniform(-0.7, 0.7, n), rng.uniform(3, 5, n)])
+    truth = np.column_stack(
+        [rng.uniform(-1, 1, n), rng.uniform(-0.7, 0.7, n), rng.uniform(3, 5, n)]
+    )
     base = rng.normal(size=(n, 104))
     xn, desc, idx_of_point = [], [], []
     for T in poses:
@@ -41,7 +45,9 @@ def test_epipolar_matching_and_triangulation_recover_exact_points():
         ok = cam.in_image(uv, margin=5)
         dist_xy = rng.uniform([0, 0], [640, 480], (150, 2))
         xy = np.vstack([uv[ok], dist_xy])
-        d = np.vstack([base[ok] + rng.normal(0, 0.05, (ok.sum(), 104)), rng.normal(size=(150, 104))])
+        d = np.vstack(
+            [base[ok] + rng.normal(0, 0.05, (ok.sum(), 104)), rng.normal(size=(150, 104))]
+        )
         perm = rng.permutation(len(xy))
         xn.append(cam.cam_from_img(xy[perm]))
         desc.append(_unit(d[perm]))
@@ -52,7 +58,9 @@ def test_epipolar_matching_and_triangulation_recover_exact_points():
     depth = (2.5, 5.5)
     n_right = 0
     for a, b in ((0, 1), (1, 2), (0, 2)):
-        ia, ib, dist = match_pair(poses[a], poses[b], xn[a], xn[b], desc[a], desc[b], 500.0, depth, depth, conf)
+        ia, ib, dist = match_pair(
+            poses[a], poses[b], xn[a], xn[b], desc[a], desc[b], 500.0, depth, depth, conf
+        )
         pa, pb = idx_of_point[a][ia], idx_of_point[b][ib]
         assert np.all(pa >= 0) and np.array_equal(pa, pb), "a wrong match"
         assert np.all(dist < conf.max_descriptor_distance)
@@ -79,13 +87,19 @@ def test_harris_points_lie_on_the_scene_surfaces(world):
     rec = read_model(world.root / "synth" / "sparse")
     dc = BuildConf().descriptors
     conf = HarrisPointsConf(enabled=True, mode="replace", extend_px=1.0)
-    detector = {"rel_threshold": dc.harris_rel_threshold, "border": dc.border, "subpixel": dc.subpixel}
+    detector = {
+        "rel_threshold": dc.harris_rel_threshold,
+        "border": dc.border,
+        "subpixel": dc.subpixel,
+    }
     new, stats = harris_points(rec, world.root / "synth" / "images", load_gray, conf, detector)
     assert stats["points"] == len(new.points3D) > 1000, stats
     # tracks are extended beyond the matched image pairs (checked against the depth maps below)
     assert stats["observations"] > stats["observations_before_extension"], stats
     assert set(new.images) == set(rec.images)
-    sconf = SynthConf.model_validate(json.loads((world.root / "synth" / "scene.json").read_text())["config"])
+    sconf = SynthConf.model_validate(
+        json.loads((world.root / "synth" / "scene.json").read_text())["config"]
+    )
     scene = Scene.room(sconf.seed, sconf.scene)
     cam = rec.cameras[1]
     rel_err, reproj = [], []

@@ -6,8 +6,16 @@ from __future__ import annotations
 import logging
 
 import pytest
-from server_helpers import build_world, client_zenoh, running_server, server_config, stream_lockstep, wait_until, zenoh_endpoint
 
+from server_helpers import (
+    build_world,
+    client_zenoh,
+    running_server,
+    server_config,
+    stream_lockstep,
+    wait_until,
+    zenoh_endpoint,
+)
 from sfmloc.server.limits import LogLimiter, RateLimiter
 
 
@@ -73,13 +81,20 @@ def test_a_flood_is_refused_logged_in_summary_and_others_are_served(world, caplo
     def logged() -> tuple[int, int]:
         recs = list(caplog.records)
         lines = sum(getattr(r, "event", "") == "frame_rejected" for r in recs)
-        held = sum(r.fields["count"] for r in recs if getattr(r, "event", "") == "frame_rejected_suppressed")
+        held = sum(
+            r.fields["count"]
+            for r in recs
+            if getattr(r, "event", "") == "frame_rejected_suppressed"
+        )
         return lines, held
 
     ep = zenoh_endpoint()
     conf = server_config(world, ep, max_client_fps=50.0, log_interval_s=0.5)
-    with caplog.at_level(logging.INFO, logger="sfmloc.server"), running_server(conf) as srv, \
-            client_zenoh(ep) as z:
+    with (
+        caplog.at_level(logging.INFO, logger="sfmloc.server"),
+        running_server(conf) as srv,
+        client_zenoh(ep) as z,
+    ):
         for k in range(2000):
             z.put(frame_key("room", f"garbage-{k}"), b"\x93\x01\x02" + bytes(k % 7))
         replies: list = []
@@ -89,12 +104,22 @@ def test_a_flood_is_refused_logged_in_summary_and_others_are_served(world, caplo
                 z.put(frame_key("room", "flooder"), b"\x00not a frame")
             # Every frame is answered on the server's side; error replies go out with congestion
             # control DROP, so under load not all of them need to reach us.
-            assert wait_until(lambda: m.frame_errors.get("room", "INVALID_ARGUMENT")
-                              + m.frame_errors.get("room", "RESOURCE_EXHAUSTED") == 2400, 60)
-            assert wait_until(lambda: any(p.error.code == "RESOURCE_EXHAUSTED" for p in replies), 30)
+            assert wait_until(
+                lambda: (
+                    m.frame_errors.get("room", "INVALID_ARGUMENT")
+                    + m.frame_errors.get("room", "RESOURCE_EXHAUSTED")
+                    == 2400
+                ),
+                60,
+            )
+            assert wait_until(
+                lambda: any(p.error.code == "RESOURCE_EXHAUSTED" for p in replies), 30
+            )
         assert {p.error.code for p in replies} <= {"INVALID_ARGUMENT", "RESOURCE_EXHAUSTED"}
         refused = m.frames_refused.get("rate")
-        assert refused == m.frame_errors.get("room", "RESOURCE_EXHAUSTED") and refused >= 200  # burst of 100
+        assert (
+            refused == m.frame_errors.get("room", "RESOURCE_EXHAUSTED") and refused >= 200
+        )  # burst of 100
         poses = stream_lockstep(z, "room", "canary", world, n=30)
         assert [p.seq for p in poses] == list(range(30)) and all(p.error is None for p in poses)
         assert wait_until(lambda: sum(logged()) == 2400, 30)  # every rejection accounted for

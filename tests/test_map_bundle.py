@@ -8,10 +8,10 @@ import os
 import numpy as np
 import pytest
 
+from sfmloc.builder.clusters import ClusterConf, cluster_images
 from sfmloc.cameras import Camera
 from sfmloc.errors import BundleError, InputError
 from sfmloc.map.bundle import MapBundle, MapData, read_manifest, verify_bundle, write_bundle
-from sfmloc.builder.clusters import ClusterConf, cluster_images
 from sfmloc.map.index import DescriptorIndex, IndexConf, bitmap_from_ranges
 
 
@@ -109,7 +109,9 @@ def test_index_read_in_place_from_a_memory_mapped_file(tmp_path, kind):
 def corridor_visibility(n_images=40, pts_per_image=200, overlap=0.6, seed=0):
     """Images along a corridor: image i sees a window of points shared with its neighbours."""
     step = int(pts_per_image * (1 - overlap))
-    return [np.arange(i * step, i * step + pts_per_image) for i in range(n_images)], (n_images - 1) * step + pts_per_image
+    return [np.arange(i * step, i * step + pts_per_image) for i in range(n_images)], (
+        n_images - 1
+    ) * step + pts_per_image
 
 
 def test_clusters_partition_grow_and_cover():
@@ -130,7 +132,7 @@ def test_clusters_partition_grow_and_cover():
     ptr, idx = cl.point_clusters(image_points, n_points)
     assert len(ptr) == n_points + 1
     for p in (0, 123, n_points - 1):
-        clusters_of_p = set(idx[ptr[p]:ptr[p + 1]].tolist())
+        clusters_of_p = set(idx[ptr[p] : ptr[p + 1]].tolist())
         viewers = {i for i, pts in enumerate(image_points) if p in set(pts.tolist())}
         expected = {c for c, imgs in enumerate(cl.images) if viewers & set(imgs.tolist())}
         assert clusters_of_p == expected
@@ -158,17 +160,28 @@ def small_map(seed=0, n_images=6, n_points=300, per_point=4) -> MapData:
     ci_ptr = np.concatenate([[0], np.cumsum([len(c) for c in cl.images])])
     ix = DescriptorIndex.build(desc.astype(np.float32))
     return MapData(
-        points_xyz=pts, point_ids=np.arange(n_points) + 1, point_rgb=np.zeros((n_points, 3), np.uint8),
-        descriptors=desc, desc_point=rng.integers(0, n_points, len(desc)).astype(np.int32),
-        desc_image=desc_image, desc_level=np.zeros(len(desc), np.uint8),
-        desc_xy=rng.uniform(0, 100, (len(desc), 2)).astype(np.float32), image_desc_ptr=ptr,
+        points_xyz=pts,
+        point_ids=np.arange(n_points) + 1,
+        point_rgb=np.zeros((n_points, 3), np.uint8),
+        descriptors=desc,
+        desc_point=rng.integers(0, n_points, len(desc)).astype(np.int32),
+        desc_image=desc_image,
+        desc_level=np.zeros(len(desc), np.uint8),
+        desc_xy=rng.uniform(0, 100, (len(desc), 2)).astype(np.float32),
+        image_desc_ptr=ptr,
         image_cam_from_world=np.tile([1.0, 0, 0, 0, 0, 0, 0], (n_images, 1)),
-        image_camera=np.zeros(n_images, np.int32), image_points_ptr=ip_ptr.astype(np.int64),
-        image_points_idx=np.concatenate(image_points).astype(np.int32), cluster_images_ptr=ci_ptr.astype(np.int64),
-        cluster_images_idx=np.concatenate(cl.images).astype(np.int32), point_clusters_ptr=pc_ptr,
-        point_clusters_idx=pc_idx, pca_mean=np.zeros(104, np.float32),
-        pca_basis=np.eye(104, 32, dtype=np.float32), index_faiss=ix.serialize(),
-        cameras=[Camera.pinhole(640, 480, 500, 500, 320, 240)], image_names=[f"im{i}.png" for i in range(n_images)],
+        image_camera=np.zeros(n_images, np.int32),
+        image_points_ptr=ip_ptr.astype(np.int64),
+        image_points_idx=np.concatenate(image_points).astype(np.int32),
+        cluster_images_ptr=ci_ptr.astype(np.int64),
+        cluster_images_idx=np.concatenate(cl.images).astype(np.int32),
+        point_clusters_ptr=pc_ptr,
+        point_clusters_idx=pc_idx,
+        pca_mean=np.zeros(104, np.float32),
+        pca_basis=np.eye(104, 32, dtype=np.float32),
+        index_faiss=ix.serialize(),
+        cameras=[Camera.pinhole(640, 480, 500, 500, 320, 240)],
+        image_names=[f"im{i}.png" for i in range(n_images)],
     )
 
 
@@ -338,11 +351,15 @@ def test_bundle_checksum_file_is_sha256sum_format(tmp_path):
     import subprocess
 
     path = write_bundle(small_map(), tmp_path, "lab")
-    out = subprocess.run(["sha256sum", "-c", "manifest.sha256"], cwd=path, capture_output=True, text=True)
+    out = subprocess.run(
+        ["sha256sum", "-c", "manifest.sha256"], cwd=path, capture_output=True, text=True
+    )
     assert out.returncode == 0 and "manifest.json: OK" in out.stdout
 
 
-@pytest.mark.parametrize("bad", ["../../etc/passwd", "/etc/passwd", "sub/points_xyz.npy", "..npy", "x.txt"])
+@pytest.mark.parametrize(
+    "bad", ["../../etc/passwd", "/etc/passwd", "sub/points_xyz.npy", "..npy", "x.txt"]
+)
 def test_bundle_array_paths_stay_inside(tmp_path, bad):
     """An array file named outside the bundle is refused before anything is opened, and the
     error says nothing about the outside file (whether it exists, its size)."""

@@ -10,15 +10,15 @@ import sys
 import cv2
 import numpy as np
 import pytest
-from test_mapping_sfm import CAM, Corner, arc_poses
 
+from sfmloc.builder import build, sfm
 from sfmloc.cameras import Camera
 from sfmloc.config import merge_presets
 from sfmloc.io.poses import write_colmap_list
-from sfmloc.builder import build, sfm
 from sfmloc.map.bundle import MapBundle
 from sfmloc.map.report import SPARSE_POINTS_PER_IMAGE, map_report
 from sfmloc.transforms import Rigid3d
+from test_mapping_sfm import CAM, Corner, arc_poses
 
 
 def _at_pixels(cam: Camera, uv: list[tuple[float, float]], depth: float) -> np.ndarray:
@@ -66,12 +66,16 @@ def corner_maps(tmp_path_factory) -> dict:
             assert cv2.imwrite(str(d / "images" / name), scene.render(CAM, T))
         pose_file = write_colmap_list(d / "poses.txt", names, poses)
         out[n] = {"dir": d, "pose_file": pose_file}
-        for mt in ((2, 3) if n == 3 else (3,)):
+        for mt in (2, 3) if n == 3 else (3,):
             # SfM points only: these tests are about the SfM tracks (min track length) and the
             # sparse-map threshold, which was measured on maps of SfM points
             conf = merge_presets(build.preset("default"), harris_points={"enabled": False})
             out[n][mt] = build.main(
-                conf, f"t{mt}", d / "maps", images=d / "images", poses=pose_file,
+                conf,
+                f"t{mt}",
+                d / "maps",
+                images=d / "images",
+                poses=pose_file,
                 camera=CAM,
                 sfm_conf=sfm.sfm_conf("default", min_track_length=mt, two_view_below=0),
             )
@@ -107,16 +111,32 @@ def test_min_track_length_2_adds_correct_points_with_known_poses(corner_maps):
 
 
 def _cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "sfmloc", *args], capture_output=True, text=True,
-                          timeout=300)
+    return subprocess.run(
+        [sys.executable, "-m", "sfmloc", *args], capture_output=True, text=True, timeout=300
+    )
 
 
 def test_cli_min_track_length_flag_and_inspect_report(corner_maps, tmp_path):
     d = corner_maps[3]
-    posed = ["--images", str(d["dir"] / "images"), "--poses", str(d["pose_file"]), "--camera",
-             CAM.to_string()]
-    r = _cli("build", "few", "--out", str(tmp_path), *posed, "--min-track-length", "2",
-             "--preset", "fast")
+    posed = [
+        "--images",
+        str(d["dir"] / "images"),
+        "--poses",
+        str(d["pose_file"]),
+        "--camera",
+        CAM.to_string(),
+    ]
+    r = _cli(
+        "build",
+        "few",
+        "--out",
+        str(tmp_path),
+        *posed,
+        "--min-track-length",
+        "2",
+        "--preset",
+        "fast",
+    )
     assert r.returncode == 0, r.stderr
     assert "points/image" in r.stdout and "track length" in r.stdout and "coverage" in r.stdout
     m = MapBundle(tmp_path / "few", verify=False)
@@ -127,8 +147,16 @@ def test_cli_min_track_length_flag_and_inspect_report(corner_maps, tmp_path):
     assert r.returncode == 0 and "WARNING" in r.stdout and "too sparse" in r.stdout, r.stderr
     r = _cli("build", "bad", "--out", str(tmp_path), *posed, "--min-track-length", "1")
     assert r.returncode != 0 and "--min-track-length must be >= 2" in r.stderr
-    r = _cli("build", "bad", "--out", str(tmp_path), "--images", str(d["dir"] / "images"),
-             "--min-track-length", "2")
+    r = _cli(
+        "build",
+        "bad",
+        "--out",
+        str(tmp_path),
+        "--images",
+        str(d["dir"] / "images"),
+        "--min-track-length",
+        "2",
+    )
     assert r.returncode != 0 and ">= 3 for images-only" in r.stderr
 
 

@@ -19,12 +19,12 @@ import numpy as np
 import pycolmap
 import pytest
 
+from sfmloc.builder import sfm
+from sfmloc.builder.sfm.stages import opencv_sift
 from sfmloc.cameras import Camera
 from sfmloc.errors import BuildCancelled, BuildError, CameraModelError, ImageDecodeError, InputError
 from sfmloc.io.colmap import Reconstruction, read_model, write_model
 from sfmloc.io.poses import read_poses, write_colmap_list, write_tum
-from sfmloc.builder import sfm
-from sfmloc.builder.sfm.stages import opencv_sift
 from sfmloc.transforms import Rigid3d, align_umeyama
 
 CAM = Camera.pinhole(320, 240, 250.0, 250.0, 160.0, 120.0)
@@ -65,15 +65,22 @@ class Corner:
         ):
             o, u, v = (np.array(a, np.float64) for a in (o, u, v))
             n = np.cross(u, v)
-            w, h = int(np.linalg.norm(u) * self.TEXELS_PER_M), int(np.linalg.norm(v) * self.TEXELS_PER_M)
-            self.planes.append({"o": o, "u": u, "v": v, "n": n / np.linalg.norm(n), "tex": _texture(rng, h, w)})
+            w, h = (
+                int(np.linalg.norm(u) * self.TEXELS_PER_M),
+                int(np.linalg.norm(v) * self.TEXELS_PER_M),
+            )
+            self.planes.append(
+                {"o": o, "u": u, "v": v, "n": n / np.linalg.norm(n), "tex": _texture(rng, h, w)}
+            )
 
     def render(self, cam: Camera, cam_from_world: Rigid3d, ss: int = 2) -> np.ndarray:
         """Ray cast (``ss`` x ``ss`` supersampled) in COLMAP's pixel convention."""
         w, h = cam.width * ss, cam.height * ss
         (fx, fy), (cx, cy) = cam.focal, cam.principal_point
         i, j = np.meshgrid((np.arange(w) + 0.5) / ss, (np.arange(h) + 0.5) / ss)
-        rays = np.stack([(i - cx) / fx, (j - cy) / fy, np.ones_like(i)], -1) @ cam_from_world.rotation
+        rays = (
+            np.stack([(i - cx) / fx, (j - cy) / fy, np.ones_like(i)], -1) @ cam_from_world.rotation
+        )
         c = cam_from_world.center
         depth = np.full((h, w), np.inf)
         out = np.full((h, w), 128.0, np.float32)
@@ -130,7 +137,14 @@ def corner_scene(tmp_path_factory) -> dict:
     for name, T in zip(names, poses):
         assert cv2.imwrite(str(images / name), scene.render(CAM, T))
     pose_file = write_colmap_list(root / "poses.txt", names, poses)
-    return {"root": root, "scene": scene, "images": images, "names": names, "poses": poses, "pose_file": pose_file}
+    return {
+        "root": root,
+        "scene": scene,
+        "images": images,
+        "names": names,
+        "poses": poses,
+        "pose_file": pose_file,
+    }
 
 
 @pytest.fixture(scope="module")
@@ -219,7 +233,11 @@ def test_cancel_stops_the_build_and_cleans_up(corner_scene, tmp_path):
 
     with pytest.raises(BuildCancelled):
         sfm.triangulate_known_poses(
-            corner_scene["images"], corner_scene["pose_file"], CAM, workdir=work, should_cancel=should_cancel
+            corner_scene["images"],
+            corner_scene["pose_file"],
+            CAM,
+            workdir=work,
+            should_cancel=should_cancel,
         )
     assert not any(work.iterdir())
 
@@ -239,7 +257,11 @@ def test_cancel_interrupts_a_running_pycolmap_stage(corner_scene, tmp_path):
 
     with pytest.raises(BuildCancelled) as err:
         sfm.reconstruct_images_only(
-            corner_scene["images"], CAM, workdir=work, progress=progress, should_cancel=should_cancel
+            corner_scene["images"],
+            CAM,
+            workdir=work,
+            progress=progress,
+            should_cancel=should_cancel,
         )
     assert err.value.stage == "mapping"
     assert not any(work.iterdir())
@@ -248,7 +270,11 @@ def test_cancel_interrupts_a_running_pycolmap_stage(corner_scene, tmp_path):
 def test_keep_workdir_keeps_the_database(corner_scene, tmp_path):
     conf = sfm.sfm_conf("fast", keep_workdir=True, min_track_length=2)
     sfm.triangulate_known_poses(
-        corner_scene["images"], corner_scene["pose_file"], CAM, conf, workdir=tmp_path,
+        corner_scene["images"],
+        corner_scene["pose_file"],
+        CAM,
+        conf,
+        workdir=tmp_path,
         image_names=corner_scene["names"][:3],
     )
     kept = list(tmp_path.iterdir())
@@ -258,7 +284,9 @@ def test_keep_workdir_keeps_the_database(corner_scene, tmp_path):
 def test_known_poses_in_the_synthetic_room(tmp_path):
     """sfmloc.synth's furnished room along a walk: triangulated points lie on its surfaces
     (the distance along each point's first viewing ray matches a ray cast in the scene)."""
-    synth = pytest.importorskip("sfmloc.synth", reason="sfmloc.synth (the synthetic room) is not available")
+    synth = pytest.importorskip(
+        "sfmloc.synth", reason="sfmloc.synth (the synthetic room) is not available"
+    )
     scene = synth.Scene.room(seed=0)
     cam = Camera.pinhole(320, 240, 262.5, 262.5, 160.0, 120.0)
     poses = synth.make_trajectory("walk", 120, seed=0, scene=scene)[::8]
@@ -267,9 +295,13 @@ def test_known_poses_in_the_synthetic_room(tmp_path):
     for name, T in zip(names, poses):
         bgr, _ = synth.render(scene, cam, T)
         cv2.imwrite(str(tmp_path / "img" / name), bgr)
-    rec = sfm.triangulate_known_poses(tmp_path / "img", write_colmap_list(tmp_path / "p.txt", names, poses), cam)
+    rec = sfm.triangulate_known_poses(
+        tmp_path / "img", write_colmap_list(tmp_path / "p.txt", names, poses), cam
+    )
     assert len(rec.images) == len(poses) and len(rec.points3D) > 300
-    centers = np.array([rec.images[int(p.track_image_ids[0])].cam_from_world.center for p in rec.points3D.values()])
+    centers = np.array(
+        [rec.images[int(p.track_image_ids[0])].cam_from_world.center for p in rec.points3D.values()]
+    )
     X = np.array([p.xyz for p in rec.points3D.values()])
     dist = np.linalg.norm(X - centers, axis=1)
     t_hit, _ = synth.raycast(scene, centers, (X - centers) / dist[:, None])
@@ -278,7 +310,9 @@ def test_known_poses_in_the_synthetic_room(tmp_path):
     assert np.mean(rel < 0.05) > 0.8
 
 
-def _blobs(rng: np.random.Generator, w: int, h: int, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+def _blobs(
+    rng: np.random.Generator, w: int, h: int, scale: float = 1.0
+) -> tuple[np.ndarray, np.ndarray]:
     """Gaussian blobs at known sub-pixel centres (COLMAP convention), sampled at pixel centres."""
     u, v = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
     img = np.full((h, w), 60.0)
@@ -311,7 +345,9 @@ def test_sift_keypoints_are_in_colmap_pixel_convention(backend):
         assert np.all(np.abs(norms - 512) < 12)  # RootSIFT at COLMAP's uint8 scale
         xy = kp[:, :2]
     else:
-        ex = pycolmap.FeatureExtractor.create(pycolmap.FeatureExtractionOptions(), pycolmap.Device.cpu)
+        ex = pycolmap.FeatureExtractor.create(
+            pycolmap.FeatureExtractionOptions(), pycolmap.Device.cpu
+        )
         xy = pycolmap.keypoints_to_matrix(ex.extract_from_uint8_array(gray)[0])[:, :2]
     n, off = _mean_offset(xy.astype(np.float64), centres, 1.5)
     assert n >= 15
@@ -356,7 +392,9 @@ def test_pair_generators():
     # known poses: views that look away (> max angle) are not paired, even when close
     poses = arc_poses(6)
     away = look_at(poses[0].center + 0.01, poses[0].center * 2)
-    pairs = sfm.pairs_from_poses(names[:7], poses + [away], neighbors=2, sequential=0, max_angle_deg=45)
+    pairs = sfm.pairs_from_poses(
+        names[:7], poses + [away], neighbors=2, sequential=0, max_angle_deg=45
+    )
     assert all("6" not in p for p in pairs)
     assert ("0", "1") in pairs and ("0", "5") not in pairs
 
@@ -371,7 +409,9 @@ def test_pycolmap_round_trip_preserves_cameras_poses_tracks(known_poses_rec):
     for iid, im in known_poses_rec.images.items():
         b = back.images[iid]
         assert b.name == im.name and b.camera_id == im.camera_id
-        np.testing.assert_allclose(b.cam_from_world.matrix(), im.cam_from_world.matrix(), rtol=0, atol=1e-12)
+        np.testing.assert_allclose(
+            b.cam_from_world.matrix(), im.cam_from_world.matrix(), rtol=0, atol=1e-12
+        )
         np.testing.assert_array_equal(b.points2D, im.points2D)
         np.testing.assert_array_equal(b.point3D_ids, im.point3D_ids)
     for pid, p in known_poses_rec.points3D.items():
@@ -407,7 +447,9 @@ def test_binary_model_written_by_pycolmap_reads_like_the_converter(known_poses_r
     converted = sfm.reconstruction_from_pycolmap(pycolmap.Reconstruction(str(tmp_path)))
     assert from_file.cameras == converted.cameras
     for iid, im in from_file.images.items():
-        np.testing.assert_allclose(im.cam_from_world.matrix(), converted.images[iid].cam_from_world.matrix(), atol=1e-12)
+        np.testing.assert_allclose(
+            im.cam_from_world.matrix(), converted.images[iid].cam_from_world.matrix(), atol=1e-12
+        )
         np.testing.assert_array_equal(im.point3D_ids, converted.images[iid].point3D_ids)
     assert from_file.points3D.keys() == converted.points3D.keys()
 
@@ -415,7 +457,13 @@ def test_binary_model_written_by_pycolmap_reads_like_the_converter(known_poses_r
 def test_unsupported_pycolmap_camera_model_is_named():
     rec = pycolmap.Reconstruction()
     rec.add_camera_with_trivial_rig(
-        pycolmap.Camera(model="OPENCV_FISHEYE", width=64, height=48, params=[50, 50, 32, 24, 0, 0, 0, 0], camera_id=1)
+        pycolmap.Camera(
+            model="OPENCV_FISHEYE",
+            width=64,
+            height=48,
+            params=[50, 50, 32, 24, 0, 0, 0, 0],
+            camera_id=1,
+        )
     )
     with pytest.raises(CameraModelError, match="OPENCV_FISHEYE"):
         sfm.reconstruction_from_pycolmap(rec)
@@ -435,7 +483,9 @@ def test_filter_points_unlinks_observations(known_poses_rec):
 # --------------------------------------------------------------------------- poses <-> images
 def test_pose_names_match_files_by_stem(tmp_path):
     T = [Rigid3d.from_rotvec([0, 0.1 * k, 0], [k, 0, 0]) for k in range(3)]
-    f = write_colmap_list(tmp_path / "p.txt", [f"seq-01/frame-{k:06d}.color.png" for k in range(3)], T)
+    f = write_colmap_list(
+        tmp_path / "p.txt", [f"seq-01/frame-{k:06d}.color.png" for k in range(3)], T
+    )
     names = ["frame-000000.color.jpg", "frame-000002.color.jpg", "frame-000009.color.jpg"]
     m = sfm.match_poses_to_images(read_poses(f), names)
     assert [n for n, _ in m] == ["frame-000000.color.jpg", "frame-000002.color.jpg"]
@@ -465,7 +515,9 @@ def test_tum_poses_match_numeric_stems_then_order(tmp_path):
     m = sfm.match_poses_to_images(poses, ["rgb/100.065000.png", "rgb/100.001.png", "rgb/105.0.png"])
     got = dict(m)
     assert set(got) == {"rgb/100.065000.png", "rgb/100.001.png"}
-    np.testing.assert_allclose(got["rgb/100.065000.png"].inverse().translation, [2, 1, 2], atol=1e-6)
+    np.testing.assert_allclose(
+        got["rgb/100.065000.png"].inverse().translation, [2, 1, 2], atol=1e-6
+    )
     # other names: by order when the counts are equal
     m = sfm.match_poses_to_images(poses, [f"f{k}.png" for k in (3, 1, 0, 2)])
     assert [n for n, _ in m] == ["f0.png", "f1.png", "f2.png", "f3.png"]
@@ -487,7 +539,9 @@ def test_known_poses_from_a_tum_trajectory(corner_scene, tmp_path):
     assert len(rec.images) == 4 and len(rec.points3D) > 100
     for im in rec.images.values():
         k = [f"{ts:.6f}.png" for ts in stamps].index(im.name)
-        np.testing.assert_allclose(im.cam_from_world.center, corner_scene["poses"][k].center, atol=1e-6)
+        np.testing.assert_allclose(
+            im.cam_from_world.center, corner_scene["poses"][k].center, atol=1e-6
+        )
     d = corner_scene["scene"].distance(np.array([p.xyz for p in rec.points3D.values()]))
     assert np.median(d) < 0.01
 
@@ -502,14 +556,18 @@ def _copy_images(corner_scene, dst: Path, k: int = 3) -> list[str]:
 
 
 def test_poses_matching_no_image_is_named(corner_scene, tmp_path):
-    f = write_colmap_list(tmp_path / "other.txt", ["elsewhere/a.png", "elsewhere/b.png"], corner_scene["poses"][:2])
+    f = write_colmap_list(
+        tmp_path / "other.txt", ["elsewhere/a.png", "elsewhere/b.png"], corner_scene["poses"][:2]
+    )
     with pytest.raises(InputError, match=r"no pose in .*other\.txt matches"):
         sfm.triangulate_known_poses(corner_scene["images"], f, CAM)
 
 
 def test_unsupported_camera_model(corner_scene):
     with pytest.raises(CameraModelError, match="FOV"):
-        sfm.triangulate_known_poses(corner_scene["images"], corner_scene["pose_file"], "FOV 320 240 250 160 120 0.1")
+        sfm.triangulate_known_poses(
+            corner_scene["images"], corner_scene["pose_file"], "FOV 320 240 250 160 120 0.1"
+        )
 
 
 def test_image_of_another_size_is_named(corner_scene, tmp_path):
@@ -554,7 +612,9 @@ def test_zero_triangulated_points_is_a_triangulate_error(corner_scene, tmp_path)
     f = write_colmap_list(tmp_path / "same.txt", names, [corner_scene["poses"][0]] * 3)
     work = tmp_path / "work"
     with pytest.raises(BuildError) as err:
-        sfm.triangulate_known_poses(corner_scene["images"], f, CAM, sfm.sfm_conf("fast"), workdir=work)
+        sfm.triangulate_known_poses(
+            corner_scene["images"], f, CAM, sfm.sfm_conf("fast"), workdir=work
+        )
     assert err.value.stage == "triangulate"
     assert "same.txt" in str(err.value)
     assert not any(work.iterdir())  # cleaned up on failure too
@@ -591,9 +651,13 @@ def test_colmap_input_bad_images_and_empty_model(corner_scene, known_poses_rec, 
     (img / "view-004.png").write_bytes(b"\x89PNG garbage")
     with pytest.raises(ImageDecodeError, match=r"view-004\.png"):
         sfm.load_colmap_input(model, img)
-    empty = Reconstruction(known_poses_rec.cameras, {
-        iid: type(im)(im.image_id, im.name, im.camera_id, im.cam_from_world) for iid, im in known_poses_rec.images.items()
-    })
+    empty = Reconstruction(
+        known_poses_rec.cameras,
+        {
+            iid: type(im)(im.image_id, im.name, im.camera_id, im.cam_from_world)
+            for iid, im in known_poses_rec.images.items()
+        },
+    )
     with pytest.raises(InputError, match="no 3D points"):
         sfm.load_colmap_input(write_model(empty, tmp_path / "empty"), corner_scene["images"])
 
@@ -612,7 +676,9 @@ def test_known_poses_on_redkitchen_frames(redkitchen):
     """20 real frames (every 10th), read in place from ../shared/data (skipped when absent)."""
     names = [f"frame-{i:06d}.color.jpg" for i in range(0, 200, 10)]
     cam = "PINHOLE 640 480 525.505 525.505 320 240"
-    rec = sfm.triangulate_known_poses(redkitchen, redkitchen / "pgt_sfm_seq01.txt", cam, image_names=names)
+    rec = sfm.triangulate_known_poses(
+        redkitchen, redkitchen / "pgt_sfm_seq01.txt", cam, image_names=names
+    )
     rec.check()
     st = sfm.reconstruction_stats(rec)
     assert st["images"] == 20
@@ -620,7 +686,9 @@ def test_known_poses_on_redkitchen_frames(redkitchen):
     assert st["mean_track_length"] >= 3.0
     assert st["mean_reproj_error_px"] < 1.5
     assert np.median(_reproj_errors(rec)) < 1.5
-    gt_by_key = read_poses(redkitchen / "pgt_sfm_seq01.txt").by_key()  # seq-01/frame-000000.color.png
+    gt_by_key = read_poses(
+        redkitchen / "pgt_sfm_seq01.txt"
+    ).by_key()  # seq-01/frame-000000.color.png
     gt = {k.rsplit("/", 1)[-1].replace(".png", ".jpg"): T for k, T in gt_by_key.items()}
     for im in rec.images.values():
         np.testing.assert_allclose(im.cam_from_world.matrix(), gt[im.name].matrix(), atol=1e-12)
@@ -656,6 +724,11 @@ def test_a_failing_pycolmap_stage_names_its_error(tmp_path, polling):
     cv2.imwrite(str(images / "a.png"), np.zeros((32, 32), np.uint8))
     rep = Reporter(None, (lambda: False) if polling else None)
     with pytest.raises(BuildError) as err:
-        rep.run("features", pycolmap.extract_features, str(tmp_path / "no" / "such" / "db.db"), str(images))
+        rep.run(
+            "features",
+            pycolmap.extract_features,
+            str(tmp_path / "no" / "such" / "db.db"),
+            str(images),
+        )
     assert err.value.stage == "features"
     assert "extract_features" in str(err.value)

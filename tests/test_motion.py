@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from pydantic import ValidationError
-from server_helpers import build_world
 
+from server_helpers import build_world
 from sfmloc.cameras import Camera
 from sfmloc.engine import EngineConf, Localizer
 from sfmloc.engine.motion_filter import DecoupledPoseFilter, Se3PoseFilter, se3_exp, se3_log
@@ -23,6 +23,7 @@ POINTS = np.random.default_rng(0).uniform([0, 0, 0], [8, 5, 3], (2000, 3))  # in
 
 def _px(T: Rigid3d, pred: Rigid3d, X: np.ndarray = POINTS) -> float:
     """Median image distance (f = 525, 640x480) between points seen from T and from pred."""
+
     def proj(P):
         x = X @ P.rotation.T + P.translation
         return x[:, :2] / x[:, 2:] * 525 + [320, 240], x[:, 2]
@@ -45,8 +46,12 @@ def _prediction_px(filt, poses, fps, noise=(0.001, 0.003), seed=1, skip=3):
         pred = filt.predict(i / fps)
         if i > skip:
             errs.append(_px(T, pred))
-        filt.update(Rigid3d(rotmat_from_rotvec(rng.normal(0, noise[0], 3)) @ T.rotation,
-                            T.translation + rng.normal(0, noise[1], 3)))
+        filt.update(
+            Rigid3d(
+                rotmat_from_rotvec(rng.normal(0, noise[0], 3)) @ T.rotation,
+                T.translation + rng.normal(0, noise[1], 3),
+            )
+        )
     return float(np.median(errs))
 
 
@@ -86,8 +91,10 @@ def test_se3_prediction_on_synthetic_trajectories_at_3_to_30_hz(kind):
     res = {}
     for fps in (30.0, 10.0, 3.0):
         poses = make_trajectory(kind, int(10 * fps), 0, fps=fps)
-        res[fps] = (_prediction_px(DecoupledPoseFilter(scale=ROOM_SCALE), poses, fps),
-                    _prediction_px(Se3PoseFilter(scale=ROOM_SCALE), poses, fps))
+        res[fps] = (
+            _prediction_px(DecoupledPoseFilter(scale=ROOM_SCALE), poses, fps),
+            _prediction_px(Se3PoseFilter(scale=ROOM_SCALE), poses, fps),
+        )
     for fps, (paper, se3) in res.items():
         assert se3 < max(1.5 * paper, paper + 2.0), (fps, paper, se3)
     if kind == "orbit":
@@ -110,8 +117,10 @@ def test_models_predict_straight_motion_with_panning():
         for i in range(1, 90):
             f.predict(i / 30)
             meas = truth(i / 30).inverse()
-            noisy = Rigid3d(rotmat_from_rotvec(rng.normal(0, 0.001, 3)) @ meas.rotation,
-                            meas.translation + rng.normal(0, 0.003, 3))
+            noisy = Rigid3d(
+                rotmat_from_rotvec(rng.normal(0, 0.001, 3)) @ meas.rotation,
+                meas.translation + rng.normal(0, 0.003, 3),
+            )
             f.update(noisy.inverse())
         dp, dr = pose_errors(f.predict(3.0), truth(3.0))
         assert dp < 0.01 and dr < 0.5, (type(f).__name__, dp, dr)
@@ -129,8 +138,9 @@ def test_filters_are_scale_free(cls):
         f = cls(scale=ROOM_SCALE * s)
         out = []
         for i, T in enumerate(poses):
-            meas = Rigid3d(rotmat_from_rotvec(noise[i][0]) @ T.rotation,
-                           (T.translation + noise[i][1]) * s)
+            meas = Rigid3d(
+                rotmat_from_rotvec(noise[i][0]) @ T.rotation, (T.translation + noise[i][1]) * s
+            )
             if i == 0:
                 f.reset(meas, 0.0)
                 continue
@@ -200,8 +210,12 @@ def test_scaled_rooms_behave_identically(world):
                 dp, dr = pose_errors(r.cam_from_world, Rigid3d(gt.rotation, gt.translation * s))
                 perr.append(dp / s)
                 rerr.append(dr)
-        runs[s] = {"scale": bundle.scene_scale, "statuses": statuses, "perr": np.array(perr),
-                   "rerr": np.array(rerr)}
+        runs[s] = {
+            "scale": bundle.scene_scale,
+            "statuses": statuses,
+            "perr": np.array(perr),
+            "rerr": np.array(rerr),
+        }
     ref = runs[1.0]
     assert sum(st == "TRACKING" for st, _ in ref["statuses"]) >= 13
     for s in (0.01, 100.0):
@@ -225,13 +239,20 @@ def test_a_prediction_beyond_the_inlier_threshold_still_seeds_the_pose():
     xc = np.hstack([(uv - K[:2, 2]) / 525.0 * z[:, None], z[:, None]])
     X = gt.inverse().apply(xc)
     xy = uv + rng.normal(0, 0.5, uv.shape)
-    prior = Rigid3d(rotmat_from_rotvec([0.0, 0.031, 0.0]) @ gt.rotation,
-                    gt.translation + [0.03, 0.0, 0.02])
+    prior = Rigid3d(
+        rotmat_from_rotvec([0.0, 0.031, 0.0]) @ gt.rotation, gt.translation + [0.03, 0.0, 0.02]
+    )
     assert _px(prior, gt, X) > 8.0  # the prediction is off by over twice the threshold
     _, mask = refine(prior, K, xy, X, 4.0, rounds=1)
     assert mask.sum() == 0  # the old first round: nothing to refine on
-    est = estimate_pose(xy, X, K, RansacParams(threshold=4.0, refine_threshold=3.0), prior=prior,
-                        prior_threshold=20.0)
+    est = estimate_pose(
+        xy,
+        X,
+        K,
+        RansacParams(threshold=4.0, refine_threshold=3.0),
+        prior=prior,
+        prior_threshold=20.0,
+    )
     dp, dr = pose_errors(est.cam_from_world, gt)
     assert est.num_inliers >= 55 and dp < 0.02 and dr < 0.3
 
@@ -248,13 +269,16 @@ def test_jump_gate_is_bounded_at_low_frame_rates(world, s):
     scales off was published on the 3 Hz walk). True poses of synthetic walk, flight and orbit
     at 3, 10 and 30 Hz stay plausible against the SE(3) filter's prediction; at 30 Hz the
     reach is what it was. Scale-free: the same verdicts in the room at 0.01x and 100x."""
-    loc = Localizer(scale_bundle(MapBundle(world.maps_dir / "room"), s),
-                    Camera.parse(world.camera_spec))
+    loc = Localizer(
+        scale_bundle(MapBundle(world.maps_dir / "room"), s), Camera.parse(world.camera_spec)
+    )
     scale = loc.bundle.scene_scale
     for kind in ("walk", "flight", "orbit"):
         for fps in (3.0, 10.0, 30.0):
-            poses = [Rigid3d(T.rotation, T.translation * s)
-                     for T in make_trajectory(kind, 12, 0, fps=fps)]
+            poses = [
+                Rigid3d(T.rotation, T.translation * s)
+                for T in make_trajectory(kind, 12, 0, fps=fps)
+            ]
             f = Se3PoseFilter(scale=scale)
             f.reset(poses[0], 0.0)
             for i, T in enumerate(poses[1:], 1):

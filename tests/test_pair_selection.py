@@ -91,7 +91,9 @@ def test_wide_pairs_hit_the_target_angles_with_a_budget_independent_of_frame_rat
         near = near_pairs(poses, 2, 45.0)
         counts.append(len(wide | near) / n)
         C = np.array([T.center for T in poses])
-        got = np.degrees(np.arctan(np.linalg.norm(C[[a for a, _ in wide]] - C[[b for _, b in wide]], axis=1) / d))
+        got = np.degrees(
+            np.arctan(np.linalg.norm(C[[a for a, _ in wide]] - C[[b for _, b in wide]], axis=1) / d)
+        )
         # every wide pair is within the band of some target, and each target is used
         for g in got:
             assert any(t / math.sqrt(2) <= g < t * math.sqrt(2) for t in angles)
@@ -110,14 +112,21 @@ def test_wide_pairs_hit_the_target_angles_with_a_budget_independent_of_frame_rat
 
 def test_wide_pairs_skip_views_that_look_away_or_do_not_overlap():
     d = 2.0
-    poses = [_cam_at([0, 0, 0]), _cam_at([0.2, 0, 0], _rot_y(60)), _cam_at([3.0, 0, 0]), _cam_at([0.35, 0, 0])]
+    poses = [
+        _cam_at([0, 0, 0]),
+        _cam_at([0.2, 0, 0], _rot_y(60)),
+        _cam_at([3.0, 0, 0]),
+        _cam_at([0.35, 0, 0]),
+    ]
     wide = wide_pairs(CAM, poses, [d] * 4, (10.0,), 0.5, 45.0)
     assert (0, 1) not in wide and (0, 2) not in wide  # looks away / beside the view
     assert (0, 3) in wide  # atan(0.35 / 2) = 9.9 deg
 
 
 def _walk_images(tmp_path, n: int, every: int = 1):
-    synth = pytest.importorskip("sfmloc.synth", reason="sfmloc.synth (the synthetic room) is not available")
+    synth = pytest.importorskip(
+        "sfmloc.synth", reason="sfmloc.synth (the synthetic room) is not available"
+    )
     scene = synth.Scene.room(seed=0)
     cam = Camera.pinhole(320, 240, 262.5, 262.5, 160.0, 120.0)
     poses = synth.make_trajectory("walk", n, seed=0, scene=scene, fps=30.0)[::every]
@@ -137,8 +146,9 @@ def test_adding_in_between_frames_never_lowers_the_point_count(tmp_path):
     pose_file = write_colmap_list(tmp_path / "p.txt", names, poses)
     counts = {}
     for stride in (4, 2, 1):
-        rec = sfm.triangulate_known_poses(tmp_path / "img", pose_file, cam, stride=stride,
-                                          conf=sfm.sfm_conf(num_threads=1))
+        rec = sfm.triangulate_known_poses(
+            tmp_path / "img", pose_file, cam, stride=stride, conf=sfm.sfm_conf(num_threads=1)
+        )
         counts[stride] = len(rec.points3D)
     assert counts[4] > 100, counts
     assert counts[4] <= counts[2] <= counts[1], counts
@@ -148,11 +158,53 @@ def test_cli_pairs_flag_reaches_the_build(tmp_path):
     """``sfmloc build --pairs nearest`` builds with the old rule (recorded in the manifest)."""
     cam, names, poses = _walk_images(tmp_path, 60, every=10)
     pose_file = write_colmap_list(tmp_path / "p.txt", names, poses)
-    posed = ["--images", str(tmp_path / "img"), "--poses", str(pose_file), "--camera", cam.to_string()]
-    r = subprocess.run([sys.executable, "-m", "sfmloc", "build", "old", "--out", str(tmp_path), *posed,
-                        "--pairs", "nearest", "--preset", "fast"], capture_output=True, text=True, timeout=300)
+    posed = [
+        "--images",
+        str(tmp_path / "img"),
+        "--poses",
+        str(pose_file),
+        "--camera",
+        cam.to_string(),
+    ]
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "sfmloc",
+            "build",
+            "old",
+            "--out",
+            str(tmp_path),
+            *posed,
+            "--pairs",
+            "nearest",
+            "--preset",
+            "fast",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert r.returncode == 0, r.stderr
-    assert MapBundle(tmp_path / "old", verify=False).manifest.params["sfm"]["pair_selection"] == "nearest"
-    r = subprocess.run([sys.executable, "-m", "sfmloc", "build", "bad", "--out", str(tmp_path), *posed,
-                        "--pairs", "random"], capture_output=True, text=True, timeout=300)
+    assert (
+        MapBundle(tmp_path / "old", verify=False).manifest.params["sfm"]["pair_selection"]
+        == "nearest"
+    )
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "sfmloc",
+            "build",
+            "bad",
+            "--out",
+            str(tmp_path),
+            *posed,
+            "--pairs",
+            "random",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert r.returncode != 0 and "--pairs" in r.stderr

@@ -26,9 +26,16 @@ class _Pool:
         self.restarted = threading.Event()
         self.died = threading.Event()
         self.got_result = threading.Condition()
-        self.pool = WorkerPool(n, "thread", "{}", on_result=self._on_result, on_dead=self._on_dead,
-                               on_lost=lambda i: self.restarted.set(), thread_target=self.fake,
-                               reloc_workers=reloc_workers)
+        self.pool = WorkerPool(
+            n,
+            "thread",
+            "{}",
+            on_result=self._on_result,
+            on_dead=self._on_dead,
+            on_lost=lambda i: self.restarted.set(),
+            thread_target=self.fake,
+            reloc_workers=reloc_workers,
+        )
         self.pool.start(timeout=30)
 
     def _on_result(self, r: P.Result) -> None:
@@ -41,7 +48,9 @@ class _Pool:
         self.died.set()
 
     def frame(self, worker: int, sid: int, seq: int, encoding: str = "gray8") -> None:
-        self.pool.submit_frame(worker, P.LocalizeFrame(sid, "a", 1, seq, seq * 10, CAM, encoding, b"x"))
+        self.pool.submit_frame(
+            worker, P.LocalizeFrame(sid, "a", 1, seq, seq * 10, CAM, encoding, b"x")
+        )
 
     def kill(self, worker: int) -> None:
         """The worker dies as a killed process does (its socket closes mid-frame)."""
@@ -72,7 +81,9 @@ def test_load_reaches_every_worker_and_relocalize_answers_with_its_pose(fp):
     s = fp.pool.load_map("a", 1, "/maps/a", "build-1")
     assert s.build_id == "build-1" and s.index_in_place
     for i in range(2):
-        assert [(m.name, m.gen, m.path) for m in fp.fake.messages(i, 1, P.Load)] == [("a", 1, "/maps/a")]
+        assert [(m.name, m.gen, m.path) for m in fp.fake.messages(i, 1, P.Load)] == [
+            ("a", 1, "/maps/a")
+        ]
     r = fp.pool.relocalize(P.Relocalize(0, "a", 1, CAM, "gray8", None, data=b"img")).result(30)
     assert isinstance(r, P.RelocResult) and r.pose.status == "RELOCALIZED"
     fp.pool.drop_map("a", 1)
@@ -138,8 +149,9 @@ def test_relocalizations_wait_for_an_idle_lane_worker_and_dropped_ones_never_rea
         first = fp.pool.relocalize(P.Relocalize(0, "a", 1, CAM, "hold", None, data=b"x"))
         assert fp.fake.wait_for(lambda: len(fp.fake.messages(1, 1, P.Relocalize)) == 1)
         cancelled = fp.pool.relocalize(P.Relocalize(0, "a", 1, CAM, "gray8", None, data=b"x"))
-        expired = fp.pool.relocalize(P.Relocalize(0, "a", 1, CAM, "gray8", None,
-                                                  deadline=time.monotonic(), data=b"x"))
+        expired = fp.pool.relocalize(
+            P.Relocalize(0, "a", 1, CAM, "gray8", None, deadline=time.monotonic(), data=b"x")
+        )
         last = fp.pool.relocalize(P.Relocalize(0, "a", 1, CAM, "gray8", None, data=b"x"))
         assert cancelled.cancel()
         assert len(fp.fake.messages(1, 1, P.Relocalize)) == 1  # the others wait in the pool

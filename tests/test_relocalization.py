@@ -5,22 +5,23 @@ confirmed (with more inliers), chance poses (another scene, noise, a pose that i
 from __future__ import annotations
 
 import numpy as np
-from test_mapping_sfm import Corner, look_at
 
 from sfmloc.cameras import Camera
 from sfmloc.engine import EngineConf, Status, relocalize
-from sfmloc.engine.relocalize import describe, match_near_prior, visible_points
 from sfmloc.engine.matching import global_matching, neighbour_strengths, restrict_neighbours
 from sfmloc.engine.pose import estimate_pose_one_to_many
+from sfmloc.engine.relocalize import describe, match_near_prior, visible_points
 from sfmloc.features.daisy import DaisyExtractor
 from sfmloc.features.harris import detect_corners
 from sfmloc.transforms import Rigid3d, pose_errors, rotmat_from_rotvec
+from test_mapping_sfm import Corner, look_at
 
 
 def _features(gray, bundle, conf):
     ex = DaisyExtractor()
-    c = detect_corners(gray, rel_threshold=conf.gamma, max_corners=conf.global_max_keypoints,
-                       border=conf.mu // 2)
+    c = detect_corners(
+        gray, rel_threshold=conf.gamma, max_corners=conf.global_max_keypoints, border=conf.mu // 2
+    )
     return c.xy, describe(ex, bundle, ex.prepare(gray), c.xy)
 
 
@@ -31,8 +32,9 @@ def _ransac_pose(gray, bundle, cam, conf):
     X = bundle.points_xyz
     if len(gm.set1_q) < 3:
         return xy, desc, None
-    res = estimate_pose_one_to_many(xy[gm.set1_q], X[gm.set1_p], gm.set2_q, xy[gm.set2_q],
-                                    X[gm.set2_p], cam.K, conf.ransac())
+    res = estimate_pose_one_to_many(
+        xy[gm.set1_q], X[gm.set1_p], gm.set2_q, xy[gm.set2_q], X[gm.set2_p], cam.K, conf.ransac()
+    )
     return xy, desc, None if res is None else res[0]
 
 
@@ -115,7 +117,9 @@ def test_matching_near_a_prior_covers_the_whole_frame_with_an_off_centre_princip
     fx, fy, cx, cy = (float(v) for v in cam.params)
     left = int(cx) // 2  # crop the left columns: cx moves to a third of the width
     crop = np.ascontiguousarray(world.gray[i][:, left:])
-    ccam = Camera.parse(f"PINHOLE {cam.width - left} {cam.height} {fx!r} {fy!r} {cx - left!r} {cy!r}")
+    ccam = Camera.parse(
+        f"PINHOLE {cam.width - left} {cam.height} {fx!r} {fy!r} {cx - left!r} {cy!r}"
+    )
     right = 2 * ccam.params[2]  # where the old rule cut the image
     assert right < ccam.width - 100
     vis = visible_points(ccam, gt, bundle.points_xyz)

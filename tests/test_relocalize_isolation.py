@@ -11,6 +11,7 @@ import cv2
 import grpc
 import numpy as np
 import pytest
+
 from server_helpers import (
     build_world,
     camera,
@@ -32,8 +33,9 @@ def world(tmp_path_factory):
     return build_world(tmp_path_factory.getbasetemp())
 
 
-def big_camera(world, model: str = "PINHOLE", k: float | None = None,
-               focal: float | None = None) -> CameraSpec:
+def big_camera(
+    world, model: str = "PINHOLE", k: float | None = None, focal: float | None = None
+) -> CameraSpec:
     """The world's camera scaled to SIDE x SIDE (optionally another focal or distortion)."""
     _, w, _, fx, fy, cx, cy = world.camera_spec.split()
     s = SIDE / float(w)
@@ -72,17 +74,23 @@ def test_engine_deadline_ends_between_stages_and_a_far_one_changes_nothing(world
 @pytest.fixture(scope="module")
 def budget_srv(world):
     """Thread workers, a relocalization lane, a 1 ms budget and one request per caller."""
-    conf = server_config(world, zenoh_endpoint(), relocalize_workers=1,
-                         relocalize_budget_ms=1.0, max_relocalize_per_client=1,
-                         grpc={"address": "127.0.0.1:0", "max_message_mb": 32.0})
+    conf = server_config(
+        world,
+        zenoh_endpoint(),
+        relocalize_workers=1,
+        relocalize_budget_ms=1.0,
+        max_relocalize_per_client=1,
+        grpc={"address": "127.0.0.1:0", "max_message_mb": 32.0},
+    )
     with running_server(conf) as s:
         yield s
 
 
 @pytest.mark.parametrize("case", ["blank", "radial-k-1e30"])
 def test_a_huge_request_ends_at_the_budget_with_a_clear_status(world, budget_srv, case):
-    with LocalizationClient(f"127.0.0.1:{budget_srv.grpc_port}", timeout=120,
-                            max_message_mb=32) as c:
+    with LocalizationClient(
+        f"127.0.0.1:{budget_srv.grpc_port}", timeout=120, max_message_mb=32
+    ) as c:
         if case == "blank":
             pose = c.relocalize(blank_png(), "room", big_camera(world), encoding="png")
         else:
@@ -110,8 +118,10 @@ def test_one_caller_cannot_queue_more_than_its_limit(world, budget_srv):
     # Without tokens a caller is a connection; grpc shares one between a process's channels
     # to the same target unless told otherwise.
     opts = [("grpc.use_local_subchannel_pool", 1), ("grpc.max_send_message_length", 1 << 25)]
-    with LocalizationClient(target, timeout=120, max_message_mb=32) as c, \
-            grpc.insecure_channel(target, options=opts) as other:
+    with (
+        LocalizationClient(target, timeout=120, max_message_mb=32) as c,
+        grpc.insecure_channel(target, options=opts) as other,
+    ):
         calls = [c.stub.Relocalize.future(req, timeout=120) for _ in range(4)]
         elsewhere = LocalizationStub(other).Relocalize.future(req, timeout=120)
         codes, details = [], []
@@ -132,15 +142,23 @@ def test_a_stream_keeps_every_frame_beside_slow_relocalizations(world):
     """One stream worker and a relocalization lane (processes): a lockstep stream gets a pose
     for every frame while another caller keeps the lane busy with 4096x4096 images."""
     zep = zenoh_endpoint()
-    conf = server_config(world, zep, workers=1, worker_kind="process", relocalize_workers=1,
-                         relocalize_budget_ms=0.0,
-                         grpc={"address": "127.0.0.1:0", "max_message_mb": 32.0})
+    conf = server_config(
+        world,
+        zep,
+        workers=1,
+        worker_kind="process",
+        relocalize_workers=1,
+        relocalize_budget_ms=0.0,
+        grpc={"address": "127.0.0.1:0", "max_message_mb": 32.0},
+    )
     stop = threading.Event()
     answers: list[str] = []
     with running_server(conf) as srv:
+
         def caller() -> None:
-            with LocalizationClient(f"127.0.0.1:{srv.grpc_port}", timeout=120,
-                                    max_message_mb=32) as c:
+            with LocalizationClient(
+                f"127.0.0.1:{srv.grpc_port}", timeout=120, max_message_mb=32
+            ) as c:
                 data = textured_jpeg(world)
                 while not stop.is_set():
                     answers.append(c.relocalize(data, "room", big_camera(world)).status)

@@ -9,8 +9,8 @@ import shutil
 
 import numpy as np
 import pytest
-from server_helpers import build_world
 
+from server_helpers import build_world
 from sfmloc.cameras import Camera
 from sfmloc.errors import InputError
 from sfmloc.eval.replay import replay
@@ -65,8 +65,10 @@ def test_stems_in_each_unit_and_nanosecond_precision(tmp_path):
     src = FrameSource(_touch(tmp_path / "us", ["5000000.png", "5033333.png"]), timestamps="stem-us")
     assert [src.stamp(i) for i in range(2)] == pytest.approx([5.0, 5.033333])
     # fractional seconds, as in TUM RGB-D folders
-    src = FrameSource(_touch(tmp_path / "tum", ["1305031102.175304.png", "1305031102.211214.png"]),
-                      timestamps="stem-s")
+    src = FrameSource(
+        _touch(tmp_path / "tum", ["1305031102.175304.png", "1305031102.211214.png"]),
+        timestamps="stem-s",
+    )
     assert src.stamp(1) - src.stamp(0) == pytest.approx(0.03591, abs=1e-5)
 
 
@@ -83,12 +85,15 @@ def test_timestamps_file_by_name_or_in_order(tmp_path):
     assert [src.stamp(i) for i in range(3)] == [1.0, 1.1, 1.25]
 
 
-@pytest.mark.parametrize("names, spec, message", [
-    (["frame-1.png", "frame-2.png"], "stem-s", "no numeric stem"),
-    (["3.png", "2.png", "1a.png"], "stem-ms", "no numeric stem"),
-    (["1.png", "1.0.png"], "stem-s", "do not increase"),
-    (["1.png", "2.png"], "stem-hours", "neither one of stem-s"),
-])
+@pytest.mark.parametrize(
+    "names, spec, message",
+    [
+        (["frame-1.png", "frame-2.png"], "stem-s", "no numeric stem"),
+        (["3.png", "2.png", "1a.png"], "stem-ms", "no numeric stem"),
+        (["1.png", "1.0.png"], "stem-s", "do not increase"),
+        (["1.png", "2.png"], "stem-hours", "neither one of stem-s"),
+    ],
+)
 def test_bad_clocks_are_clear_errors(tmp_path, names, spec, message):
     folder = _touch(tmp_path / "f", names)
     with pytest.raises(InputError, match=message):
@@ -118,8 +123,9 @@ def _run(world, folder, **kw):
 
 def _kept_tracking(records):
     """Only the first frame relocalizes; every later frame is tracked."""
-    return (records[0].status == "RELOCALIZED"
-            and all(r.status == "TRACKING" and r.matching != "global" for r in records[1:]))
+    return records[0].status == "RELOCALIZED" and all(
+        r.status == "TRACKING" and r.matching != "global" for r in records[1:]
+    )
 
 
 def test_numeric_names_keep_tracking_on_the_fps_clock(world, tmp_path):
@@ -156,8 +162,19 @@ def test_replay_cli_names_the_clock(world, tmp_path, capsys):
 
     folder = _folder(tmp_path / "ms", world, [f"{round(i * 1000 / 30)}.png" for i in range(8)])
     out = tmp_path / "summary.json"
-    rc = main(["replay", str(world.maps_dir / "room"), str(folder), "--camera", world.camera_spec,
-               "--timestamps", "stem-ms", "--json", str(out)])
+    rc = main(
+        [
+            "replay",
+            str(world.maps_dir / "room"),
+            str(folder),
+            "--camera",
+            world.camera_spec,
+            "--timestamps",
+            "stem-ms",
+            "--json",
+            str(out),
+        ]
+    )
     assert rc == 0
     assert "clock                file-name stems in ms (30.3 frames/s)" in capsys.readouterr().out
     s = json.loads(out.read_text())

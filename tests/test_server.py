@@ -15,6 +15,7 @@ import msgpack
 import numpy as np
 import pytest
 import zenoh
+
 from server_helpers import (
     Collected,
     build_world,
@@ -60,9 +61,16 @@ def zep():
 @pytest.fixture(scope="module")
 def srv(world, zep):
     """The server most tests share: two worker processes, both maps, following the builder."""
-    conf = server_config(world, zep, workers=2, worker_kind="process", follow_builder=True,
-                         metrics_port=free_port(), server_id="test-server",
-                         map_roots=[str(world.spare_dir)])
+    conf = server_config(
+        world,
+        zep,
+        workers=2,
+        worker_kind="process",
+        follow_builder=True,
+        metrics_port=free_port(),
+        server_id="test-server",
+        map_roots=[str(world.spare_dir)],
+    )
     with running_server(conf) as s:
         yield s
 
@@ -87,7 +95,9 @@ def test_stream_receives_a_pose_for_every_frame_with_its_seq(world, z):
     localized = [p for p in poses if p.localized]
     assert len(localized) >= 0.9 * len(poses)
     assert np.median(position_errors(world, poses)) < 0.05  # metres, exact ground truth
-    assert poses[0].status == "RELOCALIZED" or not poses[0].localized  # a new session starts from scratch
+    assert (
+        poses[0].status == "RELOCALIZED" or not poses[0].localized
+    )  # a new session starts from scratch
     assert any(p.status == "TRACKING" for p in poses)
     assert all(p.latency_ms >= p.engine_ms > 0 for p in localized)
     # every pose carries its 6x6 covariance (positive definite); LOST ones none
@@ -103,7 +113,10 @@ def test_two_clients_on_two_maps_at_once(world, z):
     def client(map_name: str, cid: str) -> None:
         results[map_name] = stream_lockstep(z, map_name, cid, world, n=40)
 
-    threads = [threading.Thread(target=client, args=("room", "a")), threading.Thread(target=client, args=("room2", "b"))]
+    threads = [
+        threading.Thread(target=client, args=("room", "a")),
+        threading.Thread(target=client, args=("room2", "b")),
+    ]
     for t in threads:
         t.start()
     for t in threads:
@@ -121,8 +134,10 @@ def test_latest_frame_only_intake_drops_and_counts_stale_frames(world, z, grpc_c
     reported in the poses and in ListSessions, and the newest frame is always processed."""
     got: list = []
     n = 40
-    with PoseSubscriber(z, "room", "burst", callback=got.append) as poses, \
-            FrameStreamer(z, "room", "burst", camera(world), congestion="block") as fs:
+    with (
+        PoseSubscriber(z, "room", "burst", callback=got.append) as poses,
+        FrameStreamer(z, "room", "burst", camera(world), congestion="block") as fs,
+    ):
         assert fs.wait_for_server(30)
         for k in range(n):  # back to back: ~microseconds apart, each frame takes milliseconds
             fs.publish(data=world.png[k], encoding="png", stamp_ns=int(k * 1e9 / 30))
@@ -140,7 +155,9 @@ def test_grpc_stream_localize_with_a_corrupt_frame_in_the_middle(world, grpc_cli
     """StreamLocalize in lockstep (each frame after the previous pose): every frame gets its
     pose; the corrupt one a LOST update with an error code, and the stream goes on."""
     frames = [SourceFrame(data=d, encoding="png") for d in world.png[:20]]
-    frames[10] = SourceFrame(data=b"\x89PNG\r\n\x1a\n" + b"garbage" * 50, encoding="png")  # corrupt PNG
+    frames[10] = SourceFrame(
+        data=b"\x89PNG\r\n\x1a\n" + b"garbage" * 50, encoding="png"
+    )  # corrupt PNG
     frames[15] = SourceFrame(data=b"\x00" * 1000, encoding="gray8")  # not 640x480
     acks: queue.Queue = queue.Queue()
 
@@ -150,7 +167,9 @@ def test_grpc_stream_localize_with_a_corrupt_frame_in_the_middle(world, grpc_cli
             acks.get(timeout=60)
 
     poses = []
-    for p in grpc_client.stream(requests(), "room", camera(world), client_id="grpc-walker", encoding="png"):
+    for p in grpc_client.stream(
+        requests(), "room", camera(world), client_id="grpc-walker", encoding="png"
+    ):
         poses.append(p)
         acks.put(p.seq)
     assert [p.seq for p in poses] == list(range(20))
@@ -158,15 +177,23 @@ def test_grpc_stream_localize_with_a_corrupt_frame_in_the_middle(world, grpc_cli
     assert bad.status == "LOST" and bad.error is not None and bad.error.code == "INVALID_ARGUMENT"
     assert "cannot be decoded" in bad.error.message
     assert poses[15].error.code == "INVALID_ARGUMENT" and "1000 bytes" in poses[15].error.message
-    assert all(p.error is None and p.client_id == "grpc-walker" for p in poses if p.seq not in (10, 15))
+    assert all(
+        p.error is None and p.client_id == "grpc-walker" for p in poses if p.seq not in (10, 15)
+    )
     assert sum(p.localized for p in poses) >= 17
     assert np.median(position_errors(world, poses)) < 0.05
     assert all((p.covariance is not None) == p.localized for p in poses)  # StreamLocalize
 
 
 def test_grpc_stream_burst_drops_stale_frames_and_ends_with_the_last(world, grpc_client):
-    poses = list(grpc_client.stream((SourceFrame(data=d, encoding="png") for d in world.png[:30]), "room",
-                                    camera(world), encoding="png"))
+    poses = list(
+        grpc_client.stream(
+            (SourceFrame(data=d, encoding="png") for d in world.png[:30]),
+            "room",
+            camera(world),
+            encoding="png",
+        )
+    )
     seqs = [p.seq for p in poses]
     assert seqs == sorted(seqs) and seqs[-1] == 29
     assert len(poses) + poses[-1].dropped == 30
@@ -185,10 +212,15 @@ def test_grpc_stream_on_an_unknown_map_or_without_camera_ends_with_its_status(wo
     from sfmloc_client.pb import common_pb2
     from sfmloc_client.pb import localization_pb2 as lpb
 
-    bad_cam = common_pb2.Camera(model="PINHOLE", width=640, height=480,
-                                params=[-1.0, 525.0, 320.0, 240.0])
-    reqs = [lpb.StreamFrame(map="room", seq=k, camera=bad_cam,
-                            image=image_to_pb("png", world.png[k], 640, 480)) for k in range(2)]
+    bad_cam = common_pb2.Camera(
+        model="PINHOLE", width=640, height=480, params=[-1.0, 525.0, 320.0, 240.0]
+    )
+    reqs = [
+        lpb.StreamFrame(
+            map="room", seq=k, camera=bad_cam, image=image_to_pb("png", world.png[k], 640, 480)
+        )
+        for k in range(2)
+    ]
     with pytest.raises(grpc.RpcError) as err:
         list(grpc_client.stub.StreamLocalize(iter(reqs), timeout=60))
     assert err.value.code().name == "INVALID_ARGUMENT" and "focal" in err.value.details()
@@ -207,18 +239,58 @@ def test_bad_frames_get_clear_errors_while_a_good_client_keeps_getting_poses(wor
         "garbage": b"\x00\x01not msgpack at all",
         "not-a-map": msgpack.packb([1, 2, 3]),
         "missing-key": msgpack.packb({"seq": 3, "stamp_ns": 0, "encoding": "png", "data": b"x"}),
-        "bad-encoding": msgpack.packb({"seq": 4, "stamp_ns": 0, "camera": cam.to_wire(), "encoding": "webp", "data": b"x"}),
-        "wrong-size": msgpack.packb({"seq": 5, "stamp_ns": 0, "camera": cam.to_wire(), "encoding": "gray8",
-                                     "data": b"\x00" * 10000}),
-        "corrupt-jpeg": encode_frame(Frame(6, 0, cam, "jpeg", b"\xff\xd8\xff\xe0" + bytes(range(256)) * 8)),
-        "other-size-png": encode_frame(Frame(7, 0, CameraSpec("PINHOLE", 320, 240, (262.5, 262.5, 160, 120)), "png", world.png[0])),
-        "bad-camera": msgpack.packb({"seq": 8, "stamp_ns": 0, "camera": {"model": "PINHOLE", "width": 640, "height": 480,
-                                     "params": [-5.0, 525.0, 320.0, 240.0]}, "encoding": "png", "data": world.png[0]}),
-        "oversized": msgpack.packb({"seq": 9, "stamp_ns": 0, "camera": cam.to_wire(), "encoding": "png",
-                                    "data": b"\x00" * (srv.conf.max_frame_bytes + 10)}),
-        "huge-camera": encode_frame(Frame(10, 0, CameraSpec("PINHOLE", 8000, 8000, (5e3, 5e3, 4e3, 4e3)), "png", world.png[0])),
+        "bad-encoding": msgpack.packb(
+            {"seq": 4, "stamp_ns": 0, "camera": cam.to_wire(), "encoding": "webp", "data": b"x"}
+        ),
+        "wrong-size": msgpack.packb(
+            {
+                "seq": 5,
+                "stamp_ns": 0,
+                "camera": cam.to_wire(),
+                "encoding": "gray8",
+                "data": b"\x00" * 10000,
+            }
+        ),
+        "corrupt-jpeg": encode_frame(
+            Frame(6, 0, cam, "jpeg", b"\xff\xd8\xff\xe0" + bytes(range(256)) * 8)
+        ),
+        "other-size-png": encode_frame(
+            Frame(
+                7, 0, CameraSpec("PINHOLE", 320, 240, (262.5, 262.5, 160, 120)), "png", world.png[0]
+            )
+        ),
+        "bad-camera": msgpack.packb(
+            {
+                "seq": 8,
+                "stamp_ns": 0,
+                "camera": {
+                    "model": "PINHOLE",
+                    "width": 640,
+                    "height": 480,
+                    "params": [-5.0, 525.0, 320.0, 240.0],
+                },
+                "encoding": "png",
+                "data": world.png[0],
+            }
+        ),
+        "oversized": msgpack.packb(
+            {
+                "seq": 9,
+                "stamp_ns": 0,
+                "camera": cam.to_wire(),
+                "encoding": "png",
+                "data": b"\x00" * (srv.conf.max_frame_bytes + 10),
+            }
+        ),
+        "huge-camera": encode_frame(
+            Frame(
+                10, 0, CameraSpec("PINHOLE", 8000, 8000, (5e3, 5e3, 4e3, 4e3)), "png", world.png[0]
+            )
+        ),
         # a decompression bomb: 14 kB of PNG that would decode to 9000 x 9000 pixels
-        "bomb": encode_frame(Frame(11, 0, cam, "png", encode_image(np.zeros((9000, 9000), np.uint8), "png"))),
+        "bomb": encode_frame(
+            Frame(11, 0, cam, "png", encode_image(np.zeros((9000, 9000), np.uint8), "png"))
+        ),
     }
     expected = {
         "garbage": ("INVALID_ARGUMENT", None, "msgpack"),
@@ -258,7 +330,11 @@ def test_bad_frames_get_clear_errors_while_a_good_client_keeps_getting_poses(wor
                 if not errors[cid]:
                     _raw_put(z, frame_key("room", cid), payload)
             if not unknown:
-                _raw_put(z, frame_key("atlantis", "lost"), encode_frame(Frame(0, 0, cam, "png", world.png[0])))
+                _raw_put(
+                    z,
+                    frame_key("atlantis", "lost"),
+                    encode_frame(Frame(0, 0, cam, "png", world.png[0])),
+                )
             return wait_until(lambda: all(errors[c] for c in cases) and bool(unknown), 1.0)
 
         assert wait_until(send_unanswered, 60, every=0.0), [c for c in cases if not errors[c]]
@@ -293,15 +369,25 @@ def test_relocalize_single_images(world, grpc_client):
     # raw gray8 works too, and a prior is accepted
     pose = grpc_client.relocalize(world.gray[30], "room", cam, encoding="gray8")
     assert pose.localized
-    near = grpc_client.relocalize(world.png[30], "room", cam, encoding="png", prior=pose.cam_from_world)
+    near = grpc_client.relocalize(
+        world.png[30], "room", cam, encoding="png", prior=pose.cam_from_world
+    )
     assert near.localized
 
 
 @pytest.mark.parametrize(
     "case, code",
-    [("unknown-map", "NOT_FOUND"), ("corrupt-jpeg", "INVALID_ARGUMENT"), ("bad-camera", "INVALID_ARGUMENT"),
-     ("wrong-raw-size", "INVALID_ARGUMENT"), ("no-encoding", "INVALID_ARGUMENT"), ("oversized", "RESOURCE_EXHAUSTED"),
-     ("nan-prior", "INVALID_ARGUMENT"), ("zero-prior", "INVALID_ARGUMENT"), ("short-prior", "INVALID_ARGUMENT")],
+    [
+        ("unknown-map", "NOT_FOUND"),
+        ("corrupt-jpeg", "INVALID_ARGUMENT"),
+        ("bad-camera", "INVALID_ARGUMENT"),
+        ("wrong-raw-size", "INVALID_ARGUMENT"),
+        ("no-encoding", "INVALID_ARGUMENT"),
+        ("oversized", "RESOURCE_EXHAUSTED"),
+        ("nan-prior", "INVALID_ARGUMENT"),
+        ("zero-prior", "INVALID_ARGUMENT"),
+        ("short-prior", "INVALID_ARGUMENT"),
+    ],
 )
 def test_relocalize_errors_map_to_status_codes(world, grpc_client, case, code):
     from sfmloc_client.grpc_client import relocalize_request
@@ -312,7 +398,10 @@ def test_relocalize_errors_map_to_status_codes(world, grpc_client, case, code):
     if case == "unknown-map":
         req.map = "atlantis"
     elif case == "corrupt-jpeg":
-        req.image.encoding, req.image.data = common_pb2.IMAGE_ENCODING_JPEG, b"\xff\xd8\xff" + b"\x17" * 5000
+        req.image.encoding, req.image.data = (
+            common_pb2.IMAGE_ENCODING_JPEG,
+            b"\xff\xd8\xff" + b"\x17" * 5000,
+        )
     elif case == "bad-camera":
         req.camera.model = "FISHEYE_9000"
     elif case == "wrong-raw-size":
@@ -332,10 +421,15 @@ def test_relocalize_errors_map_to_status_codes(world, grpc_client, case, code):
         assert "larger than max" in e.value.details() or "exceeds" in e.value.details()
 
 
-@pytest.mark.parametrize("method, kind", [
-    ("/sfmloc.v1.Localization/Relocalize", "unary"), ("/sfmloc.v1.Localization/ListMaps", "unary"),
-    ("/sfmloc.v1.Localization/StreamLocalize", "stream"), ("/grpc.health.v1.Health/Check", "unary"),
-])
+@pytest.mark.parametrize(
+    "method, kind",
+    [
+        ("/sfmloc.v1.Localization/Relocalize", "unary"),
+        ("/sfmloc.v1.Localization/ListMaps", "unary"),
+        ("/sfmloc.v1.Localization/StreamLocalize", "stream"),
+        ("/grpc.health.v1.Health/Check", "unary"),
+    ],
+)
 def test_unparsable_request_bytes_are_invalid_argument(srv, method, kind, caplog):
     """Bytes that are no protobuf message of the method's type: INVALID_ARGUMENT with a
     message (grpc's own answer would be UNKNOWN or INTERNAL), and no error logged for it."""
@@ -350,7 +444,11 @@ def test_unparsable_request_bytes_are_invalid_argument(srv, method, kind, caplog
                     ch.unary_unary(method)(data, timeout=30)
                 else:
                     list(ch.stream_stream(method)(iter([data]), timeout=30))
-            assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT, (method, data, e.value.details())
+            assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT, (
+                method,
+                data,
+                e.value.details(),
+            )
             assert "malformed request" in e.value.details()
     errors = [r.getMessage()[:200] for r in caplog.records if r.levelno >= logging.ERROR]
     assert errors == []  # e.g. not "Abort already called!" with a traceback per message
@@ -376,8 +474,10 @@ def test_map_replaced_under_a_live_stream(world, z, grpc_client):
     old = grpc_client.get_map("room").build_id
     poses: list = []
     cam = camera(world)
-    with PoseSubscriber(z, "room", "replace", callback=poses.append) as sub, \
-            FrameStreamer(z, "room", "replace", cam) as fs:
+    with (
+        PoseSubscriber(z, "room", "replace", callback=poses.append) as sub,
+        FrameStreamer(z, "room", "replace", cam) as fs,
+    ):
         assert fs.wait_for_server(30)
         for k in range(50):
             seq = fs.publish(data=world.png[k], encoding="png", stamp_ns=int(k * 1e9 / 30))
@@ -390,7 +490,9 @@ def test_map_replaced_under_a_live_stream(world, z, grpc_client):
     assert [p.seq for p in poses] == list(range(50)) and all(p.error is None for p in poses)
     builds = [p.build_id for p in poses]
     switch = builds.index(new)
-    assert switch == 21 and set(builds[:switch]) == {old} and set(builds[switch:]) == {new}  # one clean switch
+    assert (
+        switch == 21 and set(builds[:switch]) == {old} and set(builds[switch:]) == {new}
+    )  # one clean switch
     assert poses[switch].status in ("RELOCALIZED", "LOST")  # a fresh Localizer on the new map
     assert sum(p.localized for p in poses[switch:]) >= len(poses[switch:]) - 3
 
@@ -415,8 +517,9 @@ def _index_mapping_kb(pid: int, bundle: Path) -> tuple[int, int, int]:
     return n, rss, pss
 
 
-def test_workers_share_one_mapped_index_and_all_see_a_replacement_under_load(world, z, grpc_client,
-                                                                             srv):
+def test_workers_share_one_mapped_index_and_all_see_a_replacement_under_load(
+    world, z, grpc_client, srv
+):
     """Every worker process reads a map's index in place from the bundle's file (one copy in
     the page cache, shared), and a map replaced while clients on every worker stream is seen
     by all of them: one clean switch per client, the new file mapped by every worker, the old
@@ -454,11 +557,14 @@ def test_workers_share_one_mapped_index_and_all_see_a_replacement_under_load(wor
 
     def client(cid: str) -> None:
         got: list = []
-        with PoseSubscriber(z, "shared", cid, callback=got.append) as sub, \
-                FrameStreamer(z, "shared", cid, camera(world)) as fs:
+        with (
+            PoseSubscriber(z, "shared", cid, callback=got.append) as sub,
+            FrameStreamer(z, "shared", cid, camera(world)) as fs,
+        ):
             for k in range(n):
-                seq = fs.publish(data=world.png[k], encoding="png", seq=k,
-                                 stamp_ns=int((k + 1) * 1e9 / 30))
+                seq = fs.publish(
+                    data=world.png[k], encoding="png", seq=k, stamp_ns=int((k + 1) * 1e9 / 30)
+                )
                 assert sub.wait_for(seq, 60)
                 if k == switch_at:
                     half.set()
@@ -510,12 +616,16 @@ def test_unload_load_and_corrupt_bundles(world, z, grpc_client):
     with pytest.raises(RemoteError) as e:
         grpc_client.load_map(str(world.maps_dir / "room2"), "bad name!")
     assert e.value.code == "INVALID_ARGUMENT"
-    assert wait_until(lambda: grpc_client.health("sfmloc.v1.Localization/room2") == "NOT_SERVING", 10)
+    assert wait_until(
+        lambda: grpc_client.health("sfmloc.v1.Localization/room2") == "NOT_SERVING", 10
+    )
     assert grpc_client.health() == "SERVING"  # room is still loaded
     m = grpc_client.load_map(str(world.maps_dir / "room2"))
     assert m.name == "room2" and m.points > 0 and m.memory_mb > 0
     assert wait_until(lambda: grpc_client.health("sfmloc.v1.Localization/room2") == "SERVING", 10)
-    assert [p.seq for p in stream_lockstep(z, "room2", "after-reload", world, n=5)] == list(range(5))
+    assert [p.seq for p in stream_lockstep(z, "room2", "after-reload", world, n=5)] == list(
+        range(5)
+    )
 
 
 def test_load_map_only_from_the_maps_folders(world, z, grpc_client):
@@ -526,9 +636,17 @@ def test_load_map_only_from_the_maps_folders(world, z, grpc_client):
     link_in_maps = world.maps_dir / "link-out"
     link_in_maps.symlink_to(world.root, target_is_directory=True)
     try:
-        for path in (str(outside), str(world.root / "nothing-here"), "/etc", "/dev/zero", "/",
-                     str(world.maps_dir / ".." / "synth"), str(link_in_maps / "synth"),
-                     "../synth", str(world.maps_dir)):
+        for path in (
+            str(outside),
+            str(world.root / "nothing-here"),
+            "/etc",
+            "/dev/zero",
+            "/",
+            str(world.maps_dir / ".." / "synth"),
+            str(link_in_maps / "synth"),
+            "../synth",
+            str(world.maps_dir),
+        ):
             with pytest.raises(RemoteError) as e:
                 grpc_client.load_map(path, "denied")
             assert e.value.code == "PERMISSION_DENIED", path
@@ -571,22 +689,31 @@ def test_a_second_device_under_the_same_client_id_is_refused(world, zep, srv):
         def answered(k: int) -> bool:  # wait_for(seq) means "up to seq": the seqs interleave here
             return got.has_seq(k)
 
-        with PoseSubscriber(za, "room", "twin", callback=got.append), \
-                FrameStreamer(za, "room", "twin", cam) as a, FrameStreamer(zb, "room", "twin", cam) as b:
+        with (
+            PoseSubscriber(za, "room", "twin", callback=got.append),
+            FrameStreamer(za, "room", "twin", cam) as a,
+            FrameStreamer(zb, "room", "twin", cam) as b,
+        ):
             assert a.source != b.source
             assert a.wait_for_server(30) and b.wait_for_server(30)
             for k in range(20):
                 a.publish(data=world.png[k], encoding="png", seq=k, stamp_ns=int(k * 1e9 / 30))
                 assert answered(k)
                 if k in (5, 10, 15):
-                    b.publish(data=world.png[k], encoding="png", seq=1000 + k, stamp_ns=int(k * 1e9 / 30))
+                    b.publish(
+                        data=world.png[k], encoding="png", seq=1000 + k, stamp_ns=int(k * 1e9 / 30)
+                    )
                     assert answered(1000 + k)
             mine = [p for p in got if p.seq is not None and p.seq < 1000]
             theirs = [p for p in got if p.seq is not None and p.seq >= 1000]
             assert [p.seq for p in mine] == list(range(20))
-            assert len(theirs) == 3 and all(p.error is not None and p.error.code == "PERMISSION_DENIED" for p in theirs)
+            assert len(theirs) == 3 and all(
+                p.error is not None and p.error.code == "PERMISSION_DENIED" for p in theirs
+            )
             assert "in use by another sender" in theirs[0].error.message
-            assert position_errors(world, mine[3:]).max() < 0.05  # A's track table was not disturbed
+            assert (
+                position_errors(world, mine[3:]).max() < 0.05
+            )  # A's track table was not disturbed
             assert mine[-1].status == "TRACKING"
             # A goes quiet: B's frames are refused until A has been silent SOURCE_TAKEOVER_S,
             # then B takes the id over, from a fresh session
@@ -601,7 +728,9 @@ def test_a_second_device_under_the_same_client_id_is_refused(world, zep, srv):
             assert not b_accepted()  # right after A's last frame: still A's
             assert wait_until(b_accepted, SOURCE_TAKEOVER_S + 30, every=0.25)
             for k in range(20, 25):
-                b.publish(data=world.png[k], encoding="png", seq=2000 + k, stamp_ns=int(k * 1e9 / 30))
+                b.publish(
+                    data=world.png[k], encoding="png", seq=2000 + k, stamp_ns=int(k * 1e9 / 30)
+                )
                 assert answered(2000 + k)
             taken = [p for p in got if p.seq is not None and 2000 <= p.seq < 3000]
             assert all(p.error is None for p in taken) and sum(p.localized for p in taken) >= 3
@@ -615,8 +744,10 @@ def test_list_and_reset_sessions(world, z, grpc_client):
     assert len(s) == 1 and s[0].transport == "zenoh" and s[0].frames == 10 and s[0].localized >= 9
     assert grpc_client.reset_session("resettable", "room")
     got: list = []
-    with PoseSubscriber(z, "room", "resettable", callback=got.append) as sub, \
-            FrameStreamer(z, "room", "resettable", camera(world)) as fs:
+    with (
+        PoseSubscriber(z, "room", "resettable", callback=got.append) as sub,
+        FrameStreamer(z, "room", "resettable", camera(world)) as fs,
+    ):
         fs.publish(data=world.png[10], encoding="png", seq=10, stamp_ns=int(10 * 1e9 / 30))
         assert sub.wait_for(10, 60)
     assert got[0].status in ("RELOCALIZED", "LOST")  # forgot its tracks: global matching again
@@ -643,8 +774,11 @@ def test_metrics_endpoint(world, z, srv):
     assert "# TYPE sfmloc_frame_latency_seconds histogram" in text
     assert 'sfmloc_sessions{map="room",transport="zenoh"}' in text
     assert 'sfmloc_maps_loaded{map="room"' in text
-    count = next(float(line.split()[-1]) for line in text.splitlines()
-                 if line.startswith('sfmloc_frame_latency_seconds_count{map="room"}'))
+    count = next(
+        float(line.split()[-1])
+        for line in text.splitlines()
+        if line.startswith('sfmloc_frame_latency_seconds_count{map="room"}')
+    )
     assert count >= 5
     assert urllib.request.urlopen(f"http://127.0.0.1:{port}/healthz", timeout=10).status == 200
 
@@ -659,7 +793,11 @@ def test_health_and_reflection(srv, grpc_client):
         grpc_client.health("sfmloc.v1.Localization/no-such-map")
     assert e.value.code == "NOT_FOUND"
     stub = reflection_pb2_grpc.ServerReflectionStub(grpc_client.channel)
-    resp = next(stub.ServerReflectionInfo(iter([reflection_pb2.ServerReflectionRequest(list_services="")]), timeout=10))
+    resp = next(
+        stub.ServerReflectionInfo(
+            iter([reflection_pb2.ServerReflectionRequest(list_services="")]), timeout=10
+        )
+    )
     names = {s.name for s in resp.list_services_response.service}
     assert {"sfmloc.v1.Localization", "grpc.health.v1.Health"} <= names
 
@@ -688,18 +826,25 @@ def test_a_worker_killed_under_streams_answers_every_frame(world, z, srv):
     import signal
 
     pool = srv.server.pool
-    assert pool.wait_for(lambda: all(h.alive and h.serving and h.ready.is_set() for h in pool.workers), 120)
+    assert pool.wait_for(
+        lambda: all(h.alive and h.serving and h.ready.is_set() for h in pool.workers), 120
+    )
     cam = camera(world)
     got = {"k1": Collected(), "k2": Collected()}
-    with PoseSubscriber(z, "room", "k1", callback=got["k1"].append), \
-            PoseSubscriber(z, "room", "k2", callback=got["k2"].append), \
-            FrameStreamer(z, "room", "k1", cam) as f1, FrameStreamer(z, "room", "k2", cam) as f2:
+    with (
+        PoseSubscriber(z, "room", "k1", callback=got["k1"].append),
+        PoseSubscriber(z, "room", "k2", callback=got["k2"].append),
+        FrameStreamer(z, "room", "k1", cam) as f1,
+        FrameStreamer(z, "room", "k2", cam) as f2,
+    ):
         streams = [(f1, "k1"), (f2, "k2")]
         assert f1.wait_for_server(30) and f2.wait_for_server(30)
         for f, cid in streams:  # open both sessions
             f.publish(data=world.png[0], encoding="png", seq=0, stamp_ns=0)
             assert got[cid].has_seq(0)
-        workers = {s.worker for s in srv.server.sessions.list("room") if s.client_id in ("k1", "k2")}
+        workers = {
+            s.worker for s in srv.server.sessions.list("room") if s.client_id in ("k1", "k2")
+        }
         victim = pool.workers[sorted(workers)[0]]
         restarts = pool.restarts
         for k in range(1, 40):
@@ -718,7 +863,9 @@ def test_a_worker_killed_under_streams_answers_every_frame(world, z, srv):
         assert sum(p.localized for p in got[cid] if p.seq >= 30) >= 8  # it went on
     assert pool.restarts >= restarts + 1
     assert victim.index not in moved  # the sessions left the dead worker and stayed away
-    assert pool.wait_for(lambda: pool.is_alive(victim.index) and pool.workers[victim.index].ready.is_set(), 120)
+    assert pool.wait_for(
+        lambda: pool.is_alive(victim.index) and pool.workers[victim.index].ready.is_set(), 120
+    )
 
 
 def test_load_map_while_a_worker_restarts(world, z, srv, grpc_client):
@@ -728,14 +875,19 @@ def test_load_map_while_a_worker_restarts(world, z, srv, grpc_client):
     import signal
 
     pool = srv.server.pool
-    assert pool.wait_for(lambda: all(h.alive and h.serving and h.ready.is_set() for h in pool.workers), 120)
+    assert pool.wait_for(
+        lambda: all(h.alive and h.serving and h.ready.is_set() for h in pool.workers), 120
+    )
     victim = pool.workers[0]
     restarts = pool.restarts
     os.kill(victim.pid, signal.SIGKILL)
     assert pool.wait_for(lambda: not pool.is_alive(0), 60)
     info = grpc_client.load_map("room2", "window", timeout=60)  # answered by the live worker
     assert info.name == "window"
-    assert pool.wait_for(lambda: pool.restarts > restarts and pool.is_alive(0) and pool.workers[0].ready.is_set(), 120)
+    assert pool.wait_for(
+        lambda: pool.restarts > restarts and pool.is_alive(0) and pool.workers[0].ready.is_set(),
+        120,
+    )
     # two new sessions: one lands on the replacement, which must hold "window"
     for cid in ("win-a", "win-b"):
         poses = stream_lockstep(z, "window", cid, world, n=4)
@@ -759,10 +911,15 @@ def test_a_stream_reports_an_outage_and_resumes_by_itself(world, z, srv):
             fe.start_intake()
 
     try:
-        with PoseSubscriber(z, "room", "outage", callback=got.append) as poses, \
-                FrameStreamer(z, "room", "outage", cam) as fs:
+        with (
+            PoseSubscriber(z, "room", "outage", callback=got.append) as poses,
+            FrameStreamer(z, "room", "outage", cam) as fs,
+        ):
             assert fs.wait_for_server(30)
-            src = [SourceFrame(data=d, encoding="png", stamp_ns=int(k * 1e9 / 30)) for k, d in enumerate(world.png[:70])]
+            src = [
+                SourceFrame(data=d, encoding="png", stamp_ns=int(k * 1e9 / 30))
+                for k, d in enumerate(world.png[:70])
+            ]
             stats = fs.run(src, fps=15, poses=poses, on_sent=on_sent)
             # answers come back (the server keeps the newest frame of a busy session)
             assert poses.wait_for(45, 60)
@@ -790,7 +947,9 @@ def test_a_grpc_stream_survives_unload_and_resumes_when_the_map_is_back(world, g
 
     poses = []
     try:
-        for p in grpc_client.stream(requests(), "blinky", camera(world), client_id="blinker", encoding="png"):
+        for p in grpc_client.stream(
+            requests(), "blinky", camera(world), client_id="blinker", encoding="png"
+        ):
             poses.append(p)
             acks.put(p.seq)
     finally:

@@ -13,6 +13,7 @@ import threading
 
 import grpc
 import pytest
+
 from server_helpers import (
     build_world,
     camera,
@@ -24,10 +25,9 @@ from server_helpers import (
     wait_until,
     zenoh_endpoint,
 )
+from sfmloc import errors as E
 from sfmloc_client import LocalizationClient
 from sfmloc_client.discovery import list_server_ids
-
-from sfmloc import errors as E
 
 
 @pytest.fixture(scope="module")
@@ -73,8 +73,14 @@ def test_health_with_no_map_loaded(world, tmp_path, allow_empty):
     import urllib.request
 
     port = free_port()
-    conf = server_config(world, zenoh_endpoint(), maps=str(tmp_path / "nonexistent"),
-                         allow_empty=allow_empty, metrics_port=port, map_roots=[str(world.maps_dir)])
+    conf = server_config(
+        world,
+        zenoh_endpoint(),
+        maps=str(tmp_path / "nonexistent"),
+        allow_empty=allow_empty,
+        metrics_port=port,
+        map_roots=[str(world.maps_dir)],
+    )
     with running_server(conf) as srv, LocalizationClient(f"127.0.0.1:{srv.grpc_port}") as c:
         assert srv.server.ready and c.list_maps() == []
         want = "SERVING" if allow_empty else "NOT_SERVING"
@@ -114,8 +120,10 @@ def test_max_pending_keeps_the_newest_frames(world):
     with running_server(server_config(world, ep, max_pending=3)), client_zenoh(ep) as z:
         got: list = []
         n = 30
-        with PoseSubscriber(z, "room", "burst3", callback=got.append) as poses, \
-                FrameStreamer(z, "room", "burst3", camera(world)) as fs:
+        with (
+            PoseSubscriber(z, "room", "burst3", callback=got.append) as poses,
+            FrameStreamer(z, "room", "burst3", camera(world)) as fs,
+        ):
             assert fs.wait_for_server(30)
             for k in range(n):
                 fs.publish(data=world.png[k], encoding="png", stamp_ns=int(k * 1e9 / 30))
@@ -140,8 +148,11 @@ def test_relocalizations_run_on_their_own_lane_beside_a_stream(world):
 
     ep = zenoh_endpoint()
     conf = server_config(world, ep, workers=1, worker_kind="process", relocalize_workers=1)
-    with running_server(conf) as srv, client_zenoh(ep) as z, \
-            LocalizationClient(f"127.0.0.1:{srv.grpc_port}", timeout=120) as c:
+    with (
+        running_server(conf) as srv,
+        client_zenoh(ep) as z,
+        LocalizationClient(f"127.0.0.1:{srv.grpc_port}", timeout=120) as c,
+    ):
         pool = srv.server.pool
         stream_w, lane_w = pool.workers
         assert _nice(lane_w.pid) == _nice(stream_w.pid) + 5
@@ -168,12 +179,15 @@ def test_relocalizations_run_on_their_own_lane_beside_a_stream(world):
             assert pool.wait_for(lambda: pool.workers[1].inflight > 0, 60)
             got: list = []
             during: list[int] = []  # lane requests in flight when each pose came back
-            with PoseSubscriber(z, "room", "beside", callback=got.append) as sub, \
-                    FrameStreamer(z, "room", "beside", camera(world)) as fs:
+            with (
+                PoseSubscriber(z, "room", "beside", callback=got.append) as sub,
+                FrameStreamer(z, "room", "beside", camera(world)) as fs,
+            ):
                 assert fs.wait_for_server(30)
                 for k in range(20):
-                    seq = fs.publish(data=world.png[k], encoding="png", seq=k,
-                                     stamp_ns=int(k * 1e9 / 30))
+                    seq = fs.publish(
+                        data=world.png[k], encoding="png", seq=k, stamp_ns=int(k * 1e9 / 30)
+                    )
                     assert sub.wait_for(seq, 60)
                     during.append(pool.workers[1].inflight)
         finally:
@@ -190,7 +204,9 @@ def test_relocalizations_run_on_their_own_lane_beside_a_stream(world):
 def test_stop_finishes_in_flight_relocalizations(world):
     from sfmloc.testing import ServerThread
 
-    s = ServerThread(server_config(world, zenoh_endpoint(), workers=1, worker_kind="process")).start()
+    s = ServerThread(
+        server_config(world, zenoh_endpoint(), workers=1, worker_kind="process")
+    ).start()
     results: list = []
 
     def call(k: int) -> None:
@@ -242,8 +258,23 @@ def _gone(pid: int) -> bool:
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
 def test_cli_server_shuts_down_gracefully_on_signals(world, sig):
     ep, gport = zenoh_endpoint(), free_port()
-    cmd = [sys.executable, "-m", "sfmloc", "serve", "--maps", str(world.maps_dir), "--zenoh-listen", ep,
-           "--no-multicast", "--grpc", f"127.0.0.1:{gport}", "--workers", "1", "--server-id", "cli-server"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "sfmloc",
+        "serve",
+        "--maps",
+        str(world.maps_dir),
+        "--zenoh-listen",
+        ep,
+        "--no-multicast",
+        "--grpc",
+        f"127.0.0.1:{gport}",
+        "--workers",
+        "1",
+        "--server-id",
+        "cli-server",
+    ]
     proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True)
     try:
         with LocalizationClient(f"127.0.0.1:{gport}") as c:
@@ -273,11 +304,29 @@ def test_config_precedence_defaults_file_environment_flags(tmp_path):
     from sfmloc.server.config import ServerConfig
 
     f = tmp_path / "server.json"
-    f.write_text(json.dumps({"workers": 2, "idle_timeout_s": 5, "zenoh": {"mode": "client", "connect": ["tcp/a:1"]},
-                             "engine": {"k": 40}}))
+    f.write_text(
+        json.dumps(
+            {
+                "workers": 2,
+                "idle_timeout_s": 5,
+                "zenoh": {"mode": "client", "connect": ["tcp/a:1"]},
+                "engine": {"k": 40},
+            }
+        )
+    )
     env = {"SFMLOC_WORKERS": "3", "SFMLOC_ZENOH__MODE": "router", "SFMLOC_ENGINE__K": "45"}
-    args = build_parser().parse_args(["serve", "--workers", "4", "--zenoh-listen", "tcp/0.0.0.0:7447",
-                                      "--grpc", "127.0.0.1:0", "--no-multicast"])
+    args = build_parser().parse_args(
+        [
+            "serve",
+            "--workers",
+            "4",
+            "--zenoh-listen",
+            "tcp/0.0.0.0:7447",
+            "--grpc",
+            "127.0.0.1:0",
+            "--no-multicast",
+        ]
+    )
     conf = load_config(ServerConfig, f, environ=env, overrides=overrides_from_args(args))
     assert conf.workers == 4  # flag > env > file
     assert conf.zenoh.mode == "router"  # env > file
@@ -378,7 +427,9 @@ def test_workers_start_from_a_folder_that_shadows_the_package(tmp_path, monkeypa
     from sfmloc.server.pool import WorkerPool
 
     (tmp_path / "sfmloc").mkdir()  # found first on sys.path when the working directory is on it
-    (tmp_path / "sfmloc" / "__init__.py").write_text("raise ImportError('the shadow was imported')\n")
+    (tmp_path / "sfmloc" / "__init__.py").write_text(
+        "raise ImportError('the shadow was imported')\n"
+    )
     monkeypatch.chdir(tmp_path)
     pool = WorkerPool(1, "process", "{}", on_result=lambda msg: None)
     try:
@@ -397,7 +448,9 @@ def test_a_worker_that_cannot_start_fails_the_pool_loudly(tmp_path, monkeypatch)
     broken = tmp_path / "broken" / "sfmloc"
     broken.mkdir(parents=True)
     (broken / "__init__.py").write_text("raise ImportError('sfmloc is broken on purpose')\n")
-    monkeypatch.setenv("PYTHONPATH", f"{broken.parent}{os.pathsep}{os.environ.get('PYTHONPATH', '')}")
+    monkeypatch.setenv(
+        "PYTHONPATH", f"{broken.parent}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"
+    )
     pool = WorkerPool(1, "process", "{}", on_result=lambda msg: None)
     try:
         with pytest.raises(E.UnavailableError) as err:
@@ -406,7 +459,9 @@ def test_a_worker_that_cannot_start_fails_the_pool_loudly(tmp_path, monkeypatch)
         assert "sfmloc is broken on purpose" in str(err.value)
         assert pool.restarts == MAX_START_FAILURES - 1
         assert all(h.runner.exitcode is not None for h in pool.workers)  # reaped
-        out = subprocess.run(["ps", "-o", "stat=", "--ppid", str(os.getpid())], capture_output=True, text=True)
+        out = subprocess.run(
+            ["ps", "-o", "stat=", "--ppid", str(os.getpid())], capture_output=True, text=True
+        )
         assert "Z" not in out.stdout.split()  # no zombie child
     finally:
         pool.stop()

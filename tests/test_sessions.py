@@ -7,8 +7,6 @@ from __future__ import annotations
 import threading
 
 import pytest
-from sfmloc_client.errors import MessageTooLargeError
-from sfmloc_client.wire import CameraSpec, Frame
 
 from fake_workers import FakePool, ListSink, pose
 from sfmloc.errors import BundleError, MapNotFoundError
@@ -16,6 +14,8 @@ from sfmloc.server import protocol as P
 from sfmloc.server.maps import MapEntry, MapRegistry
 from sfmloc.server.metrics import ServerMetrics
 from sfmloc.server.sessions import SessionManager
+from sfmloc_client.errors import MessageTooLargeError
+from sfmloc_client.wire import CameraSpec, Frame
 
 CAM = CameraSpec("PINHOLE", 64, 48, (50.0, 50.0, 32.0, 24.0))
 
@@ -47,16 +47,33 @@ def env():
 
     def submit(client: str, seq: int, map_name: str = "room", camera: CameraSpec = CAM):
         frame = Frame(seq, seq * 1000, camera, "gray8", bytes(64 * 48))
-        return sm.submit(map_name, client, "zenoh", frame, 0.0,
-                         make_sink=lambda: sinks.setdefault(client, ListSink()))
+        return sm.submit(
+            map_name,
+            client,
+            "zenoh",
+            frame,
+            0.0,
+            make_sink=lambda: sinks.setdefault(client, ListSink()),
+        )
 
     return pool, reg, sm, sinks, submit
 
 
 def _answer(sm: SessionManager, msg: P.LocalizeFrame, status: str = "TRACKING") -> None:
     """The worker's answer to ``msg`` (it ran on build ``build-<generation>``)."""
-    sm.on_result(P.Result(msg.sid, msg.seq, msg.stamp_ns, msg.gen, f"build-{msg.gen}", pose(status),
-                          None, 0.1, 1.0))
+    sm.on_result(
+        P.Result(
+            msg.sid,
+            msg.seq,
+            msg.stamp_ns,
+            msg.gen,
+            f"build-{msg.gen}",
+            pose(status),
+            None,
+            0.1,
+            1.0,
+        )
+    )
 
 
 def test_latest_frame_only_one_in_the_worker_and_the_newest_waiting(env):
@@ -83,7 +100,10 @@ def test_sessions_spread_over_workers_and_other_clients_never_wait(env):
     _answer(sm, pool.frames[1][1])
     submit("b", 1)
     assert [(w, m.sid, m.seq) for w, m in pool.frames] == [
-        (a.worker, a.sid, 0), (b.worker, b.sid, 0), (b.worker, b.sid, 1)]
+        (a.worker, a.sid, 0),
+        (b.worker, b.sid, 0),
+        (b.worker, b.sid, 1),
+    ]
 
 
 def test_a_dead_worker_answers_its_frames_and_its_sessions_move_on(env):
@@ -147,8 +167,9 @@ def test_an_unloaded_map_answers_its_frames_not_found_and_ends_its_sessions(env)
 def test_registry_swaps_generations_in_one_step_and_drops_the_old_one(world):
     pool = FakePool()
     changes: list[tuple[str, int | None, int | None]] = []
-    reg = MapRegistry(pool, on_change=lambda n, o, e: changes.append(
-        (n, o and o.generation, e and e.generation)))
+    reg = MapRegistry(
+        pool, on_change=lambda n, o, e: changes.append((n, o and o.generation, e and e.generation))
+    )
     first = reg.load(world.maps_dir / "room")
     assert (first.name, first.generation) == ("room", 1) and pool.maps == {("room", 1): first.path}
     pool.loading[("room", 2)] = release = threading.Event()

@@ -14,6 +14,7 @@ import subprocess
 import sys
 
 import pytest
+
 from server_helpers import build_world, free_port, zenoh_endpoint
 
 N_WARMUP, N_CLIENTS, N_FRAMES = 3, 20, 3
@@ -86,15 +87,31 @@ def test_server_memory_does_not_grow_with_clients_that_come_and_go(world, tmp_pa
     ep, gport = zenoh_endpoint(), free_port()
     log = open(tmp_path / "server.log", "w+")
     server = subprocess.Popen(
-        [sys.executable, "-m", "sfmloc", "serve", "--maps", str(world.maps_dir),
-         "--zenoh-listen", ep, "--no-multicast", "--grpc", f"127.0.0.1:{gport}",
-         "--workers", "1", "--relocalize-workers", "0"],
-        stderr=log)
+        [
+            sys.executable,
+            "-m",
+            "sfmloc",
+            "serve",
+            "--maps",
+            str(world.maps_dir),
+            "--zenoh-listen",
+            ep,
+            "--no-multicast",
+            "--grpc",
+            f"127.0.0.1:{gport}",
+            "--workers",
+            "1",
+            "--relocalize-workers",
+            "0",
+        ],
+        stderr=log,
+    )
 
     def client(k: int) -> None:
         args = [ep, f"shm-{k}", world.camera_spec, *map(str, frames)]
-        done = subprocess.run([sys.executable, "-c", CLIENT, *args],
-                              capture_output=True, text=True, timeout=120)
+        done = subprocess.run(
+            [sys.executable, "-c", CLIENT, *args], capture_output=True, text=True, timeout=120
+        )
         assert done.returncode == 0, done.stderr[-2000:]
 
     try:
@@ -115,8 +132,9 @@ def test_server_memory_does_not_grow_with_clients_that_come_and_go(world, tmp_pa
         text = log.read()
         log.close()
     assert shm1 == shm0 == set(), f"server holds shared-memory segments: {sorted(shm1)}"
-    assert rss1 - rss0 < MAX_RSS_GROWTH_MB, \
+    assert rss1 - rss0 < MAX_RSS_GROWTH_MB, (
         f"server RSS {rss0:.0f} -> {rss1:.0f} MB over {N_CLIENTS} clients"
+    )
     opened = next(line for line in text.splitlines() if "event=zenoh_open" in line)
     assert "shared_memory=false" in opened
 

@@ -97,7 +97,10 @@ def fit_corner(gray, camera, T, X, u, v, r, min_step=30.0):
             if abs(qa - qb) < min_step:
                 continue
             level = (qa + qb) / 2
-            s_min = min(abs(e[0] * (o - xy0)[1] - e[1] * (o - xy0)[0]) / np.linalg.norm(o - xy0) for o in oth)
+            s_min = min(
+                abs(e[0] * (o - xy0)[1] - e[1] * (o - xy0)[0]) / np.linalg.norm(o - xy0)
+                for o in oth
+            )
             for a in np.arange(3.0, 0.8 * length, 0.5):
                 h = min(3.0, a * s_min - 1.0, 0.8 * length - a)  # stay clear of the other edge
                 if h < 1.0:
@@ -127,8 +130,21 @@ def measurable(scene, camera, T, face_id, fi, min_reach=8.0):
     X, r = F.xyz[fi], F.radius[fi]
     u = f.u_axis / np.linalg.norm(f.u_axis)
     v = f.v_axis / np.linalg.norm(f.v_axis)
-    pp, z = camera.project(T, np.stack([X + r * u, X - r * u, X + r * v, X - r * v,
-                                        X + r * (u + v), X + r * (u - v), X - r * (u + v), X - r * (u - v)]))
+    pp, z = camera.project(
+        T,
+        np.stack(
+            [
+                X + r * u,
+                X - r * u,
+                X + r * v,
+                X - r * v,
+                X + r * (u + v),
+                X + r * (u - v),
+                X - r * (u + v),
+                X - r * (u - v),
+            ]
+        ),
+    )
     xy = camera.project(T, X[None])[0][0]
     if np.any(z <= 0) or np.min(np.linalg.norm(pp[:4] - xy, axis=1)) < min_reach:
         return None
@@ -136,7 +152,12 @@ def measurable(scene, camera, T, face_id, fi, min_reach=8.0):
     if abs(du[0] * dv[1] - du[1] * dv[0]) / (np.linalg.norm(du) * np.linalg.norm(dv)) < 0.7:
         return None  # edges closer than 45 deg in the image: profiles would cross both
     H, W = face_id.shape
-    if pp[4:, 0].min() < 1 or pp[4:, 1].min() < 1 or pp[4:, 0].max() > W - 1 or pp[4:, 1].max() > H - 1:
+    if (
+        pp[4:, 0].min() < 1
+        or pp[4:, 1].min() < 1
+        or pp[4:, 0].max() > W - 1
+        or pp[4:, 1].max() > H - 1
+    ):
         return None
     mask = np.zeros((H, W), np.uint8)
     cv2.fillConvexPoly(mask, np.round(pp[[4, 5, 6, 7]] - 0.5).astype(np.int32), 1)
@@ -205,8 +226,13 @@ def test_corner_measurement_sees_a_half_pixel_shift(scene, camera, mapping):
     d = []
     for im in sorted(rec.images.values(), key=lambda i: -len(i.point3D_ids))[:4]:
         T, r = poses[im.image_id - 1], renders[im.image_id - 1]
-        shifted = cv2.warpAffine(r.bgr, np.float32([[1, 0, 0.5], [0, 1, 0.5]]), (640, 480), flags=cv2.INTER_LINEAR,
-                                 borderMode=cv2.BORDER_REPLICATE)
+        shifted = cv2.warpAffine(
+            r.bgr,
+            np.float32([[1, 0, 0.5], [0, 1, 0.5]]),
+            (640, 480),
+            flags=cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_REPLICATE,
+        )
         gray = cv2.cvtColor(shifted, cv2.COLOR_BGR2GRAY).astype(np.float32)
         for xy, pid in zip(im.points2D, im.point3D_ids):
             fi = fidx[int(pid)]
@@ -309,18 +335,25 @@ def test_no_occluded_point_in_a_track_and_visible_points_present(scene, camera, 
         dist = np.linalg.norm(to_cam, axis=1)
         facing = np.einsum("ij,ij->i", to_cam, normals) > 0
         cand = np.flatnonzero((z > 0.05) & camera.in_image(xy, 0) & facing)
-        hit, _ = raycast_independent(scene, T.center, -to_cam[cand] / dist[cand, None], dist[cand] * (1 - 1e-9))
+        hit, _ = raycast_independent(
+            scene, T.center, -to_cam[cand] / dist[cand, None], dist[cand] * (1 - 1e-9)
+        )
         occluded = cand[hit >= 0]
         n_occluded += len(occluded)
         assert not in_track[occluded].any(), "an occluded point is in a track"
-        assert np.all(np.isin(obs.point_idx, cand[hit < 0])), "a track point is occluded, off-image or back-facing"
+        assert np.all(np.isin(obs.point_idx, cand[hit < 0])), (
+            "a track point is occluded, off-image or back-facing"
+        )
         # Around a track point, every pixel centre within the margin sees the point's face.
         k = conf.occlusion_margin_px
         grid = np.array([[di, dj] for dj in range(-k, k + 1) for di in range(-k, k + 1)]) + 0.5
 
         def first_faces(idx, xy=xy, grid=grid, T=T):
             px = (np.floor(xy[idx])[:, None, :] + grid[None]).reshape(-1, 2)
-            d = np.column_stack([(px - camera.K[:2, 2]) / camera.K[0, 0], np.ones(len(px))]) @ T.rotation
+            d = (
+                np.column_stack([(px - camera.K[:2, 2]) / camera.K[0, 0], np.ones(len(px))])
+                @ T.rotation
+            )
             return raycast_independent(scene, T.center, d, np.inf)[0].reshape(len(idx), -1)
 
         def sizes_of(idx, xy=xy, T=T):
@@ -342,7 +375,7 @@ def test_no_occluded_point_in_a_track_and_visible_points_present(scene, camera, 
         # Clearly visible points (independent test, margins on every threshold) must be present.
         clear = cand[hit < 0]
         cos_o = np.einsum("ij,ij->i", to_cam[clear], normals[clear]) / dist[clear]
-        keep = (cos_o > np.cos(np.radians(conf.max_obliquity_deg - 3)))
+        keep = cos_o > np.cos(np.radians(conf.max_obliquity_deg - 3))
         keep &= camera.in_image(xy[clear], conf.margin_px + 1)
         clear = clear[keep]
         if len(clear) == 0:
@@ -375,9 +408,14 @@ def test_tracks_reference_exact_projections(scene, camera, mapping):
 # --------------------------------------------------------------------------- scene and images
 def test_walls_have_hundreds_of_harris_corners(scene, camera):
     L, W, _ = scene.size
-    for eye, target in (((L / 2, 1.5, 1.5), (L / 2, 0.0, 1.4)), ((5.5, W / 2, 1.5), (L, W / 2, 1.4))):
+    for eye, target in (
+        ((L / 2, 1.5, 1.5), (L / 2, 0.0, 1.4)),
+        ((5.5, W / 2, 1.5), (L, W / 2, 1.4)),
+    ):
         bgr, _ = render(scene, camera, look_at(eye, target))
-        c = cv2.goodFeaturesToTrack(cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY), 3000, 0.01, 5, useHarrisDetector=True)
+        c = cv2.goodFeaturesToTrack(
+            cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY), 3000, 0.01, 5, useHarrisDetector=True
+        )
         assert len(c) >= 200
 
 
@@ -395,7 +433,9 @@ def test_deterministic_for_a_seed_and_different_across_seeds(scene, camera):
     assert not np.array_equal(b1, b3)
     assert 1.0 < np.std(b1.astype(float) - b3) < 4.0  # two draws of sigma-2 noise
     other = Scene.room(1, SceneConf())
-    assert len(other.features) != len(scene.features) or not np.array_equal(other.features.xyz, scene.features.xyz)
+    assert len(other.features) != len(scene.features) or not np.array_equal(
+        other.features.xyz, scene.features.xyz
+    )
     b4, _ = render(other, camera, T, noise_seed=7)
     assert np.mean(np.abs(b4.astype(float) - b1)) > 10
 
@@ -414,7 +454,12 @@ def test_noise_free_render_and_camera_checks(scene, camera):
 def test_trajectories_stay_in_free_space(seed):
     layout = room_layout(seed)
     L, W, H = layout.size
-    for kind, extra in (("walk", {}), ("flight", {}), ("orbit", {}), ("orbit", {"look": "outward"})):
+    for kind, extra in (
+        ("walk", {}),
+        ("flight", {}),
+        ("orbit", {}),
+        ("orbit", {"look": "outward"}),
+    ):
         poses = make_trajectory(kind, 600, seed, layout, **extra)
         assert len(poses) == 600
         assert check_trajectory(layout, poses) == []
@@ -428,7 +473,10 @@ def test_trajectories_stay_in_free_space(seed):
         assert a.max() < 6.0, f"{kind} is not smooth"
         if kind == "walk":
             assert 1.0 <= v.min() and v.max() <= 1.45
-            assert np.all(np.abs(C[:, 2] - np.median(C[:, 2])) < 0.1) and 1.35 < np.median(C[:, 2]) < 1.7
+            assert (
+                np.all(np.abs(C[:, 2] - np.median(C[:, 2])) < 0.1)
+                and 1.35 < np.median(C[:, 2]) < 1.7
+            )
         if kind == "orbit":
             r = np.linalg.norm(C[:, :2] - layout.track.center, axis=1)
             assert np.ptp(r) < 1e-9
@@ -466,12 +514,36 @@ def test_cli_writes_the_full_layout(tmp_path, scene, camera, capsys):
     from sfmloc.cli.main import main as cli
 
     out = tmp_path / "ds"
-    assert cli(["-q", "synth", str(out), "--frames", "20", "--mapping-views", "8", "--trajectory", "flight"]) == 0
+    assert (
+        cli(
+            [
+                "-q",
+                "synth",
+                str(out),
+                "--frames",
+                "20",
+                "--mapping-views",
+                "8",
+                "--trajectory",
+                "flight",
+            ]
+        )
+        == 0
+    )
     summary = capsys.readouterr().out
     assert "20 frames" in summary and "frames/s" in summary
     assert sorted(p.name for p in out.iterdir()) == [
-        "camera.json", "groundtruth.tum", "images", "scene.json", "sparse", "video", "video_poses.txt"]
-    assert sorted(p.name for p in (out / "video").iterdir()) == [f"frame-{i:06d}.png" for i in range(20)]
+        "camera.json",
+        "groundtruth.tum",
+        "images",
+        "scene.json",
+        "sparse",
+        "video",
+        "video_poses.txt",
+    ]
+    assert sorted(p.name for p in (out / "video").iterdir()) == [
+        f"frame-{i:06d}.png" for i in range(20)
+    ]
     assert len(list((out / "images").iterdir())) == 8
     assert not list(tmp_path.glob(".ds.*")), "temporary folders are cleaned up"
     img = cv2.imread(str(out / "video" / "frame-000000.png"))
@@ -486,11 +558,15 @@ def test_cli_writes_the_full_layout(tmp_path, scene, camera, capsys):
     mem = build_reconstruction(scene, camera, poses, names)
     disk = read_model(out / "sparse")
     assert disk.cameras == mem.cameras
-    assert sorted(disk.images) == sorted(mem.images) and sorted(disk.points3D) == sorted(mem.points3D)
+    assert sorted(disk.images) == sorted(mem.images) and sorted(disk.points3D) == sorted(
+        mem.points3D
+    )
     for iid, im in mem.images.items():
         d = disk.images[iid]
         assert d.name == im.name and (out / "images" / d.name).is_file()
-        np.testing.assert_allclose(d.cam_from_world.matrix(), im.cam_from_world.matrix(), atol=1e-12)
+        np.testing.assert_allclose(
+            d.cam_from_world.matrix(), im.cam_from_world.matrix(), atol=1e-12
+        )
         np.testing.assert_array_equal(d.points2D, im.points2D)
         np.testing.assert_array_equal(d.point3D_ids, im.point3D_ids)
     for pid, p in mem.points3D.items():
@@ -521,8 +597,20 @@ def test_cli_help_explains_layout_and_conventions(capsys):
     with pytest.raises(SystemExit):
         cli(["synth", "--help"])
     text = capsys.readouterr().out
-    for word in ("--trajectory", "--frames", "--seed", "--mapping-views", "--noise", "groundtruth.tum",
-                 "world_from_cam", "cam_from_world", "z up", "(0.5, 0.5)", "video_poses.txt", "sparse/"):
+    for word in (
+        "--trajectory",
+        "--frames",
+        "--seed",
+        "--mapping-views",
+        "--noise",
+        "groundtruth.tum",
+        "world_from_cam",
+        "cam_from_world",
+        "z up",
+        "(0.5, 0.5)",
+        "video_poses.txt",
+        "sparse/",
+    ):
         assert word in text, word
 
 

@@ -13,10 +13,10 @@ import cv2
 import numpy as np
 import pytest
 
+from sfmloc.builder.video import VideoConf, extract_keyframes, interpolate_pose, read_pose_log
 from sfmloc.cameras import Camera
 from sfmloc.errors import BuildError, InputError
 from sfmloc.io.poses import read_poses, write_tum
-from sfmloc.builder.video import VideoConf, extract_keyframes, interpolate_pose, read_pose_log
 from sfmloc.transforms import align_umeyama, pose_errors, rotation_angle_deg
 
 W, H, N_FRAMES = 320, 240, 120
@@ -115,7 +115,8 @@ def test_posed_keyframes_from_an_encoded_video(walk, video, tmp_path):
         )
         assert moved, (a, b)
         first_enough = next(
-            i for i in range(a + 1, b + 1)
+            i
+            for i in range(a + 1, b + 1)
             if rotation_angle_deg(gt[a].rotation, gt[i].rotation) >= conf.min_rotation_deg
             or np.linalg.norm(gt[a].center - gt[i].center) >= conf.min_translation * rep.scene_depth
         )
@@ -152,8 +153,13 @@ def test_images_only_keyframes_follow_image_motion(walk, video, tmp_path):
     ]
 
     def mean_step(keys):
-        return np.mean([np.linalg.norm(gt[a].center - gt[b].center) + 0.05 * rotation_angle_deg(
-            gt[a].rotation, gt[b].rotation) for a, b in zip(keys, keys[1:])])
+        return np.mean(
+            [
+                np.linalg.norm(gt[a].center - gt[b].center)
+                + 0.05 * rotation_angle_deg(gt[a].rotation, gt[b].rotation)
+                for a, b in zip(keys, keys[1:])
+            ]
+        )
 
     assert mean_step(large.keyframe_indices) > 1.5 * mean_step(small.keyframe_indices)
     still = encode(tmp_path / "still.avi", [frames[0]] * 30)
@@ -187,11 +193,26 @@ def test_a_map_built_from_an_encoded_video_localizes(walk, video, tmp_path):
     root, frames, gt = walk
     cam = Camera.from_json(root / "camera.json")
     out = subprocess.run(
-        [sys.executable, "-m", "sfmloc", "build", "walk", "--out", str(tmp_path / "maps"),
-         "--video", str(video), "--poses", str(root / "groundtruth.tum"),
-         "--camera", str(root / "camera.json"),
-         "--workdir", str(tmp_path / "work")],
-        capture_output=True, text=True, timeout=600,
+        [
+            sys.executable,
+            "-m",
+            "sfmloc",
+            "build",
+            "walk",
+            "--out",
+            str(tmp_path / "maps"),
+            "--video",
+            str(video),
+            "--poses",
+            str(root / "groundtruth.tum"),
+            "--camera",
+            str(root / "camera.json"),
+            "--workdir",
+            str(tmp_path / "work"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
     )
     assert out.returncode == 0, out.stderr[-2000:]
     assert "keyframes of 120 frames" in out.stdout
@@ -213,7 +234,9 @@ def test_a_map_built_from_an_encoded_video_localizes(walk, video, tmp_path):
     # withheld (LOST, "pose withheld"): a few keyframes of a 320x240 video leave stretches where
     # that happens (measured: 10 of 60 frames, all of them with errors under 2.2% of the scene
     # scale). The map must localize the rest, and be close to it everywhere.
-    withheld = [i for i, r in res if r.status is Status.LOST and r.message.startswith("pose withheld")]
+    withheld = [
+        i for i, r in res if r.status is Status.LOST and r.message.startswith("pose withheld")
+    ]
     assert len(errs) >= 0.75 * len(res), [(r.status, r.message) for _, r in res]
     assert len(errs) + len(withheld) >= 0.9 * len(res), [(r.status, r.message) for _, r in res]
     scale = bundle.scene_scale
@@ -225,8 +248,14 @@ def test_build_help_documents_video():
     out = subprocess.run(
         [sys.executable, "-m", "sfmloc", "build", "--help"], capture_output=True, text=True
     )
-    for flag in ("--video", "--kf-rotation", "--kf-translation", "--kf-flow", "--kf-window",
-                 "CAP_PROP_POS_MSEC"):
+    for flag in (
+        "--video",
+        "--kf-rotation",
+        "--kf-translation",
+        "--kf-flow",
+        "--kf-window",
+        "CAP_PROP_POS_MSEC",
+    ):
         assert flag in out.stdout
 
 
@@ -260,12 +289,16 @@ def test_a_map_built_from_a_video_without_poses(walk, video, tmp_path):
     """Images only: keyframes by image motion, full SfM; every keyframe registered and the
     camera centres equal to the true ones up to a similarity (2% of the path's extent)."""
     from sfmloc.builder.build import preset
-    from sfmloc.map.bundle import MapBundle
     from sfmloc.builder.video import build_from_video
+    from sfmloc.map.bundle import MapBundle
 
     root, _, gt = walk
     path = build_from_video(
-        preset("fast"), "sfm", tmp_path / "maps", video=video, camera=root / "camera.json",
+        preset("fast"),
+        "sfm",
+        tmp_path / "maps",
+        video=video,
+        camera=root / "camera.json",
         workdir=tmp_path / "work",
     )
     bundle = MapBundle(path)

@@ -9,15 +9,28 @@ from multiprocessing.connection import Connection
 
 import msgpack
 import pytest
-from sfmloc_client.wire import Transform
 
 from sfmloc.childproc import ProtocolError
 from sfmloc.server import protocol as P
+from sfmloc_client.wire import Transform
 
 CAM = ("PINHOLE", 640, 480, (500.0, 500.0, 320.0, 240.0))
 TF = Transform((0.0, 0.0, 0.6, 0.8), (1.0, -2.0, 3.5))
-POSE = P.PoseResult("TRACKING", TF, Transform((0.0, 0.0, -0.6, 0.8), (0.5, 0.25, -1.0)), TF, None,
-                    42, 300, 250, 120, "guided", 9.5, "", tuple(float(i) for i in range(36)))
+POSE = P.PoseResult(
+    "TRACKING",
+    TF,
+    Transform((0.0, 0.0, -0.6, 0.8), (0.5, 0.25, -1.0)),
+    TF,
+    None,
+    42,
+    300,
+    250,
+    120,
+    "guided",
+    9.5,
+    "",
+    tuple(float(i) for i in range(36)),
+)
 
 MESSAGES = [
     (P.TO_WORKER, P.Load(7, "room", 3, "/maps/room", "b1")),
@@ -32,7 +45,10 @@ MESSAGES = [
     (P.TO_SERVER, P.Loaded(7, P.MapSummary(10, 20, 3, 2, 1.5, "b1", True), None, 12.0)),
     (P.TO_SERVER, P.Loaded(7, None, P.WorkerError("BundleError", "corrupt"), 1.0)),
     (P.TO_SERVER, P.Result(5, 11, 123456789, 3, "b1", POSE, None, 1.0, 11.0)),
-    (P.TO_SERVER, P.Result(5, 12, 0, 3, "", None, P.WorkerError("ImageDecodeError", "bad png"), 0.0, 1.0)),
+    (
+        P.TO_SERVER,
+        P.Result(5, 12, 0, 3, "", None, P.WorkerError("ImageDecodeError", "bad png"), 0.0, 1.0),
+    ),
     (P.TO_SERVER, P.RelocResult(8, POSE, None, 80.0)),
 ]
 
@@ -63,14 +79,37 @@ def test_a_message_for_the_other_side_or_malformed_is_refused_by_name():
 
 
 def test_a_result_becomes_the_clients_pose_message():
-    p = P.pose_message(POSE, None, seq=11, stamp_ns=5, map_name="room", client_id="c",
-                       build_id="b1", server_id="s", latency_ms=12.5, dropped=2)
+    p = P.pose_message(
+        POSE,
+        None,
+        seq=11,
+        stamp_ns=5,
+        map_name="room",
+        client_id="c",
+        build_id="b1",
+        server_id="s",
+        latency_ms=12.5,
+        dropped=2,
+    )
     assert (p.seq, p.stamp_ns, p.status, p.map, p.client_id, p.build_id, p.server_id) == (
-        11, 5, "TRACKING", "room", "c", "b1", "s")
+        11,
+        5,
+        "TRACKING",
+        "room",
+        "c",
+        "b1",
+        "s",
+    )
     assert p.cam_from_world == TF and p.filtered_cam_from_world == TF
     assert p.world_from_cam == POSE.world_from_cam and p.filtered_world_from_cam is None
     assert p.counts == {"detected": 300, "tracked": 250, "tracked_3d": 120}
-    assert (p.inliers, p.matching, p.engine_ms, p.latency_ms, p.dropped) == (42, "guided", 9.5, 12.5, 2)
+    assert (p.inliers, p.matching, p.engine_ms, p.latency_ms, p.dropped) == (
+        42,
+        "guided",
+        9.5,
+        12.5,
+        2,
+    )
     assert p.covariance == tuple(float(i) for i in range(36)) and p.error is None
 
 

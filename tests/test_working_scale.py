@@ -11,8 +11,8 @@ import shutil
 import cv2
 import numpy as np
 import pytest
-from server_helpers import HEIGHT, N_FRAMES, N_MAPPING, WIDTH
 
+from server_helpers import HEIGHT, N_FRAMES, N_MAPPING, WIDTH
 from sfmloc.cameras import Camera
 from sfmloc.engine import EngineConf, Localizer, Status, relocalize
 from sfmloc.engine.frame import to_working, working_scale
@@ -30,7 +30,13 @@ def scene(world):
     from sfmloc.synth.renderer import prepare
     from sfmloc.synth.scene import Scene
 
-    conf = preset("small", width=WIDTH, height=HEIGHT, mapping_views=N_MAPPING, trajectory={"n_frames": N_FRAMES})
+    conf = preset(
+        "small",
+        width=WIDTH,
+        height=HEIGHT,
+        mapping_views=N_MAPPING,
+        trajectory={"n_frames": N_FRAMES},
+    )
     sc = Scene.room(conf.seed, conf.scene)
     prepare(sc)
     return sc, conf
@@ -115,7 +121,9 @@ def test_working_image_is_the_view_of_the_scaled_camera(world, scene, big):
     assert n >= 200, n
     assert np.all(np.abs(offset) < 0.08), offset
     fx, fy, cx, cy = wcam.params
-    centred = Camera.pinhole(wcam.width, wcam.height, fx, fy, (1536 + 0.5) * s - 0.5, (1024 + 0.5) * s - 0.5)
+    centred = Camera.pinhole(
+        wcam.width, wcam.height, fx, fy, (1536 + 0.5) * s - 0.5, (1024 + 0.5) * s - 0.5
+    )
     n, offset = corner_offset(working, render_gray(scene, centred, world.gt_cam_from_world[30], 30))
     assert np.all(np.abs(offset) > 0.25), offset
 
@@ -144,7 +152,10 @@ def test_localizer_streams_1280x960_frames_at_the_map_scale(world, bundle, scene
     assert loc.scale == 0.5 and loc.input_camera == cam
     assert loc.camera == cam.scaled(0.5) and (loc.camera.width, loc.camera.height) == (640, 480)
     n = 6
-    res = [loc.localize(render_gray(scene, cam, world.gt_cam_from_world[i], i), i / 30) for i in range(n)]
+    res = [
+        loc.localize(render_gray(scene, cam, world.gt_cam_from_world[i], i), i / 30)
+        for i in range(n)
+    ]
     assert res[0].status is Status.RELOCALIZED
     assert all(r.status is not Status.LOST for r in res)
     for r, gt in zip(res, world.gt_cam_from_world[:n]):
@@ -204,13 +215,15 @@ def test_large_query_over_grpc(world, big):
     """The server path: a 3072x2048 JPEG through gRPC's Relocalize is processed at the
     working scale and the pose comes back for the original camera."""
     from server_helpers import free_port, running_server, server_config, zenoh_endpoint
-
     from sfmloc_client import CameraSpec, LocalizationClient
 
     cam, gray = big
     spec = CameraSpec.parse("PINHOLE 3072 2048 " + " ".join(repr(float(p)) for p in cam.params))
     conf = server_config(world, zenoh_endpoint(), metrics_port=free_port())
-    with running_server(conf) as srv, LocalizationClient(f"127.0.0.1:{srv.grpc_port}", timeout=120) as c:
+    with (
+        running_server(conf) as srv,
+        LocalizationClient(f"127.0.0.1:{srv.grpc_port}", timeout=120) as c,
+    ):
         pose = c.relocalize(gray, "room", spec, encoding="jpeg")
     assert pose.status == "RELOCALIZED", pose
     gt = world.gt_cam_from_world[30].inverse().translation

@@ -64,7 +64,9 @@ def check_camera(model: Any, width: Any, height: Any, params: Any) -> CameraFiel
             raise TypeError
         values = tuple(float(p) for p in params)
     except TypeError:
-        raise CameraModelError(f"camera params must be a list of numbers, got {params!r:.80}") from None
+        raise CameraModelError(
+            f"camera params must be a list of numbers, got {params!r:.80}"
+        ) from None
     names = CAMERA_MODELS[model][1]
     if len(values) != len(names):
         raise CameraModelError(
@@ -81,14 +83,17 @@ def check_camera(model: Any, width: Any, height: Any, params: Any) -> CameraFiel
     if min(fx, fy) < MIN_FOCAL_PER_SIDE * max(w, h):
         raise CameraModelError(
             f"focal length {min(fx, fy):g} px is too small for a {w}x{h} image (at least "
-            f"{MIN_FOCAL_PER_SIDE:g} x its larger side, {MIN_FOCAL_PER_SIDE * max(w, h):g} px)")
+            f"{MIN_FOCAL_PER_SIDE:g} x its larger side, {MIN_FOCAL_PER_SIDE * max(w, h):g} px)"
+        )
     return model, w, h, values
 
 
 def camera_from_dict(d: Mapping[str, Any]) -> CameraFields:
     """Validated fields of a camera JSON object (``model``, ``width``, ``height``, ``params``;
     other keys such as ``param_names`` are ignored)."""
-    if not isinstance(d, Mapping) or not all(k in d for k in ("model", "width", "height", "params")):
+    if not isinstance(d, Mapping) or not all(
+        k in d for k in ("model", "width", "height", "params")
+    ):
         raise CameraModelError("camera JSON needs 'model', 'width', 'height' and 'params'")
     return check_camera(d["model"], d["width"], d["height"], d["params"])
 

@@ -27,7 +27,9 @@ ENCODING_FROM_PB = {v: k for k, v in ENCODING_TO_PB.items()}
 
 
 def camera_to_pb(cam: CameraSpec) -> common_pb2.Camera:
-    return common_pb2.Camera(model=cam.model, width=cam.width, height=cam.height, params=list(cam.params))
+    return common_pb2.Camera(
+        model=cam.model, width=cam.width, height=cam.height, params=list(cam.params)
+    )
 
 
 def camera_from_pb(pb: common_pb2.Camera) -> CameraSpec:
@@ -39,21 +41,30 @@ def camera_from_pb(pb: common_pb2.Camera) -> CameraSpec:
 def image_to_pb(encoding: str, data: bytes, width: int = 0, height: int = 0) -> common_pb2.Image:
     if encoding not in ENCODING_TO_PB:
         raise WireError(f"encoding must be one of {', '.join(ENCODINGS)}, got {encoding!r}")
-    return common_pb2.Image(encoding=ENCODING_TO_PB[encoding], data=data, width=width, height=height)
+    return common_pb2.Image(
+        encoding=ENCODING_TO_PB[encoding], data=data, width=width, height=height
+    )
 
 
 def image_from_pb(pb: common_pb2.Image, camera: CameraSpec) -> tuple[str, bytes]:
     """``(encoding, data)`` of an image message, checked against the camera."""
     enc = ENCODING_FROM_PB.get(pb.encoding)
     if enc is None:
-        raise WireError(f"image encoding is unset or unknown ({pb.encoding}); use GRAY8, BGR8, JPEG or PNG")
+        raise WireError(
+            f"image encoding is unset or unknown ({pb.encoding}); use GRAY8, BGR8, JPEG or PNG"
+        )
     if not pb.data:
         raise WireError("image data is empty")
     if (pb.width or pb.height) and (pb.width, pb.height) != (camera.width, camera.height):
-        raise WireError(f"image is {pb.width}x{pb.height}, the camera is {camera.width}x{camera.height}")
+        raise WireError(
+            f"image is {pb.width}x{pb.height}, the camera is {camera.width}x{camera.height}"
+        )
     n = raw_size(enc, camera.width, camera.height)
     if n is not None and len(pb.data) != n:
-        raise WireError(f"{enc} data of {len(pb.data)} bytes does not match {camera.width}x{camera.height} ({n} bytes expected)")
+        raise WireError(
+            f"{enc} data of {len(pb.data)} bytes does not match {camera.width}x{camera.height} "
+            f"({n} bytes expected)"
+        )
     return enc, pb.data
 
 
@@ -80,7 +91,8 @@ def pose_to_estimate_pb(p: PoseMessage) -> common_pb2.PoseEstimate:
         inliers=p.inliers,
         latency_ms=p.latency_ms,
         counts=common_pb2.FrameCounts(
-            detected=p.counts.get("detected", 0), tracked=p.counts.get("tracked", 0),
+            detected=p.counts.get("detected", 0),
+            tracked=p.counts.get("tracked", 0),
             tracked_3d=p.counts.get("tracked_3d", 0),
         ),
         matching=p.matching,
@@ -98,7 +110,9 @@ def pose_to_estimate_pb(p: PoseMessage) -> common_pb2.PoseEstimate:
     return est
 
 
-def pose_from_estimate_pb(est: common_pb2.PoseEstimate, seq: int | None = None, stamp_ns: int = 0) -> PoseMessage:
+def pose_from_estimate_pb(
+    est: common_pb2.PoseEstimate, seq: int | None = None, stamp_ns: int = 0
+) -> PoseMessage:
     def tf(name: str) -> Transform | None:
         return transform_from_pb(getattr(est, name), est.HasField(name))
 
@@ -112,7 +126,11 @@ def pose_from_estimate_pb(est: common_pb2.PoseEstimate, seq: int | None = None, 
         filtered_world_from_cam=tf("filtered_world_from_cam"),
         inliers=est.inliers,
         latency_ms=est.latency_ms,
-        counts={"detected": est.counts.detected, "tracked": est.counts.tracked, "tracked_3d": est.counts.tracked_3d},
+        counts={
+            "detected": est.counts.detected,
+            "tracked": est.counts.tracked,
+            "tracked_3d": est.counts.tracked_3d,
+        },
         matching=est.matching or Matching.NONE.value,
         message=est.message,
         covariance=_covariance_from_pb(est.covariance),

@@ -17,7 +17,7 @@ def list_server_ids(session: Any, timeout: float = 2.0) -> list[str]:
     ids = []
     for reply in session.liveliness().get(SERVERS_KEYEXPR, timeout=timeout):
         if reply.ok is not None:
-            ids.append(str(reply.ok.key_expr)[len(f"{ROOT}/servers/"):])
+            ids.append(str(reply.ok.key_expr)[len(f"{ROOT}/servers/") :])
     return sorted(set(ids))
 
 

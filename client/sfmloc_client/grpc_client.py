@@ -17,7 +17,13 @@ from typing import Any
 import grpc
 import numpy as np
 
-from .convert import camera_to_pb, image_to_pb, pose_from_estimate_pb, pose_from_update_pb, transform_to_pb
+from .convert import (
+    camera_to_pb,
+    image_to_pb,
+    pose_from_estimate_pb,
+    pose_from_update_pb,
+    transform_to_pb,
+)
 from .errors import RemoteError
 from .images import encode_image
 from .pb import localization_pb2 as pb
@@ -34,7 +40,9 @@ def _options(max_message_mb: float) -> list[tuple[str, int]]:
     return [("grpc.max_send_message_length", n), ("grpc.max_receive_message_length", n)]
 
 
-def _credentials(tls_ca: str | None, tls_cert: str | None, tls_key: str | None) -> grpc.ChannelCredentials | None:
+def _credentials(
+    tls_ca: str | None, tls_cert: str | None, tls_key: str | None
+) -> grpc.ChannelCredentials | None:
     """TLS channel credentials from PEM files (``tls_ca``: the CA that signed the server's
     certificate, None for the system's roots; ``tls_cert``/``tls_key``: ours, for mutual TLS)."""
 
@@ -44,9 +52,15 @@ def _credentials(tls_ca: str | None, tls_cert: str | None, tls_key: str | None) 
     return grpc.ssl_channel_credentials(read(tls_ca), read(tls_key), read(tls_cert))
 
 
-def _channel(target: str, options: list, tls: bool, creds: grpc.ChannelCredentials | None, aio: bool) -> Any:
+def _channel(
+    target: str, options: list, tls: bool, creds: grpc.ChannelCredentials | None, aio: bool
+) -> Any:
     mod = grpc.aio if aio else grpc
-    return mod.secure_channel(target, creds, options=options) if tls else mod.insecure_channel(target, options=options)
+    return (
+        mod.secure_channel(target, creds, options=options)
+        if tls
+        else mod.insecure_channel(target, options=options)
+    )
 
 
 def _remote(exc: grpc.RpcError) -> RemoteError:
@@ -66,23 +80,42 @@ def _image(image: Any, encoding: str, jpeg_quality: int) -> tuple[str, bytes]:
 
 
 def relocalize_request(
-    image: Any, map_name: str, camera: CameraSpec, encoding: str = "jpeg", prior: Transform | None = None,
+    image: Any,
+    map_name: str,
+    camera: CameraSpec,
+    encoding: str = "jpeg",
+    prior: Transform | None = None,
     jpeg_quality: int = 95,
 ) -> pb.RelocalizeRequest:
     enc, data = _image(image, encoding, jpeg_quality)
-    req = pb.RelocalizeRequest(map=map_name, image=image_to_pb(enc, data, camera.width, camera.height), camera=camera_to_pb(camera))
+    req = pb.RelocalizeRequest(
+        map=map_name,
+        image=image_to_pb(enc, data, camera.width, camera.height),
+        camera=camera_to_pb(camera),
+    )
     if prior is not None:
         req.prior_cam_from_world.CopyFrom(transform_to_pb(prior))
     return req
 
 
 def _stream_requests(
-    frames: Iterable[Any], map_name: str, camera: CameraSpec, client_id: str, encoding: str, jpeg_quality: int
+    frames: Iterable[Any],
+    map_name: str,
+    camera: CameraSpec,
+    client_id: str,
+    encoding: str,
+    jpeg_quality: int,
 ) -> Iterator[pb.StreamFrame]:
     for seq, fr in enumerate(frames):
         enc, data = _image(fr, encoding, jpeg_quality)
-        stamp = fr.stamp_ns if isinstance(fr, SourceFrame) and fr.stamp_ns is not None else time.time_ns()
-        msg = pb.StreamFrame(seq=seq, stamp_ns=stamp, image=image_to_pb(enc, data, camera.width, camera.height))
+        stamp = (
+            fr.stamp_ns
+            if isinstance(fr, SourceFrame) and fr.stamp_ns is not None
+            else time.time_ns()
+        )
+        msg = pb.StreamFrame(
+            seq=seq, stamp_ns=stamp, image=image_to_pb(enc, data, camera.width, camera.height)
+        )
         if seq == 0:  # map, client and camera are only required on the first frame
             msg.map, msg.client_id = map_name, client_id
             msg.camera.CopyFrom(camera_to_pb(camera))
@@ -99,9 +132,16 @@ class LocalizationClient:
     """
 
     def __init__(
-        self, target: str = DEFAULT_TARGET, *, timeout: float = 30.0, max_message_mb: float = 64.0,
-        token: str | None = None, tls: bool = False, tls_ca: str | None = None,
-        tls_cert: str | None = None, tls_key: str | None = None,
+        self,
+        target: str = DEFAULT_TARGET,
+        *,
+        timeout: float = 30.0,
+        max_message_mb: float = 64.0,
+        token: str | None = None,
+        tls: bool = False,
+        tls_ca: str | None = None,
+        tls_cert: str | None = None,
+        tls_key: str | None = None,
     ) -> None:
         self.target = target
         self.timeout = timeout
@@ -114,26 +154,44 @@ class LocalizationClient:
 
     def _call(self, method: Any, request: Any, timeout: float | None) -> Any:
         try:
-            return method(request, timeout=self.timeout if timeout is None else timeout, metadata=self.metadata)
+            return method(
+                request,
+                timeout=self.timeout if timeout is None else timeout,
+                metadata=self.metadata,
+            )
         except grpc.RpcError as exc:
             raise _remote(exc) from None
 
     def relocalize(
-        self, image: Any, map_name: str, camera: CameraSpec, *, encoding: str = "jpeg",
-        prior: Transform | None = None, timeout: float | None = None,
+        self,
+        image: Any,
+        map_name: str,
+        camera: CameraSpec,
+        *,
+        encoding: str = "jpeg",
+        prior: Transform | None = None,
+        timeout: float | None = None,
     ) -> PoseMessage:
         """Localize one image (numpy uint8 gray/BGR, or bytes already in ``encoding``)."""
         req = relocalize_request(image, map_name, camera, encoding, prior)
         return pose_from_estimate_pb(self._call(self.stub.Relocalize, req, timeout).pose)
 
     def stream(
-        self, frames: Iterable[Any], map_name: str, camera: CameraSpec, *, client_id: str = "",
-        encoding: str = "jpeg", jpeg_quality: int = 90, timeout: float | None = None,
+        self,
+        frames: Iterable[Any],
+        map_name: str,
+        camera: CameraSpec,
+        *,
+        client_id: str = "",
+        encoding: str = "jpeg",
+        jpeg_quality: int = 90,
+        timeout: float | None = None,
     ) -> Iterator[PoseMessage]:
         """Stream frames (numpy images, bytes in ``encoding`` or ``SourceFrame``s) and yield a
         pose per processed frame (the server drops frames that queue up behind a busy one)."""
         calls = self.stub.StreamLocalize(
-            _stream_requests(frames, map_name, camera, client_id, encoding, jpeg_quality), timeout=timeout,
+            _stream_requests(frames, map_name, camera, client_id, encoding, jpeg_quality),
+            timeout=timeout,
             metadata=self.metadata,
         )
         try:
@@ -156,10 +214,14 @@ class LocalizationClient:
         return self._call(self.stub.UnloadMap, pb.UnloadMapRequest(name=name), None)
 
     def list_sessions(self, map_name: str = "") -> list[pb.SessionInfo]:
-        return list(self._call(self.stub.ListSessions, pb.ListSessionsRequest(map=map_name), None).sessions)
+        return list(
+            self._call(self.stub.ListSessions, pb.ListSessionsRequest(map=map_name), None).sessions
+        )
 
     def reset_session(self, client_id: str, map_name: str = "") -> bool:
-        return self._call(self.stub.ResetSession, pb.ResetSessionRequest(client_id=client_id, map=map_name), None).reset
+        return self._call(
+            self.stub.ResetSession, pb.ResetSessionRequest(client_id=client_id, map=map_name), None
+        ).reset
 
     def health(self, service: str = "", timeout: float = 5.0) -> str:
         """The standard health status name ("SERVING", "NOT_SERVING", ...) of ``service``
@@ -175,7 +237,10 @@ class LocalizationClient:
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             try:
-                if self.health(timeout=max(0.1, min(2.0, deadline - time.monotonic()))) == "SERVING":
+                if (
+                    self.health(timeout=max(0.1, min(2.0, deadline - time.monotonic())))
+                    == "SERVING"
+                ):
                     return True
             except RemoteError:
                 pass
@@ -185,7 +250,7 @@ class LocalizationClient:
     def close(self) -> None:
         self.channel.close()
 
-    def __enter__(self) -> "LocalizationClient":
+    def __enter__(self) -> LocalizationClient:
         return self
 
     def __exit__(self, *exc: Any) -> None:
@@ -196,9 +261,16 @@ class AsyncLocalizationClient:
     """asyncio gRPC client (``grpc.aio``), the same methods as ``LocalizationClient``."""
 
     def __init__(
-        self, target: str = DEFAULT_TARGET, *, timeout: float = 30.0, max_message_mb: float = 64.0,
-        token: str | None = None, tls: bool = False, tls_ca: str | None = None,
-        tls_cert: str | None = None, tls_key: str | None = None,
+        self,
+        target: str = DEFAULT_TARGET,
+        *,
+        timeout: float = 30.0,
+        max_message_mb: float = 64.0,
+        token: str | None = None,
+        tls: bool = False,
+        tls_ca: str | None = None,
+        tls_cert: str | None = None,
+        tls_key: str | None = None,
     ) -> None:
         self.target = target
         self.timeout = timeout
@@ -211,23 +283,41 @@ class AsyncLocalizationClient:
 
     async def _call(self, method: Any, request: Any, timeout: float | None) -> Any:
         try:
-            return await method(request, timeout=self.timeout if timeout is None else timeout, metadata=self.metadata)
+            return await method(
+                request,
+                timeout=self.timeout if timeout is None else timeout,
+                metadata=self.metadata,
+            )
         except grpc.RpcError as exc:
             raise _remote(exc) from None
 
     async def relocalize(
-        self, image: Any, map_name: str, camera: CameraSpec, *, encoding: str = "jpeg",
-        prior: Transform | None = None, timeout: float | None = None,
+        self,
+        image: Any,
+        map_name: str,
+        camera: CameraSpec,
+        *,
+        encoding: str = "jpeg",
+        prior: Transform | None = None,
+        timeout: float | None = None,
     ) -> PoseMessage:
         req = relocalize_request(image, map_name, camera, encoding, prior)
         return pose_from_estimate_pb((await self._call(self.stub.Relocalize, req, timeout)).pose)
 
     async def stream(
-        self, frames: Iterable[Any], map_name: str, camera: CameraSpec, *, client_id: str = "",
-        encoding: str = "jpeg", jpeg_quality: int = 90, timeout: float | None = None,
+        self,
+        frames: Iterable[Any],
+        map_name: str,
+        camera: CameraSpec,
+        *,
+        client_id: str = "",
+        encoding: str = "jpeg",
+        jpeg_quality: int = 90,
+        timeout: float | None = None,
     ) -> AsyncIterator[PoseMessage]:
         call = self.stub.StreamLocalize(
-            _stream_requests(frames, map_name, camera, client_id, encoding, jpeg_quality), timeout=timeout,
+            _stream_requests(frames, map_name, camera, client_id, encoding, jpeg_quality),
+            timeout=timeout,
             metadata=self.metadata,
         )
         try:
@@ -243,13 +333,19 @@ class AsyncLocalizationClient:
         return await self._call(self.stub.GetMap, pb.GetMapRequest(name=name), None)
 
     async def load_map(self, path: str, name: str = "", timeout: float | None = None) -> pb.MapInfo:
-        return await self._call(self.stub.LoadMap, pb.LoadMapRequest(path=str(path), name=name), timeout)
+        return await self._call(
+            self.stub.LoadMap, pb.LoadMapRequest(path=str(path), name=name), timeout
+        )
 
     async def unload_map(self, name: str) -> pb.UnloadMapResponse:
         return await self._call(self.stub.UnloadMap, pb.UnloadMapRequest(name=name), None)
 
     async def list_sessions(self, map_name: str = "") -> list[pb.SessionInfo]:
-        return list((await self._call(self.stub.ListSessions, pb.ListSessionsRequest(map=map_name), None)).sessions)
+        return list(
+            (
+                await self._call(self.stub.ListSessions, pb.ListSessionsRequest(map=map_name), None)
+            ).sessions
+        )
 
     async def reset_session(self, client_id: str, map_name: str = "") -> bool:
         req = pb.ResetSessionRequest(client_id=client_id, map=map_name)
@@ -265,7 +361,7 @@ class AsyncLocalizationClient:
     async def close(self) -> None:
         await self.channel.close()
 
-    async def __aenter__(self) -> "AsyncLocalizationClient":
+    async def __aenter__(self) -> AsyncLocalizationClient:
         return self
 
     async def __aexit__(self, *exc: Any) -> None:

@@ -36,20 +36,34 @@ def encode_image(image: np.ndarray, encoding: str = "jpeg", jpeg_quality: int = 
             img = _cv2().cvtColor(img, _cv2().COLOR_GRAY2BGR)
         return np.ascontiguousarray(img).tobytes()
     cv2 = _cv2()
-    params = [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)] if encoding == "jpeg" else [cv2.IMWRITE_PNG_COMPRESSION, 1]
+    params = (
+        [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)]
+        if encoding == "jpeg"
+        else [cv2.IMWRITE_PNG_COMPRESSION, 1]
+    )
     ok, buf = cv2.imencode(".jpg" if encoding == "jpeg" else ".png", img, params)
     if not ok:
         raise ImageDecodeError(f"OpenCV could not encode the image as {encoding}")
     return buf.tobytes()
 
 
-def decode_image(encoding: str, data: bytes | bytearray | memoryview, width: int, height: int, *, gray: bool = True) -> np.ndarray:
+def decode_image(
+    encoding: str,
+    data: bytes | bytearray | memoryview,
+    width: int,
+    height: int,
+    *,
+    gray: bool = True,
+) -> np.ndarray:
     """The image in ``data``, checked against ``width`` x ``height``: uint8 HxW when ``gray``
     (what the engine uses; JPEG decodes straight to luma), else as sent."""
     n = raw_size(encoding, width, height)
     if encoding in ("gray8", "bgr8"):
         if len(data) != n:
-            raise ImageDecodeError(f"{encoding} data of {len(data)} bytes does not match {width}x{height} ({n} bytes expected)")
+            raise ImageDecodeError(
+                f"{encoding} data of {len(data)} bytes does not match {width}x{height} ({n} bytes "
+                "expected)"
+            )
         arr = np.frombuffer(data, np.uint8)
         if encoding == "gray8":
             return arr.reshape(height, width)
@@ -62,13 +76,25 @@ def decode_image(encoding: str, data: bytes | bytearray | memoryview, width: int
     try:
         # Stored pixels, no EXIF rotation: the camera describes the stored image (as COLMAP and
         # the map builder read images).
-        flag = cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION if gray else cv2.IMREAD_UNCHANGED
+        flag = (
+            cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION if gray else cv2.IMREAD_UNCHANGED
+        )
         img = cv2.imdecode(buf, flag) if buf.size else None
     except cv2.error as exc:  # e.g. larger than OPENCV_IO_MAX_IMAGE_PIXELS allows
-        reason = "larger than the decoder allows" if "MAX_IMAGE_PIXELS" in str(exc) else str(exc).strip().splitlines()[-1]
-        raise ImageDecodeError(f"the {encoding} data ({len(data)} bytes) cannot be decoded: {reason}") from None
+        reason = (
+            "larger than the decoder allows"
+            if "MAX_IMAGE_PIXELS" in str(exc)
+            else str(exc).strip().splitlines()[-1]
+        )
+        raise ImageDecodeError(
+            f"the {encoding} data ({len(data)} bytes) cannot be decoded: {reason}"
+        ) from None
     if img is None:
-        raise ImageDecodeError(f"the {encoding} data ({len(data)} bytes) cannot be decoded (corrupt or not {encoding})")
+        raise ImageDecodeError(
+            f"the {encoding} data ({len(data)} bytes) cannot be decoded (corrupt or not {encoding})"
+        )
     if img.shape[:2] != (height, width):
-        raise ImageDecodeError(f"the {encoding} image is {img.shape[1]}x{img.shape[0]}, the camera is {width}x{height}")
+        raise ImageDecodeError(
+            f"the {encoding} image is {img.shape[1]}x{img.shape[0]}, the camera is {width}x{height}"
+        )
     return img

@@ -17,7 +17,14 @@ import numpy as np
 
 from .errors import ImageDecodeError, InputError
 
-IMAGE_SUFFIXES = {".jpg": "jpeg", ".jpeg": "jpeg", ".png": "png", ".bmp": None, ".tif": None, ".tiff": None}
+IMAGE_SUFFIXES = {
+    ".jpg": "jpeg",
+    ".jpeg": "jpeg",
+    ".png": "png",
+    ".bmp": None,
+    ".tif": None,
+    ".tiff": None,
+}
 
 
 @dataclass
@@ -38,7 +45,8 @@ def _cv2() -> Any:
 def list_images(folder: str | Path, pattern: str = "*") -> list[Path]:
     folder = Path(folder)
     files = [
-        p for p in sorted(folder.iterdir())
+        p
+        for p in sorted(folder.iterdir())
         if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES and fnmatch.fnmatch(p.name, pattern)
     ]
     if not files:
@@ -46,7 +54,9 @@ def list_images(folder: str | Path, pattern: str = "*") -> list[Path]:
     return files
 
 
-def folder_frames(folder: str | Path, *, pattern: str = "*", passthrough: str | None = None, gray: bool = False) -> Iterator[SourceFrame]:
+def folder_frames(
+    folder: str | Path, *, pattern: str = "*", passthrough: str | None = None, gray: bool = False
+) -> Iterator[SourceFrame]:
     """Images of a folder in name order. With ``passthrough`` ("jpeg" or "png"), files already
     in that encoding are sent as they are."""
     for p in list_images(folder, pattern):
@@ -55,7 +65,10 @@ def folder_frames(folder: str | Path, *, pattern: str = "*", passthrough: str | 
             continue
         cv2 = _cv2()
         # Stored pixels, no EXIF rotation (as the server decodes what the client sends).
-        img = cv2.imread(str(p), (cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR) | cv2.IMREAD_IGNORE_ORIENTATION)
+        img = cv2.imread(
+            str(p),
+            (cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR) | cv2.IMREAD_IGNORE_ORIENTATION,
+        )
         if img is None:
             raise ImageDecodeError(f"cannot read image {p}")
         yield SourceFrame(image=img, name=p.name)
@@ -97,12 +110,16 @@ def array_frames(frames: Iterable[np.ndarray]) -> Iterator[SourceFrame]:
         yield SourceFrame(image=np.asarray(img), name=f"{k:06d}")
 
 
-def open_source(source: Any, *, pattern: str = "*", passthrough: str | None = None, gray: bool = False) -> Iterator[SourceFrame]:
+def open_source(
+    source: Any, *, pattern: str = "*", passthrough: str | None = None, gray: bool = False
+) -> Iterator[SourceFrame]:
     """Frames of ``source``: a numpy array stack (N, H, W[, 3]) or an iterable of arrays, an
     image folder, a video file, or a camera index (an int or a string of digits)."""
     if isinstance(source, np.ndarray):
         if source.ndim not in (3, 4):
-            raise InputError(f"a numpy source must be a stack (N, H, W[, 3]), got shape {source.shape}")
+            raise InputError(
+                f"a numpy source must be a stack (N, H, W[, 3]), got shape {source.shape}"
+            )
         return array_frames(source)
     if isinstance(source, int) or (isinstance(source, str) and source.isdigit()):
         return video_frames(int(source), gray=gray)

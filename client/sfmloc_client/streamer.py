@@ -31,7 +31,7 @@ log = logging.getLogger(__name__)
 OUTAGE_FRAMES = 5
 
 
-def unanswered(last_sent_seq: int, poses: "PoseSubscriber | None") -> int:
+def unanswered(last_sent_seq: int, poses: PoseSubscriber | None) -> int:
     """Frames sent after the newest one the server answered (an outage when it grows)."""
     return 0 if poses is None else max(0, last_sent_seq - max(poses.max_seq, -1))
 
@@ -98,7 +98,9 @@ class FrameStreamer:
         self._pub = session.declare_publisher(
             self.key,
             priority=zenoh.Priority.DATA_HIGH,
-            congestion_control=zenoh.CongestionControl.DROP if congestion == "drop" else zenoh.CongestionControl.BLOCK,
+            congestion_control=zenoh.CongestionControl.DROP
+            if congestion == "drop"
+            else zenoh.CongestionControl.BLOCK,
             express=True,
         )
 
@@ -219,10 +221,8 @@ class FrameStreamer:
         except Exception:  # noqa: BLE001 - the session may be closed already
             pass
 
-    def __enter__(self) -> "FrameStreamer":
+    def __enter__(self) -> FrameStreamer:
         return self
 
     def __exit__(self, *exc: Any) -> None:
         self.close()
-
-

@@ -38,7 +38,9 @@ class PoseSubscriber:
         self.errors = 0
         self.last: PoseMessage | None = None
         self.max_seq = -1
-        self._queue: queue.Queue[PoseMessage | None] | None = None if callback else queue.Queue(maxsize)
+        self._queue: queue.Queue[PoseMessage | None] | None = (
+            None if callback else queue.Queue(maxsize)
+        )
         self._cond = threading.Condition()
         self._closed = False
         self._sub = session.declare_subscriber(self.key, self._on_sample)
@@ -68,12 +70,18 @@ class PoseSubscriber:
     def wait_for(self, seq: int, timeout: float | None = None) -> bool:
         """Wait until a pose with ``seq`` or a later one has arrived; False on timeout."""
         with self._cond:
-            return self._cond.wait_for(lambda: self.max_seq >= seq or self._closed, timeout) and self.max_seq >= seq
+            return (
+                self._cond.wait_for(lambda: self.max_seq >= seq or self._closed, timeout)
+                and self.max_seq >= seq
+            )
 
     def wait_received(self, n: int, timeout: float | None = None) -> bool:
         """Wait until ``n`` poses have arrived in total; False on timeout."""
         with self._cond:
-            return self._cond.wait_for(lambda: self.received >= n or self._closed, timeout) and self.received >= n
+            return (
+                self._cond.wait_for(lambda: self.received >= n or self._closed, timeout)
+                and self.received >= n
+            )
 
     def get(self, timeout: float | None = None) -> PoseMessage | None:
         """The next pose, or None on timeout or once closed (iterator mode only)."""
@@ -117,7 +125,7 @@ class PoseSubscriber:
                 except queue.Empty:
                     pass
 
-    def __enter__(self) -> "PoseSubscriber":
+    def __enter__(self) -> PoseSubscriber:
         return self
 
     def __exit__(self, *exc: Any) -> None:

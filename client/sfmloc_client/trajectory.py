@@ -15,7 +15,6 @@ from typing import Any, TextIO
 
 from .wire import PoseMessage
 
-
 COVARIANCE_HEADER = (
     "# timestamp status c00 c01 ... c55: 6x6 covariance of the pose on the same line of the TUM "
     "file (row-major; order rx ry rz cx cy cz: r a small rotation vector in radians on the world "
@@ -57,7 +56,7 @@ class TumWriter:
         self._f.close()
         self._cov.close()
 
-    def __enter__(self) -> "TumWriter":
+    def __enter__(self) -> TumWriter:
         return self
 
     def __exit__(self, *exc: Any) -> None:

@@ -110,17 +110,48 @@ from .keys import (
     server_info_key,
     server_token_key,
 )
+
 # The name rule, key expressions and camera table are defined in keys.py and cameras.py and
 # re-exported here: this module is the specification of the Zenoh messages.
 __all__ = [
-    "CAMERA_MODELS", "COVARIANCE_ORDER", "DEFAULT_MAX_FRAME_BYTES", "ENCODINGS", "FRAME_KEYEXPR",
-    "MAPS_KEYEXPR", "MAX_IMAGE_SIDE", "NAME_RE", "ROOT", "SERVERS_KEYEXPR", "SERVER_INFO_KEYEXPR",
-    "STATUSES", "WIRE_VERSION", "CameraSpec", "ErrorInfo", "Frame", "MapAnnouncement",
-    "PoseMessage", "ServerInfo", "Transform", "check_name", "decode_frame",
-    "decode_map_announcement", "decode_pose", "decode_server_info", "encode_frame",
-    "encode_map_announcement", "encode_pose", "encode_server_info", "frame_key",
-    "map_announce_key", "parse_frame_key", "peek_seq", "pose_key", "raw_size",
-    "server_info_key", "server_token_key", "transform_from_lists",
+    "CAMERA_MODELS",
+    "COVARIANCE_ORDER",
+    "DEFAULT_MAX_FRAME_BYTES",
+    "ENCODINGS",
+    "FRAME_KEYEXPR",
+    "MAPS_KEYEXPR",
+    "MAX_IMAGE_SIDE",
+    "NAME_RE",
+    "ROOT",
+    "SERVERS_KEYEXPR",
+    "SERVER_INFO_KEYEXPR",
+    "STATUSES",
+    "WIRE_VERSION",
+    "CameraSpec",
+    "ErrorInfo",
+    "Frame",
+    "MapAnnouncement",
+    "PoseMessage",
+    "ServerInfo",
+    "Transform",
+    "check_name",
+    "decode_frame",
+    "decode_map_announcement",
+    "decode_pose",
+    "decode_server_info",
+    "encode_frame",
+    "encode_map_announcement",
+    "encode_pose",
+    "encode_server_info",
+    "frame_key",
+    "map_announce_key",
+    "parse_frame_key",
+    "peek_seq",
+    "pose_key",
+    "raw_size",
+    "server_info_key",
+    "server_token_key",
+    "transform_from_lists",
 ]
 
 WIRE_VERSION = 1
@@ -131,6 +162,7 @@ COVARIANCE_ORDER: tuple[str, ...] = ("rot_x", "rot_y", "rot_z", "center_x", "cen
 # Frames larger than this are rejected (RESOURCE_EXHAUSTED) unless the server is configured
 # otherwise; 16 MiB holds a raw 4K BGR frame.
 DEFAULT_MAX_FRAME_BYTES = 16 * 1024 * 1024
+
 
 # ============================================================================ helpers
 def _unpack(payload: bytes | bytearray | memoryview, max_bytes: int, what: str) -> dict[str, Any]:
@@ -211,8 +243,12 @@ class CameraSpec:
         object.__setattr__(self, "params", params)
 
     def to_wire(self) -> dict[str, Any]:
-        return {"model": self.model, "width": self.width, "height": self.height,
-                "params": list(self.params)}
+        return {
+            "model": self.model,
+            "width": self.width,
+            "height": self.height,
+            "params": list(self.params),
+        }
 
     @classmethod
     def from_wire(cls, d: Any) -> CameraSpec:
@@ -258,13 +294,15 @@ class Frame:
     data: bytes
     source: str = ""  # the sender's Zenoh session id ("" : not given)
 
-    def validate(self) -> "Frame":
+    def validate(self) -> Frame:
         _uint(self.seq, "seq")
         _uint(self.stamp_ns, "stamp_ns")
         if not isinstance(self.camera, CameraSpec):
             raise WireError("camera must be a CameraSpec")
         if self.encoding not in ENCODINGS:
-            raise WireError(f"encoding must be one of {', '.join(ENCODINGS)}, got {self.encoding!r}")
+            raise WireError(
+                f"encoding must be one of {', '.join(ENCODINGS)}, got {self.encoding!r}"
+            )
         if not isinstance(self.data, (bytes, bytearray, memoryview)) or len(self.data) == 0:
             raise WireError("data must be non-empty bytes")
         n = raw_size(self.encoding, self.camera.width, self.camera.height)
@@ -292,7 +330,9 @@ def encode_frame(frame: Frame) -> bytes:
     return _pack(d)
 
 
-def decode_frame(payload: bytes | bytearray | memoryview, max_bytes: int = DEFAULT_MAX_FRAME_BYTES) -> Frame:
+def decode_frame(
+    payload: bytes | bytearray | memoryview, max_bytes: int = DEFAULT_MAX_FRAME_BYTES
+) -> Frame:
     """Parse and validate a frame envelope; ``WireError`` (or a subclass) names the problem."""
     d = _unpack(payload, max_bytes, "frame envelope")
     what = "frame envelope"
@@ -329,20 +369,20 @@ class Transform:
         return {"quat_xyzw": list(self.quat_xyzw), "t": list(self.t)}
 
     @classmethod
-    def from_wire(cls, d: Any, name: str = "transform") -> "Transform":
+    def from_wire(cls, d: Any, name: str = "transform") -> Transform:
         if not isinstance(d, dict):
             raise WireError(f"{name} must be a map with quat_xyzw and t")
         q = _floats(_get(d, "quat_xyzw", name), 4, f"{name}.quat_xyzw")
         t = _floats(_get(d, "t", name), 3, f"{name}.t")
         return cls(q, t)  # type: ignore[arg-type]
 
-    def rotation_matrix(self) -> "Any":
+    def rotation_matrix(self) -> Any:
         """3x3 numpy rotation matrix."""
         from .rotations import rotmat_from_quat_xyzw  # numpy, loaded when needed
 
         return rotmat_from_quat_xyzw(self.quat_xyzw)
 
-    def matrix(self) -> "Any":
+    def matrix(self) -> Any:
         """4x4 homogeneous numpy matrix."""
         import numpy as np
 
@@ -351,7 +391,7 @@ class Transform:
         T[:3, 3] = self.t
         return T
 
-    def inverse(self) -> "Transform":
+    def inverse(self) -> Transform:
         import numpy as np
 
         R = self.rotation_matrix()
@@ -467,7 +507,9 @@ def decode_pose(payload: bytes | bytearray | memoryview, max_bytes: int = 1 << 2
     if err is not None:
         if not isinstance(err, dict):
             raise WireError("error must be a map or nil")
-        err = ErrorInfo(_str(err.get("code", ""), "error.code"), _str(err.get("message", ""), "error.message"))
+        err = ErrorInfo(
+            _str(err.get("code", ""), "error.code"), _str(err.get("message", ""), "error.message")
+        )
     counts = d.get("counts") or {}
     if not isinstance(counts, dict):
         raise WireError("counts must be a map")
@@ -539,8 +581,14 @@ class ServerInfo:
 
     def to_wire(self) -> dict[str, Any]:
         return {
-            "server_id": self.server_id, "version": self.version, "grpc": self.grpc, "maps": self.maps,
-            "sessions": self.sessions, "workers": self.workers, "load": self.load, "ready": self.ready,
+            "server_id": self.server_id,
+            "version": self.version,
+            "grpc": self.grpc,
+            "maps": self.maps,
+            "sessions": self.sessions,
+            "workers": self.workers,
+            "load": self.load,
+            "ready": self.ready,
         }
 
 

@@ -56,25 +56,25 @@ class Camera:
 
     # ----- construction -------------------------------------------------------------------
     @classmethod
-    def pinhole(cls, width: int, height: int, fx: float, fy: float, cx: float, cy: float) -> "Camera":
+    def pinhole(cls, width: int, height: int, fx: float, fy: float, cx: float, cy: float) -> Camera:
         return cls("PINHOLE", width, height, np.array([fx, fy, cx, cy]))
 
     @classmethod
-    def from_string(cls, spec: str) -> "Camera":
+    def from_string(cls, spec: str) -> Camera:
         """Parse ``"MODEL width height p1 p2 ..."`` (COLMAP cameras.txt order, without the id)."""
         return cls.parse(spec)
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Camera":
+    def from_dict(cls, d: dict) -> Camera:
         model, width, height, params = camera_from_dict(d)
         return cls(model, width, height, np.asarray(params))
 
     @classmethod
-    def from_json(cls, path: str | Path) -> "Camera":
+    def from_json(cls, path: str | Path) -> Camera:
         return cls.parse(Path(path))
 
     @classmethod
-    def parse(cls, spec: str | Path) -> "Camera":
+    def parse(cls, spec: str | Path) -> Camera:
         """A camera from a ``camera.json`` path or a ``"MODEL w h params..."`` string."""
         model, width, height, params = parse_camera(spec)
         return cls(model, width, height, np.asarray(params))
@@ -144,7 +144,7 @@ class Camera:
     def size(self) -> tuple[int, int]:
         return self.width, self.height
 
-    def scaled(self, factor: float) -> "Camera":
+    def scaled(self, factor: float) -> Camera:
         """The same camera for an image resized by ``factor`` (pyramid levels).
 
         Focal and principal point scale with the image plane (valid in COLMAP's
@@ -153,7 +153,9 @@ class Camera:
         p = self.params.copy()
         n_lin = 3 if self.model in SINGLE_FOCAL_MODELS else 4
         p[:n_lin] *= factor
-        return Camera(self.model, max(1, round(self.width * factor)), max(1, round(self.height * factor)), p)
+        return Camera(
+            self.model, max(1, round(self.width * factor)), max(1, round(self.height * factor)), p
+        )
 
     # ----- distortion ---------------------------------------------------------------------
     def _distortion(self, uv: np.ndarray) -> np.ndarray:
@@ -197,7 +199,9 @@ class Camera:
             b, d = jy[:, 0], jy[:, 1]
             det = a * d - b * c
             det = np.where(np.abs(det) < 1e-12, 1e-12, det)
-            step = np.stack([(d * f[:, 0] - b * f[:, 1]) / det, (-c * f[:, 0] + a * f[:, 1]) / det], axis=1)
+            step = np.stack(
+                [(d * f[:, 0] - b * f[:, 1]) / det, (-c * f[:, 0] + a * f[:, 1]) / det], axis=1
+            )
             x = x - step
             if np.max(np.abs(step), initial=0.0) < 1e-14:
                 break
@@ -231,7 +235,9 @@ class Camera:
         cx, cy = self.principal_point
         return np.stack([fx * uv[:, 0] + cx, fy * uv[:, 1] + cy], axis=1)
 
-    def project(self, cam_from_world: Rigid3d, points3D: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def project(
+        self, cam_from_world: Rigid3d, points3D: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Image coordinates (N, 2) and depths (N,) of world points; depth <= 0 is behind."""
         pc = cam_from_world.apply(np.asarray(points3D, dtype=np.float64).reshape(-1, 3))
         z = pc[:, 2]

@@ -54,7 +54,7 @@ def read_config_file(path: str | Path) -> dict[str, Any]:
 
 def _parse_env_value(raw: str) -> Any:
     s = raw.strip()
-    if s[:1] in "[{\"" or s in ("true", "false", "null") or _looks_numeric(s):
+    if s[:1] in '[{"' or s in ("true", "false", "null") or _looks_numeric(s):
         try:
             return json.loads(s)
         except json.JSONDecodeError:
@@ -70,7 +70,9 @@ def _looks_numeric(s: str) -> bool:
     return True
 
 
-def env_overrides(model: type[BaseModel], prefix: str, environ: Mapping[str, str]) -> dict[str, Any]:
+def env_overrides(
+    model: type[BaseModel], prefix: str, environ: Mapping[str, str]
+) -> dict[str, Any]:
     """The nested dict of values that ``environ`` sets for ``model`` under ``prefix``."""
     out: dict[str, Any] = {}
     for name, field in model.model_fields.items():
@@ -107,7 +109,9 @@ def load_config(
     data: dict[str, Any] = {}
     if file is not None:
         data = _deep_merge(data, read_config_file(file))
-    data = _deep_merge(data, env_overrides(model, prefix, os.environ if environ is None else environ))
+    data = _deep_merge(
+        data, env_overrides(model, prefix, os.environ if environ is None else environ)
+    )
     if overrides:
         data = _deep_merge(data, {k: v for k, v in overrides.items() if v is not None})
     try:

@@ -54,7 +54,9 @@ def _safe(deserializer: Callable[[bytes], Any] | None) -> Callable[[bytes], Any]
 
 
 async def _refuse(context: grpc.aio.ServicerContext, bad: _Malformed) -> None:
-    await context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"malformed request: not a valid message ({bad.reason})")
+    await context.abort(
+        grpc.StatusCode.INVALID_ARGUMENT, f"malformed request: not a valid message ({bad.reason})"
+    )
 
 
 def _wrap(behavior: Callable[..., Any], streaming_requests: bool) -> Callable[..., Any]:
@@ -86,13 +88,18 @@ def _wrap(behavior: Callable[..., Any], streaming_requests: bool) -> Callable[..
 
     def plain(request: Any, context: Any) -> Any:
         if isinstance(request, _Malformed):
-            context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"malformed request: not a valid message ({request.reason})")
+            context.abort(
+                grpc.StatusCode.INVALID_ARGUMENT,
+                f"malformed request: not a valid message ({request.reason})",
+            )
         return behavior(request, context)
 
     return plain
 
 
-async def _checked_requests(requests: AsyncIterator[Any], context: grpc.aio.ServicerContext) -> AsyncIterator[Any]:
+async def _checked_requests(
+    requests: AsyncIterator[Any], context: grpc.aio.ServicerContext
+) -> AsyncIterator[Any]:
     # Raised, not aborted here: the handler reading the stream ends it through its own error
     # path (one abort, INVALID_ARGUMENT by the status table); aborting under it made the
     # handler abort a second time and log a traceback per malformed message.
@@ -157,8 +164,13 @@ class SyncMalformedRequestInterceptor(grpc.ServerInterceptor):
 def _log_failure(method: str, exc: BaseException) -> None:
     # The server's log formatters (server/logfmt.py) render ``event`` and ``fields``.
     fields = {"method": method.rsplit("/", 1)[-1], "code": code_of(exc), "error": message_of(exc)}
-    log.info("rpc_failed method=%s code=%s error=%r", fields["method"], fields["code"],
-             fields["error"], extra={"event": "rpc_failed", "fields": fields})
+    log.info(
+        "rpc_failed method=%s code=%s error=%r",
+        fields["method"],
+        fields["code"],
+        fields["error"],
+        extra={"event": "rpc_failed", "fields": fields},
+    )
 
 
 def _aio_error_wrap(method: str) -> Callable[[Callable[..., Any], bool], Callable[..., Any]]:

@@ -23,8 +23,8 @@ from .server.config import ServerConfig
 class ServerThread:
     """A server on a background thread with its own event loop (tests, the demo, benchmarks)::
 
-        with ServerThread(conf) as srv:     # returns once SERVING
-            srv.grpc_port, srv.server.registry ...
+    with ServerThread(conf) as srv:     # returns once SERVING
+        srv.grpc_port, srv.server.registry ...
     """
 
     def __init__(self, conf: ServerConfig, load_maps: bool = True) -> None:
@@ -61,7 +61,7 @@ class ServerThread:
             self.loop.close()
             self._done.set()
 
-    def start(self, timeout: float = 120.0) -> "ServerThread":
+    def start(self, timeout: float = 120.0) -> ServerThread:
         self._thread.start()
         if not self._started.wait(timeout):
             raise TimeoutError("the server did not start in time")
@@ -85,7 +85,7 @@ class ServerThread:
     def grpc_port(self) -> int | None:
         return None if self.server is None else self.server.grpc_port
 
-    def __enter__(self) -> "ServerThread":
+    def __enter__(self) -> ServerThread:
         return self.start()
 
     def __exit__(self, *exc: Any) -> None:
@@ -101,20 +101,43 @@ def free_port() -> int:
 class ServerProcess:
     """``sfmloc serve`` in a subprocess on free loopback ports (the demo, benchmarks)::
 
-        with ServerProcess(maps_dir, workers=2) as srv:   # returns once SERVING
-            srv.endpoint (Zenoh), srv.grpc (host:port)
+    with ServerProcess(maps_dir, workers=2) as srv:   # returns once SERVING
+        srv.endpoint (Zenoh), srv.grpc (host:port)
     """
 
-    def __init__(self, maps: str | os.PathLike, workers: int = 0, kind: str = "process", quiet: bool = True,
-                 extra_args: tuple[str, ...] = (), env: dict[str, str] | None = None) -> None:
+    def __init__(
+        self,
+        maps: str | os.PathLike,
+        workers: int = 0,
+        kind: str = "process",
+        quiet: bool = True,
+        extra_args: tuple[str, ...] = (),
+        env: dict[str, str] | None = None,
+    ) -> None:
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
         self.grpc = f"127.0.0.1:{free_port()}"
-        cmd = [sys.executable, "-m", "sfmloc", *(["-q"] if quiet else []), "serve", "--maps", str(maps),
-               "--zenoh-listen", self.endpoint, "--no-multicast", "--grpc", self.grpc,
-               "--workers", str(workers), "--worker-kind", kind, *extra_args]
+        cmd = [
+            sys.executable,
+            "-m",
+            "sfmloc",
+            *(["-q"] if quiet else []),
+            "serve",
+            "--maps",
+            str(maps),
+            "--zenoh-listen",
+            self.endpoint,
+            "--no-multicast",
+            "--grpc",
+            self.grpc,
+            "--workers",
+            str(workers),
+            "--worker-kind",
+            kind,
+            *extra_args,
+        ]
         self.proc = subprocess.Popen(cmd, env=env)  # env: e.g. another checkout's PYTHONPATH
 
-    def __enter__(self) -> "ServerProcess":
+    def __enter__(self) -> ServerProcess:
         from sfmloc_client import LocalizationClient
 
         from .errors import UnavailableError
@@ -123,7 +146,9 @@ class ServerProcess:
             if not c.wait_ready(180):
                 self.proc.kill()
                 self.proc.wait()
-                raise UnavailableError(f"the server did not become ready (exit code {self.proc.returncode})")
+                raise UnavailableError(
+                    f"the server did not become ready (exit code {self.proc.returncode})"
+                )
         return self
 
     def stop(self, timeout: float = 60.0) -> int | None:

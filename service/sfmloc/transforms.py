@@ -15,6 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
 from sfmloc_client.rotations import (
     quat_wxyz_from_rotmat,
     quat_xyzw_from_rotmat,
@@ -86,23 +87,23 @@ class Rigid3d:
         object.__setattr__(self, "translation", t)
 
     @classmethod
-    def identity(cls) -> "Rigid3d":
+    def identity(cls) -> Rigid3d:
         return cls(np.eye(3), np.zeros(3))
 
     @classmethod
-    def from_quat_wxyz(cls, quat_wxyz: np.ndarray, translation: np.ndarray) -> "Rigid3d":
+    def from_quat_wxyz(cls, quat_wxyz: np.ndarray, translation: np.ndarray) -> Rigid3d:
         return cls(rotmat_from_quat_wxyz(quat_wxyz), translation)
 
     @classmethod
-    def from_quat_xyzw(cls, quat_xyzw: np.ndarray, translation: np.ndarray) -> "Rigid3d":
+    def from_quat_xyzw(cls, quat_xyzw: np.ndarray, translation: np.ndarray) -> Rigid3d:
         return cls(rotmat_from_quat_xyzw(quat_xyzw), translation)
 
     @classmethod
-    def from_rotvec(cls, rotvec: np.ndarray, translation: np.ndarray) -> "Rigid3d":
+    def from_rotvec(cls, rotvec: np.ndarray, translation: np.ndarray) -> Rigid3d:
         return cls(rotmat_from_rotvec(rotvec), translation)
 
     @classmethod
-    def from_matrix(cls, T: np.ndarray) -> "Rigid3d":
+    def from_matrix(cls, T: np.ndarray) -> Rigid3d:
         """From a 3x4 or 4x4 matrix ``[R | t]``."""
         T = np.asarray(T, dtype=np.float64)
         if T.shape not in ((3, 4), (4, 4)):
@@ -131,14 +132,16 @@ class Rigid3d:
         T[:3, :4] = self.matrix()
         return T
 
-    def inverse(self) -> "Rigid3d":
+    def inverse(self) -> Rigid3d:
         """``src_from_tgt`` of this ``tgt_from_src``."""
         Rt = self.rotation.T
         return Rigid3d(Rt, -Rt @ self.translation)
 
-    def __mul__(self, other: "Rigid3d") -> "Rigid3d":
+    def __mul__(self, other: Rigid3d) -> Rigid3d:
         """Composition: ``a_from_b * b_from_c -> a_from_c``."""
-        return Rigid3d(self.rotation @ other.rotation, self.rotation @ other.translation + self.translation)
+        return Rigid3d(
+            self.rotation @ other.rotation, self.rotation @ other.translation + self.translation
+        )
 
     def apply(self, points: np.ndarray) -> np.ndarray:
         """Transform points of shape (3,) or (N, 3) from ``src`` into ``tgt``."""

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal, Optional
+from typing import Literal
 
 from pydantic import Field
 
@@ -22,14 +22,18 @@ PEERS = ("global-every-frame", "pycolmap-sift")
 OURS = "sfmloc"
 
 SUITE_HELP = {
-    "redkitchen": "real: map from every 10th of the 1000 frames (pgt_sfm poses, known-poses builder); "
+    "redkitchen": "real: map from every 10th of the 1000 frames (pgt_sfm poses, known-poses "
+    "builder); "
     "all frames replayed as 30 Hz video; errors against pgt_sfm_seq01.txt",
-    "redkitchen-split": "real, harder: map from every 5th of frames 0-499 only; frames 500-999 replayed "
+    "redkitchen-split": "real, harder: map from every 5th of frames 0-499 only; frames 500-999 "
+    "replayed "
     "(parts seen from viewpoints the map covers poorly: how much is localized, and nothing "
     "confidently wrong)",
-    "synthetic-walk": "exact ground truth: `sfmloc synth` room, walking video (seed fixed); map from the "
+    "synthetic-walk": "exact ground truth: `sfmloc synth` room, walking video (seed fixed); map "
+    "from the "
     "exact COLMAP model",
-    "synthetic-flight": "exact ground truth: quadrotor-like flight with fast yaw bursts (seed fixed)",
+    "synthetic-flight": "exact ground truth: quadrotor-like flight with fast yaw bursts (seed "
+    "fixed)",
     "robust": "the data users bring (issue 9's test bed), our engine and pycolmap-sift on the "
     "same frames of every row: image size (synthetic walk at 640x480, 1280x960, 3072x2048 "
     "against the 640x480 map; redkitchen upsampled to 1920x1440), map density (synthetic "
@@ -37,9 +41,11 @@ SUITE_HELP = {
     "frame), scene scale (the room x0.01, x1, x100) and motion (walk, flight, orbit around the "
     "table at 30, 10, 3 Hz). Targets per row: localized >= the peer's, median error <= 1.5x the "
     "peer's, 0 wrong poses, no crash (--robust-rows to choose rows)",
-    "throughput": "1, 2, 4, 8 clients streaming redkitchen JPEGs over Zenoh (loopback, no multicast) at "
+    "throughput": "1, 2, 4, 8 clients streaming redkitchen JPEGs over Zenoh (loopback, no "
+    "multicast) at "
     "30 Hz each to one `sfmloc serve` process: delivered rate, dropped fraction, latency p50/p99",
-    "map": "build time, bundle size, load time and resident memory (fresh process) of the redkitchen "
+    "map": "build time, bundle size, load time and resident memory (fresh process) of the "
+    "redkitchen "
     "bundle, per million descriptors",
 }
 
@@ -69,10 +75,10 @@ class BenchConf(StrictModel):
     camera: str = REDKITCHEN_CAMERA
     poses: str = REDKITCHEN_POSES
     # Frames replayed per localization suite (None: all of the suite's frames).
-    frames: Optional[int] = Field(None, ge=2)
+    frames: int | None = Field(None, ge=2)
     # Frames per suite the peers run on, evenly strided over the replayed frames (our engine
     # is summarised on the same frames for the side-by-side); None: every frame.
-    peer_frames: Optional[int] = Field(500, ge=1)
+    peer_frames: int | None = Field(500, ge=1)
     seed: int = 0
     # Synthetic suites: frames of the video and mapping views.
     synth_frames: int = Field(300, ge=10)
@@ -100,7 +106,7 @@ class BenchConf(StrictModel):
     robust_frames: int = Field(300, ge=2)
     robust_large_frames: int = Field(20, ge=2)
     robust_peer_frames: int = Field(20, ge=1)
-    robust_rows: Optional[list[str]] = None
+    robust_rows: list[str] | None = None
     robust_budget_s: float = Field(150.0, gt=0)
     reuse: bool = False  # reuse maps and synthetic data already under OUT/work
     quick: bool = False
@@ -109,9 +115,19 @@ class BenchConf(StrictModel):
 def quick_conf(**changes) -> BenchConf:
     """A smoke run: few frames, small synthetic scenes, short throughput runs, small grid."""
     base = {
-        "frames": 60, "peer_frames": 12, "synth_frames": 40, "synth_mapping_views": 40, "tune_frames": 6,
-        "tune_ratios": [0.8], "tune_max_errors": [12.0], "tune_ef": [64], "clients": [1, 2], "duration_s": 3.0,
-        "robust_frames": 30, "robust_large_frames": 4, "robust_peer_frames": 4,
+        "frames": 60,
+        "peer_frames": 12,
+        "synth_frames": 40,
+        "synth_mapping_views": 40,
+        "tune_frames": 6,
+        "tune_ratios": [0.8],
+        "tune_max_errors": [12.0],
+        "tune_ef": [64],
+        "clients": [1, 2],
+        "duration_s": 3.0,
+        "robust_frames": 30,
+        "robust_large_frames": 4,
+        "robust_peer_frames": 4,
         "quick": True,
     }
     base.update(changes)

@@ -28,8 +28,9 @@ WRONG_FRACTION = 0.05  # of scene_scale
 WRONG_DEG = 10.0
 
 
-def build_map(work: Path, data: Path, frames: int, stride: int, pairs: str,
-              sfm_over: dict | None = None) -> tuple[Path, float]:
+def build_map(
+    work: Path, data: Path, frames: int, stride: int, pairs: str, sfm_over: dict | None = None
+) -> tuple[Path, float]:
     """The bundle of every ``stride``-th of the first ``frames`` frames, built with
     ``pair_selection=pairs`` and ``sfm_over`` (reused when present); (bundle path, build
     seconds or 0)."""
@@ -37,7 +38,9 @@ def build_map(work: Path, data: Path, frames: int, stride: int, pairs: str,
     from ..io.frames import FrameSource
 
     sfm_over = sfm_over or {}
-    name = f"rk{frames}-s{stride}-{pairs}" + "".join(f"-{k}{v}" for k, v in sorted(sfm_over.items()))
+    name = f"rk{frames}-s{stride}-{pairs}" + "".join(
+        f"-{k}{v}" for k, v in sorted(sfm_over.items())
+    )
     bundle = work / name
     if (bundle / "manifest.json").is_file():
         return bundle, 0.0
@@ -48,8 +51,16 @@ def build_map(work: Path, data: Path, frames: int, stride: int, pairs: str,
         for n in names:
             (subset / n).symlink_to((data / n).resolve())
     t0 = time.perf_counter()
-    build.main(build.preset("default"), name, work, images=subset, poses=data / REDKITCHEN_POSES,
-               camera=REDKITCHEN_CAMERA, stride=stride, sfm_conf=sfm.sfm_conf(pair_selection=pairs, **sfm_over))
+    build.main(
+        build.preset("default"),
+        name,
+        work,
+        images=subset,
+        poses=data / REDKITCHEN_POSES,
+        camera=REDKITCHEN_CAMERA,
+        stride=stride,
+        sfm_conf=sfm.sfm_conf(pair_selection=pairs, **sfm_over),
+    )
     return bundle, time.perf_counter() - t0
 
 
@@ -68,12 +79,18 @@ def evaluate(bundle_dir: Path, data: Path, frames: int, n_reloc: int) -> dict:
     cam = Camera.parse(REDKITCHEN_CAMERA)
     source = FrameSource(data)
     n = min(frames, len(source))
-    gt = load_groundtruth(data / REDKITCHEN_POSES, source.names(), [source.stamp(i) for i in range(len(source))],
-                          source.fps)
+    gt = load_groundtruth(
+        data / REDKITCHEN_POSES,
+        source.names(),
+        [source.stamp(i) for i in range(len(source))],
+        source.fps,
+    )
     conf = EngineConf()
     scale = bundle.scene_scale
     ok = 0
-    for i, _name, _stamp, gray in decode_frames(source, np.linspace(0, n - 1, n_reloc).round().astype(int)):
+    for i, _name, _stamp, gray in decode_frames(
+        source, np.linspace(0, n - 1, n_reloc).round().astype(int)
+    ):
         r = relocalize(gray, cam, bundle, conf)
         if r.cam_from_world is not None and gt[i] is not None:
             dp, dr = pose_errors(r.cam_from_world, gt[i])
@@ -81,23 +98,35 @@ def evaluate(bundle_dir: Path, data: Path, frames: int, n_reloc: int) -> dict:
     recs, _ = replay(bundle, source, cam, conf, gt, max_frames=n)
     s = summarize(recs, scale)
     return {
-        "images": bundle.n_images, "points": bundle.n_points,
+        "images": bundle.n_images,
+        "points": bundle.n_points,
         "points_per_image_median": float(np.median(np.diff(bundle.image_points_ptr))),
-        "replay_localized_pct": round(100 * s["localized_fraction"], 2), "replay_wrong": s["confident_wrong"],
-        "replay_global_frames": s["global_frames"], "mean_ms_per_frame": round(s["latency_ms"]["mean"], 1),
-        "reloc_ok": ok, "reloc_of": n_reloc,
+        "replay_localized_pct": round(100 * s["localized_fraction"], 2),
+        "replay_wrong": s["confident_wrong"],
+        "replay_global_frames": s["global_frames"],
+        "mean_ms_per_frame": round(s["latency_ms"]["mean"], 1),
+        "reloc_ok": ok,
+        "reloc_of": n_reloc,
     }
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("--work", default="/tmp/sfmloc-density")
     p.add_argument("--data", default=str(DEFAULT_DATA))
-    p.add_argument("--frames", type=int, default=1000, help="the first N frames: map input and replay")
+    p.add_argument(
+        "--frames", type=int, default=1000, help="the first N frames: map input and replay"
+    )
     p.add_argument("--strides", type=int, nargs="+", default=[10, 4, 2, 1])
-    p.add_argument("--pairs", nargs="+", default=["nearest", "geometric"], help="SfmConf.pair_selection values")
+    p.add_argument(
+        "--pairs", nargs="+", default=["nearest", "geometric"], help="SfmConf.pair_selection values"
+    )
     p.add_argument("--reloc", type=int, default=40)
-    p.add_argument("--sfm", nargs="*", default=[], metavar="KEY=VALUE", help="SfmConf overrides (JSON values)")
+    p.add_argument(
+        "--sfm", nargs="*", default=[], metavar="KEY=VALUE", help="SfmConf overrides (JSON values)"
+    )
     p.add_argument("--build-only", action="store_true")
     p.add_argument("--json", help="append results as JSON lines here")
     a = p.parse_args(argv)
@@ -108,8 +137,13 @@ def main(argv: list[str] | None = None) -> int:
     for pairs in a.pairs:
         for stride in a.strides:
             bundle, secs = build_map(work, data, a.frames, stride, pairs, sfm_over)
-            res = {"pairs": pairs, "sfm": sfm_over, "stride": stride, "frames": a.frames,
-                   "build_s": round(secs)}
+            res = {
+                "pairs": pairs,
+                "sfm": sfm_over,
+                "stride": stride,
+                "frames": a.frames,
+                "build_s": round(secs),
+            }
             if not a.build_only:
                 res.update(evaluate(bundle, data, a.frames, a.reloc))
             print(json.dumps(res), flush=True)

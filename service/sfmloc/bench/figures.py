@@ -36,7 +36,9 @@ def _nan(x):
 def per_frame(records: list[FrameRecord], title: str, path: str | Path) -> Path:
     plt = _plt()
     idx = np.array([r.index for r in records])
-    fig, axes = plt.subplots(3, 1, figsize=(11, 8.5), sharex=True, gridspec_kw={"height_ratios": [1, 1.2, 1]})
+    fig, axes = plt.subplots(
+        3, 1, figsize=(11, 8.5), sharex=True, gridspec_kw={"height_ratios": [1, 1.2, 1]}
+    )
     ax = axes[0]
     ax.plot(idx, [r.detected for r in records], color="0.55", lw=0.8, label="Detected")
     ax.plot(idx, [r.tracked for r in records], color="tab:blue", lw=0.9, label="Tracked")
@@ -53,14 +55,29 @@ def per_frame(records: list[FrameRecord], title: str, path: str | Path) -> Path:
     # Matching frames as bars in a band under the time axis (short grey: guided, tall black:
     # global), so they never hide the time curve.
     band = 0.16 * top
-    ax.vlines(guided, -band, -band + 0.45 * band, color="0.55", lw=0.8, label=f"guided matching ({len(guided)})")
-    ax.vlines(glob, -band, -0.05 * band, color="black", lw=1.4, label=f"global matching ({len(glob)})")
+    ax.vlines(
+        guided,
+        -band,
+        -band + 0.45 * band,
+        color="0.55",
+        lw=0.8,
+        label=f"guided matching ({len(guided)})",
+    )
+    ax.vlines(
+        glob, -band, -0.05 * band, color="black", lw=1.4, label=f"global matching ({len(glob)})"
+    )
     ax.axhline(0, color="0.2", lw=0.6)
     ax.plot(idx, np.minimum(t, top), color="tab:red", lw=0.8, label="per-frame time")
     over = t > top
     if over.any():
-        ax.plot(idx[over], np.full(over.sum(), top * 0.985), "v", color="tab:red", ms=4,
-                label=f"clipped (max {t.max():.0f} ms)")
+        ax.plot(
+            idx[over],
+            np.full(over.sum(), top * 0.985),
+            "v",
+            color="tab:red",
+            ms=4,
+            label=f"clipped (max {t.max():.0f} ms)",
+        )
     ax.axhline(1000 / 30, color="0.3", ls=":", lw=0.8, label="33 ms (30 Hz)")
     ax.set_ylim(-band, top)
     ax.set_yticks([v for v in ax.get_yticks() if 0 <= v <= top])
@@ -115,7 +132,9 @@ def top_view_basis(gt_cam_from_world: list) -> tuple[np.ndarray, np.ndarray]:
     return a, b
 
 
-def trajectory(records: list[FrameRecord], title: str, path: str | Path, points_xyz: np.ndarray | None = None) -> Path:
+def trajectory(
+    records: list[FrameRecord], title: str, path: str | Path, points_xyz: np.ndarray | None = None
+) -> Path:
     plt = _plt()
     gts = [r.gt_cam_from_world for r in records if r.gt_cam_from_world is not None]
     fig, ax = plt.subplots(figsize=(8, 7))
@@ -134,18 +153,39 @@ def trajectory(records: list[FrameRecord], title: str, path: str | Path, points_
             p2 = p2[inside]
             if len(p2) > 20000:
                 p2 = p2[np.random.default_rng(0).choice(len(p2), 20000, replace=False)]
-            ax.scatter(p2[:, 0], p2[:, 1], s=1.0, c="0.7", lw=0, label="map points", rasterized=True)
+            ax.scatter(
+                p2[:, 0], p2[:, 1], s=1.0, c="0.7", lw=0, label="map points", rasterized=True
+            )
         pad = 0.05 * max(hi - lo) + 0.1
         ax.plot(g2[:, 0], g2[:, 1], color="black", lw=1.2, label="ground truth")
         est = [(r.cam_from_world.center, r.status) for r in records if r.cam_from_world is not None]
         if est:
             E = np.array([e[0] for e in est])
             e2 = np.stack([E @ a, E @ b], 1)
-            ax.plot(e2[:, 0], e2[:, 1], ".", color="tab:red", ms=2.0, label=f"estimate ({len(est)} frames)")
-        lost = [r.gt_cam_from_world.center for r in records if r.status == Status.LOST and r.gt_cam_from_world is not None]
+            ax.plot(
+                e2[:, 0],
+                e2[:, 1],
+                ".",
+                color="tab:red",
+                ms=2.0,
+                label=f"estimate ({len(est)} frames)",
+            )
+        lost = [
+            r.gt_cam_from_world.center
+            for r in records
+            if r.status == Status.LOST and r.gt_cam_from_world is not None
+        ]
         if lost:
             L = np.array(lost)
-            ax.plot(L @ a, L @ b, "x", color="tab:blue", ms=3.5, mew=0.9, label=f"lost ({len(lost)} frames)")
+            ax.plot(
+                L @ a,
+                L @ b,
+                "x",
+                color="tab:blue",
+                ms=3.5,
+                mew=0.9,
+                label=f"lost ({len(lost)} frames)",
+            )
         ax.plot(*g2[0], "o", color="black", ms=6, mfc="white", label="start")
         ax.set_xlim(lo[0] - pad, hi[0] + pad)
         ax.set_ylim(lo[1] - pad, hi[1] + pad)
@@ -171,10 +211,17 @@ def _cdf(ax, values: np.ndarray, n_total: int, **kw) -> None:
     if n_total == 0:
         return
     y = np.arange(1, len(v) + 1) / n_total * 100
-    ax.step(np.concatenate([[v[0] if len(v) else 1e-3], v]), np.concatenate([[0], y]), where="post", **kw)
+    ax.step(
+        np.concatenate([[v[0] if len(v) else 1e-3], v]),
+        np.concatenate([[0], y]),
+        where="post",
+        **kw,
+    )
 
 
-def compare(methods: dict[str, list[FrameRecord]], summaries: dict[str, dict], title: str, path: str | Path) -> Path:
+def compare(
+    methods: dict[str, list[FrameRecord]], summaries: dict[str, dict], title: str, path: str | Path
+) -> Path:
     """Position error, rotation error and per-frame time CDFs of each method on the same
     frames (a frame without a pose never reaches 100%)."""
     plt = _plt()
@@ -186,10 +233,24 @@ def compare(methods: dict[str, list[FrameRecord]], summaries: dict[str, dict], t
         pe = np.array([_nan(r.position_error_m) for r in recs], float) * 100
         re_ = np.array([_nan(r.rotation_error_deg) for r in recs], float)
         t = np.array([r.latency_ms for r in recs], float)
-        _cdf(axes[0], pe, n, color=c, label=f"{name} (median {s['median_position_error_m'] * 100:.2f} cm)")
-        _cdf(axes[1], re_, n, color=c, label=f"{name} (median {s['median_rotation_error_deg']:.2f} deg)")
+        _cdf(
+            axes[0],
+            pe,
+            n,
+            color=c,
+            label=f"{name} (median {s['median_position_error_m'] * 100:.2f} cm)",
+        )
+        _cdf(
+            axes[1],
+            re_,
+            n,
+            color=c,
+            label=f"{name} (median {s['median_rotation_error_deg']:.2f} deg)",
+        )
         _cdf(axes[2], t, n, color=c, label=f"{name} (mean {s['T_ms_mean']:.1f} ms)")
-    for ax, xl in zip(axes, ("position error (cm)", "orientation error (deg)", "time per frame (ms)")):
+    for ax, xl in zip(
+        axes, ("position error (cm)", "orientation error (deg)", "time per frame (ms)")
+    ):
         ax.set_xscale("log")
         ax.set_xlabel(xl + ", log scale")
         ax.set_ylabel("% of frames")
@@ -210,18 +271,38 @@ def throughput(rows: list[dict], title: str, path: str | Path) -> Path:
     n = [r["clients"] for r in rows]
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.6))
     ax = axes[0]
-    ax.plot(n, [r["offered_hz"] for r in rows], "--", color="0.5", label="offered (30 Hz per client)")
-    ax.plot(n, [r["delivered_hz_total"] for r in rows], "o-", color="tab:red", label="poses delivered, total")
-    ax.plot(n, [r["delivered_hz_per_client"] for r in rows], "s-", color="tab:blue",
-            label="poses delivered, per client")
+    ax.plot(
+        n, [r["offered_hz"] for r in rows], "--", color="0.5", label="offered (30 Hz per client)"
+    )
+    ax.plot(
+        n,
+        [r["delivered_hz_total"] for r in rows],
+        "o-",
+        color="tab:red",
+        label="poses delivered, total",
+    )
+    ax.plot(
+        n,
+        [r["delivered_hz_per_client"] for r in rows],
+        "s-",
+        color="tab:blue",
+        label="poses delivered, per client",
+    )
     ax.set_xlabel("concurrent clients")
     ax.set_ylabel("poses per second")
     ax.set_xscale("log", base=2)
     ax.set_xticks(n, [str(v) for v in n])
     ax.grid(alpha=0.3)
     ax2 = ax.twinx()
-    ax2.bar(n, [r["dropped_pct"] for r in rows], width=[v * 0.25 for v in n], color="0.8", alpha=0.6,
-            label="dropped (%)", zorder=0)
+    ax2.bar(
+        n,
+        [r["dropped_pct"] for r in rows],
+        width=[v * 0.25 for v in n],
+        color="0.8",
+        alpha=0.6,
+        label="dropped (%)",
+        zorder=0,
+    )
     ax2.set_ylabel("frames dropped (%)")
     ax2.set_ylim(0, 100)
     ax.set_zorder(ax2.get_zorder() + 1)
@@ -230,8 +311,12 @@ def throughput(rows: list[dict], title: str, path: str | Path) -> Path:
     h2, l2 = ax2.get_legend_handles_labels()
     ax.legend(h1 + h2, l1 + l2, loc="upper left", fontsize=8)
     ax = axes[1]
-    ax.plot(n, [r["latency_ms_p50"] for r in rows], "o-", color="tab:green", label="p50 (median client)")
-    ax.plot(n, [r["latency_ms_p99"] for r in rows], "s-", color="tab:orange", label="p99 (worst client)")
+    ax.plot(
+        n, [r["latency_ms_p50"] for r in rows], "o-", color="tab:green", label="p50 (median client)"
+    )
+    ax.plot(
+        n, [r["latency_ms_p99"] for r in rows], "s-", color="tab:orange", label="p99 (worst client)"
+    )
     ax.set_xscale("log", base=2)
     ax.set_yscale("log")
     ax.set_xticks(n, [str(v) for v in n])

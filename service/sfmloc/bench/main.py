@@ -63,10 +63,21 @@ def machine_info() -> dict:
                 break
     except OSError:
         pass
-    info = {"cpus": os.cpu_count(), "cpu_model": model, "python": sys.version.split()[0],
-            "platform": platform.platform(), "load_average_start": os.getloadavg()[0]}
+    info = {
+        "cpus": os.cpu_count(),
+        "cpu_model": model,
+        "python": sys.version.split()[0],
+        "platform": platform.platform(),
+        "load_average_start": os.getloadavg()[0],
+    }
     info["git"] = _git_describe()
-    for dist in ("numpy", "opencv-contrib-python-headless", "pycolmap", "faiss-cpu", "eclipse-zenoh"):
+    for dist in (
+        "numpy",
+        "opencv-contrib-python-headless",
+        "pycolmap",
+        "faiss-cpu",
+        "eclipse-zenoh",
+    ):
         try:
             info[dist] = importlib.metadata.version(dist)
         except importlib.metadata.PackageNotFoundError:
@@ -79,10 +90,20 @@ def _git_describe() -> str:
     from .config import REPO
 
     try:
-        head = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=REPO, capture_output=True, text=True,
-                              timeout=10).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=REPO,
-                               capture_output=True, text=True, timeout=10).stdout.strip()
+        head = subprocess.run(
+            ["git", "rev-parse", "--short=12", "HEAD"],
+            cwd=REPO,
+            capture_output=True,
+            text=True,
+            timeout=10,
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"],
+            cwd=REPO,
+            capture_output=True,
+            text=True,
+            timeout=10,
+        ).stdout.strip()
         return (head + ("+dirty" if dirty else "")) if head else "?"
     except (OSError, subprocess.SubprocessError):
         return "?"
@@ -92,8 +113,9 @@ def _rel(path: Path, out: Path) -> str:
     return os.path.relpath(path, out)
 
 
-def summarize_suite(recs: dict[str, list[FrameRecord]], peer_idx: list[int], stride: int,
-                    scene_scale: float) -> dict:
+def summarize_suite(
+    recs: dict[str, list[FrameRecord]], peer_idx: list[int], stride: int, scene_scale: float
+) -> dict:
     """Summaries of every method, ours again on the peers' frames, ratios and stage times.
     ``scene_scale`` (our map's median depth) sets every method's wrong-pose limit."""
     keep = set(peer_idx)
@@ -106,15 +128,25 @@ def summarize_suite(recs: dict[str, list[FrameRecord]], peer_idx: list[int], str
         st = stage_times(recs[m])
         peer_stages[m] = {k: v["mean"] for k, v in st.items() if k != "total"}
     return {
-        "kind": "localization", "scene_scale": scene_scale,
+        "kind": "localization",
+        "scene_scale": scene_scale,
         "peer_frames": {"count": len(peer_idx), "stride": stride},
-        "methods": methods, "same_frames": same, "ratios": {m: ratios(same[OURS], methods[m]) for m in peers},
-        "stages_ms": stage_times(ours), "peer_stages_ms": peer_stages,
+        "methods": methods,
+        "same_frames": same,
+        "ratios": {m: ratios(same[OURS], methods[m]) for m in peers},
+        "stages_ms": stage_times(ours),
+        "peer_stages_ms": peer_stages,
     }
 
 
-def write_suite_files(name: str, recs: dict[str, list[FrameRecord]], summary: dict, peer_idx: list[int], out: Path,
-                      points_xyz=None) -> dict:
+def write_suite_files(
+    name: str,
+    recs: dict[str, list[FrameRecord]],
+    summary: dict,
+    peer_idx: list[int],
+    out: Path,
+    points_xyz=None,
+) -> dict:
     """Per-frame JSON, TUM pairs and the three figures of a suite; their paths (relative to out)."""
     d = out / name
     d.mkdir(parents=True, exist_ok=True)
@@ -126,18 +158,36 @@ def write_suite_files(name: str, recs: dict[str, list[FrameRecord]], summary: di
     ours = recs[OURS]
     keep = set(peer_idx)
     files["fig_per_frame"] = _rel(
-        figures.per_frame(ours, f"{name}: sfmloc, {len(ours)} frames", d / "fig-per-frame.png"), out)
-    files["fig_trajectory"] = _rel(figures.trajectory(ours, f"{name}: top view (sfmloc)", d / "fig-trajectory.png",
-                                                      points_xyz), out)
-    cmp_recs = {m: ([r for r in rs if r.index in keep] if m == OURS else rs) for m, rs in recs.items()}
-    cmp_sum = {m: (summary["same_frames"][OURS] if m == OURS else summary["methods"][m]) for m in recs}
-    files["fig_compare"] = _rel(figures.compare(cmp_recs, cmp_sum, f"{name}: the same {len(peer_idx)} frames",
-                                                d / "fig-compare.png"), out)
+        figures.per_frame(ours, f"{name}: sfmloc, {len(ours)} frames", d / "fig-per-frame.png"), out
+    )
+    files["fig_trajectory"] = _rel(
+        figures.trajectory(
+            ours, f"{name}: top view (sfmloc)", d / "fig-trajectory.png", points_xyz
+        ),
+        out,
+    )
+    cmp_recs = {
+        m: ([r for r in rs if r.index in keep] if m == OURS else rs) for m, rs in recs.items()
+    }
+    cmp_sum = {
+        m: (summary["same_frames"][OURS] if m == OURS else summary["methods"][m]) for m in recs
+    }
+    files["fig_compare"] = _rel(
+        figures.compare(
+            cmp_recs, cmp_sum, f"{name}: the same {len(peer_idx)} frames", d / "fig-compare.png"
+        ),
+        out,
+    )
     return files
 
 
-def suite_results(prep: Prepared, recs: dict[str, list[FrameRecord]], conf: BenchConf, out: Path,
-                  sift_map_info: dict) -> dict:
+def suite_results(
+    prep: Prepared,
+    recs: dict[str, list[FrameRecord]],
+    conf: BenchConf,
+    out: Path,
+    sift_map_info: dict,
+) -> dict:
     """Summaries, ratios and files of one localization suite."""
     from ..map.bundle import MapBundle, read_manifest
 
@@ -147,9 +197,18 @@ def suite_results(prep: Prepared, recs: dict[str, list[FrameRecord]], conf: Benc
     summary = summarize_suite(recs, idx, stride, bundle.scene_scale)
     files = write_suite_files(prep.name, recs, summary, idx, out, bundle.points_xyz)
     return {
-        **summary, "data": prep.kind, "frames_replayed": prep.count, "start": prep.start,
-        "map": {**prep.info, "images": man.counts.images, "points": man.counts.points,
-                "descriptors": man.counts.descriptors, "build_s": man.timings_s.get("total"), **sift_map_info},
+        **summary,
+        "data": prep.kind,
+        "frames_replayed": prep.count,
+        "start": prep.start,
+        "map": {
+            **prep.info,
+            "images": man.counts.images,
+            "points": man.counts.points,
+            "descriptors": man.counts.descriptors,
+            "build_s": man.timings_s.get("total"),
+            **sift_map_info,
+        },
         "files": files,
     }
 
@@ -163,35 +222,63 @@ def targets(results: dict) -> list[dict]:
         sift = s["methods"]["pycolmap-sift"]
         r = s["ratios"]
         rs = r["pycolmap-sift"]
-        out.append({"target": "redkitchen: our frame rate >= 10x pycolmap-sift's", "met": rs["rate_ratio"] >= 10,
-                    "measured": f"{rs['rate_ratio']:.1f}x (CPU time {rs['cpu_ratio']:.1f}x)"})
-        out.append({"target": "redkitchen: our median position error <= pycolmap-sift's",
-                    "met": o["median_position_error_m"] <= sift["median_position_error_m"],
-                    "measured": f"ours {o['median_position_error_m'] * 100:.2f} cm / "
-                                f"{o['median_rotation_error_deg']:.2f} deg, "
-                                f"pycolmap-sift {sift['median_position_error_m'] * 100:.2f} cm / "
-                                f"{sift['median_rotation_error_deg']:.2f} deg"})
-        out.append({"target": "redkitchen: >= 99.5% of frames within 5 cm / 5 deg",
-                    "met": s["methods"][OURS]["recall_5cm_5deg_pct"] >= 99.5,
-                    "measured": f"{s['methods'][OURS]['recall_5cm_5deg_pct']:.1f}% of "
-                                f"{s['methods'][OURS]['frames_with_groundtruth']} frames"})
-        out.append({"target": "redkitchen: our frame rate >= 3x global-every-frame's",
-                    "met": r["global-every-frame"]["rate_ratio"] >= 3,
-                    "measured": f"{r['global-every-frame']['rate_ratio']:.1f}x (CPU time "
-                                f"{r['global-every-frame']['cpu_ratio']:.1f}x)"})
+        out.append(
+            {
+                "target": "redkitchen: our frame rate >= 10x pycolmap-sift's",
+                "met": rs["rate_ratio"] >= 10,
+                "measured": f"{rs['rate_ratio']:.1f}x (CPU time {rs['cpu_ratio']:.1f}x)",
+            }
+        )
+        out.append(
+            {
+                "target": "redkitchen: our median position error <= pycolmap-sift's",
+                "met": o["median_position_error_m"] <= sift["median_position_error_m"],
+                "measured": f"ours {o['median_position_error_m'] * 100:.2f} cm / "
+                f"{o['median_rotation_error_deg']:.2f} deg, "
+                f"pycolmap-sift {sift['median_position_error_m'] * 100:.2f} cm / "
+                f"{sift['median_rotation_error_deg']:.2f} deg",
+            }
+        )
+        out.append(
+            {
+                "target": "redkitchen: >= 99.5% of frames within 5 cm / 5 deg",
+                "met": s["methods"][OURS]["recall_5cm_5deg_pct"] >= 99.5,
+                "measured": f"{s['methods'][OURS]['recall_5cm_5deg_pct']:.1f}% of "
+                f"{s['methods'][OURS]['frames_with_groundtruth']} frames",
+            }
+        )
+        out.append(
+            {
+                "target": "redkitchen: our frame rate >= 3x global-every-frame's",
+                "met": r["global-every-frame"]["rate_ratio"] >= 3,
+                "measured": f"{r['global-every-frame']['rate_ratio']:.1f}x (CPU time "
+                f"{r['global-every-frame']['cpu_ratio']:.1f}x)",
+            }
+        )
     for name in LOCALIZATION_SUITES:
         s = results["suites"].get(name)
         if s:
             m = s["methods"][OURS]
-            out.append({"target": f"{name}: mean time per frame <= 33.3 ms (the paper's 'over 30 Hz')",
-                        "met": m["T_ms_mean"] <= 1000 / 30,
-                        "measured": f"{m['T_ms_mean']:.1f} ms ({m['rate_hz']:.0f} Hz)"})
-            rule = (f"any status but LOST; > {WRONG_POSITION_FRACTION:.0%} of the scene scale or "
-                    f"> {WRONG_ROTATION_DEG:g} deg")
-            out.append({"target": f"{name}: no wrong pose ({rule})", "met": m["wrong_poses"] == 0,
-                        "measured": f"{m['wrong_poses']} frames (limit "
-                                    f"{m['wrong_position_limit']:.3g} map units"
-                                    f"{_by_status(m['wrong_statuses'])})"})
+            out.append(
+                {
+                    "target": f"{name}: mean time per frame <= 33.3 ms (the paper's 'over 30 Hz')",
+                    "met": m["T_ms_mean"] <= 1000 / 30,
+                    "measured": f"{m['T_ms_mean']:.1f} ms ({m['rate_hz']:.0f} Hz)",
+                }
+            )
+            rule = (
+                f"any status but LOST; > {WRONG_POSITION_FRACTION:.0%} of the scene scale or "
+                f"> {WRONG_ROTATION_DEG:g} deg"
+            )
+            out.append(
+                {
+                    "target": f"{name}: no wrong pose ({rule})",
+                    "met": m["wrong_poses"] == 0,
+                    "measured": f"{m['wrong_poses']} frames (limit "
+                    f"{m['wrong_position_limit']:.3g} map units"
+                    f"{_by_status(m['wrong_statuses'])})",
+                }
+            )
     rb = results["suites"].get("robust")
     if rb:
         from .robust import targets as robust_targets
@@ -209,23 +296,41 @@ def _notes(results: dict, conf: BenchConf) -> list[str]:
     for name in report.localization_suites(results):
         pf = results["suites"][name]["peer_frames"]
         if pf["stride"] > 1:
-            n.append(f"{name}: the peers ran on every {report.ordinal(pf['stride'])} replayed frame "
-                     f"({pf['count']} frames) to keep the run within its time budget (--peer-frames); the "
-                     "side-by-side rows summarise our engine on exactly those frames (it still processes every "
-                     "frame, as a video).")
+            n.append(
+                f"{name}: the peers ran on every {report.ordinal(pf['stride'])} replayed frame "
+                f"({pf['count']} frames) to keep the run within its time budget (--peer-frames); "
+                "the "
+                "side-by-side rows summarise our engine on exactly those frames (it still "
+                "processes every "
+                "frame, as a video)."
+            )
     if "redkitchen" in results["suites"] or "redkitchen-split" in results["suites"]:
-        n.append("redkitchen ground truth is pgt_sfm_seq01.txt, a pseudo ground truth from COLMAP SfM (SIFT) over "
-                 "all frames; such a reference favours SIFT/COLMAP-based estimates (Brachmann et al., ICCV 2021, "
-                 "'On the Limits of Pseudo Ground Truth in Visual Camera Re-localisation'). The synthetic suites "
-                 "have exact ground truth.")
-        n.append("redkitchen replays the map images too (every 10th frame is a map image); all methods see the "
-                 "same frames.")
+        n.append(
+            "redkitchen ground truth is pgt_sfm_seq01.txt, a pseudo ground truth from COLMAP SfM "
+            "(SIFT) over "
+            "all frames; such a reference favours SIFT/COLMAP-based estimates (Brachmann et al., "
+            "ICCV 2021, "
+            "'On the Limits of Pseudo Ground Truth in Visual Camera Re-localisation'). The "
+            "synthetic suites "
+            "have exact ground truth."
+        )
+        n.append(
+            "redkitchen replays the map images too (every 10th frame is a map image); all methods "
+            "see the "
+            "same frames."
+        )
     if conf.quick:
         n.append("--quick: a smoke run with few frames; not the reference numbers.")
     return n
 
 
-def main(conf: BenchConf, out: str | Path, *, progress: Progress | None = None, command: str | None = None) -> Path:
+def main(
+    conf: BenchConf,
+    out: str | Path,
+    *,
+    progress: Progress | None = None,
+    command: str | None = None,
+) -> Path:
     """Run the suites of ``conf``; write results.json, report.md and figures under ``out``."""
     from ..threads import pin_threads_env, pin_threads_runtime
 
@@ -240,10 +345,14 @@ def main(conf: BenchConf, out: str | Path, *, progress: Progress | None = None, 
     progress = progress or LogProgress()
     t_start = time.perf_counter()
     results: dict = {
-        "format": "sfmloc-bench-results", "version": 2, "wrong_pose_rule": WRONG_POSE_RULE,
+        "format": "sfmloc-bench-results",
+        "version": 2,
+        "wrong_pose_rule": WRONG_POSE_RULE,
         "created_utc": datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
-        "command": command or "sfmloc bench", "machine": machine_info(),
-        "conf": conf.model_dump(mode="json"), "suites": {},
+        "command": command or "sfmloc bench",
+        "machine": machine_info(),
+        "conf": conf.model_dump(mode="json"),
+        "suites": {},
     }
     loc = [s for s in SUITES if s in conf.suites and s in LOCALIZATION_SUITES]
     preps: dict[str, Prepared] = {}
@@ -265,8 +374,13 @@ def main(conf: BenchConf, out: str | Path, *, progress: Progress | None = None, 
         prep = preps[name]
         recs = run_suite(prep, conf, sift_conf, progress)
         sm = SiftMap.load(prep.sift_map_path)
-        results["suites"][name] = suite_results(prep, recs, conf, out, {
-            "sift_points": sm.n_points, "sift_descriptors": int(len(sm.desc))})
+        results["suites"][name] = suite_results(
+            prep,
+            recs,
+            conf,
+            out,
+            {"sift_points": sm.n_points, "sift_descriptors": int(len(sm.desc))},
+        )
         log.info("%s done (%.0f s so far)", name, time.perf_counter() - t_start)
 
     if "robust" in conf.suites:
@@ -289,17 +403,33 @@ def main(conf: BenchConf, out: str | Path, *, progress: Progress | None = None, 
             log.info("== map: size, load time, resident memory")
             frames = [rk.frames_dir / n for n in FrameSource(rk.frames_dir).names()[:5]]
             mp = map_stats(rk.bundle_path, frames, conf.camera)
-            mp["sift_peer_map"] = sift_map_stats(rk.sift_map_path, sift_conf.descriptors, sift_conf.hnsw_m)
+            mp["sift_peer_map"] = sift_map_stats(
+                rk.sift_map_path, sift_conf.descriptors, sift_conf.hnsw_m
+            )
             results["suites"]["map"] = {"kind": "map", **mp}
         if "throughput" in conf.suites:
             from .throughput import run_throughput
 
             log.info("== throughput: %s clients", ", ".join(map(str, conf.clients)))
-            th = run_throughput(work, rk.bundle_path, rk.frames_dir, conf.camera, conf.clients, conf.rate_hz,
-                                conf.duration_s, conf.workers, progress)
-            th["fig_throughput"] = _rel(figures.throughput(
-                th["rows"], f"throughput: {th['workers']} server workers, {conf.rate_hz:g} Hz per client",
-                out / "throughput.png"), out)
+            th = run_throughput(
+                work,
+                rk.bundle_path,
+                rk.frames_dir,
+                conf.camera,
+                conf.clients,
+                conf.rate_hz,
+                conf.duration_s,
+                conf.workers,
+                progress,
+            )
+            th["fig_throughput"] = _rel(
+                figures.throughput(
+                    th["rows"],
+                    f"throughput: {th['workers']} server workers, {conf.rate_hz:g} Hz per client",
+                    out / "throughput.png",
+                ),
+                out,
+            )
             results["suites"]["throughput"] = {"kind": "throughput", **th}
 
     results["targets"] = targets(results)

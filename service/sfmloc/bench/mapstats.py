@@ -52,23 +52,49 @@ def probe(bundle: str, frames: list[str], camera: str, verify: bool = True) -> d
     after_load = _status_kib()
     # What the engine reads (the ANN index is already in memory: it holds its own copy of the
     # descriptors, which the engine never reads from the bundle).
-    for arr in (b.points_xyz, b.desc_point, b.desc_image, b.image_desc_ptr, b.image_points_ptr, b.image_points_idx,
-                b.cluster_images_ptr, b.cluster_images_idx, b.point_clusters_ptr, b.point_clusters_idx, b.image_camera):
+    for arr in (
+        b.points_xyz,
+        b.desc_point,
+        b.desc_image,
+        b.image_desc_ptr,
+        b.image_points_ptr,
+        b.image_points_idx,
+        b.cluster_images_ptr,
+        b.cluster_images_idx,
+        b.point_clusters_ptr,
+        b.point_clusters_idx,
+        b.image_camera,
+    ):
         float(np.asarray(arr, np.float64).sum())
     after_touch = _status_kib()
     loc = Localizer(b, cam)
     for k, g in enumerate(grays):
         loc.localize(g, k / 30.0)
     after_frames = _status_kib()
-    return {"before_kib": before, "after_load_kib": after_load, "after_touch_kib": after_touch,
-            "after_frames_kib": after_frames, "load_s": load_s, "verify": verify,
-            "memory_bytes_estimate": int(b.memory_bytes())}
+    return {
+        "before_kib": before,
+        "after_load_kib": after_load,
+        "after_touch_kib": after_touch,
+        "after_frames_kib": after_frames,
+        "load_s": load_s,
+        "verify": verify,
+        "memory_bytes_estimate": int(b.memory_bytes()),
+    }
 
 
 def _fresh(bundle: Path, frames: list[Path], camera: str, verify: bool) -> dict[str, Any]:
-    cmd = [sys.executable, "-m", "sfmloc.bench.mapstats", str(bundle), camera, "1" if verify else "0",
-           *[str(f) for f in frames]]
-    out = subprocess.run(cmd, check=True, capture_output=True, text=True, env=dict(os.environ), timeout=600)
+    cmd = [
+        sys.executable,
+        "-m",
+        "sfmloc.bench.mapstats",
+        str(bundle),
+        camera,
+        "1" if verify else "0",
+        *[str(f) for f in frames],
+    ]
+    out = subprocess.run(
+        cmd, check=True, capture_output=True, text=True, env=dict(os.environ), timeout=600
+    )
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
@@ -87,12 +113,16 @@ def map_stats(bundle: Path, frames: list[Path], camera: str) -> dict[str, Any]:
     rss_mb = mb("after_touch_kib")
     return {
         "map": m.name,
-        "images": m.counts.images, "points": m.counts.points, "descriptors": d,
-        "descriptors_per_point": d / max(1, m.counts.points), "clusters": m.counts.clusters,
+        "images": m.counts.images,
+        "points": m.counts.points,
+        "descriptors": d,
+        "descriptors_per_point": d / max(1, m.counts.points),
+        "clusters": m.counts.clusters,
         "build_s": m.timings_s.get("total", float("nan")),
         "build_stages_s": {k: val for k, val in m.timings_s.items() if k != "total"},
         "bundle_mb": size / 1e6,
-        "load_s_verified": v["load_s"], "load_s": plain["load_s"],
+        "load_s_verified": v["load_s"],
+        "load_s": plain["load_s"],
         # The bundle: loaded (checksums verified, as the server does) and everything the engine
         # reads touched.
         "rss_mb": rss_mb,
@@ -117,8 +147,14 @@ def sift_map_stats(sift_map_path: Path, descriptors: str, hnsw_m: int) -> dict[s
     n = len(sm.desc)
     indexed = n if descriptors == "all" else sm.n_points
     # faiss keeps float32 vectors; HNSW adds 2*M neighbour ids (int32) per node at level 0.
-    return {"points": sm.n_points, "descriptors": n, "descriptor_mb_uint8": n * 128 / 1e6, "layout": descriptors,
-            "indexed_vectors": indexed, "faiss_hnsw_mb": (indexed * 128 * 4 + indexed * 2 * hnsw_m * 4) / 1e6}
+    return {
+        "points": sm.n_points,
+        "descriptors": n,
+        "descriptor_mb_uint8": n * 128 / 1e6,
+        "layout": descriptors,
+        "indexed_vectors": indexed,
+        "faiss_hnsw_mb": (indexed * 128 * 4 + indexed * 2 * hnsw_m * 4) / 1e6,
+    }
 
 
 if __name__ == "__main__":

@@ -19,8 +19,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ..errors import ImageDecodeError
 from ..engine.types import Matching, Status
+from ..errors import ImageDecodeError
 from ..eval.metrics import FrameRecord, attach_errors
 from ..io.frames import FrameSource
 from ..transforms import Rigid3d
@@ -42,7 +42,9 @@ class PeerOutput:
 PeerFn = Callable[[np.ndarray], PeerOutput]
 
 
-def decode_frames(source: FrameSource, indices: Sequence[int]) -> Iterator[tuple[int, str, float, np.ndarray]]:
+def decode_frames(
+    source: FrameSource, indices: Sequence[int]
+) -> Iterator[tuple[int, str, float, np.ndarray]]:
     """(index, name, stamp, gray image) of the chosen frames only (folders decode just those)."""
     wanted = sorted(set(int(i) for i in indices))
     if source.kind == "folder":
@@ -86,9 +88,18 @@ def run_peer(
         wall = (time.perf_counter() - t0) * 1e3
         cpu = (time.process_time() - cpu0) * 1e3
         rec = FrameRecord(
-            index=i, name=fname, stamp=stamp, status=Status.LOST if out.cam_from_world is None else Status.RELOCALIZED,
-            matching=Matching.GLOBAL, latency_ms=wall, inliers=out.inliers, detected=out.detected, tracked=0,
-            tracked_3d=out.matches, timings_ms=dict(out.timings_ms or {}), cpu_ms=cpu,
+            index=i,
+            name=fname,
+            stamp=stamp,
+            status=Status.LOST if out.cam_from_world is None else Status.RELOCALIZED,
+            matching=Matching.GLOBAL,
+            latency_ms=wall,
+            inliers=out.inliers,
+            detected=out.detected,
+            tracked=0,
+            tracked_3d=out.matches,
+            timings_ms=dict(out.timings_ms or {}),
+            cpu_ms=cpu,
         )
         gt = groundtruth[i] if groundtruth is not None and i < len(groundtruth) else None
         attach_errors(rec, out.cam_from_world, gt)

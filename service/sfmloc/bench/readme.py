@@ -46,35 +46,65 @@ def _shared_note(load: float) -> str:
 def render_block(results: dict, source: str = "docs/results.json") -> str:
     """The block's content (markers included) for ``results``."""
     m = results.get("machine", {})
-    L = [BEGIN, "",
-         f"_Generated from `{source}` by `python -m sfmloc.bench.readme {source} README.md`; do not edit by hand. "
-         f"Measured by `{results.get('command', 'sfmloc bench')}` on {results.get('created_utc', '?')} at commit "
-         f"{m.get('git', '?')}: "
-         f"{m.get('cpus', '?')} cores ({m.get('cpu_model', '?')}), load average {m.get('load_average_start', 0):.1f} "
-         f"at start{_shared_note(m.get('load_average_start', 0))}, wall time {results.get('wall_s', 0):.0f} s. "
-         f"Rerun with `make bench` (full report and figures in `bench-out/report.md`)._", ""]
+    L = [
+        BEGIN,
+        "",
+        f"_Generated from `{source}` by `python -m sfmloc.bench.readme {source} README.md`; do not "
+        "edit by hand. "
+        f"Measured by `{results.get('command', 'sfmloc bench')}` on "
+        f"{results.get('created_utc', '?')} at commit "
+        f"{m.get('git', '?')}: "
+        f"{m.get('cpus', '?')} cores ({m.get('cpu_model', '?')}), load average "
+        f"{m.get('load_average_start', 0):.1f} "
+        f"at start{_shared_note(m.get('load_average_start', 0))}, wall time "
+        f"{results.get('wall_s', 0):.0f} s. "
+        f"Rerun with `make bench` (full report and figures in `bench-out/report.md`)._",
+        "",
+    ]
     if localization_suites(results):
-        L += ["**Our engine, the paper's Table 2 columns** (F frames, F_loc localized, T time per frame mean ± std, "
-              "M frames with 2D-3D matching, T_M their time; errors against ground truth):", "",
-              markdown_table(TABLE2_HEADER, table2_rows(results)), "",
-              "**Side by side on the same frames** (`global-every-frame`: our single-image global matching on every "
-              "frame; `pycolmap-sift`: a tuned COLMAP/hloc-style SIFT pipeline; \"ours faster by\" is the ratio of "
-              "mean times per frame):", "",
-              markdown_table(COMPARE_HEADER, compare_rows(results)), ""]
+        L += [
+            "**Our engine, the paper's Table 2 columns** (F frames, F_loc localized, T time per "
+            "frame mean ± std, "
+            "M frames with 2D-3D matching, T_M their time; errors against ground truth):",
+            "",
+            markdown_table(TABLE2_HEADER, table2_rows(results)),
+            "",
+            "**Side by side on the same frames** (`global-every-frame`: our single-image global "
+            "matching on every "
+            'frame; `pycolmap-sift`: a tuned COLMAP/hloc-style SIFT pipeline; "ours faster by" is '
+            "the ratio of "
+            "mean times per frame):",
+            "",
+            markdown_table(COMPARE_HEADER, compare_rows(results)),
+            "",
+        ]
         L += [f"- {line}" for line in ratio_lines(results)] + [""]
         L += [f"Wrong poses: frames with a pose under {wrong_pose_rule(results)}.", ""]
         if any(n.startswith("redkitchen") for n in localization_suites(results)):
-            L += ["Ground truth: redkitchen's `pgt_sfm_seq01.txt` is a COLMAP (SIFT) SfM pseudo ground truth, which "
-                  "favours SIFT-based estimates; the synthetic suites have exact ground truth.", ""]
+            L += [
+                "Ground truth: redkitchen's `pgt_sfm_seq01.txt` is a COLMAP (SIFT) SfM pseudo "
+                "ground truth, which "
+                "favours SIFT-based estimates; the synthetic suites have exact ground truth.",
+                "",
+            ]
     if robust_rows(results):
-        L += ["**Robust suite** (the data users bring; ours / pycolmap-sift on the same frames):",
-              "",
-              markdown_table(ROBUST_HEADER, robust_rows(results)), "", robust_note(results), ""]
+        L += [
+            "**Robust suite** (the data users bring; ours / pycolmap-sift on the same frames):",
+            "",
+            markdown_table(ROBUST_HEADER, robust_rows(results)),
+            "",
+            robust_note(results),
+            "",
+        ]
     if throughput_rows(results):
         t = results["suites"]["throughput"]
-        L += [f"**Throughput**: clients streaming at {t['rate_hz']:g} Hz each to one `sfmloc serve` "
-              f"({t['workers']} workers, Zenoh on loopback):", "",
-              markdown_table(THROUGHPUT_HEADER, throughput_rows(results)), ""]
+        L += [
+            f"**Throughput**: clients streaming at {t['rate_hz']:g} Hz each to one `sfmloc serve` "
+            f"({t['workers']} workers, Zenoh on loopback):",
+            "",
+            markdown_table(THROUGHPUT_HEADER, throughput_rows(results)),
+            "",
+        ]
     mp = results.get("suites", {}).get("map")
     if mp:
         L += [f"**Map**: {map_line(mp)}.", ""]
@@ -94,10 +124,10 @@ def update_text(readme: str, block: str) -> str:
     right under an existing ``## Results`` heading, else under a new one at the end."""
     i, j = readme.find(BEGIN), readme.find(END)
     if i >= 0 and j > i:
-        return readme[:i] + block + readme[j + len(END):]
+        return readme[:i] + block + readme[j + len(END) :]
     m = re.search(r"^## Results[ \t]*$", readme, flags=re.MULTILINE)
     if m:
-        head, rest = readme[: m.end()], readme[m.end():].lstrip("\n")
+        head, rest = readme[: m.end()], readme[m.end() :].lstrip("\n")
         return head + "\n\n" + block + "\n" + ("\n" + rest if rest else "")
     sep = "" if readme.endswith("\n") or not readme else "\n"
     return readme + sep + ("\n" if readme else "") + "## Results\n\n" + block + "\n"
@@ -105,12 +135,15 @@ def update_text(readme: str, block: str) -> str:
 
 def current_block(readme: str) -> str | None:
     i, j = readme.find(BEGIN), readme.find(END)
-    return readme[i:j + len(END)] if i >= 0 and j > i else None
+    return readme[i : j + len(END)] if i >= 0 and j > i else None
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m sfmloc.bench.readme", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        prog="python -m sfmloc.bench.readme",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("results", help="results.json of a bench run (e.g. docs/results.json)")
     p.add_argument("readme", help="README.md to update in place")
     args = p.parse_args(argv)

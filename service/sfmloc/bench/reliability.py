@@ -55,8 +55,15 @@ import numpy as np
 MAP = "room"
 WIDTH, HEIGHT = 640, 480
 LOC = "/sfmloc.v1.Localization/"
-GRPC_METHODS = ("Relocalize", "ListMaps", "GetMap", "LoadMap", "UnloadMap", "ListSessions",
-                "ResetSession")
+GRPC_METHODS = (
+    "Relocalize",
+    "ListMaps",
+    "GetMap",
+    "LoadMap",
+    "UnloadMap",
+    "ListSessions",
+    "ResetSession",
+)
 
 
 def _log(msg: str) -> None:
@@ -72,7 +79,6 @@ class World:
     gt_cam_from_world: list[np.ndarray]  # 4x4 per frame
     scene_scale: float
     name: str = MAP  # the map's name in maps_dir
-
 
     @property
     def bundle(self) -> Path:
@@ -90,15 +96,20 @@ def prepare(work: Path, n_frames: int = 60, mapping_views: int = 40) -> World:
     work = Path(work)
     synth, maps_dir = work / "synth", work / "maps"
     if not (maps_dir / MAP / "manifest.json").exists():
-        from ..io.colmap import read_model
         from ..builder.build import BuildConf, assemble
+        from ..io.colmap import read_model
         from ..map.bundle import write_bundle
         from ..synth import preset
         from ..synth.main import run
 
         _log(f"rendering the synthetic room and building its map under {work}")
-        conf = preset("small", width=WIDTH, height=HEIGHT, mapping_views=mapping_views,
-                      trajectory={"n_frames": n_frames})
+        conf = preset(
+            "small",
+            width=WIDTH,
+            height=HEIGHT,
+            mapping_views=mapping_views,
+            trajectory={"n_frames": n_frames},
+        )
         run(conf, synth, overwrite=True)
         data, timings, info = assemble(read_model(synth / "sparse"), synth / "images", BuildConf())
         shutil.rmtree(maps_dir / MAP, ignore_errors=True)
@@ -115,8 +126,9 @@ def prepare(work: Path, n_frames: int = 60, mapping_views: int = 40) -> World:
     )
 
 
-def prepare_redkitchen(maps_dir: Path, frames_dir: Path, n_frames: int = 150,
-                       name: str = "redkitchen") -> World:
+def prepare_redkitchen(
+    maps_dir: Path, frames_dir: Path, n_frames: int = 150, name: str = "redkitchen"
+) -> World:
     """A built redkitchen bundle (``maps_dir/name``) and its first ``n_frames`` frames with the
     pseudo ground truth (``pgt_sfm_seq01.txt``) instead of the synthetic room."""
     import cv2
@@ -136,7 +148,8 @@ def prepare_redkitchen(maps_dir: Path, frames_dir: Path, n_frames: int = 150,
         camera=f"PINHOLE {cam.width} {cam.height} " + " ".join(repr(float(p)) for p in cam.params),
         gray=[cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) for f in frames],
         gt_cam_from_world=[np.asarray(gt[f.stem].matrix()) for f in frames],
-        scene_scale=bundle.scene_scale, name=name,
+        scene_scale=bundle.scene_scale,
+        name=name,
     )
 
 
@@ -174,7 +187,7 @@ class Server:
 
         self.sp = ServerProcess(world.maps_dir, workers=workers, extra_args=extra)
 
-    def __enter__(self) -> "Server":
+    def __enter__(self) -> Server:
         self.sp.__enter__()
         return self
 
@@ -196,15 +209,22 @@ class Server:
                 continue
             try:
                 stat = (d / "stat").read_text()
-                rest = stat[stat.rindex(")") + 2:].split()
+                rest = stat[stat.rindex(")") + 2 :].split()
                 if int(rest[1]) != self.pid:
                     continue
                 cmd = (d / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
             except (OSError, ValueError):
                 continue
-            out.append({"pid": int(d.name), "state": rest[0], "nice": int(rest[16]),
-                        "worker": "sfmloc.server.worker" in cmd or "sfmloc-worker" in cmd
-                        or rest[0] == "Z"})
+            out.append(
+                {
+                    "pid": int(d.name),
+                    "state": rest[0],
+                    "nice": int(rest[16]),
+                    "worker": "sfmloc.server.worker" in cmd
+                    or "sfmloc-worker" in cmd
+                    or rest[0] == "Z",
+                }
+            )
         return out
 
     def stream_workers(self) -> list[int]:
@@ -241,8 +261,15 @@ class StreamClient(threading.Thread):
     """One client (own Zenoh session): gray8 frames in ping-pong order, either in lockstep
     (next frame after the answer or ``timeout``) or paced at ``rate_hz``."""
 
-    def __init__(self, world: World, endpoint: str, client_id: str, stop: threading.Event,
-                 rate_hz: float | None = None, timeout: float = 5.0) -> None:
+    def __init__(
+        self,
+        world: World,
+        endpoint: str,
+        client_id: str,
+        stop: threading.Event,
+        rate_hz: float | None = None,
+        timeout: float = 5.0,
+    ) -> None:
         super().__init__(daemon=True, name=client_id)
         self.world, self.endpoint, self.stop_ev = world, endpoint, stop
         self.rate_hz, self.timeout = rate_hz, timeout
@@ -290,21 +317,25 @@ class StreamClient(threading.Thread):
         cam = CameraSpec.parse(self.world.camera)
         n = len(self.world.gray)
         conf = make_zenoh_config("peer", connect=[self.endpoint], multicast=False)
-        with zenoh.open(conf) as z, \
-                PoseSubscriber(z, self.world.name, self.log.client_id, callback=self._on_pose), \
-                FrameStreamer(z, self.world.name, self.log.client_id, cam, encoding="gray8") as fs:
+        with (
+            zenoh.open(conf) as z,
+            PoseSubscriber(z, self.world.name, self.log.client_id, callback=self._on_pose),
+            FrameStreamer(z, self.world.name, self.log.client_id, cam, encoding="gray8") as fs,
+        ):
             if not fs.wait_for_server(30):
                 raise RuntimeError("no server subscribed to the frames")
             self.ready.set()
             seq, t_next = 0, time.monotonic()
             while not self.stop_ev.is_set():
                 self.log.sent[seq] = time.monotonic()
-                fs.publish(data=self.world.gray[pingpong(n, seq)].tobytes(), encoding="gray8",
-                           seq=seq)
+                fs.publish(
+                    data=self.world.gray[pingpong(n, seq)].tobytes(), encoding="gray8", seq=seq
+                )
                 if self.rate_hz is None:
                     with self._cv:
-                        if not self._cv.wait_for(lambda s=seq: s in self.log.answered,
-                                                 self.timeout):
+                        if not self._cv.wait_for(
+                            lambda s=seq: s in self.log.answered, self.timeout
+                        ):
                             self.log.timeouts += 1
                 else:
                     t_next += 1.0 / self.rate_hz
@@ -332,11 +363,18 @@ class StreamClient(threading.Thread):
         marks = [t0, *times, t1]
         gap = max((b - a for a, b in zip(marks, marks[1:])), default=float("nan"))
         return {
-            "client": lg.client_id, "sent": len(seqs), "answered": answered,
-            "dropped_stale": dropped, "unanswered": max(0, len(seqs) - answered - dropped),
-            "localized": localized, "errors": dict(lg.errors), "wrong": len(wrong),
+            "client": lg.client_id,
+            "sent": len(seqs),
+            "answered": answered,
+            "dropped_stale": dropped,
+            "unanswered": max(0, len(seqs) - answered - dropped),
+            "localized": localized,
+            "errors": dict(lg.errors),
+            "wrong": len(wrong),
             "wrong_detail": wrong[:20],
-            "duplicates": lg.duplicates, "max_gap_s": gap, "failure": self.failure,
+            "duplicates": lg.duplicates,
+            "max_gap_s": gap,
+            "failure": self.failure,
             "latency_ms_p50": float(np.percentile(lat, 50)) if lat else float("nan"),
             "latency_ms_p99": float(np.percentile(lat, 99)) if lat else float("nan"),
         }
@@ -345,12 +383,22 @@ class StreamClient(threading.Thread):
 # ============================================================================ fuzz inputs
 def _png_claiming(w: int, h: int) -> bytes:
     """A PNG whose header claims w x h pixels and whose data is a few bytes (a bomb's shape)."""
+
     def chunk(kind: bytes, data: bytes) -> bytes:
-        return (struct.pack(">I", len(data)) + kind + data
-                + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF))
+        return (
+            struct.pack(">I", len(data))
+            + kind
+            + data
+            + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+        )
+
     ihdr = struct.pack(">IIBBBBB", w, h, 8, 0, 0, 0, 0)
-    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr)
-            + chunk(b"IDAT", zlib.compress(b"\0" * 4096)) + chunk(b"IEND", b""))
+    return (
+        b"\x89PNG\r\n\x1a\n"
+        + chunk(b"IHDR", ihdr)
+        + chunk(b"IDAT", zlib.compress(b"\0" * 4096))
+        + chunk(b"IEND", b"")
+    )
 
 
 def _mutate(rng: random.Random, data: bytes) -> bytes:
@@ -360,7 +408,7 @@ def _mutate(rng: random.Random, data: bytes) -> bytes:
         pos = rng.randrange(len(b) + 1)
         b[pos:pos] = rng.randbytes(rng.randint(1, 16))
     elif op == 1:  # truncate
-        del b[rng.randrange(len(b)):]
+        del b[rng.randrange(len(b)) :]
     elif op == 2:  # flip bits
         for _ in range(rng.randint(1, 8)):
             b[rng.randrange(len(b))] ^= 1 << rng.randrange(8)
@@ -383,11 +431,17 @@ class ZenohFuzz:
 
         self.rng, self.msgpack = rng, msgpack
         small = cv2.resize(world.gray[0], (32, 24), interpolation=cv2.INTER_AREA)
-        self.cam_small = {"model": "PINHOLE", "width": 32, "height": 24,
-                          "params": [26.0, 26.0, 16.0, 12.0]}
+        self.cam_small = {
+            "model": "PINHOLE",
+            "width": 32,
+            "height": 24,
+            "params": [26.0, 26.0, 16.0, 12.0],
+        }
         ok, png = cv2.imencode(".png", small)
-        self.valid = [self._env(self.cam_small, "gray8", small.tobytes()),
-                      self._env(self.cam_small, "png", png.tobytes())]
+        self.valid = [
+            self._env(self.cam_small, "gray8", small.tobytes()),
+            self._env(self.cam_small, "png", png.tobytes()),
+        ]
 
     def _env(self, cam: dict, enc: str, data: bytes, **extra: Any) -> bytes:
         d = {"seq": 1, "stamp_ns": 1, "camera": cam, "encoding": enc, "data": data, **extra}
@@ -395,8 +449,25 @@ class ZenohFuzz:
 
     def _odd_value(self) -> Any:
         r = self.rng
-        return r.choice([float("nan"), float("inf"), -1, 2**64 - 1, -(2**63), 1e308, "", "x" * 300,
-                         b"\0", None, True, [], {}, [1.0] * 1000, {"a": {"b": {"c": 1}}}])
+        return r.choice(
+            [
+                float("nan"),
+                float("inf"),
+                -1,
+                2**64 - 1,
+                -(2**63),
+                1e308,
+                "",
+                "x" * 300,
+                b"\0",
+                None,
+                True,
+                [],
+                {},
+                [1.0] * 1000,
+                {"a": {"b": {"c": 1}}},
+            ]
+        )
 
     def _fields(self) -> bytes:
         """A valid envelope with one field (or a camera field) replaced by an odd value."""
@@ -473,8 +544,9 @@ class GrpcFuzz:
             "ListSessions": [pb.ListSessionsRequest(map=MAP).SerializeToString()],
             "ResetSession": [pb.ResetSessionRequest(client_id="nobody").SerializeToString()],
         }
-        frame = pb.StreamFrame(map=MAP, client_id="fz-stream", seq=0, stamp_ns=1, image=img,
-                               camera=camera_to_pb(cam))
+        frame = pb.StreamFrame(
+            map=MAP, client_id="fz-stream", seq=0, stamp_ns=1, image=img, camera=camera_to_pb(cam)
+        )
         self.stream_valid = frame.SerializeToString()
 
     def next(self) -> tuple[str, str, list[bytes]]:
@@ -497,8 +569,15 @@ class GrpcFuzz:
 
 
 # ============================================================================ part 1: fuzz
-def run_fuzz(world: World, n: int, workers: int, deadline_s: float, budget_s: float,
-             seed: int, baseline_s: float = 0.0) -> dict:
+def run_fuzz(
+    world: World,
+    n: int,
+    workers: int,
+    deadline_s: float,
+    budget_s: float,
+    seed: int,
+    baseline_s: float = 0.0,
+) -> dict:
     """The fuzz inputs beside a lockstep canary; first ``baseline_s`` of the canary alone (what
     it gets without fuzz on this machine now: the reference for its losses and wrong poses)."""
     import grpc
@@ -516,8 +595,9 @@ def run_fuzz(world: World, n: int, workers: int, deadline_s: float, budget_s: fl
     hung: list[dict] = []
     stop = threading.Event()
     with Server(world, workers) as srv:
-        canary = StreamClient(world, srv.sp.endpoint, "canary", stop, rate_hz=None,
-                              timeout=deadline_s)
+        canary = StreamClient(
+            world, srv.sp.endpoint, "canary", stop, rate_hz=None, timeout=deadline_s
+        )
         canary.start()
         canary.ready.wait(60)
         tb = time.monotonic()
@@ -529,8 +609,11 @@ def run_fuzz(world: World, n: int, workers: int, deadline_s: float, budget_s: fl
         mb = 64 * 1024 * 1024
         opts = [("grpc.max_send_message_length", mb), ("grpc.max_receive_message_length", mb)]
         t0 = time.monotonic()
-        with zenoh.open(conf) as z, grpc.insecure_channel(srv.sp.grpc, options=opts) as ch, \
-                LocalizationClient(srv.sp.grpc) as health:
+        with (
+            zenoh.open(conf) as z,
+            grpc.insecure_channel(srv.sp.grpc, options=opts) as ch,
+            LocalizationClient(srv.sp.grpc) as health,
+        ):
             unary = {m: ch.unary_unary(LOC + m) for m in GRPC_METHODS}
             stream = ch.stream_stream(LOC + "StreamLocalize")
             for k in range(n):
@@ -568,8 +651,13 @@ def run_fuzz(world: World, n: int, workers: int, deadline_s: float, budget_s: fl
                     hangs += 1
                     # What hung, to reproduce it (the first few, hex of each message).
                     if len(hung) < 5:
-                        hung.append({"method": method, "kind": kind,
-                                     "messages_hex": [m.hex() for m in msgs]})
+                        hung.append(
+                            {
+                                "method": method,
+                                "kind": kind,
+                                "messages_hex": [m.hex() for m in msgs],
+                            }
+                        )
                 if k % 1000 == 1 and health.health(timeout=deadline_s) != "SERVING":
                     hangs += 1
             t1 = time.monotonic()
@@ -583,19 +671,35 @@ def run_fuzz(world: World, n: int, workers: int, deadline_s: float, budget_s: fl
         by_code[key.split()[1]] += v
     can = canary.summary(t0, t1)
     return {
-        "inputs": sent, "duration_s": round(fuzz_s, 1), "inputs_per_s": round(sent / fuzz_s, 1),
-        "kinds": dict(kinds), "crashes": crashes, "hangs": hangs, "server_alive": alive,
-        "grpc_codes": dict(by_code), "grpc_codes_by_method": dict(codes),
-        "internal": by_code["INTERNAL"], "unknown": by_code["UNKNOWN"],
-        "internal_unknown_samples": samples, "hung_requests": hung,
-        "canary": can, "canary_baseline": base,
+        "inputs": sent,
+        "duration_s": round(fuzz_s, 1),
+        "inputs_per_s": round(sent / fuzz_s, 1),
+        "kinds": dict(kinds),
+        "crashes": crashes,
+        "hangs": hangs,
+        "server_alive": alive,
+        "grpc_codes": dict(by_code),
+        "grpc_codes_by_method": dict(codes),
+        "internal": by_code["INTERNAL"],
+        "unknown": by_code["UNKNOWN"],
+        "internal_unknown_samples": samples,
+        "hung_requests": hung,
+        "canary": can,
+        "canary_baseline": base,
         "canary_lost_pct": 100.0 * (can["sent"] - can["answered"]) / max(1, can["sent"]),
     }
 
 
 # ============================================================================ part 2: kill
-def run_kill(world: World, kills: int, clients: int, rate_hz: float, interval_s: float,
-             workers: int, baseline_s: float = 0.0) -> dict:
+def run_kill(
+    world: World,
+    kills: int,
+    clients: int,
+    rate_hz: float,
+    interval_s: float,
+    workers: int,
+    baseline_s: float = 0.0,
+) -> dict:
     """``kills`` kills, ``interval_s`` apart, under streaming clients; first ``baseline_s`` of
     the same streams without a kill (the gaps and wrong poses this machine gives anyway)."""
     stop = threading.Event()
@@ -605,8 +709,10 @@ def run_kill(world: World, kills: int, clients: int, rate_hz: float, interval_s:
     first: set[int] = set()
     killed: list[int] = []
     with Server(world, workers) as srv:
-        cl = [StreamClient(world, srv.sp.endpoint, f"kill-client-{i}", stop, rate_hz=rate_hz)
-              for i in range(clients)]
+        cl = [
+            StreamClient(world, srv.sp.endpoint, f"kill-client-{i}", stop, rate_hz=rate_hz)
+            for i in range(clients)
+        ]
         for c in cl:
             c.start()
         for c in cl:
@@ -656,14 +762,21 @@ def run_kill(world: World, kills: int, clients: int, rate_hz: float, interval_s:
             c.join(10)
         alive = srv.alive()
     per = [c.summary(t0, t1) for c in cl]
-    return {"baseline": base, **_totals(per),
-        "kills": len(killed), "clients": clients, "rate_hz": rate_hz, "interval_s": interval_s,
-        "server_alive": alive, "restarts": len(seen - first),
+    return {
+        "baseline": base,
+        **_totals(per),
+        "kills": len(killed),
+        "clients": clients,
+        "rate_hz": rate_hz,
+        "interval_s": interval_s,
+        "server_alive": alive,
+        "restarts": len(seen - first),
         "zombies_after_1s_max": max(zombies_after_1s, default=0),
         "recovery_s_max": float(np.nanmax(recovery)) if any(np.isfinite(recovery)) else None,
         "kills_without_recovery": int(np.sum(~np.isfinite(recovery))),
         "clients_detail": per,
     }
+
 
 # ============================================================================ part: reloc
 def reloc_images(world: World, side: int = 4096) -> list[tuple[str, str, bytes, str]]:
@@ -684,8 +797,15 @@ def reloc_images(world: World, side: int = 4096) -> list[tuple[str, str, bytes, 
 class RelocCaller(threading.Thread):
     """Relocalize calls back to back (blank and textured in turn) until ``stop``."""
 
-    def __init__(self, world: World, grpc_addr: str, images: list, stop: threading.Event,
-                 deadline_s: float, offset: int = 0) -> None:
+    def __init__(
+        self,
+        world: World,
+        grpc_addr: str,
+        images: list,
+        stop: threading.Event,
+        deadline_s: float,
+        offset: int = 0,
+    ) -> None:
         super().__init__(daemon=True)
         self.world, self.addr, self.images, self.stop_ev = world, grpc_addr, images, stop
         self.deadline_s, self.k = deadline_s, offset
@@ -711,17 +831,28 @@ class RelocCaller(threading.Thread):
                 self.ms[kind].append((time.monotonic() - t0) * 1e3)
 
 
-def run_reloc(world: World, clients: int, rate_hz: float, callers: int, duration_s: float,
-              workers: int, baseline_s: float, deadline_s: float,
-              extra: tuple[str, ...] = (), side: int = 4096) -> dict:
+def run_reloc(
+    world: World,
+    clients: int,
+    rate_hz: float,
+    callers: int,
+    duration_s: float,
+    workers: int,
+    baseline_s: float,
+    deadline_s: float,
+    extra: tuple[str, ...] = (),
+    side: int = 4096,
+) -> dict:
     """``clients`` streams at ``rate_hz``: ``baseline_s`` alone, then ``duration_s`` while
     ``callers`` saturate Relocalize with ``side`` x ``side`` images (issue 16's isolation
     target: 4096)."""
     stop, stop_callers = threading.Event(), threading.Event()
     images = reloc_images(world, side)
     with Server(world, workers, extra) as srv:
-        cl = [StreamClient(world, srv.sp.endpoint, f"reloc-client-{i}", stop, rate_hz=rate_hz)
-              for i in range(clients)]
+        cl = [
+            StreamClient(world, srv.sp.endpoint, f"reloc-client-{i}", stop, rate_hz=rate_hz)
+            for i in range(clients)
+        ]
         for c in cl:
             c.start()
         for c in cl:
@@ -731,8 +862,10 @@ def run_reloc(world: World, clients: int, rate_hz: float, callers: int, duration
         _log(f"reloc: {clients} streams alone for {baseline_s:g} s")
         time.sleep(baseline_s)
         t0 = time.monotonic()
-        rc = [RelocCaller(world, srv.sp.grpc, images, stop_callers, deadline_s, offset=i)
-              for i in range(callers)]
+        rc = [
+            RelocCaller(world, srv.sp.grpc, images, stop_callers, deadline_s, offset=i)
+            for i in range(callers)
+        ]
         for r in rc:
             r.start()
         _log(f"reloc: {clients} streams beside {callers} Relocalize callers for {duration_s:g} s")
@@ -758,29 +891,45 @@ def run_reloc(world: World, clients: int, rate_hz: float, callers: int, duration
         return p["localized"] / max(1, p["sent"])
 
     return {
-        "clients": clients, "rate_hz": rate_hz, "callers": callers, "server_alive": alive,
-        "side": side, "map": world.name, "baseline_s": baseline_s, "duration_s": duration_s,
-        "poses_frac_min": min(frac(p) for p in per), "poses_frac_min_alone":
-            min(frac(p) for p in base),
+        "clients": clients,
+        "rate_hz": rate_hz,
+        "callers": callers,
+        "server_alive": alive,
+        "side": side,
+        "map": world.name,
+        "baseline_s": baseline_s,
+        "duration_s": duration_s,
+        "poses_frac_min": min(frac(p) for p in per),
+        "poses_frac_min_alone": min(frac(p) for p in base),
         "p99_ms_max": max(p["latency_ms_p99"] for p in per),
         "p99_ms_max_alone": max(p["latency_ms_p99"] for p in base),
         "reloc_codes": dict(codes),
         "reloc_ms_p50": {k: float(np.percentile(v, 50)) for k, v in ms.items() if v},
         "reloc_ms_max": {k: float(np.max(v)) for k, v in ms.items() if v},
-        "clients_detail": per, "clients_alone": base,
+        "clients_detail": per,
+        "clients_alone": base,
     }
 
 
 def _totals(per: list[dict]) -> dict:
     keys = ("sent", "answered", "dropped_stale", "unanswered", "localized", "duplicates", "wrong")
-    return {**{k: sum(p[k] for p in per) for k in keys},
-            "max_gap_s": max((p["max_gap_s"] for p in per), default=float("nan"))}
+    return {
+        **{k: sum(p[k] for p in per) for k in keys},
+        "max_gap_s": max((p["max_gap_s"] for p in per), default=float("nan")),
+    }
 
 
 # ============================================================================ part 3: bundle
-def run_bundle(world: World, work: Path, per_file: int, cli_checks: int, seed: int,
-               every_byte_under: int = 1024, all_manifest_bytes: bool = True,
-               header_bytes: int = 128) -> dict:
+def run_bundle(
+    world: World,
+    work: Path,
+    per_file: int,
+    cli_checks: int,
+    seed: int,
+    every_byte_under: int = 1024,
+    all_manifest_bytes: bool = True,
+    header_bytes: int = 128,
+) -> dict:
     """One-byte flips of a copy of the bundle's files, each refused by verify and by load?
     Every byte of the manifest files and of files up to ``every_byte_under`` bytes; of the
     others the first ``header_bytes`` of a .npy (the header the loader parses), the last byte
@@ -825,23 +974,41 @@ def run_bundle(world: World, work: Path, per_file: int, cli_checks: int, seed: i
                 other[f"load {type(exc).__name__}"] += 1
             if pos in cli_pos:
                 cli_n += 1
-                r = subprocess.run([sys.executable, "-m", "sfmloc", "map", "verify", str(copy)],
-                                   capture_output=True, text=True, timeout=120)
+                r = subprocess.run(
+                    [sys.executable, "-m", "sfmloc", "map", "verify", str(copy)],
+                    capture_output=True,
+                    text=True,
+                    timeout=120,
+                )
                 cli_ok += r.returncode != 0 and "Traceback" not in r.stderr
         f.write_bytes(original)
-        rows.append({"file": str(f.relative_to(copy)), "bytes": size, "flips": len(positions),
-                     "verify_refused": verify_ok, "load_refused": load_ok,
-                     "other_errors": dict(other), "missed_positions": missed[:10]})
-        _log(f"bundle: {rows[-1]['file']}: {verify_ok}/{len(positions)} refused by verify, "
-             f"{load_ok} by load")
+        rows.append(
+            {
+                "file": str(f.relative_to(copy)),
+                "bytes": size,
+                "flips": len(positions),
+                "verify_refused": verify_ok,
+                "load_refused": load_ok,
+                "other_errors": dict(other),
+                "missed_positions": missed[:10],
+            }
+        )
+        _log(
+            f"bundle: {rows[-1]['file']}: {verify_ok}/{len(positions)} refused by verify, "
+            f"{load_ok} by load"
+        )
     intact = not verify_bundle(copy)
     shutil.rmtree(copy.parent, ignore_errors=True)
     flips = sum(r["flips"] for r in rows)
     return {
-        "files": len(rows), "flips": flips,
+        "files": len(rows),
+        "flips": flips,
         "verify_refused": sum(r["verify_refused"] for r in rows),
         "load_refused": sum(r["load_refused"] for r in rows),
-        "cli_checks": cli_n, "cli_refused": cli_ok, "restored_intact": intact, "rows": rows,
+        "cli_checks": cli_n,
+        "cli_refused": cli_ok,
+        "restored_intact": intact,
+        "rows": rows,
     }
 
 
@@ -854,65 +1021,126 @@ def table(res: dict) -> list[str]:
         c, cb = f["canary"], f.get("canary_baseline") or {}
         lost_b = 100.0 * (cb.get("sent", 0) - cb.get("answered", 0)) / max(1, cb.get("sent", 0))
         rows += [
-            ("fuzz inputs (Zenoh + gRPC)", f"{f['inputs']} in {f['duration_s']} s "
-             f"({f['inputs_per_s']}/s)", "100,000"),
+            (
+                "fuzz inputs (Zenoh + gRPC)",
+                f"{f['inputs']} in {f['duration_s']} s ({f['inputs_per_s']}/s)",
+                "100,000",
+            ),
             ("fuzz: crashes / hangs", f"{f['crashes']} / {f['hangs']}", "0 / 0"),
             ("fuzz: gRPC INTERNAL / UNKNOWN", f"{f['internal']} / {f['unknown']}", "0 / 0"),
-            ("fuzz: gRPC codes", ", ".join(f"{k} {v}" for k, v in
-                                           sorted(f["grpc_codes"].items())), "-"),
-            ("fuzz: canary answered / sent", f"{c['answered']} / {c['sent']} "
-             f"({f['canary_lost_pct']:.2f}% lost, {c['localized']} poses)", "<= 1% lost"),
-            ("  canary alone (baseline)", f"{cb.get('answered', 0)} / {cb.get('sent', 0)} "
-             f"({lost_b:.2f}% lost, {cb.get('localized', 0)} poses)", "-"),
+            (
+                "fuzz: gRPC codes",
+                ", ".join(f"{k} {v}" for k, v in sorted(f["grpc_codes"].items())),
+                "-",
+            ),
+            (
+                "fuzz: canary answered / sent",
+                f"{c['answered']} / {c['sent']} "
+                f"({f['canary_lost_pct']:.2f}% lost, {c['localized']} poses)",
+                "<= 1% lost",
+            ),
+            (
+                "  canary alone (baseline)",
+                f"{cb.get('answered', 0)} / {cb.get('sent', 0)} "
+                f"({lost_b:.2f}% lost, {cb.get('localized', 0)} poses)",
+                "-",
+            ),
             ("fuzz: canary wrong poses (alone)", f"{c['wrong']} ({cb.get('wrong', 0)})", "0"),
-            ("fuzz: canary longest wait (alone)", f"{c['max_gap_s']:.2f} s "
-             f"({cb.get('max_gap_s', float('nan')):.2f} s)", "-"),
+            (
+                "fuzz: canary longest wait (alone)",
+                f"{c['max_gap_s']:.2f} s ({cb.get('max_gap_s', float('nan')):.2f} s)",
+                "-",
+            ),
         ]
     k = res.get("kill")
     if k:
         kb = k.get("baseline") or {}
         rec = "-" if k["recovery_s_max"] is None else f"{k['recovery_s_max']:.2f} s"
         rows += [
-            ("kill -9 of a worker", f"{k['kills']} kills, {k['clients']} clients at "
-             f"{k['rate_hz']:g} Hz", "10 kills, 4 clients"),
-            ("kill: frames answered / sent", f"{k['answered']} / {k['sent']} (server dropped "
-             f"{k['dropped_stale']} stale, {k['unanswered']} silent)", "every frame"),
-            ("  without kills (baseline)", f"{kb.get('answered', 0)} / {kb.get('sent', 0)} "
-             f"(dropped {kb.get('dropped_stale', 0)}, {kb.get('unanswered', 0)} silent)", "-"),
-            ("kill: longest gap w/o answer (no kill)", f"{k['max_gap_s']:.2f} s "
-             f"({kb.get('max_gap_s', float('nan')):.2f} s)", "<= 0.5 s"),
-            ("kill: every client posed again after", f"{rec} (kills without: "
-             f"{k['kills_without_recovery']})", "<= 2 s"),
-            ("kill: duplicate answers / wrong poses", f"{k['duplicates']} / {k['wrong']} "
-             f"(no kill: {kb.get('wrong', 0)} wrong of {kb.get('localized', 0)} poses)", "0 / 0"),
+            (
+                "kill -9 of a worker",
+                f"{k['kills']} kills, {k['clients']} clients at {k['rate_hz']:g} Hz",
+                "10 kills, 4 clients",
+            ),
+            (
+                "kill: frames answered / sent",
+                f"{k['answered']} / {k['sent']} (server dropped "
+                f"{k['dropped_stale']} stale, {k['unanswered']} silent)",
+                "every frame",
+            ),
+            (
+                "  without kills (baseline)",
+                f"{kb.get('answered', 0)} / {kb.get('sent', 0)} "
+                f"(dropped {kb.get('dropped_stale', 0)}, {kb.get('unanswered', 0)} silent)",
+                "-",
+            ),
+            (
+                "kill: longest gap w/o answer (no kill)",
+                f"{k['max_gap_s']:.2f} s ({kb.get('max_gap_s', float('nan')):.2f} s)",
+                "<= 0.5 s",
+            ),
+            (
+                "kill: every client posed again after",
+                f"{rec} (kills without: {k['kills_without_recovery']})",
+                "<= 2 s",
+            ),
+            (
+                "kill: duplicate answers / wrong poses",
+                f"{k['duplicates']} / {k['wrong']} "
+                f"(no kill: {kb.get('wrong', 0)} wrong of {kb.get('localized', 0)} poses)",
+                "0 / 0",
+            ),
             ("kill: zombies 1 s after a kill (max)", str(k["zombies_after_1s_max"]), "0"),
             ("kill: worker restarts seen", str(k["restarts"]), f"{k['kills']}"),
         ]
     r = res.get("reloc")
     if r:
         rows += [
-            ("reloc: streams beside Relocalize", f"{r['clients']} clients at {r['rate_hz']:g} Hz "
-             f"({r['map']}), {r['callers']} callers of {r['side']}x{r['side']}",
-             "4 at 15 Hz, 2 callers of 4096x4096"),
-            ("reloc: poses / frames sent (worst client)", f"{100 * r['poses_frac_min']:.1f}% "
-             f"(alone {100 * r['poses_frac_min_alone']:.1f}%)", ">= 95%"),
-            ("reloc: p99 latency (worst client)", f"{r['p99_ms_max']:.0f} ms (alone "
-             f"{r['p99_ms_max_alone']:.0f} ms: x{r['p99_ms_max'] / r['p99_ms_max_alone']:.2f})",
-             "<= x2 alone"),
-            ("reloc: Relocalize answers", ", ".join(f"{k} {v}" for k, v in
-                                                    sorted(r["reloc_codes"].items())), "-"),
-            ("reloc: Relocalize ms p50 (max)", ", ".join(
-                f"{k} {v:.0f} ({r['reloc_ms_max'][k]:.0f})"
-                for k, v in r["reloc_ms_p50"].items()), "-"),
+            (
+                "reloc: streams beside Relocalize",
+                f"{r['clients']} clients at {r['rate_hz']:g} Hz "
+                f"({r['map']}), {r['callers']} callers of {r['side']}x{r['side']}",
+                "4 at 15 Hz, 2 callers of 4096x4096",
+            ),
+            (
+                "reloc: poses / frames sent (worst client)",
+                f"{100 * r['poses_frac_min']:.1f}% (alone {100 * r['poses_frac_min_alone']:.1f}%)",
+                ">= 95%",
+            ),
+            (
+                "reloc: p99 latency (worst client)",
+                f"{r['p99_ms_max']:.0f} ms (alone "
+                f"{r['p99_ms_max_alone']:.0f} ms: x{r['p99_ms_max'] / r['p99_ms_max_alone']:.2f})",
+                "<= x2 alone",
+            ),
+            (
+                "reloc: Relocalize answers",
+                ", ".join(f"{k} {v}" for k, v in sorted(r["reloc_codes"].items())),
+                "-",
+            ),
+            (
+                "reloc: Relocalize ms p50 (max)",
+                ", ".join(
+                    f"{k} {v:.0f} ({r['reloc_ms_max'][k]:.0f})"
+                    for k, v in r["reloc_ms_p50"].items()
+                ),
+                "-",
+            ),
         ]
     b = res.get("bundle")
     if b:
         rows += [
             ("bundle: one-byte flips", f"{b['flips']} over {b['files']} files", "every byte"),
-            ("bundle: refused by verify / load", f"{b['verify_refused']} / {b['load_refused']}",
-             f"{b['flips']} / {b['flips']}"),
-            ("bundle: refused by `sfmloc map verify`", f"{b['cli_refused']} / {b['cli_checks']}",
-             "all"),
+            (
+                "bundle: refused by verify / load",
+                f"{b['verify_refused']} / {b['load_refused']}",
+                f"{b['flips']} / {b['flips']}",
+            ),
+            (
+                "bundle: refused by `sfmloc map verify`",
+                f"{b['cli_refused']} / {b['cli_checks']}",
+                "all",
+            ),
         ]
     w = max(len(r[0]) for r in rows)
     v = min(60, max(len(r[1]) for r in rows))
@@ -935,21 +1163,45 @@ def run(args: argparse.Namespace, world: World | None = None) -> dict:
     parts = set(args.parts.split(","))
     if "fuzz" in parts:
         _log(f"fuzz: {args.fuzz} inputs")
-        res["fuzz"] = run_fuzz(world, args.fuzz, args.workers, args.deadline, args.fuzz_budget,
-                               args.seed, args.baseline)
+        res["fuzz"] = run_fuzz(
+            world,
+            args.fuzz,
+            args.workers,
+            args.deadline,
+            args.fuzz_budget,
+            args.seed,
+            args.baseline,
+        )
     if "kill" in parts:
         _log(f"kill: {args.kills} kills under {args.clients} clients")
-        res["kill"] = run_kill(world, args.kills, args.clients, args.rate, args.interval,
-                               args.workers, args.baseline)
+        res["kill"] = run_kill(
+            world, args.kills, args.clients, args.rate, args.interval, args.workers, args.baseline
+        )
     if "reloc" in parts:
         _log(f"reloc: {args.clients} clients beside {args.reloc_callers} Relocalize callers")
-        res["reloc"] = run_reloc(world, args.clients, args.reloc_rate, args.reloc_callers,
-                                 args.reloc_duration, args.workers, args.baseline, args.deadline,
-                                 tuple(args.server_arg), args.reloc_side)
+        res["reloc"] = run_reloc(
+            world,
+            args.clients,
+            args.reloc_rate,
+            args.reloc_callers,
+            args.reloc_duration,
+            args.workers,
+            args.baseline,
+            args.deadline,
+            tuple(args.server_arg),
+            args.reloc_side,
+        )
     if "bundle" in parts:
-        res["bundle"] = run_bundle(world, Path(args.work), args.flips_per_file,
-                                   args.cli_checks, args.seed, args.every_byte_under,
-                                   args.all_manifest_bytes, args.header_bytes)
+        res["bundle"] = run_bundle(
+            world,
+            Path(args.work),
+            args.flips_per_file,
+            args.cli_checks,
+            args.seed,
+            args.every_byte_under,
+            args.all_manifest_bytes,
+            args.header_bytes,
+        )
     res["duration_s"] = round(time.monotonic() - t0, 1)
     res["load_end"] = os.getloadavg()
     return res
@@ -959,63 +1211,135 @@ def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="python -m sfmloc.bench.reliability",
         description=__doc__.split("\n\n", 2)[2] if __doc__ else None,
-        formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--parts", default="fuzz,kill,bundle",
-                   help="comma-separated parts to run: fuzz, kill, bundle, reloc (default: "
-                   "fuzz,kill,bundle)")
-    p.add_argument("--work", default="/tmp/sfmloc-reliability",
-                   help="where the synthetic map is built and reused (default: %(default)s)")
-    p.add_argument("--fuzz", type=int, default=20_000, help="fuzz inputs (default %(default)s; "
-                   "issue 12's target is 100,000)")
-    p.add_argument("--fuzz-budget", type=float, default=1800.0,
-                   help="stop fuzzing after this many seconds (default %(default)s)")
-    p.add_argument("--deadline", type=float, default=10.0,
-                   help="gRPC deadline and canary wait per frame, s; over it is a hang "
-                   "(default %(default)s)")
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument(
+        "--parts",
+        default="fuzz,kill,bundle",
+        help="comma-separated parts to run: fuzz, kill, bundle, reloc (default: fuzz,kill,bundle)",
+    )
+    p.add_argument(
+        "--work",
+        default="/tmp/sfmloc-reliability",
+        help="where the synthetic map is built and reused (default: %(default)s)",
+    )
+    p.add_argument(
+        "--fuzz",
+        type=int,
+        default=20_000,
+        help="fuzz inputs (default %(default)s; issue 12's target is 100,000)",
+    )
+    p.add_argument(
+        "--fuzz-budget",
+        type=float,
+        default=1800.0,
+        help="stop fuzzing after this many seconds (default %(default)s)",
+    )
+    p.add_argument(
+        "--deadline",
+        type=float,
+        default=10.0,
+        help="gRPC deadline and canary wait per frame, s; over it is a hang (default %(default)s)",
+    )
     p.add_argument("--kills", type=int, default=10, help="worker kills (default %(default)s)")
-    p.add_argument("--clients", type=int, default=4,
-                   help="streaming clients during the kills (default %(default)s)")
-    p.add_argument("--rate", type=float, default=10.0,
-                   help="frames per second per client during the kills (default %(default)s)")
-    p.add_argument("--interval", type=float, default=4.0,
-                   help="seconds between kills (default %(default)s)")
-    p.add_argument("--baseline", type=float, default=20.0,
-                   help="seconds of the canary alone before the fuzz and of the streams before "
-                   "the first kill: the reference the table shows in brackets (default "
-                   "%(default)s)")
+    p.add_argument(
+        "--clients",
+        type=int,
+        default=4,
+        help="streaming clients during the kills (default %(default)s)",
+    )
+    p.add_argument(
+        "--rate",
+        type=float,
+        default=10.0,
+        help="frames per second per client during the kills (default %(default)s)",
+    )
+    p.add_argument(
+        "--interval", type=float, default=4.0, help="seconds between kills (default %(default)s)"
+    )
+    p.add_argument(
+        "--baseline",
+        type=float,
+        default=20.0,
+        help="seconds of the canary alone before the fuzz and of the streams before "
+        "the first kill: the reference the table shows in brackets (default "
+        "%(default)s)",
+    )
     p.add_argument("--workers", type=int, default=2, help="server workers (default %(default)s)")
-    p.add_argument("--flips-per-file", type=int, default=64,
-                   help="random one-byte flips per bundle file beyond its .npy header "
-                   "(default %(default)s)")
-    p.add_argument("--every-byte-under", type=int, default=1024,
-                   help="flip every byte of files up to this size; the manifest files always "
-                   "(default %(default)s)")
-    p.add_argument("--all-manifest-bytes", action=argparse.BooleanOptionalAction, default=True,
-                   help="flip every byte of manifest.json and manifest.sha256 (default: yes)")
-    p.add_argument("--header-bytes", type=int, default=128,
-                   help="flip each of the first N bytes of every .npy file (its header; default "
-                   "%(default)s)")
-    p.add_argument("--cli-checks", type=int, default=1,
-                   help="flips per file also checked with `sfmloc map verify` (default "
-                   "%(default)s)")
-    p.add_argument("--reloc-callers", type=int, default=2,
-                   help="reloc part: callers sending 4096x4096 images to Relocalize back to back "
-                   "(default %(default)s)")
-    p.add_argument("--reloc-rate", type=float, default=15.0,
-                   help="reloc part: frames per second per streaming client (default %(default)s)")
-    p.add_argument("--reloc-side", type=int, default=4096,
-                   help="reloc part: width and height of the Relocalize images (default "
-                   "%(default)s)")
-    p.add_argument("--reloc-duration", type=float, default=20.0,
-                   help="reloc part: seconds of streaming beside the callers (default %(default)s)")
-    p.add_argument("--server-arg", action="append", default=[],
-                   help="extra `sfmloc serve` argument for the reloc part (repeatable), e.g. "
-                   "--server-arg=--relocalize-workers=0")
-    p.add_argument("--redkitchen", default="",
-                   help="stream these redkitchen frames (a folder with pgt_sfm_seq01.txt) "
-                   "instead of the synthetic room; the bundle is --redkitchen-maps/redkitchen")
-    p.add_argument("--redkitchen-maps", default="/tmp/speedsrv/maps",
-                   help="maps folder holding the redkitchen bundle (default %(default)s)")
+    p.add_argument(
+        "--flips-per-file",
+        type=int,
+        default=64,
+        help="random one-byte flips per bundle file beyond its .npy header (default %(default)s)",
+    )
+    p.add_argument(
+        "--every-byte-under",
+        type=int,
+        default=1024,
+        help="flip every byte of files up to this size; the manifest files always "
+        "(default %(default)s)",
+    )
+    p.add_argument(
+        "--all-manifest-bytes",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="flip every byte of manifest.json and manifest.sha256 (default: yes)",
+    )
+    p.add_argument(
+        "--header-bytes",
+        type=int,
+        default=128,
+        help="flip each of the first N bytes of every .npy file (its header; default %(default)s)",
+    )
+    p.add_argument(
+        "--cli-checks",
+        type=int,
+        default=1,
+        help="flips per file also checked with `sfmloc map verify` (default %(default)s)",
+    )
+    p.add_argument(
+        "--reloc-callers",
+        type=int,
+        default=2,
+        help="reloc part: callers sending 4096x4096 images to Relocalize back to back "
+        "(default %(default)s)",
+    )
+    p.add_argument(
+        "--reloc-rate",
+        type=float,
+        default=15.0,
+        help="reloc part: frames per second per streaming client (default %(default)s)",
+    )
+    p.add_argument(
+        "--reloc-side",
+        type=int,
+        default=4096,
+        help="reloc part: width and height of the Relocalize images (default %(default)s)",
+    )
+    p.add_argument(
+        "--reloc-duration",
+        type=float,
+        default=20.0,
+        help="reloc part: seconds of streaming beside the callers (default %(default)s)",
+    )
+    p.add_argument(
+        "--server-arg",
+        action="append",
+        default=[],
+        help="extra `sfmloc serve` argument for the reloc part (repeatable), e.g. "
+        "--server-arg=--relocalize-workers=0",
+    )
+    p.add_argument(
+        "--redkitchen",
+        default="",
+        help="stream these redkitchen frames (a folder with pgt_sfm_seq01.txt) "
+        "instead of the synthetic room; the bundle is --redkitchen-maps/redkitchen",
+    )
+    p.add_argument(
+        "--redkitchen-maps",
+        default="/tmp/speedsrv/maps",
+        help="maps folder holding the redkitchen bundle (default %(default)s)",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", help="also write the full results to this file")
     return p
@@ -1028,8 +1352,10 @@ def main(argv: list[str] | None = None) -> int:
         Path(args.json).write_text(json.dumps(res, indent=1, default=str))
     for line in table(res):
         print(line)
-    print(f"duration {res['duration_s']} s; load average {res['load_start'][0]:.2f} at start, "
-          f"{res['load_end'][0]:.2f} at the end ({os.cpu_count()} CPUs)")
+    print(
+        f"duration {res['duration_s']} s; load average {res['load_start'][0]:.2f} at start, "
+        f"{res['load_end'][0]:.2f} at the end ({os.cpu_count()} CPUs)"
+    )
     return 0
 
 

@@ -16,9 +16,12 @@ from .config import OURS, PEERS, SUITE_HELP
 LEGACY_WRONG_POSE_RULE = "any status but LOST, position error > 0.5 m or rotation error > 10 deg"
 
 METHOD_NOTE = {
-    OURS: "our engine: tracking + guided/global 2D-3D matching (Algorithm 1), every frame as a 30 Hz video",
-    "global-every-frame": "our single-image global matching (`sfmloc.engine.relocalize`) on every frame, no tracking",
-    "pycolmap-sift": "SIFT map (same images, known poses, pycolmap triangulation) + per-frame SIFT, "
+    OURS: "our engine: tracking + guided/global 2D-3D matching (Algorithm 1), every frame as a 30 "
+    "Hz video",
+    "global-every-frame": "our single-image global matching (`sfmloc.engine.relocalize`) on every "
+    "frame, no tracking",
+    "pycolmap-sift": "SIFT map (same images, known poses, pycolmap triangulation) + per-frame "
+    "SIFT, "
     "nearest-neighbour ratio test, `pycolmap.estimate_and_refine_absolute_pose`",
 }
 
@@ -68,18 +71,41 @@ def table2_rows(results: dict) -> list[list[str]]:
     rows = []
     for name in localization_suites(results):
         s = results["suites"][name]["methods"][OURS]
-        rows.append([
-            name, str(s["F"]), f"{s['F_loc']} ({s['F_loc_pct']:.1f}%)", pm(s["T_ms_mean"], s["T_ms_std"]),
-            f"{s['M']} ({s['M_pct']:.0f}%)", pm(s["T_M_ms_mean"], s["T_M_ms_std"]), f1(s["T_ms_p99"], 0),
-            cm(s["median_position_error_m"]), f1(s["median_rotation_error_deg"], 2),
-            cm(s["mean_position_error_m"]), f1(s["mean_rotation_error_deg"], 2),
-            str(s["wrong_poses"]), cm(s["ate_m"]),
-        ])
+        rows.append(
+            [
+                name,
+                str(s["F"]),
+                f"{s['F_loc']} ({s['F_loc_pct']:.1f}%)",
+                pm(s["T_ms_mean"], s["T_ms_std"]),
+                f"{s['M']} ({s['M_pct']:.0f}%)",
+                pm(s["T_M_ms_mean"], s["T_M_ms_std"]),
+                f1(s["T_ms_p99"], 0),
+                cm(s["median_position_error_m"]),
+                f1(s["median_rotation_error_deg"], 2),
+                cm(s["mean_position_error_m"]),
+                f1(s["mean_rotation_error_deg"], 2),
+                str(s["wrong_poses"]),
+                cm(s["ate_m"]),
+            ]
+        )
     return rows
 
 
-TABLE2_HEADER = ["Suite", "F", "F_loc", "T (ms)", "M", "T_M (ms)", "p99 (ms)", "med. pos (cm)", "med. rot (°)",
-                 "mean pos (cm)", "mean rot (°)", "wrong poses", "ATE (cm)"]
+TABLE2_HEADER = [
+    "Suite",
+    "F",
+    "F_loc",
+    "T (ms)",
+    "M",
+    "T_M (ms)",
+    "p99 (ms)",
+    "med. pos (cm)",
+    "med. rot (°)",
+    "mean pos (cm)",
+    "mean rot (°)",
+    "wrong poses",
+    "ATE (cm)",
+]
 
 
 def compare_rows(results: dict) -> list[list[str]]:
@@ -91,20 +117,43 @@ def compare_rows(results: dict) -> list[list[str]]:
         for m in (OURS, *PEERS):
             s = same if m == OURS else suite["methods"][m]
             r = suite["ratios"].get(m, {})
-            rows.append([
-                name, m, str(s["F"]), f"{s['F_loc_pct']:.1f}%", pct(s["recall_5cm_5deg_pct"]),
-                pct(s.get("recall_relative_pct")),
-                f1(s["T_ms_mean"]), f1(s["rate_hz"]), f1(s["T_ms_p99"], 0), f1(s["cpu_ms_mean"]),
-                cm(s["median_position_error_m"]), f1(s["median_rotation_error_deg"], 2),
-                str(s["wrong_poses"]), "—" if m == OURS else ratio(r.get("rate_ratio")),
-            ])
+            rows.append(
+                [
+                    name,
+                    m,
+                    str(s["F"]),
+                    f"{s['F_loc_pct']:.1f}%",
+                    pct(s["recall_5cm_5deg_pct"]),
+                    pct(s.get("recall_relative_pct")),
+                    f1(s["T_ms_mean"]),
+                    f1(s["rate_hz"]),
+                    f1(s["T_ms_p99"], 0),
+                    f1(s["cpu_ms_mean"]),
+                    cm(s["median_position_error_m"]),
+                    f1(s["median_rotation_error_deg"], 2),
+                    str(s["wrong_poses"]),
+                    "—" if m == OURS else ratio(r.get("rate_ratio")),
+                ]
+            )
     return rows
 
 
-COMPARE_HEADER = ["Suite", "Method", "frames", "localized", "≤5 cm/5°",
-                  f"≤{RECALL_POSITION_FRACTION:.1%} depth/5°", "T mean (ms)", "rate (Hz)",
-                  "p99 (ms)",
-                  "CPU (ms)", "med. pos (cm)", "med. rot (°)", "wrong poses", "ours faster by"]
+COMPARE_HEADER = [
+    "Suite",
+    "Method",
+    "frames",
+    "localized",
+    "≤5 cm/5°",
+    f"≤{RECALL_POSITION_FRACTION:.1%} depth/5°",
+    "T mean (ms)",
+    "rate (Hz)",
+    "p99 (ms)",
+    "CPU (ms)",
+    "med. pos (cm)",
+    "med. rot (°)",
+    "wrong poses",
+    "ours faster by",
+]
 
 
 def verdict(t: dict) -> str:
@@ -116,12 +165,29 @@ def throughput_rows(results: dict) -> list[list[str]]:
     t = results.get("suites", {}).get("throughput")
     if not t:
         return []
-    return [[str(r["clients"]), f1(r["offered_hz"], 0), f1(r["delivered_hz_total"]), f1(r["delivered_hz_per_client"]),
-             f1(r["dropped_pct"]) + "%", f1(r["latency_ms_p50"]), f1(r["latency_ms_p99"])] for r in t["rows"]]
+    return [
+        [
+            str(r["clients"]),
+            f1(r["offered_hz"], 0),
+            f1(r["delivered_hz_total"]),
+            f1(r["delivered_hz_per_client"]),
+            f1(r["dropped_pct"]) + "%",
+            f1(r["latency_ms_p50"]),
+            f1(r["latency_ms_p99"]),
+        ]
+        for r in t["rows"]
+    ]
 
 
-THROUGHPUT_HEADER = ["clients", "offered (Hz)", "delivered total (Hz)", "per client (Hz)", "dropped",
-                     "latency p50 (ms)", "latency p99 (ms)"]
+THROUGHPUT_HEADER = [
+    "clients",
+    "offered (Hz)",
+    "delivered total (Hz)",
+    "per client (Hz)",
+    "dropped",
+    "latency p50 (ms)",
+    "latency p99 (ms)",
+]
 
 
 def markdown_table(header: list[str], rows: list[list[str]]) -> str:
@@ -144,9 +210,12 @@ def ratio_lines(results: dict) -> list[str]:
         parts = []
         for m in PEERS:
             if m in r:
-                parts.append(f"{ratio(r[m]['rate_ratio'])} the frame rate of {m} "
-                             f"(CPU time: {ratio(r[m]['cpu_ratio'])}; "
-                             f"its median position error is {f1(r[m]['median_position_error_ratio'], 2)}x ours)")
+                parts.append(
+                    f"{ratio(r[m]['rate_ratio'])} the frame rate of {m} "
+                    f"(CPU time: {ratio(r[m]['cpu_ratio'])}; "
+                    f"its median position error is {f1(r[m]['median_position_error_ratio'], 2)}x "
+                    "ours)"
+                )
         out.append(f"{name}: ours runs at " + "; ".join(parts))
     return out
 
@@ -155,23 +224,38 @@ def summary_text(results: dict) -> str:
     """What ``sfmloc bench`` prints at the end."""
     parts = []
     if localization_suites(results):
-        parts += ["Table 2 (our engine, all frames of each suite)", text_table(TABLE2_HEADER, table2_rows(results)), "",
-                  "Side by side on the same frames", text_table(COMPARE_HEADER, compare_rows(results)), ""]
+        parts += [
+            "Table 2 (our engine, all frames of each suite)",
+            text_table(TABLE2_HEADER, table2_rows(results)),
+            "",
+            "Side by side on the same frames",
+            text_table(COMPARE_HEADER, compare_rows(results)),
+            "",
+        ]
         parts += ratio_lines(results) + [""]
         for name in localization_suites(results):
             st = results["suites"][name].get("stages_ms", {})
             if st and all(isinstance(v, dict) for v in st.values()):
-                parts += [f"Where our time goes, {name} (ms; mean/frame over all frames, the other "
-                          "columns over the frames the stage ran in)",
-                          text_table(list(STAGE_COLUMNS), stage_rows(st)), ""]
+                parts += [
+                    f"Where our time goes, {name} (ms; mean/frame over all frames, the other "
+                    "columns over the frames the stage ran in)",
+                    text_table(list(STAGE_COLUMNS), stage_rows(st)),
+                    "",
+                ]
     from .robust_report import ROBUST_HEADER, robust_rows
 
     if robust_rows(results):
-        parts += ["Robust suite (ours / pycolmap-sift)",
-                  text_table(ROBUST_HEADER, robust_rows(results)), ""]
+        parts += [
+            "Robust suite (ours / pycolmap-sift)",
+            text_table(ROBUST_HEADER, robust_rows(results)),
+            "",
+        ]
     if throughput_rows(results):
-        parts += ["Throughput (one sfmloc serve, Zenoh loopback)",
-                  text_table(THROUGHPUT_HEADER, throughput_rows(results)), ""]
+        parts += [
+            "Throughput (one sfmloc serve, Zenoh loopback)",
+            text_table(THROUGHPUT_HEADER, throughput_rows(results)),
+            "",
+        ]
     m = results.get("suites", {}).get("map")
     if m:
         parts.append("map " + map_line(m))
@@ -182,20 +266,38 @@ def summary_text(results: dict) -> str:
 
 
 def map_line(m: dict) -> str:
-    return (f"{m['map']}: {m['images']} images, {m['points']} points, {m['descriptors']} descriptors "
-            f"({m['descriptors_per_point']:.1f}/point); built in {m['build_s']:.1f} s; bundle {m['bundle_mb']:.1f} MB; "
-            f"loads in {m['load_s'] * 1e3:.0f} ms ({m['load_s_verified'] * 1e3:.0f} ms with checksums); resident "
-            f"{m['rss_mb']:.1f} MB = {m['rss_mb_per_million_descriptors']:.0f} MB per million descriptors")
+    return (
+        f"{m['map']}: {m['images']} images, {m['points']} points, {m['descriptors']} descriptors "
+        f"({m['descriptors_per_point']:.1f}/point); built in {m['build_s']:.1f} s; bundle "
+        f"{m['bundle_mb']:.1f} MB; "
+        f"loads in {m['load_s'] * 1e3:.0f} ms ({m['load_s_verified'] * 1e3:.0f} ms with "
+        "checksums); resident "
+        f"{m['rss_mb']:.1f} MB = {m['rss_mb_per_million_descriptors']:.0f} MB per million "
+        "descriptors"
+    )
 
 
 # --------------------------------------------------------------------------- per-frame files
 def frame_dicts(records: list[FrameRecord]) -> list[dict]:
-    return [{
-        "index": r.index, "name": r.name, "stamp": r.stamp, "status": r.status, "matching": r.matching,
-        "latency_ms": r.latency_ms, "cpu_ms": r.cpu_ms, "inliers": r.inliers, "detected": r.detected,
-        "tracked": r.tracked, "tracked_3d": r.tracked_3d, "position_error_m": r.position_error_m,
-        "rotation_error_deg": r.rotation_error_deg, "timings_ms": r.timings_ms,
-    } for r in records]
+    return [
+        {
+            "index": r.index,
+            "name": r.name,
+            "stamp": r.stamp,
+            "status": r.status,
+            "matching": r.matching,
+            "latency_ms": r.latency_ms,
+            "cpu_ms": r.cpu_ms,
+            "inliers": r.inliers,
+            "detected": r.detected,
+            "tracked": r.tracked,
+            "tracked_3d": r.tracked_3d,
+            "position_error_m": r.position_error_m,
+            "rotation_error_deg": r.rotation_error_deg,
+            "timings_ms": r.timings_ms,
+        }
+        for r in records
+    ]
 
 
 def write_tum_pair(records: list[FrameRecord], est_path: Path, gt_path: Path) -> int:
@@ -212,40 +314,72 @@ def _suite_section(name: str, s: dict) -> list[str]:
     lines = [f"## {name}", "", SUITE_HELP.get(name, ""), ""]
     mp = s.get("map", {})
     lines.append(
-        f"Map: {mp.get('map_images', '')}: {mp.get('images', '?')} images, {mp.get('points', '?')} points, "
-        f"{mp.get('descriptors', '?')} DAISY descriptors, built in {f1(mp.get('build_s'))} s. SIFT peer's map: "
+        f"Map: {mp.get('map_images', '')}: {mp.get('images', '?')} images, {mp.get('points', '?')} "
+        "points, "
+        f"{mp.get('descriptors', '?')} DAISY descriptors, built in {f1(mp.get('build_s'))} s. SIFT "
+        "peer's map: "
         f"{mp.get('sift_points', '?')} points, {mp.get('sift_descriptors', '?')} SIFT descriptors. "
         f"Frames replayed: {s['frames_replayed']} (from frame {s['start']})."
-        + (f" Scene scale (our map's median camera-to-point depth): {s['scene_scale']:.3g} map "
-           f"units; a pose more than {o['wrong_position_limit']:.3g} units or 10° off is wrong."
-           if "scene_scale" in s else "")
+        + (
+            f" Scene scale (our map's median camera-to-point depth): {s['scene_scale']:.3g} map "
+            f"units; a pose more than {o['wrong_position_limit']:.3g} units or 10° off is wrong."
+            if "scene_scale" in s
+            else ""
+        )
     )
     lines += ["", f"Our engine on all {o['F']} frames (the paper's Table 2 columns and more):", ""]
     lines.append(markdown_table(TABLE2_HEADER, [r for r in table2_rows({"suites": {name: s}})]))
     pf = s["peer_frames"]
-    every = "every replayed frame" if pf["stride"] == 1 else f"every {ordinal(pf['stride'])} replayed frame"
-    lines += ["", f"Side by side on the same {pf['count']} frames ({every}; our engine still runs every frame as "
-              "video and is summarised on these frames):", ""]
+    every = (
+        "every replayed frame"
+        if pf["stride"] == 1
+        else f"every {ordinal(pf['stride'])} replayed frame"
+    )
+    lines += [
+        "",
+        f"Side by side on the same {pf['count']} frames ({every}; our engine still runs every "
+        "frame as "
+        "video and is summarised on these frames):",
+        "",
+    ]
     lines.append(markdown_table(COMPARE_HEADER, [r for r in compare_rows({"suites": {name: s}})]))
     lines += [""] + ratio_lines({"suites": {name: s}})
-    inl = [(m, (s["same_frames"][OURS] if m == OURS else s["methods"].get(m, {})).get("inliers_median"))
-           for m in (OURS, *PEERS)]
-    lines += ["", "Median pose inliers per localized frame (on the same frames): "
-              + ", ".join(f"{m} {f1(v, 0)}" for m, v in inl) + "."]
+    inl = [
+        (
+            m,
+            (s["same_frames"][OURS] if m == OURS else s["methods"].get(m, {})).get(
+                "inliers_median"
+            ),
+        )
+        for m in (OURS, *PEERS)
+    ]
+    lines += [
+        "",
+        "Median pose inliers per localized frame (on the same frames): "
+        + ", ".join(f"{m} {f1(v, 0)}" for m, v in inl)
+        + ".",
+    ]
     lines += stage_lines(s.get("stages_ms", {}))
     for m, st in s.get("peer_stages_ms", {}).items():
         if st:
-            lines.append(f"{m}: " + ", ".join(f"{k} {v:.1f}" for k, v in st.items()) + " ms per frame.")
+            lines.append(
+                f"{m}: " + ", ".join(f"{k} {v:.1f}" for k, v in st.items()) + " ms per frame."
+            )
     f = s.get("files", {})
     lines += [""]
-    for key, cap in (("fig_per_frame", "per frame (cf. the paper's Figures 2 and 4)"),
-                     ("fig_trajectory", "top view"), ("fig_compare", "ours vs the peers on the same frames")):
+    for key, cap in (
+        ("fig_per_frame", "per frame (cf. the paper's Figures 2 and 4)"),
+        ("fig_trajectory", "top view"),
+        ("fig_compare", "ours vs the peers on the same frames"),
+    ):
         if key in f:
             lines.append(f"![{name}: {cap}]({f[key]})")
             lines.append("")
     if "tum" in f:
-        lines.append("Trajectories (TUM, world_from_cam, estimate and ground truth at the same timestamps; "
-                     "`evo_ape tum GT EST -a`): " + ", ".join(f"`{p}`" for p in f["tum"]) + ".")
+        lines.append(
+            "Trajectories (TUM, world_from_cam, estimate and ground truth at the same timestamps; "
+            "`evo_ape tum GT EST -a`): " + ", ".join(f"`{p}`" for p in f["tum"]) + "."
+        )
     return lines + [""]
 
 
@@ -255,36 +389,62 @@ def stage_lines(st: dict) -> list[str]:
     if not st:
         return []
     if all(isinstance(v, dict) for v in st.values()):
-        return ["", "Where our time goes (ms; mean/frame over all frames, the other columns over the "
-                "frames the stage ran in):", "", markdown_table(list(STAGE_COLUMNS), stage_rows(st))]
+        return [
+            "",
+            "Where our time goes (ms; mean/frame over all frames, the other columns over the "
+            "frames the stage ran in):",
+            "",
+            markdown_table(list(STAGE_COLUMNS), stage_rows(st)),
+        ]
     tot = sum(st.values())
-    return ["", "Where our time goes (mean ms per frame over all frames): " + ", ".join(
-        f"{k} {v:.1f} ({100 * v / tot:.0f}%)" for k, v in st.items()) + "."]
+    return [
+        "",
+        "Where our time goes (mean ms per frame over all frames): "
+        + ", ".join(f"{k} {v:.1f} ({100 * v / tot:.0f}%)" for k, v in st.items())
+        + ".",
+    ]
 
 
 def write_report(results: dict, out: Path) -> Path:
     m = results.get("machine", {})
-    L = ["# sfmloc bench report", "",
-         f"Generated by `{results.get('command', 'sfmloc bench')}` on {results.get('created_utc', '')} at commit "
-         f"{m.get('git', '?')}, "
-         f"{m.get('cpus', '?')} cores ({m.get('cpu_model', '?')}), load average "
-         f"{f1(m.get('load_average_start'), 2)} at the start and {f1(m.get('load_average_end'), 2)} at the end "
-         f"(other processes share the machine: wall-clock times include their interference; the CPU-time "
-         f"columns do not). Wall time of the run: {results.get('wall_s', float('nan')):.0f} s. Every number and "
-         f"figure here was measured by this run.", "",
-         "Methods:", ""]
+    L = [
+        "# sfmloc bench report",
+        "",
+        f"Generated by `{results.get('command', 'sfmloc bench')}` on "
+        f"{results.get('created_utc', '')} at commit "
+        f"{m.get('git', '?')}, "
+        f"{m.get('cpus', '?')} cores ({m.get('cpu_model', '?')}), load average "
+        f"{f1(m.get('load_average_start'), 2)} at the start and {f1(m.get('load_average_end'), 2)} "
+        "at the end "
+        "(other processes share the machine: wall-clock times include their interference; the "
+        "CPU-time "
+        f"columns do not). Wall time of the run: {results.get('wall_s', float('nan')):.0f} s. "
+        "Every number and "
+        f"figure here was measured by this run.",
+        "",
+        "Methods:",
+        "",
+    ]
     L += [f"- **{k}**: {v}" for k, v in METHOD_NOTE.items()]
-    L += ["", "Timing: T is the time of one call on an already decoded frame (wall clock; decoding excluded), "
-          "OpenCV, BLAS, faiss and pycolmap's RANSAC on one thread; CPU is the process's CPU time for "
-          "the same call. M counts frames in which 2D-3D matching ran (guided or global); T_M is their time. "
-          "Errors are those of the raw per-frame pose against ground truth; rotation error is the angle of "
-          f"R_est R_gt^T. \"wrong poses\" counts frames with a pose under "
-          f"{wrong_pose_rule(results)} (every method on a suite is judged against our map's scene "
-          "scale; a client acts on every pose it receives, whatever its status). "
-          f"\"≤{RECALL_POSITION_FRACTION:.1%} depth/5°\" is the share of frames (LOST counting as "
-          "misses) within that fraction of the scene scale and 5°, the scene-relative analogue of "
-          "≤5 cm/5°. ATE is the RMSE of camera centres after SE(3) alignment. The peers get one "
-          "untimed warm-up call; our engine does not (its first frame is a global matching).", ""]
+    L += [
+        "",
+        "Timing: T is the time of one call on an already decoded frame (wall clock; decoding "
+        "excluded), "
+        "OpenCV, BLAS, faiss and pycolmap's RANSAC on one thread; CPU is the process's CPU time "
+        "for "
+        "the same call. M counts frames in which 2D-3D matching ran (guided or global); T_M is "
+        "their time. "
+        "Errors are those of the raw per-frame pose against ground truth; rotation error is the "
+        "angle of "
+        f'R_est R_gt^T. "wrong poses" counts frames with a pose under '
+        f"{wrong_pose_rule(results)} (every method on a suite is judged against our map's scene "
+        "scale; a client acts on every pose it receives, whatever its status). "
+        f'"≤{RECALL_POSITION_FRACTION:.1%} depth/5°" is the share of frames (LOST counting as '
+        "misses) within that fraction of the scene scale and 5°, the scene-relative analogue of "
+        "≤5 cm/5°. ATE is the RMSE of camera centres after SE(3) alignment. The peers get one "
+        "untimed warm-up call; our engine does not (its first frame is a global matching).",
+        "",
+    ]
     targets = results.get("targets", [])
     if targets:
         L += ["## Targets", ""]
@@ -300,33 +460,63 @@ def write_report(results: dict, out: Path) -> Path:
         L += _tuning_section(tun)
     t = results.get("suites", {}).get("throughput")
     if t:
-        L += ["## throughput", "", SUITE_HELP["throughput"] + ".", "",
-              f"Server: {t['server']}, {t['workers']} workers; {t['rate_hz']:g} Hz per client for "
-              f"{t['duration_s']:g} s, JPEG frames. Delivered = poses received per second; dropped = frames "
-              "without a pose (the server keeps only each client's newest frame when it falls behind); latency = "
-              "frame published -> pose received, p50 of the median client and p99 of the worst client.", "",
-              markdown_table(THROUGHPUT_HEADER, throughput_rows(results)), ""]
+        L += [
+            "## throughput",
+            "",
+            SUITE_HELP["throughput"] + ".",
+            "",
+            f"Server: {t['server']}, {t['workers']} workers; {t['rate_hz']:g} Hz per client for "
+            f"{t['duration_s']:g} s, JPEG frames. Delivered = poses received per second; dropped = "
+            "frames "
+            "without a pose (the server keeps only each client's newest frame when it falls "
+            "behind); latency = "
+            "frame published -> pose received, p50 of the median client and p99 of the worst "
+            "client.",
+            "",
+            markdown_table(THROUGHPUT_HEADER, throughput_rows(results)),
+            "",
+        ]
         if "fig_throughput" in t:
             L += [f"![throughput]({t['fig_throughput']})", ""]
     mp = results.get("suites", {}).get("map")
     if mp:
-        L += ["## map", "", map_line(mp) + ".", "",
-              "Build stages (s): " + ", ".join(f"{k} {v:.1f}" for k, v in mp["build_stages_s"].items()) + ". "
-              f"Resident memory is VmRSS of a fresh process after loading the bundle (checksums verified, as the "
-              f"server loads it) and reading every array the engine reads (and building the point -> image "
-              f"lookup), minus VmRSS before (numpy, OpenCV, faiss already imported): {mp['rss_anon_mb']:.1f} MB "
-              f"anonymous (the ANN index and lookups) + {mp['rss_file_mb']:.1f} MB file-backed (memory-mapped "
-              f"arrays, reclaimable page cache); {mp['rss_mb_after_load_only']:.1f} MB right after loading. A "
-              f"worker adds {mp['worker_extra_rss_mb']:.1f} MB of engine buffers after localizing "
-              f"{mp['probe_frames']} frames (per worker, not per map). The paper's Table 1 lists 107-124 MB for "
-              f"1.0-1.4 million descriptors (~90-120 MB per million).", ""]
+        L += [
+            "## map",
+            "",
+            map_line(mp) + ".",
+            "",
+            "Build stages (s): "
+            + ", ".join(f"{k} {v:.1f}" for k, v in mp["build_stages_s"].items())
+            + ". "
+            "Resident memory is VmRSS of a fresh process after loading the bundle (checksums "
+            "verified, as the "
+            "server loads it) and reading every array the engine reads (and building the point -> "
+            "image "
+            "lookup), minus VmRSS before (numpy, OpenCV, faiss already imported): "
+            f"{mp['rss_anon_mb']:.1f} MB "
+            f"anonymous (the ANN index and lookups) + {mp['rss_file_mb']:.1f} MB file-backed "
+            "(memory-mapped "
+            f"arrays, reclaimable page cache); {mp['rss_mb_after_load_only']:.1f} MB right after "
+            "loading. A "
+            f"worker adds {mp['worker_extra_rss_mb']:.1f} MB of engine buffers after localizing "
+            f"{mp['probe_frames']} frames (per worker, not per map). The paper's Table 1 lists "
+            "107-124 MB for "
+            f"1.0-1.4 million descriptors (~90-120 MB per million).",
+            "",
+        ]
         sm = mp.get("sift_peer_map")
         if sm:
-            L += [f"The SIFT peer's map of the same images: {sm['points']} points, {sm['descriptors']} SIFT "
-                  f"descriptors ({sm['descriptor_mb_uint8']:.1f} MB as uint8); the peer indexes "
-                  f"{sm.get('indexed_vectors', sm['descriptors'])} vectors ({sm.get('layout', 'all')} layout) in a "
-                  f"faiss HNSW index of about {sm['faiss_hnsw_mb']:.0f} MB (float32 vectors plus graph links, "
-                  "computed from the sizes, not measured).", ""]
+            L += [
+                f"The SIFT peer's map of the same images: {sm['points']} points, "
+                f"{sm['descriptors']} SIFT "
+                f"descriptors ({sm['descriptor_mb_uint8']:.1f} MB as uint8); the peer indexes "
+                f"{sm.get('indexed_vectors', sm['descriptors'])} vectors "
+                f"({sm.get('layout', 'all')} layout) in a "
+                f"faiss HNSW index of about {sm['faiss_hnsw_mb']:.0f} MB (float32 vectors plus "
+                "graph links, "
+                "computed from the sizes, not measured).",
+                "",
+            ]
     notes = results.get("notes", [])
     if notes:
         L += ["## Notes", ""] + [f"- {n}" for n in notes] + [""]
@@ -337,29 +527,54 @@ def write_report(results: dict, out: Path) -> Path:
 
 def _tuning_section(t: dict) -> list[str]:
     c = t["chosen"]
-    L = ["## Tuning the pycolmap-sift peer", "",
-         f"On {len(t['frames'])} frames of {t['suite']} that are not map images (frames "
-         f"{t['frames'][0]}-{t['frames'][-1]}), before the measured runs. Query SIFT uses the map's extractor and "
-         f"settings (OpenCV SIFT as COLMAP stores it, RootSIFT, up to 4000 features, contrast threshold 0.015: "
-         f"{t['ms_extract_opencv_sift']:.0f} ms per frame here; pycolmap's own SIFT extractor, one thread, takes "
-         f"{f1(t['ms_extract_pycolmap_sift'], 0)} ms on the same frames, so the faster one is what the peer uses). "
-         f"Map: {t['map_points']} points, {t['map_descriptors']} descriptors. Criterion: {t['criterion']}.", "",
-         "| descriptors | ratio | RANSAC max error (px) | localized | ≤5 cm/5° | med. pos (cm) | med. rot (°) | "
-         "exact search (ms) | ratio test + pose (ms) | per frame with the chosen search (ms) |",
-         "|---|---|---|---|---|---|---|---|---|---|"]
+    L = [
+        "## Tuning the pycolmap-sift peer",
+        "",
+        f"On {len(t['frames'])} frames of {t['suite']} that are not map images (frames "
+        f"{t['frames'][0]}-{t['frames'][-1]}), before the measured runs. Query SIFT uses the map's "
+        "extractor and "
+        "settings (OpenCV SIFT as COLMAP stores it, RootSIFT, up to 4000 features, contrast "
+        "threshold 0.015: "
+        f"{t['ms_extract_opencv_sift']:.0f} ms per frame here; pycolmap's own SIFT extractor, one "
+        "thread, takes "
+        f"{f1(t['ms_extract_pycolmap_sift'], 0)} ms on the same frames, so the faster one is what "
+        "the peer uses). "
+        f"Map: {t['map_points']} points, {t['map_descriptors']} descriptors. Criterion: "
+        f"{t['criterion']}.",
+        "",
+        "| descriptors | ratio | RANSAC max error (px) | localized | ≤5 cm/5° | med. pos (cm) | "
+        "med. rot (°) | "
+        "exact search (ms) | ratio test + pose (ms) | per frame with the chosen search (ms) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for r in t["grid"]:
-        L.append(f"| {r['descriptors']} | {r['ratio']:g} | {r['ransac_max_error_px']:g} | {r['localized_pct']:.0f}% | "
-                 f"{r['recall_5cm_5deg_pct']:.0f}% | {cm(r['median_position_error_m'])} | "
-                 f"{f1(r['median_rotation_error_deg'], 2)} | {r['ms_search_exact']:.0f} | {r['ms_match_pose']:.0f} | "
-                 f"{f1(r.get('ms_per_frame'), 0)} |")
-    L += ["", "| descriptors | HNSW efSearch | NN recall vs exact | search (ms) | exact (ms) |",
-          "|---|---|---|---|---|"]
+        L.append(
+            f"| {r['descriptors']} | {r['ratio']:g} | {r['ransac_max_error_px']:g} | "
+            f"{r['localized_pct']:.0f}% | "
+            f"{r['recall_5cm_5deg_pct']:.0f}% | {cm(r['median_position_error_m'])} | "
+            f"{f1(r['median_rotation_error_deg'], 2)} | {r['ms_search_exact']:.0f} | "
+            f"{r['ms_match_pose']:.0f} | "
+            f"{f1(r.get('ms_per_frame'), 0)} |"
+        )
+    L += [
+        "",
+        "| descriptors | HNSW efSearch | NN recall vs exact | search (ms) | exact (ms) |",
+        "|---|---|---|---|---|",
+    ]
     for r in t["search"]:
-        L.append(f"| {r['descriptors']} | {r['ef_search']} | {r['recall_at_1'] * 100:.2f}% | {r['ms_search']:.0f} | "
-                 f"{r['ms_search_exact']:.0f} |")
-    L += ["", f"Chosen: descriptors={c['descriptors']}, ratio={c['ratio']:g}, RANSAC max error "
-          f"{c['ransac_max_error_px']:g} px, search={c['search']}" + (f" (HNSW M={c['hnsw_m']}, efSearch="
-          f"{c['ef_search']})" if c["search"] == "hnsw" else "") + f", at least {c['min_inliers']} inliers.", ""]
+        L.append(
+            f"| {r['descriptors']} | {r['ef_search']} | {r['recall_at_1'] * 100:.2f}% | "
+            f"{r['ms_search']:.0f} | "
+            f"{r['ms_search_exact']:.0f} |"
+        )
+    L += [
+        "",
+        f"Chosen: descriptors={c['descriptors']}, ratio={c['ratio']:g}, RANSAC max error "
+        f"{c['ransac_max_error_px']:g} px, search={c['search']}"
+        + (f" (HNSW M={c['hnsw_m']}, efSearch={c['ef_search']})" if c["search"] == "hnsw" else "")
+        + f", at least {c['min_inliers']} inliers.",
+        "",
+    ]
     return L
 
 

@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
 from ..cameras import Camera
 from ..errors import InputError
 from ..transforms import Rigid3d
@@ -49,7 +50,7 @@ class SiftMap:
     @classmethod
     def from_sfm_workdir(
         cls, workdir: str | Path, point_ids: np.ndarray | None = None, sfm: dict | None = None
-    ) -> "SiftMap":
+    ) -> SiftMap:
         """Points (restricted to ``point_ids`` when given, in that order) and their observations'
         descriptors from a kept SfM work folder (``database.db`` + ``sparse/``). Ids the folder
         does not hold are skipped: a bundle's Harris points (``HARRIS_POINT_ID_BASE`` and up)
@@ -58,18 +59,23 @@ class SiftMap:
 
         workdir = Path(workdir)
         if not (workdir / "database.db").is_file() or not (workdir / "sparse").is_dir():
-            raise InputError(f"{workdir} is not a kept SfM work folder (database.db and sparse/ expected)")
+            raise InputError(
+                f"{workdir} is not a kept SfM work folder (database.db and sparse/ expected)"
+            )
         rec = pycolmap.Reconstruction(str(workdir / "sparse"))
         db = pycolmap.Database.open(str(workdir / "database.db"))
         try:
-            descs = {int(iid): np.asarray(db.read_descriptors(iid).data, np.uint8) for iid in rec.images}
+            descs = {
+                int(iid): np.asarray(db.read_descriptors(iid).data, np.uint8) for iid in rec.images
+            }
         finally:
             db.close()
         if point_ids is None:
             ids = np.array(sorted(rec.points3D), np.int64)
         else:
-            ids = np.array([p for p in np.asarray(point_ids, np.int64).tolist() if p in rec.points3D],
-                           np.int64)
+            ids = np.array(
+                [p for p in np.asarray(point_ids, np.int64).tolist() if p in rec.points3D], np.int64
+            )
         xyz = np.empty((len(ids), 3), np.float64)
         rows: list[np.ndarray] = []
         owner: list[np.ndarray] = []
@@ -85,15 +91,27 @@ class SiftMap:
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(path.name + ".tmp.npz")
-        np.savez(tmp, points_xyz=self.points_xyz, point_ids=self.point_ids, desc=self.desc,
-                 desc_point=self.desc_point, sfm=np.frombuffer(json.dumps(self.sfm).encode(), np.uint8))
+        np.savez(
+            tmp,
+            points_xyz=self.points_xyz,
+            point_ids=self.point_ids,
+            desc=self.desc,
+            desc_point=self.desc_point,
+            sfm=np.frombuffer(json.dumps(self.sfm).encode(), np.uint8),
+        )
         tmp.replace(path)
         return path
 
     @classmethod
-    def load(cls, path: str | Path) -> "SiftMap":
+    def load(cls, path: str | Path) -> SiftMap:
         with np.load(path, allow_pickle=False) as z:
-            return cls(z["points_xyz"], z["point_ids"], z["desc"], z["desc_point"], json.loads(z["sfm"].tobytes()))
+            return cls(
+                z["points_xyz"],
+                z["point_ids"],
+                z["desc"],
+                z["desc_point"],
+                json.loads(z["sfm"].tobytes()),
+            )
 
     def database(self, mode: str) -> tuple[np.ndarray, np.ndarray]:
         """(descriptors float32, point row of each) for ``mode`` "all" or "mean"."""
@@ -126,7 +144,11 @@ class SiftLocalizer:
     """Single-image SIFT localization against a ``SiftMap`` (stateless per frame)."""
 
     def __init__(
-        self, sift_map: SiftMap, camera: Camera, conf: SiftPeerConf | None = None, index_cache: dict | None = None
+        self,
+        sift_map: SiftMap,
+        camera: Camera,
+        conf: SiftPeerConf | None = None,
+        index_cache: dict | None = None,
     ) -> None:
         import pycolmap
 
@@ -137,7 +159,9 @@ class SiftLocalizer:
         self.sfm_conf = sfm_conf_of(sift_map)
         if self.sfm_conf.sift_backend != "opencv":
             raise InputError(
-                "the SIFT peer extracts query features with OpenCV: build its map with sift_backend='opencv'")
+                "the SIFT peer extracts query features with OpenCV: build its map with "
+                "sift_backend='opencv'"
+            )
         self.camera = camera
         self.pcam = to_pycolmap_camera(camera)
         self.data, self.label = sift_map.database(self.conf.descriptors)
@@ -173,7 +197,9 @@ class SiftLocalizer:
     ) -> tuple[np.ndarray, np.ndarray]:
         return ratio_test(dist, nn, self.label, self.conf.ratio if ratio is None else ratio)
 
-    def pose(self, xy: np.ndarray, X: np.ndarray, max_error: float | None = None) -> tuple[Rigid3d | None, int]:
+    def pose(
+        self, xy: np.ndarray, X: np.ndarray, max_error: float | None = None
+    ) -> tuple[Rigid3d | None, int]:
         import pycolmap
 
         from ..builder.sfm.convert import rigid3d_from_pycolmap
@@ -187,7 +213,11 @@ class SiftLocalizer:
             opts.ransac.random_seed = self.conf.seed
             opts.ransac.num_threads = 1
         r = pycolmap.estimate_and_refine_absolute_pose(
-            np.ascontiguousarray(xy, np.float64), np.ascontiguousarray(X, np.float64), self.pcam, opts, self.ref_opts
+            np.ascontiguousarray(xy, np.float64),
+            np.ascontiguousarray(X, np.float64),
+            self.pcam,
+            opts,
+            self.ref_opts,
         )
         if r is None or int(r["num_inliers"]) < self.conf.min_inliers:
             return None, 0 if r is None else int(r["num_inliers"])
@@ -202,9 +232,18 @@ class SiftLocalizer:
         t2 = time.perf_counter()
         pose, inl = self.pose(xy[q], self.map.points_xyz[p])
         t3 = time.perf_counter()
-        return SiftResult(pose, inl, len(xy), len(q), {
-            "extract": (t1 - t0) * 1e3, "match": (t2 - t1) * 1e3, "pose": (t3 - t2) * 1e3, "total": (t3 - t0) * 1e3,
-        })
+        return SiftResult(
+            pose,
+            inl,
+            len(xy),
+            len(q),
+            {
+                "extract": (t1 - t0) * 1e3,
+                "match": (t2 - t1) * 1e3,
+                "pose": (t3 - t2) * 1e3,
+                "total": (t3 - t0) * 1e3,
+            },
+        )
 
 
 def build_index(data: np.ndarray, search: str, hnsw_m: int = 32):
@@ -220,7 +259,9 @@ def build_index(data: np.ndarray, search: str, hnsw_m: int = 32):
     return index
 
 
-def ratio_test(dist: np.ndarray, nn: np.ndarray, label: np.ndarray, ratio: float) -> tuple[np.ndarray, np.ndarray]:
+def ratio_test(
+    dist: np.ndarray, nn: np.ndarray, label: np.ndarray, ratio: float
+) -> tuple[np.ndarray, np.ndarray]:
     """(query rows, point rows) passing Lowe's test: nearest distance < ratio x the distance to
     the nearest descriptor of a *different* 3D point (several descriptors of one point are not
     ambiguity). A query whose k neighbours all belong to one point passes. faiss distances are

@@ -60,7 +60,8 @@ def method_summary(records: list[FrameRecord], scene_scale: float) -> dict:
         "recall_relative_position_limit": s["within_relative_position_limit"],
         "ate_m": absolute_trajectory_error(records),
         "inliers_median": float(np.median([r.inliers for r in records if is_pose(r.status)]))
-        if s["localized_frames"] else math.nan,
+        if s["localized_frames"]
+        else math.nan,
         "frames_with_groundtruth": with_gt,
         "status_counts": s["status_counts"],
     }
@@ -83,5 +84,7 @@ def ratios(ours: dict, peer: dict) -> dict:
         "rate_ratio": div(peer["T_ms_mean"], ours["T_ms_mean"]),
         "cpu_ratio": div(peer["cpu_ms_mean"], ours["cpu_ms_mean"]),
         "p99_ratio": div(peer["T_ms_p99"], ours["T_ms_p99"]),
-        "median_position_error_ratio": div(peer["median_position_error_m"], ours["median_position_error_m"]),
+        "median_position_error_ratio": div(
+            peer["median_position_error_m"], ours["median_position_error_m"]
+        ),
     }

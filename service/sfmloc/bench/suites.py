@@ -97,15 +97,29 @@ def restrict_pose_file(src: Path, dst: Path, first: int, last: int) -> int:
     lines = []
     for line in src.read_text().splitlines():
         m = _FRAME_NO.search(line)
-        if line.strip() and not line.lstrip().startswith("#") and m and first <= int(m.group(1)) <= last:
+        if (
+            line.strip()
+            and not line.lstrip().startswith("#")
+            and m
+            and first <= int(m.group(1)) <= last
+        ):
             lines.append(line)
     dst.parent.mkdir(parents=True, exist_ok=True)
     dst.write_text("\n".join(lines) + "\n")
     return len(lines)
 
 
-def build_known_poses_maps(name: str, images: Path, poses: Path, camera: Camera, stride: int,
-                           maps: Path, work: Path, sift_path: Path, progress: Progress) -> Path:
+def build_known_poses_maps(
+    name: str,
+    images: Path,
+    poses: Path,
+    camera: Camera,
+    stride: int,
+    maps: Path,
+    work: Path,
+    sift_path: Path,
+    progress: Progress,
+) -> Path:
     """Our bundle ``maps/name`` from every ``stride``-th posed image (the builder's known-poses
     path) and the SIFT peer's map of the very same triangulated points; the bundle's path."""
     from ..builder import build
@@ -114,9 +128,18 @@ def build_known_poses_maps(name: str, images: Path, poses: Path, camera: Camera,
     sfm_dir = _fresh_dir(work / "sfm")
     sfm_conf = _sfm_conf()
     t0 = time.perf_counter()
-    path = build.main(build.preset("default"), name, maps, images=images, poses=poses,
-                      camera=camera, stride=stride, sfm_conf=sfm_conf, workdir=sfm_dir,
-                      progress=progress)
+    path = build.main(
+        build.preset("default"),
+        name,
+        maps,
+        images=images,
+        poses=poses,
+        camera=camera,
+        stride=stride,
+        sfm_conf=sfm_conf,
+        workdir=sfm_dir,
+        progress=progress,
+    )
     log.info("%s: bundle built in %.1f s", name, time.perf_counter() - t0)
     bundle = MapBundle(maps / name, verify=False)
     ids = bundle.array("point_ids")
@@ -131,7 +154,8 @@ def prepare_redkitchen(conf: BenchConf, work: Path, split: bool, progress: Progr
     poses = data / conf.poses
     if not poses.is_file():
         raise InputError(
-            f"real data not found: {poses} (pass --data PATH to a folder of frame-NNNNNN.color.jpg and "
+            f"real data not found: {poses} (pass --data PATH to a folder of frame-NNNNNN.color.jpg "
+            "and "
             f"{conf.poses}, or run only the synthetic suites: --suite synthetic-walk)"
         )
     camera = Camera.parse(conf.camera)
@@ -146,21 +170,37 @@ def prepare_redkitchen(conf: BenchConf, work: Path, split: bool, progress: Progr
         stride, start, count = 5, half, n - half
     else:
         map_poses, stride, start, count = poses, 10, 0, n
-    info: dict = {"map_images": f"every {stride}th of frames " + (f"0-{n // 2 - 1}" if split else f"0-{n - 1}"),
-                  "stride": stride}
+    info: dict = {
+        "map_images": f"every {stride}th of frames "
+        + (f"0-{n // 2 - 1}" if split else f"0-{n - 1}"),
+        "stride": stride,
+    }
     stamp = suite_work / "map-source.json"
-    source_id = {"data": str(data.resolve()), "poses": conf.poses, "frames": n, "stride": stride, "split": split}
-    if _reusable(bundle_path, sift_path, conf.reuse) and stamp.is_file() and json.loads(stamp.read_text()) == source_id:
+    source_id = {
+        "data": str(data.resolve()),
+        "poses": conf.poses,
+        "frames": n,
+        "stride": stride,
+        "split": split,
+    }
+    if (
+        _reusable(bundle_path, sift_path, conf.reuse)
+        and stamp.is_file()
+        and json.loads(stamp.read_text()) == source_id
+    ):
         log.info("%s: reusing %s", name, bundle_path)
     else:
         if split:
             k = restrict_pose_file(poses, map_poses, 0, n // 2 - 1)
             log.info("%s: %d poses of frames 0-%d in %s", name, k, n // 2 - 1, map_poses)
-        build_known_poses_maps(name, data, map_poses, camera, stride, work / "maps", suite_work,
-                               sift_path, progress)
+        build_known_poses_maps(
+            name, data, map_poses, camera, stride, work / "maps", suite_work, sift_path, progress
+        )
         stamp.write_text(json.dumps(source_id))
     gt = load_groundtruth(poses, source.names(), [source.stamp(i) for i in range(n)], source.fps)
-    return Prepared(name, "real", data, camera, gt, start, _limit(count, conf), bundle_path, sift_path, info)
+    return Prepared(
+        name, "real", data, camera, gt, start, _limit(count, conf), bundle_path, sift_path, info
+    )
 
 
 # --------------------------------------------------------------------------- synthetic
@@ -168,9 +208,12 @@ def synth_conf(conf: BenchConf, kind: str):
     """The bench's synthetic room (seed, mapping views, video length), trajectory ``kind``."""
     from ..synth.config import preset as synth_preset
 
-    return synth_preset(kind if kind in ("flight", "orbit") else "default", seed=conf.seed,
-                        mapping_views=conf.synth_mapping_views,
-                        trajectory={"n_frames": conf.synth_frames})
+    return synth_preset(
+        kind if kind in ("flight", "orbit") else "default",
+        seed=conf.seed,
+        mapping_views=conf.synth_mapping_views,
+        trajectory={"n_frames": conf.synth_frames},
+    )
 
 
 def prepare_synthetic(conf: BenchConf, work: Path, kind: str, progress: Progress) -> Prepared:
@@ -184,46 +227,81 @@ def prepare_synthetic(conf: BenchConf, work: Path, kind: str, progress: Progress
     sift_path = suite_work / "sift-map.npz"
     sconf = synth_conf(conf, kind)
     stamp = suite_work / "synth-conf.json"
-    same_data = conf.reuse and (data / "scene.json").is_file() and stamp.is_file() and \
-        json.loads(stamp.read_text()) == json.loads(json.dumps(sconf.model_dump()))
+    same_data = (
+        conf.reuse
+        and (data / "scene.json").is_file()
+        and stamp.is_file()
+        and json.loads(stamp.read_text()) == json.loads(json.dumps(sconf.model_dump()))
+    )
     if not same_data:
         progress(name, 0.0, "rendering the synthetic data set")
         t0 = time.perf_counter()
         res = synth_run(sconf, data, overwrite=True)
         stamp.write_text(json.dumps(sconf.model_dump()))
-        log.info("%s: rendered %d mapping views and %d frames in %.1f s", name, res.n_mapping, res.n_frames,
-                 time.perf_counter() - t0)
+        log.info(
+            "%s: rendered %d mapping views and %d frames in %.1f s",
+            name,
+            res.n_mapping,
+            res.n_frames,
+            time.perf_counter() - t0,
+        )
     camera = Camera.from_json(data / "camera.json")
     if same_data and _reusable(bundle_path, sift_path, True):
         log.info("%s: reusing %s", name, bundle_path)
     else:
-        build.main(build.preset("default"), name, work / "maps", colmap=data / "sparse", images=data / "images",
-                   progress=progress)
-        build_sift_map_of_model(data / "sparse", data / "images", camera, suite_work, sift_path,
-                                progress)
+        build.main(
+            build.preset("default"),
+            name,
+            work / "maps",
+            colmap=data / "sparse",
+            images=data / "images",
+            progress=progress,
+        )
+        build_sift_map_of_model(
+            data / "sparse", data / "images", camera, suite_work, sift_path, progress
+        )
     source = FrameSource(data / "video")
     n = len(source)
-    gt = load_groundtruth(data / "groundtruth.tum", source.names(), [source.stamp(i) for i in range(n)], source.fps)
-    info = {"map_images": f"{conf.synth_mapping_views} rendered mapping views (exact COLMAP model)",
-            "trajectory": kind, "seed": conf.seed}
-    return Prepared(name, "synthetic", data / "video", camera, gt, 0, _limit(n, conf), bundle_path, sift_path, info)
+    gt = load_groundtruth(
+        data / "groundtruth.tum", source.names(), [source.stamp(i) for i in range(n)], source.fps
+    )
+    info = {
+        "map_images": f"{conf.synth_mapping_views} rendered mapping views (exact COLMAP model)",
+        "trajectory": kind,
+        "seed": conf.seed,
+    }
+    return Prepared(
+        name,
+        "synthetic",
+        data / "video",
+        camera,
+        gt,
+        0,
+        _limit(n, conf),
+        bundle_path,
+        sift_path,
+        info,
+    )
 
 
-def build_sift_map_of_model(model_dir: Path, images: Path, camera: Camera, work: Path,
-                            sift_path: Path, progress: Progress) -> Path:
+def build_sift_map_of_model(
+    model_dir: Path, images: Path, camera: Camera, work: Path, sift_path: Path, progress: Progress
+) -> Path:
     """The SIFT peer's map: SIFT of the model's images triangulated at the model's exact poses."""
+    from ..builder import sfm
     from ..io.colmap import read_model
     from ..io.poses import write_colmap_list
-    from ..builder import sfm
 
     model = read_model(model_dir)
     ims = sorted(model.images.values(), key=lambda im: im.name)
-    pose_file = write_colmap_list(work / "map_poses.txt", [im.name for im in ims],
-                                  [im.cam_from_world for im in ims])
+    pose_file = write_colmap_list(
+        work / "map_poses.txt", [im.name for im in ims], [im.cam_from_world for im in ims]
+    )
     sfm_dir = _fresh_dir(work / "sfm")
     sfm_conf = _sfm_conf()
-    rec = sfm.triangulate_known_poses(images, pose_file, camera, conf=sfm_conf, workdir=sfm_dir,
-                                      progress=progress)
+    rec = sfm.triangulate_known_poses(
+        images, pose_file, camera, conf=sfm_conf, workdir=sfm_dir, progress=progress
+    )
     ids = np.array(sorted(rec.points3D), np.int64)
     SiftMap.from_sfm_workdir(_kept_workdir(sfm_dir), ids, sfm_conf.model_dump()).save(sift_path)
     shutil.rmtree(sfm_dir, ignore_errors=True)
@@ -250,8 +328,9 @@ def peer_indices(prep: Prepared, peer_frames: int | None) -> tuple[list[int], in
     return idx[::stride], stride
 
 
-def run_suite(prep: Prepared, conf: BenchConf, sift_conf, progress: Progress,
-              index_cache: dict | None = None) -> dict[str, list[FrameRecord]]:
+def run_suite(
+    prep: Prepared, conf: BenchConf, sift_conf, progress: Progress, index_cache: dict | None = None
+) -> dict[str, list[FrameRecord]]:
     """Our engine on every frame (as a 30 Hz video), both peers on the strided frames."""
     from ..engine import EngineConf
     from ..eval.replay import replay
@@ -263,21 +342,36 @@ def run_suite(prep: Prepared, conf: BenchConf, sift_conf, progress: Progress,
     source = FrameSource(prep.frames_dir, fps=prep.fps)
     log.info("%s: our engine on %d frames", prep.name, prep.count)
     ours, _decode = replay(
-        bundle, source, prep.camera, EngineConf(), prep.groundtruth, start=prep.start, max_frames=prep.count,
-        on_frame=lambda r: progress(f"{prep.name}:{OURS}", (r.index - prep.start + 1) / prep.count,
-                                    f"{r.name} {r.status}"),
+        bundle,
+        source,
+        prep.camera,
+        EngineConf(),
+        prep.groundtruth,
+        start=prep.start,
+        max_frames=prep.count,
+        on_frame=lambda r: progress(
+            f"{prep.name}:{OURS}", (r.index - prep.start + 1) / prep.count, f"{r.name} {r.status}"
+        ),
     )
     idx, stride = peer_indices(prep, conf.peer_frames)
     log.info("%s: peers on %d frames (every %d)", prep.name, len(idx), stride)
     out = {OURS: ours}
     out["global-every-frame"] = run_peer(
-        "global-every-frame", global_every_frame(bundle, prep.camera, EngineConf()), source, idx, prep.groundtruth,
+        "global-every-frame",
+        global_every_frame(bundle, prep.camera, EngineConf()),
+        source,
+        idx,
+        prep.groundtruth,
         progress=lambda s, f, m: progress(f"{prep.name}:{s}", f, m),
     )
     sift_map = SiftMap.load(prep.sift_map_path)
     loc = SiftLocalizer(sift_map, prep.camera, sift_conf, index_cache)
     out["pycolmap-sift"] = run_peer(
-        "pycolmap-sift", sift_peer(loc), source, idx, prep.groundtruth,
+        "pycolmap-sift",
+        sift_peer(loc),
+        source,
+        idx,
+        prep.groundtruth,
         progress=lambda s, f, m: progress(f"{prep.name}:{s}", f, m),
     )
     return out

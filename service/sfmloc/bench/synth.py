@@ -13,8 +13,14 @@ import time
 import numpy as np
 
 
-def bench(kind: str = "walk", frames: int = 300, seed: int = 0, width: int = 640, height: int = 480,
-          **render_kw) -> dict:
+def bench(
+    kind: str = "walk",
+    frames: int = 300,
+    seed: int = 0,
+    width: int = 640,
+    height: int = 480,
+    **render_kw,
+) -> dict:
     from ..cameras import Camera
     from ..synth.config import RenderConf
     from ..synth.renderer import prepare, render
@@ -36,13 +42,22 @@ def bench(kind: str = "walk", frames: int = 300, seed: int = 0, width: int = 640
         times.append(time.perf_counter() - t0)
     cpu = time.process_time() - cpu0
     t = np.array(times)
-    return {"trajectory": kind, "frames": frames, "size": f"{width}x{height}", "fps": float(len(t) / t.sum()),
-            "ms_mean": float(t.mean() * 1e3), "ms_p95": float(np.percentile(t, 95) * 1e3),
-            "ms_max": float(t.max() * 1e3), "cpu_ms": float(cpu / len(t) * 1e3)}
+    return {
+        "trajectory": kind,
+        "frames": frames,
+        "size": f"{width}x{height}",
+        "fps": float(len(t) / t.sum()),
+        "ms_mean": float(t.mean() * 1e3),
+        "ms_p95": float(np.percentile(t, 95) * 1e3),
+        "ms_max": float(t.max() * 1e3),
+        "cpu_ms": float(cpu / len(t) * 1e3),
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m sfmloc.bench.synth", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(
+        prog="python -m sfmloc.bench.synth", description=__doc__.splitlines()[0]
+    )
     p.add_argument("--trajectory", default="all", choices=["all", "walk", "flight", "orbit"])
     p.add_argument("--frames", type=int, default=300)
     p.add_argument("--seed", type=int, default=0)
@@ -52,10 +67,14 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     kinds = ["walk", "flight", "orbit"] if args.trajectory == "all" else [args.trajectory]
     for kind in kinds:
-        r = bench(kind, args.frames, args.seed, args.width, args.height, supersample=args.supersample)
-        print(f"{r['trajectory']:6s} {r['size']} {r['frames']} frames: {r['fps']:.1f} frames/s "
-              f"(mean {r['ms_mean']:.1f} ms, p95 {r['ms_p95']:.1f} ms, max {r['ms_max']:.1f} ms; "
-              f"CPU {r['cpu_ms']:.1f} ms/frame over all threads)")
+        r = bench(
+            kind, args.frames, args.seed, args.width, args.height, supersample=args.supersample
+        )
+        print(
+            f"{r['trajectory']:6s} {r['size']} {r['frames']} frames: {r['fps']:.1f} frames/s "
+            f"(mean {r['ms_mean']:.1f} ms, p95 {r['ms_p95']:.1f} ms, max {r['ms_max']:.1f} ms; "
+            f"CPU {r['cpu_ms']:.1f} ms/frame over all threads)"
+        )
     return 0
 
 

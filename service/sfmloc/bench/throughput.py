@@ -56,11 +56,22 @@ def aggregate(clients: list[dict[str, Any]], rate_hz: float) -> dict[str, Any]:
     }
 
 
-def run_throughput(work: Path, bundle: Path, frames_dir: Path, camera: str, clients: list[int], rate_hz: float,
-                   duration_s: float, workers: int, progress=None) -> dict[str, Any]:
+def run_throughput(
+    work: Path,
+    bundle: Path,
+    frames_dir: Path,
+    camera: str,
+    clients: list[int],
+    rate_hz: float,
+    duration_s: float,
+    workers: int,
+    progress=None,
+) -> dict[str, Any]:
     from ..bench.transport import BenchInput, bench_clients
 
-    frames = sorted(p for p in Path(frames_dir).iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png"))
+    frames = sorted(
+        p for p in Path(frames_dir).iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png")
+    )
     if not frames:
         raise InputError(f"no frames in {frames_dir}")
     maps = serve_folder(work, bundle)
@@ -70,8 +81,16 @@ def run_throughput(work: Path, bundle: Path, frames_dir: Path, camera: str, clie
     rows, raw = [], []
     for k, n in enumerate(clients):
         if progress:
-            progress("throughput", k / len(clients), f"{n} client(s) x {rate_hz:g} Hz x {duration_s:g} s")
-        log.info("throughput: %d client(s) at %g Hz for %g s, %d server workers", n, rate_hz, duration_s, n_workers)
+            progress(
+                "throughput", k / len(clients), f"{n} client(s) x {rate_hz:g} Hz x {duration_s:g} s"
+            )
+        log.info(
+            "throughput: %d client(s) at %g Hz for %g s, %d server workers",
+            n,
+            rate_hz,
+            duration_s,
+            n_workers,
+        )
         res = bench_clients(inp, n, rate_hz, duration_s, n_workers, "process")
         row = aggregate(res["clients"], rate_hz)
         row["load_before"], row["load_after"] = res["load_before"], res["load_after"]
@@ -80,7 +99,13 @@ def run_throughput(work: Path, bundle: Path, frames_dir: Path, camera: str, clie
     if progress:
         progress("throughput", 1.0, "done")
     return {
-        "server": "sfmloc serve (subprocess), Zenoh tcp loopback, multicast scouting off, process workers",
-        "workers": n_workers, "rate_hz": rate_hz, "duration_s": duration_s, "map": bundle.name,
-        "encoding": "jpeg", "rows": rows, "per_client": [r["clients"] for r in raw],
+        "server": "sfmloc serve (subprocess), Zenoh tcp loopback, multicast scouting off, process "
+        "workers",
+        "workers": n_workers,
+        "rate_hz": rate_hz,
+        "duration_s": duration_s,
+        "map": bundle.name,
+        "encoding": "jpeg",
+        "rows": rows,
+        "per_client": [r["clients"] for r in raw],
     }

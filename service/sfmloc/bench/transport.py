@@ -53,11 +53,14 @@ class BenchInput:
         import cv2
 
         self.jpeg = [p.read_bytes() for p in self.frames[:n]]
-        self.gray = [cv2.imdecode(np.frombuffer(b, np.uint8), cv2.IMREAD_GRAYSCALE) for b in self.jpeg]
+        self.gray = [
+            cv2.imdecode(np.frombuffer(b, np.uint8), cv2.IMREAD_GRAYSCALE) for b in self.jpeg
+        ]
 
 
 def _zenoh(endpoint: str) -> Any:
     import zenoh
+
     from sfmloc_client import make_zenoh_config
 
     return zenoh.open(make_zenoh_config("peer", connect=[endpoint], multicast=False))
@@ -67,6 +70,7 @@ def _zenoh(endpoint: str) -> Any:
 def bench_wire(inp: BenchInput, n: int = 300) -> dict[str, Any]:
     import msgpack
     import zenoh
+
     from sfmloc_client import CameraSpec, Frame, decode_frame, encode_frame, make_zenoh_config
 
     cam = CameraSpec.parse(inp.camera)
@@ -77,7 +81,9 @@ def bench_wire(inp: BenchInput, n: int = 300) -> dict[str, Any]:
             t0 = time.perf_counter()
             decode_frame(encode_frame(Frame(k, k, cam, enc, data)))
             t1 = time.perf_counter()
-            header = msgpack.packb({"seq": k, "stamp_ns": k, "camera": cam.to_wire(), "encoding": enc})
+            header = msgpack.packb(
+                {"seq": k, "stamp_ns": k, "camera": cam.to_wire(), "encoding": enc}
+            )
             h = msgpack.unpackb(header)
             CameraSpec.from_wire(h["camera"])
             payload = bytes(data)
@@ -91,8 +97,10 @@ def bench_wire(inp: BenchInput, n: int = 300) -> dict[str, Any]:
 
         # Loopback: publish -> decoded in the subscriber's callback.
         ep = f"tcp/127.0.0.1:{free_port()}"
-        with zenoh.open(make_zenoh_config("peer", listen=[ep], multicast=False)) as a, \
-                zenoh.open(make_zenoh_config("peer", connect=[ep], multicast=False)) as b:
+        with (
+            zenoh.open(make_zenoh_config("peer", listen=[ep], multicast=False)) as a,
+            zenoh.open(make_zenoh_config("peer", connect=[ep], multicast=False)) as b,
+        ):
             got: dict[int, float] = {}
             ev = threading.Event()
 
@@ -111,7 +119,9 @@ def bench_wire(inp: BenchInput, n: int = 300) -> dict[str, Any]:
 
             for mode, cb in (("envelope", on_env), ("attachment", on_att)):
                 sub = a.declare_subscriber(f"bench/{mode}", cb)
-                pub = b.declare_publisher(f"bench/{mode}", express=True, congestion_control=zenoh.CongestionControl.BLOCK)
+                pub = b.declare_publisher(
+                    f"bench/{mode}", express=True, congestion_control=zenoh.CongestionControl.BLOCK
+                )
                 time.sleep(0.3)
                 lat = []
                 for k in range(n):
@@ -120,7 +130,12 @@ def bench_wire(inp: BenchInput, n: int = 300) -> dict[str, Any]:
                     if mode == "envelope":
                         pub.put(encode_frame(Frame(k, k, cam, enc, data)))
                     else:
-                        pub.put(data, attachment=msgpack.packb({"seq": k, "stamp_ns": k, "camera": cam.to_wire(), "encoding": enc}))
+                        pub.put(
+                            data,
+                            attachment=msgpack.packb(
+                                {"seq": k, "stamp_ns": k, "camera": cam.to_wire(), "encoding": enc}
+                            ),
+                        )
                     if ev.wait(5) and k in got:
                         lat.append((got[k] - t0) * 1e3)
                 out[f"{enc}_{mode}_loopback_ms_p50"] = _pct(lat, 50)
@@ -156,19 +171,25 @@ def bench_overhead(inp: BenchInput, n: int) -> dict[str, Any]:
     spec = CameraSpec.parse(inp.camera)
     with ServerProcess(inp.maps, workers=1) as srv, _zenoh(srv.endpoint) as z:
         for enc in ("gray8", "jpeg"):
-            payloads = [encode_image(g, "gray8") for g in inp.gray[:n]] if enc == "gray8" else inp.jpeg[:n]
+            payloads = (
+                [encode_image(g, "gray8") for g in inp.gray[:n]] if enc == "gray8" else inp.jpeg[:n]
+            )
             cid = f"bench-{enc}"
             recv: dict[int, tuple[float, Any]] = {}
             cond = threading.Condition()
 
-            def on_pose(p: Any, recv: dict[int, tuple[float, Any]] = recv,
-                        cond: threading.Condition = cond) -> None:
+            def on_pose(
+                p: Any, recv: dict[int, tuple[float, Any]] = recv, cond: threading.Condition = cond
+            ) -> None:
                 with cond:
                     recv[p.seq] = (time.perf_counter(), p)
                     cond.notify_all()
 
             rtt, per_frame, server_lat, engine = [], [], [], []
-            with PoseSubscriber(z, inp.map_name, cid, callback=on_pose), FrameStreamer(z, inp.map_name, cid, spec) as fs:
+            with (
+                PoseSubscriber(z, inp.map_name, cid, callback=on_pose),
+                FrameStreamer(z, inp.map_name, cid, spec) as fs,
+            ):
                 fs.wait_for_server(30)
                 for k, data in enumerate(payloads):
                     t0 = time.perf_counter()
@@ -187,7 +208,9 @@ def bench_overhead(inp: BenchInput, n: int) -> dict[str, Any]:
             out[f"{enc}_server_engine_ms_p50"] = _pct(engine, 50)
             out[f"{enc}_overhead_ms_p50"] = _pct(per_frame, 50)  # round trip - engine, per frame
             out[f"{enc}_overhead_ms_p90"] = _pct(per_frame, 90)
-            out[f"{enc}_e2e_minus_inprocess_p50_ms"] = out[f"{enc}_e2e_ms_p50"] - out["inprocess_engine_ms_p50"]
+            out[f"{enc}_e2e_minus_inprocess_p50_ms"] = (
+                out[f"{enc}_e2e_ms_p50"] - out["inprocess_engine_ms_p50"]
+            )
     return out
 
 
@@ -215,9 +238,14 @@ def _child_pids(pid: int) -> list[int]:
     return out
 
 
-
-def _relocalize_load(grpc_addr: str, inp: BenchInput, spec: Any, rate: float, stop: threading.Event,
-                     out: dict[str, Any]) -> None:
+def _relocalize_load(
+    grpc_addr: str,
+    inp: BenchInput,
+    spec: Any,
+    rate: float,
+    stop: threading.Event,
+    out: dict[str, Any],
+) -> None:
     """Single-image Relocalize calls over gRPC at ``rate`` Hz (back to back when slower) until
     ``stop``: the load of one client relocalizing beside the streams."""
     from sfmloc_client import LocalizationClient
@@ -241,9 +269,18 @@ def _relocalize_load(grpc_addr: str, inp: BenchInput, spec: Any, rate: float, st
     out.update(calls=len(lat), ms_p50=_pct(lat, 50), ms_p99=_pct(lat, 99))
 
 
-def bench_clients(inp: BenchInput, clients: int, rate: float, duration: float, workers: int, kind: str,
-                  encoding: str = "jpeg", max_pending: int = 1, reloc_rate: float = 0.0,
-                  reloc_workers: int | None = None) -> dict[str, Any]:
+def bench_clients(
+    inp: BenchInput,
+    clients: int,
+    rate: float,
+    duration: float,
+    workers: int,
+    kind: str,
+    encoding: str = "jpeg",
+    max_pending: int = 1,
+    reloc_rate: float = 0.0,
+    reloc_workers: int | None = None,
+) -> dict[str, Any]:
     from sfmloc_client import CameraSpec, FrameStreamer, PoseSubscriber
 
     spec = CameraSpec.parse(inp.camera)
@@ -284,8 +321,11 @@ def bench_clients(inp: BenchInput, clients: int, rate: float, duration: float, w
                         engine.append(p.engine_ms)
 
             offset = (i * len(inp.jpeg)) // clients
-            with _zenoh(srv.endpoint) as z, PoseSubscriber(z, inp.map_name, cid, callback=on_pose) as poses, \
-                    FrameStreamer(z, inp.map_name, cid, spec) as fs:
+            with (
+                _zenoh(srv.endpoint) as z,
+                PoseSubscriber(z, inp.map_name, cid, callback=on_pose) as poses,
+                FrameStreamer(z, inp.map_name, cid, spec) as fs,
+            ):
                 fs.wait_for_server(30)
                 # Warm-up: the first frame relocalizes; the measurement starts tracking.
                 fs.publish(data=frames[offset], encoding=encoding, seq=0)
@@ -309,19 +349,30 @@ def bench_clients(inp: BenchInput, clients: int, rate: float, duration: float, w
             with lock:
                 received = last["received"]
                 results[i] = {
-                    "client": cid, "sent": n_frames, "received": received,
+                    "client": cid,
+                    "sent": n_frames,
+                    "received": received,
                     "dropped_by_server": last["dropped"] - base_dropped,
-                    "lost": n_frames - received, "drop_pct": 100.0 * (n_frames - received) / n_frames,
-                    "errors": last["errors"], "rate_hz": n_frames / elapsed,
-                    "latency_ms_p50": _pct(lat, 50), "latency_ms_p99": _pct(lat, 99),
-                    "server_latency_ms_p50": _pct(server_lat, 50), "server_latency_ms_p99": _pct(server_lat, 99),
-                    "engine_ms_p50": _pct(engine, 50), "engine_ms_mean": float(np.mean(engine)) if engine else float("nan"),
+                    "lost": n_frames - received,
+                    "drop_pct": 100.0 * (n_frames - received) / n_frames,
+                    "errors": last["errors"],
+                    "rate_hz": n_frames / elapsed,
+                    "latency_ms_p50": _pct(lat, 50),
+                    "latency_ms_p99": _pct(lat, 99),
+                    "server_latency_ms_p50": _pct(server_lat, 50),
+                    "server_latency_ms_p99": _pct(server_lat, 99),
+                    "engine_ms_p50": _pct(engine, 50),
+                    "engine_ms_mean": float(np.mean(engine)) if engine else float("nan"),
                     "localized": sum(1 for _ in engine),
                 }
 
         threads = [threading.Thread(target=client, args=(i,)) for i in range(clients)]
         reloc_thread = threading.Thread(target=relocalizer) if reloc_rate > 0 else None
-        pids = {"server": [srv.proc.pid], "workers": _child_pids(srv.proc.pid), "clients": [os.getpid()]}
+        pids = {
+            "server": [srv.proc.pid],
+            "workers": _child_pids(srv.proc.pid),
+            "clients": [os.getpid()],
+        }
         cpu0 = {k: sum(_cpu_seconds(p) for p in v) for k, v in pids.items()}
         t0 = time.perf_counter()
         for t in threads + ([reloc_thread] if reloc_thread else []):
@@ -333,8 +384,16 @@ def bench_clients(inp: BenchInput, clients: int, rate: float, duration: float, w
             reloc_thread.join()
         wall = time.perf_counter() - t0
         cores = {k: (sum(_cpu_seconds(p) for p in v) - cpu0[k]) / wall for k, v in pids.items()}
-    return {"workers": workers, "kind": kind, "encoding": encoding, "clients": results, "load_before": load0, "load_after": os.getloadavg()[0],
-            "cores_used": cores, "relocalize": reloc}
+    return {
+        "workers": workers,
+        "kind": kind,
+        "encoding": encoding,
+        "clients": results,
+        "load_before": load0,
+        "load_after": os.getloadavg()[0],
+        "cores_used": cores,
+        "relocalize": reloc,
+    }
 
 
 # ============================================================================ memory
@@ -369,8 +428,12 @@ def _mapped_kb(pid: int, fragment: str) -> int:
     return total
 
 
-def bench_memory(inp: BenchInput, workers_list: tuple[int, ...] = (1, 2, 4), frames: int = 30,
-                 env: dict[str, str] | None = None) -> dict[str, Any]:
+def bench_memory(
+    inp: BenchInput,
+    workers_list: tuple[int, ...] = (1, 2, 4),
+    frames: int = 30,
+    env: dict[str, str] | None = None,
+) -> dict[str, Any]:
     """Resident memory of the server and its workers with the map loaded and one session per
     worker that has streamed ``frames`` frames (every worker has searched the index)."""
     from sfmloc_client import CameraSpec, FrameStreamer, PoseSubscriber
@@ -381,8 +444,10 @@ def bench_memory(inp: BenchInput, workers_list: tuple[int, ...] = (1, 2, 4), fra
         with ServerProcess(inp.maps, workers=w, env=env) as srv, _zenoh(srv.endpoint) as z:
             for i in range(w):  # sessions go to the least busy worker: one each
                 cid = f"bench-memory-{i}"
-                with PoseSubscriber(z, inp.map_name, cid) as poses, \
-                        FrameStreamer(z, inp.map_name, cid, spec) as fs:
+                with (
+                    PoseSubscriber(z, inp.map_name, cid) as poses,
+                    FrameStreamer(z, inp.map_name, cid, spec) as fs,
+                ):
                     fs.wait_for_server(30)
                     for k in range(frames):
                         data = inp.jpeg[(i * 97 + k) % len(inp.jpeg)]
@@ -393,16 +458,21 @@ def bench_memory(inp: BenchInput, workers_list: tuple[int, ...] = (1, 2, 4), fra
             rows = {}
             for name, pid in procs.items():
                 r = _smaps_rollup(pid)
-                rows[name] = {"rss_kb": r.get("Rss", 0), "pss_kb": r.get("Pss", 0),
-                              "anon_kb": r.get("Anonymous", 0),
-                              "index_file_kb": _mapped_kb(pid, "index_faiss")}
+                rows[name] = {
+                    "rss_kb": r.get("Rss", 0),
+                    "pss_kb": r.get("Pss", 0),
+                    "anon_kb": r.get("Anonymous", 0),
+                    "index_file_kb": _mapped_kb(pid, "index_faiss"),
+                }
             total = {k: sum(r[k] for r in rows.values()) for k in ("rss_kb", "pss_kb", "anon_kb")}
             out["runs"].append({"workers": w, "processes": rows, "total": total})
     return out
 
 
 # ============================================================================ engine scaling
-def _engine_job(maps: str, map_name: str, frames: list[str], camera: str, start_at: float = 0.0) -> tuple[float, float, list[float]]:
+def _engine_job(
+    maps: str, map_name: str, frames: list[str], camera: str, start_at: float = 0.0
+) -> tuple[float, float, list[float]]:
     """Localize ``frames`` in sequence (one Localizer): (start, end) wall times and per-frame
     engine milliseconds. Runs in a worker thread or process; all start at ``start_at`` (wall
     time), after their imports and loading."""
@@ -436,7 +506,7 @@ def bench_engine(inp: BenchInput, parallel: int, n: int, repeat: int = 3) -> dic
     from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 
     step = max(1, len(inp.frames) // parallel)
-    jobs = [[str(p) for p in (inp.frames[i * step:] + inp.frames)[:n]] for i in range(parallel)]
+    jobs = [[str(p) for p in (inp.frames[i * step :] + inp.frames)[:n]] for i in range(parallel)]
     args = (str(inp.maps), inp.map_name)
     best: dict[str, tuple[float, float]] = {}  # mode -> (frames/s, p50 ms)
     runs: dict[str, list[float]] = {"single": [], "thread": [], "process": []}
@@ -453,14 +523,21 @@ def bench_engine(inp: BenchInput, parallel: int, n: int, repeat: int = 3) -> dic
                 ex = ProcessPoolExecutor(parallel, mp_context=mp.get_context("spawn"))
                 start_at = time.time() + 8.0  # time for the processes to import and load
             with ex:
-                res = list(ex.map(_engine_job, *zip(*[(*args, j, inp.camera, start_at) for j in jobs])))
+                res = list(
+                    ex.map(_engine_job, *zip(*[(*args, j, inp.camera, start_at) for j in jobs]))
+                )
             start, end = min(r[0] for r in res), max(r[1] for r in res)
             lats = [x for r in res for x in r[2]]
             fps = len(lats) / (end - start)
             runs[kind].append(fps)
             if fps >= best.get(kind, (0.0, 0.0))[0]:
                 best[kind] = (fps, _pct(lats, 50))
-    out: dict[str, Any] = {"parallel": parallel, "frames_each": n - 1, "repeat": repeat, "runs_fps": runs}
+    out: dict[str, Any] = {
+        "parallel": parallel,
+        "frames_each": n - 1,
+        "repeat": repeat,
+        "runs_fps": runs,
+    }
     for mode, (fps, p50) in best.items():
         out[f"{mode}_fps"], out[f"{mode}_ms_p50"] = fps, p50
     for kind in ("thread", "process"):
@@ -488,79 +565,173 @@ def run(args: Any) -> int:
         raise InputError(f"no JPEG frames in {frames_dir}")
     maps = Path(args.maps)
     if not (maps / args.map / "manifest.json").is_file():
-        raise InputError(f"no map bundle {maps / args.map} (--maps DIR --map NAME; build one with `sfmloc build`)")
+        raise InputError(
+            f"no map bundle {maps / args.map} (--maps DIR --map NAME; build one with `sfmloc "
+            "build`)"
+        )
     Camera.parse(args.camera)
     inp = BenchInput(maps, args.map, frames, args.camera)
     every = {"wire", "overhead", "engine", "clients", "workers", "memory"}
     only = set(args.only.split(",")) if args.only else every
-    inp.load(max(args.n, int(args.rate * args.duration) + 10) if only & {"clients", "workers"} else args.n)
+    inp.load(
+        max(args.n, int(args.rate * args.duration) + 10)
+        if only & {"clients", "workers"}
+        else args.n
+    )
     report: dict[str, Any] = {"load_average": os.getloadavg(), "cpus": os.cpu_count()}
-    print(f"sfmloc bench-transport: {len(inp.jpeg)} frames of {frames_dir}, map {maps / args.map}, "
-          f"{os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f}")
+    print(
+        f"sfmloc bench-transport: {len(inp.jpeg)} frames of {frames_dir}, map {maps / args.map}, "
+        f"{os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f}"
+    )
     if "wire" in only:
         w = report["wire"] = bench_wire(inp, n=min(300, args.n * 2))
         rows = []
         for enc in ("gray8", "jpeg"):
             rows += [
                 (f"{enc} frame", f"{w[f'{enc}_bytes']} bytes"),
-                (f"{enc} envelope encode+decode", f"{w[f'{enc}_envelope_codec_us_p50']:.1f} us p50"),
-                (f"{enc} attachment encode+decode", f"{w[f'{enc}_attachment_codec_us_p50']:.1f} us p50"),
-                (f"{enc} loopback envelope", f"{w[f'{enc}_envelope_loopback_ms_p50']:.3f} ms p50, {w[f'{enc}_envelope_loopback_ms_p99']:.3f} p99"),
-                (f"{enc} loopback attachment", f"{w[f'{enc}_attachment_loopback_ms_p50']:.3f} ms p50, {w[f'{enc}_attachment_loopback_ms_p99']:.3f} p99"),
+                (
+                    f"{enc} envelope encode+decode",
+                    f"{w[f'{enc}_envelope_codec_us_p50']:.1f} us p50",
+                ),
+                (
+                    f"{enc} attachment encode+decode",
+                    f"{w[f'{enc}_attachment_codec_us_p50']:.1f} us p50",
+                ),
+                (
+                    f"{enc} loopback envelope",
+                    f"{w[f'{enc}_envelope_loopback_ms_p50']:.3f} ms p50, "
+                    f"{w[f'{enc}_envelope_loopback_ms_p99']:.3f} p99",
+                ),
+                (
+                    f"{enc} loopback attachment",
+                    f"{w[f'{enc}_attachment_loopback_ms_p50']:.3f} ms p50, "
+                    f"{w[f'{enc}_attachment_loopback_ms_p99']:.3f} p99",
+                ),
             ]
         _print_table("wire: envelope vs attachment (publish -> decoded in the subscriber)", rows)
     if "overhead" in only:
         o = report["overhead"] = bench_overhead(inp, args.n)
-        rows = [("in-process engine", f"{o['inprocess_engine_ms_p50']:.2f} ms p50, {o['inprocess_engine_ms_p99']:.2f} p99")]
+        rows = [
+            (
+                "in-process engine",
+                f"{o['inprocess_engine_ms_p50']:.2f} ms p50, {o['inprocess_engine_ms_p99']:.2f} "
+                "p99",
+            )
+        ]
         for enc in ("gray8", "jpeg"):
             rows += [
-                (f"{enc} end to end (publish -> pose)", f"{o[f'{enc}_e2e_ms_p50']:.2f} ms p50, {o[f'{enc}_e2e_ms_p99']:.2f} p99"),
+                (
+                    f"{enc} end to end (publish -> pose)",
+                    f"{o[f'{enc}_e2e_ms_p50']:.2f} ms p50, {o[f'{enc}_e2e_ms_p99']:.2f} p99",
+                ),
                 (f"{enc} engine in the server", f"{o[f'{enc}_server_engine_ms_p50']:.2f} ms p50"),
-                (f"{enc} overhead per frame (e2e - engine)", f"{o[f'{enc}_overhead_ms_p50']:.2f} ms p50, {o[f'{enc}_overhead_ms_p90']:.2f} p90"),
-                (f"{enc} e2e p50 - in-process p50", f"{o[f'{enc}_e2e_minus_inprocess_p50_ms']:.2f} ms"),
+                (
+                    f"{enc} overhead per frame (e2e - engine)",
+                    f"{o[f'{enc}_overhead_ms_p50']:.2f} ms p50, {o[f'{enc}_overhead_ms_p90']:.2f} "
+                    "p90",
+                ),
+                (
+                    f"{enc} e2e p50 - in-process p50",
+                    f"{o[f'{enc}_e2e_minus_inprocess_p50_ms']:.2f} ms",
+                ),
             ]
-        _print_table(f"overhead: Zenoh loopback vs in-process engine ({args.n} frames, lockstep, 1 worker)", rows)
+        _print_table(
+            f"overhead: Zenoh loopback vs in-process engine ({args.n} frames, lockstep, 1 worker)",
+            rows,
+        )
     if "engine" in only:
-        e = report["engine"] = bench_engine(inp, args.workers or (os.cpu_count() or 1), args.n, args.repeat)
+        e = report["engine"] = bench_engine(
+            inp, args.workers or (os.cpu_count() or 1), args.n, args.repeat
+        )
         rows = [("1 Localizer", f"{e['single_fps']:.1f} frames/s, {e['single_ms_p50']:.1f} ms p50")]
         for kind in ("thread", "process"):
-            rows.append((f"{e['parallel']} Localizers in {kind}s",
-                         f"{e[f'{kind}_fps']:.1f} frames/s ({e[f'{kind}_speedup']:.2f}x), {e[f'{kind}_ms_p50']:.1f} ms p50 per frame"))
-        rows.append(("all runs (frames/s)", "; ".join(f"{k} " + ", ".join(f"{v:.0f}" for v in vs) for k, vs in e["runs_fps"].items())))
-        _print_table(f"engine scaling: Localizers flat out, {e['frames_each']} frames each, best of {e['repeat']} (no transport)", rows)
+            rows.append(
+                (
+                    f"{e['parallel']} Localizers in {kind}s",
+                    f"{e[f'{kind}_fps']:.1f} frames/s ({e[f'{kind}_speedup']:.2f}x), "
+                    f"{e[f'{kind}_ms_p50']:.1f} ms p50 per frame",
+                )
+            )
+        rows.append(
+            (
+                "all runs (frames/s)",
+                "; ".join(
+                    f"{k} " + ", ".join(f"{v:.0f}" for v in vs) for k, vs in e["runs_fps"].items()
+                ),
+            )
+        )
+        _print_table(
+            f"engine scaling: Localizers flat out, {e['frames_each']} frames each, best of "
+            f"{e['repeat']} (no transport)",
+            rows,
+        )
     lanes: list[int | None] = [None]
     if args.relocalize_workers:
         lanes = [int(v) for v in args.relocalize_workers.split(",")]
     sections = (("clients", "process"), ("workers", "thread"))
-    runs = [(section, kind, lane) for section, kind in sections if section in only
-            for lane in lanes]
+    runs = [
+        (section, kind, lane) for section, kind in sections if section in only for lane in lanes
+    ]
     for section, kind, lane in runs:
-        c = bench_clients(inp, args.clients, args.rate, args.duration,
-                          args.workers or (os.cpu_count() or 1), kind, args.encoding,
-                          args.max_pending, args.relocalize_rate, lane)
+        c = bench_clients(
+            inp,
+            args.clients,
+            args.rate,
+            args.duration,
+            args.workers or (os.cpu_count() or 1),
+            kind,
+            args.encoding,
+            args.max_pending,
+            args.relocalize_rate,
+            lane,
+        )
         report[section if len(lanes) == 1 else f"{section}-relocalize-workers-{lane}"] = c
         rows = []
         for r in c["clients"]:
-            rows.append((r["client"], f"sent {r['sent']} poses {r['received']} dropped {r['drop_pct']:.2f}% "
-                                      f"({r['dropped_by_server']} stale) errors {r['errors']}  latency p50 "
-                                      f"{r['latency_ms_p50']:.1f} ms p99 {r['latency_ms_p99']:.1f} ms  "
-                                      f"(server p50 {r['server_latency_ms_p50']:.1f} p99 {r['server_latency_ms_p99']:.1f}, "
-                                      f"engine p50 {r['engine_ms_p50']:.1f} mean {r['engine_ms_mean']:.1f})"))
+            rows.append(
+                (
+                    r["client"],
+                    f"sent {r['sent']} poses {r['received']} dropped {r['drop_pct']:.2f}% "
+                    f"({r['dropped_by_server']} stale) errors {r['errors']}  latency p50 "
+                    f"{r['latency_ms_p50']:.1f} ms p99 {r['latency_ms_p99']:.1f} ms  "
+                    f"(server p50 {r['server_latency_ms_p50']:.1f} p99 "
+                    f"{r['server_latency_ms_p99']:.1f}, "
+                    f"engine p50 {r['engine_ms_p50']:.1f} mean {r['engine_ms_mean']:.1f})",
+                )
+            )
         worst = max(r["drop_pct"] for r in c["clients"])
-        rows.append(("worst drop", f"{worst:.2f}%  (load average {c['load_before']:.2f} -> {c['load_after']:.2f})"))
+        rows.append(
+            (
+                "worst drop",
+                f"{worst:.2f}%  (load average {c['load_before']:.2f} -> {c['load_after']:.2f})",
+            )
+        )
         cu = c["cores_used"]
-        rows.append(("CPU (cores)", f"server main process {cu['server']:.2f}, workers {cu['workers']:.2f}, "
-                                    f"clients (this process) {cu['clients']:.2f}"))
+        rows.append(
+            (
+                "CPU (cores)",
+                f"server main process {cu['server']:.2f}, workers {cu['workers']:.2f}, "
+                f"clients (this process) {cu['clients']:.2f}",
+            )
+        )
         rl = c["relocalize"]
         if args.relocalize_rate > 0:
             nan = float("nan")
-            rows.append(("Relocalize beside them",
-                         f"{rl.get('calls', 0)} calls at {args.relocalize_rate:g} Hz, p50 "
-                         f"{rl.get('ms_p50', nan):.0f} ms p99 {rl.get('ms_p99', nan):.0f} ms, "
-                         f"errors {rl.get('errors', 0)}"))
+            rows.append(
+                (
+                    "Relocalize beside them",
+                    f"{rl.get('calls', 0)} calls at {args.relocalize_rate:g} Hz, p50 "
+                    f"{rl.get('ms_p50', nan):.0f} ms p99 {rl.get('ms_p99', nan):.0f} ms, "
+                    f"errors {rl.get('errors', 0)}",
+                )
+            )
         lane_s = "" if lane is None else f", relocalize workers {lane}"
-        _print_table(f"{args.clients} clients x {args.rate:g} Hz x {args.duration:g} s, {args.encoding} frames, "
-                     f"{c['workers']} {kind} workers{lane_s}, max pending {args.max_pending}", rows)
+        _print_table(
+            f"{args.clients} clients x {args.rate:g} Hz x {args.duration:g} s, {args.encoding} "
+            "frames, "
+            f"{c['workers']} {kind} workers{lane_s}, max pending {args.max_pending}",
+            rows,
+        )
     if "memory" in only:
         m = report["memory"] = bench_memory(inp)
         rows = []
@@ -569,12 +740,19 @@ def run(args: Any) -> int:
             wk = [v for k, v in r["processes"].items() if k.startswith("worker")]
             pss = ", ".join(f"{v['pss_kb'] / 1024:.0f}" for v in wk)
             index = ", ".join(f"{v['index_file_kb'] / 1024:.1f}" for v in wk)
-            rows.append((f"{r['workers']} worker(s)",
-                         f"total RSS {t['rss_kb'] / 1024:.0f} MB, PSS {t['pss_kb'] / 1024:.0f} MB, "
-                         f"anonymous {t['anon_kb'] / 1024:.0f} MB; per worker PSS {pss} MB, "
-                         f"index file resident {index} MB"))
-        _print_table("memory: server + workers, map loaded, one session per worker "
-                     f"({m['frames_per_session']} frames each)", rows)
+            rows.append(
+                (
+                    f"{r['workers']} worker(s)",
+                    f"total RSS {t['rss_kb'] / 1024:.0f} MB, PSS {t['pss_kb'] / 1024:.0f} MB, "
+                    f"anonymous {t['anon_kb'] / 1024:.0f} MB; per worker PSS {pss} MB, "
+                    f"index file resident {index} MB",
+                )
+            )
+        _print_table(
+            "memory: server + workers, map loaded, one session per worker "
+            f"({m['frames_per_session']} frames each)",
+            rows,
+        )
     if args.json:
         Path(args.json).write_text(json.dumps(report, indent=2, default=float))
         print(f"\nwrote {args.json}")

@@ -40,8 +40,13 @@ def tuning_frames(prep, n: int) -> list[int]:
     names = source.names()
     map_images = set(read_manifest(prep.bundle_path).image_names)
     stems = {nm.split(".")[0] for nm in map_images}
-    cand = [i for i in prep.indices if names[i] not in map_images and names[i].split(".")[0] not in stems
-            and prep.groundtruth[i] is not None]
+    cand = [
+        i
+        for i in prep.indices
+        if names[i] not in map_images
+        and names[i].split(".")[0] not in stems
+        and prep.groundtruth[i] is not None
+    ]
     if len(cand) <= n:
         return cand
     return [cand[int(round(j))] for j in np.linspace(0, len(cand) - 1, n)]
@@ -68,7 +73,9 @@ def _pycolmap_sift_ms(grays: list[np.ndarray]) -> float:
         return float("nan")
 
 
-def tune_sift(prep, conf, progress: Callable[[str, float, str], None] | None = None) -> tuple[SiftPeerConf, dict]:
+def tune_sift(
+    prep, conf, progress: Callable[[str, float, str], None] | None = None
+) -> tuple[SiftPeerConf, dict]:
     """The chosen peer settings and the tuning table (for the report)."""
     frames = tuning_frames(prep, conf.tune_frames)
     sift_map = SiftMap.load(prep.sift_map_path)
@@ -92,8 +99,12 @@ def tune_sift(prep, conf, progress: Callable[[str, float, str], None] | None = N
     for mode in conf.tune_descriptors:
         data, label = sift_map.database(mode)
         exact = build_index(data, "exact")
-        loc = SiftLocalizer(sift_map, prep.camera, base.model_copy(update={"descriptors": mode, "search": "exact"}),
-                            {(mode, "exact", base.hnsw_m): exact})
+        loc = SiftLocalizer(
+            sift_map,
+            prep.camera,
+            base.model_copy(update={"descriptors": mode, "search": "exact"}),
+            {(mode, "exact", base.hnsw_m): exact},
+        )
         searched, t_search = [], []
         for _xy, desc in feats:
             t0 = time.perf_counter()
@@ -116,15 +127,30 @@ def tune_sift(prep, conf, progress: Callable[[str, float, str], None] | None = N
                     per[c]["err"].append(pose_errors(pose, gt))
         for c, v in per.items():
             e = np.array(v["err"]).reshape(-1, 2)
-            good = int(np.sum((e[:, 0] <= RECALL_POSITION_M) & (e[:, 1] <= RECALL_ROTATION_DEG))) if len(e) else 0
-            rows.append({
-                "descriptors": c[0], "ratio": c[1], "ransac_max_error_px": c[2], "frames": len(frames),
-                "localized_pct": 100.0 * v["loc"] / len(frames), "recall_5cm_5deg_pct": 100.0 * good / len(frames),
-                "median_position_error_m": float(np.median(e[:, 0])) if len(e) else float("nan"),
-                "median_rotation_error_deg": float(np.median(e[:, 1])) if len(e) else float("nan"),
-                "ms_extract": float(np.mean(t_extract)), "ms_search_exact": float(np.mean(t_search)),
-                "ms_match_pose": float(np.mean(v["t_pose"])),
-            })
+            good = (
+                int(np.sum((e[:, 0] <= RECALL_POSITION_M) & (e[:, 1] <= RECALL_ROTATION_DEG)))
+                if len(e)
+                else 0
+            )
+            rows.append(
+                {
+                    "descriptors": c[0],
+                    "ratio": c[1],
+                    "ransac_max_error_px": c[2],
+                    "frames": len(frames),
+                    "localized_pct": 100.0 * v["loc"] / len(frames),
+                    "recall_5cm_5deg_pct": 100.0 * good / len(frames),
+                    "median_position_error_m": float(np.median(e[:, 0]))
+                    if len(e)
+                    else float("nan"),
+                    "median_rotation_error_deg": float(np.median(e[:, 1]))
+                    if len(e)
+                    else float("nan"),
+                    "ms_extract": float(np.mean(t_extract)),
+                    "ms_search_exact": float(np.mean(t_search)),
+                    "ms_match_pose": float(np.mean(v["t_pose"])),
+                }
+            )
         # HNSW recall against exact search, per efSearch.
         hnsw = build_index(data, "hnsw", base.hnsw_m)
         for ef in conf.tune_ef:
@@ -136,12 +162,23 @@ def tune_sift(prep, conf, progress: Callable[[str, float, str], None] | None = N
                 t.append((time.perf_counter() - t0) * 1e3)
                 agree += int(np.sum(nh[:, 0] == nn[:, 0]))
                 nq += len(nn)
-            search_rows.append({"descriptors": mode, "ef_search": ef, "recall_at_1": agree / max(1, nq),
-                                "ms_search": float(np.mean(t)), "ms_search_exact": float(np.mean(t_search))})
+            search_rows.append(
+                {
+                    "descriptors": mode,
+                    "ef_search": ef,
+                    "recall_at_1": agree / max(1, nq),
+                    "ms_search": float(np.mean(t)),
+                    "ms_search_exact": float(np.mean(t_search)),
+                }
+            )
     # Search cost per layout: the fastest HNSW setting reaching the recall bar, else exact.
     search_pick: dict[str, tuple[str, int, float]] = {}
     for mode in conf.tune_descriptors:
-        ok = [s for s in search_rows if s["descriptors"] == mode and s["recall_at_1"] >= conf.tune_min_recall]
+        ok = [
+            s
+            for s in search_rows
+            if s["descriptors"] == mode and s["recall_at_1"] >= conf.tune_min_recall
+        ]
         exact_ms = next(r["ms_search_exact"] for r in rows if r["descriptors"] == mode)
         if ok:
             pick = min(ok, key=lambda s: s["ms_search"])
@@ -155,23 +192,40 @@ def tune_sift(prep, conf, progress: Callable[[str, float, str], None] | None = N
     top = max(r["recall_5cm_5deg_pct"] for r in rows)
     cands = [r for r in rows if r["recall_5cm_5deg_pct"] == top]
     best_err = min(_nan_big(r["median_position_error_m"]) for r in cands)
-    tied = [r for r in cands if _nan_big(r["median_position_error_m"]) <= best_err * (1 + ACCURACY_TIE)]
+    tied = [
+        r for r in cands if _nan_big(r["median_position_error_m"]) <= best_err * (1 + ACCURACY_TIE)
+    ]
     best = min(tied, key=lambda r: r["ms_per_frame"])
     mode = best["descriptors"]
     search, ef, _ms = search_pick[mode]
-    chosen = base.model_copy(update={"descriptors": mode, "ratio": best["ratio"],
-                                     "ransac_max_error_px": best["ransac_max_error_px"], "search": search,
-                                     "ef_search": ef})
+    chosen = base.model_copy(
+        update={
+            "descriptors": mode,
+            "ratio": best["ratio"],
+            "ransac_max_error_px": best["ransac_max_error_px"],
+            "search": search,
+            "ef_search": ef,
+        }
+    )
     table = {
-        "suite": prep.name, "frames": frames, "grid": rows, "search": search_rows, "chosen": chosen.model_dump(),
-        "criterion": "most frames within 5 cm / 5 deg; among those, the median position errors within "
-                     f"{ACCURACY_TIE:.0%} of the best count as tied and the fastest of them wins (per-frame time "
-                     "= extraction + search + ratio test and pose); the search is the fastest HNSW efSearch whose "
-                     f"nearest neighbour agrees with exact search on >= {conf.tune_min_recall:.0%} of the queries "
-                     "(else exact search)",
+        "suite": prep.name,
+        "frames": frames,
+        "grid": rows,
+        "search": search_rows,
+        "chosen": chosen.model_dump(),
+        "criterion": "most frames within 5 cm / 5 deg; among those, the median position errors "
+        "within "
+        f"{ACCURACY_TIE:.0%} of the best count as tied and the fastest of them wins (per-frame "
+        "time "
+        "= extraction + search + ratio test and pose); the search is the fastest HNSW efSearch "
+        "whose "
+        f"nearest neighbour agrees with exact search on >= {conf.tune_min_recall:.0%} of the "
+        "queries "
+        "(else exact search)",
         "ms_extract_opencv_sift": float(np.mean(t_extract)),
         "ms_extract_pycolmap_sift": _pycolmap_sift_ms(grays[: min(10, len(grays))]),
-        "map_points": sift_map.n_points, "map_descriptors": int(len(sift_map.desc)),
+        "map_points": sift_map.n_points,
+        "map_descriptors": int(len(sift_map.desc)),
     }
     log.info("SIFT peer tuned on %d frames of %s: %s", len(frames), prep.name, chosen.model_dump())
     return chosen, table

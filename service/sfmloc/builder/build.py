@@ -36,17 +36,17 @@ from ..errors import BuildCancelled, BuildError, ImageDecodeError
 from ..features.daisy import RAW_DIM, DaisyExtractor
 from ..features.pyramid import level_scales
 from ..io.colmap import Reconstruction
-from ..transforms import Rigid3d
 from ..map.bundle import MapData, validate_name, write_bundle
+from ..map.index import DescriptorIndex, IndexConf
+from ..map.keypoint_scales import keypoint_scales
+from ..map.report import map_report
+from ..transforms import Rigid3d
 from .clusters import ClusterConf, cluster_images
 from .desc_store import RawStore
 from .descriptors import DescriptorConf, extract_image_descriptors
-from ..map.index import DescriptorIndex, IndexConf
-from ..map.keypoint_scales import keypoint_scales
 from .harris_points import HarrisPointsConf, harris_points
 from .pca import project_store
 from .refine import RefineConf, refine_points
-from ..map.report import map_report
 
 log = logging.getLogger(__name__)
 
@@ -86,7 +86,9 @@ PRESETS: dict[str, dict[str, Any]] = {
 
 def preset(name: str) -> BuildConf:
     if name not in PRESETS:
-        raise BuildError(f"unknown preset {name!r}; choose from {', '.join(PRESETS)}", stage="config")
+        raise BuildError(
+            f"unknown preset {name!r}; choose from {', '.join(PRESETS)}", stage="config"
+        )
     return merge_presets(BuildConf(), **PRESETS[name])
 
 
@@ -100,12 +102,17 @@ def load_gray(path: Path, camera: Camera) -> np.ndarray:
         raise ImageDecodeError(f"image {path} is missing")
     data = np.fromfile(str(path), dtype=np.uint8)
     # Stored pixels, no EXIF rotation: the SfM model (COLMAP) describes the stored image.
-    img = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION) if data.size else None
+    img = (
+        cv2.imdecode(data, cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION)
+        if data.size
+        else None
+    )
     if img is None:
         raise ImageDecodeError(f"image {path} cannot be decoded")
     if img.shape != (camera.height, camera.width):
         raise ImageDecodeError(
-            f"image {path} is {img.shape[1]}x{img.shape[0]}, its camera says {camera.width}x{camera.height}"
+            f"image {path} is {img.shape[1]}x{img.shape[0]}, its camera says "
+            f"{camera.width}x{camera.height}"
         )
     return img
 
@@ -143,9 +150,14 @@ def _assemble(
     if conf.harris_points.enabled:
         t0 = time.perf_counter()
         dc = conf.descriptors
-        detector = {"rel_threshold": dc.harris_rel_threshold, "border": dc.border, "subpixel": dc.subpixel}
-        rec, hp_stats = harris_points(rec, image_dir, load_gray, conf.harris_points, detector, progress,
-                                      should_cancel)
+        detector = {
+            "rel_threshold": dc.harris_rel_threshold,
+            "border": dc.border,
+            "subpixel": dc.subpixel,
+        }
+        rec, hp_stats = harris_points(
+            rec, image_dir, load_gray, conf.harris_points, detector, progress, should_cancel
+        )
         timings["harris_points"] = time.perf_counter() - t0
         log.info("Harris points: %s", hp_stats)
         if not rec.points3D:
@@ -164,7 +176,9 @@ def _assemble(
     image_points: list[np.ndarray] = []
     for im in images:
         ids = im.point3D_ids[im.point3D_ids >= 0]
-        rows = np.array(sorted({row_of_point[int(p)] for p in ids if int(p) in row_of_point}), dtype=np.int64)
+        rows = np.array(
+            sorted({row_of_point[int(p)] for p in ids if int(p) in row_of_point}), dtype=np.int64
+        )
         image_points.append(rows)
 
     # ---- descriptors
@@ -178,7 +192,9 @@ def _assemble(
         cam = rec.cameras[im.camera_id]
         gray = load_gray(image_dir / im.name, cam)
         pts = image_points[i]
-        d = extract_image_descriptors(gray, cam, im.cam_from_world, points_xyz[pts], conf.descriptors, extractor)
+        d = extract_image_descriptors(
+            gray, cam, im.cam_from_world, points_xyz[pts], conf.descriptors, extractor
+        )
         store.append(d.raw)
         counts.append(len(d.raw))
         dpoint.append(pts[d.point_index].astype(np.int32))
@@ -206,8 +222,14 @@ def _assemble(
     t0 = time.perf_counter()
     progress("refine", 0.0, "re-triangulating points at their Harris keypoints")
     points_xyz, moved = refine_points(
-        points_xyz, desc_point, desc_image, desc_level, desc_xy,
-        [rec.cameras[im.camera_id] for im in images], [im.cam_from_world for im in images], conf.refine,
+        points_xyz,
+        desc_point,
+        desc_image,
+        desc_level,
+        desc_xy,
+        [rec.cameras[im.camera_id] for im in images],
+        [im.cam_from_world for im in images],
+        conf.refine,
         full_resolution_level=conf.descriptors.up_levels,
     )
     timings["refine"] = time.perf_counter() - t0
@@ -231,7 +253,9 @@ def _assemble(
     pc_ptr, pc_idx = clusters.point_clusters(image_points, len(point_ids))
     ci_ptr = np.zeros(len(clusters) + 1, np.int64)
     ci_ptr[1:] = np.cumsum([len(c) for c in clusters.images])
-    ci_idx = np.concatenate(clusters.images).astype(np.int32) if len(clusters) else np.zeros(0, np.int32)
+    ci_idx = (
+        np.concatenate(clusters.images).astype(np.int32) if len(clusters) else np.zeros(0, np.int32)
+    )
     timings["clusters"] = time.perf_counter() - t0
     progress("clusters", 1.0, f"{len(clusters)} clusters")
 
@@ -258,7 +282,10 @@ def _assemble(
         desc_xy=desc_xy,
         image_desc_ptr=image_desc_ptr,
         image_cam_from_world=np.stack(
-            [np.concatenate([im.cam_from_world.quat_wxyz, im.cam_from_world.translation]) for im in images]
+            [
+                np.concatenate([im.cam_from_world.quat_wxyz, im.cam_from_world.translation])
+                for im in images
+            ]
         ),
         image_camera=np.array([cam_row[im.camera_id] for im in images], np.int32),
         image_points_ptr=ip_ptr,
@@ -274,11 +301,17 @@ def _assemble(
         image_names=[im.name for im in images],
     )
     data.keypoint_scales = keypoint_scales(
-        data.desc_image, data.desc_level, data.image_camera, cameras,
-        level_scales(conf.descriptors.octaves, conf.descriptors.per_octave, conf.descriptors.up_levels),
+        data.desc_image,
+        data.desc_level,
+        data.image_camera,
+        cameras,
+        level_scales(
+            conf.descriptors.octaves, conf.descriptors.per_octave, conf.descriptors.up_levels
+        ),
     )
     info = {
-        **index_info, "corners_detected": n_corners,
+        **index_info,
+        "corners_detected": n_corners,
         "points_refined": int(moved.sum()),
         **{f"harris_{k}": v for k, v in hp_stats.items()},
     }
@@ -335,29 +368,49 @@ def main(
                 raise BuildError("give either --colmap or --poses, not both", stage="input")
             source = {"kind": "colmap", "model": str(colmap), "images": str(image_dir)}
             progress("sfm", 0.0, f"reading COLMAP model {colmap}")
-            rec = sfm.load_colmap_input(colmap, image_dir, conf=sfm_conf, progress=progress, should_cancel=should_cancel)
+            rec = sfm.load_colmap_input(
+                colmap, image_dir, conf=sfm_conf, progress=progress, should_cancel=should_cancel
+            )
         elif poses is not None:
             if cam is None:
-                raise BuildError("--poses needs --camera (camera.json or 'MODEL w h params...')", stage="input")
+                raise BuildError(
+                    "--poses needs --camera (camera.json or 'MODEL w h params...')", stage="input"
+                )
             source = {
-                "kind": "known-poses", "poses": str(poses), "images": str(image_dir), "camera": cam.to_dict(),
+                "kind": "known-poses",
+                "poses": str(poses),
+                "images": str(image_dir),
+                "camera": cam.to_dict(),
                 "stride": stride,
             }
             rec = sfm.triangulate_known_poses(
-                image_dir, poses, cam, conf=sfm_conf, workdir=workdir, progress=progress,
-                should_cancel=should_cancel, stride=stride,
+                image_dir,
+                poses,
+                cam,
+                conf=sfm_conf,
+                workdir=workdir,
+                progress=progress,
+                should_cancel=should_cancel,
+                stride=stride,
             )
         else:
             source = {"kind": "images-only", "images": str(image_dir), "stride": stride}
             rec = sfm.reconstruct_images_only(
-                image_dir, cam, conf=sfm_conf, workdir=workdir, progress=progress,
-                should_cancel=should_cancel, stride=stride,
+                image_dir,
+                cam,
+                conf=sfm_conf,
+                workdir=workdir,
+                progress=progress,
+                should_cancel=should_cancel,
+                stride=stride,
             )
         source.update(source_extra or {})
         progress("sfm", 1.0, rec.summary())
         timings["sfm"] = time.perf_counter() - t0
         log.info("reconstruction: %s", rec.summary())
-        data, t_stages, index_info = assemble(rec, image_dir, conf, progress, should_cancel, workdir=workdir)
+        data, t_stages, index_info = assemble(
+            rec, image_dir, conf, progress, should_cancel, workdir=workdir
+        )
         timings.update(t_stages)
         if should_cancel and should_cancel():
             raise BuildCancelled("cancelled", stage="write")
@@ -367,7 +420,11 @@ def main(
         if sfm_conf is not None and hasattr(sfm_conf, "model_dump"):
             params["sfm"] = sfm_conf.model_dump()
         report = map_report(
-            data.points_xyz, data.image_points_ptr, data.image_points_idx, data.cameras, data.image_camera,
+            data.points_xyz,
+            data.image_points_ptr,
+            data.image_points_idx,
+            data.cameras,
+            data.image_camera,
             [Rigid3d.from_quat_wxyz(q[:4], q[4:]) for q in data.image_cam_from_world],
         )
         for w in report["warnings"]:
@@ -377,14 +434,22 @@ def main(
         timings["write"] = time.perf_counter() - t0
         timings["total"] = time.perf_counter() - t_all
         path = write_bundle(
-            data, out_dir, name, source=source, params=params, timings_s=timings, index_info=index_info,
+            data,
+            out_dir,
+            name,
+            source=source,
+            params=params,
+            timings_s=timings,
+            index_info=index_info,
             report=report,
         )
         progress("write", 1.0, str(path) + "".join(f"; WARNING: {w}" for w in report["warnings"]))
         return path
     except OSError as exc:
         # A full disk, permissions, ...: name the file and the stage.
-        raise BuildError(f"{exc.strerror or exc} ({exc.filename or out_dir})", stage=stage[0]) from None
+        raise BuildError(
+            f"{exc.strerror or exc} ({exc.filename or out_dir})", stage=stage[0]
+        ) from None
     except cv2.error as exc:
         # An OpenCV limit or assertion (e.g. an image too large for one call) is a build error
         # naming the stage, not a traceback; the detail is in the message's last line.

@@ -39,11 +39,17 @@ class Clusters:
     def __len__(self) -> int:
         return len(self.images)
 
-    def point_clusters(self, image_points: list[np.ndarray], n_points: int) -> tuple[np.ndarray, np.ndarray]:
+    def point_clusters(
+        self, image_points: list[np.ndarray], n_points: int
+    ) -> tuple[np.ndarray, np.ndarray]:
         """CSR (ptr, idx): for each point, the clusters it belongs to."""
         rows, cols = [], []
         for c, imgs in enumerate(self.images):
-            pts = np.unique(np.concatenate([image_points[i] for i in imgs])) if len(imgs) else np.zeros(0, np.int64)
+            pts = (
+                np.unique(np.concatenate([image_points[i] for i in imgs]))
+                if len(imgs)
+                else np.zeros(0, np.int64)
+            )
             rows.append(pts)
             cols.append(np.full(len(pts), c, np.int64))
         r = np.concatenate(rows) if rows else np.zeros(0, np.int64)
@@ -55,14 +61,22 @@ class Clusters:
 
 def visibility_matrix(image_points: list[np.ndarray], n_points: int) -> sp.csr_matrix:
     """Sparse (images x points) 0/1 matrix."""
-    rows = np.concatenate([np.full(len(p), i, np.int64) for i, p in enumerate(image_points)]) if image_points else np.zeros(0, np.int64)
+    rows = (
+        np.concatenate([np.full(len(p), i, np.int64) for i, p in enumerate(image_points)])
+        if image_points
+        else np.zeros(0, np.int64)
+    )
     cols = np.concatenate(image_points) if image_points else np.zeros(0, np.int64)
-    V = sp.csr_matrix((np.ones(len(rows), np.float32), (rows, cols)), shape=(len(image_points), n_points))
+    V = sp.csr_matrix(
+        (np.ones(len(rows), np.float32), (rows, cols)), shape=(len(image_points), n_points)
+    )
     V.data[:] = 1.0  # duplicates collapse to 1
     return V
 
 
-def cluster_images(image_points: list[np.ndarray], n_points: int, conf: ClusterConf | None = None) -> Clusters:
+def cluster_images(
+    image_points: list[np.ndarray], n_points: int, conf: ClusterConf | None = None
+) -> Clusters:
     """Overlapping clusters of images from their visible points."""
     conf = conf or ClusterConf()
     n = len(image_points)

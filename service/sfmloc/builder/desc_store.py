@@ -100,7 +100,7 @@ class RawStore:
             self.path.unlink(missing_ok=True)
         self._mem = [] if self._mem is not None else None
 
-    def __enter__(self) -> "RawStore":
+    def __enter__(self) -> RawStore:
         return self
 
     def __exit__(self, *exc) -> None:

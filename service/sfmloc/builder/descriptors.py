@@ -73,8 +73,11 @@ def extract_image_descriptors(
     idx = np.nonzero(ok)[0]
     uv = uv[idx]
     empty = ImageDescriptors(
-        np.zeros((0, RAW_DIM), np.float32), np.zeros(0, np.int64), np.zeros(0, np.uint8),
-        np.zeros((0, 2), np.float32), 0,
+        np.zeros((0, RAW_DIM), np.float32),
+        np.zeros(0, np.int64),
+        np.zeros(0, np.uint8),
+        np.zeros((0, 2), np.float32),
+        0,
     )
     if len(idx) == 0:
         return empty
@@ -108,6 +111,9 @@ def extract_image_descriptors(
         empty.n_corners = n_corners
         return empty
     return ImageDescriptors(
-        np.concatenate(raws), np.concatenate(pidx), np.concatenate(levels), np.concatenate(xys), n_corners
+        np.concatenate(raws),
+        np.concatenate(pidx),
+        np.concatenate(levels),
+        np.concatenate(xys),
+        n_corners,
     )
-

@@ -133,8 +133,16 @@ def _midpoint_depths(pose_a: Rigid3d, pose_b: Rigid3d, xa: np.ndarray, xb: np.nd
 
 
 def match_pair(
-    pose_a: Rigid3d, pose_b: Rigid3d, xa: np.ndarray, xb: np.ndarray, da: np.ndarray, db: np.ndarray,
-    focal: float, depth_a: tuple[float, float], depth_b: tuple[float, float], conf: HarrisPointsConf,
+    pose_a: Rigid3d,
+    pose_b: Rigid3d,
+    xa: np.ndarray,
+    xb: np.ndarray,
+    da: np.ndarray,
+    db: np.ndarray,
+    focal: float,
+    depth_a: tuple[float, float],
+    depth_b: tuple[float, float],
+    conf: HarrisPointsConf,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Index pairs (ia, ib) of mutual best epipolar-consistent DAISY matches between the corners
     of two posed images (``xa``, ``xb``: undistorted normalized coordinates; ``da``, ``db``:
@@ -146,7 +154,7 @@ def match_pair(
     tol = conf.epipolar_px / focal
     ia_list, ib_list = [], []
     for s in range(0, len(xa), 1024):  # bounded (1024, Nb) temporaries
-        d_ab = _line_distances(E, xa[s:s + 1024], xb)
+        d_ab = _line_distances(E, xa[s : s + 1024], xb)
         ia, ib = np.nonzero(d_ab < tol)
         ia_list.append(ia + s)
         ib_list.append(ib)
@@ -155,7 +163,9 @@ def match_pair(
         return none, none, np.zeros(0)
     # Symmetric: a within the band of b's line too.
     lb = np.c_[xb[ib], np.ones(len(ib))] @ E  # l' = E^T x_b (rows)
-    dist_ba = np.abs((lb[:, :2] * xa[ia]).sum(1) + lb[:, 2]) / np.maximum(np.hypot(lb[:, 0], lb[:, 1]), 1e-12)
+    dist_ba = np.abs((lb[:, :2] * xa[ia]).sum(1) + lb[:, 2]) / np.maximum(
+        np.hypot(lb[:, 0], lb[:, 1]), 1e-12
+    )
     za, zb = _midpoint_depths(pose_a, pose_b, xa[ia], xb[ib])
     m = dist_ba < tol
     m &= (za > depth_a[0] / conf.depth_margin) & (za < depth_a[1] * conf.depth_margin)
@@ -163,8 +173,12 @@ def match_pair(
     ia, ib = ia[m], ib[m]
     if len(ia) == 0:
         return none, none, np.zeros(0)
-    dist = np.sqrt(np.maximum(2.0 - 2.0 * np.einsum("ij,ij->i", da[ia].astype(np.float32),
-                                                      db[ib].astype(np.float32)), 0.0))
+    dist = np.sqrt(
+        np.maximum(
+            2.0 - 2.0 * np.einsum("ij,ij->i", da[ia].astype(np.float32), db[ib].astype(np.float32)),
+            0.0,
+        )
+    )
     best_a, ratio_a = _best_per_group(ia, dist, len(xa))
     best_b, ratio_b = _best_per_group(ib, dist, len(xb))
     # a candidate pair k is kept when it is the best of both its corners, passes both ratios
@@ -194,7 +208,9 @@ def _best_per_group(group: np.ndarray, dist: np.ndarray, n: int) -> tuple[np.nda
     return best, ratio
 
 
-def _union_find_tracks(n_nodes: int, a: np.ndarray, b: np.ndarray, node_img: np.ndarray) -> np.ndarray:
+def _union_find_tracks(
+    n_nodes: int, a: np.ndarray, b: np.ndarray, node_img: np.ndarray
+) -> np.ndarray:
     """Track label per node from edges (a, b), taken in the given order (best first); an edge
     that would put two corners of one image in a track is skipped (a chain of matches through
     one wrong match would otherwise merge two physical points)."""
@@ -233,8 +249,10 @@ def triangulate_tracks(
     Gauss-Newton on the normalized reprojection error."""
     w = valid.astype(np.float64)
     P = np.concatenate([R, t[..., None]], axis=3)  # (C, M, 3, 4)
-    A = np.concatenate([obs[..., 0:1] * P[..., 2, :] - P[..., 0, :],
-                        obs[..., 1:2] * P[..., 2, :] - P[..., 1, :]], axis=1)  # (C, 2M, 4)
+    A = np.concatenate(
+        [obs[..., 0:1] * P[..., 2, :] - P[..., 0, :], obs[..., 1:2] * P[..., 2, :] - P[..., 1, :]],
+        axis=1,
+    )  # (C, 2M, 4)
     A = A * np.concatenate([w, w], axis=1)[..., None]
     _, _, vt = np.linalg.svd(A)
     Xh = vt[:, -1, :]
@@ -295,10 +313,14 @@ def harris_points(
         desc.append(d.astype(np.float16))
         grays.append(gray)
         ids = im.point3D_ids[im.point3D_ids >= 0]
-        pts = np.array([rec.points3D[int(p)].xyz for p in ids if int(p) in rec.points3D]).reshape(-1, 3)
+        pts = np.array([rec.points3D[int(p)].xyz for p in ids if int(p) in rec.points3D]).reshape(
+            -1, 3
+        )
         z = im.cam_from_world.apply(pts)[:, 2] if len(pts) else np.zeros(0)
         z = z[z > 0]
-        depth_range.append((float(np.percentile(z, 1)), float(np.percentile(z, 99))) if len(z) else (1e-6, 1e9))
+        depth_range.append(
+            (float(np.percentile(z, 1)), float(np.percentile(z, 99))) if len(z) else (1e-6, 1e9)
+        )
         if progress:
             progress("harris_points", 0.4 * (i + 1) / n_img, f"{im.name}: {len(c)} corners")
     # Pairs by shared SfM points.
@@ -323,13 +345,27 @@ def harris_points(
             raise BuildCancelled("cancelled", stage="harris_points")
         ci, cj = rec.cameras[images[i].camera_id], rec.cameras[images[j].camera_id]
         focal = 0.5 * (sum(ci.focal) + sum(cj.focal)) / 2
-        ia, ib, dist = match_pair(images[i].cam_from_world, images[j].cam_from_world, xn[i], xn[j], desc[i], desc[j],
-                            focal, depth_range[i], depth_range[j], conf)
+        ia, ib, dist = match_pair(
+            images[i].cam_from_world,
+            images[j].cam_from_world,
+            xn[i],
+            xn[j],
+            desc[i],
+            desc[j],
+            focal,
+            depth_range[i],
+            depth_range[j],
+            conf,
+        )
         ea.append(ia + offset[i])
         eb.append(ib + offset[j])
         ed.append(dist)
         if progress and (k + 1) % 20 == 0:
-            progress("harris_points", 0.4 + 0.4 * (k + 1) / len(pairs_sorted), f"{k + 1} of {len(pairs_sorted)} pairs")
+            progress(
+                "harris_points",
+                0.4 + 0.4 * (k + 1) / len(pairs_sorted),
+                f"{k + 1} of {len(pairs_sorted)} pairs",
+            )
     a = np.concatenate(ea) if ea else np.zeros(0, np.int64)
     b = np.concatenate(eb) if eb else np.zeros(0, np.int64)
     order = np.argsort(np.concatenate(ed), kind="stable") if ed else np.zeros(0, np.int64)
@@ -349,8 +385,13 @@ def harris_points(
     keep = ~np.isin(lab, bad)
     nodes, lab, img = nodes[keep], lab[keep], img[keep]
     uniq, start, counts = np.unique(lab, return_index=True, return_counts=True)
-    stats = {"corners": int(offset[-1]), "pairs": len(pairs_sorted), "matches": int(len(a)),
-             "tracks": int(len(uniq)), "tracks_conflicting": int(len(bad))}
+    stats = {
+        "corners": int(offset[-1]),
+        "pairs": len(pairs_sorted),
+        "matches": int(len(a)),
+        "tracks": int(len(uniq)),
+        "tracks_conflicting": int(len(bad)),
+    }
     geo = {
         "R": np.stack([im.cam_from_world.rotation for im in images]),
         "t": np.stack([im.cam_from_world.translation for im in images]),
@@ -361,10 +402,13 @@ def harris_points(
     tracks = np.split(nodes, start[1:]) if len(nodes) else []
     if conf.extend_px > 0:
         # two-view tracks too: extended, they may reach min_track_length
-        pts_xyz, obs_nodes = _solve(tracks, node_img, geo, conf.model_copy(update={"min_track_length": 2}))
+        pts_xyz, obs_nodes = _solve(
+            tracks, node_img, geo, conf.model_copy(update={"min_track_length": 2})
+        )
         # what the points that already have min_track_length views observe
         stats["observations_before_extension"] = int(
-            sum(len(o) for o in obs_nodes if len(o) >= max(2, conf.min_track_length)))
+            sum(len(o) for o in obs_nodes if len(o) >= max(2, conf.min_track_length))
+        )
         obs_nodes = _extend(pts_xyz, obs_nodes, node_img, xy_px, offset, desc, images, rec, conf)
     else:
         obs_nodes = tracks
@@ -372,8 +416,12 @@ def harris_points(
     stats["points"] = len(pts_xyz)
     stats["observations"] = int(sum(len(o) for o in obs_nodes))
     if progress:
-        progress("harris_points", 1.0, f"{len(pts_xyz)} Harris points from {stats['tracks']} tracks")
-    return _reconstruction(rec, images, pts_xyz, obs_nodes, node_img, xy_px, offset, grays, conf), stats
+        progress(
+            "harris_points", 1.0, f"{len(pts_xyz)} Harris points from {stats['tracks']} tracks"
+        )
+    return _reconstruction(
+        rec, images, pts_xyz, obs_nodes, node_img, xy_px, offset, grays, conf
+    ), stats
 
 
 def _solve(tracks: list[np.ndarray], node_img: np.ndarray, geo: dict, conf: HarrisPointsConf):
@@ -389,7 +437,7 @@ def _solve(tracks: list[np.ndarray], node_img: np.ndarray, geo: dict, conf: Harr
     node = np.zeros((len(tracks), M), np.int64)
     for c, tr in enumerate(tracks):
         node[c, : n_obs[c]] = tr[:M]
-        node[c, n_obs[c]:] = tr[0]
+        node[c, n_obs[c] :] = tr[0]
     im_i = node_img[node]
     R, t, f = geo["R"][im_i], geo["t"][im_i], geo["f"][im_i]
     obs = geo["xn"][node]
@@ -413,9 +461,17 @@ def _solve(tracks: list[np.ndarray], node_img: np.ndarray, geo: dict, conf: Harr
     return X[good], [node[c][valid[c]] for c in np.nonzero(good)[0]]
 
 
-def _extend(X: np.ndarray, tracks: list[np.ndarray], node_img: np.ndarray, xy_px: list[np.ndarray],
-            offset: np.ndarray, desc: list[np.ndarray], images: list[Image], rec: Reconstruction,
-            conf: HarrisPointsConf) -> list[np.ndarray]:
+def _extend(
+    X: np.ndarray,
+    tracks: list[np.ndarray],
+    node_img: np.ndarray,
+    xy_px: list[np.ndarray],
+    offset: np.ndarray,
+    desc: list[np.ndarray],
+    images: list[Image],
+    rec: Reconstruction,
+    conf: HarrisPointsConf,
+) -> list[np.ndarray]:
     """Tracks extended to every image where the point projects within ``extend_px`` of a free
     corner whose DAISY is within ``max_descriptor_distance`` of the track's mean descriptor
     (pairwise matching only links images chosen as neighbours, and a point's track decides its
@@ -424,7 +480,11 @@ def _extend(X: np.ndarray, tracks: list[np.ndarray], node_img: np.ndarray, xy_px
     from scipy.spatial import cKDTree
 
     desc_all = np.concatenate(desc).astype(np.float32)
-    mean = np.stack([desc_all[tr].mean(0) for tr in tracks]) if tracks else np.zeros((0, desc_all.shape[1]))
+    mean = (
+        np.stack([desc_all[tr].mean(0) for tr in tracks])
+        if tracks
+        else np.zeros((0, desc_all.shape[1]))
+    )
     mean /= np.maximum(np.linalg.norm(mean, axis=1, keepdims=True), 1e-12)
     used = np.zeros(len(desc_all), bool)
     seen = [set(node_img[tr].tolist()) for tr in tracks]
@@ -457,10 +517,14 @@ def _extend(X: np.ndarray, tracks: list[np.ndarray], node_img: np.ndarray, xy_px
     add: list[list[int]] = [[] for _ in tracks]
     for pp, nn in zip(p[first].tolist(), n[first].tolist()):
         add[pp].append(nn)
-    return [np.concatenate([tr, np.array(ad, np.int64)]) if ad else tr for tr, ad in zip(tracks, add)]
+    return [
+        np.concatenate([tr, np.array(ad, np.int64)]) if ad else tr for tr, ad in zip(tracks, add)
+    ]
 
 
-def _reconstruction(rec, images, pts_xyz, obs_nodes, node_img, xy_px, offset, grays, conf) -> Reconstruction:
+def _reconstruction(
+    rec, images, pts_xyz, obs_nodes, node_img, xy_px, offset, grays, conf
+) -> Reconstruction:
     """The new reconstruction: images keep their poses; their observations are the corners of
     the Harris points (and, in "add" mode, their SfM observations)."""
     first_id = 1
@@ -489,10 +553,14 @@ def _reconstruction(rec, images, pts_xyz, obs_nodes, node_img, xy_px, offset, gr
         k0, n0 = int(imgs[0]), int(nodes[0])
         x, y = xy_px[k0][n0 - offset[k0]]
         g = int(grays[k0][min(int(y), grays[k0].shape[0] - 1), min(int(x), grays[k0].shape[1] - 1)])
-        points[pid] = Point3D(pid, pts_xyz[p], np.array([g, g, g], np.uint8), 0.0, np.array(tr_i), np.array(tr_k))
+        points[pid] = Point3D(
+            pid, pts_xyz[p], np.array([g, g, g], np.uint8), 0.0, np.array(tr_i), np.array(tr_k)
+        )
     new_images = {}
     for k, im in enumerate(images):
         xy = np.concatenate(per_img_xy[k]) if per_img_xy[k] else np.zeros((0, 2))
         ids = np.concatenate(per_img_id[k]) if per_img_id[k] else np.zeros(0, np.int64)
-        new_images[im.image_id] = Image(im.image_id, im.name, im.camera_id, im.cam_from_world, xy, ids)
+        new_images[im.image_id] = Image(
+            im.image_id, im.name, im.camera_id, im.cam_from_world, xy, ids
+        )
     return Reconstruction(cameras=dict(rec.cameras), images=new_images, points3D=points)

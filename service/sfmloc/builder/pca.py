@@ -43,7 +43,10 @@ def fit_pca(sample: np.ndarray, dim: int = 32, chunk_rows: int = 8192) -> Pca:
 
 
 def project_store(
-    store: RawStore, dim: int = 32, samples: int = 200_000, seed: int = 0,
+    store: RawStore,
+    dim: int = 32,
+    samples: int = 200_000,
+    seed: int = 0,
     progress: Callable[[str, float, str], None] | None = None,
 ) -> tuple[np.ndarray, Pca]:
     """PCA fitted on ``samples`` random rows of ``store`` (``Pca.fit``'s rows: drawn before

@@ -60,7 +60,11 @@ def refine_points(
     sel = np.isin(desc_level, [full_resolution_level + lv for lv in conf.levels])
     if not conf.enabled or not sel.any():
         return out, moved
-    P, I, XY = desc_point[sel].astype(np.int64), desc_image[sel].astype(np.int64), desc_xy[sel].astype(np.float64)
+    P, I, XY = (
+        desc_point[sel].astype(np.int64),
+        desc_image[sel].astype(np.int64),
+        desc_xy[sel].astype(np.float64),
+    )
     # Observations in undistorted normalized coordinates; residuals are scaled back to pixels
     # by the focal length.
     uvn = np.empty_like(XY)

@@ -258,8 +258,13 @@ def analyze_video(
             posed = cam_from_world_at is not None and camera is not None
             if posed and pts is not None and i > anchor_i:
                 d = _segment_depth(
-                    (anchor_pts + 0.5) / scale, (pts + 0.5) / scale, times[anchor_i], times[i],
-                    cam_from_world_at, camera, conf.min_parallax_deg,
+                    (anchor_pts + 0.5) / scale,
+                    (pts + 0.5) / scale,
+                    times[anchor_i],
+                    times[i],
+                    cam_from_world_at,
+                    camera,
+                    conf.min_parallax_deg,
                 )
                 if d is not None:
                     depths.append(d)
@@ -292,7 +297,12 @@ def _clock(pos_s: np.ndarray, fps: float) -> tuple[np.ndarray, str]:
 
 
 def _segment_depth(
-    uv0: np.ndarray, uv1: np.ndarray, t0: float, t1: float, pose_at: Any, camera: Camera,
+    uv0: np.ndarray,
+    uv1: np.ndarray,
+    t0: float,
+    t1: float,
+    pose_at: Any,
+    camera: Camera,
     min_parallax_deg: float,
 ) -> float | None:
     """Median depth (in the first camera) of tracks triangulated with the known poses."""
@@ -480,8 +490,16 @@ def build_from_video(
         if poses is not None:
             source["poses"] = str(poses)
         return main(
-            conf, name, out_dir, images=kf.image_dir, poses=kf.poses_file, camera=cam,
-            sfm_conf=sfm_conf, workdir=workdir, progress=progress, should_cancel=should_cancel,
+            conf,
+            name,
+            out_dir,
+            images=kf.image_dir,
+            poses=kf.poses_file,
+            camera=cam,
+            sfm_conf=sfm_conf,
+            workdir=workdir,
+            progress=progress,
+            should_cancel=should_cancel,
             source_extra=source,
         )
     finally:

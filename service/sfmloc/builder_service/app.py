@@ -18,6 +18,7 @@ import grpc
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 from pydantic import Field
+
 from sfmloc_client.pb import builder_pb2, builder_pb2_grpc
 from sfmloc_client.wire import (
     MAPS_KEYEXPR,
@@ -45,8 +46,12 @@ class BuilderConfig(StrictModel):
     out: str = Field("maps", description="default folder for bundles")
     grpc: str = Field("127.0.0.1:50052", description="gRPC listen address HOST:PORT")
     max_concurrent: int = Field(1, ge=1, description="builds running at once (one process each)")
-    workdir: str | None = Field(None, description="parent of per-job work folders (default: a temporary folder)")
-    cancel_grace_s: float = Field(10.0, gt=0, description="seconds a cancelled build may take to stop")
+    workdir: str | None = Field(
+        None, description="parent of per-job work folders (default: a temporary folder)"
+    )
+    cancel_grace_s: float = Field(
+        10.0, gt=0, description="seconds a cancelled build may take to stop"
+    )
     announce: bool = True
     zenoh_mode: str = "peer"
     zenoh_listen: list[str] = []
@@ -64,7 +69,11 @@ class BuilderService:
         self.session: zenoh.Session | None = None
         self._zenoh_lock = threading.Lock()
         self.jobs = JobManager(
-            config.out, config.workdir, config.max_concurrent, config.cancel_grace_s, on_success=self._announce
+            config.out,
+            config.workdir,
+            config.max_concurrent,
+            config.cancel_grace_s,
+            on_success=self._announce,
         )
         self.server: grpc.Server | None = None
         self.port: int | None = None
@@ -80,7 +89,12 @@ class BuilderService:
         with self._zenoh_lock:
             self._announced[job.spec.name] = payload
             self.session.put(map_announce_key(job.spec.name), payload)
-        log.info("announced %s (build %s) on %s", job.spec.name, job.build_id, map_announce_key(job.spec.name))
+        log.info(
+            "announced %s (build %s) on %s",
+            job.spec.name,
+            job.build_id,
+            map_announce_key(job.spec.name),
+        )
 
     def _reannounce(self, sample) -> None:  # noqa: ANN001 - a zenoh liveliness Sample
         """A server appeared: repeat the current announcements (it may have missed them)."""
@@ -92,7 +106,11 @@ class BuilderService:
             for name, payload in self._announced.items():
                 self.session.put(map_announce_key(name), payload)
         if self._announced:
-            log.info("server %s appeared: repeated %d announcement(s)", sample.key_expr, len(self._announced))
+            log.info(
+                "server %s appeared: repeated %d announcement(s)",
+                sample.key_expr,
+                len(self._announced),
+            )
 
     def _on_query(self, query) -> None:  # noqa: ANN001 - a zenoh Query
         with self._zenoh_lock:
@@ -107,7 +125,9 @@ class BuilderService:
         if c.announce:
             import zenoh
 
-            zconf = make_zenoh_config(c.zenoh_mode, c.zenoh_listen, c.zenoh_connect, c.zenoh_multicast, c.zenoh_config)
+            zconf = make_zenoh_config(
+                c.zenoh_mode, c.zenoh_listen, c.zenoh_connect, c.zenoh_multicast, c.zenoh_config
+            )
             self.session = zenoh.open(zconf)
             self._zenoh_objects = [
                 self.session.liveliness().declare_subscriber(SERVERS_KEYEXPR, self._reannounce),
@@ -118,9 +138,14 @@ class BuilderService:
             futures.ThreadPoolExecutor(max_workers=16),
             # Unparsable requests: INVALID_ARGUMENT; errors: the one status table.
             interceptors=[SyncMalformedRequestInterceptor(), SyncErrorStatusInterceptor()],
-            options=[("grpc.max_receive_message_length", limit), ("grpc.max_send_message_length", limit)],
+            options=[
+                ("grpc.max_receive_message_length", limit),
+                ("grpc.max_send_message_length", limit),
+            ],
         )
-        builder_pb2_grpc.add_MapBuilderServicer_to_server(MapBuilderServicer(self.jobs, c.out), self.server)
+        builder_pb2_grpc.add_MapBuilderServicer_to_server(
+            MapBuilderServicer(self.jobs, c.out), self.server
+        )
         health_pb2_grpc.add_HealthServicer_to_server(self.health, self.server)
         reflection.enable_server_reflection(
             (SERVICE_NAME, health.SERVICE_NAME, reflection.SERVICE_NAME), self.server
@@ -154,7 +179,9 @@ def serve(config: BuilderConfig) -> int:
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
     svc.start()
-    print(f"sfmloc builder: gRPC {config.grpc} (port {svc.port}), bundles in {config.out}", flush=True)
+    print(
+        f"sfmloc builder: gRPC {config.grpc} (port {svc.port}), bundles in {config.out}", flush=True
+    )
     try:
         stop.wait()
     finally:

@@ -14,8 +14,8 @@ from pathlib import Path
 
 from sfmloc_client.cameras import camera_to_string
 from sfmloc_client.pb import builder_pb2 as pb
-from sfmloc_client.pb import common_pb2
 from sfmloc_client.pb import builder_pb2_grpc as pb_grpc
+from sfmloc_client.pb import common_pb2
 
 from ..errors import InputError, JobNotFoundError
 from .jobs import BuildEvent, BuildSpec, Job, JobManager, JobState
@@ -52,8 +52,15 @@ def spec_from_request(req: pb.SubmitBuildRequest, default_out: str) -> BuildSpec
             raise InputError(f"config_json is not valid JSON: {exc}") from None
         if not isinstance(config, dict):
             raise InputError("config_json must be a JSON object")
-    spec = BuildSpec(name=req.name, out_dir=req.out_dir or default_out, input_kind=kind, images="",
-                     preset=req.preset or "default", config=config, stride=max(1, req.stride))
+    spec = BuildSpec(
+        name=req.name,
+        out_dir=req.out_dir or default_out,
+        input_kind=kind,
+        images="",
+        preset=req.preset or "default",
+        config=config,
+        stride=max(1, req.stride),
+    )
     if kind == "colmap":
         spec.colmap, spec.images = req.colmap.model_dir, req.colmap.image_dir
         _must_exist(spec.colmap, "model_dir", folder=True)
@@ -68,7 +75,9 @@ def spec_from_request(req: pb.SubmitBuildRequest, default_out: str) -> BuildSpec
         spec.camera = camera_of(req.images_only.camera)
         spec.matching = req.images_only.matching or None
         if spec.matching not in (None, "sequential", "exhaustive"):
-            raise InputError(f"matching must be 'sequential' or 'exhaustive', got {spec.matching!r}")
+            raise InputError(
+                f"matching must be 'sequential' or 'exhaustive', got {spec.matching!r}"
+            )
     _must_exist(spec.images, "image_dir", folder=True)
     if spec.camera is not None:
         from ..cameras import Camera
@@ -86,15 +95,28 @@ def _must_exist(path: str, what: str, folder: bool) -> None:
 
 def event_to_pb(ev: BuildEvent) -> pb.BuildEvent:
     return pb.BuildEvent(
-        job_id=ev.job_id, state=_STATE[ev.state], stage=ev.stage, fraction=ev.fraction, message=ev.message,
-        elapsed_s=ev.elapsed_s, bundle_path=ev.bundle_path, error=ev.error,
+        job_id=ev.job_id,
+        state=_STATE[ev.state],
+        stage=ev.stage,
+        fraction=ev.fraction,
+        message=ev.message,
+        elapsed_s=ev.elapsed_s,
+        bundle_path=ev.bundle_path,
+        error=ev.error,
     )
 
 
 def job_to_pb(job: Job) -> pb.BuildJob:
     return pb.BuildJob(
-        job_id=job.job_id, name=job.spec.name, state=_STATE[job.state], stage=job.stage, fraction=job.fraction,
-        message=job.message, elapsed_s=job.elapsed_s, bundle_path=job.bundle_path, error=job.error,
+        job_id=job.job_id,
+        name=job.spec.name,
+        state=_STATE[job.state],
+        stage=job.stage,
+        fraction=job.fraction,
+        message=job.message,
+        elapsed_s=job.elapsed_s,
+        bundle_path=job.bundle_path,
+        error=job.error,
         input_kind=job.spec.input_kind,
         submitted_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(job.submitted)),
     )

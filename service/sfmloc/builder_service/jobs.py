@@ -155,7 +155,14 @@ class Job:
 
     def snapshot(self) -> BuildEvent:
         return BuildEvent(
-            self.job_id, self.state, self.stage, self.fraction, self.message, self.elapsed_s, self.bundle_path, self.error
+            self.job_id,
+            self.state,
+            self.stage,
+            self.fraction,
+            self.message,
+            self.elapsed_s,
+            self.bundle_path,
+            self.error,
         )
 
 
@@ -173,11 +180,11 @@ def _child_main(spec_bytes: bytes, conn, cancel_event, workdir: str) -> None:
             pass
 
     try:
+        from ..builder.build import main, preset
+        from ..builder.sfm import sfm_conf
         from ..config import merge_presets
         from ..errors import BuildCancelled
-        from ..builder.build import main, preset
         from ..map.bundle import read_manifest
-        from ..builder.sfm import sfm_conf
 
         spec = TO_BUILD.decode(spec_bytes)
         assert isinstance(spec, BuildSpec)
@@ -209,7 +216,11 @@ def _child_main(spec_bytes: bytes, conn, cancel_event, workdir: str) -> None:
             should_cancel=cancel_event.is_set,
         )
         manifest = read_manifest(path)
-        send(Done(str(path), manifest.build_id, [str(w) for w in manifest.report.get("warnings", [])]))
+        send(
+            Done(
+                str(path), manifest.build_id, [str(w) for w in manifest.report.get("warnings", [])]
+            )
+        )
     except BuildCancelled:
         send(Cancelled())
     except SfmlocError as exc:
@@ -240,7 +251,9 @@ class JobManager:
         self.default_out_dir = Path(default_out_dir)
         # SfM work folders (COLMAP databases, ...) live outside the maps folder by default.
         self._own_work_root = work_root is None
-        self.work_root = Path(work_root) if work_root else Path(tempfile.mkdtemp(prefix="sfmloc-builder-"))
+        self.work_root = (
+            Path(work_root) if work_root else Path(tempfile.mkdtemp(prefix="sfmloc-builder-"))
+        )
         self.max_concurrent = max(1, max_concurrent)
         self.cancel_grace_s = cancel_grace_s
         self.on_success = on_success
@@ -322,7 +335,11 @@ class JobManager:
             for job in self.jobs.values():
                 if job.state is JobState.QUEUED:
                     self._finish(job, JobState.CANCELLED, message="builder shut down")
-                elif job.state is JobState.RUNNING and cancel_running and job.cancel_event is not None:
+                elif (
+                    job.state is JobState.RUNNING
+                    and cancel_running
+                    and job.cancel_event is not None
+                ):
                     job.cancel_requested = True
                     job.cancel_event.set()
             self._cond.notify_all()
@@ -357,8 +374,10 @@ class JobManager:
         Path(job.workdir).mkdir(parents=True, exist_ok=True)
         spec_bytes = TO_BUILD.encode(job.spec)
         proc = self._ctx.Process(
-            target=_child_main, args=(spec_bytes, child, job.cancel_event, job.workdir),
-            name=f"build-{job.job_id}", daemon=True,
+            target=_child_main,
+            args=(spec_bytes, child, job.cancel_event, job.workdir),
+            name=f"build-{job.job_id}",
+            daemon=True,
         )
         proc.start()
         child.close()
@@ -379,7 +398,9 @@ class JobManager:
                 running = [j for j in self.jobs.values() if not j.reaped]
                 if self._closed and not running:
                     return
-                queued = [self.jobs[i] for i in self._order if self.jobs[i].state is JobState.QUEUED]
+                queued = [
+                    self.jobs[i] for i in self._order if self.jobs[i].state is JobState.QUEUED
+                ]
                 while not self._closed and queued and len(running) < self.max_concurrent:
                     job = queued.pop(0)
                     self._start(job)
@@ -389,7 +410,9 @@ class JobManager:
                     self._cond.wait(0.5)
                 continue
             conns = [j.conn for j in running]
-            ready = multiprocessing.connection.wait(conns + [j.process.sentinel for j in running], timeout=0.2)
+            ready = multiprocessing.connection.wait(
+                conns + [j.process.sentinel for j in running], timeout=0.2
+            )
             for job in running:
                 if job.conn in ready:
                     self._drain(job)
@@ -418,7 +441,11 @@ class JobManager:
                     job.bundle_path, job.build_id = msg.path, msg.build_id
                     job.stage, job.fraction = "done", 1.0
                     warn = "".join(f"; WARNING: {w}" for w in msg.warnings)
-                    self._finish(job, JobState.SUCCEEDED, message=f"bundle written to {job.bundle_path}{warn}")
+                    self._finish(
+                        job,
+                        JobState.SUCCEEDED,
+                        message=f"bundle written to {job.bundle_path}{warn}",
+                    )
                 elif isinstance(msg, Cancelled):
                     self._finish(job, JobState.CANCELLED, message="cancelled")
                 elif isinstance(msg, Failed):
@@ -435,8 +462,12 @@ class JobManager:
         if job.cancel_time is None:
             job.cancel_time = time.monotonic()
         elif time.monotonic() - job.cancel_time > self.cancel_grace_s and job.process.is_alive():
-            log.warning("job %s did not stop within %.0f s of cancel: terminating pid %d",
-                        job.job_id, self.cancel_grace_s, job.process.pid)
+            log.warning(
+                "job %s did not stop within %.0f s of cancel: terminating pid %d",
+                job.job_id,
+                self.cancel_grace_s,
+                job.process.pid,
+            )
             job.process.terminate()
 
     def _reap(self, job: Job) -> None:
@@ -447,7 +478,9 @@ class JobManager:
                 if job.cancel_requested:
                     self._finish(job, JobState.CANCELLED, message="cancelled (worker terminated)")
                 else:
-                    self._finish(job, JobState.FAILED, error=f"build worker process died (exit code {code})")
+                    self._finish(
+                        job, JobState.FAILED, error=f"build worker process died (exit code {code})"
+                    )
             self._cond.notify_all()
         try:
             job.conn.close()

@@ -8,7 +8,8 @@ import textwrap
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
-        "auth", help="make bearer tokens for a server with authentication",
+        "auth",
+        help="make bearer tokens for a server with authentication",
         formatter_class=argparse.RawDescriptionHelpFormatter,
         description=textwrap.dedent("""\
             Tokens for `sfmloc serve --tokens FILE`: the file keeps each token's SHA-256, an
@@ -25,9 +26,16 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     ss = p.add_subparsers(dest="auth_command", metavar="ACTION", required=True)
     a = ss.add_parser("add-token", help="make a token, append its hash to FILE, print the token")
     a.add_argument("file", help="tokens file (JSON; created if missing)")
-    a.add_argument("--identity", required=True, help="who the token is for (a device's client id, a person)")
-    a.add_argument("--role", action="append", choices=["localize", "admin"], required=True,
-                   help="a role (repeatable)")
+    a.add_argument(
+        "--identity", required=True, help="who the token is for (a device's client id, a person)"
+    )
+    a.add_argument(
+        "--role",
+        action="append",
+        choices=["localize", "admin"],
+        required=True,
+        help="a role (repeatable)",
+    )
     p.set_defaults(func=run)
 
 

@@ -39,40 +39,77 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     from ..bench.config import DEFAULT_DATA, SUITE_HELP, SUITES
 
     p = sub.add_parser(
-        "bench", help="the paper's Table 2 / Figures 2 and 4 on real data, with peers, throughput and map size",
+        "bench",
+        help="the paper's Table 2 / Figures 2 and 4 on real data, with peers, throughput and map "
+        "size",
         description=textwrap.dedent("""\
             Reproduce the paper's evaluation (Table 2, Figures 2 and 4) on real and synthetic
             sequences, side by side with what users would pick instead, and measure the server's
             throughput and the map's footprint. Writes OUT/results.json, OUT/report.md and PNG
             figures, and prints the summary table. Progress goes to stderr.\n\n""")
-        + SUITES_TEXT.format(suites="\n".join(
-            textwrap.fill(text, 96, initial_indent=f"  {name:<19s}", subsequent_indent=" " * 21)
-            for name, text in SUITE_HELP.items())),
+        + SUITES_TEXT.format(
+            suites="\n".join(
+                textwrap.fill(text, 96, initial_indent=f"  {name:<19s}", subsequent_indent=" " * 21)
+                for name, text in SUITE_HELP.items()
+            )
+        ),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--suite", action="append", choices=SUITES, metavar="NAME",
-                   help="run this suite (repeatable; default all): " + ", ".join(SUITES))
-    p.add_argument("--suites", metavar="A,B",
-                   help="the same as --suite, comma-separated (e.g. --suites robust)")
-    p.add_argument("--robust-rows", metavar="PATTERNS",
-                   help="robust suite: only these rows, comma-separated names or groups, shell "
-                   "patterns (e.g. 'size-*,motion'; default all)")
-    p.add_argument("--robust-frames", type=int,
-                   help="robust suite: 30 Hz frames per row (default 300)")
-    p.add_argument("--robust-peer-frames", type=int,
-                   help="robust suite: peer frames per row (default 20)")
+    p.add_argument(
+        "--suite",
+        action="append",
+        choices=SUITES,
+        metavar="NAME",
+        help="run this suite (repeatable; default all): " + ", ".join(SUITES),
+    )
+    p.add_argument(
+        "--suites",
+        metavar="A,B",
+        help="the same as --suite, comma-separated (e.g. --suites robust)",
+    )
+    p.add_argument(
+        "--robust-rows",
+        metavar="PATTERNS",
+        help="robust suite: only these rows, comma-separated names or groups, shell "
+        "patterns (e.g. 'size-*,motion'; default all)",
+    )
+    p.add_argument(
+        "--robust-frames", type=int, help="robust suite: 30 Hz frames per row (default 300)"
+    )
+    p.add_argument(
+        "--robust-peer-frames", type=int, help="robust suite: peer frames per row (default 20)"
+    )
     p.add_argument("--out", default="bench-out", help="output folder (default bench-out)")
-    p.add_argument("--data", help="redkitchen-like folder (frame-NNNNNN.color.jpg + pgt_sfm_seq01.txt); "
-                   f"default {DEFAULT_DATA}")
-    p.add_argument("--frames", type=int, help="replay at most this many frames per localization suite")
-    p.add_argument("--peer-frames", type=int, help="frames per suite for the peers, strided (default 500; 0: all)")
+    p.add_argument(
+        "--data",
+        help="redkitchen-like folder (frame-NNNNNN.color.jpg + pgt_sfm_seq01.txt); "
+        f"default {DEFAULT_DATA}",
+    )
+    p.add_argument(
+        "--frames", type=int, help="replay at most this many frames per localization suite"
+    )
+    p.add_argument(
+        "--peer-frames",
+        type=int,
+        help="frames per suite for the peers, strided (default 500; 0: all)",
+    )
     p.add_argument("--synth-frames", type=int, help="frames of each synthetic video (default 300)")
     p.add_argument("--clients", help="throughput client counts, comma-separated (default 1,2,4,8)")
     p.add_argument("--duration", type=float, help="seconds per throughput run (default 10)")
-    p.add_argument("--workers", type=int, help="server workers for throughput (default one per core)")
-    p.add_argument("--no-tune", action="store_true", help="skip the SIFT peer's tuning (use its defaults)")
-    p.add_argument("--reuse", action="store_true", help="reuse maps and synthetic data already under OUT/work")
-    p.add_argument("--quick", action="store_true", help="smoke run: few frames, small scenes, short throughput runs")
+    p.add_argument(
+        "--workers", type=int, help="server workers for throughput (default one per core)"
+    )
+    p.add_argument(
+        "--no-tune", action="store_true", help="skip the SIFT peer's tuning (use its defaults)"
+    )
+    p.add_argument(
+        "--reuse", action="store_true", help="reuse maps and synthetic data already under OUT/work"
+    )
+    p.add_argument(
+        "--quick",
+        action="store_true",
+        help="smoke run: few frames, small scenes, short throughput runs",
+    )
     p.set_defaults(func=run)
 
 
@@ -81,13 +118,11 @@ def run(args: argparse.Namespace) -> int:
 
     pin_threads_env()
     pin_threads_runtime()
-    from ..bench.config import BenchConf, quick_conf
+    from ..bench.config import SUITES, BenchConf, quick_conf
     from ..bench.main import main
     from ..bench.report import summary_text
-    from .progress import ProgressPrinter
-
-    from ..bench.config import SUITES
     from ..errors import InputError
+    from .progress import ProgressPrinter
 
     changes: dict = {}
     listed = [s.strip() for s in (args.suites or "").split(",") if s.strip()]
@@ -122,7 +157,11 @@ def run(args: argparse.Namespace) -> int:
     if args.reuse:
         changes["reuse"] = True
     conf = quick_conf(**changes) if args.quick else BenchConf(**changes)
-    command = "sfmloc bench " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if len(sys.argv) > 2 else "sfmloc bench"
+    command = (
+        "sfmloc bench " + " ".join(shlex.quote(a) for a in sys.argv[2:])
+        if len(sys.argv) > 2
+        else "sfmloc bench"
+    )
     if conf.robust_rows and "robust" in conf.suites:
         from ..bench.robust import select_rows
 

@@ -40,48 +40,92 @@ until the new one is complete; a failed or cancelled build leaves nothing behind
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
-        "build", help="build a map bundle from a COLMAP model, posed images or images",
-        description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter,
+        "build",
+        help="build a map bundle from a COLMAP model, posed images or images",
+        description=DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("name", help="map name (letters, digits, '_', '-', '.'); the bundle is OUT/NAME")
     p.add_argument("--out", default="maps", help="folder for bundles (default: maps)")
-    p.add_argument("--colmap", metavar="MODEL_DIR", help="COLMAP sparse model folder (cameras/images/points3D .txt or .bin)")
-    p.add_argument("--images", metavar="DIR", help="image folder")
-    p.add_argument("--poses", metavar="FILE",
-                   help="known poses (COLMAP list or TUM; with --video: TUM)")
-    p.add_argument("--video", metavar="FILE", help="a video instead of --images (keyframes chosen)")
-    p.add_argument("--kf-rotation", type=float, metavar="DEG",
-                   help="video with poses: keyframe after this rotation (default 5)")
-    p.add_argument("--kf-translation", type=float, metavar="F",
-                   help="video with poses: keyframe after this translation, of the scene depth "
-                   "(default 0.05)")
-    p.add_argument("--kf-flow", type=float, metavar="F",
-                   help="video without poses: keyframe after this image motion, of the diagonal "
-                   "(default 0.05)")
-    p.add_argument("--kf-window", type=int, metavar="N",
-                   help="video: the sharpest of N frames becomes the keyframe (default 5)")
-    p.add_argument("--camera", help="camera.json or 'MODEL w h params...'")
-    p.add_argument("--stride", type=int, default=1, help="posed/images-only inputs: use every N-th image (default 1)")
     p.add_argument(
-        "--preset", default="default",
-        help="builder preset: default (2 octaves down, 2 sub-octaves up, points refined, Harris-corner "
-        "points added to the SfM points), paper (the paper's map exactly), fast (SfM points only), dense "
+        "--colmap",
+        metavar="MODEL_DIR",
+        help="COLMAP sparse model folder (cameras/images/points3D .txt or .bin)",
+    )
+    p.add_argument("--images", metavar="DIR", help="image folder")
+    p.add_argument(
+        "--poses", metavar="FILE", help="known poses (COLMAP list or TUM; with --video: TUM)"
+    )
+    p.add_argument("--video", metavar="FILE", help="a video instead of --images (keyframes chosen)")
+    p.add_argument(
+        "--kf-rotation",
+        type=float,
+        metavar="DEG",
+        help="video with poses: keyframe after this rotation (default 5)",
+    )
+    p.add_argument(
+        "--kf-translation",
+        type=float,
+        metavar="F",
+        help="video with poses: keyframe after this translation, of the scene depth (default 0.05)",
+    )
+    p.add_argument(
+        "--kf-flow",
+        type=float,
+        metavar="F",
+        help="video without poses: keyframe after this image motion, of the diagonal "
+        "(default 0.05)",
+    )
+    p.add_argument(
+        "--kf-window",
+        type=int,
+        metavar="N",
+        help="video: the sharpest of N frames becomes the keyframe (default 5)",
+    )
+    p.add_argument("--camera", help="camera.json or 'MODEL w h params...'")
+    p.add_argument(
+        "--stride",
+        type=int,
+        default=1,
+        help="posed/images-only inputs: use every N-th image (default 1)",
+    )
+    p.add_argument(
+        "--preset",
+        default="default",
+        help="builder preset: default (2 octaves down, 2 sub-octaves up, points refined, "
+        "Harris-corner "
+        "points added to the SfM points), paper (the paper's map exactly), fast (SfM points only), "
+        "dense "
         "(default: default)",
     )
-    p.add_argument("--sfm-preset", default="default", help="SfM preset: default, fast, accurate (default: default)")
     p.add_argument(
-        "--min-track-length", type=int, metavar="N",
-        help="known poses: drop points seen in fewer than N images (default 3, or 2 where the median image "
-        "would see fewer than 400 points with 3: the poses are given, so two views fix a point, and thin "
-        "maps need them). Images-only SfM keeps its own rule: at least 3, since its poses are estimated "
+        "--sfm-preset",
+        default="default",
+        help="SfM preset: default, fast, accurate (default: default)",
+    )
+    p.add_argument(
+        "--min-track-length",
+        type=int,
+        metavar="N",
+        help="known poses: drop points seen in fewer than N images (default 3, or 2 where the "
+        "median image "
+        "would see fewer than 400 points with 3: the poses are given, so two views fix a point, "
+        "and thin "
+        "maps need them). Images-only SfM keeps its own rule: at least 3, since its poses are "
+        "estimated "
         "from the same matches. Not used with --colmap",
     )
-    p.add_argument("--matching", choices=["sequential", "exhaustive"], help="images only: pair selection")
     p.add_argument(
-        "--pairs", choices=["geometric", "nearest"],
-        help="known poses: pair selection. geometric (default): each image's 2 nearest cameras plus "
+        "--matching", choices=["sequential", "exhaustive"], help="images only: pair selection"
+    )
+    p.add_argument(
+        "--pairs",
+        choices=["geometric", "nearest"],
+        help="known poses: pair selection. geometric (default): each image's 2 nearest cameras "
+        "plus "
         "one per target triangulation angle among cameras that see the same part of the scene, a "
-        "budget that does not grow with the frame rate; nearest: the 5 nearest cameras and the next "
+        "budget that does not grow with the frame rate; nearest: the 5 nearest cameras and the "
+        "next "
         "2 images (in dense video these are too close to triangulate)",
     )
     p.add_argument("--config", help="JSON/TOML file of builder settings merged over the preset")
@@ -97,12 +141,12 @@ def run(args: argparse.Namespace) -> int:
     pin_threads_env()
     import time
 
+    from ..builder.build import main, preset
+    from ..builder.sfm import sfm_conf
     from ..config import merge_presets, read_config_file
     from ..errors import InputError
-    from ..builder.build import main, preset
     from ..map.bundle import MapBundle
     from ..map.report import report_lines
-    from ..builder.sfm import sfm_conf
     from .progress import ProgressPrinter
 
     if args.colmap and args.poses:
@@ -128,14 +172,18 @@ def run(args: argparse.Namespace) -> int:
     if args.min_track_length is not None:
         if args.colmap:
             raise InputError(
-                "--min-track-length applies to --poses or images-only builds, not to --colmap models"
+                "--min-track-length applies to --poses or images-only builds, not to --colmap "
+                "models"
             )
         low = 2 if args.poses else 3
         if args.min_track_length < low:
             raise InputError(
                 f"--min-track-length must be >= {low} "
-                + ("with known poses" if args.poses
-                   else "for images-only SfM (its poses come from the same matches)")
+                + (
+                    "with known poses"
+                    if args.poses
+                    else "for images-only SfM (its poses come from the same matches)"
+                )
                 + f", got {args.min_track_length}"
             )
         overrides["min_track_length"] = args.min_track_length
@@ -148,8 +196,17 @@ def run(args: argparse.Namespace) -> int:
             path = _build_video(args, conf, sconf, bar)
         else:
             path = main(
-                conf, args.name, args.out, colmap=args.colmap, images=args.images, poses=args.poses,
-                camera=args.camera, sfm_conf=sconf, stride=args.stride, workdir=args.workdir, progress=bar,
+                conf,
+                args.name,
+                args.out,
+                colmap=args.colmap,
+                images=args.images,
+                poses=args.poses,
+                camera=args.camera,
+                sfm_conf=sconf,
+                stride=args.stride,
+                workdir=args.workdir,
+                progress=bar,
             )
     finally:
         bar.close()
@@ -158,14 +215,17 @@ def run(args: argparse.Namespace) -> int:
     kf = bundle.manifest.source.get("keyframes")
     if kf:
         print(
-            f"video: {kf['keyframes']} keyframes of {kf['frames']} frames ({kf['clock']} clock); dropped "
-            f"{kf['dropped_motion']} (too little motion), {kf['dropped_blur']} (blurrier than a neighbour), "
+            f"video: {kf['keyframes']} keyframes of {kf['frames']} frames ({kf['clock']} clock); "
+            "dropped "
+            f"{kf['dropped_motion']} (too little motion), {kf['dropped_blur']} (blurrier than a "
+            "neighbour), "
             f"{kf['dropped_no_pose']} (no pose at their time)"
         )
     s = bundle.summary()
     print(
         f"built {path} in {dt:.1f} s: {s['points']} points, {s['descriptors']} descriptors "
-        f"({s['descriptors_per_point']} per point), {s['images']} images, {s['clusters']} clusters, "
+        f"({s['descriptors_per_point']} per point), {s['images']} images, {s['clusters']} "
+        "clusters, "
         f"{s['disk_mb']} MB on disk, {s['memory_mb']} MB in memory"
     )
     for line in report_lines(bundle.report()):
@@ -177,12 +237,24 @@ def _build_video(args: argparse.Namespace, conf, sconf, bar):
     from ..builder.video import VideoConf, build_from_video
 
     changes = {
-        k: v for k, v in (
-            ("min_rotation_deg", args.kf_rotation), ("min_translation", args.kf_translation),
-            ("min_flow", args.kf_flow), ("sharpness_window", args.kf_window),
-        ) if v is not None
+        k: v
+        for k, v in (
+            ("min_rotation_deg", args.kf_rotation),
+            ("min_translation", args.kf_translation),
+            ("min_flow", args.kf_flow),
+            ("sharpness_window", args.kf_window),
+        )
+        if v is not None
     }
     return build_from_video(
-        conf, args.name, args.out, video=args.video, poses=args.poses, camera=args.camera,
-        video_conf=VideoConf(**changes), sfm_conf=sconf, workdir=args.workdir, progress=bar,
+        conf,
+        args.name,
+        args.out,
+        video=args.video,
+        poses=args.poses,
+        camera=args.camera,
+        video_conf=VideoConf(**changes),
+        sfm_conf=sconf,
+        workdir=args.workdir,
+        progress=bar,
     )

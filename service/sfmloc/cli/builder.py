@@ -14,33 +14,72 @@ build (a crash in a build never takes the service down), streams progress over g
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("builder", help="run the map builder service, or submit/watch/cancel builds",
-                       description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = sub.add_parser(
+        "builder",
+        help="run the map builder service, or submit/watch/cancel builds",
+        description=DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     bsub = p.add_subparsers(dest="builder_command", metavar="ACTION", required=True)
 
-    s = bsub.add_parser("serve", help="run the builder service", description=DESCRIPTION,
-                        formatter_class=argparse.RawDescriptionHelpFormatter)
+    s = bsub.add_parser(
+        "serve",
+        help="run the builder service",
+        description=DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     s.add_argument("--out", help="default folder for bundles (default: maps)")
     s.add_argument("--grpc", help="listen address HOST:PORT (default 127.0.0.1:50052)")
-    s.add_argument("--max-concurrent", type=int, help="builds at once, one process each (default 1)")
-    s.add_argument("--workdir", help="parent of per-job SfM work folders (default: a temporary folder)")
-    s.add_argument("--zenoh-mode", choices=["peer", "client", "router"], help="Zenoh mode (default peer)")
-    s.add_argument("--zenoh-listen", action="append", default=[], metavar="ENDPOINT", help="Zenoh listen endpoint (repeatable)")
-    s.add_argument("--zenoh-connect", action="append", default=[], metavar="ENDPOINT", help="Zenoh connect endpoint (repeatable)")
+    s.add_argument(
+        "--max-concurrent", type=int, help="builds at once, one process each (default 1)"
+    )
+    s.add_argument(
+        "--workdir", help="parent of per-job SfM work folders (default: a temporary folder)"
+    )
+    s.add_argument(
+        "--zenoh-mode", choices=["peer", "client", "router"], help="Zenoh mode (default peer)"
+    )
+    s.add_argument(
+        "--zenoh-listen",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="Zenoh listen endpoint (repeatable)",
+    )
+    s.add_argument(
+        "--zenoh-connect",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="Zenoh connect endpoint (repeatable)",
+    )
     s.add_argument("--zenoh-config", help="Zenoh JSON5 config file (explicit flags override it)")
     s.add_argument("--no-multicast", action="store_true", help="turn Zenoh multicast scouting off")
-    s.add_argument("--no-announce", action="store_true", help="do not open Zenoh or announce bundles")
-    s.add_argument("--config", help="builder service config file (JSON/TOML); SFMLOC_BUILDER_* variables apply")
+    s.add_argument(
+        "--no-announce", action="store_true", help="do not open Zenoh or announce bundles"
+    )
+    s.add_argument(
+        "--config", help="builder service config file (JSON/TOML); SFMLOC_BUILDER_* variables apply"
+    )
     s.set_defaults(func=run_serve)
 
     def client_args(q):
-        q.add_argument("--builder", default="127.0.0.1:50052", help="builder address HOST:PORT (default 127.0.0.1:50052)")
+        q.add_argument(
+            "--builder",
+            default="127.0.0.1:50052",
+            help="builder address HOST:PORT (default 127.0.0.1:50052)",
+        )
 
-    sb = bsub.add_parser("submit", help="submit a build and follow its progress",
-                         description="Submit a build (paths are on the builder's machine) and show its progress "
-                         "until it ends (--no-wait to return the job id at once). Inputs as in 'sfmloc build'.")
+    sb = bsub.add_parser(
+        "submit",
+        help="submit a build and follow its progress",
+        description="Submit a build (paths are on the builder's machine) and show its progress "
+        "until it ends (--no-wait to return the job id at once). Inputs as in 'sfmloc build'.",
+    )
     sb.add_argument("name")
-    sb.add_argument("--out", default="", help="bundle folder on the builder (default: the service's)")
+    sb.add_argument(
+        "--out", default="", help="bundle folder on the builder (default: the service's)"
+    )
     sb.add_argument("--colmap", metavar="MODEL_DIR")
     sb.add_argument("--images", metavar="DIR", required=True)
     sb.add_argument("--poses", metavar="FILE")
@@ -55,11 +94,15 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     ls = bsub.add_parser("list", help="list build jobs", description="List the builder's jobs.")
     client_args(ls)
     ls.set_defaults(func=run_list)
-    w = bsub.add_parser("watch", help="follow a job's progress", description="Follow a job until it ends.")
+    w = bsub.add_parser(
+        "watch", help="follow a job's progress", description="Follow a job until it ends."
+    )
     w.add_argument("job_id")
     client_args(w)
     w.set_defaults(func=run_watch)
-    c = bsub.add_parser("cancel", help="cancel a job", description="Cancel a queued or running job.")
+    c = bsub.add_parser(
+        "cancel", help="cancel a job", description="Cancel a queued or running job."
+    )
     c.add_argument("job_id")
     client_args(c)
     c.set_defaults(func=run_cancel)
@@ -73,16 +116,25 @@ def run_serve(args: argparse.Namespace) -> int:
     from ..config import load_config
 
     overrides = {
-        "out": args.out, "grpc": args.grpc, "max_concurrent": args.max_concurrent, "workdir": args.workdir,
-        "zenoh_mode": args.zenoh_mode, "zenoh_config": args.zenoh_config,
-        "zenoh_listen": args.zenoh_listen or None, "zenoh_connect": args.zenoh_connect or None,
-        "zenoh_multicast": False if args.no_multicast else None, "announce": False if args.no_announce else None,
+        "out": args.out,
+        "grpc": args.grpc,
+        "max_concurrent": args.max_concurrent,
+        "workdir": args.workdir,
+        "zenoh_mode": args.zenoh_mode,
+        "zenoh_config": args.zenoh_config,
+        "zenoh_listen": args.zenoh_listen or None,
+        "zenoh_connect": args.zenoh_connect or None,
+        "zenoh_multicast": False if args.no_multicast else None,
+        "announce": False if args.no_announce else None,
     }
-    return serve(load_config(BuilderConfig, args.config, prefix="SFMLOC_BUILDER_", overrides=overrides))
+    return serve(
+        load_config(BuilderConfig, args.config, prefix="SFMLOC_BUILDER_", overrides=overrides)
+    )
 
 
 def _stub(address: str):
     import grpc
+
     from sfmloc_client.pb import builder_pb2_grpc
 
     channel = grpc.insecure_channel(address)
@@ -131,14 +183,22 @@ def run_submit(args: argparse.Namespace) -> int:
     cam = None
     if args.camera:
         c = Camera.parse(args.camera)
-        cam = common_pb2.Camera(model=c.model, width=c.width, height=c.height, params=list(c.params))
-    req = pb.SubmitBuildRequest(name=args.name, out_dir=args.out, preset=args.preset, stride=args.stride)
+        cam = common_pb2.Camera(
+            model=c.model, width=c.width, height=c.height, params=list(c.params)
+        )
+    req = pb.SubmitBuildRequest(
+        name=args.name, out_dir=args.out, preset=args.preset, stride=args.stride
+    )
     if args.colmap:
         req.colmap.CopyFrom(pb.ColmapInput(model_dir=args.colmap, image_dir=args.images))
     elif args.poses:
-        req.posed_images.CopyFrom(pb.PosedImagesInput(image_dir=args.images, poses_file=args.poses, camera=cam))
+        req.posed_images.CopyFrom(
+            pb.PosedImagesInput(image_dir=args.images, poses_file=args.poses, camera=cam)
+        )
     else:
-        req.images_only.CopyFrom(pb.ImagesOnlyInput(image_dir=args.images, camera=cam, matching=args.matching or ""))
+        req.images_only.CopyFrom(
+            pb.ImagesOnlyInput(image_dir=args.images, camera=cam, matching=args.matching or "")
+        )
     channel, stub = _stub(args.builder)
     with channel:
         job_id = _grpc_call(stub.SubmitBuild, req).job_id
@@ -158,7 +218,10 @@ def run_list(args: argparse.Namespace) -> int:
     print(f"{'JOB':12s}  {'NAME':20s}  {'STATE':10s}  {'STAGE':12s}  {'ELAPSED':>8s}  RESULT")
     for j in jobs:
         state = pb.BuildState.Name(j.state).removeprefix("BUILD_STATE_")
-        print(f"{j.job_id:12s}  {j.name:20s}  {state:10s}  {j.stage:12s}  {j.elapsed_s:7.1f}s  {j.bundle_path or j.error}")
+        print(
+            f"{j.job_id:12s}  {j.name:20s}  {state:10s}  {j.stage:12s}  {j.elapsed_s:7.1f}s  "
+            f"{j.bundle_path or j.error}"
+        )
     return 0
 
 

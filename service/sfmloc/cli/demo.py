@@ -12,7 +12,8 @@ if TYPE_CHECKING:  # numpy loads lazily: `sfmloc --help` stays fast
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
-        "demo", help="end to end on a synthetic room: render, build, serve, stream, relocalize",
+        "demo",
+        help="end to end on a synthetic room: render, build, serve, stream, relocalize",
         description=textwrap.dedent(
             """\
             1. render a synthetic room (sfmloc.synth): mapping views with an exact COLMAP
@@ -32,21 +33,38 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         ),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--out", metavar="DIR", help="keep everything here (default: a temporary folder, removed)")
-    p.add_argument("--frames", type=int, default=150, help="video frames (default 150, 5 s at 30 Hz)")
+    p.add_argument(
+        "--out", metavar="DIR", help="keep everything here (default: a temporary folder, removed)"
+    )
+    p.add_argument(
+        "--frames", type=int, default=150, help="video frames (default 150, 5 s at 30 Hz)"
+    )
     p.add_argument("--mapping-views", type=int, default=60, help="mapping images (default 60)")
     p.add_argument("--fps", type=float, default=30.0, help="streaming rate (default 30)")
-    p.add_argument("--encoding", choices=["jpeg", "png", "gray8"], default="jpeg", help="how frames are sent (default jpeg)")
+    p.add_argument(
+        "--encoding",
+        choices=["jpeg", "png", "gray8"],
+        default="jpeg",
+        help="how frames are sent (default jpeg)",
+    )
     p.add_argument("--workers", type=int, default=0, help="server workers (default: one per core)")
     p.add_argument("--seed", type=int, default=0, help="scene seed (default 0)")
-    p.add_argument("--reuse", action="store_true",
-                   help="with --out: reuse the scene and map a previous run left there "
-                        "(repeated runs)")
+    p.add_argument(
+        "--reuse",
+        action="store_true",
+        help="with --out: reuse the scene and map a previous run left there (repeated runs)",
+    )
     p.set_defaults(func=run)
 
 
-def demo_bar(processed: int, position_errors_cm: "np.ndarray", last_answered: bool, reloc_ok: int,
-             reloc_n: int, exit_code: int | None) -> list[tuple[str, bool, str]]:
+def demo_bar(
+    processed: int,
+    position_errors_cm: np.ndarray,
+    last_answered: bool,
+    reloc_ok: int,
+    reloc_n: int,
+    exit_code: int | None,
+) -> list[tuple[str, bool, str]]:
     """The demo's pass criteria, each (what, met, measured), on what was measured: frames the
     server dropped as stale were neither localized nor failed, so they are not counted."""
     import numpy as np
@@ -54,13 +72,22 @@ def demo_bar(processed: int, position_errors_cm: "np.ndarray", last_answered: bo
     n_loc = len(position_errors_cm)
     med = float(np.median(position_errors_cm)) if n_loc else float("nan")
     return [
-        (">= 80% of the frames processed localized", processed > 0 and n_loc >= 0.8 * processed,
-         f"{n_loc}/{processed}"),
-        ("median position error < 5 cm", n_loc > 0 and med < 5.0,
-         f"{med:.2f} cm" if n_loc else "none localized"),
+        (
+            ">= 80% of the frames processed localized",
+            processed > 0 and n_loc >= 0.8 * processed,
+            f"{n_loc}/{processed}",
+        ),
+        (
+            "median position error < 5 cm",
+            n_loc > 0 and med < 5.0,
+            f"{med:.2f} cm" if n_loc else "none localized",
+        ),
         ("the last frame answered", last_answered, "yes" if last_answered else "no"),
-        ("single images within 10 cm: all but one", reloc_ok >= reloc_n - 1,
-         f"{reloc_ok}/{reloc_n}"),
+        (
+            "single images within 10 cm: all but one",
+            reloc_ok >= reloc_n - 1,
+            f"{reloc_ok}/{reloc_n}",
+        ),
         ("server exit code 0 after SIGTERM", exit_code == 0, str(exit_code)),
     ]
 
@@ -77,14 +104,22 @@ def run(args: argparse.Namespace) -> int:
     import cv2
     import numpy as np
     import zenoh
-    from sfmloc_client import CameraSpec, FrameStreamer, LocalizationClient, PoseSubscriber, SourceFrame, make_zenoh_config
 
-    from ..io.poses import read_poses
+    from sfmloc_client import (
+        CameraSpec,
+        FrameStreamer,
+        LocalizationClient,
+        PoseSubscriber,
+        SourceFrame,
+        make_zenoh_config,
+    )
+
     from ..builder.build import BuildConf
     from ..builder.build import main as build_map
-    from ..testing import ServerProcess
+    from ..io.poses import read_poses
     from ..synth import preset
     from ..synth.main import run as synth_run
+    from ..testing import ServerProcess
     from ..transforms import Rigid3d, rotation_angle_deg
 
     t_all = time.perf_counter()
@@ -100,21 +135,35 @@ def run(args: argparse.Namespace) -> int:
     if not args.verbose:
         logging.getLogger("sfmloc").setLevel(logging.WARNING)
     try:
-        reuse = bool(args.reuse and args.out
-                     and (root / "maps" / "demo-room" / "manifest.json").is_file()
-                     and (root / "synth" / "video_poses.txt").is_file())
+        reuse = bool(
+            args.reuse
+            and args.out
+            and (root / "maps" / "demo-room" / "manifest.json").is_file()
+            and (root / "synth" / "video_poses.txt").is_file()
+        )
         if reuse:
             step(f"reusing the scene and map in {root}")
         else:
-            step(f"rendering a synthetic room: {args.mapping_views} mapping views, {args.frames} "
-                 f"video frames ({root})")
-            conf = preset("default", seed=args.seed, mapping_views=args.mapping_views,
-                          trajectory={"n_frames": args.frames})
+            step(
+                f"rendering a synthetic room: {args.mapping_views} mapping views, {args.frames} "
+                f"video frames ({root})"
+            )
+            conf = preset(
+                "default",
+                seed=args.seed,
+                mapping_views=args.mapping_views,
+                trajectory={"n_frames": args.frames},
+            )
             data = synth_run(conf, root / "synth", overwrite=True)
             step(f"  {data.n_points3D} exact 3D points, {data.n_observations} observations")
             step("building the map bundle from the synthetic COLMAP model")
-            bundle = build_map(BuildConf(), "demo-room", root / "maps",
-                               colmap=root / "synth" / "sparse", images=root / "synth" / "images")
+            bundle = build_map(
+                BuildConf(),
+                "demo-room",
+                root / "maps",
+                colmap=root / "synth" / "sparse",
+                images=root / "synth" / "images",
+            )
             step(f"  {bundle}")
         cam_json = root / "synth" / "camera.json"
         import json
@@ -149,9 +198,11 @@ def run(args: argparse.Namespace) -> int:
 
             images = [cv2.imread(str(f), cv2.IMREAD_COLOR) for f in frames]
             source = [SourceFrame(image=img) for img in images]
-            with zenoh.open(make_zenoh_config("peer", connect=[srv.endpoint], multicast=False)) as z, \
-                    PoseSubscriber(z, "demo-room", "demo-camera", callback=on_pose) as sub, \
-                    FrameStreamer(z, "demo-room", "demo-camera", cam, encoding=args.encoding) as fs:
+            with (
+                zenoh.open(make_zenoh_config("peer", connect=[srv.endpoint], multicast=False)) as z,
+                PoseSubscriber(z, "demo-room", "demo-camera", callback=on_pose) as sub,
+                FrameStreamer(z, "demo-room", "demo-camera", cam, encoding=args.encoding) as fs,
+            ):
                 if not fs.wait_for_server(30):
                     step("the server does not subscribe to the frames")
                     return 1
@@ -175,7 +226,9 @@ def run(args: argparse.Namespace) -> int:
             w = p.world_from_cam
             est = Rigid3d.from_quat_xyzw(np.array(w.quat_xyzw), np.array(w.t))
             ref = gt_list[k].inverse()
-            return float(np.linalg.norm(est.translation - ref.translation)), rotation_angle_deg(est.rotation, ref.rotation)
+            return float(np.linalg.norm(est.translation - ref.translation)), rotation_angle_deg(
+                est.rotation, ref.rotation
+            )
 
         got = [poses[k] for k in sorted(poses)]
         loc = [(p.seq, *errors(p, p.seq)) for p in got if p.localized]
@@ -188,39 +241,64 @@ def run(args: argparse.Namespace) -> int:
         eng = np.array([p.engine_ms for p in got if p.error is None]) if got else np.array([np.nan])
         n = len(frames)
         print()
-        print(f"sfmloc demo: synthetic room, 640x480 walk at {args.fps:g} Hz, one Zenoh client, "
-              f"{args.encoding} frames")
+        print(
+            f"sfmloc demo: synthetic room, 640x480 walk at {args.fps:g} Hz, one Zenoh client, "
+            f"{args.encoding} frames"
+        )
         processed = [p for p in got if p.error is None]
         errored = len(got) - len(processed)
         stale = stats.sent - len(got)
         print(f"  {'frames sent':<34}{stats.sent}")
-        print(f"  {'poses received':<34}{len(got)}  ({', '.join(f'{k} {v}' for k, v in sorted(statuses.items()))}; "
-              f"{errored} errors)")
+        print(
+            f"  {'poses received':<34}{len(got)}  "
+            f"({', '.join(f'{k} {v}' for k, v in sorted(statuses.items()))}; "
+            f"{errored} errors)"
+        )
         stale_pct = 100 * stale / max(1, stats.sent)
-        print(f"  {'dropped as stale':<34}{stale} = {stale_pct:.1f}% of frames "
-              "sent (the server keeps the newest frame when it cannot keep up; not a failure)")
+        print(
+            f"  {'dropped as stale':<34}{stale} = {stale_pct:.1f}% of frames "
+            "sent (the server keeps the newest frame when it cannot keep up; not a failure)"
+        )
         share = 100 * len(loc) / max(1, len(processed))
-        print(f"  {'localized':<34}{len(loc)} = {share:.1f}% of the {len(processed)} frames "
-              f"processed ({100 * len(loc) / n:.1f}% of frames sent)")
+        print(
+            f"  {'localized':<34}{len(loc)} = {share:.1f}% of the {len(processed)} frames "
+            f"processed ({100 * len(loc) / n:.1f}% of frames sent)"
+        )
         if len(loc):
-            print(f"  {'position error (cm)':<34}median {np.median(dpos):.2f}  p90 {np.percentile(dpos, 90):.2f}  max {dpos.max():.2f}")
-            print(f"  {'rotation error (deg)':<34}median {np.median(drot):.2f}  p90 {np.percentile(drot, 90):.2f}  max {drot.max():.2f}")
+            print(
+                f"  {'position error (cm)':<34}median {np.median(dpos):.2f}  p90 "
+                f"{np.percentile(dpos, 90):.2f}  max {dpos.max():.2f}"
+            )
+            print(
+                f"  {'rotation error (deg)':<34}median {np.median(drot):.2f}  p90 "
+                f"{np.percentile(drot, 90):.2f}  max {drot.max():.2f}"
+            )
         print(f"  {'send rate':<34}{stats.rate_hz:.1f} frames/s")
-        print(f"  {'latency, frame sent -> pose (ms)':<34}p50 {np.nanmedian(lat):.1f}  p99 {np.nanpercentile(lat, 99):.1f}")
-        print(f"  {'engine time per frame (ms)':<34}p50 {np.nanmedian(eng):.1f}  p99 {np.nanpercentile(eng, 99):.1f}")
+        print(
+            f"  {'latency, frame sent -> pose (ms)':<34}p50 {np.nanmedian(lat):.1f}  p99 "
+            f"{np.nanpercentile(lat, 99):.1f}"
+        )
+        print(
+            f"  {'engine time per frame (ms)':<34}p50 {np.nanmedian(eng):.1f}  p99 "
+            f"{np.nanpercentile(eng, 99):.1f}"
+        )
         print("  single images over gRPC (Relocalize):")
         ok_reloc = 0
         for k, r, ms in reloc:
             if r.localized:
                 dp, dr = errors(r, k)
                 ok_reloc += dp < 0.1
-                print(f"    frame {k:4d}: {r.status:<11} {r.inliers:4d} inliers  {dp * 100:6.2f} cm  {dr:5.2f} deg  {ms:6.1f} ms")
+                print(
+                    f"    frame {k:4d}: {r.status:<11} {r.inliers:4d} inliers  {dp * 100:6.2f} cm  "
+                    f"{dr:5.2f} deg  {ms:6.1f} ms"
+                )
             else:
                 print(f"    frame {k:4d}: {r.status:<11} {r.message}  {ms:6.1f} ms")
         print(f"  server exit code after SIGTERM: {exit_code}")
         print(f"  total {time.perf_counter() - t_all:.1f} s")
-        checks = demo_bar(len(processed), dpos, stats.last_seq in poses, ok_reloc, len(reloc),
-                          exit_code)
+        checks = demo_bar(
+            len(processed), dpos, stats.last_seq in poses, ok_reloc, len(reloc), exit_code
+        )
         print("  bar:")
         for what, ok, got_s in checks:
             print(f"    {'ok  ' if ok else 'FAIL'} {what:<44}{got_s}")

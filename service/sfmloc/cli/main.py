@@ -43,7 +43,9 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="Run 'sfmloc COMMAND --help' for the options of one command.",
     )
     parser.add_argument("--version", action="version", version=f"sfmloc {__version__}")
-    parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-vv for debug)")
+    parser.add_argument(
+        "-v", "--verbose", action="count", default=0, help="more logging (-vv for debug)"
+    )
     parser.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in COMMANDS:

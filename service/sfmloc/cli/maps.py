@@ -8,19 +8,25 @@ from ._clientopts import add_grpc_option, grpc_client
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("maps", help="list/show/load/unload the maps of a running server",
-                       description="Manage the maps a running server hosts (gRPC). Loading a map that is "
-                                   "already loaded replaces it atomically: live sessions relocalize on the new one.")
+    p = sub.add_parser(
+        "maps",
+        help="list/show/load/unload the maps of a running server",
+        description="Manage the maps a running server hosts (gRPC). Loading a map that is "
+        "already loaded replaces it atomically: live sessions relocalize on the new one.",
+    )
     ms = p.add_subparsers(dest="maps_command", metavar="ACTION", required=True)
     a = ms.add_parser("list", help="maps loaded on the server")
     add_grpc_option(a)
     a = ms.add_parser("show", help="details of one map")
     a.add_argument("name")
     add_grpc_option(a)
-    a = ms.add_parser("load", help="load (or replace) a bundle from the server's maps folders",
-                      description="Load (or replace) a bundle the server can see: a map name (a folder "
-                                  "in the server's --maps folder or its map_roots), or a path inside "
-                                  "those folders. Paths elsewhere are refused (PERMISSION_DENIED).")
+    a = ms.add_parser(
+        "load",
+        help="load (or replace) a bundle from the server's maps folders",
+        description="Load (or replace) a bundle the server can see: a map name (a folder "
+        "in the server's --maps folder or its map_roots), or a path inside "
+        "those folders. Paths elsewhere are refused (PERMISSION_DENIED).",
+    )
     a.add_argument("path", help="map name, or bundle folder inside the server's maps folders")
     a.add_argument("--name", default="", help="name to serve it under (default: the bundle's own)")
     add_grpc_option(a)
@@ -31,8 +37,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def _row(m) -> str:  # noqa: ANN001 - a MapInfo message
-    return (f"{m.name:<20} {m.build_id:<28} {m.points:>8} {m.descriptors:>11} {m.images:>6} "
-            f"{m.memory_mb:>8.1f} {m.sessions:>8}  {m.path}")
+    return (
+        f"{m.name:<20} {m.build_id:<28} {m.points:>8} {m.descriptors:>11} {m.images:>6} "
+        f"{m.memory_mb:>8.1f} {m.sessions:>8}  {m.path}"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -44,8 +52,11 @@ def run(args: argparse.Namespace) -> int:
         with grpc_client(args) as c:
             if args.maps_command == "list":
                 maps = c.list_maps()
-                print(f"{'name':<20} {'build_id':<28} {'points':>8} {'descriptors':>11} {'images':>6} "
-                      f"{'mem MB':>8} {'sessions':>8}  path")
+                print(
+                    f"{'name':<20} {'build_id':<28} {'points':>8} {'descriptors':>11} "
+                    f"{'images':>6} "
+                    f"{'mem MB':>8} {'sessions':>8}  path"
+                )
                 for m in maps:
                     print(_row(m))
                 if not maps:
@@ -54,7 +65,9 @@ def run(args: argparse.Namespace) -> int:
                 print(c.get_map(args.name))
             elif args.maps_command == "load":
                 m = c.load_map(args.path, args.name, timeout=args.timeout)
-                print(f"loaded {m.name} (build {m.build_id}, {m.points} points, {m.memory_mb:.1f} MB)")
+                print(
+                    f"loaded {m.name} (build {m.build_id}, {m.points} points, {m.memory_mb:.1f} MB)"
+                )
             else:
                 r = c.unload_map(args.name)
                 print(f"unloaded {args.name} ({r.sessions_closed} sessions closed)")

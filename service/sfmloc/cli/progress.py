@@ -31,7 +31,9 @@ class ProgressPrinter:
             filled = int(round(fraction * self.width))
             bar = "#" * filled + "-" * (self.width - filled)
             msg = message if len(message) < 60 else message[:57] + "..."
-            self.stream.write(f"\r{stage:>12s} [{bar}] {fraction * 100:5.1f}% {elapsed:6.1f}s {msg:<60s}")
+            self.stream.write(
+                f"\r{stage:>12s} [{bar}] {fraction * 100:5.1f}% {elapsed:6.1f}s {msg:<60s}"
+            )
             if fraction >= 1.0:
                 self.stream.write("\n")
                 self.stage = None

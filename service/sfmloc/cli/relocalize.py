@@ -10,7 +10,8 @@ from ._clientopts import add_grpc_option, camera_spec, grpc_client
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
-        "relocalize", help="localize a single image on a server (gRPC)",
+        "relocalize",
+        help="localize a single image on a server (gRPC)",
         description=textwrap.dedent(
             """\
             Send IMAGE to the server's Relocalize call and print its pose: world_from_cam
@@ -23,8 +24,14 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("image", metavar="IMAGE", help="image file")
     p.add_argument("--map", required=True, help="map name on the server")
-    p.add_argument("--camera", required=True, metavar="CAMERA", help="camera.json or 'MODEL w h params...'")
-    p.add_argument("--prior", metavar="'qx qy qz qw tx ty tz'", help="approximate cam_from_world to search near")
+    p.add_argument(
+        "--camera", required=True, metavar="CAMERA", help="camera.json or 'MODEL w h params...'"
+    )
+    p.add_argument(
+        "--prior",
+        metavar="'qx qy qz qw tx ty tz'",
+        help="approximate cam_from_world to search near",
+    )
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     add_grpc_option(p)
     p.set_defaults(func=run)
@@ -48,7 +55,10 @@ def run(args: argparse.Namespace) -> int:
     else:
         import cv2
 
-        image, encoding = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION), "png"
+        image, encoding = (
+            cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION),
+            "png",
+        )
         if image is None:
             raise InputError(f"cannot read image {path}")
     prior = None
@@ -63,18 +73,38 @@ def run(args: argparse.Namespace) -> int:
         except RemoteError as exc:
             raise InputError(f"relocalize failed: {exc}") from None
     if args.json:
-        print(json.dumps({
-            "status": pose.status, "inliers": pose.inliers, "latency_ms": round(pose.latency_ms, 2),
-            "world_from_cam": None if pose.world_from_cam is None else {"quat_xyzw": pose.world_from_cam.quat_xyzw, "t": pose.world_from_cam.t},
-            "cam_from_world": None if pose.cam_from_world is None else {"quat_xyzw": pose.cam_from_world.quat_xyzw, "t": pose.cam_from_world.t},
-            "message": pose.message,
-        }))
+        print(
+            json.dumps(
+                {
+                    "status": pose.status,
+                    "inliers": pose.inliers,
+                    "latency_ms": round(pose.latency_ms, 2),
+                    "world_from_cam": None
+                    if pose.world_from_cam is None
+                    else {"quat_xyzw": pose.world_from_cam.quat_xyzw, "t": pose.world_from_cam.t},
+                    "cam_from_world": None
+                    if pose.cam_from_world is None
+                    else {"quat_xyzw": pose.cam_from_world.quat_xyzw, "t": pose.cam_from_world.t},
+                    "message": pose.message,
+                }
+            )
+        )
     else:
         print(f"{path.name}: {pose.status}  inliers {pose.inliers}  {pose.latency_ms:.1f} ms")
         if pose.world_from_cam is not None and pose.cam_from_world is not None:
             w, c_ = pose.world_from_cam, pose.cam_from_world
-            print("  world_from_cam  t " + " ".join(f"{v:.4f}" for v in w.t) + "  quat_xyzw " + " ".join(f"{v:.6f}" for v in w.quat_xyzw))
-            print("  cam_from_world  t " + " ".join(f"{v:.4f}" for v in c_.t) + "  quat_xyzw " + " ".join(f"{v:.6f}" for v in c_.quat_xyzw))
+            print(
+                "  world_from_cam  t "
+                + " ".join(f"{v:.4f}" for v in w.t)
+                + "  quat_xyzw "
+                + " ".join(f"{v:.6f}" for v in w.quat_xyzw)
+            )
+            print(
+                "  cam_from_world  t "
+                + " ".join(f"{v:.4f}" for v in c_.t)
+                + "  quat_xyzw "
+                + " ".join(f"{v:.6f}" for v in c_.quat_xyzw)
+            )
         elif pose.message:
             print(f"  {pose.message}")
     return 0 if pose.localized else 1

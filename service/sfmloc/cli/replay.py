@@ -38,25 +38,47 @@ resets tracking. The summary names the clock used and counts such gaps.
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
-        "replay", help="replay a recorded sequence through the engine (accuracy, latency)",
-        description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter,
+        "replay",
+        help="replay a recorded sequence through the engine (accuracy, latency)",
+        description=DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("map", help="map bundle folder (e.g. maps/lab)")
     p.add_argument("frames", help="image folder or video file")
-    p.add_argument("--camera", required=True, help="camera.json or 'MODEL w h params...' (e.g. 'PINHOLE 640 480 525 525 320 240')")
+    p.add_argument(
+        "--camera",
+        required=True,
+        help="camera.json or 'MODEL w h params...' (e.g. 'PINHOLE 640 480 525 525 320 240')",
+    )
     p.add_argument("--groundtruth", help="ground-truth poses (COLMAP list or TUM)")
-    p.add_argument("--json", dest="json_out", help="write the summary (and per-frame records) as JSON here")
-    p.add_argument("--trajectory", help="write the estimated trajectory here (TUM, world_from_cam, raw poses); "
-                   "FILE.cov beside it: status and 6x6 covariance per pose (see README, Conventions)")
-    p.add_argument("--fps", type=float, default=30.0,
-                   help="the clock: timestamp = frame index / fps (default 30), unless --timestamps")
-    p.add_argument("--timestamps", metavar="SOURCE",
-                   help="take timestamps from stem-s|stem-ms|stem-us|stem-ns (numeric file names "
-                        "in that unit) or a TUM-style timestamps file, instead of --fps")
+    p.add_argument(
+        "--json", dest="json_out", help="write the summary (and per-frame records) as JSON here"
+    )
+    p.add_argument(
+        "--trajectory",
+        help="write the estimated trajectory here (TUM, world_from_cam, raw poses); "
+        "FILE.cov beside it: status and 6x6 covariance per pose (see README, Conventions)",
+    )
+    p.add_argument(
+        "--fps",
+        type=float,
+        default=30.0,
+        help="the clock: timestamp = frame index / fps (default 30), unless --timestamps",
+    )
+    p.add_argument(
+        "--timestamps",
+        metavar="SOURCE",
+        help="take timestamps from stem-s|stem-ms|stem-us|stem-ns (numeric file names "
+        "in that unit) or a TUM-style timestamps file, instead of --fps",
+    )
     p.add_argument("--start", type=int, default=0, help="first frame index (default 0)")
     p.add_argument("--max-frames", type=int, help="stop after this many frames")
-    p.add_argument("--config", help="engine config file (JSON/TOML; SFMLOC_ENGINE__* variables also apply)")
-    p.add_argument("--no-verify", action="store_true", help="skip bundle checksum verification at load")
+    p.add_argument(
+        "--config", help="engine config file (JSON/TOML; SFMLOC_ENGINE__* variables also apply)"
+    )
+    p.add_argument(
+        "--no-verify", action="store_true", help="skip bundle checksum verification at load"
+    )
     p.set_defaults(func=run)
 
 
@@ -81,8 +103,10 @@ def format_summary(s: dict, decode_ms: float | None = None) -> str:
         f"localized            {s['localized_frames']} ({s['localized_fraction'] * 100:.1f}%)  "
         f"[{statuses}]",
         f"evaluated            {s['evaluated_frames']} frames with ground truth and a pose",
-        f"position error       median {cm(s['median_position_error_m'])}, mean {cm(s['mean_position_error_m'])}",
-        f"rotation error       median {deg(s['median_rotation_error_deg'])}, mean {deg(s['mean_rotation_error_deg'])}",
+        f"position error       median {cm(s['median_position_error_m'])}, mean "
+        f"{cm(s['mean_position_error_m'])}",
+        f"rotation error       median {deg(s['median_rotation_error_deg'])}, mean "
+        f"{deg(s['mean_rotation_error_deg'])}",
         f"wrong poses          {s['confident_wrong']}{f' [{wrong_by}]' if wrong_by else ''} "
         f"(any status but LOST, error > {s['wrong_position_limit']:.3g} = "
         f"{WRONG_POSITION_FRACTION:.0%} of the scene scale {s['scene_scale']:.3g}, "
@@ -93,10 +117,13 @@ def format_summary(s: dict, decode_ms: float | None = None) -> str:
         f"{pct(s['within_relative_fraction'])} "
         f"(position within {s['within_relative_position_limit']:.3g} map units = "
         f"{RECALL_POSITION_FRACTION:.1%} of the scene scale)",
-        f"latency (ms)         mean {lat['mean']:.1f}, std {lat['std']:.1f}, p50 {lat['p50']:.1f}, p95 {lat['p95']:.1f}, "
+        f"latency (ms)         mean {lat['mean']:.1f}, std {lat['std']:.1f}, p50 {lat['p50']:.1f}, "
+        f"p95 {lat['p95']:.1f}, "
         f"p99 {lat['p99']:.1f}, max {lat['max']:.1f}",
-        f"guided matching      {s['guided_frames']} frames, mean {s['guided_latency_ms_mean']:.1f} ms",
-        f"global matching      {s['global_frames']} frames, mean {s['global_latency_ms_mean']:.1f} ms",
+        f"guided matching      {s['guided_frames']} frames, mean {s['guided_latency_ms_mean']:.1f} "
+        "ms",
+        f"global matching      {s['global_frames']} frames, mean {s['global_latency_ms_mean']:.1f} "
+        "ms",
     ]
     if decode_ms is not None:
         lines.append(f"decode (not counted) {decode_ms:.1f} ms/frame")
@@ -135,8 +162,16 @@ def run(args: argparse.Namespace) -> int:
         total = min(total, args.max_frames)
     bar = ProgressPrinter()
     records, decode_ms = replay(
-        bundle, source, camera, conf, gt, start=args.start, max_frames=args.max_frames,
-        on_frame=lambda r: bar("replay", (r.index - args.start + 1) / max(1, total), f"{r.name} {r.status}"),
+        bundle,
+        source,
+        camera,
+        conf,
+        gt,
+        start=args.start,
+        max_frames=args.max_frames,
+        on_frame=lambda r: bar(
+            "replay", (r.index - args.start + 1) / max(1, total), f"{r.name} {r.status}"
+        ),
     )
     bar.close()
     summary = summarize(records, bundle.scene_scale)
@@ -150,25 +185,46 @@ def run(args: argparse.Namespace) -> int:
     summary["clock_fps"] = source.nominal_fps
     gaps = source.gaps_over(conf.max_frame_gap_s)
     summary["clock_gaps_over_max"] = gaps
-    print(f"clock                {source.clock} ({source.nominal_fps:.3g} frames/s)"
-          + (f"; {gaps} gaps over max_frame_gap_s {conf.max_frame_gap_s:g} s reset tracking" if gaps else ""))
+    print(
+        f"clock                {source.clock} ({source.nominal_fps:.3g} frames/s)"
+        + (
+            f"; {gaps} gaps over max_frame_gap_s {conf.max_frame_gap_s:g} s reset tracking"
+            if gaps
+            else ""
+        )
+    )
     if summary["ate_m"] == summary["ate_m"]:
         print(f"ATE (SE(3)-aligned)  {summary['ate_m'] * 100:.2f} cm")
     if args.trajectory:
         ok = [r for r in records if r.cam_from_world is not None]
         write_tum(args.trajectory, [r.stamp for r in ok], [r.cam_from_world.inverse() for r in ok])
-        cov = write_tum_covariances(args.trajectory + ".cov", [r.stamp for r in ok], [r.status for r in ok],
-                                    [r.covariance for r in ok])
-        print(f"trajectory           {args.trajectory} ({len(ok)} poses, TUM; covariances {cov})", file=sys.stderr)
+        cov = write_tum_covariances(
+            args.trajectory + ".cov",
+            [r.stamp for r in ok],
+            [r.status for r in ok],
+            [r.covariance for r in ok],
+        )
+        print(
+            f"trajectory           {args.trajectory} ({len(ok)} poses, TUM; covariances {cov})",
+            file=sys.stderr,
+        )
     if args.json_out:
         out = dict(summary)
         out["map"] = str(args.map)
         out["frames_source"] = str(args.frames)
         out["per_frame"] = [
             {
-                "index": r.index, "name": r.name, "stamp": r.stamp, "status": r.status, "matching": r.matching,
-                "latency_ms": r.latency_ms, "inliers": r.inliers, "detected": r.detected, "tracked": r.tracked,
-                "tracked_3d": r.tracked_3d, "position_error_m": r.position_error_m,
+                "index": r.index,
+                "name": r.name,
+                "stamp": r.stamp,
+                "status": r.status,
+                "matching": r.matching,
+                "latency_ms": r.latency_ms,
+                "inliers": r.inliers,
+                "detected": r.detected,
+                "tracked": r.tracked,
+                "tracked_3d": r.tracked_3d,
+                "position_error_m": r.position_error_m,
                 "rotation_error_deg": r.rotation_error_deg,
             }
             for r in records

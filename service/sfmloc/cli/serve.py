@@ -41,38 +41,117 @@ EPILOG = textwrap.dedent(
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("serve", help=HELP, description=DESCRIPTION, epilog=EPILOG,
-                       formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--maps", metavar="DIR", help="folder of map bundles loaded at start (default: maps)")
-    p.add_argument("--grpc", metavar="HOST:PORT", help="gRPC address (default 0.0.0.0:50051; port 0 = any; 'off' disables)")
-    p.add_argument("--zenoh-mode", choices=["peer", "client", "router"], help="Zenoh mode (default peer)")
-    p.add_argument("--zenoh-listen", metavar="ENDPOINT", action="append", help="Zenoh listen endpoint, e.g. tcp/0.0.0.0:7447 (repeatable)")
-    p.add_argument("--zenoh-connect", metavar="ENDPOINT", action="append", help="Zenoh endpoint to connect to (repeatable)")
-    p.add_argument("--zenoh-config", metavar="FILE", help="a Zenoh JSON5 config file; the flags above go over it")
-    p.add_argument("--no-multicast", action="store_true", help="no Zenoh multicast scouting (explicit endpoints only)")
-    p.add_argument("--zenoh-shm", action="store_true",
-                   help="Zenoh's shared-memory transport on (default off: with it on, each local "
-                        "client's 16 MiB segment stays mapped in the server after it leaves)")
+    p = sub.add_parser(
+        "serve",
+        help=HELP,
+        description=DESCRIPTION,
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument(
+        "--maps", metavar="DIR", help="folder of map bundles loaded at start (default: maps)"
+    )
+    p.add_argument(
+        "--grpc",
+        metavar="HOST:PORT",
+        help="gRPC address (default 0.0.0.0:50051; port 0 = any; 'off' disables)",
+    )
+    p.add_argument(
+        "--zenoh-mode", choices=["peer", "client", "router"], help="Zenoh mode (default peer)"
+    )
+    p.add_argument(
+        "--zenoh-listen",
+        metavar="ENDPOINT",
+        action="append",
+        help="Zenoh listen endpoint, e.g. tcp/0.0.0.0:7447 (repeatable)",
+    )
+    p.add_argument(
+        "--zenoh-connect",
+        metavar="ENDPOINT",
+        action="append",
+        help="Zenoh endpoint to connect to (repeatable)",
+    )
+    p.add_argument(
+        "--zenoh-config",
+        metavar="FILE",
+        help="a Zenoh JSON5 config file; the flags above go over it",
+    )
+    p.add_argument(
+        "--no-multicast",
+        action="store_true",
+        help="no Zenoh multicast scouting (explicit endpoints only)",
+    )
+    p.add_argument(
+        "--zenoh-shm",
+        action="store_true",
+        help="Zenoh's shared-memory transport on (default off: with it on, each local "
+        "client's 16 MiB segment stays mapped in the server after it leaves)",
+    )
     p.add_argument("--no-zenoh", action="store_true", help="gRPC only")
-    p.add_argument("--workers", type=int, metavar="N", help="engine worker processes (default: one per core)")
+    p.add_argument(
+        "--workers", type=int, metavar="N", help="engine worker processes (default: one per core)"
+    )
     p.add_argument("--worker-kind", choices=["process", "thread"], help=argparse.SUPPRESS)
-    p.add_argument("--relocalize-workers", type=int, metavar="N",
-                   help="extra worker processes only for single-image Relocalize, at a lower CPU "
-                        "priority, so that it never delays streams' frames (default 1; 0: on the "
-                        "stream workers)")
-    p.add_argument("--idle-timeout", type=float, metavar="S", help="end a Zenoh session after S seconds without frames (default 30)")
-    p.add_argument("--max-pending", type=int, metavar="N",
-                   help="frames of a client that may wait while one is processed (default 1: latest frame only)")
-    p.add_argument("--follow-builder", action="store_true", help="load bundles the builder announces on sfmloc/maps/*")
-    p.add_argument("--allow-empty", action="store_true",
-                   help="health SERVING even with no map loaded (default: NOT_SERVING until one is)")
-    p.add_argument("--metrics-port", type=int, metavar="N", help="serve Prometheus metrics on http://0.0.0.0:N/metrics")
-    p.add_argument("--server-id", metavar="ID", help="id in sfmloc/servers/<id> (default <hostname>-<pid>)")
-    p.add_argument("--tls-cert", metavar="PEM", help="serve gRPC over TLS with this certificate chain")
+    p.add_argument(
+        "--relocalize-workers",
+        type=int,
+        metavar="N",
+        help="extra worker processes only for single-image Relocalize, at a lower CPU "
+        "priority, so that it never delays streams' frames (default 1; 0: on the "
+        "stream workers)",
+    )
+    p.add_argument(
+        "--idle-timeout",
+        type=float,
+        metavar="S",
+        help="end a Zenoh session after S seconds without frames (default 30)",
+    )
+    p.add_argument(
+        "--max-pending",
+        type=int,
+        metavar="N",
+        help="frames of a client that may wait while one is processed (default 1: latest frame "
+        "only)",
+    )
+    p.add_argument(
+        "--follow-builder",
+        action="store_true",
+        help="load bundles the builder announces on sfmloc/maps/*",
+    )
+    p.add_argument(
+        "--allow-empty",
+        action="store_true",
+        help="health SERVING even with no map loaded (default: NOT_SERVING until one is)",
+    )
+    p.add_argument(
+        "--metrics-port",
+        type=int,
+        metavar="N",
+        help="serve Prometheus metrics on http://0.0.0.0:N/metrics",
+    )
+    p.add_argument(
+        "--server-id", metavar="ID", help="id in sfmloc/servers/<id> (default <hostname>-<pid>)"
+    )
+    p.add_argument(
+        "--tls-cert", metavar="PEM", help="serve gRPC over TLS with this certificate chain"
+    )
     p.add_argument("--tls-key", metavar="PEM", help="the private key of --tls-cert")
-    p.add_argument("--tls-client-ca", metavar="PEM", help="require client certificates signed by this CA (mutual TLS)")
-    p.add_argument("--tokens", metavar="FILE", help="require bearer tokens with roles on gRPC (see `sfmloc auth`)")
-    p.add_argument("--max-message-mb", type=float, metavar="MB", help="largest gRPC message and Zenoh frame (default 16)")
+    p.add_argument(
+        "--tls-client-ca",
+        metavar="PEM",
+        help="require client certificates signed by this CA (mutual TLS)",
+    )
+    p.add_argument(
+        "--tokens",
+        metavar="FILE",
+        help="require bearer tokens with roles on gRPC (see `sfmloc auth`)",
+    )
+    p.add_argument(
+        "--max-message-mb",
+        type=float,
+        metavar="MB",
+        help="largest gRPC message and Zenoh frame (default 16)",
+    )
     p.add_argument("--log-format", choices=["kv", "json"], help="log line format (default kv)")
     p.add_argument("--config", metavar="FILE", help="ServerConfig as JSON or TOML")
     p.set_defaults(func=run)
@@ -80,10 +159,17 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def overrides_from_args(args: argparse.Namespace) -> dict:
     """Only what was given on the command line (so that it wins over file and environment)."""
-    o: dict = {"maps": args.maps, "workers": args.workers, "worker_kind": args.worker_kind,
-               "idle_timeout_s": args.idle_timeout, "metrics_port": args.metrics_port, "max_pending": args.max_pending,
-               "server_id": args.server_id, "log_format": args.log_format,
-               "relocalize_workers": args.relocalize_workers}
+    o: dict = {
+        "maps": args.maps,
+        "workers": args.workers,
+        "worker_kind": args.worker_kind,
+        "idle_timeout_s": args.idle_timeout,
+        "metrics_port": args.metrics_port,
+        "max_pending": args.max_pending,
+        "server_id": args.server_id,
+        "log_format": args.log_format,
+        "relocalize_workers": args.relocalize_workers,
+    }
     if args.follow_builder:
         o["follow_builder"] = True
     if args.allow_empty:
@@ -108,8 +194,12 @@ def overrides_from_args(args: argparse.Namespace) -> dict:
     g: dict = {}
     if args.grpc is not None:
         g["address"] = "" if args.grpc.lower() in ("off", "none", "") else args.grpc
-    for flag, key in (("tls_cert", "tls_cert"), ("tls_key", "tls_key"), ("tls_client_ca", "tls_client_ca"),
-                      ("tokens", "tokens_file")):
+    for flag, key in (
+        ("tls_cert", "tls_cert"),
+        ("tls_key", "tls_key"),
+        ("tls_client_ca", "tls_client_ca"),
+        ("tokens", "tokens_file"),
+    ):
         if getattr(args, flag):
             g[key] = getattr(args, flag)
     if args.max_message_mb is not None:
@@ -129,6 +219,8 @@ def run(args: argparse.Namespace) -> int:
     from ..server.logfmt import setup_logging
 
     conf = load_config(ServerConfig, args.config, overrides=overrides_from_args(args))
-    level = logging.WARNING if args.quiet else (logging.DEBUG if args.verbose >= 2 else logging.INFO)
+    level = (
+        logging.WARNING if args.quiet else (logging.DEBUG if args.verbose >= 2 else logging.INFO)
+    )
     setup_logging(conf.log_format, level)  # the server's own structured format
     return run_server(conf)

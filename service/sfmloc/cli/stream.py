@@ -33,22 +33,63 @@ EPILOG = textwrap.dedent(
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("stream", help="stream frames over Zenoh, print live status, write a TUM trajectory",
-                       description=DESCRIPTION, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = sub.add_parser(
+        "stream",
+        help="stream frames over Zenoh, print live status, write a TUM trajectory",
+        description=DESCRIPTION,
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("--map", required=True, help="map name on the server")
-    p.add_argument("--source", required=True, metavar="PATH|DEVICE", help="image folder, video file or camera index")
-    p.add_argument("--camera", required=True, metavar="CAMERA", help="camera.json or 'MODEL w h params...'")
-    p.add_argument("--fps", type=float, metavar="N", help="send rate (default: as fast as poses come back)")
+    p.add_argument(
+        "--source",
+        required=True,
+        metavar="PATH|DEVICE",
+        help="image folder, video file or camera index",
+    )
+    p.add_argument(
+        "--camera", required=True, metavar="CAMERA", help="camera.json or 'MODEL w h params...'"
+    )
+    p.add_argument(
+        "--fps", type=float, metavar="N", help="send rate (default: as fast as poses come back)"
+    )
     p.add_argument("--client-id", metavar="ID", help="client id (default <hostname>-<pid>)")
-    p.add_argument("--out", metavar="FILE.tum", help="write the trajectory (TUM, world_from_cam); FILE.tum.cov "
-                   "beside it: status and 6x6 covariance per pose (see README, Conventions)")
-    p.add_argument("--filtered", action="store_true", help="write the Kalman-filtered poses to --out")
-    p.add_argument("--encoding", choices=["jpeg", "png", "gray8", "bgr8"], default="jpeg",
-                   help="how frames are sent (default jpeg; .jpg files are sent as they are)")
-    p.add_argument("--pattern", default="*", metavar="GLOB", help="file names to take from a folder (default *)")
+    p.add_argument(
+        "--out",
+        metavar="FILE.tum",
+        help="write the trajectory (TUM, world_from_cam); FILE.tum.cov "
+        "beside it: status and 6x6 covariance per pose (see README, Conventions)",
+    )
+    p.add_argument(
+        "--filtered", action="store_true", help="write the Kalman-filtered poses to --out"
+    )
+    p.add_argument(
+        "--encoding",
+        choices=["jpeg", "png", "gray8", "bgr8"],
+        default="jpeg",
+        help="how frames are sent (default jpeg; .jpg files are sent as they are)",
+    )
+    p.add_argument(
+        "--pattern",
+        default="*",
+        metavar="GLOB",
+        help="file names to take from a folder (default *)",
+    )
     p.add_argument("--max-frames", type=int, metavar="N", help="stop after N frames")
-    p.add_argument("--timeout", type=float, default=5.0, metavar="S", help="wait this long for the last pose (default 5)")
-    p.add_argument("--wait-server", type=float, default=10.0, metavar="S", help="wait this long for a server (default 10)")
+    p.add_argument(
+        "--timeout",
+        type=float,
+        default=5.0,
+        metavar="S",
+        help="wait this long for the last pose (default 5)",
+    )
+    p.add_argument(
+        "--wait-server",
+        type=float,
+        default=10.0,
+        metavar="S",
+        help="wait this long for a server (default 10)",
+    )
     add_zenoh_options(p)
     p.set_defaults(func=run)
 
@@ -60,6 +101,7 @@ def run(args: argparse.Namespace) -> int:
 
     import numpy as np
     import zenoh
+
     from sfmloc_client import FrameStreamer, PoseMessage, PoseSubscriber, TumWriter, open_source
     from sfmloc_client.streamer import OUTAGE_FRAMES
 
@@ -72,8 +114,15 @@ def run(args: argparse.Namespace) -> int:
     statuses: dict[str, int] = {}
     lock = threading.Lock()
     writer = TumWriter(args.out, filtered=args.filtered) if args.out else None
-    state = {"last": None, "errors": 0, "dropped": 0, "t_status": 0.0, "sent": 0, "t0": time.monotonic(),
-             "poses": None}
+    state = {
+        "last": None,
+        "errors": 0,
+        "dropped": 0,
+        "t_status": 0.0,
+        "sent": 0,
+        "t0": time.monotonic(),
+        "poses": None,
+    }
 
     def status_line(final: bool = False) -> None:
         with lock:
@@ -81,9 +130,12 @@ def run(args: argparse.Namespace) -> int:
             el = max(1e-6, time.monotonic() - state["t0"])
             p50 = float(np.median(rtt[-100:])) if rtt else float("nan")
             last = state["last"]
-        line = (f"sent {state['sent']} poses {n} ({', '.join(f'{k} {v}' for k, v in sorted(statuses.items()))}) "
-                f"{n / el:5.1f} Hz  round trip p50 {p50:5.1f} ms  dropped {state['dropped']}  "
-                f"last {last.status if last else '-'}")
+        line = (
+            f"sent {state['sent']} poses {n} "
+            f"({', '.join(f'{k} {v}' for k, v in sorted(statuses.items()))}) "
+            f"{n / el:5.1f} Hz  round trip p50 {p50:5.1f} ms  dropped {state['dropped']}  "
+            f"last {last.status if last else '-'}"
+        )
         if last is not None and last.error is not None:
             line += f" [{last.error.code}: {last.error.message}]"
         gap = state["sent"] - 1 - (state["poses"].max_seq if state["poses"] is not None else -1)
@@ -122,32 +174,52 @@ def run(args: argparse.Namespace) -> int:
             status_line()
 
     with zenoh.open(zenoh_config(args)) as z:
-        with PoseSubscriber(z, args.map, client_id, callback=on_pose) as poses, \
-                FrameStreamer(z, args.map, client_id, cam, encoding=args.encoding) as fs:
+        with (
+            PoseSubscriber(z, args.map, client_id, callback=on_pose) as poses,
+            FrameStreamer(z, args.map, client_id, cam, encoding=args.encoding) as fs,
+        ):
             if not fs.wait_for_server(args.wait_server):
-                sys.stderr.write(f"no server subscribes to {fs.key} after {args.wait_server:.0f} s "
-                                 "(is one running, reachable with --zenoh-connect, hosting this map?)\n")
+                sys.stderr.write(
+                    f"no server subscribes to {fs.key} after {args.wait_server:.0f} s "
+                    "(is one running, reachable with --zenoh-connect, hosting this map?)\n"
+                )
                 return 1
             state["t0"] = time.monotonic()
             state["poses"] = poses  # the status line reads the newest answered frame from it
-            source = open_source(args.source, pattern=args.pattern,
-                                 passthrough=args.encoding if args.encoding in ("jpeg", "png") else None)
-            stats = fs.run(source, fps=args.fps, lockstep=args.fps is None, poses=poses,
-                           pose_timeout=args.timeout, max_frames=args.max_frames, on_sent=on_sent)
+            source = open_source(
+                args.source,
+                pattern=args.pattern,
+                passthrough=args.encoding if args.encoding in ("jpeg", "png") else None,
+            )
+            stats = fs.run(
+                source,
+                fps=args.fps,
+                lockstep=args.fps is None,
+                poses=poses,
+                pose_timeout=args.timeout,
+                max_frames=args.max_frames,
+                on_sent=on_sent,
+            )
             if stats.sent:
                 poses.wait_for(stats.last_seq, args.timeout)
             received = poses.received
     if writer is not None:
         writer.close()
     status_line(final=True)
-    summary = f"{received} poses received for {stats.sent} frames sent ({stats.rate_hz:.1f} frames/s"
+    summary = (
+        f"{received} poses received for {stats.sent} frames sent ({stats.rate_hz:.1f} frames/s"
+    )
     if server_ms:
-        summary += (f"; server dropped {state['dropped']} stale, {state['errors']} errors; server latency "
-                    f"p50 {np.median(server_ms):.1f} ms p99 {np.percentile(server_ms, 99):.1f} ms")
+        summary += (
+            f"; server dropped {state['dropped']} stale, {state['errors']} errors; server latency "
+            f"p50 {np.median(server_ms):.1f} ms p99 {np.percentile(server_ms, 99):.1f} ms"
+        )
     if rtt:
         summary += f"; round trip p50 {np.median(rtt):.1f} ms"
     if stats.outages:
-        summary += f"; {stats.outages} outage(s), longest {stats.max_unanswered} frames without an answer"
+        summary += (
+            f"; {stats.outages} outage(s), longest {stats.max_unanswered} frames without an answer"
+        )
     summary += ")" + (f"; {writer.count} poses written to {args.out}" if writer else "")
     print(summary)
     return 0 if received > 0 else 1

@@ -40,7 +40,11 @@ def covariance(est: PoseEstimate, K: np.ndarray, bundle: MapBundle, conf: Engine
     # The pixel noise is measured with the final refinement's own Cauchy weights
     # (``refine_loss_scale_px``), as the pose was estimated.
     return pose_covariance(
-        est.cam_from_world, K, est.inlier_xy, est.inlier_X, point_sigma_px=extra,
+        est.cam_from_world,
+        K,
+        est.inlier_xy,
+        est.inlier_X,
+        point_sigma_px=extra,
         loss_scale=conf.refine_loss_scale_px,
     )
 
@@ -74,5 +78,7 @@ def withheld(sd: float, inliers: int, conf: EngineConf) -> str | None:
     bound = sd * small_sample_factor(inliers, conf.withhold_noise_z)
     if not bound > conf.max_position_sd:
         return None
-    return (f"pose withheld: centre sd {sd * 100:.1f}% of the scene scale (upper bound "
-            f"{bound * 100:.1f}%, limit {conf.max_position_sd * 100:.1f}%), {inliers} inliers")
+    return (
+        f"pose withheld: centre sd {sd * 100:.1f}% of the scene scale (upper bound "
+        f"{bound * 100:.1f}%, limit {conf.max_position_sd * 100:.1f}%), {inliers} inliers"
+    )

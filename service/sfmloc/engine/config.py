@@ -10,7 +10,6 @@ from pydantic import model_validator
 from ..config import StrictModel
 from .pose import RansacParams
 
-
 # Settings renamed when the motion model became scale-free: an old config names the new unit.
 RENAMED = {
     "max_speed_mps": "max_speed_scales_per_s (scene scales per second, not m/s)",

@@ -30,7 +30,8 @@ def to_gray(frame: np.ndarray, camera: Camera) -> np.ndarray:
         raise ImageDecodeError(f"frame must be HxW or HxWx(1|3|4), got shape {frame.shape}")
     if gray.shape != (camera.height, camera.width):
         raise ImageDecodeError(
-            f"frame is {gray.shape[1]}x{gray.shape[0]}, the camera is {camera.width}x{camera.height}"
+            f"frame is {gray.shape[1]}x{gray.shape[0]}, the camera is "
+            f"{camera.width}x{camera.height}"
         )
     return np.ascontiguousarray(gray)
 

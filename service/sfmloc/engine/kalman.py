@@ -48,5 +48,5 @@ def white_noise_cv(dt: float, var: float, block_size: int) -> np.ndarray:
     D = np.zeros((2 * block_size, 2 * block_size))
     for i, v in enumerate(q.ravel()):
         ix, iy = (i // 2) * block_size, (i % 2) * block_size
-        D[ix:ix + block_size, iy:iy + block_size] = np.eye(block_size) * v
+        D[ix : ix + block_size, iy : iy + block_size] = np.eye(block_size) * v
     return D * var

@@ -115,8 +115,12 @@ def _unmatch(table: TrackTable, rows: np.ndarray | slice) -> None:
 
 
 def _status(
-    est: PoseEstimate | None, cert: Certainty | None, relocalized: bool, message: str,
-    unverified: bool, conf: EngineConf,
+    est: PoseEstimate | None,
+    cert: Certainty | None,
+    relocalized: bool,
+    message: str,
+    unverified: bool,
+    conf: EngineConf,
 ) -> tuple[Status, str, bool]:
     """The frame's status and message, and whether tracking now continues from an unverified
     relocalization (``unverified``: it did before this frame): the frames tracked from one
@@ -164,8 +168,12 @@ class Localizer:
         c = self.conf
         self.table = TrackTable.empty(c.max_hypotheses)
         self.filter = make_pose_filter(
-            c.motion_model, c.accel_noise_scales_per_s2, c.angular_accel_noise_rad_s2,
-            c.position_noise_scales, c.orientation_noise_rad, self.bundle.scene_scale,
+            c.motion_model,
+            c.accel_noise_scales_per_s2,
+            c.angular_accel_noise_rad_s2,
+            c.position_noise_scales,
+            c.orientation_noise_rad,
+            self.bundle.scene_scale,
         )
         self.prev_max_response: float | None = None
         self.next_track_id = 0
@@ -333,14 +341,21 @@ class Localizer:
             return table, None
         c = self.conf
         est = estimate_pose(
-            self._undistort(table.xy[rows]), self.bundle.points_xyz[pts], self.K, c.ransac(),
-            prior=prior, prior_threshold=c.prior_threshold_px, prior_is_estimate=prior_is_estimate,
+            self._undistort(table.xy[rows]),
+            self.bundle.points_xyz[pts],
+            self.K,
+            c.ransac(),
+            prior=prior,
+            prior_threshold=c.prior_threshold_px,
+            prior_is_estimate=prior_is_estimate,
         )
         pose = None if est is None else est.cam_from_world
         if pose is not None and prior is not None and not self._plausible(pose, prior, dt):
-            log.debug("rejected a pose %.3g units / %.1f deg from the prediction",
-                      np.linalg.norm(pose.center - prior.center),
-                      rotation_angle_deg(pose.rotation, prior.rotation))
+            log.debug(
+                "rejected a pose %.3g units / %.1f deg from the prediction",
+                np.linalg.norm(pose.center - prior.center),
+                rotation_angle_deg(pose.rotation, prior.rotation),
+            )
             est = None
         if est is None:
             # The tracked matches are no longer consistent: drop them (relocalize).
@@ -356,8 +371,13 @@ class Localizer:
             return table
         out = table.point[rows].copy()
         verified = verify_hypotheses(
-            table.hyp[rows], self._undistort(table.xy[rows]), self.bundle.points_xyz, pose,
-            self.K, self.conf.guided_threshold_px, out,
+            table.hyp[rows],
+            self._undistort(table.xy[rows]),
+            self.bundle.points_xyz,
+            pose,
+            self.K,
+            self.conf.guided_threshold_px,
+            out,
         )
         table.point[rows] = out
         table.pending[rows[verified]] = False
@@ -366,7 +386,7 @@ class Localizer:
     def _pending_batch(self, table: TrackTable) -> np.ndarray:
         """MATCHES-PENDING: the rows guided matching takes this frame (at most ``batch_max``
         of the keypoints tracked for at least a frame, not matched, not tried yet)."""
-        pending = (table.pending & (table.point < 0) & (table.age >= 1))
+        pending = table.pending & (table.point < 0) & (table.age >= 1)
         return np.nonzero(pending)[0][: self.conf.batch_max]
 
     def _guided_matching(
@@ -375,8 +395,13 @@ class Localizer:
         """GUIDED-MATCHING of the table's ``rows`` around this frame's pose."""
         desc = describe(self.extractor, self.bundle, image.prepared, table.xy[rows])
         gm = guided_matching(
-            desc, self._undistort(table.xy[rows]), self.bundle, table.point[table.point >= 0],
-            pose, self.K, self.conf,
+            desc,
+            self._undistort(table.xy[rows]),
+            self.bundle,
+            table.point[table.point >= 0],
+            pose,
+            self.K,
+            self.conf,
         )
         table.point[rows] = gm.point
         table.hyp[rows] = gm.hyp
@@ -398,7 +423,9 @@ class Localizer:
         xy_u = self._undistort(table.xy)
         desc = image.describe_all(self.bundle, table.xy)
         loose = c.model_copy(update={"guided_threshold_px": c.prior_threshold_px})
-        reuse = image.search_all(self.bundle, c, table.xy) if c.recovery_search == "global" else None
+        reuse = (
+            image.search_all(self.bundle, c, table.xy) if c.recovery_search == "global" else None
+        )
         gm = guided_matching(desc, xy_u, self.bundle, scope_points, pred, self.K, loose, reuse)
         res = pose_from_hypotheses(gm.hyp, xy_u, self.bundle, self.K, c, pred)
         if res is None:
@@ -420,8 +447,9 @@ class Localizer:
             return table, None
         xy_u = self._undistort(table.xy)
         desc = image.describe_all(self.bundle, table.xy)
-        res = pose_from_global(desc, xy_u, self.bundle, self.camera, c,
-                               image.search_all(self.bundle, c, table.xy))
+        res = pose_from_global(
+            desc, xy_u, self.bundle, self.camera, c, image.search_all(self.bundle, c, table.xy)
+        )
         if res is None:
             return table, None
         est, q, p, hyp = res
@@ -445,8 +473,10 @@ class Localizer:
         dpos = np.linalg.norm(est.cam_from_world.center - pred.center) / self.bundle.scene_scale
         drot = rotation_angle_deg(est.cam_from_world.rotation, pred.rotation)
         if dpos > c.contradiction_position or drot > c.contradiction_deg:
-            return (f"weak relocalization ({est.num_inliers} inliers) {dpos:.2f} scene scales / "
-                    f"{drot:.0f} deg from the motion prediction: rejected")
+            return (
+                f"weak relocalization ({est.num_inliers} inliers) {dpos:.2f} scene scales / "
+                f"{drot:.0f} deg from the motion prediction: rejected"
+            )
         return ""
 
     def _kalman_filter_update(self, pose: Rigid3d, relocalized: bool, stamp: float) -> Rigid3d:
@@ -455,8 +485,13 @@ class Localizer:
         c = self.conf
         if relocalized or not self.filter.initialized:
             keep = c.max_frame_gap_s if c.relocalize_keeps_motion else 0.0
-            self.filter.reset(pose, stamp, keep, c.max_speed_scales_per_s * self.bundle.scene_scale,
-                              c.max_angular_speed_rad_s)
+            self.filter.reset(
+                pose,
+                stamp,
+                keep,
+                c.max_speed_scales_per_s * self.bundle.scene_scale,
+                c.max_angular_speed_rad_s,
+            )
             return pose
         return self.filter.update(pose)
 

@@ -23,9 +23,9 @@ import numpy as np
 
 from ..map.bundle import MapBundle
 from ..map.index import bitmap_from_ranges
+from ..transforms import Rigid3d
 from .config import EngineConf
 from .pose import reprojection_errors
-from ..transforms import Rigid3d
 
 
 @dataclass
@@ -42,7 +42,9 @@ class PointCandidates:
         n = np.diff(self.ptr)
         q = np.nonzero(n > 0)[0]
         s1 = self.strength[self.ptr[q]]
-        s2 = np.where(n[q] > 1, self.strength[np.minimum(self.ptr[q] + 1, len(self.strength) - 1)], 0.0)
+        s2 = np.where(
+            n[q] > 1, self.strength[np.minimum(self.ptr[q] + 1, len(self.strength) - 1)], 0.0
+        )
         return q, s1, s2
 
 
@@ -98,7 +100,9 @@ def point_candidates(I: np.ndarray, w: np.ndarray, desc_point: np.ndarray) -> Po
     return PointCandidates(ptr, up, sums)
 
 
-def match_sets(cands: PointCandidates, ratio: float, max_hyp: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def match_sets(
+    cands: PointCandidates, ratio: float, max_hyp: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Set 1 (query, point) passing the ratio test, most distinctive first; set 2 (query, point)
     one-to-many, grouped by query."""
     q, s1, s2 = cands.best()
@@ -235,7 +239,9 @@ def guided_matching(
     # hypotheses table
     rank = np.arange(len(q2)) - np.searchsorted(q2, q2)
     out.hyp[q2, rank] = p2
-    verify_hypotheses(out.hyp, xy_u, bundle.points_xyz, cam_from_world, K, conf.guided_threshold_px, out.point)
+    verify_hypotheses(
+        out.hyp, xy_u, bundle.points_xyz, cam_from_world, K, conf.guided_threshold_px, out.point
+    )
     return out
 
 

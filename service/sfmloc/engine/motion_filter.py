@@ -105,8 +105,12 @@ class Se3PoseFilter:
         self.initialized = False
 
     def reset(
-        self, cam_from_world: Rigid3d, stamp: float, keep_motion_s: float = 0.0,
-        max_speed: float = np.inf, max_rate: float = np.inf,
+        self,
+        cam_from_world: Rigid3d,
+        stamp: float,
+        keep_motion_s: float = 0.0,
+        max_speed: float = np.inf,
+        max_rate: float = np.inf,
     ) -> None:
         """Start from a pose. The velocity is unknown (1 scene scale/s, 1 rad/s of std), or,
         when the last fused pose is at most ``keep_motion_s`` old, the motion from it (unless
@@ -217,8 +221,12 @@ class DecoupledPoseFilter:
         self.initialized = False
 
     def reset(
-        self, cam_from_world: Rigid3d, stamp: float, keep_motion_s: float = 0.0,
-        max_speed: float = np.inf, max_rate: float = np.inf,
+        self,
+        cam_from_world: Rigid3d,
+        stamp: float,
+        keep_motion_s: float = 0.0,
+        max_speed: float = np.inf,
+        max_rate: float = np.inf,
     ) -> None:
         """Start from a pose with unknown velocity (or the motion from the last fused pose, as
         ``Se3PoseFilter.reset``)."""
@@ -280,8 +288,12 @@ MODELS: dict[str, type[PoseFilter]] = {"se3": Se3PoseFilter, "paper": DecoupledP
 
 
 def make_pose_filter(
-    model: str, accel_noise: float, angular_accel_noise: float, position_noise: float,
-    orientation_noise: float, scale: float,
+    model: str,
+    accel_noise: float,
+    angular_accel_noise: float,
+    position_noise: float,
+    orientation_noise: float,
+    scale: float,
 ) -> PoseFilter:
     """The motion model ``model`` ("se3" or "paper") with its noises (scene scales, radians)."""
     return MODELS[model](accel_noise, angular_accel_noise, position_noise, orientation_noise, scale)

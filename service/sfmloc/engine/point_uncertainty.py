@@ -35,7 +35,7 @@ MAP_NOISE_PX = 1.0
 MIN_ANGLE_DEG = 0.5
 
 _lock = threading.Lock()
-_cache: "weakref.WeakKeyDictionary[MapBundle, PointUncertainty]" = weakref.WeakKeyDictionary()
+_cache: weakref.WeakKeyDictionary[MapBundle, PointUncertainty] = weakref.WeakKeyDictionary()
 
 
 class PointUncertainty:
@@ -64,14 +64,16 @@ class PointUncertainty:
         self._index = {X[i].tobytes(): i for i in range(n)}
 
     @classmethod
-    def for_bundle(cls, bundle: MapBundle) -> "PointUncertainty":
+    def for_bundle(cls, bundle: MapBundle) -> PointUncertainty:
         with _lock:
             pu = _cache.get(bundle)
             if pu is None:
                 pu = _cache[bundle] = cls(bundle)
             return pu
 
-    def sigma_px(self, X: np.ndarray, z: np.ndarray, map_noise_px: float = MAP_NOISE_PX) -> np.ndarray:
+    def sigma_px(
+        self, X: np.ndarray, z: np.ndarray, map_noise_px: float = MAP_NOISE_PX
+    ) -> np.ndarray:
         """Extra pixel standard deviation per correspondence (0 for points not in the map)."""
         X = np.ascontiguousarray(X, np.float64)
         idx = np.array([self._index.get(x.tobytes(), -1) for x in X], np.int64)

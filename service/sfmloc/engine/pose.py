@@ -89,12 +89,17 @@ def pose_covariance(
     fx, fy = K[0, 0], K[1, 1]
     zero = np.zeros_like(z)
     # d(u, v)/d(pc): (N, 2, 3)
-    dproj = np.stack([np.stack([fx / z, zero, -fx * x / z**2], 1), np.stack([zero, fy / z, -fy * y / z**2], 1)], 1)
+    dproj = np.stack(
+        [np.stack([fx / z, zero, -fx * x / z**2], 1), np.stack([zero, fy / z, -fy * y / z**2], 1)],
+        1,
+    )
     # pc = R_cw (X - c); with R_wc' = exp([w]x) R_wc: d pc / d w = R_cw [X - c]x, d pc / d c = -R_cw
     skew = np.zeros((n, 3, 3))
     skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -d[:, 2], d[:, 1], -d[:, 0]
     skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = d[:, 2], -d[:, 1], d[:, 0]
-    dpc = np.concatenate([np.einsum("ij,njk->nik", R_cw, skew), np.broadcast_to(-R_cw, (n, 3, 3))], 2)
+    dpc = np.concatenate(
+        [np.einsum("ij,njk->nik", R_cw, skew), np.broadcast_to(-R_cw, (n, 3, 3))], 2
+    )
     J = np.einsum("nij,njk->nik", dproj, dpc).reshape(2 * n, 6)
     uv = np.stack([fx * x / z + K[0, 2], fy * y / z + K[1, 2]], 1)
     r2 = np.sum((uv - xy) ** 2, axis=1)
@@ -135,7 +140,9 @@ def project(cam_from_world: Rigid3d, K: np.ndarray, X: np.ndarray) -> tuple[np.n
     return np.stack([u, v], axis=1), z
 
 
-def reprojection_errors(cam_from_world: Rigid3d, K: np.ndarray, xy: np.ndarray, X: np.ndarray) -> np.ndarray:
+def reprojection_errors(
+    cam_from_world: Rigid3d, K: np.ndarray, xy: np.ndarray, X: np.ndarray
+) -> np.ndarray:
     """Pixel errors; points behind the camera get infinity."""
     uv, z = project(cam_from_world, K, X)
     err = np.linalg.norm(uv - xy, axis=1)
@@ -149,7 +156,12 @@ def _rigid(rvec: np.ndarray, tvec: np.ndarray) -> Rigid3d:
 
 
 def refine(
-    cam_from_world: Rigid3d, K: np.ndarray, xy: np.ndarray, X: np.ndarray, threshold: float, rounds: int = 2
+    cam_from_world: Rigid3d,
+    K: np.ndarray,
+    xy: np.ndarray,
+    X: np.ndarray,
+    threshold: float,
+    rounds: int = 2,
 ) -> tuple[Rigid3d, np.ndarray]:
     """Levenberg-Marquardt on the inliers (reprojection error < threshold), re-selecting
     inliers after each round. Returns the pose and the final inlier mask."""
@@ -160,7 +172,12 @@ def refine(
             break
         rvec, _ = cv2.Rodrigues(pose.rotation)
         rvec, tvec = cv2.solvePnPRefineLM(
-            X[mask].astype(np.float64), xy[mask].astype(np.float64), K, None, rvec, pose.translation.reshape(3, 1).copy()
+            X[mask].astype(np.float64),
+            xy[mask].astype(np.float64),
+            K,
+            None,
+            rvec,
+            pose.translation.reshape(3, 1).copy(),
         )
         pose = _rigid(rvec, tvec)
         new_mask = reprojection_errors(pose, K, xy, X) < threshold
@@ -246,7 +263,11 @@ def estimate_pose(
     without RANSAC (None under ``min_inliers``), which could only propose a pose its own
     matches contradict.
     """
-    threshold, refine_threshold, min_inliers = params.threshold, params.refine_threshold, params.min_inliers
+    threshold, refine_threshold, min_inliers = (
+        params.threshold,
+        params.refine_threshold,
+        params.min_inliers,
+    )
     n = len(xy)
     if n < max(4, min_inliers):
         return None
@@ -323,7 +344,9 @@ def _finish(pose: Rigid3d, mask: np.ndarray, K, xy, X, min_inliers: int) -> Pose
     if n_in < min_inliers or not pose.is_finite():
         return None
     err = reprojection_errors(pose, K, xy[mask], X[mask])
-    return PoseEstimate(pose, mask, n_in, float(err.mean()) if n_in else float("inf"), xy[mask], X[mask])
+    return PoseEstimate(
+        pose, mask, n_in, float(err.mean()) if n_in else float("inf"), xy[mask], X[mask]
+    )
 
 
 def estimate_pose_one_to_many(
@@ -350,7 +373,11 @@ def estimate_pose_one_to_many(
 
     Returns the pose and, per set-2 pair, whether it is the inlier chosen for its keypoint
     (at most one per keypoint: the closest reprojection)."""
-    threshold, refine_threshold, min_inliers = params.threshold, params.refine_threshold, params.min_inliers
+    threshold, refine_threshold, min_inliers = (
+        params.threshold,
+        params.refine_threshold,
+        params.min_inliers,
+    )
     confidence, max_iterations = params.confidence, params.max_iterations
     n1 = len(hyp_xy)
     if n1 < 3 or len(ver_kp) < min_inliers:
@@ -370,7 +397,9 @@ def estimate_pose_one_to_many(
     rows_u = np.stack([np.full(len(Xh), K[0, 0]), zero, K[0, 2] - ver_xy[:, 0]], 1)
     rows_v = np.stack([zero, np.full(len(Xh), K[1, 1]), K[1, 2] - ver_xy[:, 1]], 1)
     rows_z = np.stack([zero, zero, one], 1)
-    F = np.concatenate([(r[:, :, None] * Xh[:, None, :]).reshape(-1, 12) for r in (rows_u, rows_v, rows_z)])
+    F = np.concatenate(
+        [(r[:, :, None] * Xh[:, None, :]).reshape(-1, 12) for r in (rows_u, rows_v, rows_z)]
+    )
     n_ver = len(Xh)
     best_score, best_pose = 0, None
     needed = max_iterations

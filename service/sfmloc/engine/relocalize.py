@@ -41,7 +41,10 @@ def map_working_scale(camera: Camera, bundle: MapBundle, conf: EngineConf) -> fl
     """The factor a frame of ``camera`` is resized by before it meets ``bundle``
     (``frame.working_scale`` with the map's focal lengths)."""
     return working_scale(
-        camera, bundle.native_focal_px, conf.working_scale, conf.max_working_pixels,
+        camera,
+        bundle.native_focal_px,
+        conf.working_scale,
+        conf.max_working_pixels,
         bundle.coarsest_focal_px,
     )
 
@@ -64,8 +67,13 @@ def visible_points(camera: Camera, cam_from_world: Rigid3d, points_xyz: np.ndarr
 
 
 def pose_from_global(
-    desc: np.ndarray, xy_u: np.ndarray, bundle: MapBundle, camera: Camera, conf: EngineConf,
-    neighbours: tuple[np.ndarray, np.ndarray] | None = None, deadline: float | None = None,
+    desc: np.ndarray,
+    xy_u: np.ndarray,
+    bundle: MapBundle,
+    camera: Camera,
+    conf: EngineConf,
+    neighbours: tuple[np.ndarray, np.ndarray] | None = None,
+    deadline: float | None = None,
 ) -> tuple[PoseEstimate, np.ndarray, np.ndarray, np.ndarray] | None:
     """GLOBAL-MATCHING + one-to-many RANSAC: (pose, inlier keypoints, their points, every
     keypoint's hypotheses), or None. ``neighbours``: the search of ``desc`` over the whole map,
@@ -107,7 +115,11 @@ def pose_from_global(
 
 
 def pose_from_hypotheses(
-    hyp: np.ndarray, xy_u: np.ndarray, bundle: MapBundle, K: np.ndarray, conf: EngineConf,
+    hyp: np.ndarray,
+    xy_u: np.ndarray,
+    bundle: MapBundle,
+    K: np.ndarray,
+    conf: EngineConf,
     prior: Rigid3d,
 ) -> tuple[PoseEstimate, np.ndarray] | None:
     """A pose from one-to-many hypotheses around an approximate ``prior``, in two passes:
@@ -134,8 +146,13 @@ def pose_from_hypotheses(
 
 
 def match_near_prior(
-    desc: np.ndarray, xy_u: np.ndarray, bundle: MapBundle, camera: Camera, conf: EngineConf,
-    prior: Rigid3d, neighbours: tuple[np.ndarray, np.ndarray] | None = None,
+    desc: np.ndarray,
+    xy_u: np.ndarray,
+    bundle: MapBundle,
+    camera: Camera,
+    conf: EngineConf,
+    prior: Rigid3d,
+    neighbours: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[PoseEstimate, np.ndarray] | None:
     """Matches scoped by the points visible from the prior (in ``camera``'s image), verified
     against it with a loose threshold (the prior is approximate), then a pose with the prior as
@@ -181,8 +198,13 @@ def relocalize(
 
 
 def _relocalize(
-    image: np.ndarray, camera: Camera, bundle: MapBundle, conf: EngineConf,
-    prior: Rigid3d | None, deadline: float | None, timer: StageTimer,
+    image: np.ndarray,
+    camera: Camera,
+    bundle: MapBundle,
+    conf: EngineConf,
+    prior: Rigid3d | None,
+    deadline: float | None,
+    timer: StageTimer,
 ) -> FrameResult:
     check_deadline(deadline, "decoding")
     gray = to_gray(image, camera)
@@ -193,8 +215,11 @@ def _relocalize(
         gray, camera = to_working(gray, scale), camera.scaled(scale)
     check_deadline(deadline, "image preparation")
     corners = detect_corners(
-        gray, rel_threshold=conf.gamma, max_corners=conf.global_max_keypoints,
-        border=conf.mu // 2, subpixel=map_subpixel(conf, bundle.manifest.params),
+        gray,
+        rel_threshold=conf.gamma,
+        max_corners=conf.global_max_keypoints,
+        border=conf.mu // 2,
+        subpixel=map_subpixel(conf, bundle.manifest.params),
     )
     timer.lap("detect")
     check_deadline(deadline, "detection")

@@ -28,22 +28,33 @@ class TrackTable:
     n_hyp: int
 
     @classmethod
-    def empty(cls, n_hyp: int) -> "TrackTable":
+    def empty(cls, n_hyp: int) -> TrackTable:
         return cls(
-            np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, N_WORDS), np.uint64), np.zeros(0, np.int32),
-            np.zeros(0, np.int64), np.zeros((0, n_hyp), np.int64), np.zeros(0, bool), n_hyp,
+            np.zeros(0, np.int64),
+            np.zeros((0, 2)),
+            np.zeros((0, N_WORDS), np.uint64),
+            np.zeros(0, np.int32),
+            np.zeros(0, np.int64),
+            np.zeros((0, n_hyp), np.int64),
+            np.zeros(0, bool),
+            n_hyp,
         )
 
     def __len__(self) -> int:
         return len(self.track_id)
 
-    def take(self, mask_or_index: np.ndarray) -> "TrackTable":
+    def take(self, mask_or_index: np.ndarray) -> TrackTable:
         """A new table of the given rows (boolean mask or indices), in that order; this one is
         left as it is."""
         return TrackTable(
-            self.track_id[mask_or_index], self.xy[mask_or_index], self.brief[mask_or_index],
-            self.age[mask_or_index], self.point[mask_or_index], self.hyp[mask_or_index],
-            self.pending[mask_or_index], self.n_hyp,
+            self.track_id[mask_or_index],
+            self.xy[mask_or_index],
+            self.brief[mask_or_index],
+            self.age[mask_or_index],
+            self.point[mask_or_index],
+            self.hyp[mask_or_index],
+            self.pending[mask_or_index],
+            self.n_hyp,
         )
 
     def keep(self, mask_or_index: np.ndarray) -> None:

@@ -100,7 +100,9 @@ def window_pairs(pred: np.ndarray, cand: np.ndarray, half: float) -> tuple[np.nd
     return owner[inside], j[inside]
 
 
-def track_2d(table: TrackTable, pred_xy: np.ndarray, kps: Keypoints, conf: EngineConf) -> np.ndarray:
+def track_2d(
+    table: TrackTable, pred_xy: np.ndarray, kps: Keypoints, conf: EngineConf
+) -> np.ndarray:
     """TRACK-2D: for each row of ``table``, the index of its match among ``kps`` or -1.
 
     A candidate claimed by several tracks goes to the closest one (in Hamming distance); the
@@ -138,7 +140,9 @@ def track_2d(table: TrackTable, pred_xy: np.ndarray, kps: Keypoints, conf: Engin
     return match
 
 
-def free_candidates(tracked_xy: np.ndarray, kps: Keypoints, used: np.ndarray, min_dist: float) -> np.ndarray:
+def free_candidates(
+    tracked_xy: np.ndarray, kps: Keypoints, used: np.ndarray, min_dist: float
+) -> np.ndarray:
     """ADD-GOOD-FEATURES: indices of candidates not used by a track and not within
     ``min_dist`` of a tracked keypoint (regions where there are no tracked keypoints)."""
     free = np.ones(len(kps), bool)
@@ -150,4 +154,3 @@ def free_candidates(tracked_xy: np.ndarray, kps: Keypoints, used: np.ndarray, mi
         idx = np.nonzero(free)[0]
         free[idx[blocked]] = False
     return np.nonzero(free)[0]
-

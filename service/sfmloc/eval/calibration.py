@@ -92,8 +92,11 @@ def replay_samples(
             if r.cam_from_world is None or r.covariance is None or gt is None:
                 continue
             est = judged[-1] if judged else None
-            out.append(Sample(frame.index, str(r.status), r.cam_from_world, gt, r.covariance,
-                              r.inliers, est))
+            out.append(
+                Sample(
+                    frame.index, str(r.status), r.cam_from_world, gt, r.covariance, r.inliers, est
+                )
+            )
     finally:
         localizer_module.certainty = real
     return out, n
@@ -156,16 +159,23 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("poses", type=Path, help="ground truth pose file (TUM or COLMAP list)")
     ap.add_argument("--camera", help="camera string (default: FRAMES/camera.json)")
     ap.add_argument("--fps", type=float, default=30.0, help="frame rate of FRAMES (default 30)")
-    ap.add_argument("--frames", dest="max_frames", type=int, default=150,
-                    help="frames to replay (default 150)")
-    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                    help="an EngineConf override (JSON value), e.g. --set map_noise_px=0")
+    ap.add_argument(
+        "--frames", dest="max_frames", type=int, default=150, help="frames to replay (default 150)"
+    )
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="an EngineConf override (JSON value), e.g. --set map_noise_px=0",
+    )
     a = ap.parse_args(argv)
     camera = Camera.parse(a.camera) if a.camera else Camera.from_json(a.frames / "camera.json")
     source = FrameSource(a.frames, fps=a.fps)
     n = len(source) if a.max_frames is None else min(a.max_frames, len(source))
-    gt = load_groundtruth(a.poses, source.names(), [source.stamp(i) for i in range(len(source))],
-                          a.fps)
+    gt = load_groundtruth(
+        a.poses, source.names(), [source.stamp(i) for i in range(len(source))], a.fps
+    )
     overrides = {}
     for kv in a.set:
         k, _, v = kv.partition("=")

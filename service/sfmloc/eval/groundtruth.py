@@ -32,7 +32,11 @@ def match_groundtruth(
             j = int(np.searchsorted(ts, s))
             best = None
             for k in (j - 1, j):
-                if 0 <= k < len(ts) and abs(ts[k] - s) <= tol and (best is None or abs(ts[k] - s) < abs(ts[best] - s)):
+                if (
+                    0 <= k < len(ts)
+                    and abs(ts[k] - s) <= tol
+                    and (best is None or abs(ts[k] - s) < abs(ts[best] - s))
+                ):
                     best = k
             out.append(None if best is None else poses[best])
         return out
@@ -41,12 +45,15 @@ def match_groundtruth(
     return [exact.get(n, by_stem.get(name_stem(n))) for n in names]
 
 
-def load_groundtruth(path: str | Path, names: list[str], stamps: list[float], fps: float = 30.0) -> list[Rigid3d | None]:
+def load_groundtruth(
+    path: str | Path, names: list[str], stamps: list[float], fps: float = 30.0
+) -> list[Rigid3d | None]:
     gt = read_poses(path)
     out = match_groundtruth(gt, names, stamps, fps)
     if not any(p is not None for p in out):
         raise InputError(
-            f"ground truth {path} ({gt.format}, {len(gt)} poses) matches none of the {len(names)} frames "
+            f"ground truth {path} ({gt.format}, {len(gt)} poses) matches none of the {len(names)} "
+            "frames "
             f"(first frame {names[0] if names else '-'}): check names/timestamps and --fps"
         )
     return out

@@ -76,14 +76,25 @@ def _checked_scale(scene_scale: float) -> float:
 def wrong_poses(records: list[FrameRecord], scene_scale: float) -> list[FrameRecord]:
     """Frames with a pose (any status but LOST) and an error over the wrong-pose limits."""
     limit = wrong_position_limit(scene_scale)
-    return [r for r in records if is_pose(r.status) and r.position_error_m is not None
-            and (r.position_error_m > limit or r.rotation_error_deg > WRONG_ROTATION_DEG)]
+    return [
+        r
+        for r in records
+        if is_pose(r.status)
+        and r.position_error_m is not None
+        and (r.position_error_m > limit or r.rotation_error_deg > WRONG_ROTATION_DEG)
+    ]
 
 
 def within(records: list[FrameRecord], position: float, rotation_deg: float) -> int:
     """Frames with a pose within ``position`` (map units) and ``rotation_deg`` of ground truth."""
-    return sum(1 for r in records if is_pose(r.status) and r.position_error_m is not None
-               and r.position_error_m <= position and r.rotation_error_deg <= rotation_deg)
+    return sum(
+        1
+        for r in records
+        if is_pose(r.status)
+        and r.position_error_m is not None
+        and r.position_error_m <= position
+        and r.rotation_error_deg <= rotation_deg
+    )
 
 
 def _counts(first: list[str], records: list[FrameRecord]) -> dict[str, int]:
@@ -142,8 +153,12 @@ def summarize(records: list[FrameRecord], scene_scale: float) -> dict:
         "localized_frames": int(localized.sum()),
         "frames_with_groundtruth": frames_with_gt,
         "evaluated_frames": len(with_gt),
-        "guided_latency_ms_mean": float(np.mean([r.latency_ms for r in guided])) if guided else float("nan"),
-        "global_latency_ms_mean": float(np.mean([r.latency_ms for r in glob])) if glob else float("nan"),
+        "guided_latency_ms_mean": float(np.mean([r.latency_ms for r in guided]))
+        if guided
+        else float("nan"),
+        "global_latency_ms_mean": float(np.mean([r.latency_ms for r in glob]))
+        if glob
+        else float("nan"),
         # The usual three first, then any other status seen, in order of appearance.
         "status_counts": _counts([Status.TRACKING, Status.RELOCALIZED, Status.LOST], records),
         "confident_wrong_frames": [r.name for r in wrong][:50],
@@ -154,15 +169,19 @@ def summarize(records: list[FrameRecord], scene_scale: float) -> dict:
         # Fractions of the frames with ground truth (a LOST frame counts as a miss).
         "within_5cm_5deg_fraction": share(within(records, RECALL_POSITION_M, RECALL_ROTATION_DEG)),
         "within_relative_fraction": share(
-            within(records, RECALL_POSITION_FRACTION * scale, RECALL_ROTATION_DEG)),
+            within(records, RECALL_POSITION_FRACTION * scale, RECALL_ROTATION_DEG)
+        ),
         "within_relative_position_limit": RECALL_POSITION_FRACTION * scale,
     }
 
 
 def absolute_trajectory_error(records: list[FrameRecord]) -> float:
     """RMSE of camera centres after SE(3) alignment of estimate to ground truth (ATE)."""
-    pairs = [(r.cam_from_world.center, r.gt_cam_from_world.center) for r in records
-             if r.cam_from_world is not None and r.gt_cam_from_world is not None]
+    pairs = [
+        (r.cam_from_world.center, r.gt_cam_from_world.center)
+        for r in records
+        if r.cam_from_world is not None and r.gt_cam_from_world is not None
+    ]
     if len(pairs) < 3:
         return float("nan")
     est = np.array([p[0] for p in pairs])

@@ -59,8 +59,16 @@ def _px(camera: Camera, pose: Rigid3d, gt: Rigid3d, X: np.ndarray) -> float | No
     return float(np.median(np.linalg.norm(uv[ok] - uv_gt[ok], axis=1)))
 
 
-def run(bundle: MapBundle, source: FrameSource, camera: Camera, gt: list, conf: EngineConf,
-        start: int = 0, frames: int | None = None, stride: int = 1) -> dict:
+def run(
+    bundle: MapBundle,
+    source: FrameSource,
+    camera: Camera,
+    gt: list,
+    conf: EngineConf,
+    start: int = 0,
+    frames: int | None = None,
+    stride: int = 1,
+) -> dict:
     loc = ProbedLocalizer(bundle, camera, conf)
     pred_px, still_px, statuses, errs, tracked, tracked_3d, matching = [], [], [], [], [], [], []
     prev_pose = None
@@ -129,12 +137,18 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--groundtruth", required=True)
     p.add_argument("--start", type=int, default=0)
     p.add_argument("--frames", dest="n", type=int)
-    p.add_argument("--scale", type=float, default=1.0,
-                   help="scale the map and ground truth by this")
+    p.add_argument(
+        "--scale", type=float, default=1.0, help="scale the map and ground truth by this"
+    )
     p.add_argument("--fps", type=float, default=30.0, help="the recording's frame rate")
     p.add_argument("--stride", type=int, default=1, help="every k-th frame (30 Hz -> 30/k Hz)")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="an EngineConf setting (e.g. motion_model=paper)")
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="an EngineConf setting (e.g. motion_model=paper)",
+    )
     p.add_argument("--json", help="write the result here (with per-frame statuses)")
     args = p.parse_args(argv)
     bundle = scale_bundle(MapBundle(args.map, verify=False), args.scale)

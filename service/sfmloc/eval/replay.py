@@ -44,12 +44,25 @@ def replay(
         res = loc.localize(frame.image, frame.stamp)
         cpu_ms = (time.process_time() - cpu0) * 1e3
         rec = FrameRecord(
-            index=frame.index, name=frame.name, stamp=frame.stamp, status=res.status, matching=res.matching,
-            latency_ms=res.latency_ms, inliers=res.inliers, detected=res.detected, tracked=res.tracked,
-            tracked_3d=res.tracked_3d, timings_ms=dict(res.timings_ms), cpu_ms=cpu_ms,
+            index=frame.index,
+            name=frame.name,
+            stamp=frame.stamp,
+            status=res.status,
+            matching=res.matching,
+            latency_ms=res.latency_ms,
+            inliers=res.inliers,
+            detected=res.detected,
+            tracked=res.tracked,
+            tracked_3d=res.tracked_3d,
+            timings_ms=dict(res.timings_ms),
+            cpu_ms=cpu_ms,
             covariance=res.covariance,
         )
-        gt = groundtruth[frame.index] if groundtruth is not None and frame.index < len(groundtruth) else None
+        gt = (
+            groundtruth[frame.index]
+            if groundtruth is not None and frame.index < len(groundtruth)
+            else None
+        )
         attach_errors(rec, res.cam_from_world, gt)
         records.append(rec)
         if on_frame:

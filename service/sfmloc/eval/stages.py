@@ -10,8 +10,16 @@ import numpy as np
 
 from ..engine.timing import STAGES
 
-STAGE_COLUMNS = ("stage", "mean/frame", "share", "frames", "mean when run", "p95 when run",
-                 "p99 when run", "max")
+STAGE_COLUMNS = (
+    "stage",
+    "mean/frame",
+    "share",
+    "frames",
+    "mean when run",
+    "p95 when run",
+    "p99 when run",
+    "max",
+)
 
 
 def stage_stats(timings: Sequence[Mapping[str, float]]) -> dict[str, dict[str, float]]:
@@ -44,8 +52,19 @@ def stage_stats(timings: Sequence[Mapping[str, float]]) -> dict[str, dict[str, f
 
 def stage_rows(stats: Mapping[str, Mapping[str, float]]) -> list[list[str]]:
     """The table's rows (``STAGE_COLUMNS``), milliseconds with one decimal."""
-    return [[k, f"{s['mean']:.2f}", f"{100 * s['share']:.0f}%", str(s["frames"]), f"{s['mean_run']:.1f}",
-             f"{s['p95']:.1f}", f"{s['p99']:.1f}", f"{s['max']:.1f}"] for k, s in stats.items()]
+    return [
+        [
+            k,
+            f"{s['mean']:.2f}",
+            f"{100 * s['share']:.0f}%",
+            str(s["frames"]),
+            f"{s['mean_run']:.1f}",
+            f"{s['p95']:.1f}",
+            f"{s['p99']:.1f}",
+            f"{s['max']:.1f}",
+        ]
+        for k, s in stats.items()
+    ]
 
 
 def format_stage_table(stats: Mapping[str, Mapping[str, float]]) -> str:

@@ -82,7 +82,9 @@ class DaisyExtractor:
         self._ori_xy = np.stack([ox.ravel(), oy.ravel()], axis=1).astype(np.float32)
         inner = (np.arange(p.ori_grid) - (p.ori_grid - 1) / 2.0) * p.ori_spacing
         ix, iy = np.meshgrid(inner, inner)
-        self._ori_weight = np.exp(-(ix**2 + iy**2) / (2 * p.ori_sigma**2)).astype(np.float32).ravel()
+        self._ori_weight = (
+            np.exp(-(ix**2 + iy**2) / (2 * p.ori_sigma**2)).astype(np.float32).ravel()
+        )
 
     # ------------------------------------------------------------------ public
     def prepare(self, gray: np.ndarray) -> np.ndarray:
@@ -109,7 +111,9 @@ class DaisyExtractor:
         ang = np.arctan2(dy, dx).reshape(n, -1)
         nb = p.ori_bins
         b = np.floor((ang + np.pi) / (2 * np.pi) * nb).astype(np.int64) % nb
-        hist = np.bincount((b + nb * np.arange(n)[:, None]).ravel(), weights=mag.ravel(), minlength=n * nb)
+        hist = np.bincount(
+            (b + nb * np.arange(n)[:, None]).ravel(), weights=mag.ravel(), minlength=n * nb
+        )
         hist = hist.reshape(n, nb)
         # Circular smoothing [1 4 6 4 1] / 16.
         hist = (
@@ -199,7 +203,10 @@ def _remap_patches(img: np.ndarray, mx: np.ndarray, my: np.ndarray, side: int) -
     step = max(1, REMAP_MAX // side) * side
     for a in range(0, len(mx), step):
         out[a : a + step] = cv2.remap(
-            img, mx[a : a + step], my[a : a + step], interpolation=cv2.INTER_LINEAR,
+            img,
+            mx[a : a + step],
+            my[a : a + step],
+            interpolation=cv2.INTER_LINEAR,
             borderMode=cv2.BORDER_REFLECT_101,
         )
     return out
@@ -212,7 +219,8 @@ def _pooling_matrix(p: DaisyParams) -> np.ndarray:
     pts = np.stack([gx.ravel(), gy.ravel()], axis=1)
     centers = [(0.0, 0.0, p.sigmas[0])]
     for radius, sigma, phase in (
-        (p.ring_radii[0], p.sigmas[1], 0.0), (p.ring_radii[1], p.sigmas[2], np.pi / 6)
+        (p.ring_radii[0], p.sigmas[1], 0.0),
+        (p.ring_radii[1], p.sigmas[2], np.pi / 6),
     ):
         for k in range(6):
             a = phase + k * np.pi / 3
@@ -241,10 +249,12 @@ class Pca:
     basis: np.ndarray  # (RAW_DIM, dim) float32
 
     @classmethod
-    def fit(cls, raw: np.ndarray, dim: int = 32, max_samples: int = 200_000, seed: int = 0) -> "Pca":
+    def fit(cls, raw: np.ndarray, dim: int = 32, max_samples: int = 200_000, seed: int = 0) -> Pca:
         raw = np.asarray(raw, dtype=np.float64)
         if len(raw) < dim + 1:
-            raise ValueError(f"PCA to {dim} dimensions needs more than {dim} descriptors, got {len(raw)}")
+            raise ValueError(
+                f"PCA to {dim} dimensions needs more than {dim} descriptors, got {len(raw)}"
+            )
         if len(raw) > max_samples:
             raw = raw[np.random.default_rng(seed).choice(len(raw), max_samples, replace=False)]
         mean = raw.mean(axis=0)

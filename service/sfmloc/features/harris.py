@@ -22,7 +22,6 @@ import numpy as np
 
 from ..cameras import PIXEL_CENTER_OFFSET
 
-
 # Sub-pixel localization of the Harris maxima. The Harris maximum of an L-corner sits inside
 # the corner, by an offset that depends on the corner's angle and so on the viewpoint; a
 # quadratic fit of the response only finds that biased peak more precisely. Forstner's

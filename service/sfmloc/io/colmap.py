@@ -37,7 +37,9 @@ class Image:
         self.points2D = np.asarray(self.points2D, dtype=np.float64).reshape(-1, 2)
         self.point3D_ids = np.asarray(self.point3D_ids, dtype=np.int64).reshape(-1)
         if len(self.points2D) != len(self.point3D_ids):
-            raise ModelFormatError(f"image {self.name}: {len(self.points2D)} points2D but {len(self.point3D_ids)} ids")
+            raise ModelFormatError(
+                f"image {self.name}: {len(self.points2D)} points2D but {len(self.point3D_ids)} ids"
+            )
 
 
 @dataclass
@@ -66,7 +68,8 @@ class Reconstruction:
         n_obs = sum(len(p.track_image_ids) for p in self.points3D.values())
         mean_track = n_obs / max(1, len(self.points3D))
         return (
-            f"{len(self.cameras)} cameras, {len(self.images)} images, {len(self.points3D)} points3D "
+            f"{len(self.cameras)} cameras, {len(self.images)} images, {len(self.points3D)} "
+            "points3D "
             f"(mean track length {mean_track:.2f})"
         )
 
@@ -160,7 +163,9 @@ def read_cameras_text(path: str | Path) -> dict[int, Camera]:
         parts = line.split()
         try:
             cid = int(parts[0])
-            cams[cid] = Camera(parts[1], int(parts[2]), int(parts[3]), np.array([float(x) for x in parts[4:]]))
+            cams[cid] = Camera(
+                parts[1], int(parts[2]), int(parts[3]), np.array([float(x) for x in parts[4:]])
+            )
         except CameraModelError as exc:
             raise CameraModelError(f"{path}:{lineno}: {exc}") from None
         except (ValueError, IndexError) as exc:
@@ -192,12 +197,16 @@ def read_images_text(path: str | Path) -> dict[int, Image]:
         pts_line = lines[i + 1][1] if i + 1 < len(lines) else ""
         vals = pts_line.split()
         if len(vals) % 3:
-            raise ModelFormatError(f"{path}:{lineno + 1}: POINTS2D line must hold triples X Y POINT3D_ID")
+            raise ModelFormatError(
+                f"{path}:{lineno + 1}: POINTS2D line must hold triples X Y POINT3D_ID"
+            )
         try:
             arr = np.array([float(v) for v in vals]).reshape(-1, 3)
         except ValueError as exc:
             raise ModelFormatError(f"{path}:{lineno + 1}: {exc}") from None
-        images[iid] = Image(iid, name, cid, Rigid3d.from_quat_wxyz(q, t), arr[:, :2], arr[:, 2].astype(np.int64))
+        images[iid] = Image(
+            iid, name, cid, Rigid3d.from_quat_wxyz(q, t), arr[:, :2], arr[:, 2].astype(np.int64)
+        )
         i += 2
     return images
 
@@ -256,7 +265,8 @@ def write_images_text(images: dict[int, Image], path: str | Path) -> None:
             f.write(f"{iid} {vals} {im.camera_id} {im.name}\n")
             f.write(
                 " ".join(
-                    f"{float(x)!r} {float(y)!r} {int(pid)}" for (x, y), pid in zip(im.points2D, im.point3D_ids)
+                    f"{float(x)!r} {float(y)!r} {int(pid)}"
+                    for (x, y), pid in zip(im.points2D, im.point3D_ids)
                 )
                 + "\n"
             )
@@ -271,7 +281,9 @@ def write_points3D_text(points3D: dict[int, Point3D], path: str | Path) -> None:
         for pid, p in sorted(points3D.items()):
             xyz = " ".join(repr(float(v)) for v in p.xyz)
             rgb = " ".join(str(int(v)) for v in p.rgb)
-            track = " ".join(f"{int(i)} {int(j)}" for i, j in zip(p.track_image_ids, p.track_point2D_idxs))
+            track = " ".join(
+                f"{int(i)} {int(j)}" for i, j in zip(p.track_image_ids, p.track_point2D_idxs)
+            )
             f.write(f"{pid} {xyz} {rgb} {float(p.error)!r} {track}\n")
 
 
@@ -286,7 +298,9 @@ class _Reader:
         self.pos = 0
 
     def take(self, fmt: str):
-        size = struct.calcsize("<" + fmt)  # packed little-endian, as unpacked below (no native padding)
+        size = struct.calcsize(
+            "<" + fmt
+        )  # packed little-endian, as unpacked below (no native padding)
         if self.pos + size > len(self.data):
             raise ModelFormatError(f"{self.path}: truncated at byte {self.pos}")
         vals = struct.unpack_from("<" + fmt, self.data, self.pos)
@@ -319,7 +333,9 @@ def read_cameras_binary(path: str | Path) -> dict[int, Camera]:
         cid, model_id, w, h = r.take("iiQQ")
         name = MODEL_NAME_FROM_ID.get(model_id)
         if name is None:
-            raise CameraModelError(f"{path}: camera {cid} has unsupported COLMAP model id {model_id}")
+            raise CameraModelError(
+                f"{path}: camera {cid} has unsupported COLMAP model id {model_id}"
+            )
         params = r.array(np.float64, len(CAMERA_MODELS[name][1]))
         cams[cid] = Camera(name, w, h, params.copy())
     return cams
@@ -358,7 +374,9 @@ def read_points3D_binary(path: str | Path) -> dict[int, Point3D]:
     for _ in range(n):
         pid, x, y, z, cr, cg, cb, err, tlen = r.take("QdddBBBdQ")
         track = r.array(np.int32, 2 * tlen).reshape(-1, 2).astype(np.int64)
-        pts[pid] = Point3D(pid, np.array([x, y, z]), np.array([cr, cg, cb]), err, track[:, 0], track[:, 1])
+        pts[pid] = Point3D(
+            pid, np.array([x, y, z]), np.array([cr, cg, cb]), err, track[:, 0], track[:, 1]
+        )
     return pts
 
 
@@ -391,6 +409,15 @@ def write_points3D_binary(points3D: dict[int, Point3D], path: str | Path) -> Non
     with open(path, "wb") as f:
         f.write(struct.pack("<Q", len(points3D)))
         for pid, p in sorted(points3D.items()):
-            f.write(struct.pack("<QdddBBBdQ", pid, *p.xyz, *(int(c) for c in p.rgb), p.error, len(p.track_image_ids)))
+            f.write(
+                struct.pack(
+                    "<QdddBBBdQ",
+                    pid,
+                    *p.xyz,
+                    *(int(c) for c in p.rgb),
+                    p.error,
+                    len(p.track_image_ids),
+                )
+            )
             track = np.stack([p.track_image_ids, p.track_point2D_idxs], axis=1).astype("<i4")
             f.write(track.tobytes())

@@ -135,7 +135,9 @@ class FrameSource:
         self.fps = float(fps)
         self.gray = gray
         if self.path.is_dir():
-            files = [p for p in self.path.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES]
+            files = [
+                p for p in self.path.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
+            ]
             if not files:
                 raise InputError(f"no .jpg/.png images in {self.path}")
             self.files = sorted(files, key=lambda p: _natural_key(p.name))
@@ -149,7 +151,9 @@ class FrameSource:
             self._video_len = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
             cap.release()
         elif self.path.exists():
-            raise InputError(f"{self.path} is neither an image folder nor a video ({', '.join(VIDEO_SUFFIXES)})")
+            raise InputError(
+                f"{self.path} is neither an image folder nor a video ({', '.join(VIDEO_SUFFIXES)})"
+            )
         else:
             raise InputError(f"frames source {self.path} does not exist")
         self._stamps: list[float] | None = None
@@ -210,7 +214,9 @@ class FrameSource:
 
     def __iter__(self) -> Iterator[Frame]:
         # Stored pixels, no EXIF rotation (as COLMAP and the builder read images).
-        flag = (cv2.IMREAD_GRAYSCALE if self.gray else cv2.IMREAD_COLOR) | cv2.IMREAD_IGNORE_ORIENTATION
+        flag = (
+            cv2.IMREAD_GRAYSCALE if self.gray else cv2.IMREAD_COLOR
+        ) | cv2.IMREAD_IGNORE_ORIENTATION
         if self.kind == "folder":
             for i, p in enumerate(self.files):
                 data = np.fromfile(str(p), dtype=np.uint8)

@@ -146,7 +146,10 @@ COVARIANCE_HEADER = (
 
 
 def write_tum_covariances(
-    path: str | Path, timestamps: list[float], statuses: list[str], covariances: list[np.ndarray | None]
+    path: str | Path,
+    timestamps: list[float],
+    statuses: list[str],
+    covariances: list[np.ndarray | None],
 ) -> Path:
     """The covariance side file of a TUM trajectory (``FILE.cov``; format and order as
     ``sfmloc_client.trajectory``): ``timestamp status c00 ... c55`` per pose line."""
@@ -155,7 +158,9 @@ def write_tum_covariances(
         f.write(COVARIANCE_HEADER + "\n")
         for ts, st, C in zip(timestamps, statuses, covariances):
             vals = np.full(36, np.nan) if C is None else np.asarray(C, np.float64).ravel()
-            f.write(f"{ts:.6f} {st} " + " ".join(f"{v:.6e}" for v in vals) + "\n")  # as format_tum_line
+            f.write(
+                f"{ts:.6f} {st} " + " ".join(f"{v:.6e}" for v in vals) + "\n"
+            )  # as format_tum_line
     return path
 
 
@@ -165,5 +170,7 @@ def write_colmap_list(path: str | Path, names: list[str], cam_from_worlds: list[
     with open(path, "w") as f:
         f.write("# name qw qx qy qz tx ty tz (cam_from_world)\n")
         for name, T in zip(names, cam_from_worlds):
-            f.write(name + " " + " ".join(f"{v:.9f}" for v in (*T.quat_wxyz, *T.translation)) + "\n")
+            f.write(
+                name + " " + " ".join(f"{v:.9f}" for v in (*T.quat_wxyz, *T.translation)) + "\n"
+            )
     return path

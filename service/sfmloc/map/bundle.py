@@ -45,8 +45,8 @@ name stays intact until the new one is complete.
 from __future__ import annotations
 
 import ctypes
-import errno
 import ctypes.util
+import errno
 import hashlib
 import json
 import os
@@ -61,6 +61,7 @@ from typing import Any
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, ValidationError, field_validator
+
 from sfmloc_client.keys import check_name
 
 from .. import __version__
@@ -109,7 +110,7 @@ def _level_scales_of(params: dict[str, Any]) -> list[float] | None:
     return pyramid_level_scales(d) if isinstance(d, dict) else None
 
 
-def _computed_keypoint_scales(data: "MapData", params: dict[str, Any]) -> dict[str, Any]:
+def _computed_keypoint_scales(data: MapData, params: dict[str, Any]) -> dict[str, Any]:
     return keypoint_scales(
         data.desc_image, data.desc_level, data.image_camera, data.cameras, _level_scales_of(params)
     )
@@ -262,7 +263,8 @@ def write_bundle(
     if free < needed:
         raise OSError(
             errno.ENOSPC,
-            f"No space left on device: the bundle needs {needed / 1e6:.1f} MB, {free / 1e6:.1f} MB free",
+            f"No space left on device: the bundle needs {needed / 1e6:.1f} MB, {free / 1e6:.1f} MB "
+            "free",
             str(out_dir),
         )
     tmp = out_dir / f".{name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}"
@@ -272,7 +274,9 @@ def write_bundle(
         for aname, (dtype, ndim) in ARRAY_SPECS.items():
             arr = np.ascontiguousarray(getattr(data, aname), dtype=np.dtype(dtype))
             if arr.ndim != ndim:
-                raise BundleError(f"array {aname} must have {ndim} dimensions, has shape {arr.shape}")
+                raise BundleError(
+                    f"array {aname} must have {ndim} dimensions, has shape {arr.shape}"
+                )
             path = tmp / f"{aname}.npy"
             try:
                 with open(path, "wb") as f:
@@ -282,10 +286,15 @@ def write_bundle(
             except OSError as exc:
                 if exc.errno is None and "requested and" in str(exc):
                     # numpy reports a short write without an errno: the disk filled up.
-                    raise OSError(errno.ENOSPC, f"No space left on device ({exc})", str(path)) from None
+                    raise OSError(
+                        errno.ENOSPC, f"No space left on device ({exc})", str(path)
+                    ) from None
                 raise
             entries[aname] = ArrayEntry(
-                file=path.name, dtype=arr.dtype.str, shape=list(arr.shape), sha256=_sha256(path),
+                file=path.name,
+                dtype=arr.dtype.str,
+                shape=list(arr.shape),
+                sha256=_sha256(path),
                 bytes=path.stat().st_size,
             )
         timings = dict(timings_s or {})
@@ -408,7 +417,8 @@ def read_manifest(path: str | Path) -> Manifest:
         raise BundleError(f"{mpath}: not an sfmloc map bundle (format {raw.get('format')!r})")
     if raw.get("version") != BUNDLE_VERSION:
         raise BundleError(
-            f"{mpath}: bundle version {raw.get('version')} is not supported by sfmloc {__version__} "
+            f"{mpath}: bundle version {raw.get('version')} is not supported by sfmloc "
+            f"{__version__} "
             f"(expects version {BUNDLE_VERSION}); rebuild the map"
         )
     try:
@@ -450,8 +460,15 @@ def verify_bundle(path: str | Path, checksums: bool = True) -> list[str]:
         except Exception as exc:  # noqa: BLE001 - any failure to parse the .npy is corruption
             problems.append(f"{apath.name}: unreadable .npy ({exc})")
             continue
-        if arr.dtype.str != np.dtype(dtype).str or list(arr.shape) != entry.shape or arr.ndim != ndim:
-            problems.append(f"{apath.name}: dtype/shape {arr.dtype.str}{list(arr.shape)} do not match the manifest")
+        if (
+            arr.dtype.str != np.dtype(dtype).str
+            or list(arr.shape) != entry.shape
+            or arr.ndim != ndim
+        ):
+            problems.append(
+                f"{apath.name}: dtype/shape {arr.dtype.str}{list(arr.shape)} do not match the "
+                "manifest"
+            )
     return problems
 
 
@@ -471,14 +488,20 @@ class MapBundle:
         for aname in ARRAY_SPECS:
             entry = self.manifest.arrays.get(aname)
             if entry is None:
-                raise BundleError(f"map bundle {self.path}: array {aname} missing from the manifest")
+                raise BundleError(
+                    f"map bundle {self.path}: array {aname} missing from the manifest"
+                )
             apath = self.path / entry.file
             if apath.is_symlink() or not apath.is_file():
-                raise BundleError(f"map bundle {self.path}: {entry.file} is missing or not a regular file")
+                raise BundleError(
+                    f"map bundle {self.path}: {entry.file} is missing or not a regular file"
+                )
             try:
                 a[aname] = np.load(apath, mmap_mode="r", allow_pickle=False)
             except Exception as exc:  # noqa: BLE001
-                raise BundleError(f"map bundle {self.path}: cannot load {entry.file} ({exc})") from None
+                raise BundleError(
+                    f"map bundle {self.path}: cannot load {entry.file} ({exc})"
+                ) from None
         self._a = a
         self.name = self.manifest.name
         self.build_id = self.manifest.build_id
@@ -504,10 +527,13 @@ class MapBundle:
                 a["index_faiss"], nprobe or int(self.manifest.index.get("nprobe", 16))
             )
         except Exception as exc:  # noqa: BLE001 - faiss raises RuntimeError on garbage
-            raise BundleError(f"map bundle {self.path}: the ANN index does not load ({exc})") from None
+            raise BundleError(
+                f"map bundle {self.path}: the ANN index does not load ({exc})"
+            ) from None
         if self.index.ntotal != len(self.desc_point):
             raise BundleError(
-                f"map bundle {self.path}: index holds {self.index.ntotal} descriptors, bundle has {len(self.desc_point)}"
+                f"map bundle {self.path}: index holds {self.index.ntotal} descriptors, bundle has "
+                f"{len(self.desc_point)}"
             )
         # The inverse of image_points, built once here (O(observations)) so that the bundle stays
         # read-only and safe to share between threads.
@@ -521,7 +547,10 @@ class MapBundle:
         self.image_cam_from_world = [Rigid3d.from_quat_wxyz(r[:4], r[4:]) for r in q]
         self.scene_scale = self._median_depth()
         self.keypoint_scales = dict(self.manifest.keypoint_scales) or keypoint_scales(
-            np.asarray(a["desc_image"]), np.asarray(a["desc_level"]), self.image_camera, self.cameras,
+            np.asarray(a["desc_image"]),
+            np.asarray(a["desc_level"]),
+            self.image_camera,
+            self.cameras,
             _level_scales_of(self.manifest.params),
         )
         try:
@@ -530,7 +559,8 @@ class MapBundle:
             self.native_focal_px = float("nan")
         if not np.isfinite(self.native_focal_px) or self.native_focal_px <= 0:
             raise BundleError(
-                f"map bundle {self.path}: keypoint_scales.native_focal_px must be a positive number of "
+                f"map bundle {self.path}: keypoint_scales.native_focal_px must be a positive "
+                "number of "
                 f"pixels, got {self.keypoint_scales.get('native_focal_px')!r}"
             )
         self.coarsest_focal_px = coarsest_focal_px(self.keypoint_scales)
@@ -585,7 +615,10 @@ class MapBundle:
     def memory_bytes(self) -> int:
         """Bytes of the arrays the engine touches plus the index (what stays resident)."""
         skip = {"index_faiss", "descriptors"}  # the index holds its own copy of both
-        return sum(int(v.nbytes) for k, v in self._a.items() if k not in skip) + self.index.memory_bytes()
+        return (
+            sum(int(v.nbytes) for k, v in self._a.items() if k not in skip)
+            + self.index.memory_bytes()
+        )
 
     def report(self) -> dict[str, Any]:
         """The map report written by the builder (computed now for bundles built before it)."""
@@ -594,7 +627,11 @@ class MapBundle:
         from .report import map_report
 
         return map_report(
-            self.points_xyz, self.image_points_ptr, self.image_points_idx, self.cameras, self.image_camera,
+            self.points_xyz,
+            self.image_points_ptr,
+            self.image_points_idx,
+            self.cameras,
+            self.image_camera,
             self.image_cam_from_world,
         )
 
@@ -612,7 +649,11 @@ class MapBundle:
             "cameras": c.cameras,
             "clusters": c.clusters,
             "observations": c.observations,
-            "index": {"kind": self.index.kind, "nlist": self.index.nlist, "nprobe": self.index.nprobe},
+            "index": {
+                "kind": self.index.kind,
+                "nlist": self.index.nlist,
+                "nprobe": self.index.nprobe,
+            },
             "memory_mb": round(self.memory_bytes() / 1e6, 1),
             "disk_mb": round(sum(e.bytes for e in self.manifest.arrays.values()) / 1e6, 1),
             "source": self.manifest.source,
@@ -625,18 +666,33 @@ class MapBundle:
         a, c = self._a, self.manifest.counts
         P, D, I, L = c.points, c.descriptors, c.images, c.clusters
         expect = {
-            "points_xyz": (P, 3), "point_ids": (P,), "point_rgb": (P, 3), "descriptors": (D, None),
-            "desc_point": (D,), "desc_image": (D,), "desc_level": (D,), "desc_xy": (D, 2),
-            "image_desc_ptr": (I + 1,), "image_cam_from_world": (I, 7), "image_camera": (I,),
-            "image_points_ptr": (I + 1,), "cluster_images_ptr": (L + 1,), "point_clusters_ptr": (P + 1,),
-            "pca_mean": (RAW_DIM,), "pca_basis": (RAW_DIM, None),
+            "points_xyz": (P, 3),
+            "point_ids": (P,),
+            "point_rgb": (P, 3),
+            "descriptors": (D, None),
+            "desc_point": (D,),
+            "desc_image": (D,),
+            "desc_level": (D,),
+            "desc_xy": (D, 2),
+            "image_desc_ptr": (I + 1,),
+            "image_cam_from_world": (I, 7),
+            "image_camera": (I,),
+            "image_points_ptr": (I + 1,),
+            "cluster_images_ptr": (L + 1,),
+            "point_clusters_ptr": (P + 1,),
+            "pca_mean": (RAW_DIM,),
+            "pca_basis": (RAW_DIM, None),
         }
         for aname, shape in expect.items():
             got = a[aname].shape
             if len(got) != len(shape) or any(s is not None and s != g for s, g in zip(shape, got)):
-                raise BundleError(f"map bundle {self.path}: {aname} has shape {got}, expected {shape}")
+                raise BundleError(
+                    f"map bundle {self.path}: {aname} has shape {got}, expected {shape}"
+                )
         if len(self.image_names) != I or len(self.manifest.cameras) != c.cameras:
-            raise BundleError(f"map bundle {self.path}: manifest image/camera lists do not match its counts")
+            raise BundleError(
+                f"map bundle {self.path}: manifest image/camera lists do not match its counts"
+            )
         if a["descriptors"].shape[1] != a["pca_basis"].shape[1]:
             raise BundleError(f"map bundle {self.path}: descriptor and PCA dimensions differ")
         for ptr_name, idx_name, n_target in (
@@ -648,11 +704,15 @@ class MapBundle:
             if ptr[0] != 0 or ptr[-1] != len(idx) or np.any(np.diff(ptr) < 0):
                 raise BundleError(f"map bundle {self.path}: {ptr_name} is not a valid offset array")
             if len(idx) and (idx.min() < 0 or idx.max() >= n_target):
-                raise BundleError(f"map bundle {self.path}: {idx_name} refers outside 0..{n_target - 1}")
+                raise BundleError(
+                    f"map bundle {self.path}: {idx_name} refers outside 0..{n_target - 1}"
+                )
         for name, n_target in (("desc_point", P), ("desc_image", I), ("image_camera", c.cameras)):
             v = np.asarray(a[name])
             if len(v) and (v.min() < 0 or v.max() >= n_target):
-                raise BundleError(f"map bundle {self.path}: {name} refers outside 0..{n_target - 1}")
+                raise BundleError(
+                    f"map bundle {self.path}: {name} refers outside 0..{n_target - 1}"
+                )
         ptr = np.asarray(a["image_desc_ptr"])
         if ptr[0] != 0 or ptr[-1] != D or np.any(np.diff(ptr) < 0):
             raise BundleError(f"map bundle {self.path}: image_desc_ptr is not a valid offset array")

@@ -59,8 +59,12 @@ class DescriptorIndex:
     # ----------------------------------------------------------------- building / storage
     @classmethod
     def build(
-        cls, descriptors: np.ndarray, conf: IndexConf | None = None, seed: int = 0, chunk_rows: int = 65536
-    ) -> "DescriptorIndex":
+        cls,
+        descriptors: np.ndarray,
+        conf: IndexConf | None = None,
+        seed: int = 0,
+        chunk_rows: int = 65536,
+    ) -> DescriptorIndex:
         """Trained on a sample (``conf.train_samples``), filled ``chunk_rows`` at a time, so
         float16 descriptors are never all converted to float32 at once (build memory)."""
         conf = conf or IndexConf()
@@ -77,7 +81,9 @@ class DescriptorIndex:
             quantizer = faiss.IndexFlatL2(d)
             ivf: faiss.IndexIVF
             if kind == "ivf-sq8":
-                ivf = faiss.IndexIVFScalarQuantizer(quantizer, d, nlist, faiss.ScalarQuantizer.QT_8bit)
+                ivf = faiss.IndexIVFScalarQuantizer(
+                    quantizer, d, nlist, faiss.ScalarQuantizer.QT_8bit
+                )
             else:
                 ivf = faiss.IndexIVFFlat(quantizer, d, nlist)
             ivf.cp.seed = seed  # deterministic k-means
@@ -98,12 +104,12 @@ class DescriptorIndex:
         return faiss.serialize_index(self._index)
 
     @classmethod
-    def deserialize(cls, data: np.ndarray, nprobe: int = 16) -> "DescriptorIndex":
+    def deserialize(cls, data: np.ndarray, nprobe: int = 16) -> DescriptorIndex:
         """A private copy of the index stored in ``data`` (see ``from_buffer`` to share it)."""
         return cls(faiss.deserialize_index(np.ascontiguousarray(data, dtype=np.uint8)), nprobe)
 
     @classmethod
-    def from_buffer(cls, data: np.ndarray, nprobe: int = 16) -> "DescriptorIndex":
+    def from_buffer(cls, data: np.ndarray, nprobe: int = 16) -> DescriptorIndex:
         """The index read in place from ``data`` (the serialized bytes, typically the bundle's
         memory-mapped ``index_faiss.npy``): its inverted lists and centroids are views into
         ``data``, not copies (faiss's ``ZeroCopyIOReader``). Worker processes that map the same
@@ -113,8 +119,13 @@ class DescriptorIndex:
         keeps ``data`` alive. Falls back to a private copy where faiss cannot read in place
         (faiss < 1.10, or bytes that are not one contiguous uint8 array)."""
         buf = np.asarray(data)
-        if not hasattr(faiss, "ZeroCopyIOReader") or buf.dtype != np.uint8 or buf.ndim != 1 \
-                or not buf.flags.c_contiguous or buf.nbytes == 0:
+        if (
+            not hasattr(faiss, "ZeroCopyIOReader")
+            or buf.dtype != np.uint8
+            or buf.ndim != 1
+            or not buf.flags.c_contiguous
+            or buf.nbytes == 0
+        ):
             return cls.deserialize(data, nprobe)
         reader = faiss.ZeroCopyIOReader(faiss.swig_ptr(buf), buf.nbytes)
         obj = cls(faiss.read_index(reader), nprobe)
@@ -150,7 +161,11 @@ class DescriptorIndex:
 
     # ----------------------------------------------------------------- search
     def search(
-        self, queries: np.ndarray, k: int, allowed: np.ndarray | None = None, nprobe: int | None = None
+        self,
+        queries: np.ndarray,
+        k: int,
+        allowed: np.ndarray | None = None,
+        nprobe: int | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """k nearest descriptors of each query: (distances (N, k) float32, ids (N, k) int64),
         sorted by distance; missing neighbours have id -1 and distance inf.

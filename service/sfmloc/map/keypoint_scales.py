@@ -34,7 +34,9 @@ def camera_focal_px(camera: Camera) -> float:
 def pyramid_level_scales(descriptor_params: dict[str, Any] | None) -> list[float]:
     """Scale of each ``desc_level`` index for the builder's ``DescriptorConf`` (as a dict)."""
     p = descriptor_params or {}
-    return level_scales(int(p.get("octaves", 2)), int(p.get("per_octave", 4)), int(p.get("up_levels", 0)))
+    return level_scales(
+        int(p.get("octaves", 2)), int(p.get("per_octave", 4)), int(p.get("up_levels", 0))
+    )
 
 
 def keypoint_scales(

@@ -45,8 +45,12 @@ def _stats(x: np.ndarray) -> dict[str, float]:
     return {"min": float(np.min(x)), "median": float(np.median(x)), "max": float(np.max(x))}
 
 
-def coverage(camera: Camera, cam_from_world: Rigid3d, points_xyz: np.ndarray,
-             grid: tuple[int, int] = COVERAGE_GRID) -> float:
+def coverage(
+    camera: Camera,
+    cam_from_world: Rigid3d,
+    points_xyz: np.ndarray,
+    grid: tuple[int, int] = COVERAGE_GRID,
+) -> float:
     """Fraction of the image's ``grid`` cells holding at least one of ``points_xyz``."""
     if len(points_xyz) == 0:
         return 0.0
@@ -77,11 +81,16 @@ def map_report(
         if np.any(tracks == k):
             hist[str(k)] = int(np.sum(tracks == k))
     hist[f"{TRACK_HISTOGRAM_MAX}+"] = int(np.sum(tracks >= TRACK_HISTOGRAM_MAX))
-    cov = np.array([
-        coverage(cameras[int(image_camera[i])], image_cam_from_world[i],
-                 points_xyz[image_points_idx[image_points_ptr[i]:image_points_ptr[i + 1]]])
-        for i in range(n_img)
-    ])
+    cov = np.array(
+        [
+            coverage(
+                cameras[int(image_camera[i])],
+                image_cam_from_world[i],
+                points_xyz[image_points_idx[image_points_ptr[i] : image_points_ptr[i + 1]]],
+            )
+            for i in range(n_img)
+        ]
+    )
     track_stats = _stats(tracks)
     track_stats["mean"] = round(float(tracks.mean()), 2) if n_pts else 0.0
     report: dict[str, Any] = {
@@ -90,7 +99,8 @@ def map_report(
         "points_per_image": _stats(ppi),
         "track_length": {**track_stats, "histogram": hist},
         "coverage": {
-            **{k: round(v, 3) for k, v in _stats(cov).items()}, "grid": list(COVERAGE_GRID)
+            **{k: round(v, 3) for k, v in _stats(cov).items()},
+            "grid": list(COVERAGE_GRID),
         },
         "sparse_threshold_points_per_image": SPARSE_POINTS_PER_IMAGE,
     }

@@ -47,15 +47,18 @@ from .facade import Localization
 from .logfmt import event
 from .maps import MapEntry, MapRegistry
 from .metrics import MetricsServer, ServerMetrics
+from .pool import WorkerPool
 from .protocol import Result
 from .sessions import SessionManager
-from .pool import WorkerPool
 
 log = logging.getLogger(__name__)
 
 
 def default_server_id() -> str:
-    host = "".join(c if c.isalnum() or c in "-_." else "-" for c in socket.gethostname())[:40] or "host"
+    host = (
+        "".join(c if c.isalnum() or c in "-_." else "-" for c in socket.gethostname())[:40]
+        or "host"
+    )
     return f"{host}-{os.getpid()}"
 
 
@@ -70,24 +73,39 @@ class Server:
         self.metrics = ServerMetrics()
         n = conf.workers or os.cpu_count() or 1
         self.pool = WorkerPool(
-            n, conf.worker_kind, conf.engine.model_dump_json(),
-            on_result=self._on_result, on_lost=self._on_worker_lost, on_dead=self._on_worker_dead,
-            log_level=logging.getLogger().getEffectiveLevel(), log_format=conf.log_format,
-            max_pending_relocalize=conf.max_pending_relocalize, max_image_pixels=conf.max_image_pixels,
+            n,
+            conf.worker_kind,
+            conf.engine.model_dump_json(),
+            on_result=self._on_result,
+            on_lost=self._on_worker_lost,
+            on_dead=self._on_worker_dead,
+            log_level=logging.getLogger().getEffectiveLevel(),
+            log_format=conf.log_format,
+            max_pending_relocalize=conf.max_pending_relocalize,
+            max_image_pixels=conf.max_image_pixels,
             reloc_workers=conf.relocalize_workers,
         )
         self.registry = MapRegistry(self.pool, on_change=self._on_map_change)
         # gRPC bearer tokens and roles (None: authentication off).
         self.tokens = TokenTable.load(conf.grpc.tokens_file) if conf.grpc.tokens_file else None
         self.sessions = SessionManager(
-            self.pool, self.registry, self.metrics, server_id=self.server_id,
-            max_sessions=conf.max_sessions, idle_timeout_s=conf.idle_timeout_s,
-            max_image_pixels=conf.max_image_pixels, max_pending=conf.max_pending,
+            self.pool,
+            self.registry,
+            self.metrics,
+            server_id=self.server_id,
+            max_sessions=conf.max_sessions,
+            idle_timeout_s=conf.idle_timeout_s,
+            max_image_pixels=conf.max_image_pixels,
+            max_pending=conf.max_pending,
         )
         # All the front ends see of the server.
         self.facade = Localization(
-            sessions=self.sessions, registry=self.registry, pool=self.pool, metrics=self.metrics,
-            server_id=self.server_id, map_roots=[conf.maps, *conf.map_roots],
+            sessions=self.sessions,
+            registry=self.registry,
+            pool=self.pool,
+            metrics=self.metrics,
+            server_id=self.server_id,
+            map_roots=[conf.maps, *conf.map_roots],
             max_image_pixels=conf.max_image_pixels,
             max_relocalize_per_client=conf.max_relocalize_per_client,
             relocalize_budget_ms=conf.relocalize_budget_ms,
@@ -127,11 +145,20 @@ class Server:
         current = self.registry.find(ann.name)
         if current is not None and current.build_id == ann.build_id:
             return
-        event(log, logging.INFO, "map_announced", map=ann.name, build_id=ann.build_id, path=ann.path)
+        event(
+            log, logging.INFO, "map_announced", map=ann.name, build_id=ann.build_id, path=ann.path
+        )
         try:
             self.facade.load_map(ann.path, ann.name)
         except Exception as exc:  # noqa: BLE001 - keep serving the current map
-            event(log, logging.ERROR, "map_announced_load_failed", map=ann.name, path=ann.path, error=str(exc))
+            event(
+                log,
+                logging.ERROR,
+                "map_announced_load_failed",
+                map=ann.name,
+                path=ann.path,
+                error=str(exc),
+            )
 
     def info(self) -> ServerInfo:
         now = time.monotonic()
@@ -142,14 +169,21 @@ class Server:
         if dt > 1.0:
             self._rate = (now, float(frames), busy)
         return ServerInfo(
-            server_id=self.server_id, version=__version__,
+            server_id=self.server_id,
+            version=__version__,
             grpc=self._grpc_address(),
             maps=[e.summary() for e in self.registry.list()],
-            sessions=len(self.sessions), workers=self.pool.n,
+            sessions=len(self.sessions),
+            workers=self.pool.n,
             load={
                 "frames_per_s": max(0.0, (frames - frames_prev) / dt),
-                "busy": min(1.0, sum(b - p for b, p in zip(busy[: self.pool.n], busy_prev))
-                            / 1e3 / dt / max(1, self.pool.n)),
+                "busy": min(
+                    1.0,
+                    sum(b - p for b, p in zip(busy[: self.pool.n], busy_prev))
+                    / 1e3
+                    / dt
+                    / max(1, self.pool.n),
+                ),
                 "inflight": float(sum(self.pool.inflight())),
             },
             ready=self.ready,
@@ -170,17 +204,27 @@ class Server:
         self._loop = loop
         c = self.conf
         if c.metrics_port is not None:
-            self.metrics_server = MetricsServer(self.metrics.registry, c.metrics_host, c.metrics_port, self.serving)
+            self.metrics_server = MetricsServer(
+                self.metrics.registry, c.metrics_host, c.metrics_port, self.serving
+            )
             self.metrics_server.start()
         t0 = time.perf_counter()
         await loop.run_in_executor(self.executor, self.pool.start)
-        event(log, logging.INFO, "workers_started", workers=self.pool.n,
-              relocalize_workers=self.pool.reloc_workers, kind=c.worker_kind,
-              ms=round((time.perf_counter() - t0) * 1e3))
+        event(
+            log,
+            logging.INFO,
+            "workers_started",
+            workers=self.pool.n,
+            relocalize_workers=self.pool.reloc_workers,
+            kind=c.worker_kind,
+            ms=round((time.perf_counter() - t0) * 1e3),
+        )
         if c.zenoh.enabled:
             from .zenoh_io import ZenohFrontend
 
-            self.zenoh = ZenohFrontend(c, self.facade, self.server_id, self.info, self._on_announcement)
+            self.zenoh = ZenohFrontend(
+                c, self.facade, self.server_id, self.info, self._on_announcement
+            )
             await loop.run_in_executor(self.executor, self.zenoh.open)
         if c.grpc.address:
             from grpc_health.v1 import health_pb2
@@ -188,7 +232,8 @@ class Server:
             from .grpc_service import SERVICE_NAME, make_grpc_server
 
             self.grpc, self.health, self.grpc_port = make_grpc_server(
-                self.facade, c.grpc, self.tokens, self.executor, c.grace_s)
+                self.facade, c.grpc, self.tokens, self.executor, c.grace_s
+            )
             for svc in ("", SERVICE_NAME):
                 await self.health.set(svc, health_pb2.HealthCheckResponse.NOT_SERVING)
             await self.grpc.start()
@@ -201,14 +246,24 @@ class Server:
     async def load_initial_maps(self) -> None:
         """Load every bundle in ``conf.maps``, then accept frames and report SERVING."""
         loop = asyncio.get_running_loop()
-        loaded, failed = await loop.run_in_executor(self.executor, self.registry.load_dir, self.conf.maps)
+        loaded, failed = await loop.run_in_executor(
+            self.executor, self.registry.load_dir, self.conf.maps
+        )
         for _ in loaded:
             self.metrics.map_loads.inc("ok")
         for _ in failed:
             self.metrics.map_loads.inc("failed")
         await self.mark_ready()
-        event(log, logging.INFO, "server_ready", server_id=self.server_id, maps=[e.name for e in loaded],
-              failed=len(failed), grpc_port=self.grpc_port, workers=self.pool.n)
+        event(
+            log,
+            logging.INFO,
+            "server_ready",
+            server_id=self.server_id,
+            maps=[e.name for e in loaded],
+            failed=len(failed),
+            grpc_port=self.grpc_port,
+            workers=self.pool.n,
+        )
 
     async def mark_ready(self) -> None:
         if self.zenoh is not None:

@@ -36,8 +36,14 @@ ROLES = ("localize", "admin")
 SERVICE = "/sfmloc.v1.Localization/"
 # The role each method needs; methods of other services (health, reflection) need none.
 METHOD_ROLES = {
-    "Relocalize": "localize", "StreamLocalize": "localize", "ListMaps": "localize", "GetMap": "localize",
-    "ListSessions": "localize", "ResetSession": "localize", "LoadMap": "admin", "UnloadMap": "admin",
+    "Relocalize": "localize",
+    "StreamLocalize": "localize",
+    "ListMaps": "localize",
+    "GetMap": "localize",
+    "ListSessions": "localize",
+    "ResetSession": "localize",
+    "LoadMap": "admin",
+    "UnloadMap": "admin",
 }
 
 
@@ -65,7 +71,7 @@ class TokenTable:
         self._entries = list(entries)
 
     @classmethod
-    def load(cls, path: str | Path) -> "TokenTable":
+    def load(cls, path: str | Path) -> TokenTable:
         p = Path(path)
         try:
             raw = json.loads(p.read_text())
@@ -73,10 +79,14 @@ class TokenTable:
             raise ConfigError(f"tokens file {p}: unreadable ({exc})") from None
         items = raw.get("tokens") if isinstance(raw, dict) else None
         if not isinstance(items, list):
-            raise ConfigError(f"tokens file {p}: expected {{\"tokens\": [...]}}")
+            raise ConfigError(f'tokens file {p}: expected {{"tokens": [...]}}')
         entries = []
         for k, it in enumerate(items):
-            if not isinstance(it, dict) or not isinstance(it.get("sha256"), str) or len(it["sha256"]) != 64:
+            if (
+                not isinstance(it, dict)
+                or not isinstance(it.get("sha256"), str)
+                or len(it["sha256"]) != 64
+            ):
                 raise ConfigError(f"tokens file {p}: entry {k} needs a 64-hex-digit sha256")
             roles = it.get("roles", [])
             if not isinstance(roles, list) or not roles or any(r not in ROLES for r in roles):
@@ -107,7 +117,7 @@ def bearer_token(metadata: Sequence[tuple[str, Any]] | None) -> str | None:
         if key == "authorization":
             v = value.decode() if isinstance(value, bytes) else str(value)
             if v.startswith("Bearer "):
-                return v[len("Bearer "):].strip() or None
+                return v[len("Bearer ") :].strip() or None
     return None
 
 
@@ -122,7 +132,9 @@ def add_token(path: str | Path, identity: str, roles: Sequence[str]) -> str:
         TokenTable.load(p)  # refuse to extend a broken file
         data = json.loads(p.read_text())
     token = secrets.token_urlsafe(32)
-    data["tokens"].append({"identity": identity, "roles": sorted(set(roles)), "sha256": token_sha256(token)})
+    data["tokens"].append(
+        {"identity": identity, "roles": sorted(set(roles)), "sha256": token_sha256(token)}
+    )
     tmp = p.with_name(f".{p.name}.tmp")
     tmp.write_text(json.dumps(data, indent=2) + "\n")
     tmp.chmod(0o600)
@@ -130,7 +142,9 @@ def add_token(path: str | Path, identity: str, roles: Sequence[str]) -> str:
     return token
 
 
-def _deny(handler: grpc.RpcMethodHandler, code: grpc.StatusCode, message: str) -> grpc.RpcMethodHandler:
+def _deny(
+    handler: grpc.RpcMethodHandler, code: grpc.StatusCode, message: str
+) -> grpc.RpcMethodHandler:
     """A handler of the same kind as ``handler`` that only refuses the call."""
 
     async def refuse(request: Any, context: grpc.aio.ServicerContext) -> None:
@@ -155,14 +169,20 @@ class AuthInterceptor(grpc.aio.ServerInterceptor):
         method = details.method or ""
         if handler is None or not method.startswith(SERVICE):
             return handler
-        role = METHOD_ROLES.get(method[len(SERVICE):], "admin")  # a method added later: admin only
+        role = METHOD_ROLES.get(method[len(SERVICE) :], "admin")  # a method added later: admin only
         ident = self.table.identify(details.invocation_metadata)
         if ident is None:
-            return _deny(handler, grpc.StatusCode.UNAUTHENTICATED,
-                         "this server needs a token: send 'authorization: Bearer <token>' (--token)")
+            return _deny(
+                handler,
+                grpc.StatusCode.UNAUTHENTICATED,
+                "this server needs a token: send 'authorization: Bearer <token>' (--token)",
+            )
         if not ident.may(role):
-            return _deny(handler, grpc.StatusCode.PERMISSION_DENIED,
-                         f"{ident.name!r} may not call {method[len(SERVICE):]} (needs the {role} role)")
+            return _deny(
+                handler,
+                grpc.StatusCode.PERMISSION_DENIED,
+                f"{ident.name!r} may not call {method[len(SERVICE) :]} (needs the {role} role)",
+            )
         return handler
 
 

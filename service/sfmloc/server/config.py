@@ -5,7 +5,7 @@ environment: ``SFMLOC_ZENOH__MODE=client``, ``SFMLOC_GRPC__ADDRESS=0.0.0.0:50051
 
 from __future__ import annotations
 
-from typing import Literal, Optional
+from typing import Literal
 
 from pydantic import Field
 
@@ -20,11 +20,11 @@ class ZenohConf(StrictModel):
     connect: list[str] = []
     # Multicast scouting (zenoh's default: on); off = explicit endpoints only.
     multicast: bool = True
-    config_file: Optional[str] = None  # a zenoh JSON5 config; the settings above go over it
+    config_file: str | None = None  # a zenoh JSON5 config; the settings above go over it
     # Zenoh's shared-memory transport. None: off unless config_file sets it. Off by default:
     # with it on, the server kept each client's 16 MiB segment mapped after the client left
     # (10 short-lived clients: +207 MB RSS, +20 /dev/shm files; off: +13 MB, +0; README, Zenoh).
-    shared_memory: Optional[bool] = None
+    shared_memory: bool | None = None
     # Reply NOT_FOUND to frames for maps this server does not host. Turn off when several
     # servers share a Zenoh network, each hosting different maps.
     reply_unknown_maps: bool = True
@@ -93,7 +93,7 @@ class ServerConfig(StrictModel):
     # waits for LoadMap or the builder).
     allow_empty: bool = False
     grace_s: float = Field(5.0, ge=0)  # shutdown: time for in-flight frames and calls
-    metrics_port: Optional[int] = Field(None, ge=0, le=65535)
+    metrics_port: int | None = Field(None, ge=0, le=65535)
     metrics_host: str = "0.0.0.0"
     log_format: Literal["kv", "json"] = "kv"
     engine: EngineConf = EngineConf()

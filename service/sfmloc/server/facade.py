@@ -25,10 +25,19 @@ from .sessions import Session, SessionManager, Sink, validate_camera
 
 
 class Localization:
-    def __init__(self, *, sessions: SessionManager, registry: MapRegistry, pool: WorkerPool,
-                 metrics: ServerMetrics, server_id: str, map_roots: list[str | Path],
-                 max_image_pixels: int, max_relocalize_per_client: int = 4,
-                 relocalize_budget_ms: float = 0.0) -> None:
+    def __init__(
+        self,
+        *,
+        sessions: SessionManager,
+        registry: MapRegistry,
+        pool: WorkerPool,
+        metrics: ServerMetrics,
+        server_id: str,
+        map_roots: list[str | Path],
+        max_image_pixels: int,
+        max_relocalize_per_client: int = 4,
+        relocalize_budget_ms: float = 0.0,
+    ) -> None:
         self._sessions = sessions
         self._registry = registry
         self._pool = pool
@@ -48,15 +57,25 @@ class Localization:
         validate_camera(cam, self.max_image_pixels)
         return cam
 
-    def submit_frame(self, map_name: str, client_id: str, transport: str, frame: Frame,
-                     t_recv: float, make_sink: Callable[[], Sink], key_suffix: str = "") -> Session:
+    def submit_frame(
+        self,
+        map_name: str,
+        client_id: str,
+        transport: str,
+        frame: Frame,
+        t_recv: float,
+        make_sink: Callable[[], Sink],
+        key_suffix: str = "",
+    ) -> Session:
         """Hand a decoded frame to its session (created on first use); its pose goes to the
         session's sink. Raises what the client must hear before any engine work."""
-        return self._sessions.submit(map_name, client_id, transport, frame, t_recv, make_sink,
-                                     key_suffix=key_suffix)
+        return self._sessions.submit(
+            map_name, client_id, transport, frame, t_recv, make_sink, key_suffix=key_suffix
+        )
 
-    def refuse_frame(self, map_name: str, client_id: str, seq: int | None, stamp_ns: int,
-                     exc: BaseException) -> PoseMessage:
+    def refuse_frame(
+        self, map_name: str, client_id: str, seq: int | None, stamp_ns: int, exc: BaseException
+    ) -> PoseMessage:
         """Count a refused frame and return the error pose its client gets."""
         self._sessions.count_error(map_name, exc)
         return self._sessions.error_pose(map_name, client_id, seq, stamp_ns, exc)
@@ -73,9 +92,17 @@ class Localization:
         return self._sessions.wait_idle(timeout, sessions)
 
     # ------------------------------------------------------------------ single images
-    async def relocalize(self, map_name: str, cam: CameraSpec, encoding: str, data: bytes,
-                         prior: Transform | None = None, t0: float | None = None,
-                         caller: str = "", deadline: float = 0.0) -> PoseMessage:
+    async def relocalize(
+        self,
+        map_name: str,
+        cam: CameraSpec,
+        encoding: str,
+        data: bytes,
+        prior: Transform | None = None,
+        t0: float | None = None,
+        caller: str = "",
+        deadline: float = 0.0,
+    ) -> PoseMessage:
         """One image, no session, on the relocalization lane (``cam`` checked by the caller;
         ``t0``: the request's receipt, ``time.perf_counter()``, for its latency). ``caller``:
         who asks (admission: ``max_relocalize_per_client`` at a time); ``deadline``: the
@@ -84,14 +111,24 @@ class Localization:
         entry = self._registry.get(map_name)
         if deadline and time.monotonic() >= deadline:
             raise DeadlineExceededError("the call's deadline passed before it was queued")
-        msg = Relocalize(0, entry.name, entry.generation, camera_tuple(cam), encoding, prior,
-                         deadline=deadline, budget_ms=self.relocalize_budget_ms, data=bytes(data))
+        msg = Relocalize(
+            0,
+            entry.name,
+            entry.generation,
+            camera_tuple(cam),
+            encoding,
+            prior,
+            deadline=deadline,
+            budget_ms=self.relocalize_budget_ms,
+            data=bytes(data),
+        )
         with self._reloc_lock:
             n = self._reloc_by_caller.get(caller, 0)
             if n >= self.max_relocalize_per_client:
                 raise OverloadError(
                     f"this caller already has {n} relocalizations queued or running (limit "
-                    f"{self.max_relocalize_per_client}); wait for their answers")
+                    f"{self.max_relocalize_per_client}); wait for their answers"
+                )
             self._reloc_by_caller[caller] = n + 1
         try:
             result = await asyncio.wrap_future(self._pool.relocalize(msg))
@@ -100,9 +137,16 @@ class Localization:
                 n = self._reloc_by_caller.pop(caller) - 1
                 if n:
                     self._reloc_by_caller[caller] = n
-        pose = pose_message(result.pose, result.error, seq=None, stamp_ns=0, map_name=entry.name,
-                            build_id=entry.build_id, server_id=self.server_id,
-                            latency_ms=(time.perf_counter() - t0) * 1e3)
+        pose = pose_message(
+            result.pose,
+            result.error,
+            seq=None,
+            stamp_ns=0,
+            map_name=entry.name,
+            build_id=entry.build_id,
+            server_id=self.server_id,
+            latency_ms=(time.perf_counter() - t0) * 1e3,
+        )
         self._metrics.relocalize.inc(entry.name, pose.status)
         self._metrics.relocalize_latency.observe(entry.name, value=pose.latency_ms / 1e3)
         return pose

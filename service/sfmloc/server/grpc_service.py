@@ -15,14 +15,15 @@ import logging
 import time
 import uuid
 from collections.abc import AsyncIterator
-from pathlib import Path
 from concurrent.futures import Executor
+from pathlib import Path
 from typing import Any
 
 import grpc
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 from grpc_health.v1.health import aio as health_aio
 from grpc_reflection.v1alpha import reflection
+
 from sfmloc_client.convert import (
     camera_from_pb,
     image_from_pb,
@@ -44,8 +45,7 @@ from ..errors import (
     WireError,
 )
 from ..interceptors import ErrorStatusInterceptor, MalformedRequestInterceptor
-from .auth import AuthInterceptor, caller
-from .auth import TokenTable
+from .auth import AuthInterceptor, TokenTable, caller
 from .config import GrpcConf
 from .facade import Localization
 from .logfmt import event
@@ -59,7 +59,7 @@ SERVICE_NAME = pb.DESCRIPTOR.services_by_name["Localization"].full_name
 class _StreamSink:
     """Poses of a gRPC stream session: onto the stream's asyncio queue, from any thread."""
 
-    def __init__(self, loop: asyncio.AbstractEventLoop, q: "asyncio.Queue[Any]") -> None:
+    def __init__(self, loop: asyncio.AbstractEventLoop, q: asyncio.Queue[Any]) -> None:
         self.loop, self.q = loop, q
 
     def send(self, pose: PoseMessage) -> None:
@@ -77,23 +77,36 @@ def _checked_camera(loc: Localization, msg: Any) -> Any:
 
 def _map_info(loc: Localization, e: Any) -> pb.MapInfo:
     n = len(loc.list_sessions(e.name))
-    return pb.MapInfo(name=e.name, path=e.path, build_id=e.build_id, points=e.points, descriptors=e.descriptors,
-                      images=e.images, clusters=e.clusters, memory_mb=e.memory_mb, sessions=n, loaded_utc=e.loaded_utc)
+    return pb.MapInfo(
+        name=e.name,
+        path=e.path,
+        build_id=e.build_id,
+        points=e.points,
+        descriptors=e.descriptors,
+        images=e.images,
+        clusters=e.clusters,
+        memory_mb=e.memory_mb,
+        sessions=n,
+        loaded_utc=e.loaded_utc,
+    )
 
 
 class LocalizationService(pb_grpc.LocalizationServicer):
     """The gRPC API over the server's ``Localization`` facade (``executor``: blocking calls
     such as LoadMap; ``grace_s``: how long a finished stream waits for its last poses)."""
 
-    def __init__(self, loc: Localization, tokens: TokenTable | None, executor: Executor,
-                 grace_s: float) -> None:
+    def __init__(
+        self, loc: Localization, tokens: TokenTable | None, executor: Executor, grace_s: float
+    ) -> None:
         self.loc = loc
         self.tokens = tokens
         self.executor = executor
         self.grace_s = grace_s
 
     # ------------------------------------------------------------------ single images
-    async def Relocalize(self, request: pb.RelocalizeRequest, context: grpc.aio.ServicerContext) -> pb.RelocalizeResponse:
+    async def Relocalize(
+        self, request: pb.RelocalizeRequest, context: grpc.aio.ServicerContext
+    ) -> pb.RelocalizeResponse:
         t0 = time.perf_counter()
         loc = self.loc
         loc.get_map(request.map)  # NOT_FOUND before any complaint about the image
@@ -105,9 +118,16 @@ class LocalizationService(pb_grpc.LocalizationServicer):
         who = caller(self.tokens, context)
         remaining = context.time_remaining()  # None: the caller set no deadline
         deadline = 0.0 if remaining is None else time.monotonic() + remaining
-        pose = await loc.relocalize(request.map, cam, enc, bytes(data), prior, t0=t0,
-                                    caller=who.name if who is not None else context.peer(),
-                                    deadline=deadline)
+        pose = await loc.relocalize(
+            request.map,
+            cam,
+            enc,
+            bytes(data),
+            prior,
+            t0=t0,
+            caller=who.name if who is not None else context.peer(),
+            deadline=deadline,
+        )
         return pb.RelocalizeResponse(pose=pose_to_estimate_pb(pose))
 
     # ------------------------------------------------------------------ streams
@@ -131,14 +151,19 @@ class LocalizationService(pb_grpc.LocalizationServicer):
                             raise WireError("the first frame of a stream must name the map")
                         loc.get_map(req.map)
                         state["map"] = req.map
-                        state["client"] = check_name(req.client_id, "client id") if req.client_id else f"grpc-{stream_id}"
+                        state["client"] = (
+                            check_name(req.client_id, "client id")
+                            if req.client_id
+                            else f"grpc-{stream_id}"
+                        )
                         who = caller(self.tokens, context)
                         if who is not None and not who.admin:
                             # A caller's sessions carry its identity: it cannot pose as
                             # another client.
                             if req.client_id and req.client_id != who.name:
                                 raise PermissionDeniedError(
-                                    f"{who.name!r} may stream only as client {who.name!r}, not {req.client_id!r}"
+                                    f"{who.name!r} may stream only as client {who.name!r}, not "
+                                    f"{req.client_id!r}"
                                 )
                             state["client"] = who.name
                         if not req.HasField("camera"):
@@ -146,18 +171,35 @@ class LocalizationService(pb_grpc.LocalizationServicer):
                         state["camera"] = _checked_camera(loc, req.camera)  # no camera, no stream
                     try:
                         if req.map and req.map != state["map"]:
-                            raise WireError(f"a stream stays on one map ({state['map']!r}), this frame names {req.map!r}")
+                            raise WireError(
+                                f"a stream stays on one map ({state['map']!r}), this frame names "
+                                f"{req.map!r}"
+                            )
                         if req.HasField("camera") and not first:
                             state["camera"] = _checked_camera(loc, req.camera)
                         cam = state["camera"]
                         enc, data = image_from_pb(req.image, cam)
                         frame = Frame(req.seq, req.stamp_ns or time.time_ns(), cam, enc, data)
-                        s = loc.submit_frame(state["map"], state["client"], "grpc", frame, t_recv,
-                                             make_sink=lambda: _StreamSink(loop, q), key_suffix=f":{stream_id}")
+                        s = loc.submit_frame(
+                            state["map"],
+                            state["client"],
+                            "grpc",
+                            frame,
+                            t_recv,
+                            make_sink=lambda: _StreamSink(loop, q),
+                            key_suffix=f":{stream_id}",
+                        )
                         state["session"] = s
-                    except (InputError, MapNotFoundError) as exc:  # this frame only: the stream goes on
+                    except (
+                        InputError,
+                        MapNotFoundError,
+                    ) as exc:  # this frame only: the stream goes on
                         # (an unloaded map too: its frames are answered NOT_FOUND until it is back)
-                        q.put_nowait(loc.refuse_frame(state["map"], state["client"], req.seq, req.stamp_ns, exc))
+                        q.put_nowait(
+                            loc.refuse_frame(
+                                state["map"], state["client"], req.seq, req.stamp_ns, exc
+                            )
+                        )
                 # The client is done sending: let the last frames finish, then end the stream.
                 s = state["session"]
                 if s is not None:
@@ -175,8 +217,15 @@ class LocalizationService(pb_grpc.LocalizationServicer):
                 if item is None:
                     return
                 if isinstance(item, BaseException):
-                    event(log, logging.INFO, "stream_failed", client=state["client"], map=state["map"],
-                          code=error_info(item).code, error=str(item))
+                    event(
+                        log,
+                        logging.INFO,
+                        "stream_failed",
+                        client=state["client"],
+                        map=state["map"],
+                        code=error_info(item).code,
+                        error=str(item),
+                    )
                     raise item  # ErrorStatusInterceptor ends the stream with its status
                 yield pose_to_update_pb(item)
         finally:
@@ -185,25 +234,39 @@ class LocalizationService(pb_grpc.LocalizationServicer):
                 loc.end_session(state["session"], "stream_end")
 
     # ------------------------------------------------------------------ maps
-    async def ListMaps(self, request: pb.ListMapsRequest, context: grpc.aio.ServicerContext) -> pb.ListMapsResponse:
+    async def ListMaps(
+        self, request: pb.ListMapsRequest, context: grpc.aio.ServicerContext
+    ) -> pb.ListMapsResponse:
         return pb.ListMapsResponse(maps=[_map_info(self.loc, e) for e in self.loc.list_maps()])
 
-    async def GetMap(self, request: pb.GetMapRequest, context: grpc.aio.ServicerContext) -> pb.MapInfo:
+    async def GetMap(
+        self, request: pb.GetMapRequest, context: grpc.aio.ServicerContext
+    ) -> pb.MapInfo:
         return _map_info(self.loc, self.loc.get_map(request.name))
 
-    async def LoadMap(self, request: pb.LoadMapRequest, context: grpc.aio.ServicerContext) -> pb.MapInfo:
+    async def LoadMap(
+        self, request: pb.LoadMapRequest, context: grpc.aio.ServicerContext
+    ) -> pb.MapInfo:
         if not request.path:
-            raise WireError("LoadMap needs a map name or the path of a bundle folder in the maps folders")
+            raise WireError(
+                "LoadMap needs a map name or the path of a bundle folder in the maps folders"
+            )
         loop = asyncio.get_running_loop()
-        entry = await loop.run_in_executor(self.executor, self.loc.load_map, request.path, request.name or None)
+        entry = await loop.run_in_executor(
+            self.executor, self.loc.load_map, request.path, request.name or None
+        )
         return _map_info(self.loc, entry)
 
-    async def UnloadMap(self, request: pb.UnloadMapRequest, context: grpc.aio.ServicerContext) -> pb.UnloadMapResponse:
+    async def UnloadMap(
+        self, request: pb.UnloadMapRequest, context: grpc.aio.ServicerContext
+    ) -> pb.UnloadMapResponse:
         closed = self.loc.unload_map(request.name)
         return pb.UnloadMapResponse(unloaded=True, sessions_closed=closed)
 
     # ------------------------------------------------------------------ sessions
-    async def ListSessions(self, request: pb.ListSessionsRequest, context: grpc.aio.ServicerContext) -> pb.ListSessionsResponse:
+    async def ListSessions(
+        self, request: pb.ListSessionsRequest, context: grpc.aio.ServicerContext
+    ) -> pb.ListSessionsResponse:
         from sfmloc_client.convert import STATUS_TO_PB
         from sfmloc_client.pb.common_pb2 import LOCALIZATION_STATUS_UNSPECIFIED
 
@@ -213,22 +276,36 @@ class LocalizationService(pb_grpc.LocalizationServicer):
         for s in self.loc.list_sessions(request.map):
             if who is not None and not who.admin and s.client_id != who.name:
                 continue  # a localize caller sees its own sessions only
-            out.append(pb.SessionInfo(
-                client_id=s.client_id, map=s.map, transport=s.transport, frames=s.frames, localized=s.localized,
-                dropped=s.dropped, last_latency_ms=s.last_latency_ms, mean_latency_ms=s.mean_latency_ms,
-                status=STATUS_TO_PB.get(s.last_status, LOCALIZATION_STATUS_UNSPECIFIED), idle_s=max(0.0, now - s.last_seen),
-            ))
+            out.append(
+                pb.SessionInfo(
+                    client_id=s.client_id,
+                    map=s.map,
+                    transport=s.transport,
+                    frames=s.frames,
+                    localized=s.localized,
+                    dropped=s.dropped,
+                    last_latency_ms=s.last_latency_ms,
+                    mean_latency_ms=s.mean_latency_ms,
+                    status=STATUS_TO_PB.get(s.last_status, LOCALIZATION_STATUS_UNSPECIFIED),
+                    idle_s=max(0.0, now - s.last_seen),
+                )
+            )
         return pb.ListSessionsResponse(sessions=out)
 
-    async def ResetSession(self, request: pb.ResetSessionRequest, context: grpc.aio.ServicerContext) -> pb.ResetSessionResponse:
+    async def ResetSession(
+        self, request: pb.ResetSessionRequest, context: grpc.aio.ServicerContext
+    ) -> pb.ResetSessionResponse:
         if not request.client_id:
             raise WireError("ResetSession needs a client_id")
         who = caller(self.tokens, context)
         if who is not None and not who.admin and request.client_id != who.name:
-            raise PermissionDeniedError(f"{who.name!r} may reset only its own sessions (needs the admin role)")
+            raise PermissionDeniedError(
+                f"{who.name!r} may reset only its own sessions (needs the admin role)"
+            )
         if not self.loc.reset_sessions(request.client_id, request.map):
             raise SessionNotFoundError(
-                f"no session of client {request.client_id!r}" + (f" on map {request.map!r}" if request.map else "")
+                f"no session of client {request.client_id!r}"
+                + (f" on map {request.map!r}" if request.map else "")
             )
         return pb.ResetSessionResponse(reset=True)
 
@@ -247,7 +324,9 @@ def _server_credentials(gc: Any) -> grpc.ServerCredentials | None:
         raise ConfigError("TLS needs both grpc.tls_cert and grpc.tls_key (--tls-cert, --tls-key)")
     pair = (_read_pem(gc.tls_key, "TLS key"), _read_pem(gc.tls_cert, "TLS certificate"))
     ca = _read_pem(gc.tls_client_ca, "client CA") if gc.tls_client_ca else None
-    return grpc.ssl_server_credentials([pair], root_certificates=ca, require_client_auth=ca is not None)
+    return grpc.ssl_server_credentials(
+        [pair], root_certificates=ca, require_client_auth=ca is not None
+    )
 
 
 def _is_loopback(address: str) -> bool:
@@ -255,33 +334,52 @@ def _is_loopback(address: str) -> bool:
     return host in ("localhost", "::1") or host.startswith("127.")
 
 
-def make_grpc_server(loc: Localization, gc: GrpcConf, tokens: TokenTable | None, executor: Executor,
-                     grace_s: float) -> tuple[grpc.aio.Server, health_aio.HealthServicer, int]:
+def make_grpc_server(
+    loc: Localization, gc: GrpcConf, tokens: TokenTable | None, executor: Executor, grace_s: float
+) -> tuple[grpc.aio.Server, health_aio.HealthServicer, int]:
     """The grpc.aio server with our service over ``loc``, health (NOT_SERVING until maps are
     loaded) and reflection; returns (server, health servicer, bound port)."""
     n = int(gc.max_message_mb * 1024 * 1024)
-    interceptors: list[grpc.aio.ServerInterceptor] = [MalformedRequestInterceptor(), ErrorStatusInterceptor()]
+    interceptors: list[grpc.aio.ServerInterceptor] = [
+        MalformedRequestInterceptor(),
+        ErrorStatusInterceptor(),
+    ]
     if tokens is not None:
         interceptors.insert(0, AuthInterceptor(tokens))
     creds = _server_credentials(gc)
     if tokens is not None and creds is None and not _is_loopback(gc.address):
         raise ConfigError(
-            f"gRPC tokens without TLS would travel in the clear on {gc.address}: set grpc.tls_cert and "
+            f"gRPC tokens without TLS would travel in the clear on {gc.address}: set grpc.tls_cert "
+            "and "
             "grpc.tls_key (--tls-cert/--tls-key), or listen on loopback only"
         )
-    g = grpc.aio.server(interceptors=interceptors, options=[
-        ("grpc.max_receive_message_length", n),
-        ("grpc.max_send_message_length", n),
-        ("grpc.so_reuseport", 0),
-    ])
-    pb_grpc.add_LocalizationServicer_to_server(LocalizationService(loc, tokens, executor, grace_s), g)
+    g = grpc.aio.server(
+        interceptors=interceptors,
+        options=[
+            ("grpc.max_receive_message_length", n),
+            ("grpc.max_send_message_length", n),
+            ("grpc.so_reuseport", 0),
+        ],
+    )
+    pb_grpc.add_LocalizationServicer_to_server(
+        LocalizationService(loc, tokens, executor, grace_s), g
+    )
     health = health_aio.HealthServicer()
     health_pb2_grpc.add_HealthServicer_to_server(health, g)
     reflection.enable_server_reflection(
-        (SERVICE_NAME, health_pb2.DESCRIPTOR.services_by_name["Health"].full_name, reflection.SERVICE_NAME), g
+        (
+            SERVICE_NAME,
+            health_pb2.DESCRIPTOR.services_by_name["Health"].full_name,
+            reflection.SERVICE_NAME,
+        ),
+        g,
     )
     try:
-        port = g.add_insecure_port(gc.address) if creds is None else g.add_secure_port(gc.address, creds)
+        port = (
+            g.add_insecure_port(gc.address)
+            if creds is None
+            else g.add_secure_port(gc.address, creds)
+        )
     except RuntimeError as exc:  # grpc's way of saying the address is taken or invalid
         raise UnavailableError(f"cannot listen for gRPC on {gc.address}: {exc}") from None
     if port == 0:

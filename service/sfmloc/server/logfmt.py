@@ -20,7 +20,11 @@ from typing import Any
 
 
 def _quote(v: Any) -> str:
-    s = v if isinstance(v, str) else (json.dumps(v) if isinstance(v, (list, dict, bool)) or v is None else str(v))
+    s = (
+        v
+        if isinstance(v, str)
+        else (json.dumps(v) if isinstance(v, (list, dict, bool)) or v is None else str(v))
+    )
     if s == "" or any(c in s for c in ' "=\n\t'):
         return json.dumps(s)
     return s
@@ -37,7 +41,10 @@ def event(logger: logging.Logger, level: int, name: str, **fields: Any) -> None:
 
 
 def _ts(record: logging.LogRecord) -> str:
-    return time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(record.created)) + f".{int(record.msecs):03d}Z"
+    return (
+        time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(record.created))
+        + f".{int(record.msecs):03d}Z"
+    )
 
 
 class KeyValueFormatter(logging.Formatter):
@@ -55,11 +62,21 @@ class KeyValueFormatter(logging.Formatter):
 
 class JsonFormatter(logging.Formatter):
     def format(self, record: logging.LogRecord) -> str:
-        d: dict[str, Any] = {"ts": _ts(record), "level": record.levelname.lower(), "logger": record.name}
+        d: dict[str, Any] = {
+            "ts": _ts(record),
+            "level": record.levelname.lower(),
+            "logger": record.name,
+        }
         if hasattr(record, "event"):
             d["event"] = record.event
-            d.update({k: v if isinstance(v, (int, float, str, bool, list, dict)) or v is None else str(v)
-                      for k, v in getattr(record, "fields", {}).items()})
+            d.update(
+                {
+                    k: v
+                    if isinstance(v, (int, float, str, bool, list, dict)) or v is None
+                    else str(v)
+                    for k, v in getattr(record, "fields", {}).items()
+                }
+            )
         else:
             d["msg"] = record.getMessage()
         if record.exc_info:

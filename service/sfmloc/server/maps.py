@@ -13,14 +13,13 @@ from __future__ import annotations
 
 import builtins
 import logging
+import os
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
-
-import os
 
 from ..errors import BundleError, MapNotFoundError, PermissionDeniedError, WireError
 from ..map.bundle import MANIFEST, read_manifest, validate_name, verify_bundle
@@ -39,7 +38,9 @@ def resolve_bundle_path(spec: str, roots: list[str | Path]) -> Path:
     alone: nothing outside the roots is opened, and the message does not say whether it exists.
     """
     if not spec or "\x00" in spec:
-        raise WireError("LoadMap needs a map name or the path of a bundle folder in the maps folders")
+        raise WireError(
+            "LoadMap needs a map name or the path of a bundle folder in the maps folders"
+        )
     real_roots = [Path(os.path.realpath(r)) for r in roots]
     if "/" not in spec:
         validate_name(spec)
@@ -73,12 +74,22 @@ class MapEntry:
     loaded_utc: str
 
     def summary(self) -> dict[str, Any]:
-        return {"name": self.name, "build_id": self.build_id, "points": self.points, "images": self.images,
-                "memory_mb": self.memory_mb, "path": self.path}
+        return {
+            "name": self.name,
+            "build_id": self.build_id,
+            "points": self.points,
+            "images": self.images,
+            "memory_mb": self.memory_mb,
+            "path": self.path,
+        }
 
 
 class MapRegistry:
-    def __init__(self, pool: WorkerPool, on_change: Callable[[str, MapEntry | None, MapEntry | None], None] | None = None) -> None:
+    def __init__(
+        self,
+        pool: WorkerPool,
+        on_change: Callable[[str, MapEntry | None, MapEntry | None], None] | None = None,
+    ) -> None:
         self.pool = pool
         self.on_change = on_change or (lambda name, old, new: None)
         self._maps: dict[str, MapEntry] = {}
@@ -121,9 +132,15 @@ class MapRegistry:
                 gen = self._gen
             summary = self.pool.load_map(name, gen, str(path), manifest.build_id)
             entry = MapEntry(
-                name=name, path=str(path), build_id=manifest.build_id, generation=gen,
-                points=summary.points, descriptors=summary.descriptors,
-                images=summary.images, clusters=summary.clusters, memory_mb=summary.memory_mb,
+                name=name,
+                path=str(path),
+                build_id=manifest.build_id,
+                generation=gen,
+                points=summary.points,
+                descriptors=summary.descriptors,
+                images=summary.images,
+                clusters=summary.clusters,
+                memory_mb=summary.memory_mb,
                 loaded_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
             )
             with self._lock:
@@ -131,9 +148,18 @@ class MapRegistry:
                 self._maps[name] = entry  # the swap: new frames go to the new generation
             if old is not None:
                 self.pool.drop_map(name, old.generation)
-            event(log, logging.INFO, "map_replaced" if old else "map_loaded", map=name, build_id=entry.build_id,
-                  generation=gen, points=entry.points, memory_mb=entry.memory_mb,
-                  ms=round((time.perf_counter() - t0) * 1e3, 1), path=str(path))
+            event(
+                log,
+                logging.INFO,
+                "map_replaced" if old else "map_loaded",
+                map=name,
+                build_id=entry.build_id,
+                generation=gen,
+                points=entry.points,
+                memory_mb=entry.memory_mb,
+                ms=round((time.perf_counter() - t0) * 1e3, 1),
+                path=str(path),
+            )
             self.on_change(name, old, entry)
             return entry
 

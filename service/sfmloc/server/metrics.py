@@ -67,7 +67,9 @@ class Counter(_Metric):
     def render(self) -> list[str]:
         with self._lock:
             items = sorted(self._values.items())
-        return self.header() + [f"{self.name}{_labels(self.labelnames, k)} {_num(v)}" for k, v in items]
+        return self.header() + [
+            f"{self.name}{_labels(self.labelnames, k)} {_num(v)}" for k, v in items
+        ]
 
 
 class Gauge(_Metric):
@@ -75,8 +77,13 @@ class Gauge(_Metric):
 
     kind = "gauge"
 
-    def __init__(self, name: str, help: str, labels: Sequence[str] = (),
-                 collect: Callable[[], dict[tuple[str, ...], float]] | None = None) -> None:
+    def __init__(
+        self,
+        name: str,
+        help: str,
+        labels: Sequence[str] = (),
+        collect: Callable[[], dict[tuple[str, ...], float]] | None = None,
+    ) -> None:
         super().__init__(name, help, labels)
         self._values: dict[tuple[str, ...], float] = {}
         self._collect = collect
@@ -95,13 +102,21 @@ class Gauge(_Metric):
         else:
             with self._lock:
                 values = dict(self._values)
-        return self.header() + [f"{self.name}{_labels(self.labelnames, k)} {_num(v)}" for k, v in sorted(values.items())]
+        return self.header() + [
+            f"{self.name}{_labels(self.labelnames, k)} {_num(v)}" for k, v in sorted(values.items())
+        ]
 
 
 class Histogram(_Metric):
     kind = "histogram"
 
-    def __init__(self, name: str, help: str, labels: Sequence[str] = (), buckets: Sequence[float] = LATENCY_BUCKETS_S) -> None:
+    def __init__(
+        self,
+        name: str,
+        help: str,
+        labels: Sequence[str] = (),
+        buckets: Sequence[float] = LATENCY_BUCKETS_S,
+    ) -> None:
         super().__init__(name, help, labels)
         self.buckets = tuple(sorted(buckets))
         self._counts: dict[tuple[str, ...], list[int]] = {}
@@ -153,25 +168,91 @@ class ServerMetrics:
     def __init__(self) -> None:
         self.registry = Registry()
         r = self.registry
-        self.frames_in = r.add(Counter("sfmloc_frames_received_total", "Frames received.", ("map", "transport")))
-        self.frames_dropped = r.add(Counter("sfmloc_frames_dropped_total", "Stale frames dropped (latest-frame-only intake).", ("map",)))
-        self.frames_done = r.add(Counter("sfmloc_frames_processed_total", "Frames processed by the engine, by result status.", ("map", "status")))
-        self.frame_errors = r.add(Counter("sfmloc_frame_errors_total", "Frames rejected, by status code.", ("map", "code")))
-        self.frames_refused = r.add(Counter("sfmloc_frames_refused_total", "Frames refused by a per-client limit, by limit.", ("limit",)))
-        self.latency = r.add(Histogram("sfmloc_frame_latency_seconds", "Frame receipt to pose publication.", ("map",)))
-        self.engine_latency = r.add(Histogram("sfmloc_engine_latency_seconds", "Engine time per frame.", ("map",)))
-        self.relocalize = r.add(Counter("sfmloc_relocalize_total", "Single-image relocalizations, by status.", ("map", "status")))
-        self.relocalize_latency = r.add(Histogram("sfmloc_relocalize_latency_seconds", "Relocalize call time.", ("map",)))
-        self.sessions_opened = r.add(Counter("sfmloc_sessions_opened_total", "Sessions created.", ("map", "transport")))
-        self.sessions_closed = r.add(Counter("sfmloc_sessions_closed_total", "Sessions ended, by reason.", ("map", "reason")))
-        self.worker_restarts = r.add(Counter("sfmloc_worker_restarts_total", "Workers restarted after dying."))
-        self.map_loads = r.add(Counter("sfmloc_map_loads_total", "Map loads, by result.", ("result",)))
+        self.frames_in = r.add(
+            Counter("sfmloc_frames_received_total", "Frames received.", ("map", "transport"))
+        )
+        self.frames_dropped = r.add(
+            Counter(
+                "sfmloc_frames_dropped_total",
+                "Stale frames dropped (latest-frame-only intake).",
+                ("map",),
+            )
+        )
+        self.frames_done = r.add(
+            Counter(
+                "sfmloc_frames_processed_total",
+                "Frames processed by the engine, by result status.",
+                ("map", "status"),
+            )
+        )
+        self.frame_errors = r.add(
+            Counter(
+                "sfmloc_frame_errors_total", "Frames rejected, by status code.", ("map", "code")
+            )
+        )
+        self.frames_refused = r.add(
+            Counter(
+                "sfmloc_frames_refused_total",
+                "Frames refused by a per-client limit, by limit.",
+                ("limit",),
+            )
+        )
+        self.latency = r.add(
+            Histogram(
+                "sfmloc_frame_latency_seconds", "Frame receipt to pose publication.", ("map",)
+            )
+        )
+        self.engine_latency = r.add(
+            Histogram("sfmloc_engine_latency_seconds", "Engine time per frame.", ("map",))
+        )
+        self.relocalize = r.add(
+            Counter(
+                "sfmloc_relocalize_total",
+                "Single-image relocalizations, by status.",
+                ("map", "status"),
+            )
+        )
+        self.relocalize_latency = r.add(
+            Histogram("sfmloc_relocalize_latency_seconds", "Relocalize call time.", ("map",))
+        )
+        self.sessions_opened = r.add(
+            Counter("sfmloc_sessions_opened_total", "Sessions created.", ("map", "transport"))
+        )
+        self.sessions_closed = r.add(
+            Counter("sfmloc_sessions_closed_total", "Sessions ended, by reason.", ("map", "reason"))
+        )
+        self.worker_restarts = r.add(
+            Counter("sfmloc_worker_restarts_total", "Workers restarted after dying.")
+        )
+        self.map_loads = r.add(
+            Counter("sfmloc_map_loads_total", "Map loads, by result.", ("result",))
+        )
 
-    def gauges(self, sessions: Callable[[], dict[tuple[str, ...], float]], maps: Callable[[], dict[tuple[str, ...], float]],
-               busy: Callable[[], dict[tuple[str, ...], float]]) -> None:
-        self.registry.add(Gauge("sfmloc_sessions", "Active sessions.", ("map", "transport"), collect=sessions))
-        self.registry.add(Gauge("sfmloc_maps_loaded", "Loaded maps (1 per map, labelled with its build).", ("map", "build_id"), collect=maps))
-        self.registry.add(Gauge("sfmloc_worker_inflight", "Requests queued or running per worker.", ("worker",), collect=busy))
+    def gauges(
+        self,
+        sessions: Callable[[], dict[tuple[str, ...], float]],
+        maps: Callable[[], dict[tuple[str, ...], float]],
+        busy: Callable[[], dict[tuple[str, ...], float]],
+    ) -> None:
+        self.registry.add(
+            Gauge("sfmloc_sessions", "Active sessions.", ("map", "transport"), collect=sessions)
+        )
+        self.registry.add(
+            Gauge(
+                "sfmloc_maps_loaded",
+                "Loaded maps (1 per map, labelled with its build).",
+                ("map", "build_id"),
+                collect=maps,
+            )
+        )
+        self.registry.add(
+            Gauge(
+                "sfmloc_worker_inflight",
+                "Requests queued or running per worker.",
+                ("worker",),
+                collect=busy,
+            )
+        )
 
 
 class MetricsServer:
@@ -184,10 +265,18 @@ class MetricsServer:
             def do_GET(self) -> None:  # noqa: N802 - http.server's naming
                 path = self.path.split("?", 1)[0]
                 if path == "/metrics":
-                    body, code, ctype = reg.render().encode(), 200, "text/plain; version=0.0.4; charset=utf-8"
+                    body, code, ctype = (
+                        reg.render().encode(),
+                        200,
+                        "text/plain; version=0.0.4; charset=utf-8",
+                    )
                 elif path == "/healthz":
                     ok = ready()
-                    body, code, ctype = (b"ok\n" if ok else b"not ready\n"), (200 if ok else 503), "text/plain"
+                    body, code, ctype = (
+                        (b"ok\n" if ok else b"not ready\n"),
+                        (200 if ok else 503),
+                        "text/plain",
+                    )
                 else:
                     body, code, ctype = b"not found: try /metrics\n", 404, "text/plain"
                 self.send_response(code)
@@ -202,7 +291,9 @@ class MetricsServer:
         self.httpd = ThreadingHTTPServer((host, port), Handler)
         self.httpd.daemon_threads = True
         self.port = self.httpd.server_address[1]
-        self._thread = threading.Thread(target=self.httpd.serve_forever, name="sfmloc-metrics", daemon=True)
+        self._thread = threading.Thread(
+            target=self.httpd.serve_forever, name="sfmloc-metrics", daemon=True
+        )
 
     def start(self) -> None:
         self._thread.start()

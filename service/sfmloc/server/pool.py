@@ -49,7 +49,9 @@ class WorkerHandle:
     index: int
     conn: Any
     runner: Any  # _Process (a worker process) or threading.Thread
-    outbox: "queue.SimpleQueue[tuple[bytes, bytes | None] | None]" = field(default_factory=queue.SimpleQueue)
+    outbox: queue.SimpleQueue[tuple[bytes, bytes | None] | None] = field(
+        default_factory=queue.SimpleQueue
+    )
     inflight: int = 0  # frames and relocalizations sent, not yet answered
     busy_ms: float = 0.0  # engine time so far (load reporting)
     alive: bool = True  # its pumps run (False once it died)
@@ -154,22 +156,44 @@ class WorkerPool:
             # claims a huge size would otherwise be decoded before its size is checked).
             env["OPENCV_IO_MAX_IMAGE_PIXELS"] = str(self.max_image_pixels)
             fd = theirs.fileno()
-            cmd = [sys.executable, "-c", _BOOTSTRAP, "--fd", str(fd), "--index", str(i),
-                   "--log-level", str(self.log_level), "--log-format", self.log_format,
-                   "--engine-conf", self.engine_conf_json,
-                   "--nice", str(self.reloc_nice if i >= self.n else 0)]
-            runner: Any = _Process(subprocess.Popen(cmd, pass_fds=(fd,), env=env, stdin=subprocess.DEVNULL,
-                                                    stderr=subprocess.PIPE))
+            cmd = [
+                sys.executable,
+                "-c",
+                _BOOTSTRAP,
+                "--fd",
+                str(fd),
+                "--index",
+                str(i),
+                "--log-level",
+                str(self.log_level),
+                "--log-format",
+                self.log_format,
+                "--engine-conf",
+                self.engine_conf_json,
+                "--nice",
+                str(self.reloc_nice if i >= self.n else 0),
+            ]
+            runner: Any = _Process(
+                subprocess.Popen(
+                    cmd, pass_fds=(fd,), env=env, stdin=subprocess.DEVNULL, stderr=subprocess.PIPE
+                )
+            )
             theirs.close()  # the child holds its end; ours must not keep it open (EOF detection)
         else:
             conn = Connection(theirs.detach())
             args = (conn, i, self.engine_conf_json, self.log_level, self.log_format, False)
-            runner = threading.Thread(target=self.thread_target, args=args, name=f"sfmloc-worker-{i}", daemon=True)
+            runner = threading.Thread(
+                target=self.thread_target, args=args, name=f"sfmloc-worker-{i}", daemon=True
+            )
             runner.start()
         h = WorkerHandle(i, Connection(ours.detach()), runner)
         h.threads = [
-            threading.Thread(target=self._sender, args=(h,), name=f"sfmloc-worker-{i}-send", daemon=True),
-            threading.Thread(target=self._reader, args=(h,), name=f"sfmloc-worker-{i}-recv", daemon=True),
+            threading.Thread(
+                target=self._sender, args=(h,), name=f"sfmloc-worker-{i}-send", daemon=True
+            ),
+            threading.Thread(
+                target=self._reader, args=(h,), name=f"sfmloc-worker-{i}-recv", daemon=True
+            ),
         ]
         for t in h.threads:
             t.start()
@@ -264,8 +288,16 @@ class WorkerPool:
         code = getattr(h.runner, "exitcode", None)
         pid = h.pid or getattr(getattr(h.runner, "popen", None), "pid", 0)
         started = h.ready.is_set()
-        event(log, logging.ERROR, "worker_lost", worker=h.index, pid=pid, exitcode=code,
-              during_start=not started, stderr=getattr(h.runner, "last_line", ""))
+        event(
+            log,
+            logging.ERROR,
+            "worker_lost",
+            worker=h.index,
+            pid=pid,
+            exitcode=code,
+            during_start=not started,
+            stderr=getattr(h.runner, "last_line", ""),
+        )
         with self._lock:
             h.alive = False
             self._changed.notify_all()
@@ -289,7 +321,14 @@ class WorkerPool:
                 f"worker {h.index} exited {fails} times before it was ready (exit code {code})"
                 + (f": {h.runner.last_line}" if getattr(h.runner, "last_line", "") else "")
             )
-            event(log, logging.ERROR, "worker_start_failed", worker=h.index, attempts=fails, error=str(self.fatal))
+            event(
+                log,
+                logging.ERROR,
+                "worker_start_failed",
+                worker=h.index,
+                attempts=fails,
+                error=str(self.fatal),
+            )
             return
         if fails:
             time.sleep(min(5.0, 0.25 * 2**fails))  # back-off before the next attempt
@@ -334,7 +373,14 @@ class WorkerPool:
         for name, gen in stale:
             self._send(new, P.Drop(name, gen))
         self._pump_reloc()  # relocalizations queued while the lane's worker was restarting
-        event(log, logging.INFO, "worker_restarted", worker=h.index, pid=new.pid, maps=len(loaded - stale))
+        event(
+            log,
+            logging.INFO,
+            "worker_restarted",
+            worker=h.index,
+            pid=new.pid,
+            maps=len(loaded - stale),
+        )
         self.on_lost(h.index)
 
     # ------------------------------------------------------------------ requests
@@ -356,8 +402,9 @@ class WorkerPool:
         self._send(h, msg)
         return fut
 
-    def load_map(self, name: str, gen: int, path: str, build_id: str,
-                 timeout: float = 300.0) -> P.MapSummary:
+    def load_map(
+        self, name: str, gen: int, path: str, build_id: str, timeout: float = 300.0
+    ) -> P.MapSummary:
         """Load a bundle on every worker; returns the first worker's summary. All or nothing."""
         with self._lock:
             self._maps[(name, gen)] = (path, build_id)  # a worker restarting meanwhile loads it too
@@ -375,8 +422,9 @@ class WorkerPool:
         summaries = [r.summary for r in results if r.summary is not None]
         if len(summaries) != len(results):
             raise P.ProtocolError("a worker answered a load with neither a summary nor an error")
-        return dataclasses.replace(summaries[0],
-                                   index_in_place=all(s.index_in_place for s in summaries))
+        return dataclasses.replace(
+            summaries[0], index_in_place=all(s.index_in_place for s in summaries)
+        )
 
     def drop_map(self, name: str, gen: int) -> None:
         with self._lock:
@@ -420,14 +468,16 @@ class WorkerPool:
             pending = self._reloc_pending
             if pending >= self.max_pending_relocalize:
                 raise OverloadError(
-                    f"{pending} relocalizations are already queued (limit {self.max_pending_relocalize}); retry later"
+                    f"{pending} relocalizations are already queued (limit "
+                    f"{self.max_pending_relocalize}); retry later"
                 )
             if self.reloc_workers:
                 fut: Future = Future()
                 self._reloc_pending += 1
                 if len(self._reloc_queue) > 2 * self.max_pending_relocalize:  # cancelled ones
                     self._reloc_queue = collections.deque(
-                        e for e in self._reloc_queue if not e[1].done())
+                        e for e in self._reloc_queue if not e[1].done()
+                    )
                 self._reloc_queue.append((msg, fut))
                 self._changed.notify_all()
         if self.reloc_workers:
@@ -435,7 +485,7 @@ class WorkerPool:
             self._pump_reloc()
             return fut
         with self._lock:
-            lane = self.workers[self.n:] or self.workers
+            lane = self.workers[self.n :] or self.workers
             lane = [w for w in lane if w.alive and w.serving] or lane  # a dead one answers at once
             h = min(lane, key=lambda w: (w.inflight, w.index))
             h.inflight += 1
@@ -455,8 +505,9 @@ class WorkerPool:
         expired: list[Future] = []
         with self._lock:
             while self._reloc_queue:
-                idle = [w for w in self.workers[self.n:]
-                        if w.alive and w.serving and w.inflight == 0]
+                idle = [
+                    w for w in self.workers[self.n :] if w.alive and w.serving and w.inflight == 0
+                ]
                 if not idle:
                     break
                 msg, fut = self._reloc_queue.popleft()
@@ -471,8 +522,12 @@ class WorkerPool:
                 self._futures[msg.req] = (h.index, fut)
                 self._send(h, msg)
         for f in expired:
-            _settle(f, exc=DeadlineExceededError(
-                "the caller's deadline passed while the relocalization was queued"))
+            _settle(
+                f,
+                exc=DeadlineExceededError(
+                    "the caller's deadline passed while the relocalization was queued"
+                ),
+            )
 
     def _fail_all(self, exc: Exception) -> None:
         with self._lock:
@@ -520,7 +575,9 @@ class _Process:
         self.popen = popen
         self.last_line = ""
         if popen.stderr is not None:
-            threading.Thread(target=self._pump, name=f"sfmloc-worker-stderr-{popen.pid}", daemon=True).start()
+            threading.Thread(
+                target=self._pump, name=f"sfmloc-worker-stderr-{popen.pid}", daemon=True
+            ).start()
 
     def _pump(self) -> None:
         assert self.popen.stderr is not None

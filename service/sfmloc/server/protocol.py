@@ -52,8 +52,10 @@ def transform_of(T: Any) -> Transform | None:
     if T is None:
         return None
     q, t = T.quat_xyzw, T.translation
-    return Transform((float(q[0]), float(q[1]), float(q[2]), float(q[3])),
-                     (float(t[0]), float(t[1]), float(t[2])))
+    return Transform(
+        (float(q[0]), float(q[1]), float(q[2]), float(q[3])),
+        (float(t[0]), float(t[1]), float(t[2])),
+    )
 
 
 # ============================================================================ parts
@@ -66,7 +68,7 @@ class WorkerError(Part):
     message: str
 
     @classmethod
-    def of(cls, exc: BaseException) -> "WorkerError":
+    def of(cls, exc: BaseException) -> WorkerError:
         d = error_to_wire(exc)
         return cls(d["type"], d["message"])
 
@@ -105,7 +107,7 @@ class PoseResult(Part):
     covariance: tuple[float, ...] | None  # 36 values, row-major 6x6; None when LOST
 
     @classmethod
-    def of(cls, r: Any) -> "PoseResult":
+    def of(cls, r: Any) -> PoseResult:
         """From an engine ``FrameResult``."""
         return cls(
             status=r.status.value,
@@ -113,10 +115,16 @@ class PoseResult(Part):
             world_from_cam=transform_of(r.world_from_cam),
             filtered_cam_from_world=transform_of(r.filtered_cam_from_world),
             filtered_world_from_cam=transform_of(r.filtered_world_from_cam),
-            inliers=int(r.inliers), detected=int(r.detected), tracked=int(r.tracked),
-            tracked_3d=int(r.tracked_3d), matching=r.matching.value, engine_ms=float(r.latency_ms),
+            inliers=int(r.inliers),
+            detected=int(r.detected),
+            tracked=int(r.tracked),
+            tracked_3d=int(r.tracked_3d),
+            matching=r.matching.value,
+            engine_ms=float(r.latency_ms),
             message=r.message,
-            covariance=None if r.covariance is None else tuple(float(v) for v in r.covariance.ravel()),
+            covariance=None
+            if r.covariance is None
+            else tuple(float(v) for v in r.covariance.ravel()),
         )
 
     def to_wire(self) -> list[Any]:
@@ -126,7 +134,7 @@ class PoseResult(Part):
         return v
 
     @classmethod
-    def from_wire(cls, values: Any) -> "PoseResult":
+    def from_wire(cls, values: Any) -> PoseResult:
         p = super().from_wire(values)
         for name in _POSE_TFS:
             setattr(p, name, _tf_from_wire(getattr(p, name)))
@@ -139,7 +147,12 @@ class PoseResult(Part):
         return {"detected": self.detected, "tracked": self.tracked, "tracked_3d": self.tracked_3d}
 
 
-_POSE_TFS = ("cam_from_world", "world_from_cam", "filtered_cam_from_world", "filtered_world_from_cam")
+_POSE_TFS = (
+    "cam_from_world",
+    "world_from_cam",
+    "filtered_cam_from_world",
+    "filtered_world_from_cam",
+)
 
 
 # ============================================================================ server -> worker
@@ -176,7 +189,7 @@ class LocalizeFrame(Message):
     data: bytes = payload()
 
     @classmethod
-    def from_wire(cls, values: Any) -> "LocalizeFrame":
+    def from_wire(cls, values: Any) -> LocalizeFrame:
         m = super().from_wire(values)
         m.camera = _camera_from_wire(m.camera)
         return m
@@ -207,7 +220,7 @@ class Relocalize(Message):
         return v
 
     @classmethod
-    def from_wire(cls, values: Any) -> "Relocalize":
+    def from_wire(cls, values: Any) -> Relocalize:
         m = super().from_wire(values)
         m.camera = _camera_from_wire(m.camera)
         m.prior = _tf_from_wire(m.prior)
@@ -248,7 +261,7 @@ class Loaded(Message):
     ms: float
 
     @classmethod
-    def from_wire(cls, values: Any) -> "Loaded":
+    def from_wire(cls, values: Any) -> Loaded:
         m = super().from_wire(values)
         m.summary = None if m.summary is None else MapSummary.from_wire(m.summary)
         m.error = None if m.error is None else WorkerError.from_wire(m.error)
@@ -271,7 +284,7 @@ class Result(Message):
     worker_ms: float
 
     @classmethod
-    def from_wire(cls, values: Any) -> "Result":
+    def from_wire(cls, values: Any) -> Result:
         m = super().from_wire(values)
         m.pose = None if m.pose is None else PoseResult.from_wire(m.pose)
         m.error = None if m.error is None else WorkerError.from_wire(m.error)
@@ -289,7 +302,7 @@ class RelocResult(Message):
     worker_ms: float
 
     @classmethod
-    def from_wire(cls, values: Any) -> "RelocResult":
+    def from_wire(cls, values: Any) -> RelocResult:
         m = super().from_wire(values)
         m.pose = None if m.pose is None else PoseResult.from_wire(m.pose)
         m.error = None if m.error is None else WorkerError.from_wire(m.error)
@@ -301,14 +314,29 @@ TO_SERVER = Protocol(Ready, Loaded, Result, RelocResult)
 
 
 def pose_message(
-    pose: PoseResult | None, error: WorkerError | BaseException | None, *, seq: int | None,
-    stamp_ns: int, map_name: str, client_id: str = "", build_id: str = "", server_id: str = "",
-    latency_ms: float = 0.0, dropped: int = 0,
+    pose: PoseResult | None,
+    error: WorkerError | BaseException | None,
+    *,
+    seq: int | None,
+    stamp_ns: int,
+    map_name: str,
+    client_id: str = "",
+    build_id: str = "",
+    server_id: str = "",
+    latency_ms: float = 0.0,
+    dropped: int = 0,
 ) -> PoseMessage:
     """A worker's pose (or error) for one frame or image as the ``PoseMessage`` clients get."""
     p = PoseMessage(
-        seq=seq, stamp_ns=stamp_ns, status=Status.LOST.value, latency_ms=latency_ms, dropped=dropped,
-        map=map_name, client_id=client_id, build_id=build_id, server_id=server_id,
+        seq=seq,
+        stamp_ns=stamp_ns,
+        status=Status.LOST.value,
+        latency_ms=latency_ms,
+        dropped=dropped,
+        map=map_name,
+        client_id=client_id,
+        build_id=build_id,
+        server_id=server_id,
     )
     if pose is None:
         exc = error.exception() if isinstance(error, WorkerError) else error

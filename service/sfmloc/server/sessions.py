@@ -18,9 +18,9 @@ from __future__ import annotations
 import builtins
 import itertools
 import logging
-from collections import deque
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -35,9 +35,9 @@ from ..errors import OverloadError, PermissionDeniedError
 from .logfmt import event
 from .maps import MapRegistry
 from .metrics import ServerMetrics
+from .pool import WorkerPool
 from .protocol import LocalizeFrame, Result, camera_tuple, pose_message
 from .status import error_info
-from .pool import WorkerPool
 
 log = logging.getLogger(__name__)
 
@@ -173,22 +173,41 @@ class SessionManager:
         self._dispatch(s, frame, entry.generation)
         return s
 
-    def _open(self, key: tuple[str, str, str], map_name: str, client_id: str, transport: str,
-              make_sink: Callable[[], Sink], source: str = "") -> Session:
+    def _open(
+        self,
+        key: tuple[str, str, str],
+        map_name: str,
+        client_id: str,
+        transport: str,
+        make_sink: Callable[[], Sink],
+        source: str = "",
+    ) -> Session:
         if len(self._by_key) >= self.max_sessions:
-            raise OverloadError(f"the server is at its limit of {self.max_sessions} sessions; retry later")
+            raise OverloadError(
+                f"the server is at its limit of {self.max_sessions} sessions; retry later"
+            )
         per_worker = [0] * self.pool.n
         for other in self._by_sid.values():
             per_worker[other.worker] += 1
         inflight = self.pool.inflight()
         live = [i for i in range(self.pool.n) if self.pool.is_alive(i)] or list(range(self.pool.n))
         worker = min(live, key=lambda i: (per_worker[i], inflight[i], i))
-        s = Session(next(self._sid), map_name, client_id, transport, key, worker, make_sink(), source=source)
+        s = Session(
+            next(self._sid), map_name, client_id, transport, key, worker, make_sink(), source=source
+        )
         self._by_key[key] = s
         self._by_sid[s.sid] = s
         self.metrics.sessions_opened.inc(map_name, transport)
-        event(log, logging.INFO, "session_open", map=map_name, client=client_id, transport=transport,
-              sid=s.sid, worker=worker)
+        event(
+            log,
+            logging.INFO,
+            "session_open",
+            map=map_name,
+            client=client_id,
+            transport=transport,
+            sid=s.sid,
+            worker=worker,
+        )
         return s
 
     def _dispatch(self, s: Session, frame: Frame, gen: int) -> None:
@@ -204,12 +223,30 @@ class SessionManager:
             if target is None:
                 from ..errors import UnavailableError
 
-                self._send(s, self.error_pose(s.map, s.client_id, frame.seq, frame.stamp_ns, UnavailableError(
-                    "no engine worker is running (one is restarting); retry")))
+                self._send(
+                    s,
+                    self.error_pose(
+                        s.map,
+                        s.client_id,
+                        frame.seq,
+                        frame.stamp_ns,
+                        UnavailableError("no engine worker is running (one is restarting); retry"),
+                    ),
+                )
                 return
-        self.pool.submit_frame(s.worker, LocalizeFrame(
-            s.sid, s.map, gen, frame.seq, frame.stamp_ns, camera_tuple(frame.camera), frame.encoding,
-            bytes(frame.data)))
+        self.pool.submit_frame(
+            s.worker,
+            LocalizeFrame(
+                s.sid,
+                s.map,
+                gen,
+                frame.seq,
+                frame.stamp_ns,
+                camera_tuple(frame.camera),
+                frame.encoding,
+                bytes(frame.data),
+            ),
+        )
 
     # ------------------------------------------------------------------ results
     def on_result(self, msg: Result) -> None:
@@ -267,27 +304,63 @@ class SessionManager:
             s.busy = False
             s.inflight_t_recv.pop(p.frame.seq, None)
             self._idle.notify_all()
-        self._send(s, self.error_pose(s.map, s.client_id, p.frame.seq, p.frame.stamp_ns,
-                                      MapNotFoundError(f"map {s.map!r} was unloaded"), dropped=s.dropped))
+        self._send(
+            s,
+            self.error_pose(
+                s.map,
+                s.client_id,
+                p.frame.seq,
+                p.frame.stamp_ns,
+                MapNotFoundError(f"map {s.map!r} was unloaded"),
+                dropped=s.dropped,
+            ),
+        )
 
     def _send(self, s: Session, pose: PoseMessage) -> None:
         try:
             s.sink.send(pose)
         except Exception as exc:  # noqa: BLE001 - a broken sink ends that session only
-            event(log, logging.WARNING, "sink_failed", map=s.map, client=s.client_id, error=str(exc))
+            event(
+                log, logging.WARNING, "sink_failed", map=s.map, client=s.client_id, error=str(exc)
+            )
 
     def _pose(self, s: Session, msg: Result, latency_ms: float, dropped: int) -> PoseMessage:
         # The build the frame ran on, as the worker says: a frame in flight while its map was
         # replaced keeps the old build id (the registry's current entry would be the new one).
-        return pose_message(msg.pose, msg.error, seq=msg.seq, stamp_ns=msg.stamp_ns, map_name=s.map,
-                            client_id=s.client_id, build_id=msg.build_id, server_id=self.server_id,
-                            latency_ms=latency_ms, dropped=dropped)
+        return pose_message(
+            msg.pose,
+            msg.error,
+            seq=msg.seq,
+            stamp_ns=msg.stamp_ns,
+            map_name=s.map,
+            client_id=s.client_id,
+            build_id=msg.build_id,
+            server_id=self.server_id,
+            latency_ms=latency_ms,
+            dropped=dropped,
+        )
 
-    def error_pose(self, map_name: str, client_id: str, seq: int | None, stamp_ns: int, exc: BaseException,
-                   dropped: int = 0) -> PoseMessage:
+    def error_pose(
+        self,
+        map_name: str,
+        client_id: str,
+        seq: int | None,
+        stamp_ns: int,
+        exc: BaseException,
+        dropped: int = 0,
+    ) -> PoseMessage:
         info: ErrorInfo = error_info(exc)
-        return PoseMessage(seq=seq, stamp_ns=stamp_ns, status=Status.LOST.value, map=map_name, client_id=client_id,
-                           server_id=self.server_id, dropped=dropped, message=info.message, error=info)
+        return PoseMessage(
+            seq=seq,
+            stamp_ns=stamp_ns,
+            status=Status.LOST.value,
+            map=map_name,
+            client_id=client_id,
+            server_id=self.server_id,
+            dropped=dropped,
+            message=info.message,
+            error=info,
+        )
 
     def count_error(self, map_name: str, exc: BaseException) -> None:
         # Names of maps we do not host come from clients: one label for all of them, so that
@@ -319,9 +392,22 @@ class SessionManager:
         except Exception:  # noqa: BLE001
             pass
         self.metrics.sessions_closed.inc(s.map, reason)
-        event(log, logging.INFO, "session_close", map=s.map, client=s.client_id, transport=s.transport,
-              sid=s.sid, reason=reason, frames=s.frames, processed=s.processed, localized=s.localized,
-              dropped=s.dropped, errors=s.errors, mean_latency_ms=round(s.mean_latency_ms, 2))
+        event(
+            log,
+            logging.INFO,
+            "session_close",
+            map=s.map,
+            client=s.client_id,
+            transport=s.transport,
+            sid=s.sid,
+            reason=reason,
+            frames=s.frames,
+            processed=s.processed,
+            localized=s.localized,
+            dropped=s.dropped,
+            errors=s.errors,
+            mean_latency_ms=round(s.mean_latency_ms, 2),
+        )
 
     def close_map(self, map_name: str, reason: str = "map_unloaded") -> int:
         """End the sessions of an unloaded map; the frames they had in a worker are answered
@@ -332,12 +418,18 @@ class SessionManager:
         with self._lock:
             victims = [s for s in self._by_sid.values() if s.map == map_name]
         for s in victims:
-            self.close(s, reason, answer_inflight=MapNotFoundError(f"map {map_name!r} was unloaded"))
+            self.close(
+                s, reason, answer_inflight=MapNotFoundError(f"map {map_name!r} was unloaded")
+            )
         return len(victims)
 
     def reset(self, client_id: str, map_name: str = "") -> bool:
         with self._lock:
-            hits = [s for s in self._by_sid.values() if s.client_id == client_id and (not map_name or s.map == map_name)]
+            hits = [
+                s
+                for s in self._by_sid.values()
+                if s.client_id == client_id and (not map_name or s.map == map_name)
+            ]
         for s in hits:
             self.pool.reset_session(s.worker, s.sid)
             event(log, logging.INFO, "session_reset", map=s.map, client=s.client_id, sid=s.sid)
@@ -345,16 +437,21 @@ class SessionManager:
 
     def list(self, map_name: str = "") -> list[Session]:
         with self._lock:
-            return sorted((s for s in self._by_sid.values() if not map_name or s.map == map_name),
-                          key=lambda s: (s.map, s.client_id, s.sid))
+            return sorted(
+                (s for s in self._by_sid.values() if not map_name or s.map == map_name),
+                key=lambda s: (s.map, s.client_id, s.sid),
+            )
 
     def expire_idle(self, now: float | None = None) -> int:
         """End Zenoh sessions without frames for ``idle_timeout_s`` (gRPC ones end with their
         stream)."""
         now = time.monotonic() if now is None else now
         with self._lock:
-            idle = [s for s in self._by_sid.values()
-                    if s.transport == "zenoh" and not s.busy and now - s.last_seen > self.idle_timeout_s]
+            idle = [
+                s
+                for s in self._by_sid.values()
+                if s.transport == "zenoh" and not s.busy and now - s.last_seen > self.idle_timeout_s
+            ]
         for s in idle:
             self.close(s, "idle")
         return len(idle)
@@ -393,15 +490,33 @@ class SessionManager:
                     resume.append((s, nxt))
             self._idle.notify_all()
         for s, seq in lost:
-            self._send(s, self.error_pose(s.map, s.client_id, seq, 0, UnavailableError(
-                f"the worker processing this frame died; the session goes on (worker {s.worker}) and relocalizes")))
+            self._send(
+                s,
+                self.error_pose(
+                    s.map,
+                    s.client_id,
+                    seq,
+                    0,
+                    UnavailableError(
+                        "the worker processing this frame died; the session goes on (worker "
+                        f"{s.worker}) and relocalizes"
+                    ),
+                ),
+            )
         for s, nxt in resume:
             entry = self.registry.find(s.map)
             if entry is None:
                 self._reject_pending(s, nxt)
             else:
                 self._dispatch(s, nxt.frame, entry.generation)
-        event(log, logging.WARNING, "worker_sessions_moved", worker=worker, sessions=len(hit), frames_answered=len(lost))
+        event(
+            log,
+            logging.WARNING,
+            "worker_sessions_moved",
+            worker=worker,
+            sessions=len(hit),
+            frames_answered=len(lost),
+        )
 
     def on_worker_lost(self, worker: int) -> None:
         """A worker was restarted: its sessions lost their state and in-flight frames."""
@@ -417,8 +532,16 @@ class SessionManager:
                 s.pending.clear()
             self._idle.notify_all()
         for s, seq in lost:
-            self._send(s, self.error_pose(s.map, s.client_id, seq, 0,
-                                          UnavailableError("the worker processing this frame died; it was restarted")))
+            self._send(
+                s,
+                self.error_pose(
+                    s.map,
+                    s.client_id,
+                    seq,
+                    0,
+                    UnavailableError("the worker processing this frame died; it was restarted"),
+                ),
+            )
 
     # builtins.list: inside this class `list` is the method below
     def wait_idle(self, timeout: float, sessions: builtins.list[Session] | None = None) -> bool:
@@ -453,6 +576,7 @@ def validate_camera(cam: Any, max_pixels: int) -> Camera:
 
     if cam.width * cam.height > max_pixels:
         raise MessageTooLargeError(
-            f"a {cam.width}x{cam.height} camera exceeds this server's limit of {max_pixels} pixels per image"
+            f"a {cam.width}x{cam.height} camera exceeds this server's limit of {max_pixels} pixels "
+            "per image"
         )
     return Camera(cam.model, cam.width, cam.height, np.asarray(cam.params, dtype=np.float64))

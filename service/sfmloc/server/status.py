@@ -38,4 +38,3 @@ def error_to_wire(exc: BaseException) -> dict[str, str]:
 
 def error_from_wire(d: dict[str, str]) -> Exception:
     return error_class(str(d.get("type")))(str(d.get("message", "")))
-

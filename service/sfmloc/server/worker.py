@@ -28,8 +28,15 @@ from . import protocol as P
 log = logging.getLogger(__name__)
 
 
-def worker_main(conn: Any, index: int, engine_conf_json: str, log_level: int, log_format: str,
-                is_process: bool, nice: int = 0) -> None:
+def worker_main(
+    conn: Any,
+    index: int,
+    engine_conf_json: str,
+    log_level: int,
+    log_format: str,
+    is_process: bool,
+    nice: int = 0,
+) -> None:
     """Entry point of a worker (a process, or a thread for measurements). ``nice`` > 0 lowers
     the process's CPU priority (the relocalization lane: streams' frames win the CPU)."""
     if is_process and nice > 0:
@@ -49,6 +56,7 @@ def worker_main(conn: Any, index: int, engine_conf_json: str, log_level: int, lo
         setup_logging(log_format, log_level)
     pin_threads_runtime()  # after the thread environment is set
     from .. import engine  # noqa: F401 - imported now (scipy, faiss...), not on the first frame
+
     try:
         _Worker(conn, index, engine_conf_json).run()
     finally:
@@ -82,8 +90,12 @@ class _Worker:
     def run(self) -> None:
         self.send(P.Ready(self.index, os.getpid()))
         handlers: dict[type, Callable[[Any], None]] = {
-            P.Load: self.on_load, P.Drop: self.on_drop, P.LocalizeFrame: self.on_frame,
-            P.Relocalize: self.on_relocalize, P.Reset: self.on_reset, P.Close: self.on_close,
+            P.Load: self.on_load,
+            P.Drop: self.on_drop,
+            P.LocalizeFrame: self.on_frame,
+            P.Relocalize: self.on_relocalize,
+            P.Reset: self.on_reset,
+            P.Close: self.on_close,
         }
         while True:
             try:
@@ -117,13 +129,19 @@ class _Worker:
             s = b.summary()
             # The index reads the bundle's mapped file in place: every worker shares one copy.
             summary = P.MapSummary(
-                points=int(s["points"]), descriptors=int(s["descriptors"]), images=int(s["images"]),
-                clusters=int(s["clusters"]), memory_mb=float(s["memory_mb"]),
-                build_id=str(s["build_id"]), index_in_place=b.index.shared_buffer is not None,
+                points=int(s["points"]),
+                descriptors=int(s["descriptors"]),
+                images=int(s["images"]),
+                clusters=int(s["clusters"]),
+                memory_mb=float(s["memory_mb"]),
+                build_id=str(s["build_id"]),
+                index_in_place=b.index.shared_buffer is not None,
             )
             self.send(P.Loaded(m.req, summary, None, (time.perf_counter() - t0) * 1e3))
         except Exception as exc:  # noqa: BLE001
-            self.send(P.Loaded(m.req, None, P.WorkerError.of(exc), (time.perf_counter() - t0) * 1e3))
+            self.send(
+                P.Loaded(m.req, None, P.WorkerError.of(exc), (time.perf_counter() - t0) * 1e3)
+            )
 
     def on_drop(self, m: P.Drop) -> None:
         key = (m.name, m.gen)
@@ -181,8 +199,19 @@ class _Worker:
                 log.exception("worker %d: frame %s of session %d failed", self.index, m.seq, m.sid)
                 self.sessions.pop(m.sid, None)  # do not keep state an exception may have corrupted
             error = P.WorkerError.of(exc)
-        self.send(P.Result(m.sid, m.seq, m.stamp_ns, m.gen, build_id, pose, error, decode_ms,
-                           (time.perf_counter() - t0) * 1e3))
+        self.send(
+            P.Result(
+                m.sid,
+                m.seq,
+                m.stamp_ns,
+                m.gen,
+                build_id,
+                pose,
+                error,
+                decode_ms,
+                (time.perf_counter() - t0) * 1e3,
+            )
+        )
 
     def on_reset(self, m: P.Reset) -> None:
         st = self.sessions.get(m.sid)
@@ -195,12 +224,12 @@ class _Worker:
     # ------------------------------------------------------------------ single images
     def on_relocalize(self, m: P.Relocalize) -> None:
         import numpy as np
+
         from sfmloc_client.images import decode_image
 
         from ..engine import relocalize
-        from ..transforms import Rigid3d
-
         from ..errors import DeadlineExceededError
+        from ..transforms import Rigid3d
 
         t0 = time.perf_counter()
         pose: P.PoseResult | None = None
@@ -217,8 +246,9 @@ class _Worker:
             prior = None
             if m.prior is not None:
                 prior = Rigid3d.from_quat_xyzw(np.asarray(m.prior.quat_xyzw), np.asarray(m.prior.t))
-            result = relocalize(img, cam, bundle, self.conf, prior=prior,
-                                deadline=min(ends) if ends else None)
+            result = relocalize(
+                img, cam, bundle, self.conf, prior=prior, deadline=min(ends) if ends else None
+            )
             pose = P.PoseResult.of(result)
         except Exception as exc:  # noqa: BLE001
             if not _expected(exc):
@@ -256,7 +286,9 @@ def _warm_up(bundle: Any, conf: Any) -> None:
 def _main() -> None:
     import argparse
 
-    ap = argparse.ArgumentParser(description="sfmloc engine worker (started by the server, not by hand)")
+    ap = argparse.ArgumentParser(
+        description="sfmloc engine worker (started by the server, not by hand)"
+    )
     ap.add_argument("--fd", type=int, required=True)
     ap.add_argument("--index", type=int, required=True)
     ap.add_argument("--log-level", type=int, default=logging.INFO)

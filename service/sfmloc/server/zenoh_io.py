@@ -21,6 +21,7 @@ from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import zenoh
+
 from sfmloc_client.wire import (
     FRAME_KEYEXPR,
     MAPS_KEYEXPR,
@@ -42,9 +43,9 @@ from sfmloc_client.zconfig import make_zenoh_config
 
 from ..errors import ConfigError, MapNotFoundError, OverloadError, UnavailableError, WireError
 from .config import ServerConfig
+from .facade import Localization
 from .limits import LogLimiter, RateLimiter
 from .logfmt import event
-from .facade import Localization
 
 log = logging.getLogger(__name__)
 
@@ -97,20 +98,36 @@ class ZenohFrontend:
     def open(self) -> None:
         zc = self.conf.zenoh
         try:
-            zconf = make_zenoh_config(zc.mode, zc.listen, zc.connect, multicast=zc.multicast,
-                                      config_file=zc.config_file, shared_memory=zc.shared_memory)
+            zconf = make_zenoh_config(
+                zc.mode,
+                zc.listen,
+                zc.connect,
+                multicast=zc.multicast,
+                config_file=zc.config_file,
+                shared_memory=zc.shared_memory,
+            )
         except Exception as exc:  # noqa: BLE001 - zenoh raises ZError/ValueError on bad settings
             raise ConfigError(f"invalid Zenoh configuration: {exc}") from None
         try:
             self.z = zenoh.open(zconf)
         except Exception as exc:  # noqa: BLE001 - e.g. the listen port is taken
             raise UnavailableError(f"cannot open the Zenoh session: {exc}") from None
-        self._others.append(self.z.declare_queryable(server_info_key(self.server_id), self._on_info_query))
+        self._others.append(
+            self.z.declare_queryable(server_info_key(self.server_id), self._on_info_query)
+        )
         if self.conf.follow_builder and self.on_announcement is not None:
             self._others.append(self.z.declare_subscriber(MAPS_KEYEXPR, self._on_announcement))
-        event(log, logging.INFO, "zenoh_open", zid=str(self.z.zid()), mode=zc.mode, listen=zc.listen,
-              connect=zc.connect, multicast=zc.multicast,
-              shared_memory=json.loads(zconf.get_json("transport/shared_memory/enabled")))
+        event(
+            log,
+            logging.INFO,
+            "zenoh_open",
+            zid=str(self.z.zid()),
+            mode=zc.mode,
+            listen=zc.listen,
+            connect=zc.connect,
+            multicast=zc.multicast,
+            shared_memory=json.loads(zconf.get_json("transport/shared_memory/enabled")),
+        )
 
     def start_intake(self) -> None:
         """Accept frames and become discoverable (once the maps are loaded)."""
@@ -157,21 +174,33 @@ class ZenohFrontend:
             if not self._rate.allow(f"{map_name}/{client_id}"):
                 self.loc.count_refused("rate")
                 raise OverloadError(
-                    f"client {client_id!r} sends more than {self.conf.max_client_fps:g} frames/s: frame refused"
+                    f"client {client_id!r} sends more than {self.conf.max_client_fps:g} frames/s: "
+                    "frame refused"
                 )
             frame = decode_frame(payload, self.conf.max_frame_bytes)
             self.loc.submit_frame(
-                map_name, client_id, "zenoh", frame, t_recv,
+                map_name,
+                client_id,
+                "zenoh",
+                frame,
+                t_recv,
                 make_sink=lambda: ZenohPoseSink(z, pose_key(map_name, client_id)),
             )
         except MapNotFoundError as exc:
-            self._reply_error(map_name, client_id, payload, exc,
-                              publish=self.conf.zenoh.reply_unknown_maps)
+            self._reply_error(
+                map_name, client_id, payload, exc, publish=self.conf.zenoh.reply_unknown_maps
+            )
         except Exception as exc:  # noqa: BLE001 - every failure is answered, none is fatal
             self._reply_error(map_name, client_id, payload, exc)
 
-    def _reply_error(self, map_name: str, client_id: str, payload: bytes, exc: BaseException,
-                     publish: bool = True) -> None:
+    def _reply_error(
+        self,
+        map_name: str,
+        client_id: str,
+        payload: bytes,
+        exc: BaseException,
+        publish: bool = True,
+    ) -> None:
         """Count the refused frame; log it (rate-limited) and publish its error pose."""
         seq = peek_seq(payload) if len(payload) <= self.conf.max_frame_bytes else None
         pose = self.loc.refuse_frame(map_name, client_id, seq, 0, exc)
@@ -179,8 +208,16 @@ class ZenohFrontend:
             return
         code = pose.error.code if pose.error else ""
         if self.rejections.allow(client_id, code):
-            event(log, logging.INFO, "frame_rejected", map=map_name, client=client_id, seq=seq,
-                  code=code, error=pose.message)
+            event(
+                log,
+                logging.INFO,
+                "frame_rejected",
+                map=map_name,
+                client=client_id,
+                seq=seq,
+                code=code,
+                error=pose.message,
+            )
         if self.z is None:
             return
         try:
@@ -201,7 +238,13 @@ class ZenohFrontend:
         try:
             ann = decode_map_announcement(sample.payload.to_bytes())
         except WireError as exc:
-            event(log, logging.WARNING, "announcement_invalid", key=str(sample.key_expr), error=str(exc))
+            event(
+                log,
+                logging.WARNING,
+                "announcement_invalid",
+                key=str(sample.key_expr),
+                error=str(exc),
+            )
             return
         assert self.on_announcement is not None
         self._loader.submit(self.on_announcement, ann)

@@ -6,7 +6,7 @@
 
 from __future__ import annotations
 
-from typing import Literal, Optional
+from typing import Literal
 
 from pydantic import Field
 
@@ -80,7 +80,7 @@ class SynthConf(StrictModel):
     width: int = Field(640, ge=16)
     height: int = Field(480, ge=16)
     # Focal length in pixels; None: 525 scaled with the width (525 at 640 px).
-    focal: Optional[float] = Field(None, gt=0.0)
+    focal: float | None = Field(None, gt=0.0)
     mapping_views: int = Field(120, ge=2)
     scene: SceneConf = SceneConf()
     render: RenderConf = RenderConf()

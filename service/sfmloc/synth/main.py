@@ -52,7 +52,9 @@ log = logging.getLogger(__name__)
 
 # Noise streams per image kind, so mapping image i and video frame i get different noise.
 _NOISE_MAPPING, _NOISE_VIDEO = 1, 2
-WORLD_FRAME = "metres; z up, floor z = 0, room [0, L] x [0, W] x [0, H]; cameras x right, y down, z forward"
+WORLD_FRAME = (
+    "metres; z up, floor z = 0, room [0, L] x [0, W] x [0, H]; cameras x right, y down, z forward"
+)
 
 
 @dataclass
@@ -76,10 +78,12 @@ class SynthResult:
         lines = [
             f"wrote {p}",
             f"  images/      {self.n_mapping} mapping views",
-            f"  sparse/      COLMAP text model: {self.n_points3D} points3D, {self.n_observations} observations "
+            f"  sparse/      COLMAP text model: {self.n_points3D} points3D, {self.n_observations} "
+            "observations "
             f"({self.n_observations / max(1, self.n_mapping):.0f} per image)",
             f"  video/       {self.n_frames} frames",
-            "  groundtruth.tum (world_from_cam), video_poses.txt (cam_from_world), camera.json, scene.json",
+            "  groundtruth.tum (world_from_cam), video_poses.txt (cam_from_world), camera.json, "
+            "scene.json",
             f"  render speed {self.render_fps:.1f} frames/s (render only, {self.rendered} images), "
             f"total {self.total_seconds:.1f} s",
         ]
@@ -162,14 +166,21 @@ def _generate(conf: SynthConf, root: Path, result: SynthResult) -> None:
     prog = _Progress("mapping views", len(map_poses))
     for i, (T, name) in enumerate(zip(map_poses, names)):
         t = time.perf_counter()
-        r = render_full(scene, camera, T, noise_seed=(conf.seed, _NOISE_MAPPING, i), conf=conf.render)
+        r = render_full(
+            scene, camera, T, noise_seed=(conf.seed, _NOISE_MAPPING, i), conf=conf.render
+        )
         result.render_seconds += time.perf_counter() - t
         result.rendered += 1
-        observations.append(visible_points(scene, camera, T, face_id=r.face_id, conf=conf.visibility,
-                                           render_conf=conf.render))
+        observations.append(
+            visible_points(
+                scene, camera, T, face_id=r.face_id, conf=conf.visibility, render_conf=conf.render
+            )
+        )
         _write_png(root / "images" / name, r.bgr)
         prog.step(i + 1)
-    rec = build_reconstruction(scene, camera, map_poses, names, conf=conf.visibility, observations=observations)
+    rec = build_reconstruction(
+        scene, camera, map_poses, names, conf=conf.visibility, observations=observations
+    )
     write_model(rec, root / "sparse", ".txt")
     result.n_mapping = len(map_poses)
     result.n_points3D = len(rec.points3D)
@@ -193,7 +204,11 @@ def _generate(conf: SynthConf, root: Path, result: SynthResult) -> None:
         _write_png(root / "video" / name, r.bgr)
         prog.step(i + 1)
     result.n_frames = len(poses)
-    write_tum(root / "groundtruth.tum", [i / tconf.fps for i in range(len(poses))], [T.inverse() for T in poses])
+    write_tum(
+        root / "groundtruth.tum",
+        [i / tconf.fps for i in range(len(poses))],
+        [T.inverse() for T in poses],
+    )
     write_colmap_list(root / "video_poses.txt", frame_names, poses)
     camera.to_json(root / "camera.json")
 
@@ -209,9 +224,14 @@ def _generate(conf: SynthConf, root: Path, result: SynthResult) -> None:
         "observations": result.n_observations,
         "room_size": list(scene.layout.size),
         "boxes": [
-            {"name": b.name, "kind": b.kind, "center": [round(float(c), 6) for c in b.center],
-             "size": [round(float(s), 6) for s in b.size], "yaw_deg": round(float(np.degrees(b.yaw)), 6),
-             "z0": round(float(b.z0), 6)}
+            {
+                "name": b.name,
+                "kind": b.kind,
+                "center": [round(float(c), 6) for c in b.center],
+                "size": [round(float(s), 6) for s in b.size],
+                "yaw_deg": round(float(np.degrees(b.yaw)), 6),
+                "z0": round(float(b.z0), 6),
+            }
             for b in scene.layout.boxes
         ],
         "world_frame": WORLD_FRAME,
@@ -220,7 +240,8 @@ def _generate(conf: SynthConf, root: Path, result: SynthResult) -> None:
             "images": "images/ mapping views",
             "sparse": "COLMAP text model of images/ (cam_from_world, exact points and tracks)",
             "video": "video/ frames at fps",
-            "groundtruth.tum": "timestamp tx ty tz qx qy qz qw, world_from_cam, timestamp = index / fps",
+            "groundtruth.tum": "timestamp tx ty tz qx qy qz qw, world_from_cam, timestamp = index "
+            "/ fps",
             "video_poses.txt": "name qw qx qy qz tx ty tz, cam_from_world",
             "camera.json": "the camera of every image",
         },

@@ -25,9 +25,15 @@ from .visibility import Observations, visible_points
 CAMERA_ID = 1
 
 
-def build_reconstruction(scene: Scene, camera: Camera, cam_from_worlds: list[Rigid3d], names: list[str],
-                         face_ids: list[np.ndarray] | None = None, conf: VisibilityConf | None = None,
-                         observations: list[Observations] | None = None) -> Reconstruction:
+def build_reconstruction(
+    scene: Scene,
+    camera: Camera,
+    cam_from_worlds: list[Rigid3d],
+    names: list[str],
+    face_ids: list[np.ndarray] | None = None,
+    conf: VisibilityConf | None = None,
+    observations: list[Observations] | None = None,
+) -> Reconstruction:
     """A ``Reconstruction`` of the views (one shared camera, id 1).
 
     ``face_ids`` (the renderer's face-id images of the views) or ``observations`` (already
@@ -38,7 +44,9 @@ def build_reconstruction(scene: Scene, camera: Camera, cam_from_worlds: list[Rig
         raise ValueError("one name per view")
     if observations is None:
         observations = [
-            visible_points(scene, camera, T, face_id=None if face_ids is None else face_ids[i], conf=conf)
+            visible_points(
+                scene, camera, T, face_id=None if face_ids is None else face_ids[i], conf=conf
+            )
             for i, T in enumerate(cam_from_worlds)
         ]
     n_feat = len(scene.features)

@@ -84,7 +84,9 @@ def _pyramids(scene: Scene) -> list[list[np.ndarray]]:
 # --------------------------------------------------------------------------- geometry helpers
 def _check_camera(camera: Camera) -> None:
     if camera.model not in ("PINHOLE", "SIMPLE_PINHOLE") or camera.is_distorted:
-        raise CameraModelError(f"the synthetic renderer needs an undistorted pinhole camera, got {camera.model}")
+        raise CameraModelError(
+            f"the synthetic renderer needs an undistorted pinhole camera, got {camera.model}"
+        )
 
 
 def _clip_near(P: np.ndarray, near: float) -> np.ndarray:
@@ -122,10 +124,17 @@ def _opencv_map(G: np.ndarray, level: int, x0: int, y0: int) -> np.ndarray:
     return S @ G @ T
 
 
-def _warp(levels: list[np.ndarray], G: np.ndarray, level: int, x0: int, y0: int, w: int, h: int) -> np.ndarray:
+def _warp(
+    levels: list[np.ndarray], G: np.ndarray, level: int, x0: int, y0: int, w: int, h: int
+) -> np.ndarray:
     """The ``w x h`` crop at ``(x0, y0)`` of the view of a face's mip ``level``."""
-    return cv2.warpPerspective(levels[level], _opencv_map(G, level, x0, y0), (int(w), int(h)),
-                               flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
+    return cv2.warpPerspective(
+        levels[level],
+        _opencv_map(G, level, x0, y0),
+        (int(w), int(h)),
+        flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+        borderMode=cv2.BORDER_REPLICATE,
+    )
 
 
 def _mip_lambda(G: np.ndarray, us: np.ndarray, vs: np.ndarray) -> np.ndarray:
@@ -186,7 +195,9 @@ def _noise_lut() -> np.ndarray:
     return _NOISE_LUT
 
 
-def add_noise(bgr: np.ndarray, sigma: float, seed: int | np.random.Generator | tuple | list) -> np.ndarray:
+def add_noise(
+    bgr: np.ndarray, sigma: float, seed: int | np.random.Generator | tuple | list
+) -> np.ndarray:
     """``bgr`` plus seeded Gaussian noise of ``sigma`` gray levels, rounded and saturated."""
     if sigma <= 0:
         return bgr
@@ -250,7 +261,9 @@ def _rasterize(scene: Scene, camera: Camera, cam_from_world: Rigid3d, near: floa
             Cc = -(A * p[0] + B * p[1])
             if np.all(A * bu + B * bv + Cc >= 0):
                 continue  # the edge does not cut the box
-            m &= ((A * su).astype(np.float32)[None, :] + (B * sv + Cc).astype(np.float32)[:, None]) >= 0
+            m &= (
+                (A * su).astype(np.float32)[None, :] + (B * sv + Cc).astype(np.float32)[:, None]
+            ) >= 0
         if not m.any():
             continue
         np.copyto(inv_sub, sub_inv, where=m)
@@ -265,9 +278,15 @@ def _depth_from_inv(inv: np.ndarray) -> np.ndarray:
     return depth
 
 
-def render_full(scene: Scene, camera: Camera, cam_from_world: Rigid3d, *, noise_sigma: float | None = None,
-                noise_seed: int | tuple | list | np.random.Generator = 0,
-                conf: RenderConf | None = None) -> Rendering:
+def render_full(
+    scene: Scene,
+    camera: Camera,
+    cam_from_world: Rigid3d,
+    *,
+    noise_sigma: float | None = None,
+    noise_seed: int | tuple | list | np.random.Generator = 0,
+    conf: RenderConf | None = None,
+) -> Rendering:
     """Colour, depth and face ids of the view ``cam_from_world``."""
     conf = conf or RenderConf()
     sigma = conf.noise_sigma if noise_sigma is None else float(noise_sigma)
@@ -275,8 +294,13 @@ def render_full(scene: Scene, camera: Camera, cam_from_world: Rigid3d, *, noise_
         # Render k times larger and box-average: pixel-area integration like a sensor. Exact in
         # COLMAP's convention: the scaled camera's pixel (i, j) covers a 1/k subpixel cell.
         k = conf.supersample
-        big = render_full(scene, camera.scaled(k), cam_from_world, noise_sigma=0.0,
-                          conf=conf.model_copy(update={"supersample": 1, "blur_sigma": 0.0}))
+        big = render_full(
+            scene,
+            camera.scaled(k),
+            cam_from_world,
+            noise_sigma=0.0,
+            conf=conf.model_copy(update={"supersample": 1, "blur_sigma": 0.0}),
+        )
         bgr = cv2.resize(big.bgr, (camera.width, camera.height), interpolation=cv2.INTER_AREA)
         if conf.blur_sigma > 0:
             bgr = cv2.GaussianBlur(bgr, (0, 0), conf.blur_sigma, borderType=cv2.BORDER_REPLICATE)
@@ -324,8 +348,12 @@ def render_full(scene: Scene, camera: Camera, cam_from_world: Rigid3d, *, noise_
                     a0, a1, b0, b1 = br[0], br[-1] + 1, bc[0], bc[-1] + 1
                     wh = w_hi[r0 + a0 : r0 + a1, c0 + b0 : c0 + b1]
                     upper = _warp(levels, G, band + 1, x0 + c0 + b0, y0 + r0 + a0, b1 - b0, a1 - a0)
-                    sub[a0:a1, b0:b1] = cv2.blendLinear(np.ascontiguousarray(sub[a0:a1, b0:b1]), upper,
-                                                        np.ascontiguousarray(1.0 - wh), np.ascontiguousarray(wh))
+                    sub[a0:a1, b0:b1] = cv2.blendLinear(
+                        np.ascontiguousarray(sub[a0:a1, b0:b1]),
+                        upper,
+                        np.ascontiguousarray(1.0 - wh),
+                        np.ascontiguousarray(wh),
+                    )
             cv2.copyTo(sub, m[r0:r1, c0:c1].view(np.uint8), dst[r0:r1, c0:c1])
     if conf.blur_sigma > 0:
         out = cv2.GaussianBlur(out, (0, 0), conf.blur_sigma, borderType=cv2.BORDER_REPLICATE)
@@ -333,16 +361,25 @@ def render_full(scene: Scene, camera: Camera, cam_from_world: Rigid3d, *, noise_
     return Rendering(out, _depth_from_inv(inv), fid)
 
 
-def render(scene: Scene, camera: Camera, cam_from_world: Rigid3d, *, noise_sigma: float | None = None,
-           noise_seed: int | tuple | list | np.random.Generator = 0,
-           conf: RenderConf | None = None) -> tuple[np.ndarray, np.ndarray]:
+def render(
+    scene: Scene,
+    camera: Camera,
+    cam_from_world: Rigid3d,
+    *,
+    noise_sigma: float | None = None,
+    noise_seed: int | tuple | list | np.random.Generator = 0,
+    conf: RenderConf | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """``(bgr, depth)`` of the view ``cam_from_world``: uint8 (H, W, 3) and float32 metres."""
-    r = render_full(scene, camera, cam_from_world, noise_sigma=noise_sigma, noise_seed=noise_seed, conf=conf)
+    r = render_full(
+        scene, camera, cam_from_world, noise_sigma=noise_sigma, noise_seed=noise_seed, conf=conf
+    )
     return r.bgr, r.depth
 
 
-def render_geometry(scene: Scene, camera: Camera, cam_from_world: Rigid3d,
-                    conf: RenderConf | None = None) -> tuple[np.ndarray, np.ndarray]:
+def render_geometry(
+    scene: Scene, camera: Camera, cam_from_world: Rigid3d, conf: RenderConf | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """``(depth, face_id)`` only: the z-buffer pass, for visibility without colour."""
     conf = conf or RenderConf()
     inv, fid, _ = _rasterize(scene, camera, cam_from_world, conf.near)

@@ -77,7 +77,9 @@ class Face(Quad):
     """A textured quad. Texel-corner coordinates ``(s, t)`` in ``[0, Ws] x [0, Ht]`` map to
     ``origin + s/Ws * u_axis + t/Ht * v_axis``."""
 
-    texture: np.ndarray = field(default_factory=lambda: np.zeros((1, 1, 3), np.uint8))  # BGR, unshaded
+    texture: np.ndarray = field(
+        default_factory=lambda: np.zeros((1, 1, 3), np.uint8)
+    )  # BGR, unshaded
     shade: float = 1.0
 
     @property
@@ -105,7 +107,9 @@ class Face(Quad):
         return np.stack([s, t], axis=1)
 
 
-def vertical_face(center_xy, normal_xy, width: float, z0: float, z1: float) -> tuple[np.ndarray, ...]:
+def vertical_face(
+    center_xy, normal_xy, width: float, z0: float, z1: float
+) -> tuple[np.ndarray, ...]:
     """(origin, u, v) of an upright rectangle seen from the ``normal_xy`` side, t downwards."""
     n = np.array([normal_xy[0], normal_xy[1], 0.0])
     n /= np.linalg.norm(n)
@@ -144,8 +148,14 @@ class Box:
         ex, ey = self.axes
         hx, hy = self.size[0] / 2, self.size[1] / 2
         c = np.asarray(self.center)
-        return np.stack([c - hx * ex - hy * ey, c + hx * ex - hy * ey,
-                         c + hx * ex + hy * ey, c - hx * ex + hy * ey])
+        return np.stack(
+            [
+                c - hx * ex - hy * ey,
+                c + hx * ex - hy * ey,
+                c + hx * ex + hy * ey,
+                c - hx * ex + hy * ey,
+            ]
+        )
 
     def distance_xy(self, pts: np.ndarray) -> np.ndarray:
         """Horizontal distance of points (N, 2) to the footprint (0 inside)."""
@@ -180,7 +190,9 @@ class Track:
         return float(min(self.semi_axes))
 
     def rho(self, xy: np.ndarray) -> np.ndarray:
-        d = (np.asarray(xy, np.float64).reshape(-1, 2) - np.asarray(self.center)) / np.asarray(self.semi_axes)
+        d = (np.asarray(xy, np.float64).reshape(-1, 2) - np.asarray(self.center)) / np.asarray(
+            self.semi_axes
+        )
         return np.hypot(d[:, 0], d[:, 1])
 
     def point(self, theta: np.ndarray, rho: np.ndarray) -> np.ndarray:
@@ -221,8 +233,12 @@ def _layout_quads(layout: RoomLayout) -> list[Quad]:
         quads.append(Quad(len(quads), name, o, u, v, recipe))
 
     # Walls seen from inside: (name, centre, inward normal, width).
-    walls = [("wall_y0", (L / 2, 0.0), (0, 1), L), ("wall_xL", (L, W / 2), (-1, 0), W),
-             ("wall_yW", (L / 2, W), (0, -1), L), ("wall_x0", (0.0, W / 2), (1, 0), W)]
+    walls = [
+        ("wall_y0", (L / 2, 0.0), (0, 1), L),
+        ("wall_xL", (L, W / 2), (-1, 0), W),
+        ("wall_yW", (L / 2, W), (0, -1), L),
+        ("wall_x0", (0.0, W / 2), (1, 0), W),
+    ]
     for name, c, n, width in walls:
         add(name, *vertical_face(c, n, width, 0.0, H), ("wall",))
     # Floor seen from above: s along +x, t along -y. Ceiling seen from below: s +x, t +y.
@@ -237,12 +253,24 @@ def _layout_quads(layout: RoomLayout) -> list[Quad]:
             n = a * ex + bb * ey
             fc = c + (a * sx / 2) * ex + (bb * sy / 2) * ey
             o, u, v = vertical_face(fc[:2], n[:2], sy if a else sx, b.z0, b.z1)
-            add(f"{b.name}_{role}", o, u, v, ("box", b.kind, "front" if role == "front" else "side"))
-        add(f"{b.name}_top", c + np.array([0, 0, b.z1]) - (sx / 2) * ex + (sy / 2) * ey, sx * ex, -sy * ey,
-            ("box", b.kind, "top"))
+            add(
+                f"{b.name}_{role}", o, u, v, ("box", b.kind, "front" if role == "front" else "side")
+            )
+        add(
+            f"{b.name}_top",
+            c + np.array([0, 0, b.z1]) - (sx / 2) * ex + (sy / 2) * ey,
+            sx * ex,
+            -sy * ey,
+            ("box", b.kind, "top"),
+        )
         if b.bottom_visible:
-            add(f"{b.name}_bottom", c + np.array([0, 0, b.z0]) - (sx / 2) * ex - (sy / 2) * ey, sx * ex, sy * ey,
-                ("box", b.kind, "bottom"))
+            add(
+                f"{b.name}_bottom",
+                c + np.array([0, 0, b.z0]) - (sx / 2) * ex - (sy / 2) * ey,
+                sx * ex,
+                sy * ey,
+                ("box", b.kind, "bottom"),
+            )
     return quads
 
 
@@ -256,7 +284,9 @@ def room_layout(seed: int, conf: SceneConf | None = None) -> RoomLayout:
     track = Track(center=(L / 2, W / 2), semi_axes=(L / 2 - 1.6, W / 2 - 1.0))
     # Distance (m) from every 2 cm cell to the track band, to keep furniture out of it.
     res = 0.02
-    gx, gy = np.meshgrid((np.arange(int(L / res)) + 0.5) * res, (np.arange(int(W / res)) + 0.5) * res)
+    gx, gy = np.meshgrid(
+        (np.arange(int(L / res)) + 0.5) * res, (np.arange(int(W / res)) + 0.5) * res
+    )
     rho = track.rho(np.stack([gx.ravel(), gy.ravel()], 1)).reshape(gx.shape)
     band = (rho >= track.rho_band[0]) & (rho <= track.rho_band[1])
     dist = cv2.distanceTransform((~band).astype(np.uint8), cv2.DIST_L2, 5) * res
@@ -266,15 +296,20 @@ def room_layout(seed: int, conf: SceneConf | None = None) -> RoomLayout:
         u = np.linspace(-0.5, 0.5, max(2, int(b.size[0] / res)))
         v = np.linspace(-0.5, 0.5, max(2, int(b.size[1] / res)))
         uu, vv = np.meshgrid(u, v)
-        pts = (np.asarray(b.center) + (uu.ravel()[:, None] * b.size[0]) * ex
-               + (vv.ravel()[:, None] * b.size[1]) * ey)
+        pts = (
+            np.asarray(b.center)
+            + (uu.ravel()[:, None] * b.size[0]) * ex
+            + (vv.ravel()[:, None] * b.size[1]) * ey
+        )
         i = np.clip((pts[:, 0] / res).astype(int), 0, dist.shape[1] - 1)
         j = np.clip((pts[:, 1] / res).astype(int), 0, dist.shape[0] - 1)
         return bool(np.all(dist[j, i] >= track.clearance + res))
 
     def in_room(b: Box, gap: float = 0.03) -> bool:
         fp = b.footprint()
-        return bool(np.all(fp >= gap) and np.all(fp[:, 0] <= L - gap) and np.all(fp[:, 1] <= W - gap))
+        return bool(
+            np.all(fp >= gap) and np.all(fp[:, 0] <= L - gap) and np.all(fp[:, 1] <= W - gap)
+        )
 
     placed: list[Box] = []
 
@@ -288,8 +323,10 @@ def room_layout(seed: int, conf: SceneConf | None = None) -> RoomLayout:
             if np.any(o.distance_xy(fp) < sep) or np.any(b.distance_xy(o.footprint()) < sep):
                 return False
             # Footprints can cross without corners inside each other; test the centres too.
-            if (o.distance_xy(np.asarray(b.center)[None])[0] < sep
-                    or b.distance_xy(np.asarray(o.center)[None])[0] < sep):
+            if (
+                o.distance_xy(np.asarray(b.center)[None])[0] < sep
+                or b.distance_xy(np.asarray(o.center)[None])[0] < sep
+            ):
                 return False
         return True
 
@@ -308,10 +345,15 @@ def room_layout(seed: int, conf: SceneConf | None = None) -> RoomLayout:
         n = len([b for b in placed if b.kind != "table_leg"])
         if kind == "table":
             for _ in range(100):
-                cx, cy = track.center[0] + rng.uniform(-0.1, 0.1), track.center[1] + rng.uniform(-0.05, 0.05)
+                cx, cy = (
+                    track.center[0] + rng.uniform(-0.1, 0.1),
+                    track.center[1] + rng.uniform(-0.05, 0.05),
+                )
                 sx, sy = rng.uniform(1.0, 1.3), rng.uniform(0.5, 0.62)
                 yaw = np.radians(rng.uniform(-4, 4))
-                top = Box("table", "table_top", (cx, cy), (sx, sy, 0.04), yaw, 0.72, bottom_visible=True)
+                top = Box(
+                    "table", "table_top", (cx, cy), (sx, sy, 0.04), yaw, 0.72, bottom_visible=True
+                )
                 if in_room(top) and band_clear(top):
                     break
             else:
@@ -321,47 +363,84 @@ def room_layout(seed: int, conf: SceneConf | None = None) -> RoomLayout:
             ex, ey = top.axes
             for k, (a, b) in enumerate([(-1, -1), (1, -1), (1, 1), (-1, 1)]):
                 c = np.asarray(top.center) + a * (sx / 2 - 0.06) * ex + b * (sy / 2 - 0.06) * ey
-                placed.append(Box(f"table_leg{k}", "table_leg", (float(c[0]), float(c[1])),
-                                  (0.05, 0.05, 0.72), yaw))
+                placed.append(
+                    Box(
+                        f"table_leg{k}",
+                        "table_leg",
+                        (float(c[0]), float(c[1])),
+                        (0.05, 0.05, 0.72),
+                        yaw,
+                    )
+                )
         elif kind == "shelf":
+
             def make_shelf(n: int = n) -> Box:
                 sx, sy, sz = rng.uniform(1.2, 1.8), 0.3, rng.uniform(1.6, 2.0)
                 x = rng.uniform(0.2 + sx / 2, L - 0.2 - sx / 2)
                 if long_wall_y == 0:
                     return Box(f"box{n}", "shelf", (x, 0.03 + sy / 2), (sx, sy, sz), 0.0)
                 return Box(f"box{n}", "shelf", (x, W - 0.03 - sy / 2), (sx, sy, sz), np.pi)
+
             try_place(make_shelf)
         elif kind in ("cabinet", "tall"):
+
             def make_cab(kind: str = kind, n: int = n) -> Box:
                 if kind == "cabinet":
-                    sx, sy, sz = rng.uniform(0.8, 1.2), rng.uniform(0.35, 0.5), rng.uniform(0.8, 1.1)
+                    sx, sy, sz = (
+                        rng.uniform(0.8, 1.2),
+                        rng.uniform(0.35, 0.5),
+                        rng.uniform(0.8, 1.1),
+                    )
                 else:
-                    sx, sy, sz = rng.uniform(0.5, 0.7), rng.uniform(0.45, 0.55), rng.uniform(1.8, 2.1)
+                    sx, sy, sz = (
+                        rng.uniform(0.5, 0.7),
+                        rng.uniform(0.45, 0.55),
+                        rng.uniform(1.8, 2.1),
+                    )
                 side = int(rng.integers(2))  # against x = 0 or x = L, front into the room
                 y = rng.uniform(0.1 + sx / 2, W - 0.1 - sx / 2)
                 if side == 0:
                     return Box(f"box{n}", "cabinet", (0.03 + sy / 2, y), (sx, sy, sz), -np.pi / 2)
                 return Box(f"box{n}", "cabinet", (L - 0.03 - sy / 2, y), (sx, sy, sz), np.pi / 2)
+
             try_place(make_cab)
         elif kind == "crate":
+
             def make_crate(n: int = n) -> Box:
                 sx, sy, sz = rng.uniform(0.45, 0.8), rng.uniform(0.45, 0.8), rng.uniform(0.4, 0.9)
                 corner = rng.integers(4)
                 cx = rng.uniform(0.45, 1.3) if corner % 2 == 0 else L - rng.uniform(0.45, 1.3)
                 cy = rng.uniform(0.45, 1.0) if corner < 2 else W - rng.uniform(0.45, 1.0)
-                return Box(f"box{n}", "crate", (cx, cy), (sx, sy, sz), np.radians(rng.uniform(-35, 35)))
+                return Box(
+                    f"box{n}", "crate", (cx, cy), (sx, sy, sz), np.radians(rng.uniform(-35, 35))
+                )
+
             try_place(make_crate)
         elif kind == "stack":
-            bases = [b for b in placed if b.kind == "crate" and b.z0 == 0.0
-                     and (table is None or table.distance_xy(np.asarray(b.center)[None])[0] > 0)]
+            bases = [
+                b
+                for b in placed
+                if b.kind == "crate"
+                and b.z0 == 0.0
+                and (table is None or table.distance_xy(np.asarray(b.center)[None])[0] > 0)
+            ]
             if bases:
                 base = bases[int(rng.integers(len(bases)))]
                 for _ in range(100):
-                    sx, sy = rng.uniform(0.3, 0.8) * base.size[0], rng.uniform(0.3, 0.8) * base.size[1]
+                    sx, sy = (
+                        rng.uniform(0.3, 0.8) * base.size[0],
+                        rng.uniform(0.3, 0.8) * base.size[1],
+                    )
                     yaw = base.yaw + np.radians(rng.uniform(-20, 20))
                     c = np.asarray(base.center) + rng.uniform(-0.1, 0.1, 2)
-                    b = Box(f"box{n}", "crate", (float(c[0]), float(c[1])),
-                            (sx, sy, rng.uniform(0.25, 0.45)), yaw, base.z1)
+                    b = Box(
+                        f"box{n}",
+                        "crate",
+                        (float(c[0]), float(c[1])),
+                        (sx, sy, rng.uniform(0.25, 0.45)),
+                        yaw,
+                        base.z1,
+                    )
                     if np.all(base.distance_xy(b.footprint()) == 0.0):
                         placed.append(b)
                         break
@@ -409,7 +488,7 @@ class Scene:
     cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     @classmethod
-    def room(cls, seed: int = 0, conf: SceneConf | None = None) -> "Scene":
+    def room(cls, seed: int = 0, conf: SceneConf | None = None) -> Scene:
         """The textured room for ``seed``: same seed, same scene, byte for byte."""
         conf = conf or SceneConf()
         layout = room_layout(seed, conf)
@@ -424,12 +503,17 @@ class Scene:
 
     def summary(self) -> str:
         n_tex = sum(f.texture.shape[0] * f.texture.shape[1] for f in self.faces)
-        return (f"scene {self.name} seed {self.seed}: {len(self.faces)} faces, {len(self.layout.boxes)} boxes, "
-                f"{len(self.features)} corner points, {n_tex / 1e6:.1f} Mtexels")
+        return (
+            f"scene {self.name} seed {self.seed}: {len(self.faces)} faces, "
+            f"{len(self.layout.boxes)} boxes, "
+            f"{len(self.features)} corner points, {n_tex / 1e6:.1f} Mtexels"
+        )
 
 
 def _shade(normal: np.ndarray, rng: np.random.Generator) -> float:
-    return float(np.clip(0.62 + 0.33 * max(0.0, float(normal @ _LIGHT)) + rng.uniform(-0.04, 0.04), 0.5, 1.0))
+    return float(
+        np.clip(0.62 + 0.33 * max(0.0, float(normal @ _LIGHT)) + rng.uniform(-0.04, 0.04), 0.5, 1.0)
+    )
 
 
 def _build_room(seed: int, conf: SceneConf, layout: RoomLayout) -> Scene:
@@ -459,7 +543,9 @@ def _build_room(seed: int, conf: SceneConf, layout: RoomLayout) -> Scene:
     xyz, fidx, st, rad, rgb = [], [], [], [], []
     for q in layout.quads:
         # One stream per face: a face's texture does not depend on how many draws others made.
-        rng = np.random.default_rng([seed, 1, 0 if conf.repeat_walls and q.recipe[0] == "wall" else q.index])
+        rng = np.random.default_rng(
+            [seed, 1, 0 if conf.repeat_walls and q.recipe[0] == "wall" else q.index]
+        )
         img, cand = texture(q, rng)
         face = Face(q.index, q.name, q.origin, q.u_axis, q.v_axis, q.recipe, texture=img)
         face.shade = _shade(face.normal, rng)
@@ -483,8 +569,14 @@ def _build_room(seed: int, conf: SceneConf, layout: RoomLayout) -> Scene:
 
 
 # --------------------------------------------------------------------------- ray casting
-def raycast(scene: "Scene | RoomLayout", origins: np.ndarray, dirs: np.ndarray, t_max: np.ndarray | float = np.inf,
-            exclude_face: np.ndarray | None = None, eps: float = 1e-9) -> tuple[np.ndarray, np.ndarray]:
+def raycast(
+    scene: Scene | RoomLayout,
+    origins: np.ndarray,
+    dirs: np.ndarray,
+    t_max: np.ndarray | float = np.inf,
+    exclude_face: np.ndarray | None = None,
+    eps: float = 1e-9,
+) -> tuple[np.ndarray, np.ndarray]:
     """First intersection of rays with any face of a scene or layout (both sides count).
 
     ``origins``/``dirs`` (N, 3); returns (t, face) with ``t = inf`` and ``face = -1`` where a

@@ -34,8 +34,11 @@ def hsv_color(h: float, s: float, v: float) -> Color:
     return (int(round(b * 255)), int(round(g * 255)), int(round(r * 255)))
 
 
-def random_color(rng: np.random.Generator, s: tuple[float, float] = (0.15, 0.75),
-                 v: tuple[float, float] = (0.2, 0.9)) -> Color:
+def random_color(
+    rng: np.random.Generator,
+    s: tuple[float, float] = (0.15, 0.75),
+    v: tuple[float, float] = (0.2, 0.9),
+) -> Color:
     return hsv_color(rng.random(), rng.uniform(*s), rng.uniform(*v))
 
 
@@ -100,7 +103,7 @@ class Canvas:
         self.rect(x0, y0, x0 + thick, y1, color)
         self.rect(x1 - thick, y0, x1, y1, color)
 
-    def paste(self, other: "Canvas", x: int, y: int) -> None:
+    def paste(self, other: Canvas, x: int, y: int) -> None:
         """Copy ``other`` with its upper-left texel at ``(x, y)``; its corners come along."""
         x, y = int(x), int(y)
         sx0, sy0 = max(0, -x), max(0, -y)
@@ -210,8 +213,18 @@ def _snap(v: float, q: int = 2) -> int:
     return int(round(v / q)) * q
 
 
-def mondrian(cv: Canvas, x0: int, y0: int, x1: int, y1: int, rng: np.random.Generator, n: int,
-             min_m: float = 0.03, max_frac: float = 0.35, palette: list[Color] | None = None) -> None:
+def mondrian(
+    cv: Canvas,
+    x0: int,
+    y0: int,
+    x1: int,
+    y1: int,
+    rng: np.random.Generator,
+    n: int,
+    min_m: float = 0.03,
+    max_frac: float = 0.35,
+    palette: list[Color] | None = None,
+) -> None:
     """Random overlapping axis-aligned rectangles (sizes log-uniform) in a region."""
     W, H = x1 - x0, y1 - y0
     if W < 4 or H < 4:
@@ -227,8 +240,17 @@ def mondrian(cv: Canvas, x0: int, y0: int, x1: int, y1: int, rng: np.random.Gene
         cv.rect(rx, ry, min(x1, rx + _snap(rw)), min(y1, ry + _snap(rh)), jitter(col, rng, 10))
 
 
-def text_lines(cv: Canvas, x0: int, y0: int, x1: int, y1: int, rng: np.random.Generator,
-               glyph_m: float, color: Color, line_gap: float = 1.8) -> None:
+def text_lines(
+    cv: Canvas,
+    x0: int,
+    y0: int,
+    x1: int,
+    y1: int,
+    rng: np.random.Generator,
+    glyph_m: float,
+    color: Color,
+    line_gap: float = 1.8,
+) -> None:
     """Rows of text-like glyph blocks: words of small rectangles, some with ascenders."""
     gh = max(2, cv.t(glyph_m))
     y = y0 + gh
@@ -255,8 +277,20 @@ def text_lines(cv: Canvas, x0: int, y0: int, x1: int, y1: int, rng: np.random.Ge
         y += int(gh * line_gap) + gh
 
 
-def tiles(cv: Canvas, x0: int, y0: int, x1: int, y1: int, rng: np.random.Generator, tile_m: float,
-          grout_m: float, colors: list[Color], grout: Color, checker: bool = False, var: float = 6.0) -> None:
+def tiles(
+    cv: Canvas,
+    x0: int,
+    y0: int,
+    x1: int,
+    y1: int,
+    rng: np.random.Generator,
+    tile_m: float,
+    grout_m: float,
+    colors: list[Color],
+    grout: Color,
+    checker: bool = False,
+    var: float = 6.0,
+) -> None:
     """A tile grid: grout lines between tiles, or a checkerboard when ``grout_m`` is 0."""
     T, G = cv.t(tile_m), (cv.t(grout_m) if grout_m > 0 else 0)
     if G:
@@ -264,8 +298,13 @@ def tiles(cv: Canvas, x0: int, y0: int, x1: int, y1: int, rng: np.random.Generat
     for j, ty in enumerate(range(y0, y1, T)):
         for i, tx in enumerate(range(x0, x1, T)):
             c = colors[(i + j) % len(colors)] if checker else colors[int(rng.integers(len(colors)))]
-            cv.rect(tx + G // 2, ty + G // 2, min(x1, tx + T) - (G - G // 2), min(y1, ty + T) - (G - G // 2),
-                    jitter(c, rng, var))
+            cv.rect(
+                tx + G // 2,
+                ty + G // 2,
+                min(x1, tx + T) - (G - G // 2),
+                min(y1, ty + T) - (G - G // 2),
+                jitter(c, rng, var),
+            )
 
 
 def checkerboard(cv: Canvas, x: int, y: int, nx: int, ny: int, sq_m: float) -> None:
@@ -276,7 +315,13 @@ def checkerboard(cv: Canvas, x: int, y: int, nx: int, ny: int, sq_m: float) -> N
     for j in range(ny):
         for i in range(nx):
             if (i + j) % 2 == 0:
-                cv.rect(x + m + i * sq, y + m + j * sq, x + m + (i + 1) * sq, y + m + (j + 1) * sq, (25, 25, 25))
+                cv.rect(
+                    x + m + i * sq,
+                    y + m + j * sq,
+                    x + m + (i + 1) * sq,
+                    y + m + (j + 1) * sq,
+                    (25, 25, 25),
+                )
 
 
 def books(cv: Canvas, x0: int, x1: int, y_base: int, max_h: int, rng: np.random.Generator) -> None:
@@ -343,7 +388,9 @@ def poster_design(rng: np.random.Generator, w_m: float, h_m: float, texel: float
             cv.rect(m + (2 * i + 1) * bw, top, m + (2 * i + 2) * bw, photo_y1 - cv.t(0.01), band)
     ty = photo_y1 + cv.t(0.03)
     cv.rect(m, ty, W - m, ty + cv.t(0.05), band)
-    text_lines(cv, m + cv.t(0.01), ty + cv.t(0.005), W - m, ty + cv.t(0.045), rng, 0.025, (235, 235, 235))
+    text_lines(
+        cv, m + cv.t(0.01), ty + cv.t(0.005), W - m, ty + cv.t(0.045), rng, 0.025, (235, 235, 235)
+    )
     text_lines(cv, m, ty + cv.t(0.07), W - m, H - m, rng, 0.012, (40, 40, 40), line_gap=1.2)
     cv.frame(0, 0, W, H, fr, jitter((30, 30, 30), rng, 10))
     return cv
@@ -366,7 +413,16 @@ def whiteboard(cv: Canvas, x0: int, y0: int, x1: int, y1: int, rng: np.random.Ge
         bh = int((y1 - y0) * rng.uniform(0.2, 0.4))
         bx = int(rng.uniform(x0 + 2 * f, max(x0 + 2 * f + 1, x1 - 2 * f - bw)))
         by = int(rng.uniform(y0 + 2 * f, max(y0 + 2 * f + 1, y1 - 2 * f - bh)))
-        text_lines(cv, bx, by, bx + bw, by + bh, rng, rng.uniform(0.015, 0.03), ink[int(rng.integers(len(ink)))])
+        text_lines(
+            cv,
+            bx,
+            by,
+            bx + bw,
+            by + bh,
+            rng,
+            rng.uniform(0.015, 0.03),
+            ink[int(rng.integers(len(ink)))],
+        )
     for _ in range(int(rng.integers(3, 9))):  # sticky notes
         s = cv.t(0.076)
         nx = int(rng.uniform(x0 + 2 * f, x1 - 2 * f - s))
@@ -388,10 +444,25 @@ def notice_board(cv: Canvas, x0: int, y0: int, x1: int, y1: int, rng: np.random.
         py = int(rng.uniform(y0 + f, y1 - f - ph))
         paper = hsv_color(rng.random(), rng.uniform(0, 0.35), rng.uniform(0.85, 0.97))
         cv.rect(px, py, px + pw, py + ph, paper)
-        text_lines(cv, px + cv.t(0.01), py + cv.t(0.01), px + pw - cv.t(0.01), py + ph - cv.t(0.01),
-                   rng, rng.uniform(0.008, 0.016), (40, 40, 40), line_gap=1.4)
+        text_lines(
+            cv,
+            px + cv.t(0.01),
+            py + cv.t(0.01),
+            px + pw - cv.t(0.01),
+            py + ph - cv.t(0.01),
+            rng,
+            rng.uniform(0.008, 0.016),
+            (40, 40, 40),
+            line_gap=1.4,
+        )
         if rng.random() < 0.5:
-            cv.rect(px + cv.t(0.01), py + cv.t(0.02), px + pw - cv.t(0.01), py + ph // 3, random_color(rng))
+            cv.rect(
+                px + cv.t(0.01),
+                py + cv.t(0.02),
+                px + pw - cv.t(0.01),
+                py + ph // 3,
+                random_color(rng),
+            )
 
 
 def window(cv: Canvas, x0: int, y0: int, x1: int, y1: int, rng: np.random.Generator) -> None:
@@ -412,7 +483,13 @@ def window(cv: Canvas, x0: int, y0: int, x1: int, y1: int, rng: np.random.Genera
             while bx < px + pw and j == ny - 1:
                 bw = cv.t(rng.uniform(0.05, 0.2))
                 top = int(rng.uniform(py + ph * 0.2, ground))
-                cv.rect(bx, top, min(px + pw, bx + bw), py + ph, random_color(rng, s=(0, 0.3), v=(0.3, 0.7)))
+                cv.rect(
+                    bx,
+                    top,
+                    min(px + pw, bx + bw),
+                    py + ph,
+                    random_color(rng, s=(0, 0.3), v=(0.3, 0.7)),
+                )
                 bx += bw
     cv.rect(x0 - cv.t(0.03), y1, x1 + cv.t(0.03), y1 + cv.t(0.04), frame_c)  # sill
 
@@ -430,7 +507,16 @@ def door(cv: Canvas, x0: int, y0: int, x1: int, y1: int, rng: np.random.Generato
     sx = (x0 + x1) // 2 - cv.t(0.1)
     sy = y0 + cv.t(0.35)
     cv.rect(sx, sy, sx + cv.t(0.2), sy + cv.t(0.1), (240, 240, 240))
-    text_lines(cv, sx + cv.t(0.015), sy + cv.t(0.01), sx + cv.t(0.185), sy + cv.t(0.09), rng, 0.018, (30, 30, 30))
+    text_lines(
+        cv,
+        sx + cv.t(0.015),
+        sy + cv.t(0.01),
+        sx + cv.t(0.185),
+        sy + cv.t(0.09),
+        rng,
+        0.018,
+        (30, 30, 30),
+    )
 
 
 def small_fixtures(cv: Canvas, x0: int, x1: int, rng: np.random.Generator, floor_row: int) -> None:
@@ -443,8 +529,14 @@ def small_fixtures(cv: Canvas, x0: int, x1: int, rng: np.random.Generator, floor
 
 
 # --------------------------------------------------------------------------- surfaces
-def compose_wall(width_m: float, height_m: float, rng: np.random.Generator, texel: float,
-                 posters: list[Canvas], grain: float) -> tuple[np.ndarray, np.ndarray]:
+def compose_wall(
+    width_m: float,
+    height_m: float,
+    rng: np.random.Generator,
+    texel: float,
+    posters: list[Canvas],
+    grain: float,
+) -> tuple[np.ndarray, np.ndarray]:
     """A wall seen from inside the room, upper-left texel first. Returns (texture, corners).
 
     Three bands along the wall: low (wainscot panels, radiators, tiles), middle (posters,
@@ -464,8 +556,19 @@ def compose_wall(width_m: float, height_m: float, rng: np.random.Generator, texe
     cv.rect(0, row(0.09), W, H, jitter((60, 60, 65), rng, 15))  # baseboard
     cv.rect(0, 0, W, cv.t(0.05), jitter((235, 235, 235), rng, 5))  # crown moulding
     _wall_high_band(cv, rng, row)
-    kinds = ["poster", "poster", "whiteboard", "notice", "window", "door", "shelf", "tiles",
-             "art", "checker", "posters"]
+    kinds = [
+        "poster",
+        "poster",
+        "whiteboard",
+        "notice",
+        "window",
+        "door",
+        "shelf",
+        "tiles",
+        "art",
+        "checker",
+        "posters",
+    ]
     weights = np.array([3, 2, 1.5, 1.5, 1.2, 0.6, 1.2, 1.0, 1.5, 0.6, 1.2])
     x = cv.t(rng.uniform(0.05, 0.3))
     while x < W - cv.t(0.4):
@@ -486,15 +589,30 @@ def compose_wall(width_m: float, height_m: float, rng: np.random.Generator, texe
                 cv.rect(x + ew, top, x + ew + fw, top + fh, jitter((30, 30, 30), rng, 10))
                 b = cv.t(0.03)
                 cv.rect(x + ew + b, top + b, x + ew + fw - b, top + fh - b, (230, 230, 230))
-                mondrian(cv, x + ew + 2 * b, top + 2 * b, x + ew + fw - 2 * b, top + fh - 2 * b,
-                         np.random.default_rng(int(rng.integers(3))), 12, min_m=0.02)
+                mondrian(
+                    cv,
+                    x + ew + 2 * b,
+                    top + 2 * b,
+                    x + ew + fw - 2 * b,
+                    top + fh - 2 * b,
+                    np.random.default_rng(int(rng.integers(3))),
+                    12,
+                    min_m=0.02,
+                )
                 ew += fw + cv.t(0.06)
         elif kind == "whiteboard":
             ew = min(cv.t(rng.uniform(1.2, 1.8)), W - x)
             whiteboard(cv, x, row(2.05), x + ew, row(0.95), rng)
         elif kind == "notice":
             ew = cv.t(rng.uniform(0.8, 1.2))
-            notice_board(cv, x, row(rng.uniform(1.8, 2.05)), min(W, x + ew), row(rng.uniform(0.95, 1.15)), rng)
+            notice_board(
+                cv,
+                x,
+                row(rng.uniform(1.8, 2.05)),
+                min(W, x + ew),
+                row(rng.uniform(0.95, 1.15)),
+                rng,
+            )
         elif kind == "window":
             ew = cv.t(rng.uniform(1.0, 1.5))
             if x + ew > W:
@@ -510,24 +628,59 @@ def compose_wall(width_m: float, height_m: float, rng: np.random.Generator, texe
             for hgt in (1.25, 1.65, 2.05):
                 top = row(hgt)
                 books(cv, x, min(W, x + ew), top, cv.t(0.3), rng)
-                cv.rect(x - cv.t(0.02), top, min(W, x + ew + cv.t(0.02)), top + cv.t(0.025),
-                        jitter((50, 80, 120), rng, 15))
+                cv.rect(
+                    x - cv.t(0.02),
+                    top,
+                    min(W, x + ew + cv.t(0.02)),
+                    top + cv.t(0.025),
+                    jitter((50, 80, 120), rng, 15),
+                )
         elif kind == "tiles":
             ew = cv.t(rng.uniform(1.0, 1.8))
-            colors = [jitter((215, 215, 210), rng, 8),
-                      jitter(random_color(rng, s=(0.3, 0.6), v=(0.4, 0.7)), rng, 4)]
+            colors = [
+                jitter((215, 215, 210), rng, 8),
+                jitter(random_color(rng, s=(0.3, 0.6), v=(0.4, 0.7)), rng, 4),
+            ]
             tile = rng.choice([0.1, 0.15, 0.2])
             checker = bool(rng.random() < 0.4)
-            tiles(cv, x, row(1.6), min(W, x + ew), row(0.9), rng, tile, 0.0 if checker else 0.006,
-                  colors if checker else colors[:1] * 5 + colors[1:], (150, 150, 150), checker=checker)
-            mondrian(cv, x + cv.t(0.1), row(2.05), min(W, x + ew) - cv.t(0.1), row(1.7), rng, 25, min_m=0.04)
+            tiles(
+                cv,
+                x,
+                row(1.6),
+                min(W, x + ew),
+                row(0.9),
+                rng,
+                tile,
+                0.0 if checker else 0.006,
+                colors if checker else colors[:1] * 5 + colors[1:],
+                (150, 150, 150),
+                checker=checker,
+            )
+            mondrian(
+                cv,
+                x + cv.t(0.1),
+                row(2.05),
+                min(W, x + ew) - cv.t(0.1),
+                row(1.7),
+                rng,
+                25,
+                min_m=0.04,
+            )
         elif kind == "art":
             ew = cv.t(rng.uniform(0.6, 1.1))
             eh = cv.t(rng.uniform(0.6, 1.0))
             top = row(rng.uniform(1.5, 1.7)) - eh // 2
             cv.rect(x, top, min(W, x + ew), top + eh, jitter((40, 40, 40), rng, 10))
-            mondrian(cv, x + cv.t(0.03), top + cv.t(0.03), min(W, x + ew) - cv.t(0.03), top + eh - cv.t(0.03), rng,
-                     int(rng.integers(20, 50)), min_m=0.04)
+            mondrian(
+                cv,
+                x + cv.t(0.03),
+                top + cv.t(0.03),
+                min(W, x + ew) - cv.t(0.03),
+                top + eh - cv.t(0.03),
+                rng,
+                int(rng.integers(20, 50)),
+                min_m=0.04,
+            )
         else:  # checker
             nx, ny = int(rng.integers(6, 10)), int(rng.integers(4, 7))
             sq = rng.choice([0.04, 0.05, 0.06])
@@ -542,14 +695,18 @@ def _wall_low_band(cv: Canvas, rng: np.random.Generator, row) -> None:
     """Wainscot panels, radiators and tile strips between 0.1 and 0.85 m."""
     x = 0
     while x < cv.w:
-        kind = rng.choice(["wainscot", "radiator", "tiles", "frames", "bare"], p=[0.35, 0.2, 0.15, 0.15, 0.15])
+        kind = rng.choice(
+            ["wainscot", "radiator", "tiles", "frames", "bare"], p=[0.35, 0.2, 0.15, 0.15, 0.15]
+        )
         ew = cv.t(rng.uniform(0.8, 2.0))
         x1 = min(cv.w, x + ew)
         if kind == "wainscot":
             pw = cv.t(rng.uniform(0.35, 0.55))
             frame_c = jitter((150, 160, 170), rng, 25)
             inner = jitter(frame_c, rng, 10)
-            inner = tuple(int(np.clip(c + 45 * (1 if gray_of(frame_c) < 128 else -1), 0, 255)) for c in inner)
+            inner = tuple(
+                int(np.clip(c + 45 * (1 if gray_of(frame_c) < 128 else -1), 0, 255)) for c in inner
+            )
             cv.rect(x, row(0.85), x1, row(0.1), frame_c)
             for px in range(x + cv.t(0.04), x1 - pw // 2, pw):
                 cv.rect(px, row(0.8), min(x1 - cv.t(0.04), px + pw - cv.t(0.05)), row(0.15), inner)
@@ -559,11 +716,31 @@ def _wall_low_band(cv: Canvas, rng: np.random.Generator, row) -> None:
             cv.rect(x, top, x1, bot, body)
             slat = cv.t(0.04)
             for sx in range(x + slat // 2, x1 - slat, slat):
-                cv.rect(sx, top + cv.t(0.03), sx + slat // 2, bot - cv.t(0.03), tuple(int(c * 0.7) for c in body))
+                cv.rect(
+                    sx,
+                    top + cv.t(0.03),
+                    sx + slat // 2,
+                    bot - cv.t(0.03),
+                    tuple(int(c * 0.7) for c in body),
+                )
         elif kind == "tiles":
-            colors = [jitter((200, 205, 205), rng, 10), jitter(random_color(rng, v=(0.3, 0.6)), rng, 5)]
-            tiles(cv, x, row(0.8), x1, row(0.1), rng, rng.choice([0.1, 0.15]), 0.0, colors, (0, 0, 0),
-                  checker=True)
+            colors = [
+                jitter((200, 205, 205), rng, 10),
+                jitter(random_color(rng, v=(0.3, 0.6)), rng, 5),
+            ]
+            tiles(
+                cv,
+                x,
+                row(0.8),
+                x1,
+                row(0.1),
+                rng,
+                rng.choice([0.1, 0.15]),
+                0.0,
+                colors,
+                (0, 0, 0),
+                checker=True,
+            )
         elif kind == "frames":
             fx = x
             while fx < x1 - cv.t(0.3):
@@ -571,8 +748,7 @@ def _wall_low_band(cv: Canvas, rng: np.random.Generator, row) -> None:
                 top = row(rng.uniform(0.55, 0.8))
                 cv.rect(fx, top, fx + fw, top + fh, jitter((200, 60, 60), rng, 40))
                 m = cv.t(0.02)
-                mondrian(cv, fx + m, top + m, fx + fw - m, top + fh - m, rng, 10,
-                         min_m=0.03)
+                mondrian(cv, fx + m, top + m, fx + fw - m, top + fh - m, rng, 10, min_m=0.03)
                 fx += fw + cv.t(rng.uniform(0.05, 0.15))
         x = x1 + cv.t(rng.uniform(0.0, 0.3))
 
@@ -581,24 +757,39 @@ def _wall_high_band(cv: Canvas, rng: np.random.Generator, row) -> None:
     """Banners, small frames, vents and storage shelves between 2.25 and 2.9 m."""
     x = cv.t(rng.uniform(0.0, 0.3))
     while x < cv.w - cv.t(0.3):
-        kind = rng.choice(["banner", "frames", "vent", "storage", "clock", "bare"],
-                          p=[0.25, 0.2, 0.15, 0.2, 0.1, 0.1])
+        kind = rng.choice(
+            ["banner", "frames", "vent", "storage", "clock", "bare"],
+            p=[0.25, 0.2, 0.15, 0.2, 0.1, 0.1],
+        )
         if kind == "banner":
             ew = cv.t(rng.uniform(0.8, 2.0))
             top = row(rng.uniform(2.75, 2.85))
             bh = cv.t(rng.uniform(0.18, 0.3))
             col = random_color(rng, s=(0.4, 0.9), v=(0.25, 0.6))
             cv.rect(x, top, min(cv.w, x + ew), top + bh, col)
-            text_lines(cv, x + cv.t(0.04), top + cv.t(0.01), min(cv.w, x + ew) - cv.t(0.04), top + bh - cv.t(0.02),
-                       rng, rng.uniform(0.05, 0.08), (235, 235, 235))
+            text_lines(
+                cv,
+                x + cv.t(0.04),
+                top + cv.t(0.01),
+                min(cv.w, x + ew) - cv.t(0.04),
+                top + bh - cv.t(0.02),
+                rng,
+                rng.uniform(0.05, 0.08),
+                (235, 235, 235),
+            )
         elif kind == "frames":
             ew = 0
             for _ in range(int(rng.integers(2, 5))):
                 fw, fh = cv.t(rng.uniform(0.15, 0.3)), cv.t(rng.uniform(0.2, 0.3))
                 top = row(rng.uniform(2.55, 2.75))
                 cv.rect(x + ew, top, x + ew + fw, top + fh, jitter((25, 25, 25), rng, 5))
-                cv.rect(x + ew + cv.t(0.02), top + cv.t(0.02), x + ew + fw - cv.t(0.02), top + fh - cv.t(0.02),
-                        random_color(rng, v=(0.5, 0.9)))
+                cv.rect(
+                    x + ew + cv.t(0.02),
+                    top + cv.t(0.02),
+                    x + ew + fw - cv.t(0.02),
+                    top + fh - cv.t(0.02),
+                    random_color(rng, v=(0.5, 0.9)),
+                )
                 ew += fw + cv.t(0.05)
         elif kind == "vent":
             ew = cv.t(rng.uniform(0.4, 0.7))
@@ -616,36 +807,89 @@ def _wall_high_band(cv: Canvas, rng: np.random.Generator, row) -> None:
                 col = random_color(rng, v=(0.25, 0.85))
                 cv.rect(bx, board - bh, min(x + ew, bx + bw), board, col)
                 if bw > cv.t(0.05):
-                    cv.rect(bx + cv.t(0.015), board - bh + cv.t(0.03), min(x + ew, bx + bw) - cv.t(0.015),
-                            board - bh + cv.t(0.08), contrasting(rng, col, 50))
+                    cv.rect(
+                        bx + cv.t(0.015),
+                        board - bh + cv.t(0.03),
+                        min(x + ew, bx + bw) - cv.t(0.015),
+                        board - bh + cv.t(0.08),
+                        contrasting(rng, col, 50),
+                    )
                 bx += bw + int(rng.integers(0, cv.t(0.03)))
-            cv.rect(x - cv.t(0.03), board, x + ew + cv.t(0.03), board + cv.t(0.025), jitter((90, 90, 90), rng, 20))
+            cv.rect(
+                x - cv.t(0.03),
+                board,
+                x + ew + cv.t(0.03),
+                board + cv.t(0.025),
+                jitter((90, 90, 90), rng, 20),
+            )
         elif kind == "clock":
             ew = cv.t(0.3)
             top = row(2.7)
             cv.rect(x, top, x + ew, top + ew, (40, 40, 40))
-            cv.rect(x + cv.t(0.02), top + cv.t(0.02), x + ew - cv.t(0.02), top + ew - cv.t(0.02), (235, 235, 235))
+            cv.rect(
+                x + cv.t(0.02),
+                top + cv.t(0.02),
+                x + ew - cv.t(0.02),
+                top + ew - cv.t(0.02),
+                (235, 235, 235),
+            )
             c = ew // 2
             for k in range(4):
                 dx, dy = [(0, -1), (1, 0), (0, 1), (-1, 0)][k]
                 px, py = x + c + dx * cv.t(0.1), top + c + dy * cv.t(0.1)
-                cv.rect(px - cv.t(0.008), py - cv.t(0.008), px + cv.t(0.008), py + cv.t(0.008), (30, 30, 30))
-            cv.rect(x + c - cv.t(0.006), top + c - cv.t(0.09), x + c + cv.t(0.006), top + c, (30, 30, 30))
-            cv.rect(x + c, top + c - cv.t(0.006), x + c + cv.t(0.07), top + c + cv.t(0.006), (30, 30, 30))
+                cv.rect(
+                    px - cv.t(0.008),
+                    py - cv.t(0.008),
+                    px + cv.t(0.008),
+                    py + cv.t(0.008),
+                    (30, 30, 30),
+                )
+            cv.rect(
+                x + c - cv.t(0.006),
+                top + c - cv.t(0.09),
+                x + c + cv.t(0.006),
+                top + c,
+                (30, 30, 30),
+            )
+            cv.rect(
+                x + c,
+                top + c - cv.t(0.006),
+                x + c + cv.t(0.07),
+                top + c + cv.t(0.006),
+                (30, 30, 30),
+            )
         else:
             ew = cv.t(rng.uniform(0.2, 0.6))
         x += ew + cv.t(rng.uniform(0.1, 0.4))
 
 
-def compose_floor(width_m: float, depth_m: float, rng: np.random.Generator, texel: float,
-                  grain: float, rug: tuple[float, float, float, float] | None = None
-                  ) -> tuple[np.ndarray, np.ndarray]:
+def compose_floor(
+    width_m: float,
+    depth_m: float,
+    rng: np.random.Generator,
+    texel: float,
+    grain: float,
+    rug: tuple[float, float, float, float] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """Checkerboard-like tiles (repeated pattern) and a patterned rug at ``rug``
     (x0, y0, x1, y1 m)."""
     cv = Canvas(int(round(width_m / texel)), int(round(depth_m / texel)), (128, 128, 128), texel)
     a = jitter((170, 180, 185), rng, 15)
     b = jitter((95, 105, 115), rng, 15)
-    tiles(cv, 0, 0, cv.w, cv.h, rng, rng.choice([0.4, 0.5]), 0.0, [a, b], (0, 0, 0), checker=True, var=8)
+    tiles(
+        cv,
+        0,
+        0,
+        cv.w,
+        cv.h,
+        rng,
+        rng.choice([0.4, 0.5]),
+        0.0,
+        [a, b],
+        (0, 0, 0),
+        checker=True,
+        var=8,
+    )
     # Speckles: small stones in the terrazzo-like tiles.
     for _ in range(int(cv.w * cv.h * texel * texel * 6)):
         x, y = int(rng.integers(cv.w)), int(rng.integers(cv.h))
@@ -668,11 +912,24 @@ def compose_floor(width_m: float, depth_m: float, rng: np.random.Generator, texe
     return img, cv.corners()
 
 
-def compose_ceiling(width_m: float, depth_m: float, rng: np.random.Generator, texel: float,
-                    grain: float) -> tuple[np.ndarray, np.ndarray]:
+def compose_ceiling(
+    width_m: float, depth_m: float, rng: np.random.Generator, texel: float, grain: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Suspended-ceiling grid (repeated), speckled acoustic tiles, light panels and vents."""
     cv = Canvas(int(round(width_m / texel)), int(round(depth_m / texel)), (200, 200, 200), texel)
-    tiles(cv, 0, 0, cv.w, cv.h, rng, 0.6, 0.024, [jitter((215, 218, 220), rng, 5)], (150, 150, 155), var=4)
+    tiles(
+        cv,
+        0,
+        0,
+        cv.w,
+        cv.h,
+        rng,
+        0.6,
+        0.024,
+        [jitter((215, 218, 220), rng, 5)],
+        (150, 150, 155),
+        var=4,
+    )
     for _ in range(int(cv.w * cv.h * texel * texel * 40)):
         x, y = int(rng.integers(cv.w)), int(rng.integers(cv.h))
         cv.rect(x, y, x + 2, y + 2, (175, 178, 180), register=False)
@@ -686,18 +943,37 @@ def compose_ceiling(width_m: float, depth_m: float, rng: np.random.Generator, te
                 cv.rect(x0, y0, x0 + T - g, y0 + T - g, (150, 150, 150))
                 for k in range(6):
                     yy = y0 + cv.t(0.03) + k * cv.t(0.09)
-                    cv.rect(x0 + cv.t(0.03), yy, x0 + T - g - cv.t(0.03), yy + cv.t(0.06), (250, 250, 250))
+                    cv.rect(
+                        x0 + cv.t(0.03),
+                        yy,
+                        x0 + T - g - cv.t(0.03),
+                        yy + cv.t(0.06),
+                        (250, 250, 250),
+                    )
             else:  # vent
                 for k in range(5):
                     d = cv.t(0.05) * k
-                    cv.rect(x0 + d, y0 + d, x0 + T - g - d, y0 + T - g - d,
-                            (90, 90, 90) if k % 2 else (200, 200, 205))
+                    cv.rect(
+                        x0 + d,
+                        y0 + d,
+                        x0 + T - g - d,
+                        y0 + T - g - d,
+                        (90, 90, 90) if k % 2 else (200, 200, 205),
+                    )
     img = cv.finish(rng, grain)
     return img, cv.corners()
 
 
-def compose_box_face(kind: str, role: str, width_m: float, height_m: float, rng: np.random.Generator,
-                     texel: float, grain: float, labels: list[Canvas]) -> tuple[np.ndarray, np.ndarray]:
+def compose_box_face(
+    kind: str,
+    role: str,
+    width_m: float,
+    height_m: float,
+    rng: np.random.Generator,
+    texel: float,
+    grain: float,
+    labels: list[Canvas],
+) -> tuple[np.ndarray, np.ndarray]:
     """Texture of one face of a piece of furniture.
 
     ``kind``: shelf | cabinet | crate | table_top | table_leg;
@@ -720,7 +996,17 @@ def compose_box_face(kind: str, role: str, width_m: float, height_m: float, rng:
         if role == "front":
             _cabinet_front(cv, rng)
         elif role == "top":
-            mondrian(cv, cv.t(0.03), cv.t(0.03), W - cv.t(0.03), H - cv.t(0.03), rng, 10, min_m=0.05, max_frac=0.5)
+            mondrian(
+                cv,
+                cv.t(0.03),
+                cv.t(0.03),
+                W - cv.t(0.03),
+                H - cv.t(0.03),
+                rng,
+                10,
+                min_m=0.05,
+                max_frac=0.5,
+            )
         else:
             _stickers(cv, rng, labels, 3)
     elif kind == "crate":
@@ -751,7 +1037,17 @@ def make_labels(rng: np.random.Generator, texel: float, n: int = 3) -> list[Canv
         cv = Canvas(int(round(lw / texel)), int(round(lh / texel)), (238, 238, 238), texel)
         band = random_color(rng, s=(0.6, 0.9), v=(0.4, 0.8))
         cv.rect(0, 0, cv.w, cv.t(0.025), band)
-        text_lines(cv, cv.t(0.01), cv.t(0.03), cv.w - cv.t(0.01), cv.h - cv.t(0.01), rng, 0.01, (30, 30, 30), 1.3)
+        text_lines(
+            cv,
+            cv.t(0.01),
+            cv.t(0.03),
+            cv.w - cv.t(0.01),
+            cv.h - cv.t(0.01),
+            rng,
+            0.01,
+            (30, 30, 30),
+            1.3,
+        )
         bars = cv.t(0.002)
         bx = cv.w - cv.t(0.06)
         for k in range(10):  # a barcode-ish block
@@ -781,7 +1077,11 @@ def _stickers(cv: Canvas, rng: np.random.Generator, labels: list[Canvas], n: int
         if labels and rng.random() < 0.7:
             lab = labels[int(rng.integers(len(labels)))]
             if lab.w < cv.w and lab.h < cv.h:
-                cv.paste(lab, int(rng.integers(0, cv.w - lab.w + 1)), int(rng.integers(0, cv.h - lab.h + 1)))
+                cv.paste(
+                    lab,
+                    int(rng.integers(0, cv.w - lab.w + 1)),
+                    int(rng.integers(0, cv.h - lab.h + 1)),
+                )
         else:
             sw, sh = cv.t(rng.uniform(0.05, 0.15)), cv.t(rng.uniform(0.05, 0.15))
             if sw < cv.w and sh < cv.h:
@@ -813,7 +1113,13 @@ def _cabinet_front(cv: Canvas, rng: np.random.Generator) -> None:
     for d in range(n_drawers):
         y0 = top_doors + d * drawer_h + gap
         cv.rect(gap, y0, W - gap, y0 + drawer_h - 2 * gap, jitter(panel, rng, 6))
-        cv.rect(W // 2 - cv.t(0.08), y0 + cv.t(0.04), W // 2 + cv.t(0.08), y0 + cv.t(0.06), (190, 190, 195))
+        cv.rect(
+            W // 2 - cv.t(0.08),
+            y0 + cv.t(0.04),
+            W // 2 + cv.t(0.08),
+            y0 + cv.t(0.06),
+            (190, 190, 195),
+        )
 
 
 def _desk_clutter(cv: Canvas, rng: np.random.Generator) -> None:
@@ -823,9 +1129,24 @@ def _desk_clutter(cv: Canvas, rng: np.random.Generator) -> None:
         if pw >= cv.w or ph >= cv.h:
             continue
         x, y = int(rng.integers(0, cv.w - pw)), int(rng.integers(0, cv.h - ph))
-        cv.rect(x, y, x + pw, y + ph, hsv_color(rng.random(), rng.uniform(0, 0.2), rng.uniform(0.85, 0.97)))
-        text_lines(cv, x + cv.t(0.015), y + cv.t(0.015), x + pw - cv.t(0.015), y + ph - cv.t(0.015), rng, 0.01,
-                   (40, 40, 40), 1.3)
+        cv.rect(
+            x,
+            y,
+            x + pw,
+            y + ph,
+            hsv_color(rng.random(), rng.uniform(0, 0.2), rng.uniform(0.85, 0.97)),
+        )
+        text_lines(
+            cv,
+            x + cv.t(0.015),
+            y + cv.t(0.015),
+            x + pw - cv.t(0.015),
+            y + ph - cv.t(0.015),
+            rng,
+            0.01,
+            (40, 40, 40),
+            1.3,
+        )
     lw, lh = cv.t(0.34), cv.t(0.24)
     if lw < cv.w and lh < cv.h:
         x, y = int(rng.integers(0, cv.w - lw)), int(rng.integers(0, cv.h - lh))
@@ -836,4 +1157,6 @@ def _desk_clutter(cv: Canvas, rng: np.random.Generator) -> None:
                 kx, ky = x + cv.t(0.025) + i * (k + 2), y + cv.t(0.03) + j * (k + 2)
                 cv.rect(kx, ky, kx + k, ky + k, (120, 120, 125))
         cx = x + lw // 2  # touchpad
-        cv.rect(cx - cv.t(0.05), y + lh - cv.t(0.08), cx + cv.t(0.05), y + lh - cv.t(0.02), (80, 80, 85))
+        cv.rect(
+            cx - cv.t(0.05), y + lh - cv.t(0.08), cx + cv.t(0.05), y + lh - cv.t(0.02), (80, 80, 85)
+        )

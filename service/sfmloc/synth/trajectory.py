@@ -72,7 +72,9 @@ def look_at(eye, target, roll: float = 0.0) -> Rigid3d:
 
 
 # --------------------------------------------------------------------------- helpers
-def _smooth(rng: np.random.Generator, t: np.ndarray, f_lo: float, f_hi: float, n: int = 4) -> np.ndarray:
+def _smooth(
+    rng: np.random.Generator, t: np.ndarray, f_lo: float, f_hi: float, n: int = 4
+) -> np.ndarray:
     """A smooth random signal in [-1, 1]: a few sinusoids of frequencies in [f_lo, f_hi] Hz."""
     f = rng.uniform(f_lo, f_hi, n)
     ph = rng.uniform(0, 2 * np.pi, n)
@@ -196,7 +198,9 @@ def _free_distance(layout: RoomLayout, P: np.ndarray, yaw: float) -> float:
     return float(np.min(dist))
 
 
-def _flight_yaw(layout: RoomLayout, P: np.ndarray, rng: np.random.Generator, fps: float) -> np.ndarray:
+def _flight_yaw(
+    layout: RoomLayout, P: np.ndarray, rng: np.random.Generator, fps: float
+) -> np.ndarray:
     """Hold a heading with slow drift, then turn in a burst with a raised-cosine rate profile.
 
     Each new heading is chosen so the camera sees at least ~1.6 m of free space ahead over
@@ -235,8 +239,9 @@ def _flight_yaw(layout: RoomLayout, P: np.ndarray, rng: np.random.Generator, fps
     return yaw
 
 
-def orbit(layout: RoomLayout, n_frames: int, seed: int, fps: float = 30.0,
-          look: str = "inward") -> list[Rigid3d]:
+def orbit(
+    layout: RoomLayout, n_frames: int, seed: int, fps: float = 30.0, look: str = "inward"
+) -> list[Rigid3d]:
     if look not in ("inward", "outward"):
         raise ValueError(f"orbit look must be 'inward' or 'outward', got {look!r}")
     rng = np.random.default_rng([seed, _SEED_TAGS["orbit"]])
@@ -249,11 +254,19 @@ def orbit(layout: RoomLayout, n_frames: int, seed: int, fps: float = 30.0,
     z = 1.45 + 0.1 * _smooth(rng, t, 0.03, 0.1)
     yaw = phi + (np.pi if look == "inward" else 0.0)
     pitch = np.radians(-12.0 if look == "inward" else -4.0) * np.ones(n_frames)
-    return [pose_from_angles([xy[i, 0], xy[i, 1], z[i]], yaw[i], pitch[i], 0.0) for i in range(n_frames)]
+    return [
+        pose_from_angles([xy[i, 0], xy[i, 1], z[i]], yaw[i], pitch[i], 0.0) for i in range(n_frames)
+    ]
 
 
-def make_trajectory(kind: str, n_frames: int, seed: int = 0, scene: Scene | RoomLayout | None = None,
-                    fps: float = 30.0, **kwargs) -> list[Rigid3d]:
+def make_trajectory(
+    kind: str,
+    n_frames: int,
+    seed: int = 0,
+    scene: Scene | RoomLayout | None = None,
+    fps: float = 30.0,
+    **kwargs,
+) -> list[Rigid3d]:
     """``cam_from_world`` of ``n_frames`` frames at ``fps`` of a ``walk``, ``flight`` or ``orbit``.
 
     ``scene`` (a ``Scene`` or its ``RoomLayout``) defaults to the room of ``seed``; an orbit
@@ -328,7 +341,9 @@ def mapping_views(scene: Scene | RoomLayout, n: int, seed: int = 0) -> list[Rigi
         if check_trajectory(layout, [pose], min_view_depth=0.8):
             continue
         # The target must be what the camera sees.
-        t_hit, f_hit = raycast(layout, eye[None], (target - eye)[None] / np.linalg.norm(target - eye))
+        t_hit, f_hit = raycast(
+            layout, eye[None], (target - eye)[None] / np.linalg.norm(target - eye)
+        )
         if f_hit[0] != qi:
             continue
         poses.append(pose)
@@ -342,8 +357,12 @@ def mapping_views(scene: Scene | RoomLayout, n: int, seed: int = 0) -> list[Rigi
         th = rng.uniform(0, 2 * np.pi)
         xy = track.point(th, rng.uniform(0.65, 1.08))
         eye = np.array([xy[0], xy[1], rng.uniform(1.0, 1.9)])
-        pose = pose_from_angles(eye, yaws[k] + rng.uniform(-0.2, 0.2), np.radians(rng.uniform(-22, 8)),
-                                np.radians(rng.uniform(-4, 4)))
+        pose = pose_from_angles(
+            eye,
+            yaws[k] + rng.uniform(-0.2, 0.2),
+            np.radians(rng.uniform(-22, 8)),
+            np.radians(rng.uniform(-4, 4)),
+        )
         if check_trajectory(layout, [pose], min_view_depth=0.8):
             continue
         poses.append(pose)
@@ -368,8 +387,13 @@ def view_depth(layout: RoomLayout | Scene, poses: list[Rigid3d]) -> np.ndarray:
     return dist
 
 
-def check_trajectory(layout: RoomLayout | Scene, poses: list[Rigid3d], wall_clearance: float = WALL_CLEARANCE,
-                     box_clearance: float = BOX_CLEARANCE, min_view_depth: float = MIN_VIEW_DEPTH) -> list[str]:
+def check_trajectory(
+    layout: RoomLayout | Scene,
+    poses: list[Rigid3d],
+    wall_clearance: float = WALL_CLEARANCE,
+    box_clearance: float = BOX_CLEARANCE,
+    min_view_depth: float = MIN_VIEW_DEPTH,
+) -> list[str]:
     """Problems of a list of ``cam_from_world`` poses (empty when all is fine)."""
     layout = layout.layout if isinstance(layout, Scene) else layout
     C = np.stack([p.center for p in poses])
@@ -386,7 +410,9 @@ def check_trajectory(layout: RoomLayout | Scene, poses: list[Rigid3d], wall_clea
         below_top = C[:, 2] < b.z1 + box_clearance
         bad = (bd < box_clearance) & below_top
         if bad.any():
-            out.append(f"frame {int(np.flatnonzero(bad)[0])} is within {box_clearance} m of {b.name}")
+            out.append(
+                f"frame {int(np.flatnonzero(bad)[0])} is within {box_clearance} m of {b.name}"
+            )
     vd = view_depth(layout, poses)
     if vd.min() < min_view_depth:
         out.append(f"frame {int(vd.argmin())} looks at a surface {vd.min():.2f} m away")

@@ -50,8 +50,15 @@ def _face_axes(scene: Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return cached
 
 
-def visible_points(scene: Scene, camera: Camera, cam_from_world: Rigid3d, *, face_id: np.ndarray | None = None,
-                   conf: VisibilityConf | None = None, render_conf: RenderConf | None = None) -> Observations:
+def visible_points(
+    scene: Scene,
+    camera: Camera,
+    cam_from_world: Rigid3d,
+    *,
+    face_id: np.ndarray | None = None,
+    conf: VisibilityConf | None = None,
+    render_conf: RenderConf | None = None,
+) -> Observations:
     """The features ``cam_from_world`` observes (see the module docstring for the rules).
 
     ``face_id`` is the z-buffer's face-id image of this view when the caller rendered it
@@ -70,7 +77,11 @@ def visible_points(scene: Scene, camera: Camera, cam_from_world: Rigid3d, *, fac
     to_cam = C - F.xyz
     dist = np.linalg.norm(to_cam, axis=1)
     cos_obl = np.einsum("ij,ij->i", to_cam, fn) / np.maximum(dist, 1e-12)
-    ok = (z > near) & camera.in_image(xy, conf.margin_px) & (cos_obl >= np.cos(np.radians(conf.max_obliquity_deg)))
+    ok = (
+        (z > near)
+        & camera.in_image(xy, conf.margin_px)
+        & (cos_obl >= np.cos(np.radians(conf.max_obliquity_deg)))
+    )
     idx = np.flatnonzero(ok)
     if len(idx) == 0:
         return empty

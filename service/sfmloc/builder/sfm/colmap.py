@@ -43,12 +43,14 @@ def load_colmap_input(
         if len(missing) == len(names):
             present = list_images(image_dir)[:3]
             raise InputError(
-                f"[input] COLMAP model {model_dir} and image folder {image_dir} do not match: none of "
+                f"[input] COLMAP model {model_dir} and image folder {image_dir} do not match: none "
+                "of "
                 f"the model's {len(names)} images is there (model has e.g. {shown}; folder has "
                 f"{', '.join(present) if present else 'no images'})"
             )
         raise InputError(
-            f"[input] {len(missing)} of the {len(names)} images of COLMAP model {model_dir} are missing "
+            f"[input] {len(missing)} of the {len(names)} images of COLMAP model {model_dir} are "
+            "missing "
             f"from {image_dir}: {shown}"
         )
     if not rec.points3D:

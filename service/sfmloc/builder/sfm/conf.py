@@ -15,6 +15,7 @@ from ...errors import ConfigError
 
 log = logging.getLogger(__name__)
 
+
 class SfmConf(StrictModel):
     """Parameters of the SfM front-end (known-poses triangulation and images-only SfM).
 
@@ -27,11 +28,20 @@ class SfmConf(StrictModel):
     sift_backend: Literal["opencv", "pycolmap"] = "opencv"
     max_features: int = Field(4000, ge=64, description="max SIFT features per image")
     first_octave: int = Field(
-        -1, ge=-1, le=2, description="pycolmap: -1 upsamples 2x first: ~3x the features on VGA, ~3x slower"
+        -1,
+        ge=-1,
+        le=2,
+        description="pycolmap: -1 upsamples 2x first: ~3x the features on VGA, ~3x slower",
     )
-    peak_threshold: float = Field(0.02 / 3, gt=0, description="pycolmap SIFT DoG peak threshold (COLMAP default)")
-    contrast_threshold: float = Field(0.015, gt=0, description="OpenCV SIFT contrastThreshold (OpenCV default 0.04)")
-    max_image_size: int = Field(1600, ge=64, description="images larger than this are downscaled for SIFT")
+    peak_threshold: float = Field(
+        0.02 / 3, gt=0, description="pycolmap SIFT DoG peak threshold (COLMAP default)"
+    )
+    contrast_threshold: float = Field(
+        0.015, gt=0, description="OpenCV SIFT contrastThreshold (OpenCV default 0.04)"
+    )
+    max_image_size: int = Field(
+        1600, ge=64, description="images larger than this are downscaled for SIFT"
+    )
     # matching
     max_ratio: float = Field(0.8, gt=0, le=1, description="Lowe ratio test")
     min_num_inliers: int = Field(15, ge=5, description="min verified matches per image pair")
@@ -54,12 +64,20 @@ class SfmConf(StrictModel):
         0.5, gt=0, le=1, description="known poses, geometric: min frustum overlap at scene depth"
     )
     pair_neighbors: int = Field(5, ge=0, description="known poses: nearest views matched per image")
-    pair_sequential: int = Field(2, ge=0, description="known poses: also match this many next images in order")
-    pair_max_angle_deg: float = Field(45.0, gt=0, le=180, description="known poses: max viewing-direction angle")
+    pair_sequential: int = Field(
+        2, ge=0, description="known poses: also match this many next images in order"
+    )
+    pair_max_angle_deg: float = Field(
+        45.0, gt=0, le=180, description="known poses: max viewing-direction angle"
+    )
     # pairs for images only
     matching: Literal["sequential", "exhaustive"] = "sequential"
-    sequential_overlap: int = Field(5, ge=1, description="images only: match each image with the next N")
-    quadratic_overlap: bool = Field(True, description="images only: and with the next 2^k, k < overlap")
+    sequential_overlap: int = Field(
+        5, ge=1, description="images only: match each image with the next N"
+    )
+    quadratic_overlap: bool = Field(
+        True, description="images only: and with the next 2^k, k < overlap"
+    )
     # triangulation and point filtering
     min_track_length: int = Field(3, ge=2, description="drop points seen in fewer images")
     # Known poses: when the median image would see fewer points than this with tracks of
@@ -77,7 +95,9 @@ class SfmConf(StrictModel):
     # images only: intrinsics refinement when a camera is given (always refined otherwise)
     refine_given_intrinsics: bool = False
     global_ba_ratio: float = Field(
-        1.4, ge=1.0, description="images only: global BA when the model grew by this factor (COLMAP 1.1)"
+        1.4,
+        ge=1.0,
+        description="images only: global BA when the model grew by this factor (COLMAP 1.1)",
     )
     # execution
     num_threads: int = Field(-1, description="-1: all cores")
@@ -114,7 +134,6 @@ def sfm_conf(preset: str = "default", **overrides: Any) -> SfmConf:
 
 def num_threads(conf: SfmConf) -> int:
     return conf.num_threads if conf.num_threads > 0 else (os.cpu_count() or 1)
-
 
 
 def incremental_options(conf: SfmConf) -> pycolmap.IncrementalPipelineOptions:

@@ -43,7 +43,9 @@ def camera_from_pycolmap(cam: pycolmap.Camera) -> Camera:
             f"camera {cam.camera_id} has COLMAP model {name}, which sfmloc does not support "
             f"(supported: {', '.join(CAMERA_MODELS)})"
         )
-    return Camera(name, int(cam.width), int(cam.height), np.asarray(cam.params, dtype=np.float64).copy())
+    return Camera(
+        name, int(cam.width), int(cam.height), np.asarray(cam.params, dtype=np.float64).copy()
+    )
 
 
 def camera_to_pycolmap(camera: Camera, camera_id: int) -> pycolmap.Camera:
@@ -74,7 +76,12 @@ def reconstruction_from_pycolmap(rec: pycolmap.Reconstruction) -> Reconstruction
             pid = int(p.point3D_id)
             ids[k] = INVALID_POINT3D_ID if pid == _PYCOLMAP_INVALID else pid
         out.images[int(iid)] = Image(
-            int(iid), str(im.name), int(im.camera_id), rigid3d_from_pycolmap(_value(im.cam_from_world)), xy, ids
+            int(iid),
+            str(im.name),
+            int(im.camera_id),
+            rigid3d_from_pycolmap(_value(im.cam_from_world)),
+            xy,
+            ids,
         )
     for pid, p in rec.points3D.items():
         els = p.track.elements
@@ -105,24 +112,33 @@ def reconstruction_to_pycolmap(rec: Reconstruction) -> pycolmap.Reconstruction:
         out.add_image_with_trivial_frame(pim, rigid3d_to_pycolmap(im.cam_from_world))
     for pid, p in sorted(rec.points3D.items()):
         track = pycolmap.Track(
-            [pycolmap.TrackElement(int(i), int(j)) for i, j in zip(p.track_image_ids, p.track_point2D_idxs)]
+            [
+                pycolmap.TrackElement(int(i), int(j))
+                for i, j in zip(p.track_image_ids, p.track_point2D_idxs)
+            ]
         )
         out.add_point3D_with_id(
             int(pid),
             pycolmap.Point3D(
-                xyz=np.asarray(p.xyz, dtype=np.float64), color=np.asarray(p.rgb, np.uint8), error=float(p.error), track=track
+                xyz=np.asarray(p.xyz, dtype=np.float64),
+                color=np.asarray(p.rgb, np.uint8),
+                error=float(p.error),
+                track=track,
             ),
         )
     return out
 
 
-def filter_points(rec: Reconstruction, min_track_length: int = 2, max_error: float | None = None) -> int:
+def filter_points(
+    rec: Reconstruction, min_track_length: int = 2, max_error: float | None = None
+) -> int:
     """Drop points with a shorter track or a larger mean reprojection error (in place; the
     images' ``point3D_ids`` of their observations become -1). Returns how many were dropped."""
     drop = [
         pid
         for pid, p in rec.points3D.items()
-        if len(p.track_image_ids) < min_track_length or (max_error is not None and p.error > max_error)
+        if len(p.track_image_ids) < min_track_length
+        or (max_error is not None and p.error > max_error)
     ]
     _delete_points(rec, drop)
     return len(drop)

@@ -79,11 +79,15 @@ def reconstruct_images_only(
     conf = conf or SfmConf()
     rep = Reporter(progress, should_cancel)
     image_dir = Path(image_dir)
-    cam = None if camera is None else (camera if isinstance(camera, Camera) else Camera.parse(camera))
+    cam = (
+        None if camera is None else (camera if isinstance(camera, Camera) else Camera.parse(camera))
+    )
     names = select_images(list_images(image_dir), image_names, stride, image_dir)
     check_names(names, image_dir)
     if len(names) < 2:
-        raise BuildError(f"need at least two images for SfM, found {len(names)} in {image_dir}", stage="input")
+        raise BuildError(
+            f"need at least two images for SfM, found {len(names)} in {image_dir}", stage="input"
+        )
     with quiet_colmap():
         if cam is not None:
             pcam = to_pycolmap_camera(cam)
@@ -120,7 +124,9 @@ def reconstruct_images_only(
 
             def next_image() -> None:
                 n_reg[0] += 1
-                rep.report("mapping", min(0.99, n_reg[0] / len(names)), f"registered {n_reg[0]} images")
+                rep.report(
+                    "mapping", min(0.99, n_reg[0] / len(names)), f"registered {n_reg[0]} images"
+                )
 
             rep.report("mapping", 0.0, f"incremental mapping of {len(names)} images")
             out_dir = work / "sparse"
@@ -145,7 +151,8 @@ def reconstruct_images_only(
                 log.log(
                     logging.WARNING if best.num_reg_images() < len(names) else logging.INFO,
                     "SfM made %d models (%s images); keeping the largest",
-                    len(models), "+".join(str(m.num_reg_images()) for m in models.values()),
+                    len(models),
+                    "+".join(str(m.num_reg_images()) for m in models.values()),
                 )
             rec = reconstruction_from_pycolmap(best)
     dropped = filter_points(rec, conf.min_track_length, conf.max_reproj_error)
@@ -156,7 +163,8 @@ def reconstruct_images_only(
     if n_unreg:
         log.warning("%d of %d images could not be registered and are left out", n_unreg, len(names))
     msg = (
-        f"{len(rec.images)}/{len(names)} images registered, {st['points3D']} points (dropped {dropped}: "
+        f"{len(rec.images)}/{len(names)} images registered, {st['points3D']} points (dropped "
+        f"{dropped}: "
         f"track < {conf.min_track_length} or error > {conf.max_reproj_error:g} px), "
         f"mean track {st['mean_track_length']:.2f}, "
         f"mean error {st['mean_reproj_error_px']:.2f} px; arbitrary SfM frame and scale"

@@ -20,6 +20,7 @@ log = logging.getLogger(__name__)
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".ppm", ".pgm")
 
+
 def list_images(image_dir: str | Path) -> list[str]:
     """Image files under ``image_dir`` (recursive, hidden entries skipped) as sorted relative
     POSIX names, the way COLMAP names images."""
@@ -35,7 +36,9 @@ def list_images(image_dir: str | Path) -> list[str]:
     return sorted(names)
 
 
-def select_images(names: list[str], image_names: Sequence[str] | None, stride: int, image_dir: Path) -> list[str]:
+def select_images(
+    names: list[str], image_names: Sequence[str] | None, stride: int, image_dir: Path
+) -> list[str]:
     """Restrict to ``image_names`` (relative names) when given, then keep every ``stride``-th."""
     if stride < 1:
         raise InputError(f"[input] stride must be >= 1, got {stride}")
@@ -45,9 +48,8 @@ def select_images(names: list[str], image_names: Sequence[str] | None, stride: i
         missing = [n for n in wanted if n not in have]
         if missing:
             raise InputError(
-                f"[input] {len(missing)} of the {len(wanted)} requested images are not in {image_dir}: "
-                + ", ".join(missing[:5])
-                + (" ..." if len(missing) > 5 else "")
+                f"[input] {len(missing)} of the {len(wanted)} requested images are not in "
+                f"{image_dir}: " + ", ".join(missing[:5]) + (" ..." if len(missing) > 5 else "")
             )
         names = wanted
     return names[::stride]
@@ -58,7 +60,8 @@ def check_names(names: Sequence[str], image_dir: Path) -> None:
     spaced = [n for n in names if any(c.isspace() for c in n)]
     if spaced:
         raise InputError(
-            f"[input] {len(spaced)} image name(s) in {image_dir} contain whitespace, which COLMAP's pair "
+            f"[input] {len(spaced)} image name(s) in {image_dir} contain whitespace, which "
+            "COLMAP's pair "
             f"lists cannot hold, e.g. {spaced[0]!r}; rename them"
         )
 
@@ -99,11 +102,14 @@ def check_images(
                 if want is not None and sizes[name] != tuple(want):
                     w, h = sizes[name]
                     raise ImageDecodeError(
-                        f"[input] image {image_dir / name} is {w}x{h} but {what} is {want[0]}x{want[1]}"
+                        f"[input] image {image_dir / name} is {w}x{h} but {what} is "
+                        f"{want[0]}x{want[1]}"
                     )
                 if (i + 1) % 50 == 0:
                     rep.check("input")
-                    rep.report("input", (i + 1) / len(names), f"checked {i + 1}/{len(names)} images")
+                    rep.report(
+                        "input", (i + 1) / len(names), f"checked {i + 1}/{len(names)} images"
+                    )
         except BaseException:
             for _, f in futures:  # fail now, not after decoding the rest
                 f.cancel()

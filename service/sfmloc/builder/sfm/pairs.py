@@ -71,7 +71,10 @@ def near_pairs(
 
 
 def frustum_overlap(
-    camera: Camera, cam_from_worlds: Sequence[Rigid3d], i: int, depth: float,
+    camera: Camera,
+    cam_from_worlds: Sequence[Rigid3d],
+    i: int,
+    depth: float,
     grid: int = OVERLAP_GRID,
 ) -> np.ndarray:
     """For every camera j: the fraction of image ``i``'s view at ``depth`` (a grid of image

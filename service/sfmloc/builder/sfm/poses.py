@@ -87,7 +87,8 @@ def match_poses_to_images(
     if not matched:
         raise InputError(
             f"[input] no pose in {poses_file} matches an image in {image_dir} "
-            f"({len(poses)} poses, e.g. {poses.entries[0].key!r}; {len(names)} images, e.g. {names[0]!r})"
+            f"({len(poses)} poses, e.g. {poses.entries[0].key!r}; {len(names)} images, e.g. "
+            f"{names[0]!r})"
         )
     n_skipped = len(names) - len(matched)
     if n_skipped:
@@ -95,11 +96,21 @@ def match_poses_to_images(
         examples = [n for n in names if n not in have][:3]
         log.warning(
             "%d of %d images in %s have no pose in %s and are skipped (e.g. %s)",
-            n_skipped, len(names), image_dir, poses_file, ", ".join(examples),
+            n_skipped,
+            len(names),
+            image_dir,
+            poses_file,
+            ", ".join(examples),
         )
     n_unused = len(poses) - len(matched)
     if n_unused:
-        log.info("%d of %d poses in %s have no image in %s (ignored)", n_unused, len(poses), poses_file, image_dir)
+        log.info(
+            "%d of %d poses in %s have no image in %s (ignored)",
+            n_unused,
+            len(poses),
+            poses_file,
+            image_dir,
+        )
     return matched
 
 
@@ -120,13 +131,15 @@ def _match_by_name(poses: PoseList, names: Sequence[str], poses_file) -> list[tu
                 continue
             if len(cands) > 1:
                 raise InputError(
-                    f"[input] pose {e.key!r} in {poses_file} is ambiguous: images {', '.join(cands[:4])} "
+                    f"[input] pose {e.key!r} in {poses_file} is ambiguous: images "
+                    f"{', '.join(cands[:4])} "
                     "share its name stem; give poses with the images' relative names"
                 )
             name = cands[0]
         if name in owner:
             raise InputError(
-                f"[input] poses {owner[name]!r} and {e.key!r} in {poses_file} both match image {name!r}"
+                f"[input] poses {owner[name]!r} and {e.key!r} in {poses_file} both match image "
+                f"{name!r}"
             )
         owner[name] = e.key
         out.append((name, e.cam_from_world))
@@ -141,7 +154,9 @@ def _numeric_stem(name: str) -> float | None:
     return v if math.isfinite(v) else None
 
 
-def _match_tum(poses: PoseList, names: Sequence[str], poses_file, image_dir, max_dt: float) -> list[tuple[str, Rigid3d]]:
+def _match_tum(
+    poses: PoseList, names: Sequence[str], poses_file, image_dir, max_dt: float
+) -> list[tuple[str, Rigid3d]]:
     stamps = [_numeric_stem(n) for n in names]
     if all(s is not None for s in stamps):
         order = sorted(range(len(poses.entries)), key=lambda i: poses.entries[i].timestamp)
@@ -155,7 +170,8 @@ def _match_tum(poses: PoseList, names: Sequence[str], poses_file, image_dir, max
                 continue
             if best in used:
                 raise InputError(
-                    f"[input] images {used[best]!r} and {name!r} both match the pose at t={ts[best]} in "
+                    f"[input] images {used[best]!r} and {name!r} both match the pose at "
+                    f"t={ts[best]} in "
                     f"{poses_file} (within {max_dt} s)"
                 )
             used[best] = name
@@ -164,11 +180,14 @@ def _match_tum(poses: PoseList, names: Sequence[str], poses_file, image_dir, max
     if len(names) == len(poses):
         log.info(
             "TUM poses %s matched to the %d images of %s by order (file names are not timestamps)",
-            poses_file, len(names), image_dir,
+            poses_file,
+            len(names),
+            image_dir,
         )
         return [(n, e.cam_from_world) for n, e in zip(sorted(names), poses.entries)]
     raise InputError(
-        f"[input] cannot match the {len(poses)} TUM poses of {poses_file} to the {len(names)} images of "
+        f"[input] cannot match the {len(poses)} TUM poses of {poses_file} to the {len(names)} "
+        "images of "
         f"{image_dir}: image names are not timestamps (e.g. {names[0]!r}) and the counts differ"
     )
 
@@ -203,8 +222,13 @@ def pairs_from_poses(
 
 
 def match_geometric_pairs(
-    db_path: Path, work: Path, names: Sequence[str], cam_from_worlds: Sequence[Rigid3d],
-    camera: Camera, conf: SfmConf, rep: Reporter,
+    db_path: Path,
+    work: Path,
+    names: Sequence[str],
+    cam_from_worlds: Sequence[Rigid3d],
+    camera: Camera,
+    conf: SfmConf,
+    rep: Reporter,
 ) -> list[tuple[str, str]]:
     """``sfm.pairs``' selection, matched in two rounds: the near pairs first (their matches
     give each image's scene depth), then the wide pairs that depth implies. Returns all pairs."""
@@ -218,13 +242,20 @@ def match_geometric_pairs(
         log.warning("no scene depth from the near pairs' matches: matching near pairs only")
         return [(names[a], names[b]) for a, b in near]
     wide = wide_pairs(
-        camera, cam_from_worlds, depths, conf.pair_angles_deg, conf.pair_min_overlap,
+        camera,
+        cam_from_worlds,
+        depths,
+        conf.pair_angles_deg,
+        conf.pair_min_overlap,
         conf.pair_max_angle_deg,
     )
     extra = sorted(wide - set(near))
     log.info(
         "scene depth median %.3g (per image %.3g-%.3g); matching %d wide pairs (angles %s deg)",
-        float(np.median(depths)), float(np.min(depths)), float(np.max(depths)), len(extra),
+        float(np.median(depths)),
+        float(np.min(depths)),
+        float(np.max(depths)),
+        len(extra),
         "/".join(f"{a:g}" for a in conf.pair_angles_deg),
     )
     if extra:
@@ -269,7 +300,10 @@ def triangulate_known_poses(
         raise InputError(f"[input] stride must be >= 1, got {stride}")
     matched = matched[::stride]
     if len(matched) < 2:
-        raise InputError(f"[input] need at least two posed images to triangulate, got {len(matched)} from {image_dir}")
+        raise InputError(
+            f"[input] need at least two posed images to triangulate, got {len(matched)} from "
+            f"{image_dir}"
+        )
     names = [n for n, _ in matched]
     check_names(names, image_dir)
     pose_of = dict(matched)
@@ -284,7 +318,10 @@ def triangulate_known_poses(
             poses_in_order = [pose_of[n] for n in names]
             if conf.pair_selection == "nearest":
                 pairs = pairs_from_poses(
-                    names, poses_in_order, conf.pair_neighbors, conf.pair_sequential,
+                    names,
+                    poses_in_order,
+                    conf.pair_neighbors,
+                    conf.pair_sequential,
                     conf.pair_max_angle_deg,
                 )
                 log.info("matching %d image pairs chosen from the poses", len(pairs))
@@ -298,23 +335,32 @@ def triangulate_known_poses(
             ppi = _median_points_per_image(rec)
             if min_track > 2 and ppi < conf.two_view_below:
                 rep.report(
-                    "triangulate", 0.5,
-                    f"median image sees {ppi:.0f} points (< {conf.two_view_below}): keeping two-view points",
+                    "triangulate",
+                    0.5,
+                    f"median image sees {ppi:.0f} points (< {conf.two_view_below}): keeping "
+                    "two-view points",
                 )
-                log.info("known poses: median %.0f points per image with tracks >= %d; re-triangulating with "
-                         "two-view tracks (SfmConf.two_view_below)", ppi, min_track)
+                log.info(
+                    "known poses: median %.0f points per image with tracks >= %d; re-triangulating "
+                    "with "
+                    "two-view tracks (SfmConf.two_view_below)",
+                    ppi,
+                    min_track,
+                )
                 min_track = 2
                 rec, dropped = _triangulate(db_path, image_dir, work, pose_of, conf, min_track, rep)
     st = reconstruction_stats(rec)
     if st["points3D"] == 0:
         raise BuildError(
-            f"no 3D point could be triangulated from {len(names)} images of {image_dir} with the poses of "
+            f"no 3D point could be triangulated from {len(names)} images of {image_dir} with the "
+            "poses of "
             f"{poses_file} (do the poses match the images? are they cam_from_world?)",
             stage="triangulate",
         )
     msg = (
         f"{st['points3D']} points (dropped {dropped}: track < {min_track} or error > "
-        f"{conf.max_reproj_error:g} px), mean track {st['mean_track_length']:.2f}, mean error {st['mean_reproj_error_px']:.2f} px"
+        f"{conf.max_reproj_error:g} px), mean track {st['mean_track_length']:.2f}, mean error "
+        f"{st['mean_reproj_error_px']:.2f} px"
     )
     log.info("known-poses triangulation: %s", msg)
     rep.report("triangulate", 1.0, msg)
@@ -322,7 +368,12 @@ def triangulate_known_poses(
 
 
 def _triangulate(
-    db_path: Path, image_dir: Path, work: Path, pose_of: dict[str, Rigid3d], conf: SfmConf, min_track: int,
+    db_path: Path,
+    image_dir: Path,
+    work: Path,
+    pose_of: dict[str, Rigid3d],
+    conf: SfmConf,
+    min_track: int,
     rep: Reporter,
 ) -> tuple[Reconstruction, int]:
     """pycolmap triangulation at the fixed poses into ``work/sparse`` (replaced), points with
@@ -365,7 +416,10 @@ def _posed_reconstruction(db_path: Path, pose_of: dict[str, Rigid3d]) -> pycolma
         if im.name not in pose_of:
             continue
         if int(im.frame_id) != int(im.image_id):
-            raise BuildError(f"unexpected database layout: image {im.name} in frame {im.frame_id}", stage="triangulate")
+            raise BuildError(
+                f"unexpected database layout: image {im.name} in frame {im.frame_id}",
+                stage="triangulate",
+            )
         pim = pycolmap.Image(name=im.name, camera_id=im.camera_id, image_id=im.image_id)
         rec.add_image_with_trivial_frame(pim, rigid3d_to_pycolmap(pose_of[im.name]))
     return rec

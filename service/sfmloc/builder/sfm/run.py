@@ -21,6 +21,7 @@ log = logging.getLogger(__name__)
 Progress = Callable[[str, float, str], None]
 CancelCheck = Callable[[], bool]
 
+
 class Reporter:
     """Progress and cancellation for one run: ``report(stage, fraction, message)``,
     ``check(stage)``."""

@@ -21,6 +21,7 @@ from .run import Reporter
 
 log = logging.getLogger(__name__)
 
+
 def to_pycolmap_camera(camera: Camera, camera_id: int | None = None) -> pycolmap.Camera:
     kw: dict[str, Any] = {
         "model": camera.model,
@@ -55,10 +56,14 @@ def extract_features(
     empty = [nm for nm, c in counts.items() if c == 0]
     if empty:
         log.warning(
-            "%d image(s) have no SIFT features (blank or textureless?): %s", len(empty), ", ".join(empty[:5])
+            "%d image(s) have no SIFT features (blank or textureless?): %s",
+            len(empty),
+            ", ".join(empty[:5]),
         )
     total = sum(counts.values())
-    rep.report("features", 1.0, f"{total} SIFT features, {total / max(1, len(names)):.0f} per image")
+    rep.report(
+        "features", 1.0, f"{total} SIFT features, {total / max(1, len(names)):.0f} per image"
+    )
     return ids
 
 
@@ -76,14 +81,18 @@ def opencv_sift(gray: np.ndarray, conf: SfmConf) -> tuple[np.ndarray, np.ndarray
     h, w = gray.shape[:2]
     if max(h, w) > conf.max_image_size:
         scale = conf.max_image_size / max(h, w)
-        gray = cv2.resize(gray, (max(1, round(w * scale)), max(1, round(h * scale))), interpolation=cv2.INTER_AREA)
+        gray = cv2.resize(
+            gray, (max(1, round(w * scale)), max(1, round(h * scale))), interpolation=cv2.INTER_AREA
+        )
     sift = cv2.SIFT_create(nfeatures=conf.max_features, contrastThreshold=conf.contrast_threshold)
     kps, desc = sift.detectAndCompute(gray, None)
     if desc is None or not kps:
         return np.zeros((0, 6), np.float32), np.zeros((0, 128), np.uint8)
     xy = (np.array([k.pt for k in kps], np.float64) + OPENCV_SIFT_OFFSET) / scale
     size = np.array([k.size for k in kps], np.float64) / (2.0 * scale)
-    ang = -np.radians([k.angle for k in kps])  # OpenCV: degrees, counter-clockwise in a y-down image
+    ang = -np.radians(
+        [k.angle for k in kps]
+    )  # OpenCV: degrees, counter-clockwise in a y-down image
     c, s = size * np.cos(ang), size * np.sin(ang)
     kp = np.stack([xy[:, 0], xy[:, 1], c, -s, s, c], axis=1).astype(np.float32)
     d = desc.astype(np.float32)
@@ -95,14 +104,23 @@ def opencv_sift(gray: np.ndarray, conf: SfmConf) -> tuple[np.ndarray, np.ndarray
 def _read_gray(path: Path) -> np.ndarray:
     """The stored pixels, as COLMAP reads them: no EXIF rotation (OpenCV applies it by default)."""
     data = np.fromfile(str(path), dtype=np.uint8)
-    img = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION) if data.size else None
+    img = (
+        cv2.imdecode(data, cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION)
+        if data.size
+        else None
+    )
     if img is None:
         raise ImageDecodeError(f"[features] cannot decode image {path}")
     return img
 
 
 def _extract_opencv(
-    database_path: Path, image_dir: Path, names: Sequence[str], camera: pycolmap.Camera, conf: SfmConf, rep: Reporter
+    database_path: Path,
+    image_dir: Path,
+    names: Sequence[str],
+    camera: pycolmap.Camera,
+    conf: SfmConf,
+    rep: Reporter,
 ) -> dict[str, int]:
     """OpenCV SIFT in a thread pool (it releases the GIL); the database is written here, in
     pycolmap 4's layout: one camera, its trivial rig, one frame per image."""
@@ -117,7 +135,10 @@ def _extract_opencv(
         rig.add_ref_sensor(sensor)
         rig_id = db.write_rig(rig)
         with ThreadPoolExecutor(max_workers=num_threads(conf)) as pool:
-            futures = [pool.submit(lambda nm: opencv_sift(_read_gray(image_dir / nm), conf), nm) for nm in names]
+            futures = [
+                pool.submit(lambda nm: opencv_sift(_read_gray(image_dir / nm), conf), nm)
+                for nm in names
+            ]
             try:
                 for i, (name, fut) in enumerate(zip(names, futures)):
                     kp, desc = fut.result()
@@ -127,7 +148,10 @@ def _extract_opencv(
                     frame.add_data_id(pycolmap.data_t(sensor_id=sensor, id=image_id))
                     db.write_frame(frame)
                     db.write_keypoints(image_id, kp)
-                    db.write_descriptors(image_id, pycolmap.FeatureDescriptors(pycolmap.FeatureExtractorType.SIFT, desc))
+                    db.write_descriptors(
+                        image_id,
+                        pycolmap.FeatureDescriptors(pycolmap.FeatureExtractorType.SIFT, desc),
+                    )
                     ids[name] = int(image_id)
                     rep.check("features")
                     if (i + 1) % 10 == 0 or i + 1 == n:
@@ -142,7 +166,12 @@ def _extract_opencv(
 
 
 def _extract_pycolmap(
-    database_path: Path, image_dir: Path, names: Sequence[str], camera: pycolmap.Camera, conf: SfmConf, rep: Reporter
+    database_path: Path,
+    image_dir: Path,
+    names: Sequence[str],
+    camera: pycolmap.Camera,
+    conf: SfmConf,
+    rep: Reporter,
 ) -> dict[str, int]:
     """pycolmap's extractor, run in chunks so progress and cancellation happen per chunk; the
     camera is written first and reused by every chunk."""
@@ -236,7 +265,8 @@ def match_pairs(
     rep.report("matching", 1.0, f"{verified}/{n} pairs verified, {inliers} inlier matches")
     if verified == 0:
         raise BuildError(
-            f"no image pair passed geometric verification ({n} pairs tried): too little overlap or texture",
+            f"no image pair passed geometric verification ({n} pairs tried): too little overlap or "
+            "texture",
             stage="matching",
         )
     return verified
