@@ -10,7 +10,6 @@ import shutil
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import grpc
@@ -147,7 +146,11 @@ def test_submit_watch_and_zenoh_announcement(world, builder):
             "sfmloc/maps/*",
             lambda s: announced.append(decode_map_announcement(s.payload.to_bytes())),
         )
-        time.sleep(0.5)  # let the subscription reach the builder's session
+        # Wait until the builder's session routes to ours: a probe subscriber declared after
+        # the announcement one is reached only once both declarations arrived (in order).
+        probes = []
+        z.declare_subscriber("sfmloc/test/probe", lambda s: probes.append(1))
+        assert wait_until(lambda: svc.session.put("sfmloc/test/probe", b"") or probes, 20)
         ch, stub = _stub(svc)
         with ch:
             job_id = stub.SubmitBuild(_colmap_request(world, "synthroom")).job_id
