@@ -544,6 +544,27 @@ def test_unverified_relocalization_and_its_confirmation(world, bundle, cam):
     assert first.status is Status.RELOCALIZED
 
 
+def test_unverified_pose_on_few_inliers_is_withheld(world, bundle, cam):
+    """An UNVERIFIED pose on fewer than unverified_min_inliers inliers is LOST (no pose, no
+    covariance), but tracking follows it: the first frame passing the strict test is
+    published as TRACKING, without a global matching. Above the limit it stays UNVERIFIED."""
+    n = Localizer(bundle, cam).localize(world.gray[0], 0.0).inliers
+    assert n >= 20
+    for limit, expected in ((n + 1_000, Status.LOST), (n // 2, Status.UNVERIFIED)):
+        strict = EngineConf(verified_min_inliers=10_000, unverified_min_inliers=limit)
+        loc = Localizer(bundle, cam, strict)
+        res = [loc.localize(world.gray[i], i / 30) for i in range(4)]
+        assert [r.status for r in res] == [expected] * 4, [r.message for r in res]
+        if expected is Status.LOST:
+            assert all(r.cam_from_world is None and r.covariance is None for r in res)
+            assert all("unverified on" in r.message for r in res)
+            assert all(r.matching is not Matching.GLOBAL for r in res[1:])  # still tracked
+        loc.conf = EngineConf()
+        r = loc.localize(world.gray[4], 4 / 30)
+        assert r.status is Status.TRACKING and r.matching is not Matching.GLOBAL
+        assert pose_errors(r.cam_from_world, world.gt_cam_from_world[4])[0] < 0.05
+
+
 def test_weak_relocalization_against_the_motion_is_rejected(world, bundle, cam):
     """Tracking frames 0-9, then a frame from far along the video: global matching finds it.
     Verified, it is RELOCALIZED; unverified, it contradicts the motion prediction and is LOST

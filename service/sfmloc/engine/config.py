@@ -206,6 +206,14 @@ class EngineConf(StrictModel):
     # (every 7th frame): correct ones sd <= 0.98% with >= 27 inliers, wrong ones >= 2.5%.
     verified_position_sd: float = 0.01
     verified_min_inliers: int = 20
+    # An UNVERIFIED pose (a relocalization failing the strict test, or a frame tracked from
+    # one) on fewer inliers than this is withheld (LOST; the tracker still follows it, so a
+    # later frame passing the strict test is published). Every robust bench row (main 42e50b9):
+    # UNVERIFIED poses on < 20 inliers were 12 wrong (density-6x frames 249-260: 11-14
+    # inliers, 1.4 scene scales / 99 deg off, a 13-inlier global match after a 1 s gap, so no
+    # motion prediction to contradict it) and 1 right (redkitchen every 60th, 12 inliers);
+    # none on >= 20 inliers. 0: off.
+    unverified_min_inliers: int = 20
     # An unverified relocalization farther than this from the motion prediction (fraction of
     # scene_scale, degrees: the wrong-pose limits) is rejected (LOST) while the last pose is
     # at most max_frame_gap_s old: redkitchen frame 461, 10 inliers, 1.49 m / 33 deg off, was

@@ -135,6 +135,13 @@ def _status(
     if why is not None:
         # Too uncertain to promise: withheld (the tracker and filter still follow it).
         return Status.LOST, why, unverified
+    if unverified and est.num_inliers < conf.unverified_min_inliers:
+        # A consistent set of wrong matches passes the covariance test: few inliers, no check.
+        why = (
+            f"pose withheld: unverified on {est.num_inliers} inliers "
+            f"(fewer than {conf.unverified_min_inliers})"
+        )
+        return Status.LOST, why, unverified
     if unverified:
         return Status.UNVERIFIED, message, unverified
     return (Status.RELOCALIZED if relocalized else Status.TRACKING), message, unverified
