@@ -565,6 +565,29 @@ def test_unverified_pose_on_few_inliers_is_withheld(world, bundle, cam):
         assert pose_errors(r.cam_from_world, world.gt_cam_from_world[4])[0] < 0.05
 
 
+def test_collapsed_tracked_pose_needs_a_verified_relocalization(world, bundle, cam):
+    """A tracked pose failing the strict test on fewer than collapse_ratio x the last posed
+    frame's inliers is checked by global matching on the frame; when that is not verified
+    either, the frame is LOST (no pose, not adopted). With the check off the same frames are
+    UNVERIFIED (tracked from an unverified relocalization)."""
+    never = dict(verified_position_sd=0.0, unverified_min_inliers=0)  # nothing is verified
+    loc = Localizer(bundle, cam, EngineConf(collapse_ratio=10.0, **never))  # always "collapsed"
+    res = [loc.localize(world.gray[i], i / 30) for i in range(6)]
+    assert res[0].status is Status.UNVERIFIED and res[1].status is Status.LOST
+    for r in res:  # only global matching gives a pose (relocalized: no collapse check)
+        assert (r.status is Status.UNVERIFIED) == (r.matching is Matching.GLOBAL), r.message
+        if r.status is Status.LOST:
+            assert "tracked pose withheld" in r.message and r.cam_from_world is None
+            assert r.covariance is None
+    assert sum(r.status is Status.UNVERIFIED for r in res[1:]) >= 1  # it relocalizes again
+    loc = Localizer(bundle, cam, EngineConf(collapse_ratio=0.0, **never))
+    res = [loc.localize(world.gray[i], i / 30) for i in range(4)]
+    assert [r.status for r in res] == [Status.UNVERIFIED] * 4
+    assert all(r.matching is not Matching.GLOBAL for r in res[1:])
+    for r, gt in zip(res, world.gt_cam_from_world):
+        assert pose_errors(r.cam_from_world, gt)[0] < 0.05
+
+
 def test_weak_relocalization_against_the_motion_is_rejected(world, bundle, cam):
     """Tracking frames 0-9, then a frame from far along the video: global matching finds it.
     Verified, it is RELOCALIZED; unverified, it contradicts the motion prediction and is LOST

@@ -214,6 +214,13 @@ class EngineConf(StrictModel):
     # motion prediction to contradict it) and 1 right (redkitchen every 60th, 12 inliers);
     # none on >= 20 inliers. 0: off.
     unverified_min_inliers: int = 20
+    # A tracked pose failing the strict test on fewer inliers than this fraction of the last
+    # posed frame's is checked by global matching (adopted as RELOCALIZED when verified, else
+    # no pose). Robust walk at 3 Hz (main 59029bd): the 5 wrong TRACKING poses (5-16% of
+    # the scene scale off) had 11-32 inliers after 306-625 and failed the strict test; the
+    # right ones fall gradually (synthetic walk at 30 Hz: 64 -> 39 inliers, sd 1.0-1.8%).
+    # 0: off.
+    collapse_ratio: float = 0.2
     # An unverified relocalization farther than this from the motion prediction (fraction of
     # scene_scale, degrees: the wrong-pose limits) is rejected (LOST) while the last pose is
     # at most max_frame_gap_s old: redkitchen frame 461, 10 inliers, 1.49 m / 33 deg off, was

@@ -189,6 +189,7 @@ class Localizer:
         self.scope_points = np.zeros(0, np.int64)  # 3D points matched in the last posed frame
         self.unverified = False  # tracking from a relocalization not verified yet
         self.last_posed_stamp: float | None = None
+        self.last_inliers = 0  # of the last posed frame
 
     # ------------------------------------------------------------------ algorithm 1
     def localize(self, frame: np.ndarray, stamp: float) -> FrameResult:
@@ -255,6 +256,12 @@ class Localizer:
         cert = None if est is None else certainty(est, self.K, self.bundle, c)
         timer.lap("pose")
         message = ""
+        if est is not None and cert is not None and not relocalized and not cert.verified:
+            if est.num_inliers < self.conf.collapse_ratio * self.last_inliers:
+                table, est, cert, message = self._verify_collapse(kps, image, est, table)
+                if est is not None:
+                    relocalized, matching = True, Matching.GLOBAL
+                timer.lap("reloc")
         if est is not None and cert is not None and relocalized:
             message = self._contradiction(est, cert, pred.cam_from_world, stamp)
             if message:
@@ -266,6 +273,7 @@ class Localizer:
         if est is not None:
             filtered = self._kalman_filter_update(est.cam_from_world, relocalized, stamp)
             self.last_posed_stamp = stamp
+            self.last_inliers = est.num_inliers
             self.scope_points = table.point[table.point >= 0].copy()
         timer.lap("filter")
         self.table = table  # the one place the track table is stored for the next frame
@@ -466,6 +474,26 @@ class Localizer:
         # the new pose, gets another try at them over the next frames.
         table.pending = table.point < 0
         return table, est
+
+    def _verify_collapse(
+        self, kps: Keypoints, image: _FrameImage, est: PoseEstimate, table: TrackTable
+    ) -> tuple[TrackTable, PoseEstimate | None, Certainty | None, str]:
+        """A tracked pose failing the strict test on a small fraction of the last frame's
+        inliers (the tracks were lost; guided matching around the prediction found few
+        matches) is checked as a relocalization: global matching on this frame, adopted when
+        it passes the strict test; else no pose (withheld, not adopted: the next frame
+        relocalizes)."""
+        c = self.conf
+        table_g, est_g = self._global_matching(kps, image)
+        cert_g = None if est_g is None else certainty(est_g, self.K, self.bundle, c)
+        if est_g is not None and cert_g is not None and cert_g.verified:
+            return table_g, est_g, cert_g, ""
+        _unmatch(table, slice(None))
+        why = (
+            f"tracked pose withheld: {est.num_inliers} inliers after {self.last_inliers}, "
+            "not verified, and no verified relocalization"
+        )
+        return table, None, None, why
 
     def _contradiction(
         self, est: PoseEstimate, cert: Certainty, pred: Rigid3d | None, stamp: float
