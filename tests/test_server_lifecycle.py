@@ -8,7 +8,6 @@ import logging
 import os
 import signal
 import subprocess
-import sys
 import threading
 
 import grpc
@@ -26,6 +25,7 @@ from server_helpers import (
     zenoh_endpoint,
 )
 from sfmloc import errors as E
+from sfmloc.testing import serve_command
 from sfmloc_client import LocalizationClient
 from sfmloc_client.discovery import list_server_ids
 
@@ -258,23 +258,14 @@ def _gone(pid: int) -> bool:
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
 def test_cli_server_shuts_down_gracefully_on_signals(world, sig):
     ep, gport = zenoh_endpoint(), free_port()
-    cmd = [
-        sys.executable,
-        "-m",
-        "sfmloc",
-        "serve",
-        "--maps",
-        str(world.maps_dir),
-        "--zenoh-listen",
+    cmd = serve_command(
+        world.maps_dir,
         ep,
-        "--no-multicast",
-        "--grpc",
         f"127.0.0.1:{gport}",
-        "--workers",
-        "1",
-        "--server-id",
-        "cli-server",
-    ]
+        1,
+        quiet=False,
+        extra_args=("--server-id", "cli-server"),
+    )
     proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True)
     try:
         with LocalizationClient(f"127.0.0.1:{gport}") as c:

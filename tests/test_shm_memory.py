@@ -16,6 +16,7 @@ import sys
 import pytest
 
 from server_helpers import build_world, free_port, zenoh_endpoint
+from sfmloc.testing import serve_command
 
 N_WARMUP, N_CLIENTS, N_FRAMES = 3, 20, 3
 # Measured (2-core machine, shared memory off): +6 MB over 20 clients after warm-up (allocator
@@ -87,23 +88,14 @@ def test_server_memory_does_not_grow_with_clients_that_come_and_go(world, tmp_pa
     ep, gport = zenoh_endpoint(), free_port()
     log = open(tmp_path / "server.log", "w+")
     server = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "sfmloc",
-            "serve",
-            "--maps",
-            str(world.maps_dir),
-            "--zenoh-listen",
+        serve_command(
+            world.maps_dir,
             ep,
-            "--no-multicast",
-            "--grpc",
             f"127.0.0.1:{gport}",
-            "--workers",
-            "1",
-            "--relocalize-workers",
-            "0",
-        ],
+            1,
+            quiet=False,
+            extra_args=("--relocalize-workers", "0"),
+        ),
         stderr=log,
     )
 

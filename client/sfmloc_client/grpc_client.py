@@ -53,14 +53,20 @@ def _credentials(
 
 
 def _channel(
-    target: str, options: list, tls: bool, creds: grpc.ChannelCredentials | None, aio: bool
+    target: str,
+    max_message_mb: float,
+    tls: bool,
+    tls_ca: str | None,
+    tls_cert: str | None,
+    tls_key: str | None,
+    aio: bool,
 ) -> Any:
+    """A channel to ``target``: TLS when asked for or when a CA or our certificate is given."""
     mod = grpc.aio if aio else grpc
-    return (
-        mod.secure_channel(target, creds, options=options)
-        if tls
-        else mod.insecure_channel(target, options=options)
-    )
+    options = _options(max_message_mb)
+    if tls or tls_ca or tls_cert:
+        return mod.secure_channel(target, _credentials(tls_ca, tls_cert, tls_key), options=options)
+    return mod.insecure_channel(target, options=options)
 
 
 def _remote(exc: grpc.RpcError) -> RemoteError:
@@ -145,9 +151,7 @@ class LocalizationClient:
     ) -> None:
         self.target = target
         self.timeout = timeout
-        tls = tls or bool(tls_ca or tls_cert)
-        creds = _credentials(tls_ca, tls_cert, tls_key) if tls else None
-        self.channel = _channel(target, _options(max_message_mb), tls, creds, aio=False)
+        self.channel = _channel(target, max_message_mb, tls, tls_ca, tls_cert, tls_key, aio=False)
         self.stub = pb_grpc.LocalizationStub(self.channel)
         # Sent with every call (servers with authentication need it; others ignore it).
         self.metadata = (("authorization", f"Bearer {token}"),) if token else None
@@ -274,9 +278,7 @@ class AsyncLocalizationClient:
     ) -> None:
         self.target = target
         self.timeout = timeout
-        tls = tls or bool(tls_ca or tls_cert)
-        creds = _credentials(tls_ca, tls_cert, tls_key) if tls else None
-        self.channel = _channel(target, _options(max_message_mb), tls, creds, aio=True)
+        self.channel = _channel(target, max_message_mb, tls, tls_ca, tls_cert, tls_key, aio=True)
         self.stub = pb_grpc.LocalizationStub(self.channel)
         # Sent with every call (servers with authentication need it; others ignore it).
         self.metadata = (("authorization", f"Bearer {token}"),) if token else None

@@ -39,6 +39,10 @@ class _Malformed:
     def __init__(self, reason: str) -> None:
         self.reason = reason
 
+    @property
+    def message(self) -> str:
+        return f"malformed request: not a valid message ({self.reason})"
+
 
 def _safe(deserializer: Callable[[bytes], Any] | None) -> Callable[[bytes], Any] | None:
     if deserializer is None:
@@ -54,9 +58,7 @@ def _safe(deserializer: Callable[[bytes], Any] | None) -> Callable[[bytes], Any]
 
 
 async def _refuse(context: grpc.aio.ServicerContext, bad: _Malformed) -> None:
-    await context.abort(
-        grpc.StatusCode.INVALID_ARGUMENT, f"malformed request: not a valid message ({bad.reason})"
-    )
+    await context.abort(grpc.StatusCode.INVALID_ARGUMENT, bad.message)
 
 
 def _wrap(behavior: Callable[..., Any], streaming_requests: bool) -> Callable[..., Any]:
@@ -88,10 +90,7 @@ def _wrap(behavior: Callable[..., Any], streaming_requests: bool) -> Callable[..
 
     def plain(request: Any, context: Any) -> Any:
         if isinstance(request, _Malformed):
-            context.abort(
-                grpc.StatusCode.INVALID_ARGUMENT,
-                f"malformed request: not a valid message ({request.reason})",
-            )
+            context.abort(grpc.StatusCode.INVALID_ARGUMENT, request.message)
         return behavior(request, context)
 
     return plain
@@ -105,7 +104,7 @@ async def _checked_requests(
     # handler abort a second time and log a traceback per malformed message.
     async for request in requests:
         if isinstance(request, _Malformed):
-            raise WireError(f"malformed request: not a valid message ({request.reason})")
+            raise WireError(request.message)
         yield request
 
 

@@ -98,6 +98,38 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def serve_command(
+    maps: str | os.PathLike,
+    endpoint: str,
+    grpc: str,
+    workers: int = 0,
+    kind: str = "process",
+    quiet: bool = True,
+    extra_args: tuple[str, ...] = (),
+) -> list[str]:
+    """The ``sfmloc serve`` command line of a test server: Zenoh listening on ``endpoint``
+    without multicast, gRPC on ``grpc``, ``workers`` engine workers of ``kind``."""
+    return [
+        sys.executable,
+        "-m",
+        "sfmloc",
+        *(["-q"] if quiet else []),
+        "serve",
+        "--maps",
+        str(maps),
+        "--zenoh-listen",
+        endpoint,
+        "--no-multicast",
+        "--grpc",
+        grpc,
+        "--workers",
+        str(workers),
+        "--worker-kind",
+        kind,
+        *extra_args,
+    ]
+
+
 class ServerProcess:
     """``sfmloc serve`` in a subprocess on free loopback ports (the demo, benchmarks)::
 
@@ -116,25 +148,7 @@ class ServerProcess:
     ) -> None:
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
         self.grpc = f"127.0.0.1:{free_port()}"
-        cmd = [
-            sys.executable,
-            "-m",
-            "sfmloc",
-            *(["-q"] if quiet else []),
-            "serve",
-            "--maps",
-            str(maps),
-            "--zenoh-listen",
-            self.endpoint,
-            "--no-multicast",
-            "--grpc",
-            self.grpc,
-            "--workers",
-            str(workers),
-            "--worker-kind",
-            kind,
-            *extra_args,
-        ]
+        cmd = serve_command(maps, self.endpoint, self.grpc, workers, kind, quiet, extra_args)
         self.proc = subprocess.Popen(cmd, env=env)  # env: e.g. another checkout's PYTHONPATH
 
     def __enter__(self) -> ServerProcess:
