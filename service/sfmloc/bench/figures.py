@@ -137,10 +137,13 @@ def trajectory(
 ) -> Path:
     plt = _plt()
     gts = [r.gt_cam_from_world for r in records if r.gt_cam_from_world is not None]
+    ests = [r.cam_from_world for r in records if r.cam_from_world is not None]
+    # Without ground truth (a live stream) the estimates alone set the view.
+    ref = gts if len(gts) >= 2 else ests
     fig, ax = plt.subplots(figsize=(8, 7))
-    if len(gts) >= 2:
-        a, b = top_view_basis(gts)
-        G = np.array([T.center for T in gts])
+    if len(ref) >= 2:
+        a, b = top_view_basis(ref)
+        G = np.array([T.center for T in ref])
         g2 = np.stack([G @ a, G @ b], 1)
         lo, hi = g2.min(0), g2.max(0)
         if points_xyz is not None and len(points_xyz):
@@ -157,7 +160,8 @@ def trajectory(
                 p2[:, 0], p2[:, 1], s=1.0, c="0.7", lw=0, label="map points", rasterized=True
             )
         pad = 0.05 * max(hi - lo) + 0.1
-        ax.plot(g2[:, 0], g2[:, 1], color="black", lw=1.2, label="ground truth")
+        if len(gts) >= 2:
+            ax.plot(g2[:, 0], g2[:, 1], color="black", lw=1.2, label="ground truth")
         est = [(r.cam_from_world.center, r.status) for r in records if r.cam_from_world is not None]
         if est:
             E = np.array([e[0] for e in est])
@@ -187,6 +191,8 @@ def trajectory(
                 label=f"lost ({len(lost)} frames)",
             )
         ax.plot(*g2[0], "o", color="black", ms=6, mfc="white", label="start")
+        if len(gts) < 2:
+            ax.text(0.02, 0.98, "no ground truth", va="top", transform=ax.transAxes)
         ax.set_xlim(lo[0] - pad, hi[0] + pad)
         ax.set_ylim(lo[1] - pad, hi[1] + pad)
     ax.set_aspect("equal", adjustable="box")

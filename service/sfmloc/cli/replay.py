@@ -60,6 +60,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "FILE.cov beside it: status and 6x6 covariance per pose (see README, Conventions)",
     )
     p.add_argument(
+        "--plot",
+        metavar="FILE.png",
+        help="draw the trajectory (top view) against --groundtruth, lost frames marked, over "
+        "the map's points (needs matplotlib: the bench extra)",
+    )
+    p.add_argument(
         "--fps",
         type=float,
         default=30.0,
@@ -147,8 +153,11 @@ def run(args: argparse.Namespace) -> int:
     from ..io.frames import FrameSource
     from ..io.poses import write_tum, write_tum_covariances
     from ..map.bundle import MapBundle
+    from ._trajplot import check_plot_path, write_plot
     from .progress import ProgressPrinter
 
+    if args.plot:
+        check_plot_path(args.plot)
     camera = Camera.parse(args.camera)
     conf = load_config(EngineConf, args.config, prefix="SFMLOC_ENGINE__")
     bundle = MapBundle(args.map, verify=not args.no_verify)
@@ -208,6 +217,10 @@ def run(args: argparse.Namespace) -> int:
             f"trajectory           {args.trajectory} ({len(ok)} poses, TUM; covariances {cov})",
             file=sys.stderr,
         )
+    if args.plot:
+        title = f"sfmloc replay: {Path(args.frames).name} on {bundle.name}, {len(records)} frames"
+        plot = write_plot(records, args.plot, title, bundle.points_xyz)
+        print(f"plot                 {plot}", file=sys.stderr)
     if args.json_out:
         out = dict(summary)
         out["map"] = str(args.map)

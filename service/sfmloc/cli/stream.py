@@ -90,6 +90,17 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         metavar="S",
         help="wait this long for a server (default 10)",
     )
+    p.add_argument(
+        "--plot",
+        metavar="FILE.png",
+        help="draw the trajectory (top view; with --groundtruth against it; needs matplotlib)",
+    )
+    p.add_argument(
+        "--groundtruth",
+        metavar="FILE",
+        help="for --plot: COLMAP list (by file name) or TUM (by the frames' timestamps, else "
+        "index / fps, fps 30 without --fps), as in sfmloc replay",
+    )
     add_zenoh_options(p)
     p.set_defaults(func=run)
 
@@ -98,6 +109,7 @@ def run(args: argparse.Namespace) -> int:
     import sys
     import threading
     import time
+    from pathlib import Path
 
     import numpy as np
     import zenoh
@@ -105,6 +117,10 @@ def run(args: argparse.Namespace) -> int:
     from sfmloc_client import FrameStreamer, PoseMessage, PoseSubscriber, TumWriter, open_source
     from sfmloc_client.streamer import OUTAGE_FRAMES
 
+    from ._trajplot import StreamRecorder, check_plot_args, write_plot
+
+    check_plot_args(args.plot, args.groundtruth)
+    recorder = StreamRecorder()
     cam = camera_spec(args.camera)
     client_id = args.client_id or default_client_id()
     tty = sys.stderr.isatty()
@@ -150,6 +166,7 @@ def run(args: argparse.Namespace) -> int:
     def on_pose(p: PoseMessage) -> None:
         now = time.monotonic()
         t_now = time.perf_counter()
+        recorder.pose(p)
         with lock:
             if p.seq is not None and p.seq in sent_at:
                 rtt.append((t_now - sent_at.pop(p.seq)) * 1e3)
@@ -164,7 +181,8 @@ def run(args: argparse.Namespace) -> int:
             state["t_status"] = now
             status_line()
 
-    def on_sent(seq: int, _fr: object, t_put: float) -> None:
+    def on_sent(seq: int, fr: object, t_put: float) -> None:
+        recorder.sent(seq, fr)
         with lock:
             sent_at[seq] = t_put
             state["sent"] += 1
@@ -222,4 +240,8 @@ def run(args: argparse.Namespace) -> int:
         )
     summary += ")" + (f"; {writer.count} poses written to {args.out}" if writer else "")
     print(summary)
+    if args.plot:
+        recs = recorder.records(args.groundtruth, args.fps or 30.0)
+        title = f"sfmloc stream: {Path(args.source).name} on {args.map}, {len(recs)} frames"
+        print(f"plot: {write_plot(recs, args.plot, title)}")
     return 0 if received > 0 else 1
