@@ -86,3 +86,36 @@ def test_demo_bar_judges_what_was_measured_not_stale_drops():
     assert not passed(10, errs, True, 5, 5, 1)
     rows = demo_bar(12, errs, True, 5, 5, 0)
     assert rows[0][0].startswith(">= 80%") and rows[0][2] == "9/12" and not rows[0][1]
+
+
+# A command whose output outlives its reader: `sfmloc ... | head -1`. The entry point's own
+# handling is under test, so the command is a real `main()` with one added subcommand that
+# prints more than a pipe buffer holds after the reader has gone.
+_FLOOD = """
+import sys, time
+import sfmloc.cli.main as m
+build = m.build_parser
+def parser():
+    p = build()
+    sub = next(a for a in p._actions if a.__class__.__name__ == "_SubParsersAction")
+    def run(args):
+        time.sleep(0.3)
+        for i in range(100000):
+            print("line", i)
+    sub.add_parser("flood").set_defaults(func=run)
+    return p
+m.build_parser = parser
+sys.exit(m.main(["flood"]))
+"""
+
+
+def test_a_closed_pipe_ends_quietly_like_sigpipe():
+    p = subprocess.Popen(
+        [sys.executable, "-c", _FLOOD], stdout=subprocess.PIPE, stderr=subprocess.PIPE
+    )
+    assert p.stdout is not None and p.stderr is not None
+    p.stdout.readline()  # the reader takes one line (head -1) and goes away
+    p.stdout.close()
+    err = p.stderr.read().decode()
+    assert p.wait(timeout=60) == 141, err
+    assert "Traceback" not in err and "BrokenPipeError" not in err

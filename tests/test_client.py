@@ -515,6 +515,9 @@ def test_cli_relocalize_maps_sessions_servers(world, server):
     assert r.returncode == 2 and "NOT_FOUND" in r.stderr
     r = _cli("maps", "list", "--grpc", target)
     assert r.returncode == 0 and "room2" in r.stdout
+    r = _cli("maps", "show", "room2", "--grpc", target)  # labelled lines, not protobuf text
+    assert r.returncode == 0 and "build id:" in r.stdout and "build_id:" not in r.stdout
+    assert "name:         room2" in r.stdout.splitlines()[0]
     r = _cli("sessions", "list", "--grpc", target)
     assert r.returncode == 0 and "client" in r.stdout
     r = _cli("servers", "--zenoh-connect", ep, "--no-multicast", "--wait", "2")

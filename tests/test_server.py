@@ -800,6 +800,21 @@ def test_health_and_reflection(srv, grpc_client):
     )
     names = {s.name for s in resp.list_services_response.service}
     assert {"sfmloc.v1.Localization", "grpc.health.v1.Health"} <= names
+    # The stable v1 name answers too (same messages; grpcurl and Postman ask v1 first), and
+    # serves the descriptors a client needs to call us.
+    v1 = grpc_client.channel.stream_stream(
+        "/grpc.reflection.v1.ServerReflection/ServerReflectionInfo",
+        request_serializer=reflection_pb2.ServerReflectionRequest.SerializeToString,
+        response_deserializer=reflection_pb2.ServerReflectionResponse.FromString,
+    )
+    asks = [
+        reflection_pb2.ServerReflectionRequest(list_services=""),
+        reflection_pb2.ServerReflectionRequest(file_containing_symbol="sfmloc.v1.Localization"),
+    ]
+    listed, described = list(v1(iter(asks), timeout=10))
+    assert names == {s.name for s in listed.list_services_response.service}
+    assert "grpc.reflection.v1.ServerReflection" in names
+    assert described.file_descriptor_response.file_descriptor_proto
 
 
 def test_a_crashed_worker_is_restarted_and_other_clients_carry_on(world, z, srv):

@@ -16,7 +16,6 @@ from typing import TYPE_CHECKING
 
 import grpc
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
-from grpc_reflection.v1alpha import reflection
 from pydantic import Field
 
 from sfmloc_client.pb import builder_pb2, builder_pb2_grpc
@@ -31,6 +30,7 @@ from sfmloc_client.zconfig import make_zenoh_config
 
 from ..config import StrictModel
 from ..interceptors import SyncErrorStatusInterceptor, SyncMalformedRequestInterceptor
+from ..reflection import enable_reflection
 from .grpc_service import MapBuilderServicer
 from .jobs import Job, JobManager
 
@@ -147,9 +147,7 @@ class BuilderService:
             MapBuilderServicer(self.jobs, c.out), self.server
         )
         health_pb2_grpc.add_HealthServicer_to_server(self.health, self.server)
-        reflection.enable_server_reflection(
-            (SERVICE_NAME, health.SERVICE_NAME, reflection.SERVICE_NAME), self.server
-        )
+        enable_reflection((SERVICE_NAME, health.SERVICE_NAME), self.server)
         self.port = self.server.add_insecure_port(c.grpc)
         if not self.port:
             raise OSError(f"cannot listen on {c.grpc}")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import os
 import sys
 
 from .. import __version__
@@ -71,9 +72,9 @@ def configure_logging(verbose: int, quiet: bool) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
-    configure_logging(args.verbose, args.quiet)
     try:
+        args = parser.parse_args(argv)  # inside: `sfmloc build --help | head` pipes too
+        configure_logging(args.verbose, args.quiet)
         return int(args.func(args) or 0)
     except SfmlocError as exc:
         log.error("%s", exc)
@@ -81,6 +82,13 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         log.warning("interrupted")
         return 130
+    except BrokenPipeError:
+        # The reader went away (`sfmloc maps list | head`): not an error of ours. Point stdout
+        # at /dev/null so the interpreter's final flush does not raise again, and exit as a
+        # SIGPIPE-killed program would.
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return 128 + 13
 
 
 if __name__ == "__main__":

@@ -43,6 +43,23 @@ def _row(m) -> str:  # noqa: ANN001 - a MapInfo message
     )
 
 
+def _details(m) -> str:  # noqa: ANN001 - a MapInfo message
+    """``maps show``: one labelled field per line (not the message's protobuf text form)."""
+    rows = [
+        ("name", m.name),
+        ("build id", m.build_id),
+        ("path", m.path),
+        ("points", f"{m.points:,}"),
+        ("descriptors", f"{m.descriptors:,}"),
+        ("images", f"{m.images:,}"),
+        ("clusters", f"{m.clusters:,}"),
+        ("memory", f"{m.memory_mb:.1f} MB"),
+        ("sessions", f"{m.sessions}"),
+        ("loaded", m.loaded_utc or "-"),
+    ]
+    return "\n".join(f"{k + ':':<13} {v}" for k, v in rows)
+
+
 def run(args: argparse.Namespace) -> int:
     from sfmloc_client import RemoteError
 
@@ -62,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
                 if not maps:
                     print("(no maps loaded)")
             elif args.maps_command == "show":
-                print(c.get_map(args.name))
+                print(_details(c.get_map(args.name)))
             elif args.maps_command == "load":
                 m = c.load_map(args.path, args.name, timeout=args.timeout)
                 print(

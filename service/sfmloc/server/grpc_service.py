@@ -22,7 +22,6 @@ from typing import Any
 import grpc
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 from grpc_health.v1.health import aio as health_aio
-from grpc_reflection.v1alpha import reflection
 
 from sfmloc_client.convert import (
     camera_from_pb,
@@ -45,6 +44,7 @@ from ..errors import (
     WireError,
 )
 from ..interceptors import ErrorStatusInterceptor, MalformedRequestInterceptor
+from ..reflection import enable_reflection
 from .auth import AuthInterceptor, TokenTable, caller
 from .config import GrpcConf
 from .facade import Localization
@@ -366,14 +366,7 @@ def make_grpc_server(
     )
     health = health_aio.HealthServicer()
     health_pb2_grpc.add_HealthServicer_to_server(health, g)
-    reflection.enable_server_reflection(
-        (
-            SERVICE_NAME,
-            health_pb2.DESCRIPTOR.services_by_name["Health"].full_name,
-            reflection.SERVICE_NAME,
-        ),
-        g,
-    )
+    enable_reflection((SERVICE_NAME, health_pb2.DESCRIPTOR.services_by_name["Health"].full_name), g)
     try:
         port = (
             g.add_insecure_port(gc.address)
