@@ -128,6 +128,23 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "next "
         "2 images (in dense video these are too close to triangulate)",
     )
+    p.add_argument(
+        "--align-positions",
+        metavar="FILE",
+        help="align the map to known camera centres ('name x y z' lines or a pose file) before "
+        "it is published (as 'sfmloc map align --positions'; for images-only maps)",
+    )
+    p.add_argument(
+        "--align-points",
+        metavar="FILE",
+        help="align the map with 'x y z X Y Z' point pairs (as 'sfmloc map align --points')",
+    )
+    p.add_argument(
+        "--align-up",
+        nargs="+",
+        metavar="X",
+        help="the map's up direction (3 numbers or 'cameras') taken onto 0 0 1 by the alignment",
+    )
     p.add_argument("--config", help="JSON/TOML file of builder settings merged over the preset")
     p.add_argument("--threads", type=int, help="threads for pycolmap (default: all cores)")
     p.add_argument("--workdir", help="parent folder for temporary SfM files (default: system temp)")
@@ -189,6 +206,18 @@ def run(args: argparse.Namespace) -> int:
         overrides["min_track_length"] = args.min_track_length
         overrides["two_view_below"] = 0  # the user's choice, whatever the density
     sconf = sfm_conf(args.sfm_preset, **overrides)
+    if args.align_positions and args.align_points:
+        raise InputError("give --align-positions or --align-points, not both")
+    aligning = bool(args.align_positions or args.align_points or args.align_up)
+    final_out = args.out
+    if aligning:
+        # Built into a hidden folder beside the final one, so that only the aligned map is ever
+        # published under NAME (a server following the folder never sees the unaligned one).
+        import tempfile
+        from pathlib import Path
+
+        Path(args.out).mkdir(parents=True, exist_ok=True)
+        args.out = tempfile.mkdtemp(prefix=f".{args.name}.unaligned-", dir=args.out)
     bar = ProgressPrinter()
     t0 = time.perf_counter()
     try:
@@ -208,8 +237,14 @@ def run(args: argparse.Namespace) -> int:
                 workdir=args.workdir,
                 progress=bar,
             )
+        if aligning:
+            path = _align_built(args, path, final_out)
     finally:
         bar.close()
+        if aligning:
+            import shutil
+
+            shutil.rmtree(args.out, ignore_errors=True)
     dt = time.perf_counter() - t0
     bundle = MapBundle(path, verify=False)
     kf = bundle.manifest.source.get("keyframes")
@@ -258,3 +293,27 @@ def _build_video(args: argparse.Namespace, conf, sconf, bar):
         workdir=args.workdir,
         progress=bar,
     )
+
+
+def _align_built(args: argparse.Namespace, path, out_dir: str):
+    """The freshly built bundle aligned as ``sfmloc map align`` would, written to OUT/NAME."""
+    from types import SimpleNamespace
+
+    from ..map.align import write_aligned
+    from .map import align_bundle_from_args, print_align_report
+
+    opts = SimpleNamespace(
+        positions=None,
+        poses=args.align_positions,  # read_known_positions takes 'name x y z' or pose files
+        points=args.align_points,
+        up=args.align_up,
+        up_target=[0.0, 0.0, 1.0],
+        no_scale=False,
+        check=None,
+    )
+    bundle, sim, report = align_bundle_from_args(opts, path)
+    print_align_report(report)
+    record = {k: report[k] for k in ("up_map", "up_target") if report[k] is not None}
+    if "given" in report:
+        record["given"] = {k: report["given"][k] for k in ("what", "count", "rms", "max")}
+    return write_aligned(bundle, sim, out_dir, args.name, record=record)
