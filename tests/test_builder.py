@@ -370,10 +370,21 @@ def test_cli_build_keeps_an_existing_bundle_when_a_rebuild_fails(world, tmp_path
         str(tmp_path / "no-model"),
         "--images",
         str(world.root / "synth" / "images"),
+        "--replace",
     )
     assert r.returncode != 0 and "no-model" in r.stderr
     assert MapBundle(out / "room").build_id == before and verify_bundle(out / "room") == []
     assert sorted(p.name for p in out.iterdir()) == ["room"]
+
+
+def test_cli_build_refuses_an_existing_name_without_replace(world, tmp_path):
+    out = tmp_path / "maps"
+    shutil.copytree(world.maps_dir / "room", out / "room")
+    before = MapBundle(out / "room").build_id
+    args = ["build", "room", "--out", str(out), "--colmap", str(world.root / "synth" / "sparse")]
+    r = run_cli(*args, "--images", str(world.root / "synth" / "images"))
+    assert r.returncode == 2 and "--replace" in r.stderr and "Traceback" not in r.stderr
+    assert MapBundle(out / "room").build_id == before and verify_bundle(out / "room") == []
 
 
 def _small_tmpfs(path: Path, size: str) -> bool:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 DESCRIPTION = """\
 Build a map bundle (the paper's offline stage): multi-scale Harris + oriented DAISY descriptors
@@ -33,8 +34,9 @@ times the scene depth (estimated from tracks triangulated with the poses); witho
 the bundle's manifest; keyframes go to a temporary folder removed afterwards.
 
 CAMERA is a camera.json file or 'MODEL width height params...' in COLMAP order, e.g.
-'PINHOLE 640 480 525.505 525.505 320 240'. An existing bundle of the same name stays intact
-until the new one is complete; a failed or cancelled build leaves nothing behind.
+'PINHOLE 640 480 525.505 525.505 320 240'. An existing bundle of the same name is refused unless
+--replace is given; it then stays intact until the new one is complete. A failed or cancelled
+build leaves nothing behind.
 """
 
 
@@ -47,6 +49,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("name", help="map name (letters, digits, '_', '-', '.'); the bundle is OUT/NAME")
     p.add_argument("--out", default="maps", help="folder for bundles (default: maps)")
+    p.add_argument(
+        "--replace",
+        action="store_true",
+        help="replace an existing bundle OUT/NAME (without it, an existing name is refused "
+        "before any work; the old bundle stays intact until the new one is complete)",
+    )
     p.add_argument(
         "--colmap",
         metavar="MODEL_DIR",
@@ -174,6 +182,11 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("--images (an image folder) or --video (a video file) is required")
     if args.poses and not args.camera:
         raise InputError("--poses needs --camera (camera.json or 'PINHOLE w h fx fy cx cy')")
+    existing = Path(args.out) / args.name
+    if not args.replace and (existing.exists() or existing.is_symlink()):
+        raise InputError(
+            f"{existing} exists: pass --replace to rebuild it (or choose another name)"
+        )
     conf = preset(args.preset)
     if args.config:
         conf = merge_presets(conf, **read_config_file(args.config))
