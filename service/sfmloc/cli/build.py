@@ -227,7 +227,6 @@ def run(args: argparse.Namespace) -> int:
         # Built into a hidden folder beside the final one, so that only the aligned map is ever
         # published under NAME (a server following the folder never sees the unaligned one).
         import tempfile
-        from pathlib import Path
 
         Path(args.out).mkdir(parents=True, exist_ok=True)
         args.out = tempfile.mkdtemp(prefix=f".{args.name}.unaligned-", dir=args.out)
