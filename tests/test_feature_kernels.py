@@ -42,8 +42,9 @@ def reference_corners(
     mask=None,
     subpixel="quadratic",
 ):
-    """Integer maxima, responses and max of the plain implementation; sub-pixel offsets from
-    the module's own per-corner functions (unchanged, they read the same response/gradients)."""
+    """Integer maxima (3x3 dilation of the whole response), responses and max of the plain
+    implementation; the quadratic sub-pixel step as it was, Forstner's from the module's own
+    per-corner function (unchanged, it reads the same gradients)."""
     R = reference_response(gray)
     r_max = float(R.max()) if R.size else 0.0
     thr = max(float(threshold if threshold is not None else rel_threshold * r_max), 1e-12)
@@ -63,7 +64,7 @@ def reference_corners(
         xs, ys, resp = xs[keep], ys[keep], resp[keep]
     xy = np.stack([xs, ys], axis=1).astype(np.float64)
     if subpixel == "quadratic" and len(xs):
-        xy += harris._subpixel_offsets(R, xs, ys)
+        xy += reference_subpixel_offsets(R, xs, ys)
     elif subpixel == "forstner" and len(xs):
         gx = cv2.Sobel(gray, cv2.CV_32F, 1, 0, ksize=3, scale=1.0 / 8.0)
         gy = cv2.Sobel(gray, cv2.CV_32F, 0, 1, ksize=3, scale=1.0 / 8.0)
@@ -73,6 +74,25 @@ def reference_corners(
         h, w = gray.shape
         xy = np.clip(xy, border, np.array([w - border, h - border], np.float64))
     return xy, resp, r_max
+
+
+def reference_subpixel_offsets(R: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
+    """The quadratic sub-pixel step with 2D gathers (the implementation before flat ones)."""
+    h, w = R.shape
+    xm, xp = np.clip(xs - 1, 0, w - 1), np.clip(xs + 1, 0, w - 1)
+    ym, yp = np.clip(ys - 1, 0, h - 1), np.clip(ys + 1, 0, h - 1)
+    c = R[ys, xs].astype(np.float64)
+    gx = 0.5 * (R[ys, xp] - R[ys, xm])
+    gy = 0.5 * (R[yp, xs] - R[ym, xs])
+    hxx = R[ys, xp] - 2 * c + R[ys, xm]
+    hyy = R[yp, xs] - 2 * c + R[ym, xs]
+    hxy = 0.25 * (R[yp, xp] - R[yp, xm] - R[ym, xp] + R[ym, xm])
+    det = hxx * hyy - hxy * hxy
+    ok = (det > 0) & (hxx < 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        dx = np.where(ok, -(hyy * gx - hxy * gy) / det, 0.0)
+        dy = np.where(ok, -(hxx * gy - hxy * gx) / det, 0.0)
+    return np.stack([np.clip(dx, -0.5, 0.5), np.clip(dy, -0.5, 0.5)], axis=1)
 
 
 def reference_brief(smoothed: np.ndarray, xy: np.ndarray, patch_size: int = 32) -> np.ndarray:

@@ -226,14 +226,20 @@ def _subpixel_offsets(R: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> np.ndarr
     maximum (Newton step ``-H^-1 g`` with central differences, including the cross term, which
     matters for corners whose peak is elongated along a diagonal); clipped to half a pixel."""
     h, w = R.shape
+    f = R.ravel()  # flat gathers: a third of the cost of R[ys, xs] pairs
     xm, xp = np.clip(xs - 1, 0, w - 1), np.clip(xs + 1, 0, w - 1)
-    ym, yp = np.clip(ys - 1, 0, h - 1), np.clip(ys + 1, 0, h - 1)
-    c = R[ys, xs].astype(np.float64)
-    gx = 0.5 * (R[ys, xp] - R[ys, xm])
-    gy = 0.5 * (R[yp, xs] - R[ym, xs])
-    hxx = R[ys, xp] - 2 * c + R[ys, xm]
-    hyy = R[yp, xs] - 2 * c + R[ym, xs]
-    hxy = 0.25 * (R[yp, xp] - R[yp, xm] - R[ym, xp] + R[ym, xm])
+    ym, yp = np.clip(ys - 1, 0, h - 1) * w, np.clip(ys + 1, 0, h - 1) * w
+    y0 = ys * w
+    c = f[y0 + xs].astype(np.float64)
+    r_ym = f[ym + xs]
+    r_yp = f[yp + xs]
+    r_xm = f[y0 + xm]
+    r_xp = f[y0 + xp]
+    gx = 0.5 * (r_xp - r_xm)
+    gy = 0.5 * (r_yp - r_ym)
+    hxx = r_xp - 2 * c + r_xm
+    hyy = r_yp - 2 * c + r_ym
+    hxy = 0.25 * (f[yp + xp] - f[yp + xm] - f[ym + xp] + f[ym + xm])
     det = hxx * hyy - hxy * hxy
     ok = (det > 0) & (hxx < 0)  # a proper maximum
     with np.errstate(divide="ignore", invalid="ignore"):
