@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test lint format typecheck bench bench-publish proto clean
+.PHONY: demo test test-deps lint format typecheck bench bench-publish proto clean
 
 $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -18,6 +18,15 @@ demo: $(STAMP)
 # The guards run first (seconds; mypy ~25 s without its cache), then the suite.
 test: lint typecheck
 	$(BIN)/python -m pytest -q
+
+# What the tests need beyond Python: Debian's chromium for the viewer's browser test
+# (tests/test_viewer.py). Never fails: where it cannot install (no root, not Debian), it says so
+# and that test is skipped with the reason.
+test-deps:
+	@command -v chromium >/dev/null 2>&1 \
+	|| { apt-get update -qq && apt-get install -y -qq chromium; } \
+	|| echo "make test-deps: chromium not installed (apt-get install -y chromium needs root" \
+	"and Debian's packages); the viewer's browser test will be skipped" >&2
 
 # Style and likely bugs: ruff at the configured width with import order (pyproject [tool.ruff]).
 lint: $(STAMP)

@@ -50,6 +50,9 @@ CONTRACTS = [
     ),
     ("sfmloc.server", "sfmloc.builder_service", "the two services share the contract, not code"),
     ("sfmloc_client", "sfmloc", "the client installs without the service"),
+    ("sfmloc.viewer", "sfmloc.engine", "the viewer shows poses, it does not compute them"),
+    ("sfmloc.viewer", "sfmloc.server", "the viewer listens to the pose stream like a client"),
+    ("sfmloc.viewer", "sfmloc.builder", "the viewer reads bundles, it does not build them"),
 ]
 
 

@@ -21,6 +21,7 @@ COMMANDS = [
     "serve",
     "stream",
     "relocalize",
+    "view",
     "maps",
     "sessions",
     "servers",

@@ -1,0 +1,358 @@
+"""`sfmloc view`: the map served to the page (points, colours, cameras, against the bundle), the
+live pose feed over real Zenoh sessions and server-sent events, and the page itself in a real
+headless Chromium against a real server localizing a streamed client (the marker moves along
+the synthetic ground truth; the screenshot shows the map and the marker).
+
+The browser test needs Debian's chromium (README, Tests: `make test-deps`); it is skipped,
+with that reason, where none is installed."""
+
+from __future__ import annotations
+
+import hashlib
+import http.client
+import json
+import re
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from browser import Browser, find_chromium
+from server_helpers import (
+    camera,
+    client_zenoh,
+    running_server,
+    server_config,
+    wait_until,
+    zenoh_endpoint,
+)
+from sfmloc.map.bundle import MapBundle
+from sfmloc.viewer.http import ViewerServer
+from sfmloc.viewer.live import LiveState, PoseFeed
+from sfmloc_client.wire import PoseMessage, Transform, encode_pose, pose_key
+
+VENDOR = Path(__file__).resolve().parents[1] / "service/sfmloc/viewer/static/vendor"
+STATUS_RGB = {
+    "TRACKING": (0x2E, 0xCC, 0x71),
+    "RELOCALIZED": (0x34, 0x98, 0xDB),
+    "UNVERIFIED": (0xF3, 0x9C, 0x12),
+    "LOST": (0xE7, 0x4C, 0x3C),
+}
+
+
+def get(viewer: ViewerServer, path: str) -> tuple[int, str, bytes]:
+    conn = http.client.HTTPConnection("127.0.0.1", viewer.port, timeout=30)
+    try:
+        conn.request("GET", path)
+        r = conn.getresponse()
+        return r.status, r.getheader("Content-Type", ""), r.read()
+    finally:
+        conn.close()
+
+
+class Events:
+    """The viewer's server-sent event stream, read on a thread."""
+
+    def __init__(self, viewer: ViewerServer) -> None:
+        self.conn = http.client.HTTPConnection("127.0.0.1", viewer.port, timeout=30)
+        self.conn.request("GET", "/events")
+        self.resp = self.conn.getresponse()
+        assert self.resp.status == 200
+        assert self.resp.getheader("Content-Type") == "text/event-stream"
+        self.items: list[tuple[str, object]] = []
+        self.cond = threading.Condition()
+        threading.Thread(target=self._read, daemon=True).start()
+
+    def _read(self) -> None:
+        kind = ""
+        try:
+            for raw in self.resp.fp:
+                line = raw.decode().rstrip("\n")
+                if line.startswith("event: "):
+                    kind = line[7:]
+                elif line.startswith("data: "):
+                    with self.cond:
+                        self.items.append((kind, json.loads(line[6:])))
+                        self.cond.notify_all()
+        except (OSError, ValueError):
+            pass
+
+    def wait(self, pred, timeout: float = 20.0) -> list:
+        with self.cond:
+            assert self.cond.wait_for(lambda: pred(self.items), timeout), self.items[-5:]
+            return list(self.items)
+
+    def close(self) -> None:
+        self.conn.close()
+
+
+def test_vendored_three_is_the_recorded_build():
+    """three.min.js is the build vendor/README.md describes (tools/build_three.sh), with its
+    licence beside it."""
+    digest = hashlib.sha256((VENDOR / "three.min.js").read_bytes()).hexdigest()
+    assert digest in (VENDOR / "README.md").read_text()
+    assert "MIT License" in (VENDOR / "LICENSE-three").read_text()
+    head = (VENDOR / "three.min.js").read_text()[:200]
+    assert "Three.js Authors" in head and "SPDX-License-Identifier: MIT" in head
+
+
+def test_map_api_serves_the_bundle(world):
+    bundle = MapBundle(world.maps_dir / "room")
+    with ViewerServer([world.maps_dir], LiveState(), port=0) as v:
+        status, _, body = get(v, "/api/maps")
+        assert status == 200 and json.loads(body) == {"maps": ["room", "room2"]}
+        status, ctype, body = get(v, "/api/maps/room")
+        assert status == 200 and ctype == "application/json"
+        meta = json.loads(body)
+        assert meta["n_points"] == meta["points_shown"] == bundle.n_points
+        assert meta["build_id"] == bundle.build_id
+        assert meta["scene_scale"] == pytest.approx(bundle.scene_scale, rel=1e-9)
+        assert len(meta["cameras"]) == bundle.n_images
+        for c, T in zip(meta["cameras"], bundle.image_cam_from_world):
+            np.testing.assert_allclose(c["centre"], T.center, atol=1e-9)
+            np.testing.assert_allclose(c["axes"], T.rotation, atol=1e-9)
+        # "up" is opposite the mapping cameras' image-down axis: they stand upright in it.
+        downs = np.array([T.rotation[1] for T in bundle.image_cam_from_world])
+        assert (downs @ np.array(meta["up"]) < 0).mean() > 0.9
+        status, ctype, body = get(v, "/api/maps/room/points")
+        assert status == 200 and ctype == "application/octet-stream"
+        n = bundle.n_points
+        assert len(body) == 15 * n
+        xyz = np.frombuffer(body[: 12 * n], "<f4").reshape(n, 3)
+        rgb = np.frombuffer(body[12 * n :], np.uint8).reshape(n, 3)
+        np.testing.assert_array_equal(xyz, bundle.points_xyz.astype(np.float32))
+        np.testing.assert_array_equal(rgb, bundle.array("point_rgb"))
+        status, ctype, body = get(v, "/")
+        assert status == 200 and ctype.startswith("text/html") and b"viewer.js" in body
+        status, ctype, _ = get(v, "/static/vendor/three.min.js")
+        assert status == 200 and ctype.startswith("text/javascript")
+
+
+def test_large_maps_are_drawn_by_a_fixed_subset(world):
+    bundle = MapBundle(world.maps_dir / "room")
+    with ViewerServer([world.maps_dir], LiveState(), port=0, max_points=100) as v:
+        meta = json.loads(get(v, "/api/maps/room")[2])
+        assert meta["n_points"] == bundle.n_points and meta["points_shown"] == 100
+        body = get(v, "/api/maps/room/points")[2]
+        again = get(v, "/api/maps/room/points")[2]
+    xyz = np.frombuffer(body[:1200], "<f4").reshape(100, 3)
+    rgb = np.frombuffer(body[1200:], np.uint8).reshape(100, 3)
+    full = bundle.points_xyz.astype(np.float32)
+    rows = [int(np.flatnonzero((full == p).all(1))[0]) for p in xyz]  # each a map point
+    np.testing.assert_array_equal(rgb, bundle.array("point_rgb")[rows])
+    assert body == again
+
+
+def test_bad_requests_get_clear_errors(world):
+    with ViewerServer([world.maps_dir, world.spare_dir / "corrupt"], LiveState(), port=0) as v:
+        status, _, body = get(v, "/api/maps/nowhere")
+        assert status == 404 and "no map 'nowhere'" in json.loads(body)["error"]
+        for path in ("/static/../http.py", "/static/%2e%2e/http.py", "/etc/passwd", "/api/x"):
+            status, _, body = get(v, path)
+            assert status == 404 and "error" in json.loads(body), path
+    # The corrupt copy of "room" (flipped bytes) is found under its own root only.
+    with ViewerServer([world.spare_dir / "corrupt"], LiveState(), port=0) as v:
+        status, _, body = get(v, "/api/maps/room")
+        assert status == 422 and "checksum mismatch" in json.loads(body)["error"]
+    with pytest.raises(Exception, match="does not exist"):
+        ViewerServer([world.root / "nope"], LiveState(), port=0)
+
+
+def _pose(seq: int, centre, status: str = "TRACKING", client: str = "c1") -> PoseMessage:
+    T = None if centre is None else Transform((0.0, 0.0, 0.0, 1.0), tuple(centre))
+    inv = None if centre is None else Transform((0.0, 0.0, 0.0, 1.0), tuple(-np.array(centre)))
+    return PoseMessage(
+        seq=seq,
+        stamp_ns=seq * 1000,
+        status=status,
+        cam_from_world=inv,
+        world_from_cam=T,
+        latency_ms=12.5,
+        inliers=77,
+        map="room",
+        client_id=client,
+        message="" if centre is not None else "too few inliers",
+    )
+
+
+def test_pose_stream_over_zenoh_to_server_sent_events(world):
+    """Pose messages published on Zenoh reach an open page as events (position, status,
+    latency), a page opening later gets each client's trajectory, and garbage on the pose key
+    is counted, not fatal."""
+    ep = zenoh_endpoint()
+    state = LiveState()
+    import zenoh
+
+    from sfmloc_client import make_zenoh_config
+
+    listen = make_zenoh_config("peer", listen=[ep], multicast=False)
+    with (
+        zenoh.open(listen) as zs,
+        PoseFeed(zs, state),
+        ViewerServer([world.maps_dir], state, port=0) as v,
+        client_zenoh(ep) as zc,
+    ):
+        events = Events(v)
+        events.wait(lambda items: [k for k, _ in items][:2] == ["snapshot", "summary"])
+        pub = zc.declare_publisher(pose_key("room", "c1"))
+        # Until the route is up, probes may be lost: publish until one arrives.
+        assert wait_until(
+            lambda: pub.put(encode_pose(_pose(0, [0.0, 0.0, 0.0]))) or state.poses > 0, 10, 0.05
+        )
+        for k in range(1, 6):
+            pub.put(encode_pose(_pose(k, [0.1 * k, 0.0, 1.0])))
+        pub.put(encode_pose(_pose(6, None, "LOST")))
+        items = events.wait(lambda items: any(k == "pose" and d["seq"] == 6 for k, d in items))
+        poses = {d["seq"]: d for k, d in items if k == "pose"}
+        assert poses[5]["centre"] == pytest.approx([0.5, 0.0, 1.0])
+        assert poses[5]["status"] == "TRACKING" and poses[5]["latency_ms"] == 12.5
+        assert poses[5]["inliers"] == 77 and poses[5]["client"] == "c1"
+        assert poses[6]["centre"] is None and poses[6]["status"] == "LOST"
+        assert poses[6]["message"] == "too few inliers"
+        zc.put(pose_key("room", "c2"), b"\x93not a pose")
+        assert wait_until(lambda: state.summary()["bad_messages"] == 1, 10)
+        late = Events(v)
+        snap = late.wait(lambda items: bool(items))[0]
+        assert snap[0] == "snapshot"
+        (c1,) = snap[1]
+        trail = np.array(c1["trail"])
+        assert c1["client"] == "c1" and c1["status"] == "LOST" and len(trail) >= 6
+        np.testing.assert_allclose(trail[-5:, 0], [0.1, 0.2, 0.3, 0.4, 0.5])
+        status = json.loads(get(v, "/api/status")[2])
+        assert status["bad_messages"] == 1 and "c2" in status["last_bad"]
+        events.close()
+        late.close()
+
+
+def _status_pixels(png: bytes, status: str) -> np.ndarray:
+    import cv2
+
+    img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)[:, :, ::-1]
+    near = np.abs(img.astype(int) - np.array(STATUS_RGB[status])).max(axis=2) < 30
+    return np.argwhere(near)  # (row, col)
+
+
+@pytest.mark.skipif(
+    find_chromium() is None,
+    reason="no chromium on PATH: the viewer's browser test needs Debian's chromium "
+    "(make test-deps, or apt-get install -y chromium)",
+)
+def test_page_shows_the_map_and_a_streamed_client_moving(world, tmp_path):
+    """The real thing: a server localizes a client streaming the synthetic video over Zenoh;
+    the viewer listens; Chromium loads the page, which draws the map and moves the client's
+    marker along the exact ground truth."""
+    ep = zenoh_endpoint()
+    state = LiveState()
+    stop = threading.Event()
+    bundle = MapBundle(world.maps_dir / "room")
+
+    def stream(z) -> None:
+        from sfmloc_client import FrameStreamer
+
+        with FrameStreamer(z, "room", "walker", camera(world), encoding="png") as fs:
+            fs.wait_for_server(20)
+            for k, data in enumerate(world.png):
+                if stop.is_set():
+                    return
+                fs.publish(data=data, encoding="png", stamp_ns=int(k * 1e9 / 30), seq=k)
+                time.sleep(0.15)  # slow enough to be seen mid-way
+
+    def shot_and_state(b: Browser) -> tuple[bytes, dict, list[float]]:
+        png = b.screenshot()
+        c, xy = b.evaluate("[window.sfmlocView.clients.walker, window.sfmlocView.screen('walker')]")
+        return png, c, xy
+
+    with (
+        running_server(server_config(world, ep)),
+        client_zenoh(ep) as zv,
+        PoseFeed(zv, state),
+        ViewerServer([world.maps_dir], state, port=0) as v,
+        Browser() as b,
+    ):
+        b.open(v.url + "?map=room", width=1000, height=700)
+        view = b.wait_for("window.sfmlocView && window.sfmlocView.ready && window.sfmlocView")
+        assert view["error"] is None, (view, b.console)
+        assert view["map"] == "room" and view["points"] == bundle.n_points
+        assert view["cameras"] == bundle.n_images
+        blank = b.screenshot()
+        with client_zenoh(ep) as zc:
+            t = threading.Thread(target=stream, args=(zc,), daemon=True)
+            t.start()
+            try:
+                b.wait_for(
+                    "(c => c && c.centre && c.status !== 'LOST')(window.sfmlocView.clients.walker)",
+                    60,
+                )
+                shot1, first, screen1 = shot_and_state(b)
+                b.wait_for(
+                    f"(c => c.status !== 'LOST' && c.seq >= {first['seq'] + 8})"
+                    "(window.sfmlocView.clients.walker)",
+                    60,
+                )
+                shot2, later, screen2 = shot_and_state(b)
+            finally:
+                stop.set()
+                t.join(30)
+    (tmp_path / "viewer.png").write_bytes(shot2)
+    # The marker is where the server says, and that is the ground truth of that frame.
+    for c in (first, later):
+        gt = world.gt_cam_from_world[c["seq"]].center
+        assert np.linalg.norm(np.array(c["centre"]) - gt) < 0.05, (c, gt)
+    assert np.linalg.norm(np.array(later["centre"]) - np.array(first["centre"])) > 0.05
+    assert later["trail"] > first["trail"] and later["latency_ms"] > 0
+    assert np.hypot(screen2[0] - screen1[0], screen2[1] - screen1[1]) > 2  # it moved on screen
+    # Not blank: the map's points and cameras are drawn (many grey levels: texture colours,
+    # frusta), and the client's status dot is where the page projects its centre.
+    import cv2
+
+    img = cv2.imdecode(np.frombuffer(blank, np.uint8), cv2.IMREAD_GRAYSCALE)
+    scene = img[150:650, 50:950]  # below the panel, above the legend
+    assert scene.std() > 8 and len(np.unique(scene)) > 40
+    for shot, (x, y) in ((shot1, screen1), (shot2, screen2)):
+        # any status but LOST: the dot is drawn in the status of the newest pose
+        near = sum(
+            int((np.hypot(d[:, 1] - x, d[:, 0] - y) < 12).sum())
+            for d in (_status_pixels(shot, s) for s in ("TRACKING", "RELOCALIZED", "UNVERIFIED"))
+        )
+        assert near >= 20, (x, y, near)
+
+
+def test_view_command_serves_until_interrupted(world):
+    import signal
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "sfmloc", "view", "--maps", str(world.maps_dir), "--port", "0"]
+        + ["--zenoh-listen", zenoh_endpoint(), "--no-multicast"],
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        url = None
+        for line in proc.stderr:  # type: ignore[union-attr]
+            m = re.search(r"sfmloc view on (http://\S+/) \(maps: room, room2\)", line)
+            if m:
+                url = m.group(1)
+                break
+        assert url, "no address printed"
+        port = int(url.rsplit(":", 1)[1].rstrip("/"))
+        conn = http.client.HTTPConnection("127.0.0.1", port, timeout=10)
+        conn.request("GET", "/api/maps")
+        assert json.loads(conn.getresponse().read()) == {"maps": ["room", "room2"]}
+        conn.close()
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(20) == 130
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    r = subprocess.run(
+        [sys.executable, "-m", "sfmloc", "view", "--maps", str(world.root / "nope")],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert r.returncode == 2 and "maps folder" in r.stderr and "does not exist" in r.stderr
