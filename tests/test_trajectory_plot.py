@@ -82,7 +82,7 @@ def test_stream_records_match_groundtruth_by_frame(world, tmp_path):
             )
             poses.wait_for(stats.last_seq, 10)
     records = rec.records(str(world.root / "synth" / "video_poses.txt"), 30.0)
-    assert [r.index for r in records] == list(range(20))
+    assert [r.index for r in records] == list(range(20))  # lockstep: every frame answered
     assert [r.name for r in records] == [f.name for f in world.frames[:20]]
     errs = [r.position_error_m for r in records if r.position_error_m is not None]
     assert len(errs) >= 15 and float(np.median(errs)) < 0.01
@@ -134,3 +134,26 @@ def test_plot_into_a_missing_folder_is_a_clear_error(tmp_path):
 
     with pytest.raises(InputError, match="does not exist"):
         write_plot([], tmp_path / "nope" / "x.png", "t")
+
+
+def test_stream_records_leave_out_frames_the_server_skipped():
+    """A frame dropped as stale gets no answer and no status in the plot; a LOST one is drawn
+    as lost."""
+    from types import SimpleNamespace
+
+    from sfmloc.cli._trajplot import StreamRecorder
+    from sfmloc_client.wire import PoseMessage, Transform
+
+    rec = StreamRecorder()
+    for k in range(4):
+        rec.sent(k, SimpleNamespace(name=f"f{k}.png", stamp_ns=None))
+    T = Transform((0.0, 0.0, 0.0, 1.0), (1.0, 2.0, 3.0))
+    rec.pose(PoseMessage(seq=0, stamp_ns=0, status="TRACKING", cam_from_world=T, world_from_cam=T))
+    rec.pose(PoseMessage(seq=2, stamp_ns=0, status="LOST"))
+    out = rec.records(None, 30.0)
+    assert [(r.index, r.name, r.status) for r in out] == [
+        (0, "f0.png", "TRACKING"),
+        (2, "f2.png", "LOST"),
+    ]
+    np.testing.assert_allclose(out[0].cam_from_world.translation, [1.0, 2.0, 3.0])
+    assert out[1].cam_from_world is None

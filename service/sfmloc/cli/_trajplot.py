@@ -50,9 +50,10 @@ def write_plot(records: list, path: str | Path, title: str, points_xyz: Any = No
 
 
 class StreamRecorder:
-    """What `sfmloc stream` sent and got back, as replay-style records for the plot: frames by
-    their seq (the source's frame index, in order), matched to ground truth by file name or by
-    timestamp (the source's own, else index / fps) like `sfmloc replay`."""
+    """What `sfmloc stream` sent and got back, as replay-style records for the plot: answered
+    frames by their seq (the source's frame index, in order), matched to ground truth by file
+    name or by timestamp (the source's own, else index / fps) like `sfmloc replay`. Frames the
+    server skipped as stale have no status and are left out (LOST frames are answered)."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
@@ -88,18 +89,20 @@ class StreamRecorder:
         out = []
         for i, s in enumerate(seqs):
             p = poses.get(s)
+            if p is None:  # dropped by the server as stale (counted in the summary): no status
+                continue
             est = None
             if p is not None and p.localized and p.cam_from_world is not None:
                 est = Rigid3d.from_quat_xyzw(p.cam_from_world.quat_xyzw, p.cam_from_world.t)
-            counts = p.counts if p is not None else {}
+            counts = p.counts
             rec = FrameRecord(
                 index=s,
                 name=names[i],
                 stamp=stamps[i],
-                status=p.status if p is not None else "LOST",
-                matching=p.matching if p is not None else "none",
-                latency_ms=p.latency_ms if p is not None else float("nan"),
-                inliers=p.inliers if p is not None else 0,
+                status=p.status,
+                matching=p.matching,
+                latency_ms=p.latency_ms,
+                inliers=p.inliers,
                 detected=int(counts.get("detected", 0)),
                 tracked=int(counts.get("tracked", 0)),
                 tracked_3d=int(counts.get("tracked_3d", 0)),

@@ -242,6 +242,6 @@ def run(args: argparse.Namespace) -> int:
     print(summary)
     if args.plot:
         recs = recorder.records(args.groundtruth, args.fps or 30.0)
-        title = f"sfmloc stream: {Path(args.source).name} on {args.map}, {len(recs)} frames"
+        title = f"sfmloc stream: {Path(args.source).name} on {args.map}, {len(recs)} answered"
         print(f"plot: {write_plot(recs, args.plot, title)}")
     return 0 if received > 0 else 1
