@@ -84,6 +84,7 @@ class Server:
             max_pending_relocalize=conf.max_pending_relocalize,
             max_image_pixels=conf.max_image_pixels,
             reloc_workers=conf.relocalize_workers,
+            fork=conf.worker_start == "fork",
         )
         self.registry = MapRegistry(self.pool, on_change=self._on_map_change)
         # gRPC bearer tokens and roles (None: authentication off).
@@ -209,7 +210,13 @@ class Server:
             )
             self.metrics_server.start()
         t0 = time.perf_counter()
-        await loop.run_in_executor(self.executor, self.pool.start)
+        # The workers start while Zenoh and gRPC open (start-up time: their imports and forks
+        # overlap the front ends' set-up); no frame is taken before the maps are loaded.
+        workers = loop.run_in_executor(self.executor, self.pool.start)
+        try:
+            await self._open_front_ends()
+        finally:
+            await workers  # its error first: a front end's own error would follow from it
         event(
             log,
             logging.INFO,
@@ -219,6 +226,14 @@ class Server:
             kind=c.worker_kind,
             ms=round((time.perf_counter() - t0) * 1e3),
         )
+        self._reaper = threading.Thread(target=self._reap, name="sfmloc-reaper", daemon=True)
+        self._reaper.start()
+        if load_maps:
+            await self.load_initial_maps()
+
+    async def _open_front_ends(self) -> None:
+        loop = asyncio.get_running_loop()
+        c = self.conf
         if c.zenoh.enabled:
             from .zenoh_io import ZenohFrontend
 
@@ -238,10 +253,6 @@ class Server:
                 await self.health.set(svc, health_pb2.HealthCheckResponse.NOT_SERVING)
             await self.grpc.start()
             event(log, logging.INFO, "grpc_listening", address=c.grpc.address, port=self.grpc_port)
-        self._reaper = threading.Thread(target=self._reap, name="sfmloc-reaper", daemon=True)
-        self._reaper.start()
-        if load_maps:
-            await self.load_initial_maps()
 
     async def load_initial_maps(self) -> None:
         """Load every bundle in ``conf.maps``, then accept frames and report SERVING."""

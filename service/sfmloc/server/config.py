@@ -56,6 +56,10 @@ class ServerConfig(StrictModel):
     # the GIL serializes the engine's Python-level work, see the report in app.py).
     workers: int = Field(0, ge=0)
     worker_kind: Literal["process", "thread"] = "process"
+    # "fork": process workers are forked from one interpreter that imported the engine once
+    # (server/zygote.py: start and restart without re-importing, imported pages shared);
+    # "exec": a fresh interpreter per worker (the measured baseline, and the fallback).
+    worker_start: Literal["fork", "exec"] = "fork"
     idle_timeout_s: float = Field(30.0, gt=0)  # a Zenoh session without frames this long ends
     # Frames of a session that may wait while its previous one is processed; older ones are
     # dropped. 1 = latest-frame-only (the default: the freshest pose, soonest).

@@ -38,6 +38,7 @@ from ..threads import pin_threads_env, single_thread_env
 from . import protocol as P
 from .logfmt import event
 from .worker import worker_main
+from .zygote import Zygote
 
 log = logging.getLogger(__name__)
 
@@ -86,6 +87,7 @@ class WorkerPool:
         reloc_workers: int = 0,
         reloc_nice: int = 5,
         thread_target: Callable[..., None] = worker_main,
+        fork: bool = True,
     ) -> None:
         self.n = n  # stream workers (sessions live on workers 0..n-1)
         # Workers n..n+reloc_workers-1 only serve single-image relocalizations (their own
@@ -96,6 +98,11 @@ class WorkerPool:
         self.kind = kind
         # What a thread worker runs: ``worker_main``, or a fake speaking the protocol (tests).
         self.thread_target = thread_target
+        # Process workers are forked from one pre-imported interpreter (``zygote.py``): start
+        # and restart without re-importing the engine, imports' pages shared. False: a fresh
+        # interpreter each (also the fallback when the zygote is gone).
+        self.fork = fork and kind == "process"
+        self._zygote: Zygote | None = None
         self.engine_conf_json = engine_conf_json
         self.on_result = on_result
         self.on_lost = on_lost or (lambda i: None)
@@ -126,6 +133,8 @@ class WorkerPool:
     # ------------------------------------------------------------------ lifecycle
     def start(self, timeout: float = 120.0) -> None:
         pin_threads_env()
+        if self.fork:
+            self._zygote = Zygote(self._worker_env())
         for i in range(self.n + self.reloc_workers):
             self.workers.append(self._spawn(i))
             self.workers[i].serving = True  # no map is loaded before start() returns
@@ -147,14 +156,28 @@ class WorkerPool:
         for sock in (ours, theirs):  # a whole frame fits: one write, one read, fewer wake-ups
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SOCKET_BUFFER)
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, SOCKET_BUFFER)
-        if self.kind == "process":
+        runner: Any = None
+        nice = self.reloc_nice if i >= self.n else 0
+        if self.kind == "process" and self._zygote is not None and self._zygote.alive:
+            try:
+                runner = self._zygote.spawn(
+                    theirs.fileno(),
+                    i,
+                    self.engine_conf_json,
+                    self.log_level,
+                    self.log_format,
+                    nice,
+                    timeout=120.0,  # the zygote may still be importing
+                )
+            except OSError as exc:
+                log.warning("worker %d: the zygote cannot fork (%s): starting afresh", i, exc)
+            if runner is not None:
+                theirs.close()
+        if self.kind == "process" and runner is None:
             # A fresh interpreter (not multiprocessing's spawn): it does not re-import the
             # caller's __main__, nothing is pickled, and the one-thread environment is in place
             # before numpy loads.
-            env = single_thread_env()
-            # OpenCV refuses to decode larger images (decompression bombs: a small JPEG that
-            # claims a huge size would otherwise be decoded before its size is checked).
-            env["OPENCV_IO_MAX_IMAGE_PIXELS"] = str(self.max_image_pixels)
+            env = self._worker_env()
             fd = theirs.fileno()
             cmd = [
                 sys.executable,
@@ -171,15 +194,15 @@ class WorkerPool:
                 "--engine-conf",
                 self.engine_conf_json,
                 "--nice",
-                str(self.reloc_nice if i >= self.n else 0),
+                str(nice),
             ]
-            runner: Any = _Process(
+            runner = _Process(
                 subprocess.Popen(
                     cmd, pass_fds=(fd,), env=env, stdin=subprocess.DEVNULL, stderr=subprocess.PIPE
                 )
             )
             theirs.close()  # the child holds its end; ours must not keep it open (EOF detection)
-        else:
+        elif runner is None:
             conn = Connection(theirs.detach())
             args = (conn, i, self.engine_conf_json, self.log_level, self.log_format, False)
             runner = threading.Thread(
@@ -198,6 +221,13 @@ class WorkerPool:
         for t in h.threads:
             t.start()
         return h
+
+    def _worker_env(self) -> dict[str, str]:
+        env = single_thread_env()  # in place before numpy loads
+        # OpenCV refuses to decode larger images (decompression bombs: a small JPEG that
+        # claims a huge size would otherwise be decoded before its size is checked).
+        env["OPENCV_IO_MAX_IMAGE_PIXELS"] = str(self.max_image_pixels)
+        return env
 
     def stop(self, timeout: float = 10.0) -> None:
         self._stopping = True
@@ -220,6 +250,8 @@ class WorkerPool:
         for h in self.workers:
             for t in h.threads:
                 t.join(2)
+        if self._zygote is not None:
+            self._zygote.close()
         self._fail_all(UnavailableError("the server is shutting down"))
 
     # ------------------------------------------------------------------ pumps
@@ -286,7 +318,11 @@ class WorkerPool:
         if self.kind == "process":
             h.runner.join(5)  # reap it now: no zombie, and its exit code is known
         code = getattr(h.runner, "exitcode", None)
-        pid = h.pid or getattr(getattr(h.runner, "popen", None), "pid", 0)
+        pid = (
+            h.pid
+            or getattr(h.runner, "pid", 0)
+            or getattr(getattr(h.runner, "popen", None), "pid", 0)
+        )
         started = h.ready.is_set()
         event(
             log,
@@ -464,6 +500,8 @@ class WorkerPool:
         """Single-image relocalization on an idle worker of the relocalization lane (queued
         until one is; cancel the future to drop it), or, without a lane, on the least busy
         worker. The future gets the ``RelocResult``."""
+        if not self._started:  # gRPC opens while the workers start (health: NOT_SERVING)
+            raise UnavailableError("the engine workers are starting; retry")
         with self._lock:
             pending = self._reloc_pending
             if pending >= self.max_pending_relocalize:

@@ -10,10 +10,10 @@ is unpickled).
 
 from __future__ import annotations
 
+from typing import Any
+
 from sfmloc_client.errors import InternalError, code_of, error_class, message_of
 from sfmloc_client.wire import ErrorInfo
-
-from ..interceptors import status_of
 
 __all__ = [
     "InternalError",
@@ -21,7 +21,6 @@ __all__ = [
     "error_info",
     "error_to_wire",
     "message_of",
-    "status_of",
 ]
 
 
@@ -38,3 +37,13 @@ def error_to_wire(exc: BaseException) -> dict[str, str]:
 
 def error_from_wire(d: dict[str, str]) -> Exception:
     return error_class(str(d.get("type")))(str(d.get("message", "")))
+
+
+def __getattr__(name: str) -> Any:
+    # ``status_of`` (gRPC codes) loads grpc: only on use, so that engine workers, which import
+    # this module through ``protocol``, do not import grpc (0.2-0.6 s of a worker's start).
+    if name == "status_of":
+        from ..interceptors import status_of
+
+        return status_of
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -38,12 +38,9 @@ def worker_main(
     nice: int = 0,
 ) -> None:
     """Entry point of a worker (a process, or a thread for measurements). ``nice`` > 0 lowers
-    the process's CPU priority (the relocalization lane: streams' frames win the CPU)."""
-    if is_process and nice > 0:
-        try:
-            os.nice(nice)
-        except OSError:  # not permitted: run at the normal priority
-            pass
+    the process's CPU priority (the relocalization lane: streams' frames win the CPU) once its
+    first map is loaded: the server reports SERVING only when every worker has loaded, and a
+    niced worker's load waited for every other process on a busy machine."""
     if is_process:
         # The server process coordinates shutdown: Ctrl-C in a terminal signals the whole
         # process group, and a worker must not die mid-frame. It exits on "stop" or when its
@@ -58,7 +55,7 @@ def worker_main(
     from .. import engine  # noqa: F401 - imported now (scipy, faiss...), not on the first frame
 
     try:
-        _Worker(conn, index, engine_conf_json).run()
+        _Worker(conn, index, engine_conf_json, nice if is_process else 0).run()
     finally:
         try:
             conn.close()
@@ -74,9 +71,10 @@ class _SessionState:
 
 
 class _Worker:
-    def __init__(self, conn: Any, index: int, engine_conf_json: str) -> None:
+    def __init__(self, conn: Any, index: int, engine_conf_json: str, nice: int = 0) -> None:
         from ..engine.config import EngineConf
 
+        self.nice = nice  # applied after the first load
         self.conn = conn
         self.index = index
         self.conf = EngineConf.model_validate_json(engine_conf_json)
@@ -137,11 +135,16 @@ class _Worker:
                 build_id=str(s["build_id"]),
                 index_in_place=b.index.shared_buffer is not None,
             )
-            self.send(P.Loaded(m.req, summary, None, (time.perf_counter() - t0) * 1e3))
+            answer = P.Loaded(m.req, summary, None, (time.perf_counter() - t0) * 1e3)
         except Exception as exc:  # noqa: BLE001
-            self.send(
-                P.Loaded(m.req, None, P.WorkerError.of(exc), (time.perf_counter() - t0) * 1e3)
-            )
+            answer = P.Loaded(m.req, None, P.WorkerError.of(exc), (time.perf_counter() - t0) * 1e3)
+        if self.nice > 0:  # before the answer: once the server serves, the priority is set
+            try:
+                os.nice(self.nice)
+            except OSError:  # not permitted: run at the normal priority
+                pass
+            self.nice = 0
+        self.send(answer)
 
     def on_drop(self, m: P.Drop) -> None:
         key = (m.name, m.gen)
@@ -264,9 +267,17 @@ def _expected(exc: BaseException) -> bool:
     return isinstance(exc, SfmlocError)
 
 
+# Warm-up time: its first stages (detection, description, the index search) carry the
+# first-call costs; RANSAC on a dummy image does not. Kitchen map, CPU ms (load ~20): a full
+# warm-up 150-158, this budget 48; a real first relocalization after either 79-81, after none
+# 103-112 (/tmp measurement, recorded in the commit).
+WARM_UP_BUDGET_S = 0.02
+
+
 def _warm_up(bundle: Any, conf: Any) -> None:
-    """One relocalization of a textured dummy image: first-call costs (allocations, caches,
-    the index's first search) are paid at load time rather than by a client's first frame."""
+    """The first stages of a relocalization of a textured dummy image: first-call costs
+    (allocations, caches, the index's first search) are paid at load time rather than by a
+    client's first frame."""
     import numpy as np
 
     from ..engine import relocalize
@@ -278,7 +289,8 @@ def _warm_up(bundle: Any, conf: Any) -> None:
     img = (rng.random((cam.height // 8 + 1, cam.width // 8 + 1)) * 255).astype(np.uint8)
     img = np.kron(img, np.ones((8, 8), np.uint8))[: cam.height, : cam.width]
     try:
-        relocalize(np.ascontiguousarray(img), cam, bundle, conf)
+        deadline = time.monotonic() + WARM_UP_BUDGET_S
+        relocalize(np.ascontiguousarray(img), cam, bundle, conf, deadline=deadline)
     except Exception as exc:  # noqa: BLE001 - a warm-up failure is not a load failure
         log.debug("warm-up failed: %s", exc)
 
