@@ -62,6 +62,30 @@ class PointUncertainty:
         theta = np.maximum(theta, np.radians(MIN_ANGLE_DEG))
         self.kappa = d_min / np.sin(np.minimum(theta, np.pi / 2))
         self._index = {X[i].tobytes(): i for i in range(n)}
+        # The same lookup vectorized: rows sorted by a hash of their bytes (then by row, so the
+        # last of byte-identical rows is found, as the dict keeps it); a row whose hash matches
+        # but whose bytes do not (a collision) is looked up in the dict. The per-row dict
+        # lookups cost ~0.2 ms per frame.
+        self._rows = np.ascontiguousarray(X).view(np.uint64).reshape(n, 3)
+        keys = _row_keys(self._rows)
+        self._order = np.lexsort((np.arange(n), keys))
+        self._sorted_keys = keys[self._order]
+
+    def lookup(self, X: np.ndarray) -> np.ndarray:
+        """The map row of each of the world points ``X`` (bytes equal), -1 for none."""
+        X = np.ascontiguousarray(X, np.float64).reshape(-1, 3)
+        if len(self._order) == 0 or len(X) == 0:
+            return np.full(len(X), -1, np.int64)
+        q = X.view(np.uint64).reshape(-1, 3)
+        kq = _row_keys(q)
+        pos = np.maximum(np.searchsorted(self._sorted_keys, kq, side="right") - 1, 0)
+        row = self._order[pos]
+        hit = self._sorted_keys[pos] == kq
+        same = hit & np.all(self._rows[row] == q, axis=1)
+        idx = np.where(same, row, -1)
+        for i in np.nonzero(hit & ~same)[0]:
+            idx[i] = self._index.get(X[i].tobytes(), -1)
+        return idx
 
     @classmethod
     def for_bundle(cls, bundle: MapBundle) -> PointUncertainty:
@@ -75,7 +99,16 @@ class PointUncertainty:
         self, X: np.ndarray, z: np.ndarray, map_noise_px: float = MAP_NOISE_PX
     ) -> np.ndarray:
         """Extra pixel standard deviation per correspondence (0 for points not in the map)."""
-        X = np.ascontiguousarray(X, np.float64)
-        idx = np.array([self._index.get(x.tobytes(), -1) for x in X], np.int64)
+        idx = self.lookup(X)
         k = np.where(idx >= 0, self.kappa[np.maximum(idx, 0)], 0.0)
         return map_noise_px * k / np.maximum(z, 1e-9)
+
+
+def _row_keys(rows: np.ndarray) -> np.ndarray:
+    """A 64-bit hash of each row of three uint64 words (the bytes of a float64 point)."""
+    with np.errstate(over="ignore"):
+        k = rows[:, 0] * np.uint64(0x9E3779B97F4A7C15)
+        k ^= rows[:, 1] * np.uint64(0xC2B2AE3D27D4EB4F)
+        k ^= rows[:, 2] * np.uint64(0x165667B19E3779F9)
+        k ^= k >> np.uint64(29)
+    return k
