@@ -221,6 +221,50 @@ def test_a_server_started_after_the_announcement_loads_the_map(world, builder, t
         assert wait_until(lambda: c.health() == "SERVING", 10)
 
 
+def test_a_server_without_the_builders_folder_fetches_the_bundle(world, builder, tmp_path):
+    """Issue 13: a server on another Zenoh endpoint with its own maps folder (no shared path,
+    the builder's folder not among its roots) loads a bundle the builder service built: the
+    files come over Zenoh, verified by the bundle's checksums, into the server's folder."""
+    import hashlib
+
+    from server_helpers import running_server, server_config
+    from sfmloc_client import LocalizationClient
+    from sfmloc_client.pb import builder_pb2 as pb
+
+    svc, ep, out = builder
+    ch, stub = _stub(svc)
+    with ch:
+        job_id = stub.SubmitBuild(_colmap_request(world, "faraway")).job_id
+        assert (
+            list(stub.WatchBuild(pb.WatchBuildRequest(job_id=job_id)))[-1].state
+            == pb.BUILD_STATE_SUCCEEDED
+        )
+    own = tmp_path / "server-maps"
+    own.mkdir()
+    conf = server_config(
+        world,
+        zenoh_endpoint(),
+        maps=str(own),
+        follow_builder=True,
+        allow_empty=True,
+        zenoh={"listen": [zenoh_endpoint()], "connect": [ep], "multicast": False},
+    )
+    built = out / "faraway"
+    with running_server(conf) as srv, LocalizationClient(f"127.0.0.1:{srv.grpc_port}") as c:
+        assert wait_until(lambda: "faraway" in {m.name for m in c.list_maps()}, 60)
+        m = c.get_map("faraway")
+        assert m.build_id == MapBundle(built).build_id
+        assert os.path.realpath(m.path) == os.path.realpath(own / "faraway")
+    assert verify_bundle(own / "faraway") == []
+    for f in built.iterdir():
+        assert (
+            hashlib.sha256((own / "faraway" / f.name).read_bytes()).digest()
+            == hashlib.sha256(f.read_bytes()).digest()
+        ), f.name
+    # The builder's other announced maps came too; nothing half-fetched (hidden) is left.
+    assert not [p.name for p in own.iterdir() if p.name.startswith(".")]
+
+
 def test_cancel_leaves_no_bundle(world, builder, tmp_path):
     from sfmloc_client.pb import builder_pb2 as pb
 

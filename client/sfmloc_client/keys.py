@@ -20,6 +20,7 @@ FRAME_KEYEXPR = f"{ROOT}/*/*/frame"
 SERVERS_KEYEXPR = f"{ROOT}/servers/*"
 SERVER_INFO_KEYEXPR = f"{ROOT}/servers/*/info"
 MAPS_KEYEXPR = f"{ROOT}/maps/*"
+BUNDLES_KEYEXPR = f"{ROOT}/bundles/**"
 
 
 def check_name(value: str, what: str = "name") -> str:
@@ -56,3 +57,13 @@ def server_info_key(server_id: str) -> str:
 
 def map_announce_key(name: str) -> str:
     return f"{ROOT}/maps/{check_name(name, 'map name')}"
+
+
+def bundle_key(name: str, build_id: str) -> str:
+    """Queryable of a builder: the file list of the bundle ``name`` at ``build_id``."""
+    return f"{ROOT}/bundles/{check_name(name, 'map name')}/{check_name(build_id, 'build id')}"
+
+
+def bundle_file_key(name: str, build_id: str, file: str) -> str:
+    """Queryable of a builder: bytes of one file of a bundle (``?offset=N;size=M``)."""
+    return f"{bundle_key(name, build_id)}/{check_name(file, 'bundle file name')}"

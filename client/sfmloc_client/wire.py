@@ -11,6 +11,9 @@ Key expressions
 ``sfmloc/servers/<server-id>/info``          queryable: ``ServerInfo`` (maps, sessions, load)
 ``sfmloc/maps/<name>``                       the builder announces a finished bundle
                                              (``MapAnnouncement``)
+``sfmloc/bundles/<name>/<build-id>``         queryable of the builder: the bundle's files
+                                             (``BundleFiles``), for servers without the path
+``sfmloc/bundles/<name>/<build-id>/<file>``  queryable: ``?offset=N;size=M`` -> those bytes
 =====================================  ====  ==================================================
 
 ``<map>`` and ``<client>`` are 1-64 characters of ``[A-Za-z0-9_.-]`` starting with a letter or
@@ -96,12 +99,15 @@ from .cameras import CAMERA_MODELS, MAX_IMAGE_SIDE, camera_to_string, check_came
 from .enums import Status
 from .errors import CameraModelError, MessageTooLargeError, WireError
 from .keys import (
+    BUNDLES_KEYEXPR,
     FRAME_KEYEXPR,
     MAPS_KEYEXPR,
     NAME_RE,
     ROOT,
     SERVER_INFO_KEYEXPR,
     SERVERS_KEYEXPR,
+    bundle_file_key,
+    bundle_key,
     check_name,
     frame_key,
     map_announce_key,
@@ -114,6 +120,7 @@ from .keys import (
 # The name rule, key expressions and camera table are defined in keys.py and cameras.py and
 # re-exported here: this module is the specification of the Zenoh messages.
 __all__ = [
+    "BUNDLES_KEYEXPR",
     "CAMERA_MODELS",
     "COVARIANCE_ORDER",
     "DEFAULT_MAX_FRAME_BYTES",
@@ -127,6 +134,7 @@ __all__ = [
     "SERVER_INFO_KEYEXPR",
     "STATUSES",
     "WIRE_VERSION",
+    "BundleFiles",
     "CameraSpec",
     "ErrorInfo",
     "Frame",
@@ -134,11 +142,15 @@ __all__ = [
     "PoseMessage",
     "ServerInfo",
     "Transform",
+    "bundle_file_key",
+    "bundle_key",
     "check_name",
+    "decode_bundle_files",
     "decode_frame",
     "decode_map_announcement",
     "decode_pose",
     "decode_server_info",
+    "encode_bundle_files",
     "encode_frame",
     "encode_map_announcement",
     "encode_pose",
@@ -543,7 +555,8 @@ def decode_pose(payload: bytes | bytearray | memoryview, max_bytes: int = 1 << 2
 @dataclass(frozen=True)
 class MapAnnouncement:
     """The builder's message on ``sfmloc/maps/<name>``: a bundle is ready at ``path`` (a folder
-    on the builder's machine, which servers following the builder must also see)."""
+    on the builder's machine). A server that sees the same folder (shared storage) loads it
+    there; one that does not fetches the bundle from the builder (``sfmloc/bundles/...``)."""
 
     name: str
     build_id: str
@@ -564,6 +577,38 @@ def decode_map_announcement(payload: bytes | bytearray | memoryview) -> MapAnnou
     d = _unpack(payload, 1 << 16, "map announcement")
     w = "map announcement"
     return MapAnnouncement(_get(d, "name", w), _get(d, "build_id", w), _get(d, "path", w))
+
+
+@dataclass(frozen=True)
+class BundleFiles:
+    """The builder's answer on ``sfmloc/bundles/<name>/<build-id>``: the bundle folder's files
+    as ``(name, size in bytes)``. Integrity is the bundle's own: ``manifest.sha256`` covers the
+    manifest, which holds every array file's SHA-256; the fetching server verifies both."""
+
+    files: tuple[tuple[str, int], ...]
+
+    def __post_init__(self) -> None:
+        for name, size in self.files:
+            check_name(name, "bundle file name")
+            _uint(size, "file size")
+
+    @property
+    def total_bytes(self) -> int:
+        return sum(size for _, size in self.files)
+
+
+def encode_bundle_files(b: BundleFiles) -> bytes:
+    return _pack({"files": [[n, s] for n, s in b.files]})
+
+
+def decode_bundle_files(payload: bytes | bytearray | memoryview) -> BundleFiles:
+    d = _unpack(payload, 1 << 20, "bundle file list")
+    rows = _get(d, "files", "bundle file list")
+    if not isinstance(rows, list) or not all(
+        isinstance(r, list) and len(r) == 2 and isinstance(r[0], str) for r in rows
+    ):
+        raise WireError("bundle file list: 'files' must be a list of [name, size] pairs")
+    return BundleFiles(tuple((r[0], r[1]) for r in rows))
 
 
 @dataclass

@@ -3,7 +3,8 @@ announcements of finished bundles (``sfmloc/maps/<name>``: ``{name, build_id, pa
 
 Announcements reach servers that start later too: the builder repeats its current ones when a
 server appears (its liveliness token ``sfmloc/servers/<id>``), and answers queries on
-``sfmloc/maps/*`` with them."""
+``sfmloc/maps/*`` with them. Servers that cannot see the builder's folder fetch the announced
+bundles' files from it (``sfmloc/bundles/...``, ``bundle_share.py``)."""
 
 from __future__ import annotations
 
@@ -20,6 +21,7 @@ from pydantic import Field
 
 from sfmloc_client.pb import builder_pb2, builder_pb2_grpc
 from sfmloc_client.wire import (
+    BUNDLES_KEYEXPR,
     MAPS_KEYEXPR,
     SERVERS_KEYEXPR,
     MapAnnouncement,
@@ -31,6 +33,7 @@ from sfmloc_client.zconfig import make_zenoh_config
 from ..config import StrictModel
 from ..interceptors import SyncErrorStatusInterceptor, SyncMalformedRequestInterceptor
 from ..reflection import enable_reflection
+from .bundle_share import BundleShare
 from .grpc_service import MapBuilderServicer
 from .jobs import Job, JobManager
 
@@ -79,6 +82,7 @@ class BuilderService:
         self.port: int | None = None
         self.health = health.HealthServicer()
         self._announced: dict[str, bytes] = {}  # map name -> its latest announcement
+        self.share = BundleShare()  # their files, for servers that cannot see ``out``
         self._zenoh_objects: list = []
 
     def _announce(self, job: Job) -> None:
@@ -86,6 +90,7 @@ class BuilderService:
             return
         ann = MapAnnouncement(job.spec.name, job.build_id, str(Path(job.bundle_path).resolve()))
         payload = encode_map_announcement(ann)
+        self.share.publish(ann.name, ann.build_id, ann.path)
         with self._zenoh_lock:
             self._announced[job.spec.name] = payload
             self.session.put(map_announce_key(job.spec.name), payload)
@@ -132,6 +137,7 @@ class BuilderService:
             self._zenoh_objects = [
                 self.session.liveliness().declare_subscriber(SERVERS_KEYEXPR, self._reannounce),
                 self.session.declare_queryable(MAPS_KEYEXPR, self._on_query),
+                self.session.declare_queryable(BUNDLES_KEYEXPR, self.share.on_query),
             ]
         limit = c.max_message_mb * 1024 * 1024
         self.server = grpc.server(

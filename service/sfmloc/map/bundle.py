@@ -329,7 +329,7 @@ def write_bundle(
                 f.flush()
                 os.fsync(f.fileno())
         _fsync_dir(tmp)
-        _swap_into_place(tmp, final)
+        swap_into_place(tmp, final)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
@@ -339,7 +339,7 @@ def write_bundle(
 _RENAME_EXCHANGE = 2
 
 
-def _swap_into_place(tmp: Path, final: Path) -> None:
+def swap_into_place(tmp: Path, final: Path) -> None:
     """Move ``tmp`` to ``final``; an existing ``final`` is replaced in one atomic exchange
     (Linux ``renameat2(RENAME_EXCHANGE)``) or, where that is unavailable, by two renames."""
     if not final.exists():

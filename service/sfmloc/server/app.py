@@ -41,11 +41,13 @@ from sfmloc_client.wire import MapAnnouncement, ServerInfo, check_name
 
 from .. import __version__
 from ..errors import ConfigError
+from ..map.bundle import read_manifest
 from .auth import TokenTable
+from .bundle_fetch import fetch_bundle
 from .config import ServerConfig
 from .facade import Localization
 from .logfmt import event
-from .maps import MapEntry, MapRegistry
+from .maps import MapEntry, MapRegistry, resolve_bundle_path
 from .metrics import MetricsServer, ServerMetrics
 from .pool import WorkerPool
 from .protocol import Result
@@ -150,7 +152,10 @@ class Server:
             log, logging.INFO, "map_announced", map=ann.name, build_id=ann.build_id, path=ann.path
         )
         try:
-            self.facade.load_map(ann.path, ann.name)
+            if self._visible(ann) or not self.conf.fetch_bundles:
+                self.facade.load_map(ann.path, ann.name)
+            else:
+                self._fetch_and_load(ann)
         except Exception as exc:  # noqa: BLE001 - keep serving the current map
             event(
                 log,
@@ -160,6 +165,37 @@ class Server:
                 path=ann.path,
                 error=str(exc),
             )
+
+    def _visible(self, ann: MapAnnouncement) -> bool:
+        """Whether the announced folder is this very build inside our maps folders (shared
+        storage, or builder and server on one machine)."""
+        try:
+            path = resolve_bundle_path(ann.path, [self.conf.maps, *self.conf.map_roots])
+            return read_manifest(path).build_id == ann.build_id
+        except Exception:  # noqa: BLE001 - outside the roots, absent, unreadable: not visible
+            return False
+
+    def _fetch_and_load(self, ann: MapAnnouncement) -> None:
+        """The builder is elsewhere: fetch its bundle over Zenoh into ``maps``, then load it."""
+        t0 = time.monotonic()
+        event(log, logging.INFO, "map_fetch_started", map=ann.name, build_id=ann.build_id)
+        path = fetch_bundle(
+            self.zenoh.z,
+            ann.name,
+            ann.build_id,
+            self.conf.maps,
+            max_bytes=int(self.conf.max_fetch_mb * 2**20),
+        )
+        event(
+            log,
+            logging.INFO,
+            "map_fetched",
+            map=ann.name,
+            build_id=ann.build_id,
+            path=str(path),
+            seconds=round(time.monotonic() - t0, 2),
+        )
+        self.facade.load_map(ann.name, ann.name)
 
     def info(self) -> ServerInfo:
         now = time.monotonic()

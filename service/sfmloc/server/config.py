@@ -92,6 +92,11 @@ class ServerConfig(StrictModel):
     # small JPEG claiming a huge image cannot exhaust its memory.
     max_image_pixels: int = Field(4096 * 4096, ge=1)
     follow_builder: bool = False  # load bundles the builder announces on sfmloc/maps/*
+    # An announced bundle this server cannot see in its maps folders (another machine, no
+    # shared storage) is fetched from the builder over Zenoh into ``maps``, verified, then
+    # loaded; at most this size.
+    fetch_bundles: bool = True
+    max_fetch_mb: float = Field(16384.0, gt=0)
     # Health says SERVING only while at least one map is loaded (a server that can localize
     # nothing fails its container health check). True: SERVING with no map too (a server that
     # waits for LoadMap or the builder).
