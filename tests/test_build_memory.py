@@ -66,21 +66,30 @@ def room(tmp_path_factory):
 
 def test_streamed_build_equals_the_in_memory_build(room, tmp_path):
     """Small chunks and samples smaller than the map, so every sampled and chunked path runs:
-    the same points, lookups and PCA, descriptors equal to float16 rounding, the same index."""
+    the same points (Harris points included), lookups and PCA, descriptors equal to float16
+    rounding, the same index."""
     from sfmloc.builder.build import BuildConf, assemble
     from sfmloc.io.colmap import read_model
     from sfmloc.map.index import DescriptorIndex
 
     rec = read_model(room / "sparse")
-    small = {"chunk_rows": 500, "pca_samples": 1500, "index": {"train_samples": 1500, "nlist": 32}}
-    conf_s = merge_presets(BuildConf(), stream_descriptors=True, **small)
-    conf_m = merge_presets(BuildConf(), stream_descriptors=False, **small)
+    small = {
+        "chunk_rows": 500,
+        "pca_samples": 1500,
+        "index": {"train_samples": 1500, "nlist": 32},
+        "harris_points": {"enabled": True},
+    }
+    # Streamed: also the Harris stage's corner descriptors on disk, and refine and Harris
+    # triangulation in chunks of 7 (the in-memory build solves them all at once).
+    conf_s = merge_presets(BuildConf(), stream_descriptors=True, chunk_points=7, **small)
+    conf_m = merge_presets(BuildConf(), stream_descriptors=False, chunk_points=10**9, **small)
     streamed, _, info_s = assemble(rec, room / "images", conf_s, workdir=tmp_path / "w")
     memory, _, info_m = assemble(rec, room / "images", conf_m)
     n = len(memory.descriptors)
     assert n > 3 * 1500, n  # the samples are a fraction of the map
     assert list((tmp_path / "w").iterdir()) == []  # the raw file is removed
     assert info_s == info_m
+    assert info_s["harris_points"] > 7 and info_s["points_refined"] > 7, info_s
     for name in (
         "points_xyz",
         "point_ids",

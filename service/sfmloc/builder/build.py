@@ -24,6 +24,7 @@ import logging
 import tempfile
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -33,9 +34,9 @@ import numpy as np
 from ..cameras import Camera
 from ..config import StrictModel, merge_presets
 from ..errors import BuildCancelled, BuildError, ImageDecodeError
-from ..features.daisy import RAW_DIM, DaisyExtractor
+from ..features.daisy import RAW_DIM, DaisyExtractor, Pca
 from ..features.pyramid import level_scales
-from ..io.colmap import Reconstruction
+from ..io.colmap import Image, Reconstruction
 from ..map.bundle import MapData, validate_name, write_bundle
 from ..map.index import DescriptorIndex, IndexConf
 from ..map.keypoint_scales import keypoint_scales
@@ -68,6 +69,9 @@ class BuildConf(StrictModel):
     stream_descriptors: bool = True
     chunk_rows: int = 65536
     pca_samples: int = 200_000
+    # Points (refine) and tracks (harris_points) solved at a time: their padded arrays take
+    # 4-25 KB each, so unchunked they were the build's largest transient (issue 17).
+    chunk_points: int = 4096
 
 
 PRESETS: dict[str, dict[str, Any]] = {
@@ -132,17 +136,39 @@ def assemble(
     if conf.stream_descriptors:
         folder = Path(workdir) if workdir is not None else Path(tempfile.gettempdir())
     with RawStore(RAW_DIM, folder, conf.chunk_rows) as store:
-        return _assemble(rec, image_dir, conf, store, progress, should_cancel)
+        return _assemble(rec, image_dir, conf, store, progress, should_cancel, folder)
 
 
-def _assemble(
+@dataclass
+class _Part:
+    """A reconstruction described (stages harris_points, descriptors, refine): its points,
+    images, cameras and the lookups of its descriptors, whose raw vectors are in the store."""
+
+    points_xyz: np.ndarray
+    point_ids: np.ndarray
+    point_rgb: np.ndarray
+    images: list[Image]
+    cameras: list[Camera]
+    image_camera: np.ndarray  # (images,) row in ``cameras``
+    image_points: list[np.ndarray]  # per image: point rows it sees
+    image_desc_ptr: np.ndarray
+    desc_point: np.ndarray
+    desc_image: np.ndarray
+    desc_level: np.ndarray
+    desc_xy: np.ndarray
+    info: dict[str, Any]
+    timings: dict[str, float]
+
+
+def _describe(
     rec: Reconstruction,
     image_dir: Path,
     conf: BuildConf,
     store: RawStore,
     progress: Progress,
     should_cancel: CancelCheck | None,
-) -> tuple[MapData, dict[str, float], dict[str, Any]]:
+    folder: Path | None,
+) -> _Part:
     timings: dict[str, float] = {}
     if not rec.points3D:
         raise BuildError("the reconstruction has no 3D points", stage="sfm")
@@ -156,7 +182,15 @@ def _assemble(
             "subpixel": dc.subpixel,
         }
         rec, hp_stats = harris_points(
-            rec, image_dir, load_gray, conf.harris_points, detector, progress, should_cancel
+            rec,
+            image_dir,
+            load_gray,
+            conf.harris_points,
+            detector,
+            progress,
+            should_cancel,
+            workdir=folder,
+            chunk_tracks=conf.chunk_points,
         )
         timings["harris_points"] = time.perf_counter() - t0
         log.info("Harris points: %s", hp_stats)
@@ -170,7 +204,6 @@ def _assemble(
     images = sorted(rec.images.values(), key=lambda im: im.name)
     cam_ids = sorted(rec.cameras)
     cam_row = {cid: r for r, cid in enumerate(cam_ids)}
-    cameras = [rec.cameras[cid] for cid in cam_ids]
 
     # Visibility from the SfM tracks.
     image_points: list[np.ndarray] = []
@@ -203,8 +236,7 @@ def _assemble(
         dxy.append(d.xy)
         n_corners += d.n_corners
         progress("descriptors", (i + 1) / len(images), f"{im.name}: {len(d.raw)} descriptors")
-    n_desc = len(store)
-    if n_desc == 0:
+    if len(store) == 0:
         raise BuildError(
             "no descriptors: no Harris corner lies within tau of a projected 3D point in any image "
             "(are the poses and the camera right?)",
@@ -231,9 +263,123 @@ def _assemble(
         [im.cam_from_world for im in images],
         conf.refine,
         full_resolution_level=conf.descriptors.up_levels,
+        chunk_points=conf.chunk_points,
     )
     timings["refine"] = time.perf_counter() - t0
     progress("refine", 1.0, f"{int(moved.sum())} of {len(moved)} points refined")
+    info = {
+        "corners_detected": n_corners,
+        "points_refined": int(moved.sum()),
+        **{f"harris_{k}": v for k, v in hp_stats.items()},
+    }
+    return _Part(
+        points_xyz=points_xyz,
+        point_ids=point_ids,
+        point_rgb=point_rgb,
+        images=images,
+        cameras=[rec.cameras[cid] for cid in cam_ids],
+        image_camera=np.array([cam_row[im.camera_id] for im in images], np.int32),
+        image_points=image_points,
+        image_desc_ptr=image_desc_ptr,
+        desc_point=desc_point,
+        desc_image=desc_image,
+        desc_level=desc_level,
+        desc_xy=desc_xy,
+        info=info,
+        timings=timings,
+    )
+
+
+def _clusters(
+    image_points: list[np.ndarray], n_points: int, conf: BuildConf, progress: Progress
+) -> dict[str, np.ndarray]:
+    progress("clusters", 0.0, f"clustering {len(image_points)} images")
+    clusters = cluster_images(image_points, n_points, conf.clusters)
+    pc_ptr, pc_idx = clusters.point_clusters(image_points, n_points)
+    ci_ptr = np.zeros(len(clusters) + 1, np.int64)
+    ci_ptr[1:] = np.cumsum([len(c) for c in clusters.images])
+    ci_idx = (
+        np.concatenate(clusters.images).astype(np.int32) if len(clusters) else np.zeros(0, np.int32)
+    )
+    progress("clusters", 1.0, f"{len(clusters)} clusters")
+    return {
+        "cluster_images_ptr": ci_ptr,
+        "cluster_images_idx": ci_idx,
+        "point_clusters_ptr": pc_ptr,
+        "point_clusters_idx": pc_idx,
+    }
+
+
+def _map_data(
+    points_xyz: np.ndarray,
+    point_ids: np.ndarray,
+    point_rgb: np.ndarray,
+    desc: np.ndarray,
+    lookups: dict[str, np.ndarray],
+    image_cam_from_world: np.ndarray,
+    image_names: list[str],
+    image_camera: np.ndarray,
+    cameras: list[Camera],
+    image_points: list[np.ndarray],
+    clusters: dict[str, np.ndarray],
+    pca: Pca,
+    index_faiss: np.ndarray,
+    conf: BuildConf,
+) -> MapData:
+    ip_ptr = np.zeros(len(image_points) + 1, np.int64)
+    ip_ptr[1:] = np.cumsum([len(p) for p in image_points])
+    data = MapData(
+        points_xyz=points_xyz,
+        point_ids=point_ids,
+        point_rgb=point_rgb,
+        descriptors=desc,
+        desc_point=lookups["desc_point"],
+        desc_image=lookups["desc_image"],
+        desc_level=lookups["desc_level"],
+        desc_xy=lookups["desc_xy"],
+        image_desc_ptr=lookups["image_desc_ptr"],
+        image_cam_from_world=image_cam_from_world,
+        image_camera=image_camera,
+        image_points_ptr=ip_ptr,
+        image_points_idx=np.concatenate(image_points).astype(np.int32),
+        pca_mean=pca.mean,
+        pca_basis=pca.basis,
+        index_faiss=index_faiss,
+        cameras=cameras,
+        image_names=image_names,
+        **clusters,
+    )
+    data.keypoint_scales = keypoint_scales(
+        data.desc_image,
+        data.desc_level,
+        data.image_camera,
+        cameras,
+        level_scales(
+            conf.descriptors.octaves, conf.descriptors.per_octave, conf.descriptors.up_levels
+        ),
+    )
+    return data
+
+
+def _lookups(part: _Part) -> dict[str, np.ndarray]:
+    return {
+        k: getattr(part, k)
+        for k in ("desc_point", "desc_image", "desc_level", "desc_xy", "image_desc_ptr")
+    }
+
+
+def _assemble(
+    rec: Reconstruction,
+    image_dir: Path,
+    conf: BuildConf,
+    store: RawStore,
+    progress: Progress,
+    should_cancel: CancelCheck | None,
+    folder: Path | None,
+) -> tuple[MapData, dict[str, float], dict[str, Any]]:
+    part = _describe(rec, image_dir, conf, store, progress, should_cancel, folder)
+    timings = part.timings
+    n_desc = len(store)
 
     # ---- PCA
     t0 = time.perf_counter()
@@ -248,16 +394,8 @@ def _assemble(
 
     # ---- clusters
     t0 = time.perf_counter()
-    progress("clusters", 0.0, f"clustering {len(images)} images")
-    clusters = cluster_images(image_points, len(point_ids), conf.clusters)
-    pc_ptr, pc_idx = clusters.point_clusters(image_points, len(point_ids))
-    ci_ptr = np.zeros(len(clusters) + 1, np.int64)
-    ci_ptr[1:] = np.cumsum([len(c) for c in clusters.images])
-    ci_idx = (
-        np.concatenate(clusters.images).astype(np.int32) if len(clusters) else np.zeros(0, np.int32)
-    )
+    clusters = _clusters(part.image_points, len(part.point_ids), conf, progress)
     timings["clusters"] = time.perf_counter() - t0
-    progress("clusters", 1.0, f"{len(clusters)} clusters")
 
     # ---- index (built from exactly the stored float16 values)
     t0 = time.perf_counter()
@@ -269,53 +407,28 @@ def _assemble(
     timings["index"] = time.perf_counter() - t0
     progress("index", 1.0, f"{index_info['kind']}, {index_info['nlist']} lists")
 
-    ip_ptr = np.zeros(len(images) + 1, np.int64)
-    ip_ptr[1:] = np.cumsum([len(p) for p in image_points])
-    data = MapData(
-        points_xyz=points_xyz,
-        point_ids=point_ids,
-        point_rgb=point_rgb,
-        descriptors=desc,
-        desc_point=desc_point,
-        desc_image=desc_image,
-        desc_level=desc_level,
-        desc_xy=desc_xy,
-        image_desc_ptr=image_desc_ptr,
-        image_cam_from_world=np.stack(
+    data = _map_data(
+        part.points_xyz,
+        part.point_ids,
+        part.point_rgb,
+        desc,
+        _lookups(part),
+        np.stack(
             [
                 np.concatenate([im.cam_from_world.quat_wxyz, im.cam_from_world.translation])
-                for im in images
+                for im in part.images
             ]
         ),
-        image_camera=np.array([cam_row[im.camera_id] for im in images], np.int32),
-        image_points_ptr=ip_ptr,
-        image_points_idx=np.concatenate(image_points).astype(np.int32),
-        cluster_images_ptr=ci_ptr,
-        cluster_images_idx=ci_idx,
-        point_clusters_ptr=pc_ptr,
-        point_clusters_idx=pc_idx,
-        pca_mean=pca.mean,
-        pca_basis=pca.basis,
-        index_faiss=index_faiss,
-        cameras=cameras,
-        image_names=[im.name for im in images],
+        [im.name for im in part.images],
+        part.image_camera,
+        part.cameras,
+        part.image_points,
+        clusters,
+        pca,
+        index_faiss,
+        conf,
     )
-    data.keypoint_scales = keypoint_scales(
-        data.desc_image,
-        data.desc_level,
-        data.image_camera,
-        cameras,
-        level_scales(
-            conf.descriptors.octaves, conf.descriptors.per_octave, conf.descriptors.up_levels
-        ),
-    )
-    info = {
-        **index_info,
-        "corners_detected": n_corners,
-        "points_refined": int(moved.sum()),
-        **{f"harris_{k}": v for k, v in hp_stats.items()},
-    }
-    return data, timings, info
+    return data, timings, {**index_info, **part.info}
 
 
 def main(

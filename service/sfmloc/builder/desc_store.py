@@ -1,5 +1,7 @@
 """Raw descriptors during a build, held on disk so that peak memory follows the final map.
 
+(``RawStore`` also holds the Harris-point stage's per-corner descriptors, float16.)
+
 The raw 104-d float32 DAISY vectors (416 B each) are 6.5x the stored PCA-32 float16 ones and
 are needed only for PCA (a bounded sample) and the projection (one pass). ``RawStore``
 appends them image by image to a flat float32 file in the build's temporary folder and reads
@@ -20,8 +22,15 @@ import numpy as np
 
 
 class RawStore:
-    def __init__(self, dim: int, folder: str | Path | None = None, chunk_rows: int = 65536) -> None:
+    def __init__(
+        self,
+        dim: int,
+        folder: str | Path | None = None,
+        chunk_rows: int = 65536,
+        dtype: type = np.float32,
+    ) -> None:
         self.dim = dim
+        self.dtype = np.dtype(dtype)
         self.chunk_rows = max(1, int(chunk_rows))
         self._n = 0
         self._mem: list[np.ndarray] | None = None
@@ -43,7 +52,7 @@ class RawStore:
         return self._mem is None
 
     def append(self, raw: np.ndarray) -> None:
-        raw = np.ascontiguousarray(raw, dtype=np.float32).reshape(-1, self.dim)
+        raw = np.ascontiguousarray(raw, dtype=self.dtype).reshape(-1, self.dim)
         if self._mem is not None:
             self._mem.append(raw)
         else:
@@ -59,7 +68,7 @@ class RawStore:
                 yield 0, self._mem[0]
             return
         self._file.flush()
-        buf = np.empty((min(self.chunk_rows, max(self._n, 1)), self.dim), np.float32)
+        buf = np.empty((min(self.chunk_rows, max(self._n, 1)), self.dim), self.dtype)
         self._file.seek(0)
         start = 0
         while start < self._n:
@@ -72,13 +81,34 @@ class RawStore:
             yield start, view
             start += m
 
+    def read(self, start: int, stop: int) -> np.ndarray:
+        """Rows ``start:stop`` as a new array (one positioned read on disk)."""
+        start, stop = max(0, int(start)), min(self._n, int(stop))
+        out = np.empty((max(0, stop - start), self.dim), self.dtype)
+        if len(out) == 0:
+            return out
+        if self._mem is not None:
+            self._consolidate()
+            out[:] = self._mem[0][start:stop]
+            return out
+        self._file.flush()
+        got = os.preadv(self._file.fileno(), [memoryview(out).cast("B")], start * self._row_bytes)
+        if got != out.nbytes:
+            msg = f"short read of stored rows ({got} of {out.nbytes} bytes)"
+            raise OSError(msg, str(self.path))
+        return out
+
+    @property
+    def _row_bytes(self) -> int:
+        return self.dim * self.dtype.itemsize
+
     def take(self, rows: np.ndarray) -> np.ndarray:
-        """The given rows (any order, no repeats), as a new float32 array in that order."""
+        """The given rows (any order, no repeats), as a new array in that order."""
         rows = np.asarray(rows, dtype=np.int64)
         if self._mem is not None:
             self._consolidate()
-            return self._mem[0][rows] if self._n else np.zeros((0, self.dim), np.float32)
-        out = np.empty((len(rows), self.dim), np.float32)
+            return self._mem[0][rows] if self._n else np.zeros((0, self.dim), self.dtype)
+        out = np.empty((len(rows), self.dim), self.dtype)
         order = np.argsort(rows, kind="stable")
         srt = rows[order]
         for start, chunk in self.chunks():

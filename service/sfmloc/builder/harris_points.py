@@ -24,6 +24,7 @@ corners of the tracks, so the descriptor stage assigns each point the very corne
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from collections.abc import Callable
 from pathlib import Path
 from typing import Literal
@@ -33,10 +34,11 @@ import numpy as np
 from ..cameras import Camera
 from ..config import StrictModel
 from ..errors import BuildCancelled
-from ..features.daisy import DaisyExtractor
+from ..features.daisy import RAW_DIM, DaisyExtractor
 from ..features.harris import detect_corners
 from ..io.colmap import Image, Point3D, Reconstruction
 from ..transforms import Rigid3d
+from .desc_store import RawStore
 
 Progress = Callable[[str, float, str], None]
 
@@ -292,14 +294,36 @@ def harris_points(
     detector: dict,
     progress: Progress | None = None,
     should_cancel: Callable[[], bool] | None = None,
+    workdir: str | Path | None = None,
+    chunk_tracks: int = 4096,
 ) -> tuple[Reconstruction, dict]:
     """A reconstruction with the same cameras and images and points triangulated from matched
     Harris corners (``mode`` "add": the SfM points too); and stats. ``detector``: keyword
-    arguments of ``detect_corners`` (the descriptor stage's settings)."""
+    arguments of ``detect_corners`` (the descriptor stage's settings). The corners' DAISY
+    descriptors wait in a file under ``workdir`` (None: in memory), read back per pair."""
+    with RawStore(RAW_DIM, workdir, dtype=np.float16) as store:
+        return _harris_points(
+            rec, image_dir, load_gray, conf, detector, store, progress, should_cancel, chunk_tracks
+        )
+
+
+def _harris_points(
+    rec: Reconstruction,
+    image_dir: Path,
+    load_gray: Callable[[Path, Camera], np.ndarray],
+    conf: HarrisPointsConf,
+    detector: dict,
+    store: RawStore,
+    progress: Progress | None,
+    should_cancel: Callable[[], bool] | None,
+    chunk_tracks: int,
+) -> tuple[Reconstruction, dict]:
     images = sorted(rec.images.values(), key=lambda im: im.name)
     n_img = len(images)
     extractor = DaisyExtractor()
-    xy_px, xn, desc, grays = [], [], [], []
+    # Per corner: pixel position, normalized position and gray level (the point's colour);
+    # the 104-d descriptors (0.8 MB per image of 4000 corners) go to ``store`` (build memory).
+    xy_px, xn, gray_at = [], [], []
     depth_range = []
     for i, im in enumerate(images):
         if should_cancel and should_cancel():
@@ -310,8 +334,10 @@ def harris_points(
         _, d = extractor.compute(gray, c.xy)
         xy_px.append(c.xy)
         xn.append(cam.cam_from_img(c.xy))
-        desc.append(d.astype(np.float16))
-        grays.append(gray)
+        store.append(d.astype(np.float16))
+        ix = np.minimum(c.xy[:, 0].astype(int), gray.shape[1] - 1)
+        iy = np.minimum(c.xy[:, 1].astype(int), gray.shape[0] - 1)
+        gray_at.append(gray[iy, ix])
         ids = im.point3D_ids[im.point3D_ids >= 0]
         pts = np.array([rec.points3D[int(p)].xyz for p in ids if int(p) in rec.points3D]).reshape(
             -1, 3
@@ -323,22 +349,20 @@ def harris_points(
         )
         if progress:
             progress("harris_points", 0.4 * (i + 1) / n_img, f"{im.name}: {len(c)} corners")
-    # Pairs by shared SfM points.
-    index_of = {im.image_id: i for i, im in enumerate(images)}
-    shared = np.zeros((n_img, n_img), np.int64)
-    for p in rec.points3D.values():
-        ii = np.unique([index_of[int(x)] for x in p.track_image_ids if int(x) in index_of])
-        shared[np.ix_(ii, ii)] += 1
-    np.fill_diagonal(shared, 0)
-    pairs = set()
-    for i in range(n_img):
-        order = np.argsort(-shared[i])[: conf.neighbors]
-        for j in order:
-            if shared[i, j] >= conf.min_shared_points:
-                pairs.add((min(i, int(j)), max(i, int(j))))
-    pairs_sorted = sorted(pairs)
+    pairs_sorted = _pairs_by_shared_points(rec, images, conf)
     offset = np.zeros(n_img + 1, np.int64)
     offset[1:] = np.cumsum([len(x) for x in xy_px])
+    # Pairs come sorted by first image: a few images' descriptors are enough at a time.
+    cache: OrderedDict[int, np.ndarray] = OrderedDict()
+
+    def desc_of(k: int) -> np.ndarray:
+        if k not in cache:
+            cache[k] = store.read(offset[k], offset[k + 1])
+            if len(cache) > 2 * conf.neighbors + 2:
+                cache.popitem(last=False)
+        cache.move_to_end(k)
+        return cache[k]
+
     ea, eb, ed = [], [], []
     for k, (i, j) in enumerate(pairs_sorted):
         if should_cancel and should_cancel():
@@ -350,8 +374,8 @@ def harris_points(
             images[j].cam_from_world,
             xn[i],
             xn[j],
-            desc[i],
-            desc[j],
+            desc_of(i),
+            desc_of(j),
             focal,
             depth_range[i],
             depth_range[j],
@@ -369,16 +393,18 @@ def harris_points(
     a = np.concatenate(ea) if ea else np.zeros(0, np.int64)
     b = np.concatenate(eb) if eb else np.zeros(0, np.int64)
     order = np.argsort(np.concatenate(ed), kind="stable") if ed else np.zeros(0, np.int64)
+    del ed
+    cache.clear()
     a, b = a[order], b[order]
-    node_img = np.repeat(np.arange(n_img), np.diff(offset))
-    label = _union_find_tracks(int(offset[-1]), a, b, node_img)
+    node_img = np.repeat(np.arange(n_img, dtype=np.int32), np.diff(offset))
+    # Only corners in some match take part (a small part of all corners): the union-find runs
+    # over those, renumbered in order, so each track's label is still its smallest corner id.
+    nodes, inv = np.unique(np.concatenate([a, b]), return_inverse=True)
+    label = nodes[_union_find_tracks(len(nodes), inv[: len(a)], inv[len(a) :], node_img[nodes])]
     # Nodes in tracks of >= 2, grouped by track; drop tracks seeing an image twice.
-    in_edge = np.zeros(len(label), bool)
-    in_edge[a] = True
-    in_edge[b] = True
-    nodes = np.nonzero(in_edge)[0]
-    nodes = nodes[np.lexsort((node_img[nodes], label[nodes]))]
-    lab, img = label[nodes], node_img[nodes]
+    order = np.lexsort((node_img[nodes], label))
+    nodes, lab = nodes[order], label[order]
+    img = node_img[nodes]
     dup = np.zeros(len(nodes), bool)
     dup[1:] = (lab[1:] == lab[:-1]) & (img[1:] == img[:-1])
     bad = np.unique(lab[dup])
@@ -399,20 +425,25 @@ def harris_points(
         "c": np.stack([im.cam_from_world.center for im in images]),
         "xn": np.concatenate(xn) if xn else np.zeros((0, 2)),
     }
+    del xn
     tracks = np.split(nodes, start[1:]) if len(nodes) else []
     if conf.extend_px > 0:
         # two-view tracks too: extended, they may reach min_track_length
         pts_xyz, obs_nodes = _solve(
-            tracks, node_img, geo, conf.model_copy(update={"min_track_length": 2})
+            tracks, node_img, geo, conf.model_copy(update={"min_track_length": 2}), chunk_tracks
         )
         # what the points that already have min_track_length views observe
         stats["observations_before_extension"] = int(
             sum(len(o) for o in obs_nodes if len(o) >= max(2, conf.min_track_length))
         )
-        obs_nodes = _extend(pts_xyz, obs_nodes, node_img, xy_px, offset, desc, images, rec, conf)
+        desc_all = store.read(0, len(store))  # all corners' descriptors (extension only)
+        obs_nodes = _extend(
+            pts_xyz, obs_nodes, node_img, xy_px, offset, desc_all, images, rec, conf
+        )
+        del desc_all
     else:
         obs_nodes = tracks
-    pts_xyz, obs_nodes = _solve(obs_nodes, node_img, geo, conf)
+    pts_xyz, obs_nodes = _solve(obs_nodes, node_img, geo, conf, chunk_tracks)
     stats["points"] = len(pts_xyz)
     stats["observations"] = int(sum(len(o) for o in obs_nodes))
     if progress:
@@ -420,18 +451,69 @@ def harris_points(
             "harris_points", 1.0, f"{len(pts_xyz)} Harris points from {stats['tracks']} tracks"
         )
     return _reconstruction(
-        rec, images, pts_xyz, obs_nodes, node_img, xy_px, offset, grays, conf
+        rec, images, pts_xyz, obs_nodes, node_img, xy_px, offset, gray_at, conf
     ), stats
 
 
-def _solve(tracks: list[np.ndarray], node_img: np.ndarray, geo: dict, conf: HarrisPointsConf):
+def _pairs_by_shared_points(
+    rec: Reconstruction, images: list[Image], conf: HarrisPointsConf
+) -> list[tuple[int, int]]:
+    """Each image with its ``neighbors`` images sharing most SfM points (at least
+    ``min_shared_points``), as sorted index pairs (i < j). The counts are a sparse
+    image-by-image matrix (a dense one is 8 B * images^2: 800 MB at 10,000 images); each row is
+    made dense only to rank it, as before."""
+    from scipy import sparse
+
+    n_img = len(images)
+    index_of = {im.image_id: i for i, im in enumerate(images)}
+    rows, cols = [], []
+    for r, p in enumerate(rec.points3D.values()):
+        ii = np.unique([index_of[int(x)] for x in p.track_image_ids if int(x) in index_of])
+        rows.append(np.full(len(ii), r, np.int64))
+        cols.append(ii.astype(np.int64))
+    n_pts = len(rows)
+    r_all = np.concatenate(rows) if rows else np.zeros(0, np.int64)
+    c_all = np.concatenate(cols) if cols else np.zeros(0, np.int64)
+    seen = sparse.csr_matrix((np.ones(len(r_all), np.int64), (r_all, c_all)), shape=(n_pts, n_img))
+    shared = (seen.T @ seen).tocsr()
+    shared.setdiag(0)
+    pairs = set()
+    for i in range(n_img):
+        row = shared.getrow(i).toarray()[0]
+        order = np.argsort(-row)[: conf.neighbors]
+        for j in order:
+            if row[j] >= conf.min_shared_points:
+                pairs.add((min(i, int(j)), max(i, int(j))))
+    return sorted(pairs)
+
+
+def _solve(
+    tracks: list[np.ndarray],
+    node_img: np.ndarray,
+    geo: dict,
+    conf: HarrisPointsConf,
+    chunk_tracks: int = 4096,
+):
     """Triangulate tracks (arrays of corner node ids); drop observations over 3x then 1x
     ``max_error_px`` (re-solving after each); keep points with ``min_track_length``
     observations in front of their cameras and ``min_angle_deg``. Returns (P, 3) points and
-    their kept node arrays."""
+    their kept node arrays. Tracks are solved ``chunk_tracks`` at a time: the padded arrays
+    cost up to 25 KB per track (M = 48: rotations and the M x M ray angles); each track's
+    solve is its own and M is the same for all chunks, so chunking changes no result."""
     if not tracks:
         return np.zeros((0, 3)), []
     M = min(max(len(tr) for tr in tracks), conf.max_track_length)
+    xs, kept = [], []
+    for s in range(0, len(tracks), max(1, chunk_tracks)):
+        X, nodes = _solve_chunk(tracks[s : s + chunk_tracks], M, node_img, geo, conf)
+        xs.append(X)
+        kept.extend(nodes)
+    return np.concatenate(xs), kept
+
+
+def _solve_chunk(
+    tracks: list[np.ndarray], M: int, node_img: np.ndarray, geo: dict, conf: HarrisPointsConf
+):
     n_obs = np.array([min(len(tr), M) for tr in tracks])
     valid = np.arange(M)[None, :] < n_obs[:, None]
     node = np.zeros((len(tracks), M), np.int64)
@@ -446,6 +528,8 @@ def _solve(tracks: list[np.ndarray], node_img: np.ndarray, geo: dict, conf: Harr
     for limit in (3 * conf.max_error_px, conf.max_error_px, None):
         ok = valid.sum(1) >= min_len
         X, obs, R, t, f, valid, node, im_i = (a[ok] for a in (X, obs, R, t, f, valid, node, im_i))
+        if len(X) == 0:  # every track of the chunk too short
+            return np.zeros((0, 3)), []
         X = triangulate_tracks(obs, R, t, valid, conf.iterations)
         err, z = _errors_px(X, obs, R, t, f)
         if limit is not None:
@@ -467,7 +551,7 @@ def _extend(
     node_img: np.ndarray,
     xy_px: list[np.ndarray],
     offset: np.ndarray,
-    desc: list[np.ndarray],
+    desc: np.ndarray,
     images: list[Image],
     rec: Reconstruction,
     conf: HarrisPointsConf,
@@ -479,7 +563,7 @@ def _extend(
     to the nearest projection."""
     from scipy.spatial import cKDTree
 
-    desc_all = np.concatenate(desc).astype(np.float32)
+    desc_all = desc.astype(np.float32)
     mean = (
         np.stack([desc_all[tr].mean(0) for tr in tracks])
         if tracks
@@ -523,7 +607,7 @@ def _extend(
 
 
 def _reconstruction(
-    rec, images, pts_xyz, obs_nodes, node_img, xy_px, offset, grays, conf
+    rec, images, pts_xyz, obs_nodes, node_img, xy_px, offset, gray_at, conf
 ) -> Reconstruction:
     """The new reconstruction: images keep their poses; their observations are the corners of
     the Harris points (and, in "add" mode, their SfM observations)."""
@@ -551,8 +635,7 @@ def _reconstruction(
             per_img_xy[k].append(xy[None, :])
             per_img_id[k].append(np.array([pid]))
         k0, n0 = int(imgs[0]), int(nodes[0])
-        x, y = xy_px[k0][n0 - offset[k0]]
-        g = int(grays[k0][min(int(y), grays[k0].shape[0] - 1), min(int(x), grays[k0].shape[1] - 1)])
+        g = int(gray_at[k0][n0 - offset[k0]])
         points[pid] = Point3D(
             pid, pts_xyz[p], np.array([g, g, g], np.uint8), 0.0, np.array(tr_i), np.array(tr_k)
         )

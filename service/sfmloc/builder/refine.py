@@ -49,10 +49,11 @@ def refine_points(
     image_poses: list[Rigid3d],
     conf: RefineConf | None = None,
     full_resolution_level: int = 0,
+    chunk_points: int = 4096,
 ) -> tuple[np.ndarray, np.ndarray]:
     """New point positions (P, 3) and which points moved (P,) bool. ``desc_level`` holds
     pyramid level indices; ``full_resolution_level`` is the index of scale 1 (the builder's
-    number of upsampled levels)."""
+    number of upsampled levels). Points are solved ``chunk_points`` at a time."""
     conf = conf or RefineConf()
     n_pts = len(points_xyz)
     out = np.array(points_xyz, dtype=np.float64, copy=True)
@@ -84,17 +85,47 @@ def refine_points(
     cand = np.nonzero(counts >= 2)[0]
     if len(cand) == 0:
         return out, moved
+    # Points in chunks: the padded (C, M, ...) arrays cost about 4 KB per point (build memory,
+    # issue 17); every point's solve is its own, so chunking changes no result.
+    start_all = np.searchsorted(P, cand)
+    n_obs_all = np.minimum(counts[cand], conf.max_observations)
+    geo = (
+        np.stack([T.rotation for T in image_poses]),
+        np.stack([T.translation for T in image_poses]),
+        np.stack([T.center for T in image_poses]),
+    )
+    step = max(1, int(chunk_points))
+    for s in range(0, len(cand), step):
+        part = cand[s : s + step]
+        keep, X = _refine_chunk(
+            out[part], start_all[s : s + step], n_obs_all[s : s + step], I, uvn, focal, geo, conf
+        )
+        out[part[keep]] = X[keep]
+        moved[part[keep]] = True
+    return out, moved
+
+
+def _refine_chunk(
+    X0: np.ndarray,
+    start: np.ndarray,
+    n_obs: np.ndarray,
+    I: np.ndarray,
+    uvn: np.ndarray,
+    focal: np.ndarray,
+    geo: tuple[np.ndarray, np.ndarray, np.ndarray],
+    conf: RefineConf,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Gauss-Newton for points at ``X0`` (their observations from ``start``, ``n_obs`` of
+    them; ``geo``: the images' rotations, translations, centres); which pass the checks, and
+    the new positions."""
     M = conf.max_observations
-    start = np.searchsorted(P, cand)
-    n_obs = np.minimum(counts[cand], M)
     idx = start[:, None] + np.arange(M)[None, :]
     valid = np.arange(M)[None, :] < n_obs[:, None]
     idx = np.where(valid, idx, start[:, None])
-    R = np.stack([T.rotation for T in image_poses])[I[idx]]  # (C, M, 3, 3)
-    t = np.stack([T.translation for T in image_poses])[I[idx]]  # (C, M, 3)
+    R = geo[0][I[idx]]  # (C, M, 3, 3)
+    t = geo[1][I[idx]]  # (C, M, 3)
     obs = uvn[idx]  # (C, M, 2)
     f = focal[idx]  # (C, M)
-    X0 = out[cand]
     X = X0.copy()
     w = valid.astype(np.float64)
     for _ in range(conf.iterations):
@@ -105,8 +136,8 @@ def refine_points(
         # d(proj)/dX = (R[:2] - proj * R[2]) / z
         J = (R[..., :2, :] - proj[..., :, None] * R[..., 2:3, :]) / z[..., None, None]
         J = J * (f * w)[..., None, None]  # (C, M, 2, 3)
-        J = J.reshape(len(cand), -1, 3)
-        r = r.reshape(len(cand), -1)
+        J = J.reshape(len(X), -1, 3)
+        r = r.reshape(len(X), -1)
         H = np.einsum("cki,ckj->cij", J, J) + 1e-9 * np.eye(3)
         g = np.einsum("cki,ck->ci", J, r)
         X = X - np.linalg.solve(H, g[..., None])[..., 0]
@@ -122,13 +153,11 @@ def refine_points(
     err_ok = np.all((err < conf.max_error_px) | ~valid, axis=1)
     shift_ok = np.all((shift < conf.max_shift_px) | ~valid, axis=1)
     # triangulation angle: widest pair of viewing rays
-    centers = np.stack([T.center for T in image_poses])[I[idx]]  # (C, M, 3)
+    centers = geo[2][I[idx]]  # (C, M, 3)
     rays = X[:, None, :] - centers
     rays /= np.maximum(np.linalg.norm(rays, axis=2, keepdims=True), 1e-12)
     cos = np.einsum("cmi,cni->cmn", rays, rays)
     cos = np.where(valid[:, :, None] & valid[:, None, :], cos, 1.0)
     angle_ok = np.degrees(np.arccos(np.clip(cos.min(axis=(1, 2)), -1, 1))) >= conf.min_angle_deg
     keep = ok_depth & err_ok & shift_ok & angle_ok & np.all(np.isfinite(X), axis=1)
-    out[cand[keep]] = X[keep]
-    moved[cand[keep]] = True
-    return out, moved
+    return keep, X
