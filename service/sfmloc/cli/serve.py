@@ -89,6 +89,18 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--no-zenoh", action="store_true", help="gRPC only")
     p.add_argument(
+        "--ros2",
+        action="store_true",
+        help="also publish poses as ROS 2 geometry_msgs PoseStamped and "
+        "PoseWithCovarianceStamped on rmw_zenoh's keys, and take sensor_msgs images (README, "
+        "ROS 2; settings in the config's [ros2] section)",
+    )
+    p.add_argument(
+        "--ros2-camera",
+        metavar="CAMERA",
+        help="the camera of frames coming in as ROS 2 images ('MODEL w h params...')",
+    )
+    p.add_argument(
         "--workers", type=int, metavar="N", help="engine worker processes (default: one per core)"
     )
     p.add_argument("--worker-kind", choices=["process", "thread"], help=argparse.SUPPRESS)
@@ -191,6 +203,13 @@ def overrides_from_args(args: argparse.Namespace) -> dict:
         z["enabled"] = False
     if z:
         o["zenoh"] = z
+    r: dict = {}
+    if args.ros2:
+        r["enabled"] = True
+    if args.ros2_camera:
+        r["default_camera"] = args.ros2_camera
+    if r:
+        o["ros2"] = r
     g: dict = {}
     if args.grpc is not None:
         g["address"] = "" if args.grpc.lower() in ("off", "none", "") else args.grpc

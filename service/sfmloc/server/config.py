@@ -30,6 +30,24 @@ class ZenohConf(StrictModel):
     reply_unknown_maps: bool = True
 
 
+class Ros2Conf(StrictModel):
+    """ROS 2 messages beside the msgpack poses (``sfmloc_client.ros2``). Off by default: every
+    pose then costs two more CDR messages, and the topics belong to whoever runs ROS 2 there."""
+
+    enabled: bool = False
+    domain_id: int = Field(0, ge=0, le=232)  # ROS_DOMAIN_ID
+    key_format: Literal["rmw_zenoh", "ros2dds"] = "rmw_zenoh"
+    prefix: str = "sfmloc"  # topics /<prefix>/<map>/<client>/pose, pose_cov, image[/compressed]
+    # header.frame_id of each map's poses; a map not listed uses frame_id_template.
+    frame_ids: dict[str, str] = {}
+    frame_id_template: str = "sfmloc_{map}"
+    # Frames also come in as sensor_msgs/Image and CompressedImage; their camera (no
+    # CameraInfo is read) is cameras[client] or default_camera ("MODEL w h params...").
+    images: bool = True
+    cameras: dict[str, str] = {}
+    default_camera: str = ""
+
+
 class GrpcConf(StrictModel):
     # host:port; port 0 picks a free one; "" disables gRPC.
     address: str = "0.0.0.0:50051"
@@ -107,4 +125,5 @@ class ServerConfig(StrictModel):
     log_format: Literal["kv", "json"] = "kv"
     engine: EngineConf = EngineConf()
     zenoh: ZenohConf = ZenohConf()
+    ros2: Ros2Conf = Ros2Conf()
     grpc: GrpcConf = GrpcConf()

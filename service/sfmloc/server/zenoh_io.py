@@ -25,6 +25,7 @@ import zenoh
 from sfmloc_client.wire import (
     FRAME_KEYEXPR,
     MAPS_KEYEXPR,
+    Frame,
     MapAnnouncement,
     PoseMessage,
     ServerInfo,
@@ -88,6 +89,7 @@ class ZenohFrontend:
         self.on_announcement = on_announcement
         self.z: zenoh.Session | None = None
         self._frame_sub: Any = None
+        self._ros2_images: Any = None  # ros2_io.Ros2ImageIntake when ros2 images are on
         self._token: Any = None
         self._others: list[Any] = []
         # Announcements load maps, which blocks on the workers: never on Zenoh's thread.
@@ -133,9 +135,22 @@ class ZenohFrontend:
         """Accept frames and become discoverable (once the maps are loaded)."""
         assert self.z is not None
         self._frame_sub = self.z.declare_subscriber(FRAME_KEYEXPR, self._on_frame)
+        if self.conf.ros2.enabled and self.conf.ros2.images:
+            from .ros2_io import Ros2ImageIntake
+
+            self._ros2_images = Ros2ImageIntake(
+                self.z,
+                self.conf.ros2,
+                self._submit,
+                self.conf.max_frame_bytes,
+                lambda: [m.name for m in self.loc.list_maps()],
+            )
         self._token = self.z.liveliness().declare_token(server_token_key(self.server_id))
 
     def stop_intake(self) -> None:
+        if self._ros2_images is not None:
+            self._ros2_images.close()
+            self._ros2_images = None
         for obj in (self._frame_sub, self._token):
             if obj is not None:
                 try:
@@ -160,14 +175,33 @@ class ZenohFrontend:
     # ------------------------------------------------------------------ frames
     def _on_frame(self, sample: zenoh.Sample) -> None:
         t_recv = time.perf_counter()
-        z = self.z
-        assert z is not None  # frames come through a subscriber on the open session
         key = str(sample.key_expr)
         try:
             map_name, client_id = parse_frame_key(key)
         except WireError:
             return  # cannot happen with our key expression; nothing to answer to
         payload = sample.payload.to_bytes()
+        self._submit(
+            map_name,
+            client_id,
+            lambda: decode_frame(payload, self.conf.max_frame_bytes),
+            t_recv,
+            payload,
+        )
+
+    def _submit(
+        self,
+        map_name: str,
+        client_id: str,
+        decode: Callable[[], Frame],
+        t_recv: float,
+        payload: bytes = b"",
+    ) -> None:
+        """Checks, decodes and hands on one frame (msgpack envelope or ROS 2 image); every
+        refusal is answered on the client's pose key."""
+        z = self.z
+        if z is None:
+            return
         try:
             check_name(map_name, "map name")
             check_name(client_id, "client id")
@@ -177,14 +211,14 @@ class ZenohFrontend:
                     f"client {client_id!r} sends more than {self.conf.max_client_fps:g} frames/s: "
                     "frame refused"
                 )
-            frame = decode_frame(payload, self.conf.max_frame_bytes)
+            frame = decode()
             self.loc.submit_frame(
                 map_name,
                 client_id,
                 "zenoh",
                 frame,
                 t_recv,
-                make_sink=lambda: ZenohPoseSink(z, pose_key(map_name, client_id)),
+                make_sink=lambda: self._pose_sink(z, map_name, client_id),
             )
         except MapNotFoundError as exc:
             self._reply_error(
@@ -192,6 +226,14 @@ class ZenohFrontend:
             )
         except Exception as exc:  # noqa: BLE001 - every failure is answered, none is fatal
             self._reply_error(map_name, client_id, payload, exc)
+
+    def _pose_sink(self, z: zenoh.Session, map_name: str, client_id: str) -> Any:
+        sink = ZenohPoseSink(z, pose_key(map_name, client_id))
+        if not self.conf.ros2.enabled:
+            return sink
+        from .ros2_io import Ros2PoseSink
+
+        return Ros2PoseSink(sink, z, self.conf.ros2, map_name, client_id)
 
     def _reply_error(
         self,
