@@ -911,6 +911,195 @@ def run_reloc(
     }
 
 
+# ============================================================================ part: soak
+def _rss_kb(pid: int) -> int:
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1])
+    except (OSError, ValueError):
+        pass
+    return 0
+
+
+def _shm_mapped(pid: int) -> set[str]:
+    """/dev/shm files a process has mapped (Zenoh's shared-memory segments among them)."""
+    try:
+        lines = Path(f"/proc/{pid}/maps").read_text().splitlines()
+    except OSError:
+        return set()
+    return {ln.split(None, 5)[5] for ln in lines if " /dev/shm/" in ln and len(ln.split()) >= 6}
+
+
+def _fds(pid: int) -> int:
+    try:
+        return len(os.listdir(f"/proc/{pid}/fd"))
+    except OSError:
+        return 0
+
+
+def soak_sample(srv: Server, t0: float) -> dict:
+    """One sample: RSS of the server and of its workers, /dev/shm (files the server and its
+    workers map; all files there), the server's open files and its sessions."""
+    from sfmloc_client import LocalizationClient
+
+    kids = [c["pid"] for c in srv.children() if c["state"] != "Z"]
+    mapped: set[str] = set()
+    for pid in (srv.pid, *kids):
+        mapped |= _shm_mapped(pid)
+    shm = list(Path("/dev/shm").iterdir()) if Path("/dev/shm").is_dir() else []
+    sessions: list[str] = []
+    with contextlib.suppress(Exception), LocalizationClient(srv.sp.grpc) as c:
+        sessions = [s.client_id for s in c.list_sessions()]
+    return {
+        "t_s": round(time.monotonic() - t0, 1),
+        "server_rss_mb": _rss_kb(srv.pid) / 1024,
+        "workers_rss_mb": sum(_rss_kb(p) for p in kids) / 1024,
+        "workers": len(kids),
+        "shm_mapped": len(mapped),
+        "shm_files": len(shm),
+        "server_fds": _fds(srv.pid),
+        "sessions": len(sessions),
+        "short_sessions": sum(s.startswith("soak-short-") for s in sessions),
+    }
+
+
+def _write_frames(world: World, folder: Path, n: int) -> Path:
+    import cv2
+
+    folder.mkdir(parents=True, exist_ok=True)
+    for i in range(n):
+        cv2.imwrite(str(folder / f"frame-{i:03d}.png"), world.gray[i % len(world.gray)])
+    return folder
+
+
+def run_soak(
+    world: World,
+    work: Path,
+    minutes: float,
+    short_clients: int,
+    streams: int,
+    rate_hz: float,
+    workers: int,
+    concurrency: int = 2,
+    sample_s: float = 15.0,
+    idle_timeout_s: float = 30.0,
+) -> dict:
+    """``streams`` clients streaming at ``rate_hz`` for ``minutes`` while ``short_clients``
+    short-lived ``sfmloc stream`` processes (5 frames each, their own client ids, at most
+    ``concurrency`` at a time, spread evenly over the time) come and go; RSS of server and
+    workers, /dev/shm and sessions sampled every ``sample_s``. After the streams stop, the
+    sessions left once the idle timeout passed (issue 16: flat memory, no session behind)."""
+    duration = 60.0 * minutes
+    warmup = max(30.0, 0.1 * duration)
+    frames = _write_frames(world, Path(work) / "soak-frames", 5)
+    stop = threading.Event()
+    samples: list[dict] = []
+    results: list[dict] = []
+    lock = threading.Lock()
+    counter = iter(range(short_clients))
+    extra = ("--idle-timeout", f"{idle_timeout_s:g}")
+    with Server(world, workers, extra) as srv:
+        t0 = time.monotonic()
+        cl = [
+            StreamClient(world, srv.sp.endpoint, f"soak-stream-{i}", stop, rate_hz=rate_hz)
+            for i in range(streams)
+        ]
+        for c in cl:
+            c.start()
+        for c in cl:
+            c.ready.wait(60)
+
+        def short_client() -> None:
+            for i in counter:
+                due = t0 + (i + 0.5) * duration / max(1, short_clients)
+                if stop.wait(max(0.0, due - time.monotonic())):
+                    return
+                cmd = [
+                    sys.executable, "-m", "sfmloc", "stream", "--map", world.name,
+                    "--source", str(frames), "--camera", world.camera, "--max-frames", "5",
+                    "--encoding", "gray8", "--client-id", f"soak-short-{i:05d}",
+                    "--zenoh-connect", srv.sp.endpoint, "--no-multicast",
+                    "--wait-server", "20", "--timeout", "5",
+                ]  # fmt: skip
+                ts = time.monotonic()
+                try:
+                    p = subprocess.run(cmd, capture_output=True, text=True, timeout=90)
+                    rc, out = p.returncode, p.stdout.strip().splitlines()
+                except subprocess.TimeoutExpired:
+                    rc, out = -1, ["timeout"]
+                poses = 0
+                with contextlib.suppress(ValueError, IndexError):
+                    poses = int(out[-1].split()[0])
+                with lock:
+                    results.append({"rc": rc, "poses": poses, "s": time.monotonic() - ts})
+
+        launchers = [threading.Thread(target=short_client, daemon=True) for _ in range(concurrency)]
+        for th in launchers:
+            th.start()
+        next_log = t0
+        while time.monotonic() - t0 < duration and srv.alive():
+            samples.append(soak_sample(srv, t0))
+            if time.monotonic() >= next_log:
+                s = samples[-1]
+                _log(
+                    f"soak {s['t_s']:.0f}/{duration:.0f} s: server {s['server_rss_mb']:.0f} MB, "
+                    f"workers {s['workers_rss_mb']:.0f} MB, shm {s['shm_mapped']} mapped, "
+                    f"{s['sessions']} sessions, {len(results)} short clients done"
+                )
+                next_log += 120.0
+            time.sleep(max(0.0, min(sample_s, duration - (time.monotonic() - t0))))
+        stop.set()
+        for th in launchers:
+            th.join(120)
+        t_end = time.monotonic()
+        for c in cl:
+            c.join(10)
+        stream_summary = [c.summary(t0 + warmup, t_end) for c in cl]
+        # Every session should end by itself: wait out the idle timeout (plus the server's
+        # expiry period) and count what is left.
+        time.sleep(idle_timeout_s + 6.0)
+        final = soak_sample(srv, t0)
+        alive = srv.alive()
+    after = [s for s in samples if s["t_s"] >= warmup]
+    ref = after[0] if after else (samples[-1] if samples else final)
+
+    def total(s: dict) -> float:
+        return float(s["server_rss_mb"] + s["workers_rss_mb"])
+
+    peak = max(after, key=total) if after else ref
+    rcs = Counter(r["rc"] for r in results)
+    return {
+        "minutes": minutes,
+        "streams": streams,
+        "rate_hz": rate_hz,
+        "workers": workers,
+        "warmup_s": warmup,
+        "server_alive": alive,
+        "short_clients": len(results),
+        "short_clients_planned": short_clients,
+        "short_exit_codes": {str(k): v for k, v in rcs.items()},
+        "short_with_poses": sum(r["poses"] > 0 for r in results),
+        "short_s_p50": float(np.median([r["s"] for r in results])) if results else float("nan"),
+        "rss_mb_warm": total(ref),
+        "rss_mb_peak": total(peak),
+        "rss_mb_end": total(samples[-1]) if samples else float("nan"),
+        "rss_growth_pct": 100.0 * (total(peak) - total(ref)) / max(1e-9, total(ref)),
+        "server_rss_mb": (ref["server_rss_mb"], peak["server_rss_mb"]),
+        "shm_mapped_warm_max": (
+            ref["shm_mapped"],
+            max((s["shm_mapped"] for s in after), default=0),
+        ),
+        "shm_files_warm_end": (ref["shm_files"], final["shm_files"]),
+        "fds_warm_max": (ref["server_fds"], max((s["server_fds"] for s in after), default=0)),
+        "sessions_max": max((s["sessions"] for s in samples), default=0),
+        "sessions_left": final["sessions"],
+        "short_sessions_left": final["short_sessions"],
+        "streams_detail": stream_summary,
+        "samples": samples,
+    }
+
+
 def _totals(per: list[dict]) -> dict:
     keys = ("sent", "answered", "dropped_stale", "unanswered", "localized", "duplicates", "wrong")
     return {
@@ -1127,6 +1316,46 @@ def table(res: dict) -> list[str]:
                 "-",
             ),
         ]
+    so = res.get("soak")
+    if so:
+        rows += [
+            (
+                "soak",
+                f"{so['minutes']:g} min, {so['streams']} streams at {so['rate_hz']:g} Hz, "
+                f"{so['short_clients']} short-lived clients",
+                "30 min, 3 streams, 1000 clients",
+            ),
+            (
+                "soak: server+workers RSS warm/peak/end",
+                f"{so['rss_mb_warm']:.0f} / {so['rss_mb_peak']:.0f} / {so['rss_mb_end']:.0f} MB "
+                f"({so['rss_growth_pct']:+.1f}%)",
+                "peak <= +10%",
+            ),
+            (
+                "soak: /dev/shm mapped (warm, max)",
+                f"{so['shm_mapped_warm_max'][0]}, {so['shm_mapped_warm_max'][1]} "
+                f"(files in /dev/shm {so['shm_files_warm_end'][0]} -> "
+                f"{so['shm_files_warm_end'][1]})",
+                "not growing",
+            ),
+            (
+                "soak: sessions max / left after idle",
+                f"{so['sessions_max']} / {so['sessions_left']} "
+                f"(short-lived left: {so['short_sessions_left']})",
+                "0 left",
+            ),
+            (
+                "soak: short clients exit codes",
+                ", ".join(f"{k}: {v}" for k, v in sorted(so["short_exit_codes"].items()))
+                + f"; {so['short_with_poses']} got poses",
+                "-",
+            ),
+            (
+                "soak: server open files (warm, max)",
+                f"{so['fds_warm_max'][0]}, {so['fds_warm_max'][1]}",
+                "not growing",
+            ),
+        ]
     b = res.get("bundle")
     if b:
         rows += [
@@ -1191,6 +1420,22 @@ def run(args: argparse.Namespace, world: World | None = None) -> dict:
             tuple(args.server_arg),
             args.reloc_side,
         )
+    if "soak" in parts:
+        _log(
+            f"soak: {args.soak_minutes:g} min, {args.soak_streams} streams at "
+            f"{args.soak_rate:g} Hz, {args.soak_clients} short-lived clients"
+        )
+        res["soak"] = run_soak(
+            world,
+            Path(args.work),
+            args.soak_minutes,
+            args.soak_clients,
+            args.soak_streams,
+            args.soak_rate,
+            args.workers,
+            args.soak_concurrency,
+            args.soak_sample,
+        )
     if "bundle" in parts:
         res["bundle"] = run_bundle(
             world,
@@ -1216,7 +1461,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--parts",
         default="fuzz,kill,bundle",
-        help="comma-separated parts to run: fuzz, kill, bundle, reloc (default: fuzz,kill,bundle)",
+        help="comma-separated parts to run: fuzz, kill, bundle, reloc, soak, restart "
+        "(default: fuzz,kill,bundle)",
     )
     p.add_argument(
         "--work",
@@ -1339,6 +1585,43 @@ def parser() -> argparse.ArgumentParser:
         "--redkitchen-maps",
         default="/tmp/speedsrv/maps",
         help="maps folder holding the redkitchen bundle (default %(default)s)",
+    )
+    p.add_argument(
+        "--soak-minutes",
+        type=float,
+        default=30.0,
+        help="soak part: minutes of streaming (default %(default)s)",
+    )
+    p.add_argument(
+        "--soak-clients",
+        type=int,
+        default=1000,
+        help="soak part: short-lived `sfmloc stream` processes of 5 frames each, spread over "
+        "the soak (default %(default)s)",
+    )
+    p.add_argument(
+        "--soak-streams",
+        type=int,
+        default=3,
+        help="soak part: clients streaming all the time (default %(default)s)",
+    )
+    p.add_argument(
+        "--soak-rate",
+        type=float,
+        default=10.0,
+        help="soak part: frames per second per streaming client (default %(default)s)",
+    )
+    p.add_argument(
+        "--soak-concurrency",
+        type=int,
+        default=2,
+        help="soak part: short-lived processes running at once, at most (default %(default)s)",
+    )
+    p.add_argument(
+        "--soak-sample",
+        type=float,
+        default=15.0,
+        help="soak part: seconds between memory samples (default %(default)s)",
     )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", help="also write the full results to this file")
