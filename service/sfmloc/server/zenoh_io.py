@@ -104,7 +104,9 @@ class ZenohFrontend:
                 zc.mode,
                 zc.listen,
                 zc.connect,
-                multicast=zc.multicast,
+                # A config file decides scouting itself unless turned off here (--no-multicast):
+                # e.g. docker/zenoh-server-acl.json5 turns multicast and gossip off.
+                multicast=None if zc.config_file and zc.multicast else zc.multicast,
                 config_file=zc.config_file,
                 shared_memory=zc.shared_memory,
             )
