@@ -58,6 +58,7 @@ _EXPORTS = {
     "encode_image": "images",
     "SourceFrame": "sources",
     "open_source": "sources",
+    "Placement": "placement",
     "FrameStreamer": "streamer",
     "StreamStats": "streamer",
     "PoseSubscriber": "subscriber",

@@ -19,6 +19,8 @@ from typing import Any
 import numpy as np
 
 from .images import encode_image
+from .keys import check_name
+from .placement import Placement
 from .sources import SourceFrame, array_frames, open_source
 from .subscriber import PoseSubscriber
 from .wire import CameraSpec, Frame, encode_frame, frame_key
@@ -80,13 +82,25 @@ class FrameStreamer:
         encoding: str = "jpeg",
         jpeg_quality: int = 90,
         congestion: str = "block",
+        server: str | None = None,
+        placement_policy: str = "rendezvous",
     ) -> None:
+        """``server``: None sends frames to every server hosting the map (one server: the
+        usual case); a server id names the one that answers; ``"auto"`` picks one of the ready
+        servers hosting the map (``placement.py``) and moves to another when it disappears."""
         import zenoh
 
         if congestion not in ("drop", "block"):
             raise ValueError(f"congestion must be 'drop' or 'block', got {congestion!r}")
 
         self.key = frame_key(map_name, client_id)
+        self.placement: Placement | None = None
+        self._target = ""
+        self._next_pick = 0.0
+        if server == "auto":
+            self.placement = Placement(session, map_name, client_id, placement_policy)
+        elif server:
+            self._target = check_name(server, "server id")
         self.map_name, self.client_id = map_name, client_id
         self.camera = camera
         self.encoding = encoding
@@ -139,12 +153,37 @@ class FrameStreamer:
         seq = self.next_seq if seq is None else int(seq)
         self.next_seq = seq + 1
         stamp_ns = time.time_ns() if stamp_ns is None else int(stamp_ns)
-        payload = encode_frame(Frame(seq, stamp_ns, self.camera, encoding, data, self.source))
+        payload = encode_frame(
+            Frame(seq, stamp_ns, self.camera, encoding, data, self.source, self.target())
+        )
         # When the frame went out (perf_counter): a large frame reaches the server before
         # put() returns, so latency is measured from here, not from after publish().
         self.last_put_time = time.perf_counter()
         self._pub.put(payload)
         return seq
+
+    @property
+    def server(self) -> str:
+        """The server this client's frames go to now ("": every server hosting the map)."""
+        return (self.placement.owner or "") if self.placement is not None else self._target
+
+    def target(self) -> str:
+        """The server id the next frame names: with ``server="auto"``, picked on the first frame
+        and picked again when the owner's liveliness token is gone (a server query of up to
+        1 s, at most every 0.5 s while no server hosts the map; frames meanwhile name none)."""
+        p = self.placement
+        if p is None:
+            return self._target
+        if p.owner is not None and not p.owner_lost:
+            return p.owner
+        now = time.monotonic()
+        if now >= self._next_pick:
+            before = p.owner
+            chosen = p.repick() if before is not None else p.pick()
+            self._next_pick = now + 0.5
+            if chosen != before:
+                log.info("frames for %s now go to server %s", self.map_name, chosen or "(none)")
+        return p.owner or ""
 
     def run(
         self,
@@ -216,6 +255,8 @@ class FrameStreamer:
         return rest if isinstance(first, SourceFrame) else array_frames(rest)
 
     def close(self) -> None:
+        if self.placement is not None:
+            self.placement.close()
         try:
             self._pub.undeclare()
         except Exception:  # noqa: BLE001 - the session may be closed already

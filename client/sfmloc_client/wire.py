@@ -25,7 +25,8 @@ Frame envelope (msgpack map; the image travels inside it, see "Why one envelope"
      "camera": {"model": "PINHOLE", "width": 640, "height": 480, "params": [fx, fy, cx, cy]},
      "encoding": "gray8" | "bgr8" | "jpeg" | "png",
      "data": bin,
-     "source": str}            # optional: the sender's Zenoh session id (FrameStreamer sets it)
+     "source": str,            # optional: the sender's Zenoh session id (FrameStreamer sets it)
+     "server": str}            # optional: the one server that answers it (see below)
 
 Raw encodings are row-major uint8, ``width*height`` (gray8) or ``width*height*3`` (bgr8) bytes.
 A session belongs to the ``source`` of its first frame: frames under the same map and client id
@@ -33,6 +34,11 @@ from another source are refused (PERMISSION_DENIED) while the session is active,
 given one id do not share (and corrupt) one track table; a source silent for a few seconds
 (a device that restarted) is replaced by the new one, whose session starts afresh.
 Unknown keys are ignored (newer clients may add some); missing or mistyped keys are errors.
+With several servers hosting a map, a frame that names ``server`` is processed (and answered)
+by that server only; the others ignore it silently. Without it every server hosting the map
+answers. ``FrameStreamer(server="auto")`` picks one (``placement.py``: rendezvous hashing of
+the client id over the ready servers hosting the map) and moves to another when its liveliness
+token drops.
 
 Pose message (msgpack map), one per processed frame, and one per rejected frame::
 
@@ -305,6 +311,7 @@ class Frame:
     encoding: str
     data: bytes
     source: str = ""  # the sender's Zenoh session id ("" : not given)
+    server: str = ""  # the server id this frame is for ("" : every server hosting the map)
 
     def validate(self) -> Frame:
         _uint(self.seq, "seq")
@@ -325,6 +332,8 @@ class Frame:
             )
         if not isinstance(self.source, str) or len(self.source) > 64:
             raise WireError("source must be a string of at most 64 characters")
+        if self.server:
+            check_name(self.server, "server id")
         return self
 
 
@@ -339,6 +348,8 @@ def encode_frame(frame: Frame) -> bytes:
     }
     if frame.source:
         d["source"] = frame.source
+    if frame.server:
+        d["server"] = frame.server
     return _pack(d)
 
 
@@ -355,6 +366,7 @@ def decode_frame(
         encoding=_str(_get(d, "encoding", what), "encoding"),
         data=_get(d, "data", what),
         source=_str(d.get("source", ""), "source"),
+        server=_str(d.get("server", ""), "server"),
     ).validate()
 
 

@@ -55,6 +55,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--client-id", metavar="ID", help="client id (default <hostname>-<pid>)")
     p.add_argument(
+        "--server",
+        metavar="ID|auto",
+        help="with several servers hosting the map: the one that answers ('auto': pick one of "
+        "the ready servers hosting it, by rendezvous hashing of the client id, and move to "
+        "another when it disappears; default: every server hosting the map answers)",
+    )
+    p.add_argument(
         "--out",
         metavar="FILE.tum",
         help="write the trajectory (TUM, world_from_cam); FILE.tum.cov "
@@ -194,7 +201,9 @@ def run(args: argparse.Namespace) -> int:
     with zenoh.open(zenoh_config(args)) as z:
         with (
             PoseSubscriber(z, args.map, client_id, callback=on_pose) as poses,
-            FrameStreamer(z, args.map, client_id, cam, encoding=args.encoding) as fs,
+            FrameStreamer(
+                z, args.map, client_id, cam, encoding=args.encoding, server=args.server
+            ) as fs,
         ):
             if not fs.wait_for_server(args.wait_server):
                 sys.stderr.write(

@@ -214,6 +214,8 @@ class ZenohFrontend:
                     "frame refused"
                 )
             frame = decode()
+            if frame.server and frame.server != self.server_id:
+                return  # addressed to another server hosting this map (one owner per session)
             self.loc.submit_frame(
                 map_name,
                 client_id,
