@@ -302,7 +302,8 @@ def test_page_shows_the_map_and_a_streamed_client_moving(world, tmp_path):
         assert np.linalg.norm(np.array(c["centre"]) - gt) < 0.05, (c, gt)
     assert np.linalg.norm(np.array(later["centre"]) - np.array(first["centre"])) > 0.05
     assert later["trail"] > first["trail"] and later["latency_ms"] > 0
-    assert np.hypot(screen2[0] - screen1[0], screen2[1] - screen1[1]) > 2  # it moved on screen
+    moved_px = np.hypot(screen2[0] - screen1[0], screen2[1] - screen1[1])
+    assert moved_px > 2, moved_px  # it moved on screen
     # Not blank: the map's points and cameras are drawn (many grey levels: texture colours,
     # frusta), and the client's status dot is where the page projects its centre.
     import cv2

@@ -106,7 +106,7 @@ async function loadMap(name) {
   }
   const cgeo = new THREE.BufferGeometry();
   cgeo.setAttribute('position', new THREE.BufferAttribute(verts, 3));
-  mapGroup.add(new THREE.LineSegments(cgeo, new THREE.LineBasicMaterial({ color: '#8a8f99' })));
+  mapGroup.add(new THREE.LineSegments(cgeo, new THREE.LineBasicMaterial({ color: '#6b707a' })));
   scene.add(mapGroup);
   // Look at the map from above and aside, "up" being the mapping cameras' up.
   const up = new THREE.Vector3(...meta.up);
@@ -149,8 +149,10 @@ function newClient(ev) {
   const tgeo = new THREE.BufferGeometry();
   tgeo.setAttribute('position', new THREE.BufferAttribute(new Float32Array(TRAIL * 3), 3));
   tgeo.setDrawRange(0, 0);
-  const trail = new THREE.Line(tgeo, new THREE.LineBasicMaterial({ color: colour }));
+  // Drawn over the map: a trajectory runs through the mapping cameras it was localized from.
+  const trail = new THREE.Line(tgeo, new THREE.LineBasicMaterial({ color: colour, depthTest: false }));
   trail.frustumCulled = false;
+  trail.renderOrder = 1;
   scene.add(group, trail);
   return { id: `${ev.map}/${ev.client}`, map: ev.map, client: ev.client, colour, group, frustum,
     dot, trail, n: 0, last: null, centre: null, quat: null, seen: performance.now(),
