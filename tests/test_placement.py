@@ -6,6 +6,9 @@ no multicast scouting."""
 from __future__ import annotations
 
 import collections
+import signal
+import subprocess
+import sys
 import time
 
 import pytest
@@ -160,10 +163,17 @@ def test_a_client_moves_when_its_server_disappears(world):
 
 
 def test_servers_and_clients_through_a_router(world):
-    """The documented topology: a Zenoh router; servers and clients in client mode."""
+    """The documented topology: `sfmloc router` (a Zenoh router); a server and a client in
+    client mode connect to it only. SIGTERM stops the router cleanly."""
     er = zenoh_endpoint()
-    router_conf = make_zenoh_config("router", listen=[er], multicast=False)
-    with zenoh.open(router_conf):
+    router = subprocess.Popen(
+        [sys.executable, "-m", "sfmloc", "router", "--listen", er],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert router.stdout is not None and "listening on" in router.stdout.readline()
         conf = server_config(
             world,
             er,
@@ -178,3 +188,7 @@ def test_servers_and_clients_through_a_router(world):
             assert _stream(z, world, "via-router", range(3), got) == "routed"
             assert sorted(p.seq for p in got) == [0, 1, 2]
             assert all(p.localized for p in got)
+    finally:
+        router.send_signal(signal.SIGTERM)
+        rc = router.wait(timeout=20)
+    assert rc == 0, router.stderr.read() if router.stderr else ""

@@ -25,6 +25,7 @@ COMMANDS = [
     "maps",
     "sessions",
     "servers",
+    "router",
     "auth",
     "bench",
     "bench_transport",
