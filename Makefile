@@ -15,8 +15,9 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/sfmloc demo
 
-# The guards run first (seconds; mypy ~25 s without its cache), then the suite.
-test: lint typecheck
+# The guards run first (seconds; mypy ~25 s without its cache), then the suite. test-deps
+# installs the browser the viewer's test uses, where it can (never fails).
+test: test-deps lint typecheck
 	$(BIN)/python -m pytest -q
 
 # What the tests need beyond Python: Debian's chromium for the viewer's browser test
