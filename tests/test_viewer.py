@@ -120,9 +120,9 @@ def test_map_api_serves_the_bundle(world):
         assert status == 200 and ctype == "application/octet-stream"
         n = bundle.n_points
         assert len(body) == 15 * n
-        xyz = np.frombuffer(body[: 12 * n], "<f4").reshape(n, 3)
+        xyz = np.frombuffer(body[: 12 * n], "<f4").reshape(n, 3) + np.array(meta["origin"])
         rgb = np.frombuffer(body[12 * n :], np.uint8).reshape(n, 3)
-        np.testing.assert_array_equal(xyz, bundle.points_xyz.astype(np.float32))
+        np.testing.assert_allclose(xyz, bundle.points_xyz, atol=1e-5)
         np.testing.assert_array_equal(rgb, bundle.array("point_rgb"))
         status, ctype, body = get(v, "/")
         assert status == 200 and ctype.startswith("text/html") and b"viewer.js" in body
@@ -137,12 +137,39 @@ def test_large_maps_are_drawn_by_a_fixed_subset(world):
         assert meta["n_points"] == bundle.n_points and meta["points_shown"] == 100
         body = get(v, "/api/maps/room/points")[2]
         again = get(v, "/api/maps/room/points")[2]
-    xyz = np.frombuffer(body[:1200], "<f4").reshape(100, 3)
+    xyz = np.frombuffer(body[:1200], "<f4").reshape(100, 3) + np.array(meta["origin"])
     rgb = np.frombuffer(body[1200:], np.uint8).reshape(100, 3)
-    full = bundle.points_xyz.astype(np.float32)
-    rows = [int(np.flatnonzero((full == p).all(1))[0]) for p in xyz]  # each a map point
+    full = bundle.points_xyz
+    rows = [int(np.argmin(np.linalg.norm(full - p, axis=1))) for p in xyz]
+    np.testing.assert_allclose(full[rows], xyz, atol=1e-5)  # each a map point
     np.testing.assert_array_equal(rgb, bundle.array("point_rgb")[rows])
     assert body == again
+
+
+def _moved_map(world, tmp_path, scale: float, translation, name: str) -> Path:
+    """The room map under a similarity (sfmloc map align's), as ``tmp_path/maps/name``."""
+    from sfmloc.map.align import Sim3, write_aligned
+
+    c, s = np.cos(0.7), np.sin(0.7)
+    rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    sim = Sim3(scale, rot, np.array(translation, float))
+    write_aligned(MapBundle(world.maps_dir / "room"), sim, tmp_path / "maps", name)
+    return tmp_path / "maps"
+
+
+def test_a_map_far_from_its_origin_keeps_millimetres(world, tmp_path):
+    """A map aligned to UTM-like coordinates (10^6 m away): float32 points would be 6 cm
+    steps; relative to the map's origin they keep the bundle's positions."""
+    maps = _moved_map(world, tmp_path, 1.0, [500_000.0, 4_000_000.0, 100.0], "far")
+    bundle = MapBundle(maps / "far")
+    with ViewerServer([maps], LiveState(), port=0) as v:
+        meta = json.loads(get(v, "/api/maps/far")[2])
+        body = get(v, "/api/maps/far/points")[2]
+    n = bundle.n_points
+    xyz = np.frombuffer(body[: 12 * n], "<f4").astype(np.float64).reshape(n, 3)
+    err = np.abs(xyz + np.array(meta["origin"]) - bundle.points_xyz).max()
+    naive = np.abs(bundle.points_xyz.astype(np.float32) - bundle.points_xyz).max()
+    assert err < 1e-5 and naive > 0.01, (err, naive)
 
 
 def test_bad_requests_get_clear_errors(world):
@@ -357,3 +384,49 @@ def test_view_command_serves_until_interrupted(world):
         timeout=60,
     )
     assert r.returncode == 2 and "maps folder" in r.stderr and "does not exist" in r.stderr
+
+
+@pytest.mark.skipif(
+    find_chromium() is None,
+    reason="no chromium on PATH: the viewer's browser test needs Debian's chromium "
+    "(make test-deps, or apt-get install -y chromium)",
+)
+@pytest.mark.parametrize(
+    "scale, translation",
+    [(0.001, [0.0, 0.0, 0.0]), (1000.0, [0.0, 0.0, 0.0]), (1.0, [500_000.0, 4e6, 100.0])],
+    ids=["millimetre-room", "kilometre-room", "utm"],
+)
+def test_page_draws_maps_of_any_scale_and_place(world, tmp_path, scale, translation):
+    """The same room at 1/1000 and 1000x its size, and 10^6 m from the origin: the page frames
+    the map (not blank) and draws a client where its pose says, inside the view."""
+    from sfmloc.map.align import Sim3
+
+    maps = _moved_map(world, tmp_path, scale, translation, "moved")
+    bundle = MapBundle(maps / "moved")
+    c, s = np.cos(0.7), np.sin(0.7)
+    sim = Sim3(scale, np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]]), np.array(translation))
+    state = LiveState()
+    with ViewerServer([maps], state, port=0) as v, Browser() as b:
+        b.open(v.url, width=900, height=650)
+        view = b.wait_for("window.sfmlocView && window.sfmlocView.ready && window.sfmlocView")
+        assert view["error"] is None and view["points"] == bundle.n_points, (view, b.console)
+        b.wait_for("window.sfmlocView.connected")
+        for k in range(0, 30, 3):
+            T = sim.transform_cam_from_world(world.gt_cam_from_world[k]).inverse()
+            pose = _pose(k, T.translation, client="probe")
+            pose.map = "moved"
+            state.update(pose)
+        got = b.wait_for("(c => c && c.seq === 27 && c)(window.sfmlocView.clients.probe)")
+        x, y = b.evaluate("window.sfmlocView.screen('probe')")
+        png = b.screenshot()
+    expect = sim.transform_cam_from_world(world.gt_cam_from_world[27]).inverse().translation
+    np.testing.assert_allclose(got["centre"], expect, rtol=1e-12)
+    assert got["trail"] == 10
+    assert 0 < x < 900 and 0 < y < 650, (x, y)
+    import cv2
+
+    img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_GRAYSCALE)
+    scene = img[150:600, 50:850]
+    assert scene.std() > 8 and len(np.unique(scene)) > 40
+    dots = _status_pixels(png, "TRACKING")
+    assert (np.hypot(dots[:, 1] - x, dots[:, 0] - y) < 12).sum() >= 20

@@ -26,17 +26,25 @@ class MapView:
     name: str
     build_id: str
     path: Path
-    points_xyz: np.ndarray  # (N, 3) float32, the points shown
+    points_xyz: np.ndarray  # (N, 3) float64, the points shown
     point_rgb: np.ndarray  # (N, 3) uint8
     n_points_total: int
     cameras: list[dict[str, Any]]
     scene_scale: float  # median camera-to-point depth (map units), as MapBundle.scene_scale
     up: list[float]  # world "up": opposite the mapping cameras' mean image-down axis
 
+    @property
+    def origin(self) -> np.ndarray:
+        """The points' median: the page draws everything relative to it, so that float32 (the
+        GPU's precision) keeps millimetres in a map far from its frame's origin (a map aligned
+        to UTM coordinates is 10^6 m away: float32 steps there are 6 cm)."""
+        P = self.points_xyz
+        return np.median(P, axis=0) if len(P) else np.zeros(3)
+
     def meta(self) -> dict[str, Any]:
         """The page's map description (JSON); the points come as binary (``points_bytes``)."""
-        P = self.points_xyz.astype(np.float64)
-        centre = np.median(P, axis=0) if len(P) else np.zeros(3)
+        P = self.points_xyz
+        centre = self.origin
         radius = float(np.percentile(np.linalg.norm(P - centre, axis=1), 90)) if len(P) else 1.0
         return {
             "name": self.name,
@@ -46,13 +54,14 @@ class MapView:
             "cameras": self.cameras,
             "scene_scale": self.scene_scale,
             "up": self.up,
-            "centre": [float(v) for v in centre],
+            "origin": [float(v) for v in centre],
             "radius": max(radius, 1e-9),
         }
 
     def points_bytes(self) -> bytes:
-        """N x 3 little-endian float32 positions, then N x 3 uint8 colours (RGB)."""
-        xyz = np.ascontiguousarray(self.points_xyz, dtype="<f4")
+        """N x 3 little-endian float32 positions relative to ``origin`` (meta), then N x 3
+        uint8 colours (RGB)."""
+        xyz = np.ascontiguousarray(self.points_xyz - self.origin, dtype="<f4")
         rgb = np.ascontiguousarray(self.point_rgb, dtype=np.uint8)
         return xyz.tobytes() + rgb.tobytes()
 
@@ -119,7 +128,7 @@ def load_map_view(path: str | Path, max_points: int = DEFAULT_MAX_POINTS) -> Map
         name=manifest.name,
         build_id=manifest.build_id,
         path=path,
-        points_xyz=np.asarray(xyz_shown, np.float32),
+        points_xyz=np.asarray(xyz_shown, np.float64),
         point_rgb=np.asarray(rgb_shown, np.uint8),
         n_points_total=n_total,
         cameras=cameras,

@@ -40,6 +40,10 @@ controls.enableDamping = true;
 let mapGroup = new THREE.Group();
 scene.add(mapGroup);
 let sceneScale = 1;
+// Everything is drawn relative to the map's origin (its points' median): float32 on the GPU
+// keeps millimetres near it however far the map's frame puts it (coordinates in metres of UTM).
+let origin = [0, 0, 0];
+const local = (p) => [p[0] - origin[0], p[1] - origin[1], p[2] - origin[2]];
 const clients = new Map();  // "map/client" -> drawn client
 
 window.addEventListener('resize', () => {
@@ -91,17 +95,19 @@ async function loadMap(name) {
     size: 2.5, sizeAttenuation: false, vertexColors: true,
   })));
   sceneScale = meta.scene_scale;
+  origin = meta.origin;
   // The mapping cameras, as small grey frusta.
   const cams = meta.cameras;
   const verts = new Float32Array(cams.length * FRUSTUM_VERTS * 3);
-  const local = new Float32Array(FRUSTUM_VERTS * 3);
+  const fr = new Float32Array(FRUSTUM_VERTS * 3);
   let at = 0;
   for (const c of cams) {
-    frustumVertices(c.tan_half, 0.12 * sceneScale, local);
+    frustumVertices(c.tan_half, 0.12 * sceneScale, fr);
     const [x, y, z] = c.axes;  // camera axes in the world
+    const o = local(c.centre);
     for (let i = 0; i < FRUSTUM_VERTS; i++) {
-      const a = local[3 * i], b = local[3 * i + 1], d = local[3 * i + 2];
-      for (let k = 0; k < 3; k++) verts[at++] = c.centre[k] + a * x[k] + b * y[k] + d * z[k];
+      const a = fr[3 * i], b = fr[3 * i + 1], d = fr[3 * i + 2];
+      for (let k = 0; k < 3; k++) verts[at++] = o[k] + a * x[k] + b * y[k] + d * z[k];
     }
   }
   const cgeo = new THREE.BufferGeometry();
@@ -110,7 +116,7 @@ async function loadMap(name) {
   scene.add(mapGroup);
   // Look at the map from above and aside, "up" being the mapping cameras' up.
   const up = new THREE.Vector3(...meta.up);
-  const centre = new THREE.Vector3(...meta.centre);
+  const centre = new THREE.Vector3(0, 0, 0);  // the origin
   const side = new THREE.Vector3().crossVectors(up, Math.abs(up.x) < 0.9
     ? new THREE.Vector3(1, 0, 0) : new THREE.Vector3(0, 1, 0)).normalize();
   camera.up.copy(up);
@@ -128,7 +134,7 @@ async function loadMap(name) {
     `map ${name} (build ${meta.build_id}): ${meta.n_points.toLocaleString()} points` +
     (n < meta.n_points ? ` (${n.toLocaleString()} drawn)` : '') +
     `, ${cams.length} cameras, scene scale ${meta.scene_scale.toPrecision(3)}`;
-  for (const c of clients.values()) placeClient(c);
+  for (const c of clients.values()) { placeClient(c); redrawTrail(c); }
 }
 
 function newClient(ev) {
@@ -155,7 +161,7 @@ function newClient(ev) {
   trail.renderOrder = 1;
   scene.add(group, trail);
   return { id: `${ev.map}/${ev.client}`, map: ev.map, client: ev.client, colour, group, frustum,
-    dot, trail, n: 0, last: null, centre: null, quat: null, seen: performance.now(),
+    dot, trail, n: 0, world: [], last: null, centre: null, quat: null, seen: performance.now(),
     tanHalf: null, age: 0 };
 }
 
@@ -164,7 +170,7 @@ function placeClient(c) {
   c.trail.visible = onMap;
   c.group.visible = onMap && c.centre !== null;
   if (!c.group.visible) return;
-  c.group.position.set(...c.centre);
+  c.group.position.set(...local(c.centre));
   const [x, y, z, w] = c.quat;
   c.group.quaternion.set(x, y, z, w);
   frustumVertices([0.5, 0.375], 0.25 * sceneScale, c.frustum.geometry.attributes.position.array);
@@ -174,11 +180,21 @@ function placeClient(c) {
 }
 
 function addTrail(c, p) {
+  if (c.world.length === TRAIL) c.world.shift();
+  c.world.push(p);
   const a = c.trail.geometry.attributes.position;
   if (c.n === TRAIL) { a.array.copyWithin(0, 3); c.n--; }
-  a.array.set(p, 3 * c.n++);
+  a.array.set(local(p), 3 * c.n++);
   a.needsUpdate = true;
   c.trail.geometry.setDrawRange(0, c.n);
+}
+
+// The trail again, relative to a new map's origin.
+function redrawTrail(c) {
+  const pts = c.world;
+  c.world = [];
+  c.n = 0;
+  for (const p of pts) addTrail(c, p);
 }
 
 function onPose(ev, trail) {
@@ -187,7 +203,7 @@ function onPose(ev, trail) {
   if (!c) { c = newClient(ev); clients.set(id, c); }
   c.last = ev;
   c.seen = performance.now() - 1000 * (ev.age_s || 0);
-  if (trail) { c.n = 0; for (const p of trail) addTrail(c, p); }
+  if (trail) { c.n = 0; c.world = []; for (const p of trail) addTrail(c, p); }
   if (ev.centre) {
     c.centre = ev.centre;
     c.quat = ev.quat_xyzw;
@@ -204,7 +220,7 @@ function onPose(ev, trail) {
 function screenOf(clientId) {
   for (const c of clients.values()) {
     if (c.client !== clientId || !c.centre) continue;
-    const v = new THREE.Vector3(...c.centre).project(camera);
+    const v = new THREE.Vector3(...local(c.centre)).project(camera);
     return [(v.x + 1) / 2 * window.innerWidth, (1 - v.y) / 2 * window.innerHeight];
   }
   return null;
