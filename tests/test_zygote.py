@@ -12,6 +12,7 @@ import threading
 import pytest
 
 from server_helpers import build_world
+from sfmloc.bench.transport import _child_pids
 from sfmloc.server import protocol as P
 from sfmloc.server.pool import WorkerPool
 from sfmloc_client import CameraSpec
@@ -47,6 +48,12 @@ def test_workers_are_forked_by_the_zygote_and_serve(pool, world):
     assert zygote is not None and zygote.alive
     pids = [h.pid for h in pool.workers]
     assert len(set(pids)) == 2 and all(_ppid(pid) == zygote.proc.pid for pid in pids)
+    for pid, name in [(zygote.proc.pid, "sfmloc-zygote")] + [
+        (pid, "sfmloc-worker") for pid in pids
+    ]:
+        with open(f"/proc/{pid}/comm") as f:
+            assert f.read().strip() == name  # what ps shows, and how the benches find them
+    assert set(pids) | {zygote.proc.pid} <= set(_child_pids(os.getpid()))  # the benches' CPU
     summary = pool.load_map("room", 1, str(world.maps_dir / "room"), "", timeout=120)
     assert summary.points > 0 and summary.index_in_place
     cam = P.camera_tuple(CameraSpec.parse(world.camera_spec))

@@ -41,9 +41,10 @@ SUITE_HELP = {
     "frame), scene scale (the room x0.01, x1, x100) and motion (walk, flight, orbit around the "
     "table at 30, 10, 3 Hz). Targets per row: localized >= the peer's, median error <= 1.5x the "
     "peer's, 0 wrong poses, no crash (--robust-rows to choose rows)",
-    "throughput": "1, 2, 4, 8 clients streaming redkitchen JPEGs over Zenoh (loopback, no "
-    "multicast) at "
-    "30 Hz each to one `sfmloc serve` process: delivered rate, dropped fraction, latency p50/p99",
+    "throughput": "1, 2, 4, 8, 12, 16 clients streaming redkitchen JPEGs over Zenoh (loopback, "
+    "no multicast) at 30 Hz each to one `sfmloc serve` process: delivered rate, dropped "
+    "fraction (all and worst client), latency p50/p99, CPU per pose of the server and its "
+    "workers; resident memory of the server with 1, 2 and 4 workers",
     "map": "build time, bundle size, load time and resident memory (fresh process) of the "
     "redkitchen "
     "bundle, per million descriptors",
@@ -94,7 +95,7 @@ class BenchConf(StrictModel):
     tune_min_recall: float = Field(0.99, gt=0.0, le=1.0)
     sift: SiftPeerConf = SiftPeerConf()  # used as is when tune is off
     # Throughput.
-    clients: list[int] = Field(default_factory=lambda: [1, 2, 4, 8])
+    clients: list[int] = Field(default_factory=lambda: [1, 2, 4, 8, 12, 16])
     rate_hz: float = Field(30.0, gt=0)
     duration_s: float = Field(10.0, gt=0)
     workers: int = Field(0, ge=0)  # server workers (0: one per core)

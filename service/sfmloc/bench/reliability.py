@@ -202,26 +202,35 @@ class Server:
         return self.sp.proc.poll() is None
 
     def children(self) -> list[dict]:
-        """The server's child processes: pid, state, nice, whether a worker."""
-        out = []
+        """The server's child processes, and its zygote's (forked workers are the zygote's
+        children): pid, state, nice, whether a worker."""
+        procs = {}
         for d in Path("/proc").iterdir():
             if not d.name.isdigit():
                 continue
             try:
                 stat = (d / "stat").read_text()
+                comm = stat[stat.index("(") + 1 : stat.rindex(")")]
                 rest = stat[stat.rindex(")") + 2 :].split()
-                if int(rest[1]) != self.pid:
-                    continue
                 cmd = (d / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
             except (OSError, ValueError):
                 continue
+            procs[int(d.name)] = (int(rest[1]), comm, rest, cmd)
+        zygotes = {
+            p for p, (pp, comm, _, _) in procs.items() if pp == self.pid and comm == "sfmloc-zygote"
+        }
+        out = []
+        for pid, (ppid, comm, rest, cmd) in procs.items():
+            if ppid != self.pid and ppid not in zygotes:
+                continue
             out.append(
                 {
-                    "pid": int(d.name),
+                    "pid": pid,
                     "state": rest[0],
                     "nice": int(rest[16]),
                     "worker": "sfmloc.server.worker" in cmd
                     or "sfmloc-worker" in cmd
+                    or comm == "sfmloc-worker"
                     or rest[0] == "Z",
                 }
             )

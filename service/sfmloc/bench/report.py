@@ -174,9 +174,46 @@ def throughput_rows(results: dict) -> list[list[str]]:
             f1(r["dropped_pct"]) + "%",
             f1(r["latency_ms_p50"]),
             f1(r["latency_ms_p99"]),
+            # Newer runs only (older results.json rows: n/a).
+            f1(r.get("dropped_pct_worst_client"))
+            + ("%" if "dropped_pct_worst_client" in r else ""),
+            f1(_server_cpu_ms(r), 2),
+            f1(r.get("capacity_hz"), 0),
         ]
         for r in t["rows"]
     ]
+
+
+def _server_cpu_ms(row: dict) -> float:
+    per = row.get("cpu_ms_per_pose")
+    return per["server"] + per["workers"] if per else float("nan")
+
+
+def memory_rows(results: dict) -> list[list[str]]:
+    mem = results.get("suites", {}).get("throughput", {}).get("memory") or {}
+    return [
+        [
+            str(r["workers"]),
+            str(r["processes"]),
+            f1(r["rss_mb"], 0),
+            f1(r["pss_mb"], 0),
+            f1(r["private_mb"], 0),
+            f1(r["worker_pss_mb_max"], 0),
+            f1(r["index_file_mb_per_worker"], 1),
+        ]
+        for r in mem.get("rows", [])
+    ]
+
+
+MEMORY_HEADER = [
+    "workers",
+    "processes",
+    "RSS sum (MB)",
+    "PSS sum (MB)",
+    "private sum (MB)",
+    "largest worker PSS (MB)",
+    "index file resident per worker (MB)",
+]
 
 
 THROUGHPUT_HEADER = [
@@ -187,6 +224,9 @@ THROUGHPUT_HEADER = [
     "dropped",
     "latency p50 (ms)",
     "latency p99 (ms)",
+    "worst client dropped",
+    "server CPU per pose (ms)",
+    "capacity (Hz)",
 ]
 
 
@@ -475,7 +515,24 @@ def write_report(results: dict, out: Path) -> Path:
             "",
             markdown_table(THROUGHPUT_HEADER, throughput_rows(results)),
             "",
+            "Server CPU per pose: the server process and its workers together, CPU time (not "
+            "wall) per pose delivered; capacity: the pose rate that CPU per pose would sustain "
+            "on all of this machine's cores with nothing else running (a bound from the "
+            "measured CPU, not a measured rate: the benchmark's clients and other jobs share "
+            "the cores).",
+            "",
         ]
+        if memory_rows(results):
+            L += [
+                "Resident memory of the server and its workers (the map loaded, one session per "
+                "stream worker that streamed "
+                f"{t['memory']['frames_per_session']} frames; the relocalization lane and, with "
+                "forked workers, their zygote included). PSS divides shared pages among the "
+                "processes that map them: the sum is what the server costs the machine.",
+                "",
+                markdown_table(MEMORY_HEADER, memory_rows(results)),
+                "",
+            ]
         if "fig_throughput" in t:
             L += [f"![throughput]({t['fig_throughput']})", ""]
     mp = results.get("suites", {}).get("map")

@@ -5,6 +5,13 @@ Reuses the server benchmark's client run (``sfmloc.bench.transport.bench_clients
 loopback port, multicast scouting off, process workers, one per core by default); each client
 has its own Zenoh session and streams redkitchen JPEGs at ``rate_hz`` from its own starting
 frame (after one warm-up frame that relocalizes), and is timed from publish to pose received.
+
+Besides rates and latencies, each row has the CPU each part spent per delivered pose (server
+process, its workers, the benchmark's clients: /proc, so it holds on a shared machine where
+wall times do not) and what that CPU allows: ``capacity_hz``, the poses per second the
+server's own CPU per pose would sustain on every core of this machine with nothing else
+running (a bound, not a measurement). Then the resident memory of the server and its workers
+with 1, 2 and 4 workers (``bench_memory``: RSS, PSS, private).
 """
 
 from __future__ import annotations
@@ -41,6 +48,7 @@ def aggregate(clients: list[dict[str, Any]], rate_hz: float) -> dict[str, Any]:
     fraction (frames without a pose), latency p50 (median over clients) and p99 (worst client)."""
     sent = sum(c["sent"] for c in clients)
     recv = sum(c["received"] for c in clients)
+    worst = max((c["drop_pct"] for c in clients), default=float("nan"))
     # A client sends `sent` frames in sent / rate seconds; poses delivered over that time.
     per_client = [c["received"] * rate_hz / c["sent"] if c["sent"] else 0.0 for c in clients]
     return {
@@ -49,6 +57,7 @@ def aggregate(clients: list[dict[str, Any]], rate_hz: float) -> dict[str, Any]:
         "delivered_hz_total": float(np.sum(per_client)),
         "delivered_hz_per_client": float(np.mean(per_client)),
         "dropped_pct": 100.0 * (sent - recv) / sent if sent else float("nan"),
+        "dropped_pct_worst_client": float(worst),
         "latency_ms_p50": float(np.nanmedian([c["latency_ms_p50"] for c in clients])),
         "latency_ms_p99": float(np.nanmax([c["latency_ms_p99"] for c in clients])),
         "engine_ms_mean": float(np.nanmean([c["engine_ms_mean"] for c in clients])),
@@ -66,8 +75,9 @@ def run_throughput(
     duration_s: float,
     workers: int,
     progress=None,
+    memory_workers: tuple[int, ...] = (1, 2, 4),
 ) -> dict[str, Any]:
-    from ..bench.transport import BenchInput, bench_clients
+    from ..bench.transport import BenchInput, bench_clients, bench_memory
 
     frames = sorted(
         p for p in Path(frames_dir).iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png")
@@ -93,12 +103,19 @@ def run_throughput(
         )
         res = bench_clients(inp, n, rate_hz, duration_s, n_workers, "process")
         row = aggregate(res["clients"], rate_hz)
+        row.update(cpu_per_pose(res["cores_used"], row["delivered_hz_total"]))
         row["load_before"], row["load_after"] = res["load_before"], res["load_after"]
         rows.append(row)
         raw.append(res)
+    memory: dict[str, Any] = {}
+    if memory_workers:
+        if progress:
+            progress("throughput", 0.99, f"resident memory, {memory_workers} workers")
+        memory = memory_rows(bench_memory(inp, tuple(memory_workers)))
     if progress:
         progress("throughput", 1.0, "done")
     return {
+        "memory": memory,
         "server": "sfmloc serve (subprocess), Zenoh tcp loopback, multicast scouting off, process "
         "workers",
         "workers": n_workers,
@@ -109,3 +126,42 @@ def run_throughput(
         "rows": rows,
         "per_client": [r["clients"] for r in raw],
     }
+
+
+def cpu_per_pose(cores: dict[str, float], delivered_hz: float) -> dict[str, Any]:
+    """CPU ms per delivered pose of each part (``cores``: CPU seconds per second of each, from
+    ``bench_clients``), and the pose rate the server's (process + workers) CPU per pose allows
+    on all of this machine's cores."""
+    per = {
+        k: 1e3 * v / delivered_hz if delivered_hz > 0 else float("nan") for k, v in cores.items()
+    }
+    server_ms = per.get("server", 0.0) + per.get("workers", 0.0)
+    ncpu = os.cpu_count() or 1
+    return {
+        "cores_used": {k: float(v) for k, v in cores.items()},
+        "cpu_ms_per_pose": per,
+        "capacity_hz": 1e3 * ncpu / server_ms if server_ms > 0 else float("nan"),
+    }
+
+
+def memory_rows(mem: dict[str, Any]) -> dict[str, Any]:
+    """``bench_memory``'s runs as MB per worker count: all processes together (RSS counts
+    shared pages once per process, PSS divides them among the processes that map them, private
+    is what each process holds alone) and the largest single worker."""
+    rows = []
+    for run in mem["runs"]:
+        workers = [v for k, v in run["processes"].items() if k != "server"]
+        rows.append(
+            {
+                "workers": run["workers"],
+                "processes": len(run["processes"]),
+                "rss_mb": run["total"]["rss_kb"] / 1024,
+                "pss_mb": run["total"]["pss_kb"] / 1024,
+                "private_mb": run["total"]["anon_kb"] / 1024,
+                "server_pss_mb": run["processes"].get("server", {}).get("pss_kb", 0) / 1024,
+                "worker_pss_mb_max": max((w["pss_kb"] for w in workers), default=0) / 1024,
+                "index_file_mb_per_worker": max((w["index_file_kb"] for w in workers), default=0)
+                / 1024,
+            }
+        )
+    return {"frames_per_session": mem["frames_per_session"], "rows": rows}

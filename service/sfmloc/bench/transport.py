@@ -226,16 +226,23 @@ def _cpu_seconds(pid: int) -> float:
 
 
 def _child_pids(pid: int) -> list[int]:
-    out = []
+    """Every descendant of ``pid``: the server's workers are children of its zygote
+    (``server/zygote.py``), or its own children when started as fresh interpreters."""
+    parent: dict[int, int] = {}
     for d in os.listdir("/proc") if os.path.isdir("/proc") else []:
         if d.isdigit():
             try:
                 with open(f"/proc/{d}/stat") as f:
-                    if int(f.read().rsplit(")", 1)[1].split()[1]) == pid:
-                        out.append(int(d))
+                    parent[int(d)] = int(f.read().rsplit(")", 1)[1].split()[1])
             except (OSError, ValueError, IndexError):
                 pass
-    return out
+    out, todo = [], [pid]
+    while todo:
+        p = todo.pop()
+        kids = [c for c, pp in parent.items() if pp == p]
+        out += kids
+        todo += kids
+    return sorted(out)
 
 
 def _relocalize_load(

@@ -94,7 +94,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="frames per suite for the peers, strided (default 500; 0: all)",
     )
     p.add_argument("--synth-frames", type=int, help="frames of each synthetic video (default 300)")
-    p.add_argument("--clients", help="throughput client counts, comma-separated (default 1,2,4,8)")
+    p.add_argument(
+        "--clients", help="throughput client counts, comma-separated (default 1,2,4,8,12,16)"
+    )
     p.add_argument("--duration", type=float, help="seconds per throughput run (default 10)")
     p.add_argument(
         "--workers", type=int, help="server workers for throughput (default one per core)"

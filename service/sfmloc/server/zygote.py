@@ -38,6 +38,9 @@ import msgpack
 
 log = logging.getLogger(__name__)
 
+# Process names (/proc/PID/comm) of the zygote and of the workers it forks.
+ZYGOTE_NAME = "sfmloc-zygote"
+WORKER_NAME = "sfmloc-worker"
 MAX_MSG = 64 * 1024  # one spawn request (the engine configuration is a few kB)
 
 # How the zygote starts: by module path, without the working directory on sys.path (as
@@ -262,10 +265,23 @@ def _preload() -> None:
     from . import logfmt, protocol, worker  # noqa: F401
 
 
+def set_process_name(name: str) -> None:
+    """The name ``ps``, ``top`` and /proc/PID/stat show (Linux ``PR_SET_NAME``, at most 15
+    bytes): a forked worker's command line is the zygote's, this tells them apart."""
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(15, name.encode()[:15], 0, 0, 0)  # 15: PR_SET_NAME
+    except (OSError, AttributeError):  # not Linux: names are cosmetic
+        pass
+
+
 def _child(sock: socket.socket, wake_r: int, wake_w: int, msg: list[Any], fds: list[int]) -> None:
     """In the forked child: become the worker (never returns)."""
     code = 1
     try:
+        set_process_name(WORKER_NAME)
         signal.set_wakeup_fd(-1)
         signal.signal(signal.SIGCHLD, signal.SIG_DFL)
         sock.close()
@@ -316,6 +332,7 @@ def _main() -> None:
     # its end of the socket closes).
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    set_process_name(ZYGOTE_NAME)
     _preload()
     gc.freeze()  # the preloaded objects stay out of the collector: shared pages stay shared
     wake_r, wake_w = os.pipe()
@@ -358,4 +375,4 @@ def _main() -> None:
     os._exit(0)
 
 
-__all__ = ["ForkedWorker", "Zygote"]
+__all__ = ["WORKER_NAME", "ZYGOTE_NAME", "ForkedWorker", "Zygote", "set_process_name"]
