@@ -137,3 +137,63 @@ def test_reliability_reloc_part_computes_every_field(world, tmp_path):
     assert 0.0 < r["poses_frac_min_alone"] <= 1.0 and 0.0 <= r["poses_frac_min"] <= 1.0
     assert r["p99_ms_max_alone"] > 0
     assert any(line.startswith("reloc: p99 latency") for line in rel.table(res))
+
+
+def test_reliability_restart_and_soak_parts_compute_every_field(world, tmp_path):
+    """Server kill -9 and restart under a client and an `sfmloc stream` process; a short soak
+    with short-lived `sfmloc stream` processes (issues 12 and 16): the fields, not the targets."""
+    from sfmloc.bench import reliability as rel
+    from sfmloc.map.bundle import MapBundle
+
+    w = rel.World(
+        maps_dir=world.maps_dir,
+        camera=world.camera_spec,
+        gray=world.gray,
+        gt_cam_from_world=[np.asarray(g.matrix()) for g in world.gt_cam_from_world],
+        scene_scale=MapBundle(world.maps_dir / "room", verify=False).scene_scale,
+    )
+    args = rel.parser().parse_args(
+        [
+            "--parts",
+            "restart,soak",
+            "--restarts",
+            "1",
+            "--clients",
+            "1",
+            "--rate",
+            "5",
+            "--restart-interval",
+            "6",
+            "--workers",
+            "1",
+            "--soak-minutes",
+            "0.3",
+            "--soak-clients",
+            "2",
+            "--soak-streams",
+            "1",
+            "--soak-rate",
+            "5",
+            "--soak-sample",
+            "2",
+            "--soak-idle-timeout",
+            "2",
+            "--work",
+            str(tmp_path),
+        ]  # fmt: skip
+    )
+    res = rel.run(args, world=w)
+    r = res["restart"]
+    assert r["restarts"] == 1 and len(r["serving_s"]) == 1 and r["serving_s"][0] > 0
+    assert r["first_start_s"] > 0 and r["old_workers_alive_max"] == 0
+    assert r["sent"] >= 1 and r["localized"] <= r["answered"] <= r["sent"]
+    assert "poses received for" in r["cli_summary"] and r["cli_exit"] in (0, 1)
+    s = res["soak"]
+    assert s["short_clients"] == 2 and sum(s["short_exit_codes"].values()) == 2
+    assert s["samples"] and all(x["server_rss_mb"] > 0 and x["workers"] >= 1 for x in s["samples"])
+    assert s["rss_mb_warm"] > 0 and s["rss_mb_peak"] >= s["rss_mb_warm"]
+    # Every session ended by itself after the idle timeout (the short clients' and the stream's).
+    assert s["short_sessions_left"] == 0 and s["sessions_left"] == 0 and s["server_alive"]
+    lines = rel.table(res)
+    assert any(ln.startswith("restart: SERVING after") for ln in lines)
+    assert any(ln.startswith("soak: sessions max / left") for ln in lines)

@@ -12,6 +12,11 @@ MODES = ("peer", "client", "router")
 SHM_KEY = "transport/shared_memory/enabled"
 # A config file that names the key decides shared memory itself (JSON5: quoted or not).
 _SHM_IN_FILE = re.compile(r"""["']?shared_memory["']?\s*:""")
+_RETRY_IN_FILE = re.compile(r"""["']?retry["']?\s*:""")
+# How often a lost connection to a ``connect`` endpoint (the server) is tried again. Zenoh's
+# default backs off to 4 s: a server down for 5 s was reached again 2.0 s after it was back;
+# with retries every 0.1-0.5 s, 0.4 s (loopback, one run each; issue 16, server restart).
+CONNECT_RETRY = {"period_init_ms": 100, "period_max_ms": 500, "period_increase_factor": 2}
 
 
 def make_zenoh_config(
@@ -44,15 +49,17 @@ def make_zenoh_config(
         conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
     if multicast is not None:
         conf.insert_json5("scouting/multicast/enabled", json.dumps(bool(multicast)))
-    if shared_memory is None and not _file_sets_shm(config_file):
+    if not _file_sets(config_file, _RETRY_IN_FILE):
+        conf.insert_json5("connect/retry", json.dumps(CONNECT_RETRY))
+    if shared_memory is None and not _file_sets(config_file, _SHM_IN_FILE):
         shared_memory = False
     if shared_memory is not None:
         conf.insert_json5(SHM_KEY, json.dumps(bool(shared_memory)))
     return conf
 
 
-def _file_sets_shm(config_file: str | Path | None) -> bool:
+def _file_sets(config_file: str | Path | None, pattern: re.Pattern[str]) -> bool:
     if not config_file:
         return False
     text = Path(config_file).read_text(encoding="utf-8", errors="replace")
-    return bool(_SHM_IN_FILE.search(text))
+    return bool(pattern.search(text))

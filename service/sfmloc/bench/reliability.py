@@ -1000,7 +1000,7 @@ def run_soak(
     workers, /dev/shm and sessions sampled every ``sample_s``. After the streams stop, the
     sessions left once the idle timeout passed (issue 16: flat memory, no session behind)."""
     duration = 60.0 * minutes
-    warmup = max(30.0, 0.1 * duration)
+    warmup = max(0.1 * duration, min(30.0, 0.5 * duration))
     frames = _write_frames(world, Path(work) / "soak-frames", 5)
     stop = threading.Event()
     samples: list[dict] = []
@@ -1106,6 +1106,138 @@ def run_soak(
         "short_sessions_left": final["short_sessions"],
         "streams_detail": stream_summary,
         "samples": samples,
+    }
+
+
+# ============================================================================ part: restart
+def _serving(grpc_addr: str) -> bool:
+    """One health check on a fresh channel (a channel that saw the server die would wait out
+    its reconnect back-off, which is not the server's start time)."""
+    from sfmloc_client import LocalizationClient
+
+    try:
+        with LocalizationClient(grpc_addr) as c:
+            return c.health(timeout=0.5) == "SERVING"
+    except Exception:  # noqa: BLE001 - not up yet
+        return False
+
+
+def _alive(pid: int) -> bool:
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat[stat.rindex(")") + 2] != "Z"
+
+
+def run_restart(
+    world: World,
+    work: Path,
+    restarts: int,
+    clients: int,
+    rate_hz: float,
+    workers: int,
+    delay_s: float = 0.5,
+    interval_s: float = 8.0,
+) -> dict:
+    """``kill -9`` of the server ``restarts`` times under ``clients`` streaming clients (threads
+    with their own Zenoh sessions) and one ``sfmloc stream`` process, the server started again
+    ``delay_s`` later on the same ports: time to SERVING, to every client's next pose (from the
+    restart), its workers left behind, and what the ``sfmloc stream`` process reported."""
+    from ..testing import serve_command
+
+    n_frames = int(rate_hz * (4.0 + restarts * (interval_s + delay_s) + 4.0))
+    frames = _write_frames(world, Path(work) / "restart-frames", n_frames)
+    stop = threading.Event()
+    serving_s: list[float] = []
+    first_pose_s: list[float] = []  # from the restart, the slowest client
+    after_serving_s: list[float] = []  # from SERVING to that pose
+    orphans: list[int] = []
+    t_first = time.monotonic()
+    with Server(world, workers) as srv:
+        first_start_s = time.monotonic() - t_first  # a cold start at the same load, no kill
+        sp = srv.sp
+        cl = [
+            StreamClient(world, sp.endpoint, f"restart-client-{i}", stop, rate_hz=rate_hz)
+            for i in range(clients)
+        ]
+        for c in cl:
+            c.start()
+        for c in cl:
+            c.ready.wait(60)
+        cli = subprocess.Popen(
+            [
+                sys.executable, "-m", "sfmloc", "stream", "--map", world.name,
+                "--source", str(frames), "--camera", world.camera, "--encoding", "gray8",
+                "--fps", f"{rate_hz:g}", "--client-id", "restart-cli",
+                "--zenoh-connect", sp.endpoint, "--no-multicast", "--wait-server", "20",
+            ],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        )  # fmt: skip
+        time.sleep(3.0)  # warm up: every session tracking
+        t0 = time.monotonic()
+        for i in range(restarts):
+            kids = [c["pid"] for c in srv.children() if c["state"] != "Z"]
+            t_kill = time.monotonic()
+            sp.proc.kill()
+            sp.proc.wait()
+            time.sleep(delay_s)
+            t_start = time.monotonic()
+            sp.proc = subprocess.Popen(serve_command(world.maps_dir, sp.endpoint, sp.grpc, workers))
+            while not _serving(sp.grpc) and time.monotonic() - t_start < 60:
+                time.sleep(0.02)
+            serving_s.append(time.monotonic() - t_start)
+            rec = [float("nan")] * clients
+            while time.monotonic() - t_start < interval_s:
+                for j, c in enumerate(cl):
+                    if np.isnan(rec[j]):
+                        after = [t for t in c.log.localized_at if t > t_start]
+                        if after:
+                            rec[j] = after[0] - t_start
+                time.sleep(0.05)
+            orphans.append(sum(_alive(p) for p in kids))
+            first_pose_s.append(max(rec))
+            after_serving_s.append(max(rec) - serving_s[-1])
+            _log(
+                f"restart {i + 1}/{restarts}: SERVING after {serving_s[-1]:.2f} s, poses after "
+                f"{first_pose_s[-1]:.2f} s, old workers alive {orphans[-1]} "
+                f"(killed at +{t_start - t_kill:.2f} s before the start)"
+            )
+        t1 = time.monotonic()
+        stop.set()
+        for c in cl:
+            c.join(10)
+        try:
+            out, err = cli.communicate(timeout=60)
+        except subprocess.TimeoutExpired:
+            cli.kill()
+            out, err = cli.communicate()
+    per = [c.summary(t0, t1) for c in cl]
+    outage_lines = [ln for ln in err.splitlines() if "NO ANSWER for" in ln]
+    longest = 0
+    for ln in outage_lines:
+        with contextlib.suppress(ValueError, IndexError):
+            longest = max(longest, int(ln.split("NO ANSWER for")[1].split()[0]))
+    summary = out.strip().splitlines()[-1] if out.strip() else ""
+    return {
+        "restarts": restarts,
+        "clients": clients,
+        "rate_hz": rate_hz,
+        "delay_s": delay_s,
+        "serving_s": serving_s,
+        "serving_s_max": max(serving_s, default=float("nan")),
+        "first_pose_s": first_pose_s,
+        "first_pose_s_max": float(np.nanmax(first_pose_s)) if first_pose_s else float("nan"),
+        "after_serving_s": after_serving_s,
+        "first_start_s": first_start_s,
+        "restarts_without_pose": int(np.sum(~np.isfinite(first_pose_s))),
+        "old_workers_alive_max": max(orphans, default=0),
+        "cli_exit": cli.returncode,
+        "cli_outage_lines": len(outage_lines),
+        "cli_longest_outage_frames": longest,
+        "cli_summary": summary,
+        **_totals(per),
+        "clients_detail": per,
     }
 
 
@@ -1325,6 +1457,42 @@ def table(res: dict) -> list[str]:
                 "-",
             ),
         ]
+    rs = res.get("restart")
+    if rs:
+        rows += [
+            (
+                "server kill -9 + restart",
+                f"{rs['restarts']} times, {rs['clients']} clients at {rs['rate_hz']:g} Hz, "
+                f"restarted {rs['delay_s']:g} s after the kill",
+                "-",
+            ),
+            (
+                "restart: SERVING after (max)",
+                f"{rs['serving_s_max']:.2f} s (all: "
+                + ", ".join(f"{v:.2f}" for v in rs["serving_s"])
+                + f"; a first start in the same run: {rs['first_start_s']:.2f} s)",
+                "<= 2 s",
+            ),
+            (
+                "restart: SERVING to poses (each)",
+                ", ".join(f"{v:.2f}" for v in rs["after_serving_s"]) + " s",
+                "-",
+            ),
+            (
+                "restart: every client posed after (max)",
+                f"{rs['first_pose_s_max']:.2f} s (restarts without: {rs['restarts_without_pose']})",
+                "<= 3 s",
+            ),
+            ("restart: old workers alive after", str(rs["old_workers_alive_max"]), "0"),
+            (
+                "restart: `sfmloc stream` outage report",
+                f"{rs['cli_outage_lines']} 'NO ANSWER' lines, longest "
+                f"{rs['cli_longest_outage_frames']} "
+                f"frames; exit {rs['cli_exit']}",
+                "reported, recovers",
+            ),
+            ("  its summary", rs["cli_summary"][:60], "-"),
+        ]
     so = res.get("soak")
     if so:
         rows += [
@@ -1444,6 +1612,19 @@ def run(args: argparse.Namespace, world: World | None = None) -> dict:
             args.workers,
             args.soak_concurrency,
             args.soak_sample,
+            args.soak_idle_timeout,
+        )
+    if "restart" in parts:
+        _log(f"restart: {args.restarts} server kills under {args.clients} clients")
+        res["restart"] = run_restart(
+            world,
+            Path(args.work),
+            args.restarts,
+            args.clients,
+            args.rate,
+            args.workers,
+            args.restart_delay,
+            args.restart_interval,
         )
     if "bundle" in parts:
         res["bundle"] = run_bundle(
@@ -1596,6 +1777,24 @@ def parser() -> argparse.ArgumentParser:
         help="maps folder holding the redkitchen bundle (default %(default)s)",
     )
     p.add_argument(
+        "--restarts",
+        type=int,
+        default=5,
+        help="restart part: kill -9 and restarts of the server (default %(default)s)",
+    )
+    p.add_argument(
+        "--restart-delay",
+        type=float,
+        default=0.5,
+        help="restart part: seconds between the kill and the new server (default %(default)s)",
+    )
+    p.add_argument(
+        "--restart-interval",
+        type=float,
+        default=8.0,
+        help="restart part: seconds from one restart to the next kill (default %(default)s)",
+    )
+    p.add_argument(
         "--soak-minutes",
         type=float,
         default=30.0,
@@ -1631,6 +1830,13 @@ def parser() -> argparse.ArgumentParser:
         type=float,
         default=15.0,
         help="soak part: seconds between memory samples (default %(default)s)",
+    )
+    p.add_argument(
+        "--soak-idle-timeout",
+        type=float,
+        default=30.0,
+        help="soak part: the server's --idle-timeout; sessions are counted this long (plus "
+        "6 s) after the last client (default %(default)s, the server's default)",
     )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", help="also write the full results to this file")
