@@ -63,6 +63,7 @@ _EXPORTS = {
     "StreamStats": "streamer",
     "PoseSubscriber": "subscriber",
     "TumWriter": "trajectory",
+    "FramesWriter": "trajectory",
     "CameraSpec": "wire",
     "ErrorInfo": "wire",
     "Frame": "wire",

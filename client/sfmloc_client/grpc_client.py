@@ -24,7 +24,7 @@ from .convert import (
     pose_from_update_pb,
     transform_to_pb,
 )
-from .errors import RemoteError
+from .errors import InputError, RemoteError
 from .images import encode_image
 from .pb import localization_pb2 as pb
 from .pb import localization_pb2_grpc as pb_grpc
@@ -104,6 +104,30 @@ def relocalize_request(
     return req
 
 
+def _camera(camera: CameraSpec | str) -> CameraSpec:
+    """A ``CameraSpec``, or one parsed from a camera.json path / ``"MODEL w h params..."``."""
+    return camera if isinstance(camera, CameraSpec) else CameraSpec.parse(camera)
+
+
+def _paced(frames: Iterable[Any], rate: float | None) -> Iterator[Any]:
+    """``frames`` at most ``rate`` per second (None: as fast as they come)."""
+    if rate is None:
+        yield from frames
+        return
+    period, t_next = 1.0 / rate, time.monotonic()
+    for fr in frames:
+        delay = t_next - time.monotonic()
+        if delay > 0:
+            time.sleep(delay)
+        t_next = max(t_next + period, time.monotonic() - period)  # no burst after a stall
+        yield fr
+
+
+def _check_rate(rate: float | None) -> None:
+    if rate is not None and not rate > 0:
+        raise InputError(f"rate must be positive (frames per second), got {rate}")
+
+
 def _stream_requests(
     frames: Iterable[Any],
     map_name: str,
@@ -111,8 +135,9 @@ def _stream_requests(
     client_id: str,
     encoding: str,
     jpeg_quality: int,
+    rate: float | None = None,
 ) -> Iterator[pb.StreamFrame]:
-    for seq, fr in enumerate(frames):
+    for seq, fr in enumerate(_paced(frames, rate)):
         enc, data = _image(fr, encoding, jpeg_quality)
         stamp = (
             fr.stamp_ns
@@ -170,31 +195,38 @@ class LocalizationClient:
         self,
         image: Any,
         map_name: str,
-        camera: CameraSpec,
+        camera: CameraSpec | str,
         *,
         encoding: str = "jpeg",
         prior: Transform | None = None,
         timeout: float | None = None,
     ) -> PoseMessage:
         """Localize one image (numpy uint8 gray/BGR, or bytes already in ``encoding``)."""
-        req = relocalize_request(image, map_name, camera, encoding, prior)
+        req = relocalize_request(image, map_name, _camera(camera), encoding, prior)
         return pose_from_estimate_pb(self._call(self.stub.Relocalize, req, timeout).pose)
 
     def stream(
         self,
         frames: Iterable[Any],
         map_name: str,
-        camera: CameraSpec,
+        camera: CameraSpec | str,
         *,
         client_id: str = "",
         encoding: str = "jpeg",
         jpeg_quality: int = 90,
         timeout: float | None = None,
+        rate: float | None = None,
     ) -> Iterator[PoseMessage]:
         """Stream frames (numpy images, bytes in ``encoding`` or ``SourceFrame``s) and yield a
-        pose per processed frame (the server drops frames that queue up behind a busy one)."""
+        pose per processed frame. ``rate``: send at most this many frames per second (a video
+        file's frames at its own rate, say); without it they go as fast as they are read and
+        the server drops those that queue up behind a busy one (latest frame only).
+        ``camera``: a ``CameraSpec``, a camera.json path or ``"MODEL w h params..."``."""
+        _check_rate(rate)
         calls = self.stub.StreamLocalize(
-            _stream_requests(frames, map_name, camera, client_id, encoding, jpeg_quality),
+            _stream_requests(
+                frames, map_name, _camera(camera), client_id, encoding, jpeg_quality, rate
+            ),
             timeout=timeout,
             metadata=self.metadata,
         )
@@ -297,28 +329,32 @@ class AsyncLocalizationClient:
         self,
         image: Any,
         map_name: str,
-        camera: CameraSpec,
+        camera: CameraSpec | str,
         *,
         encoding: str = "jpeg",
         prior: Transform | None = None,
         timeout: float | None = None,
     ) -> PoseMessage:
-        req = relocalize_request(image, map_name, camera, encoding, prior)
+        req = relocalize_request(image, map_name, _camera(camera), encoding, prior)
         return pose_from_estimate_pb((await self._call(self.stub.Relocalize, req, timeout)).pose)
 
     async def stream(
         self,
         frames: Iterable[Any],
         map_name: str,
-        camera: CameraSpec,
+        camera: CameraSpec | str,
         *,
         client_id: str = "",
         encoding: str = "jpeg",
         jpeg_quality: int = 90,
         timeout: float | None = None,
+        rate: float | None = None,
     ) -> AsyncIterator[PoseMessage]:
+        _check_rate(rate)
         call = self.stub.StreamLocalize(
-            _stream_requests(frames, map_name, camera, client_id, encoding, jpeg_quality),
+            _stream_requests(
+                frames, map_name, _camera(camera), client_id, encoding, jpeg_quality, rate
+            ),
             timeout=timeout,
             metadata=self.metadata,
         )

@@ -77,7 +77,7 @@ class FrameStreamer:
         session: Any,
         map_name: str,
         client_id: str,
-        camera: CameraSpec,
+        camera: CameraSpec | str,
         *,
         encoding: str = "jpeg",
         jpeg_quality: int = 90,
@@ -102,7 +102,8 @@ class FrameStreamer:
         elif server:
             self._target = check_name(server, "server id")
         self.map_name, self.client_id = map_name, client_id
-        self.camera = camera
+        # A camera.json path or "MODEL w h params..." as well as a CameraSpec.
+        self.camera = camera if isinstance(camera, CameraSpec) else CameraSpec.parse(camera)
         self.encoding = encoding
         self.jpeg_quality = jpeg_quality
         self.next_seq = 0

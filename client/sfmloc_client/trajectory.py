@@ -61,3 +61,41 @@ class TumWriter:
 
     def __exit__(self, *exc: Any) -> None:
         self.close()
+
+
+FRAMES_HEADER = (
+    "# seq timestamp status inliers matching error c00 c01 ... c55: every answered frame, LOST "
+    "ones too (error: the error code, '-' when none; covariance as in FILE.cov, nan without a "
+    "pose)"
+)
+
+
+def frames_path(tum_path: str | Path) -> Path:
+    """The per-frame side file of a TUM trajectory: ``FILE.frames`` beside ``FILE``."""
+    p = Path(tum_path)
+    return p.with_name(p.name + ".frames")
+
+
+class FramesWriter:
+    """One line per answered frame, LOST and refused ones included (the TUM file has only
+    poses): ``seq timestamp status inliers matching error c00 ... c55``."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self.count = 0
+        self._f: TextIO = open(self.path, "w")  # noqa: SIM115 - closed in close()
+        self._f.write(FRAMES_HEADER + "\n")
+
+    def write(self, pose: PoseMessage) -> None:
+        cov = pose.covariance if pose.covariance is not None else (float("nan"),) * 36
+        seq = "-" if pose.seq is None else str(pose.seq)
+        err = pose.error.code if pose.error is not None else "-"
+        self._f.write(
+            f"{seq} {pose.stamp_ns / 1e9:.9f} {pose.status} {pose.inliers} {pose.matching} {err} "
+            + " ".join(f"{v:.6e}" for v in cov)
+            + "\n"
+        )
+        self.count += 1
+
+    def close(self) -> None:
+        self._f.close()

@@ -268,3 +268,16 @@ class Camera:
 
     def __repr__(self) -> str:
         return f"Camera({self.to_string()!r})"
+
+
+def as_camera(camera: Camera | str | Path) -> Camera:
+    """``camera`` itself, or parsed from a ``camera.json`` path or a ``"MODEL w h params..."``
+    string (every API that takes a camera takes these)."""
+    if isinstance(camera, Camera):
+        return camera
+    if isinstance(camera, (str, Path)):
+        return Camera.parse(camera)
+    raise TypeError(
+        f"camera must be a Camera, a camera.json path or 'MODEL w h params...', got "
+        f"{type(camera).__name__}"
+    )

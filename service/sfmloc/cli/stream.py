@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import textwrap
+from typing import Any
 
 from ._clientopts import add_zenoh_options, camera_spec, default_client_id, zenoh_config
 
@@ -12,13 +13,23 @@ DESCRIPTION = textwrap.dedent(
     Publish frames of SOURCE on sfmloc/<map>/<client>/frame and receive their poses on
     sfmloc/<map>/<client>/pose. Live status (rate, latency, status) goes to stderr; with
     --out the trajectory is written in TUM format (timestamp tx ty tz qx qy qz qw,
-    world_from_cam, localized frames only) and FILE.cov beside it (per pose: timestamp,
-    status, 6x6 covariance, row-major, order rx ry rz cx cy cz; see README, Conventions).
+    world_from_cam, localized frames only), FILE.cov beside it (per pose: timestamp,
+    status, 6x6 covariance, row-major, order rx ry rz cx cy cz; see README, Conventions) and
+    FILE.frames (every answered frame, LOST ones too: seq, timestamp, status, inliers,
+    matching, error code, covariance).
+
+    Timestamps are the frames' own: an image folder's are frame index / --fps (30 without
+    --fps) unless --timestamps reads them from the file names (stem-s, stem-ms, stem-us,
+    stem-ns) or a 'timestamp filename' file (TUM rgb.txt); a video's are its container's
+    clock; a live camera's are the send times. So a trajectory compares with ground truth
+    on the same clock without hand alignment.
 
     Pacing: --fps N sends at N frames/s (the server drops frames it cannot keep up with,
     newest kept); without --fps the next frame goes out when the previous pose is back.
-    Exits 0 once the source is exhausted and the last pose arrived (or --timeout passed)
-    and at least one pose came back, 1 otherwise.
+    Exit 0 once the source is exhausted, the last pose arrived (or --timeout passed) and at
+    least one frame was localized; 1 when none was, or the server does not host the map
+    (each distinct error is printed with its count); 2 on bad input (e.g. a missing or
+    empty source, checked before connecting).
     """
 )
 
@@ -82,6 +93,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         metavar="GLOB",
         help="file names to take from a folder (default *)",
     )
+    p.add_argument(
+        "--timestamps",
+        metavar="SOURCE",
+        help="an image folder's clock: stem-s|stem-ms|stem-us|stem-ns (numeric file names in "
+        "that unit) or a 'timestamp filename' file (default: frame index / --fps)",
+    )
     p.add_argument("--max-frames", type=int, metavar="N", help="stop after N frames")
     p.add_argument(
         "--timeout",
@@ -112,6 +129,47 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+def open_stamped_source(args: argparse.Namespace) -> Any:
+    """The frames of --source with their own timestamps, checked before connecting: a missing
+    or empty source, or an unreadable clock, is an ``InputError`` (exit 2), not a traceback
+    after a wait for the server."""
+    import itertools
+    from pathlib import Path
+
+    from sfmloc_client import open_source
+    from sfmloc_client.sources import list_images
+
+    from ..errors import InputError
+    from ..io.frames import folder_stamps
+
+    src = args.source
+    passthrough = args.encoding if args.encoding in ("jpeg", "png") else None
+    is_dir = Path(src).is_dir()
+    if not is_dir and args.timestamps:
+        raise InputError("--timestamps applies to an image folder (a video has its own clock)")
+    if not is_dir and not src.isdigit() and not Path(src).exists():
+        raise InputError(f"--source {src}: no such file or folder (or a camera index)")
+    stamps_ns = None
+    if is_dir:
+        names = [p.name for p in list_images(src, args.pattern)]  # InputError when none
+        stamps, clock = folder_stamps(names, args.timestamps, args.fps or 30.0)
+        stamps_ns = [round(t * 1e9) for t in stamps]
+    frames = open_source(src, pattern=args.pattern, passthrough=passthrough)
+    first = next(frames, None)
+    if first is None:
+        raise InputError(f"--source {src} gave no frames (an empty or unreadable video?)")
+    frames = itertools.chain([first], frames)
+    if stamps_ns is None:
+        return frames, "the video's clock" if Path(src).is_file() else "send time"
+
+    def stamped() -> Any:
+        for fr, t in zip(frames, stamps_ns):
+            fr.stamp_ns = t
+            yield fr
+
+    return stamped(), clock
+
+
 def run(args: argparse.Namespace) -> int:
     import sys
     import threading
@@ -121,8 +179,15 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
     import zenoh
 
-    from sfmloc_client import FrameStreamer, PoseMessage, PoseSubscriber, TumWriter, open_source
+    from sfmloc_client import (
+        FrameStreamer,
+        FramesWriter,
+        PoseMessage,
+        PoseSubscriber,
+        TumWriter,
+    )
     from sfmloc_client.streamer import OUTAGE_FRAMES
+    from sfmloc_client.trajectory import frames_path
 
     from ._trajplot import StreamRecorder, check_plot_args, write_plot
 
@@ -130,16 +195,20 @@ def run(args: argparse.Namespace) -> int:
     recorder = StreamRecorder()
     cam = camera_spec(args.camera)
     client_id = args.client_id or default_client_id()
+    source, clock = open_stamped_source(args)
     tty = sys.stderr.isatty()
     sent_at: dict[int, float] = {}
     rtt: list[float] = []
     server_ms: list[float] = []
     statuses: dict[str, int] = {}
+    reasons: dict[tuple[str, str], int] = {}  # (code, message) -> frames
     lock = threading.Lock()
     writer = TumWriter(args.out, filtered=args.filtered) if args.out else None
-    state = {
+    frames_out = FramesWriter(frames_path(args.out)) if args.out else None
+    state: dict[str, Any] = {
         "last": None,
         "errors": 0,
+        "localized": 0,
         "dropped": 0,
         "t_status": 0.0,
         "sent": 0,
@@ -180,10 +249,16 @@ def run(args: argparse.Namespace) -> int:
             server_ms.append(p.latency_ms)
             statuses[p.status] = statuses.get(p.status, 0) + 1
             state["errors"] += p.error is not None
+            state["localized"] += p.localized
+            if p.error is not None:
+                key = (p.error.code, p.error.message)
+                reasons[key] = reasons.get(key, 0) + 1
             state["dropped"] = max(state["dropped"], p.dropped)
             state["last"] = p
             if writer is not None:
                 writer.write(p)
+            if frames_out is not None:
+                frames_out.write(p)
         if now - state["t_status"] > 0.5:
             state["t_status"] = now
             status_line()
@@ -198,40 +273,41 @@ def run(args: argparse.Namespace) -> int:
             state["t_status"] = now
             status_line()
 
-    with zenoh.open(zenoh_config(args)) as z:
-        with (
-            PoseSubscriber(z, args.map, client_id, callback=on_pose) as poses,
-            FrameStreamer(
-                z, args.map, client_id, cam, encoding=args.encoding, server=args.server
-            ) as fs,
-        ):
-            if not fs.wait_for_server(args.wait_server):
-                sys.stderr.write(
-                    f"no server subscribes to {fs.key} after {args.wait_server:.0f} s "
-                    "(is one running, reachable with --zenoh-connect, hosting this map?)\n"
+    try:
+        with zenoh.open(zenoh_config(args)) as z:
+            with (
+                PoseSubscriber(z, args.map, client_id, callback=on_pose) as poses,
+                FrameStreamer(
+                    z, args.map, client_id, cam, encoding=args.encoding, server=args.server
+                ) as fs,
+            ):
+                if not fs.wait_for_server(args.wait_server):
+                    sys.stderr.write(
+                        f"no server subscribes to {fs.key} after {args.wait_server:.0f} s "
+                        "(is one running, reachable with --zenoh-connect, hosting this map?)\n"
+                    )
+                    return 1
+                state["t0"] = time.monotonic()
+                state["poses"] = poses  # the status line reads the newest answered frame
+                stats = fs.run(
+                    source,
+                    fps=args.fps,
+                    lockstep=args.fps is None,
+                    poses=poses,
+                    pose_timeout=args.timeout,
+                    max_frames=args.max_frames,
+                    on_sent=on_sent,
+                    # An unknown map answers every frame the same: stop at the first answer.
+                    should_stop=lambda: any(code == "NOT_FOUND" for code, _ in reasons),
                 )
-                return 1
-            state["t0"] = time.monotonic()
-            state["poses"] = poses  # the status line reads the newest answered frame from it
-            source = open_source(
-                args.source,
-                pattern=args.pattern,
-                passthrough=args.encoding if args.encoding in ("jpeg", "png") else None,
-            )
-            stats = fs.run(
-                source,
-                fps=args.fps,
-                lockstep=args.fps is None,
-                poses=poses,
-                pose_timeout=args.timeout,
-                max_frames=args.max_frames,
-                on_sent=on_sent,
-            )
-            if stats.sent:
-                poses.wait_for(stats.last_seq, args.timeout)
-            received = poses.received
-    if writer is not None:
-        writer.close()
+                if stats.sent:
+                    poses.wait_for(stats.last_seq, args.timeout)
+                received = poses.received
+    finally:
+        if writer is not None:
+            writer.close()
+        if frames_out is not None:
+            frames_out.close()
     status_line(final=True)
     summary = (
         f"{received} poses received for {stats.sent} frames sent ({stats.rate_hz:.1f} frames/s"
@@ -247,10 +323,21 @@ def run(args: argparse.Namespace) -> int:
         summary += (
             f"; {stats.outages} outage(s), longest {stats.max_unanswered} frames without an answer"
         )
-    summary += ")" + (f"; {writer.count} poses written to {args.out}" if writer else "")
+    summary += f"; {state['localized']} localized; clock: {clock})"
+    if writer is not None:
+        summary += (
+            f"; {writer.count} poses written to {args.out} (every frame: {frames_path(args.out)})"
+        )
     print(summary)
     if args.plot:
         recs = recorder.records(args.groundtruth, args.fps or 30.0)
         title = f"sfmloc stream: {Path(args.source).name} on {args.map}, {len(recs)} answered"
         print(f"plot: {write_plot(recs, args.plot, title)}")
-    return 0 if received > 0 else 1
+    for (code, message), n in sorted(reasons.items(), key=lambda kv: -kv[1]):
+        print(f"error: {code}: {message} ({n} frame{'s' if n != 1 else ''})", file=sys.stderr)
+    unknown_map = any(code == "NOT_FOUND" for code, _ in reasons)
+    if unknown_map:
+        print(f"the server does not host map {args.map!r}", file=sys.stderr)
+    elif state["localized"] == 0:
+        print("no frame was localized", file=sys.stderr)
+    return 1 if unknown_map or state["localized"] == 0 else 0

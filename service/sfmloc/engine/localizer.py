@@ -38,10 +38,11 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
-from ..cameras import Camera
+from ..cameras import Camera, as_camera
 from ..features.daisy import DaisyExtractor
 from ..map.bundle import MapBundle
 from ..transforms import Rigid3d, rotation_angle_deg
@@ -159,7 +160,11 @@ class Localizer:
     Poses are the same for both (scaling the intrinsics does not move the camera).
     """
 
-    def __init__(self, bundle: MapBundle, camera: Camera, conf: EngineConf | None = None) -> None:
+    def __init__(
+        self, bundle: MapBundle, camera: Camera | str | Path, conf: EngineConf | None = None
+    ) -> None:
+        """``camera``: a ``Camera``, a ``camera.json`` path or ``"MODEL w h params..."``."""
+        camera = as_camera(camera)
         self.bundle = bundle
         self.conf = conf or EngineConf()
         self.input_camera = camera

@@ -5,10 +5,11 @@ single image), and ``relocalize``, the stateless single-image query."""
 from __future__ import annotations
 
 import time
+from pathlib import Path
 
 import numpy as np
 
-from ..cameras import Camera
+from ..cameras import Camera, as_camera
 from ..features.daisy import DaisyExtractor
 from ..features.harris import detect_corners
 from ..map.bundle import MapBundle
@@ -171,7 +172,7 @@ def match_near_prior(
 
 def relocalize(
     image: np.ndarray,
-    camera: Camera,
+    camera: Camera | str | Path,
     bundle: MapBundle,
     conf: EngineConf | None = None,
     prior: Rigid3d | None = None,
@@ -186,6 +187,7 @@ def relocalize(
     description, search, RANSAC); past it the result is LOST, its message saying "time budget
     exceeded" and after which stage (a huge image or absurd intrinsics cannot hold a worker
     for seconds: issue 16)."""
+    camera = as_camera(camera)  # a camera.json path or "MODEL w h params..." too
     conf = conf or EngineConf()
     timer = StageTimer()
     try:

@@ -122,6 +122,28 @@ def _check_increasing(stamps: list[float], names: list[str], clock: str) -> None
             )
 
 
+def folder_stamps(names: list[str], timestamps: str | None, fps: float) -> tuple[list[float], str]:
+    """Timestamps (s) of an image folder's frames in the given order and the clock's name:
+    index / ``fps``, or ``timestamps`` as ``FrameSource`` takes it (stem-UNIT or a file)."""
+    if not fps > 0:
+        raise InputError(f"--fps must be positive, got {fps}")
+    if timestamps is None:
+        return [k / fps for k in range(len(names))], f"frame index / {fps:g} fps"
+    if timestamps in CLOCK_CHOICES:
+        unit = timestamps.split("-", 1)[1]
+        stamps, clock = _stamps_from_stems(names, unit), f"file-name stems in {unit}"
+    else:
+        p = Path(timestamps)
+        if not p.is_file():
+            raise InputError(
+                f"--timestamps {timestamps!r} is neither one of {', '.join(CLOCK_CHOICES)} nor "
+                "a file"
+            )
+        stamps, clock = _stamps_from_file(p, names, len(names)), f"timestamps file {p}"
+    _check_increasing(stamps, names, clock)
+    return stamps, clock
+
+
 class FrameSource:
     """Iterate the frames of a folder or video; ``len()`` is known for folders and, as far as
     the container says, for videos."""

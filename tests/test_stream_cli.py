@@ -1,0 +1,164 @@
+"""sfmloc stream and the client API edges (issue 13, part 5): exit codes, error reasons, the
+frames' own timestamps, the per-frame side file, clean errors for bad sources, a paced gRPC
+stream, cameras as strings, and the README's in-process example run as written."""
+
+from __future__ import annotations
+
+import re
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from server_helpers import running_server, server_config, zenoh_endpoint
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _cli(*args: str, timeout: float = 180) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "sfmloc", *args], capture_output=True, text=True, timeout=timeout
+    )
+
+
+@pytest.fixture(scope="module")
+def server(world):
+    ep = zenoh_endpoint()
+    with running_server(server_config(world, ep)) as srv:
+        yield srv, ep
+
+
+def _stream(world, ep, source, *extra: str) -> subprocess.CompletedProcess:
+    return _cli(
+        "stream",
+        "--source",
+        str(source),
+        "--camera",
+        world.camera_spec,
+        "--zenoh-connect",
+        ep,
+        "--no-multicast",
+        "--encoding",
+        "png",
+        "--wait-server",
+        "20",
+        *extra,
+    )
+
+
+def test_stream_stamps_frames_on_their_own_clock_with_a_side_file(world, server, tmp_path):
+    _, ep = server
+    # Frames named by their time in ms (a ROS/TUM-like export), 50 ms apart from 1000 s.
+    src = tmp_path / "frames"
+    src.mkdir()
+    names = [f"{1_000_000 + 50 * k}.png" for k in range(12)]
+    for name, f in zip(names, world.frames):
+        shutil.copy(f, src / name)
+    out = tmp_path / "t.tum"
+    r = _stream(world, ep, src, "--map", "room", "--timestamps", "stem-ms", "--out", str(out))
+    assert r.returncode == 0, r.stderr
+    assert "clock: file-name stems in ms" in r.stdout
+    rows = [ln.split() for ln in (tmp_path / "t.tum.frames").read_text().splitlines()[1:]]
+    assert [int(row[0]) for row in rows] == list(range(12))  # every frame, LOST ones too
+    for row in rows:
+        assert float(row[1]) == pytest.approx(1000 + 0.05 * int(row[0]), abs=1e-9)
+        assert row[2] in ("TRACKING", "RELOCALIZED", "UNVERIFIED", "LOST") and len(row) == 42
+    tum = [ln.split() for ln in out.read_text().splitlines()[1:]]
+    localized = [row for row in rows if row[2] != "LOST"]
+    assert [t[0] for t in tum] == [row[1] for row in localized] and len(tum) >= 10
+    # Positions at their stamps: frame k's pose is at the ground truth of frame k.
+    for t in tum:
+        k = round((float(t[0]) - 1000) / 0.05)
+        gt = world.gt_cam_from_world[k].inverse().translation
+        assert np.linalg.norm(np.array([float(v) for v in t[1:4]]) - gt) < 0.05
+    # The default clock of a folder: frame index / fps.
+    r = _stream(
+        world, ep, src, "--map", "room", "--fps", "10", "--max-frames", "4", "--out", str(out)
+    )
+    assert r.returncode == 0, r.stderr
+    rows = [ln.split() for ln in (tmp_path / "t.tum.frames").read_text().splitlines()[1:]]
+    assert {(int(row[0]), float(row[1])) for row in rows} <= {(k, k / 10) for k in range(4)}
+
+
+def test_stream_unknown_map_and_nothing_localized_exit_1(world, server, tmp_path):
+    _, ep = server
+    r = _stream(world, ep, world.frames[0].parent, "--map", "atlantis", "--max-frames", "20")
+    assert r.returncode == 1
+    assert re.search(r"error: NOT_FOUND: .*atlantis.* \(\d+ frames?\)", r.stderr), r.stderr
+    assert "does not host map 'atlantis'" in r.stderr
+    assert int(r.stdout.split(" poses received for ")[1].split()[0]) < 20  # stopped early
+    blank = tmp_path / "blank"
+    blank.mkdir()
+    for k in range(3):
+        cv2.imwrite(str(blank / f"{k:03d}.png"), np.full((480, 640), 128, np.uint8))
+    r = _stream(world, ep, blank, "--map", "room")
+    assert r.returncode == 1 and "no frame was localized" in r.stderr, r.stderr
+    assert "0 localized" in r.stdout
+
+
+def test_stream_bad_sources_fail_cleanly_before_connecting(world, tmp_path):
+    ep = zenoh_endpoint()  # nobody there: the source is checked first
+    r = _stream(world, ep, tmp_path / "nope", "--map", "room")
+    assert r.returncode == 2 and "no such file or folder" in r.stderr
+    assert "Traceback" not in r.stderr
+    (tmp_path / "empty").mkdir()
+    r = _stream(world, ep, tmp_path / "empty", "--map", "room")
+    assert r.returncode == 2 and "no images" in r.stderr and "Traceback" not in r.stderr
+    (tmp_path / "broken.mp4").write_bytes(b"not a video")
+    r = _stream(world, ep, tmp_path / "broken.mp4", "--map", "room")
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    r = _stream(world, ep, world.frames[0].parent, "--map", "room", "--timestamps", "stem-s")
+    assert r.returncode == 2 and "no numeric stem" in r.stderr
+
+
+def test_grpc_stream_is_paced_and_takes_a_camera_string(world, server):
+    from sfmloc_client import LocalizationClient
+
+    srv, _ = server
+    n, rate = 5, 1.0  # 1 s apart: even a loaded machine answers each before the next
+    with LocalizationClient(f"127.0.0.1:{srv.grpc_port}", timeout=60) as c:
+        t0 = time.monotonic()
+        poses = list(c.stream(world.png[:n], "room", world.camera_spec, encoding="png", rate=rate))
+        elapsed = time.monotonic() - t0
+        # Paced below the server's rate, no frame queues behind another: one pose each.
+        assert [p.seq for p in poses] == list(range(n))
+        assert elapsed >= (n - 1) / rate
+        assert sum(p.localized for p in poses) >= n - 1
+        one = c.relocalize(world.png[3], "room", world.camera_spec, encoding="png")
+        assert one.localized
+        from sfmloc_client.errors import InputError
+
+        with pytest.raises(InputError, match="rate must be positive"):
+            list(c.stream(world.png[:1], "room", world.camera_spec, rate=0))
+
+
+def test_readme_in_process_example_runs_as_written(world, tmp_path, monkeypatch):
+    text = (REPO / "README.md").read_text()
+    block = text.split("<!-- in-process example -->", 1)[1].split("```python\n", 1)[1]
+    code = block.split("```", 1)[0]
+    (tmp_path / "maps").mkdir()
+    (tmp_path / "maps" / "lab").symlink_to(world.maps_dir / "room")
+    (tmp_path / "frames").symlink_to(world.frames[0].parent)
+    shutil.copy(world.root / "synth" / "camera.json", tmp_path / "camera.json")
+    monkeypatch.chdir(tmp_path)
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    lines = r.stdout.splitlines()
+    assert len(lines) == 31 and lines[-1] == "single image: RELOCALIZED"
+    statuses = [ln.split()[1] for ln in lines[:30]]
+    assert statuses.count("TRACKING") >= 20
+
+
+def test_cameras_as_strings_in_process(world, bundle):
+    from sfmloc.engine import Localizer, relocalize
+
+    loc = Localizer(bundle, str(world.root / "synth" / "camera.json"))
+    assert loc.localize(world.gray[0], 0.0).localized
+    assert relocalize(world.gray[5], world.camera_spec, bundle).localized
+    with pytest.raises(TypeError, match="camera must be"):
+        Localizer(bundle, 42)  # type: ignore[arg-type]
