@@ -253,6 +253,21 @@ def test_pose_stream_over_zenoh_to_server_sent_events(world):
         late.close()
 
 
+def test_live_state_rates_ages_and_forgets():
+    state = LiveState(trail=3, forget_after_s=10.0)
+    for k in range(5):
+        state.update(_pose(k, [float(k), 0.0, 0.0]), now=100.0 + 0.5 * k)
+    state.update(_pose(0, [9.0, 9.0, 9.0], client="other"), now=101.0)
+    (c1,) = [c for c in state.snapshot(now=102.5) if c["client"] == "c1"]
+    assert [p[0] for p in c1["trail"]] == [2.0, 3.0, 4.0]  # the last --trail positions
+    assert c1["age_s"] == pytest.approx(0.5)
+    s = {c["client"]: c for c in state.summary(now=102.5)["clients"]}
+    assert s["c1"]["rate_hz"] == pytest.approx(4 / 2.0)  # poses in the last 2 s
+    assert s["c1"]["n_poses"] == 5 and s["other"]["age_s"] == pytest.approx(1.5)
+    s = state.summary(now=111.5)["clients"]  # "other" silent 10.5 s, c1 9.5 s
+    assert [c["client"] for c in s] == ["c1"] and s[0]["rate_hz"] == 0
+
+
 def _status_pixels(png: bytes, status: str) -> np.ndarray:
     import cv2
 
@@ -430,3 +445,27 @@ def test_page_draws_maps_of_any_scale_and_place(world, tmp_path, scale, translat
     assert scene.std() > 8 and len(np.unique(scene)) > 40
     dots = _status_pixels(png, "TRACKING")
     assert (np.hypot(dots[:, 1] - x, dots[:, 0] - y) < 12).sum() >= 20
+
+
+@pytest.mark.skipif(
+    find_chromium() is None,
+    reason="no chromium on PATH: the viewer's browser test needs Debian's chromium "
+    "(make test-deps, or apt-get install -y chromium)",
+)
+def test_page_shows_lost_then_drops_a_silent_client(world):
+    state = LiveState(forget_after_s=2.0)
+    with ViewerServer([world.maps_dir], state, port=0) as v, Browser() as b:
+        b.open(v.url + "?map=room", width=800, height=600)
+        b.wait_for("window.sfmlocView && window.sfmlocView.ready && window.sfmlocView.connected")
+        centre = world.gt_cam_from_world[0].center
+        state.update(_pose(0, centre, client="gone"))
+        state.update(_pose(1, None, "LOST", client="gone"))
+        lost = b.wait_for("(c => c && c.seq === 1 && c)(window.sfmlocView.clients.gone)")
+        assert lost["status"] == "LOST"
+        np.testing.assert_allclose(lost["centre"], centre)  # drawn at its last pose
+        x, y = b.evaluate("window.sfmlocView.screen('gone')")
+        dots = _status_pixels(b.screenshot(), "LOST")
+        assert (np.hypot(dots[:, 1] - x, dots[:, 0] - y) < 12).sum() >= 20
+        assert "too few inliers" in b.evaluate("document.querySelector('#clients').innerText")
+        b.wait_for("!window.sfmlocView.clients.gone", 15)  # forgotten after 2 s of silence
+        assert b.evaluate("document.querySelector('#clients tbody').children.length") == 0

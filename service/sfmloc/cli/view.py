@@ -63,6 +63,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         metavar="N",
         help="positions kept per client for a page that opens later (default 600)",
     )
+    p.add_argument(
+        "--forget-after",
+        type=float,
+        default=60.0,
+        metavar="S",
+        help="drop a client silent this long from the page (default 60)",
+    )
     add_zenoh_options(p)
     p.set_defaults(func=run)
 
@@ -77,9 +84,9 @@ def run(args: argparse.Namespace) -> int:
     from ..viewer.http import ViewerServer
     from ..viewer.live import LiveState, PoseFeed
 
-    if args.max_points < 1 or args.trail < 1:
-        raise InputError("--max-points and --trail must be at least 1")
-    state = LiveState(trail=args.trail)
+    if args.max_points < 1 or args.trail < 1 or not args.forget_after > 0:
+        raise InputError("--max-points and --trail must be at least 1, --forget-after above 0")
+    state = LiveState(trail=args.trail, forget_after_s=args.forget_after)
     try:
         viewer = ViewerServer(
             args.maps or ["maps"],

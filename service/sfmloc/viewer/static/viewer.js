@@ -274,9 +274,17 @@ function connect() {
   es.addEventListener('pose', (m) => { view.events++; onPose(JSON.parse(m.data), null); });
   es.addEventListener('summary', (m) => {
     const s = JSON.parse(m.data);
+    const known = new Set();
     for (const x of s.clients) {
       const c = clients.get(`${x.map}/${x.client}`);
+      known.add(`${x.map}/${x.client}`);
       if (c) { c.last.rate_hz = x.rate_hz; c.seen = performance.now() - 1000 * x.age_s; }
+    }
+    for (const [id, c] of clients) {  // silent longer than the viewer's --forget-after
+      if (known.has(id)) continue;
+      scene.remove(c.group, c.trail);
+      clients.delete(id);
+      delete view.clients[c.client];
     }
     conn.textContent = `live: ${s.clients.length} client(s), ${s.poses} poses seen` +
       (s.bad_messages ? `, ${s.bad_messages} undecodable (last: ${s.last_bad})` : '');
