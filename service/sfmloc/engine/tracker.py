@@ -70,31 +70,31 @@ def window_pairs(pred: np.ndarray, cand: np.ndarray, half: float) -> tuple[np.nd
     so a window overlaps at most 3x3 cells (56% of the area of 2x2 cells of size 2*half)."""
     if len(pred) == 0 or len(cand) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    cx = np.floor(cand[:, 0] / half).astype(np.int64)
-    cy = np.floor(cand[:, 1] / half).astype(np.int64)
+    c = np.floor(cand / half).astype(np.int64)  # (M, 2) cell of each candidate
     # A window's first cell, clipped to just outside the candidates' cells: a prediction far
     # off the image (or not finite) then looks at empty cells, and the grid stays small.
+    lo, hi = c.min(axis=0) - 3, c.max(axis=0) + 1
     with np.errstate(invalid="ignore"):
-        wx = np.floor((pred[:, 0] - half) / half)
-        wy = np.floor((pred[:, 1] - half) / half)
-    x0, y0 = cx.min() - 3, cy.min() - 3
-    wx = np.clip(np.nan_to_num(wx, nan=x0), x0, cx.max() + 1).astype(np.int64)
-    wy = np.clip(np.nan_to_num(wy, nan=y0), y0, cy.max() + 1).astype(np.int64)
-    ncols, nrows = cx.max() + 4 - x0, cy.max() + 4 - y0
-    cid = (cy - y0) * ncols + (cx - x0)
+        w = np.floor((pred - half) / half)
+    w = np.clip(np.where(np.isnan(w), lo, w), lo, hi).astype(np.int64)
+    ncols, nrows = hi[0] + 3 - lo[0], hi[1] + 3 - lo[1]
+    c -= lo
+    cid = c[:, 1] * ncols + c[:, 0]
     counts = np.bincount(cid, minlength=ncols * nrows)
     first = np.cumsum(counts) - counts
     order = np.argsort(cid, kind="stable")
     # the 3x3 cells of each window
     offs3 = (np.arange(3)[:, None] * ncols + np.arange(3)[None, :]).ravel()
-    cells = ((wy - y0) * ncols + (wx - x0))[:, None] + offs3
+    w -= lo
+    cells = (w[:, 1] * ncols + w[:, 0])[:, None] + offs3
     lens = counts[cells].ravel()
-    total = int(lens.sum())
+    ends = np.cumsum(lens)
+    total = int(ends[-1])
     if total == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    owner = np.repeat(np.repeat(np.arange(len(pred)), 9), lens)
-    offs = np.arange(total) - np.repeat(np.cumsum(lens) - lens, lens)
-    j = order[np.repeat(first[cells].ravel(), lens) + offs]
+    owner = np.repeat(np.arange(len(pred)), lens.reshape(-1, 9).sum(axis=1))
+    # position in ``order`` of each pair: its cell's first candidate plus its rank in the cell
+    j = order[np.repeat(first[cells].ravel() - (ends - lens), lens) + np.arange(total)]
     d = np.abs(cand[j] - pred[owner])
     inside = (d[:, 0] <= half) & (d[:, 1] <= half)
     return owner[inside], j[inside]
