@@ -8,6 +8,7 @@ rmw_zenoh's attachment. A real server (real Zenoh sessions on loopback) publishe
 
 from __future__ import annotations
 
+import re
 import threading
 import time
 
@@ -181,6 +182,24 @@ def test_server_publishes_ros2_poses(world, ros_server):
         assert len(localized) >= 15
         got = pose_c.wait(len(localized))
         got_cov = cov_c.wait(len(localized))
+        tokens = [str(r.ok.key_expr) for r in z.liveliness().get("@ros2_lv/0/**", timeout=5)]
+    # rmw_zenoh's graph (its design: @ros2_lv/<domain>/<zid>/<node id>/<entity id>/<kind>/
+    # <enclave>/<namespace>/<node>[/<topic>/<type>/<hash>/<qos>], '/' mangled to '%').
+    node = r"@ros2_lv/0/(?P<zid>[0-9a-f]+)/0/0/NN/%/%/sfmloc_\w+"
+    assert any(re.fullmatch(node, t) for t in tokens), tokens
+    for topic, ros_type in (
+        ("pose", "geometry_msgs/msg/PoseStamped"),
+        ("pose_cov", "geometry_msgs/msg/PoseWithCovarianceStamped"),
+    ):
+        pkg, kind, name = ros_type.split("/")
+        tail = (
+            f"%sfmloc%room%rosbot%{topic}/{pkg}::{kind}::dds_::{name}_/"
+            f"{TS.hash_rihs01(ros_type)}/::,1:,:,:,,"
+        )
+        assert any(
+            re.fullmatch(r"@ros2_lv/0/[0-9a-f]+/0/\d+/MP/%/%/sfmloc_\w+/" + re.escape(tail), t)
+            for t in tokens
+        ), (tail, tokens)
     # Poses are published with congestion control DROP (the server never waits for a slow
     # subscriber), so a loaded machine may drop a few; every one that arrives must be exact.
     by_stamp = {p.stamp_ns: p for p in localized}

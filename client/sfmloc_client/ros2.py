@@ -88,6 +88,36 @@ def key_expr(ros_topic: str, ros_type: str, domain_id: int = 0, fmt: str = "rmw_
     return f"{int(domain_id)}/{name}/{dds_type_name(ros_type)}/{TYPE_HASHES[ros_type]}"
 
 
+# rmw_zenoh's QoS field of a liveliness token: reliability:durability:history,depth:deadline
+# s,ns:lifespan s,ns:liveliness,lease s,ns, empty where the default; ours: keep last 1.
+QOS_KEEP_LAST_1 = "::,1:,:,:,,"
+
+
+def mangle(name: str) -> str:
+    """rmw_zenoh's mangling of a name inside a liveliness token: ``/`` becomes ``%``."""
+    return name.replace("/", "%")
+
+
+def liveliness_key(
+    domain_id: int,
+    zid: str,
+    node_id: int,
+    entity_id: int,
+    kind: str,
+    node_name: str,
+    ros_topic: str | None = None,
+    ros_type: str | None = None,
+    qos: str = QOS_KEEP_LAST_1,
+) -> str:
+    """rmw_zenoh's graph token: ``@ros2_lv/<domain>/<zid>/<node id>/<entity id>/<kind>/
+    <enclave>/<namespace>/<node>[/<topic>/<dds type>/<type hash>/<qos>]`` (kind ``NN`` a
+    node, ``MP`` a publisher, ``MS`` a subscription; enclave and namespace ``/``, mangled)."""
+    key = f"@ros2_lv/{int(domain_id)}/{zid}/{node_id}/{entity_id}/{kind}/%/%/{mangle(node_name)}"
+    if ros_topic is None or ros_type is None:
+        return key
+    return f"{key}/{mangle(ros_topic)}/{dds_type_name(ros_type)}/{TYPE_HASHES[ros_type]}/{qos}"
+
+
 def rmw_attachment(seq: int, stamp_ns: int, gid: bytes) -> bytes:
     """rmw_zenoh's sample attachment: int64 sequence number, int64 source timestamp (ns), the
     16-byte publisher gid as a sequence (LEB128 length, then the bytes) - zenoh-ext's

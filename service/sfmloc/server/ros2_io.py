@@ -47,15 +47,67 @@ def frame_id(conf: Ros2Conf, map_name: str) -> str:
     )
 
 
-class _RosPublisher:
-    """One ROS 2 topic on Zenoh: key expression, rmw_zenoh attachment, sequence numbers."""
+class Ros2Graph:
+    """The server as a node of rmw_zenoh's ROS graph (liveliness tokens): ``ros2 topic list``,
+    ``ros2 node list`` and RViz's topic picker see the node and its pose publishers."""
 
-    def __init__(self, z: zenoh.Session, conf: Ros2Conf, ros_topic: str, ros_type: str) -> None:
+    NODE_ID = 0
+
+    def __init__(self, z: zenoh.Session, conf: Ros2Conf, node_name: str) -> None:
+        self.z = z
+        self.domain_id = conf.domain_id
+        self.zid = str(z.zid())
+        self.node = ros2.ros_name(node_name)
+        self._ids = itertools.count(1)
+        self._node = z.liveliness().declare_token(
+            ros2.liveliness_key(
+                self.domain_id, self.zid, self.NODE_ID, self.NODE_ID, "NN", self.node
+            )
+        )
+
+    def publisher(self, ros_topic: str, ros_type: str) -> Any:
+        """A publisher's token (undeclare it with the publisher)."""
+        key = ros2.liveliness_key(
+            self.domain_id,
+            self.zid,
+            self.NODE_ID,
+            next(self._ids),
+            "MP",
+            self.node,
+            ros_topic,
+            ros_type,
+        )
+        return self.z.liveliness().declare_token(key)
+
+    def close(self) -> None:
+        _undeclare(self._node)
+
+
+def _undeclare(obj: Any) -> None:
+    try:
+        obj.undeclare()
+    except Exception:  # noqa: BLE001 - the Zenoh session may be closed already
+        pass
+
+
+class _RosPublisher:
+    """One ROS 2 topic on Zenoh: key expression, rmw_zenoh attachment, sequence numbers, and
+    its graph token when a ``Ros2Graph`` is given."""
+
+    def __init__(
+        self,
+        z: zenoh.Session,
+        conf: Ros2Conf,
+        ros_topic: str,
+        ros_type: str,
+        graph: Ros2Graph | None = None,
+    ) -> None:
         self.key = ros2.key_expr(ros_topic, ros_type, conf.domain_id, conf.key_format)
         self._rmw = conf.key_format == "rmw_zenoh"
         self._gid = hashlib.sha256(f"{z.zid()}/{self.key}".encode()).digest()[:16]
         self._seq = itertools.count(1)
         self._pub = z.declare_publisher(self.key, **_QOS)
+        self._token = graph.publisher(ros_topic, ros_type) if graph is not None else None
 
     def put(self, payload: bytes) -> None:
         if self._rmw:
@@ -65,25 +117,34 @@ class _RosPublisher:
             self._pub.put(payload)
 
     def close(self) -> None:
-        try:
-            self._pub.undeclare()
-        except Exception:  # noqa: BLE001 - the Zenoh session may be closed already
-            pass
+        _undeclare(self._pub)
+        if self._token is not None:
+            _undeclare(self._token)
 
 
 class Ros2PoseSink:
     """A session's sink (``send``/``close``) that also publishes its poses as ROS 2 messages."""
 
     def __init__(
-        self, inner: Any, z: zenoh.Session, conf: Ros2Conf, map_name: str, client_id: str
+        self,
+        inner: Any,
+        z: zenoh.Session,
+        conf: Ros2Conf,
+        map_name: str,
+        client_id: str,
+        graph: Ros2Graph | None = None,
     ) -> None:
         self.inner = inner
         self.frame_id = frame_id(conf, map_name)
         self._pose = _RosPublisher(
-            z, conf, ros2.topic(map_name, client_id, "pose", conf.prefix), ros2.POSE
+            z, conf, ros2.topic(map_name, client_id, "pose", conf.prefix), ros2.POSE, graph
         )
         self._cov = _RosPublisher(
-            z, conf, ros2.topic(map_name, client_id, "pose_cov", conf.prefix), ros2.POSE_COV
+            z,
+            conf,
+            ros2.topic(map_name, client_id, "pose_cov", conf.prefix),
+            ros2.POSE_COV,
+            graph,
         )
 
     def send(self, pose: PoseMessage) -> None:

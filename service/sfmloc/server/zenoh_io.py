@@ -90,6 +90,7 @@ class ZenohFrontend:
         self.z: zenoh.Session | None = None
         self._frame_sub: Any = None
         self._ros2_images: Any = None  # ros2_io.Ros2ImageIntake when ros2 images are on
+        self._ros2_graph: Any = None  # ros2_io.Ros2Graph with ros2 on rmw_zenoh's keys
         self._token: Any = None
         self._others: list[Any] = []
         # Announcements load maps, which blocks on the workers: never on Zenoh's thread.
@@ -119,6 +120,11 @@ class ZenohFrontend:
         self._others.append(
             self.z.declare_queryable(server_info_key(self.server_id), self._on_info_query)
         )
+        r2 = self.conf.ros2
+        if r2.enabled and r2.key_format == "rmw_zenoh":
+            from .ros2_io import Ros2Graph
+
+            self._ros2_graph = Ros2Graph(self.z, r2, f"sfmloc_{self.server_id}")
         if self.conf.follow_builder and self.on_announcement is not None:
             self._others.append(self.z.declare_subscriber(MAPS_KEYEXPR, self._on_announcement))
         event(
@@ -170,6 +176,9 @@ class ZenohFrontend:
             except Exception:  # noqa: BLE001
                 pass
         self._others.clear()
+        if self._ros2_graph is not None:
+            self._ros2_graph.close()
+            self._ros2_graph = None
         if self.z is not None:
             self.z.close()  # an open session would keep the process from exiting
             self.z = None
@@ -237,7 +246,7 @@ class ZenohFrontend:
             return sink
         from .ros2_io import Ros2PoseSink
 
-        return Ros2PoseSink(sink, z, self.conf.ros2, map_name, client_id)
+        return Ros2PoseSink(sink, z, self.conf.ros2, map_name, client_id, self._ros2_graph)
 
     def _reply_error(
         self,
