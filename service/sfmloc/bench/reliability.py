@@ -259,6 +259,7 @@ class ClientLog:
     wrong_seqs: set[int] = field(default_factory=set)
     localized_at: list[float] = field(default_factory=list)
     errors: Counter = field(default_factory=Counter)
+    servers: Counter = field(default_factory=Counter)  # server id -> frames it answered
     duplicates: int = 0
     wrong: int = 0
     wrong_detail: list = field(default_factory=list)  # (seq, status, error/scale, deg)
@@ -278,10 +279,14 @@ class StreamClient(threading.Thread):
         stop: threading.Event,
         rate_hz: float | None = None,
         timeout: float = 5.0,
+        server: str | None = None,
+        more_endpoints: tuple[str, ...] = (),
     ) -> None:
         super().__init__(daemon=True, name=client_id)
         self.world, self.endpoint, self.stop_ev = world, endpoint, stop
         self.rate_hz, self.timeout = rate_hz, timeout
+        # Several servers (bench/scale.py): FrameStreamer(server=...) and every endpoint.
+        self.server, self.endpoints = server, (endpoint, *more_endpoints)
         self.log = ClientLog(client_id)
         self._cv = threading.Condition()
         self.ready = threading.Event()
@@ -297,6 +302,7 @@ class StreamClient(threading.Thread):
                 lg.duplicates += 1
                 return
             lg.answered[p.seq] = now
+            lg.servers[p.server_id] += 1
             lg.dropped = max(lg.dropped, p.dropped)
             lg.dropped_by_seq[p.seq] = p.dropped
             if p.error is not None:
@@ -325,11 +331,13 @@ class StreamClient(threading.Thread):
 
         cam = CameraSpec.parse(self.world.camera)
         n = len(self.world.gray)
-        conf = make_zenoh_config("peer", connect=[self.endpoint], multicast=False)
+        conf = make_zenoh_config("peer", connect=list(self.endpoints), multicast=False)
         with (
             zenoh.open(conf) as z,
             PoseSubscriber(z, self.world.name, self.log.client_id, callback=self._on_pose),
-            FrameStreamer(z, self.world.name, self.log.client_id, cam, encoding="gray8") as fs,
+            FrameStreamer(
+                z, self.world.name, self.log.client_id, cam, encoding="gray8", server=self.server
+            ) as fs,
         ):
             if not fs.wait_for_server(30):
                 raise RuntimeError("no server subscribed to the frames")
@@ -382,6 +390,7 @@ class StreamClient(threading.Thread):
             "wrong": len(wrong),
             "wrong_detail": wrong[:20],
             "duplicates": lg.duplicates,
+            "servers": dict(lg.servers),
             "max_gap_s": gap,
             "failure": self.failure,
             "latency_ms_p50": float(np.percentile(lat, 50)) if lat else float("nan"),

@@ -1,0 +1,251 @@
+"""The ``scale`` bench (issue 14): several ``sfmloc serve`` processes hosting one map on one
+Zenoh network, clients with ``server="auto"`` (one owner per session, placement.py).
+
+Parts, each with real server processes on loopback (peer mode, no multicast; every server
+connects to the ones started before it, clients to all):
+
+- ``alone``: each server by itself with its share of the clients in lockstep (next frame when
+  the previous pose is back): the poses per second one server delivers.
+- ``together``: all servers and all clients in lockstep: total poses per second against the
+  sum of ``alone``, every frame answered exactly once (duplicates counted), how the clients
+  spread over the servers.
+- ``kill``: all servers, clients paced at ``--rate``; one server (the owner of the most
+  clients) gets SIGKILL: for its clients the time from the kill to their next answer, and
+  duplicates, and clients left without answers at the end.
+
+The map and frames are reliability.py's synthetic room (exact ground truth: wrong poses are
+counted too). On a 2-core machine the servers share the cores: the report states them.
+
+    python -m sfmloc.bench.scale --work /tmp/scale [--servers 3 --clients 12 --seconds 15]
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .reliability import StreamClient, World, _log, _totals, prepare
+
+
+class Servers:
+    """``n`` ``sfmloc serve`` processes (``s0``, ``s1``, ...) chained on loopback."""
+
+    def __init__(self, world: World, ids: list[str], workers: int) -> None:
+        from ..testing import ServerProcess
+
+        self.procs: dict[str, Any] = {}
+        endpoints: list[str] = []
+        for sid in ids:
+            extra: tuple[str, ...] = ("--server-id", sid)
+            for ep in endpoints:
+                extra += ("--zenoh-connect", ep)
+            sp = ServerProcess(world.maps_dir, workers=workers, extra_args=extra)
+            self.procs[sid] = sp
+            endpoints.append(sp.endpoint)
+        self.endpoints = endpoints
+
+    def __enter__(self) -> Servers:
+        for sp in self.procs.values():
+            sp.__enter__()
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        for sp in self.procs.values():
+            sp.stop(30)
+
+
+def _clients(
+    world: World,
+    endpoints: list[str],
+    ids: list[str],
+    stop: threading.Event,
+    rate_hz: float | None,
+) -> list[StreamClient]:
+    cl = [
+        StreamClient(
+            world,
+            endpoints[0],
+            cid,
+            stop,
+            rate_hz=rate_hz,
+            server="auto",
+            more_endpoints=tuple(endpoints[1:]),
+        )
+        for cid in ids
+    ]
+    for c in cl:
+        c.start()
+    for c in cl:
+        c.ready.wait(60)
+    return cl
+
+
+def _measure(cl: list[StreamClient], stop: threading.Event, warmup_s: float, seconds: float):
+    time.sleep(warmup_s)
+    t0 = time.monotonic()
+    time.sleep(seconds)
+    t1 = time.monotonic()
+    stop.set()
+    for c in cl:
+        c.join(15)
+    return [c.summary(t0, t1) for c in cl], t1 - t0
+
+
+def run_alone(world: World, ids: list[str], clients: list[str], workers: int, seconds: float):
+    """Each server alone with its share of the clients (lockstep): poses per second."""
+    rows = []
+    share = max(1, len(clients) // len(ids))
+    for k, sid in enumerate(ids):
+        _log(f"scale alone: server {sid} with {share} lockstep client(s) for {seconds:g} s")
+        stop = threading.Event()
+        with Servers(world, [sid], workers) as srv:
+            cl = _clients(world, srv.endpoints, clients[k * share : (k + 1) * share], stop, None)
+            per, dt = _measure(cl, stop, 2.0, seconds)
+        tot = _totals(per)
+        rows.append({"server": sid, "clients": share, "poses_per_s": tot["answered"] / dt, **tot})
+    return rows
+
+
+def run_together(
+    world: World, ids: list[str], clients: list[str], workers: int, seconds: float
+) -> dict:
+    _log(f"scale together: {len(ids)} servers, {len(clients)} lockstep clients, {seconds:g} s")
+    stop = threading.Event()
+    with Servers(world, ids, workers) as srv:
+        cl = _clients(world, srv.endpoints, clients, stop, None)
+        per, dt = _measure(cl, stop, 2.0, seconds)
+    tot = _totals(per)
+    spread: dict[str, int] = {}
+    for p in per:
+        for sid, n in p["servers"].items():
+            spread[sid] = spread.get(sid, 0) + (n > 0)
+    return {
+        "poses_per_s": tot["answered"] / dt,
+        "clients_per_server": spread,
+        "clients_on_two_servers": sum(len(p["servers"]) > 1 for p in per),
+        **tot,
+    }
+
+
+def run_kill(
+    world: World, ids: list[str], clients: list[str], workers: int, rate_hz: float, seconds: float
+) -> dict:
+    from sfmloc_client.placement import rendezvous_owner
+
+    owners = {c: rendezvous_owner(world.name, c, ids) for c in clients}
+    victim = max(ids, key=lambda s: sum(o == s for o in owners.values()))
+    moved = [c for c in clients if owners[c] == victim]
+    _log(
+        f"scale kill: {len(ids)} servers, {len(clients)} clients at {rate_hz:g} Hz; SIGKILL "
+        f"{victim} (owner of {len(moved)}) after {seconds / 2:g} s"
+    )
+    stop = threading.Event()
+    with Servers(world, ids, workers) as srv:
+        cl = _clients(world, srv.endpoints, clients, stop, rate_hz)
+        time.sleep(2.0)  # warm up: every session tracking
+        t0 = time.monotonic()
+        time.sleep(seconds / 2)
+        t_kill = time.monotonic()
+        sp = srv.procs[victim]
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(sp.proc.pid, signal.SIGKILL)
+        sp.proc.wait(10)
+        time.sleep(seconds / 2)
+        t1 = time.monotonic()
+        stop.set()
+        for c in cl:
+            c.join(15)
+        recovery = []
+        for c in cl:
+            if c.log.client_id in moved:
+                after = sorted(t for t in c.log.answered.values() if t > t_kill)
+                recovery.append(after[0] - t_kill if after else float("inf"))
+        stuck = [
+            c.log.client_id for c in cl if not any(t > t1 - 2.0 for t in c.log.answered.values())
+        ]
+        per = [c.summary(t0, t1) for c in cl]
+    tot = _totals(per)
+    rec = np.array(recovery)
+    finite = rec[np.isfinite(rec)]
+    return {
+        "victim": victim,
+        "moved_clients": len(moved),
+        "recovery_s_p50": float(np.percentile(finite, 50)) if finite.size else None,
+        "recovery_s_p99": float(np.percentile(finite, 99)) if finite.size else None,
+        "recovery_s_max": float(rec.max()) if rec.size else None,
+        "never_recovered": int(np.sum(~np.isfinite(rec))),
+        "stuck_clients": stuck,
+        **tot,
+    }
+
+
+def run(args: argparse.Namespace) -> dict:
+    world = prepare(Path(args.work))
+    ids = [f"s{i}" for i in range(args.servers)]
+    clients = [f"scale-client-{i}" for i in range(args.clients)]
+    out: dict[str, Any] = {
+        "servers": args.servers,
+        "clients": args.clients,
+        "workers_per_server": args.workers,
+        "cores": os.cpu_count(),
+        "load_before": os.getloadavg()[0],
+    }
+    if "alone" in args.parts or "together" in args.parts:
+        alone = run_alone(world, ids, clients, args.workers, args.seconds)
+        together = run_together(world, ids, clients, args.workers, args.seconds)
+        total_alone = sum(r["poses_per_s"] for r in alone)
+        out["alone"] = alone
+        out["together"] = together
+        out["together_vs_sum_alone"] = (
+            together["poses_per_s"] / total_alone if total_alone else None
+        )
+    if "kill" in args.parts:
+        out["kill"] = run_kill(world, ids, clients, args.workers, args.rate, args.seconds)
+    out["load_after"] = os.getloadavg()[0]
+    return out
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m sfmloc.bench.scale",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--work", required=True, help="folder for the synthetic map (reused)")
+    p.add_argument("--servers", type=int, default=3, help="server processes (default 3)")
+    p.add_argument("--clients", type=int, default=12, help="streaming clients (default 12)")
+    p.add_argument("--workers", type=int, default=1, help="engine workers per server (1)")
+    p.add_argument("--seconds", type=float, default=15.0, help="measured time per part (15)")
+    p.add_argument("--rate", type=float, default=10.0, help="frame rate in the kill part (10)")
+    p.add_argument(
+        "--parts",
+        default="alone,together,kill",
+        help="comma-separated: alone,together,kill (default all)",
+    )
+    p.add_argument("--out", help="write the results as JSON here too")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    args.parts = set(args.parts.split(","))
+    res = run(args)
+    text = json.dumps(res, indent=2, default=str)
+    print(text)
+    if args.out:
+        Path(args.out).write_text(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
