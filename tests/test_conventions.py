@@ -300,3 +300,20 @@ def test_one_thread_pinning_helper(monkeypatch):
     assert all(os.environ[v] == "1" for v in THREAD_VARS)
     env = single_thread_env({"PATH": "/bin", "OPENBLAS_NUM_THREADS": "8"})
     assert env["PATH"] == "/bin" and all(env[v] == "1" for v in THREAD_VARS)
+
+
+def test_pose_types_convert_both_ways():
+    """The engine's Rigid3d (quat_wxyz inside) and the client's Transform (quat_xyzw) carry the
+    same transform through the explicit converters."""
+    from sfmloc.transforms import Rigid3d, rotmat_from_rotvec
+    from sfmloc_client import Transform
+
+    r = Rigid3d(rotmat_from_rotvec([0.4, -2.9, 1.0]), np.array([1.5, -2.0, 30.0]))
+    t = Transform.from_matrix(r.matrix4())
+    assert t.quat_xyzw[3] >= 0 and abs(np.linalg.norm(t.quat_xyzw) - 1) < 1e-12
+    np.testing.assert_allclose(t.quat_xyzw, r.quat_xyzw, atol=1e-12)
+    np.testing.assert_allclose(t.t, r.translation, atol=1e-12)
+    back = Rigid3d.from_transform(t)
+    np.testing.assert_allclose(back.rotation, r.rotation, atol=1e-12)
+    np.testing.assert_allclose(t.inverse().t, r.inverse().translation, atol=1e-9)
+    np.testing.assert_allclose(Transform.from_matrix(r.matrix()).matrix(), r.matrix4(), atol=1e-12)

@@ -428,6 +428,23 @@ class Transform:
         """``t`` of a ``world_from_cam`` transform is the camera centre in the world."""
         return self.t
 
+    @classmethod
+    def from_matrix(cls, T: Any) -> Transform:
+        """From a 3x4 or 4x4 ``[R | t]`` (numpy), e.g. the engine's ``Rigid3d.matrix4()``:
+        ``Transform.from_matrix(result.cam_from_world.matrix4())``."""
+        import numpy as np
+
+        from .rotations import quat_xyzw_from_rotmat
+
+        M = np.asarray(T, dtype=np.float64)
+        if M.shape not in ((3, 4), (4, 4)):
+            raise WireError(f"expected a 3x4 or 4x4 matrix, got shape {M.shape}")
+        q = quat_xyzw_from_rotmat(M[:3, :3])
+        return cls(
+            tuple(float(v) for v in q),  # type: ignore[arg-type]
+            tuple(float(v) for v in M[:3, 3]),  # type: ignore[arg-type]
+        )
+
 
 @dataclass(frozen=True)
 class ErrorInfo:

@@ -13,6 +13,7 @@ non-negative scalar part.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -109,6 +110,13 @@ class Rigid3d:
         if T.shape not in ((3, 4), (4, 4)):
             raise ValueError(f"expected a 3x4 or 4x4 matrix, got shape {T.shape}")
         return cls(T[:3, :3], T[:3, 3])
+
+    @classmethod
+    def from_transform(cls, transform: Any) -> Rigid3d:
+        """From the client's ``Transform`` (``quat_xyzw``, ``t``; a ``PoseMessage``'s poses),
+        read by its fields, so the core does not load the wire format. The other way:
+        ``Transform.from_matrix(rigid.matrix4())``."""
+        return cls.from_quat_xyzw(np.asarray(transform.quat_xyzw), np.asarray(transform.t))
 
     @property
     def quat_wxyz(self) -> np.ndarray:
