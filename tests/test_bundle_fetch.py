@@ -3,6 +3,7 @@ server's fetch (server/bundle_fetch.py) over two real Zenoh sessions on loopback
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import shutil
 
@@ -32,13 +33,22 @@ def pair():
             yield a, b
 
 
-def _serve(session, share, other, name, build_id):
-    """Declare the share on ``session`` and wait until ``other`` reaches it (a declaration
-    takes a moment to propagate; in service the announcement arrives long after)."""
-    q = session.declare_queryable(BUNDLES_KEYEXPR, share.on_query)
-    key = f"sfmloc/bundles/{name}/{build_id}"
-    assert wait_until(lambda: any(r.ok is not None for r in other.get(key, timeout=1)), 20)
-    return q
+@contextlib.contextmanager
+def shared(pair, folder):
+    """``folder`` published as bundle "room" on the first session; yields its build id once
+    the second reaches it (a declaration takes a moment to propagate; in service the
+    announcement arrives long after)."""
+    a, b = pair
+    build_id = MapBundle(folder, verify=False).build_id
+    share = BundleShare()
+    share.publish("room", build_id, folder)
+    q = a.declare_queryable(BUNDLES_KEYEXPR, share.on_query)
+    key = f"sfmloc/bundles/room/{build_id}"
+    try:
+        assert wait_until(lambda: any(r.ok is not None for r in b.get(key, timeout=1)), 20)
+        yield build_id
+    finally:
+        q.undeclare()
 
 
 def test_share_answers_only_the_announced_build_and_its_plain_files(world, tmp_path):
@@ -82,57 +92,45 @@ def test_a_symlink_in_a_shared_folder_is_not_served(world, tmp_path):
 
 
 def test_fetch_copies_verifies_and_installs_the_bundle(world, tmp_path, pair, monkeypatch):
-    a, b = pair
     src = world.maps_dir / "room"
-    build_id = MapBundle(src).build_id
-    share = BundleShare()
-    share.publish("room", build_id, src)
-    q = _serve(a, share, b, "room", build_id)
     # Small chunks: every file takes several queries (the offsets are exercised).
     monkeypatch.setattr(bundle_fetch, "CHUNK_BYTES", 64 * 1024)
     seen = []
     dest = tmp_path / "server-maps"
-    path = fetch_bundle(
-        b, "room", build_id, dest, max_bytes=1 << 30, progress=lambda d, t: seen.append((d, t))
-    )
+    with shared(pair, src) as build_id:
+        path = fetch_bundle(
+            pair[1],
+            "room",
+            build_id,
+            dest,
+            max_bytes=1 << 30,
+            progress=lambda d, t: seen.append((d, t)),
+        )
     assert path == dest / "room" and verify_bundle(path) == []
     assert MapBundle(path).build_id == build_id
     for f in src.iterdir():
         assert _sha(path / f.name) == _sha(f), f.name
     assert seen[-1][0] == seen[-1][1] and len(seen) > len(list(src.iterdir()))
     assert sorted(p.name for p in dest.iterdir()) == ["room"]  # no temporary folder left
-    q.undeclare()
 
 
 def test_a_corrupt_transfer_is_refused_and_leaves_nothing(world, tmp_path, pair):
-    a, b = pair
     bad = world.spare_dir / "corrupt" / "room"  # points_xyz.npy bytes flipped after writing
-    build_id = MapBundle(bad, verify=False).build_id
-    share = BundleShare()
-    share.publish("room", build_id, bad)
-    q = _serve(a, share, b, "room", build_id)
     dest = tmp_path / "server-maps"
     (dest / "room").mkdir(parents=True)  # an older bundle of that name stays as it was
     (dest / "room" / "marker").write_text("old")
-    with pytest.raises(BundleError, match="fails verification.*points_xyz"):
-        fetch_bundle(b, "room", build_id, dest, max_bytes=1 << 30)
+    with shared(pair, bad) as build_id, pytest.raises(BundleError, match="verification.*points"):
+        fetch_bundle(pair[1], "room", build_id, dest, max_bytes=1 << 30)
     assert sorted(p.name for p in dest.iterdir()) == ["room"]
     assert (dest / "room" / "marker").read_text() == "old"
-    q.undeclare()
 
 
 def test_fetch_refuses_a_bundle_over_the_size_limit_before_writing(world, tmp_path, pair):
-    a, b = pair
-    src = world.maps_dir / "room"
-    build_id = MapBundle(src).build_id
-    share = BundleShare()
-    share.publish("room", build_id, src)
-    q = _serve(a, share, b, "room", build_id)
     dest = tmp_path / "server-maps"
-    with pytest.raises(BundleError, match="over this server's limit"):
-        fetch_bundle(b, "room", build_id, dest, max_bytes=1000)
+    with shared(pair, world.maps_dir / "room") as build_id:
+        with pytest.raises(BundleError, match="over this server's limit"):
+            fetch_bundle(pair[1], "room", build_id, dest, max_bytes=1000)
     assert not dest.exists() or not any(dest.iterdir())
-    q.undeclare()
 
 
 def test_no_builder_answering_is_unavailable(tmp_path, pair):
