@@ -49,6 +49,7 @@ class StreamStats:
     # times that reached ``OUTAGE_FRAMES`` (each outage counted once, however long).
     max_unanswered: int = 0
     outages: int = 0
+    undelivered: int = 0  # frames sent while no server subscribed (lost; see FrameStreamer)
 
     @property
     def duration_s(self) -> float:
@@ -108,6 +109,10 @@ class FrameStreamer:
         self.jpeg_quality = jpeg_quality
         self.next_seq = 0
         self.last_put_time = 0.0
+        # Frames published while no server subscribed to our key: Zenoh drops them without a
+        # word (a client that starts before its server, or during a server restart), so they
+        # are counted here and logged (the first, then every 100th).
+        self.undelivered = 0
         # The server binds our session to this id: another device under our client id is refused.
         self.source = str(session.zid())
         self._pub = session.declare_publisher(
@@ -159,6 +164,15 @@ class FrameStreamer:
         )
         # When the frame went out (perf_counter): a large frame reaches the server before
         # put() returns, so latency is measured from here, not from after publish().
+        if not self.server_present():
+            self.undelivered += 1
+            if self.undelivered % 100 == 1:
+                log.warning(
+                    "frame %d not delivered: no server subscribes to %s (%d so far)",
+                    seq,
+                    self.key,
+                    self.undelivered,
+                )
         self.last_put_time = time.perf_counter()
         self._pub.put(payload)
         return seq
@@ -197,6 +211,7 @@ class FrameStreamer:
         max_frames: int | None = None,
         on_sent: Callable[[int, SourceFrame, float], None] | None = None,
         should_stop: Callable[[], bool] | None = None,
+        wait_server: float = 5.0,
     ) -> StreamStats:
         """Stream ``source`` (anything ``open_source`` takes, or an iterable of ``SourceFrame``).
 
@@ -205,10 +220,17 @@ class FrameStreamer:
         ``pose_timeout`` is given up on). Stamps are the send time unless the source has its own.
         ``on_sent(seq, frame, t_put)`` is called after each frame, ``t_put`` being the
         ``time.perf_counter()`` at which it went out (for latency measurements).
+        ``wait_server``: seconds to wait for a server before the first frame (a frame published
+        before any server subscribes is lost); frames sent without one are counted in
+        ``stats.undelivered``.
         """
         if lockstep and poses is None:
             raise ValueError("lockstep streaming needs a PoseSubscriber (poses=...)")
         frames = self._frames(source)
+        if wait_server > 0 and not self.wait_for_server(wait_server):
+            log.warning("no server subscribes to %s after %.1f s: streaming anyway", self.key,
+                        wait_server)  # fmt: skip
+        undelivered0 = self.undelivered
         stats = StreamStats(started=time.monotonic())
         period = 1.0 / fps if fps else 0.0
         t_next = time.monotonic()
@@ -242,6 +264,7 @@ class FrameStreamer:
                 if not poses.wait_for(seq, pose_timeout):
                     log.warning("no pose for frame %d within %.1f s", seq, pose_timeout)
         stats.ended = time.monotonic()
+        stats.undelivered = self.undelivered - undelivered0
         return stats
 
     def _frames(self, source: Any) -> Iterator[SourceFrame]:

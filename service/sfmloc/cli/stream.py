@@ -319,6 +319,8 @@ def run(args: argparse.Namespace) -> int:
         )
     if rtt:
         summary += f"; round trip p50 {np.median(rtt):.1f} ms"
+    if stats.undelivered:  # Zenoh drops them unsaid: no server subscribed at the time
+        summary += f"; {stats.undelivered} frames sent while no server subscribed (lost)"
     if stats.outages:
         summary += (
             f"; {stats.outages} outage(s), longest {stats.max_unanswered} frames without an answer"
