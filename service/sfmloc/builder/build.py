@@ -20,6 +20,7 @@ Stages, each reported through ``progress(stage, fraction, message)``:
 
 from __future__ import annotations
 
+import ctypes
 import logging
 import tempfile
 import time
@@ -69,9 +70,11 @@ class BuildConf(StrictModel):
     stream_descriptors: bool = True
     chunk_rows: int = 65536
     pca_samples: int = 200_000
-    # Points (refine) and tracks (harris_points) solved at a time: their padded arrays take
-    # 4-25 KB each, so unchunked they were the build's largest transient (issue 17).
-    chunk_points: int = 4096
+    # Points (refine) and tracks (harris_points) solved at a time: their padded arrays and
+    # temporaries take up to 70 KB per track (synthetic 240 views: 300 MB per 4096 tracks;
+    # unchunked, 1.7 GB for 23,702 tracks), so unchunked they were the build's largest
+    # transient (issue 17).
+    chunk_points: int = 1024
 
 
 PRESETS: dict[str, dict[str, Any]] = {
@@ -98,6 +101,16 @@ def preset(name: str) -> BuildConf:
 
 def _noop(stage: str, fraction: float, message: str) -> None:
     pass
+
+
+def release_freed_memory() -> None:
+    """Hand freed heap pages back to the system between stages: once glibc's mmap threshold
+    has grown, large freed arrays stay in the heap and the resident set keeps an earlier
+    stage's peak. A no-op where there is no glibc."""
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
 
 
 def load_gray(path: Path, camera: Camera) -> np.ndarray:
@@ -193,6 +206,7 @@ def _describe(
             chunk_tracks=conf.chunk_points,
         )
         timings["harris_points"] = time.perf_counter() - t0
+        release_freed_memory()
         log.info("Harris points: %s", hp_stats)
         if not rec.points3D:
             raise BuildError("no Harris point could be triangulated", stage="harris_points")
@@ -378,6 +392,7 @@ def _assemble(
     folder: Path | None,
 ) -> tuple[MapData, dict[str, float], dict[str, Any]]:
     part = _describe(rec, image_dir, conf, store, progress, should_cancel, folder)
+    release_freed_memory()
     timings = part.timings
     n_desc = len(store)
 
@@ -389,6 +404,7 @@ def _assemble(
     except ValueError as exc:
         raise BuildError(str(exc), stage="pca") from None
     store.close()  # the raw descriptors are no longer needed
+    release_freed_memory()
     timings["pca"] = time.perf_counter() - t0
     progress("pca", 1.0, "done")
 
@@ -404,6 +420,7 @@ def _assemble(
     index_faiss = index.serialize()
     index_info = {"kind": index.kind, "nlist": index.nlist, "nprobe": index.nprobe}
     del index  # the serialized copy is what the bundle stores
+    release_freed_memory()
     timings["index"] = time.perf_counter() - t0
     progress("index", 1.0, f"{index_info['kind']}, {index_info['nlist']} lists")
 

@@ -295,7 +295,7 @@ def harris_points(
     progress: Progress | None = None,
     should_cancel: Callable[[], bool] | None = None,
     workdir: str | Path | None = None,
-    chunk_tracks: int = 4096,
+    chunk_tracks: int = 1024,
 ) -> tuple[Reconstruction, dict]:
     """A reconstruction with the same cameras and images and points triangulated from matched
     Harris corners (``mode`` "add": the SfM points too); and stats. ``detector``: keyword
@@ -492,14 +492,14 @@ def _solve(
     node_img: np.ndarray,
     geo: dict,
     conf: HarrisPointsConf,
-    chunk_tracks: int = 4096,
+    chunk_tracks: int = 1024,
 ):
     """Triangulate tracks (arrays of corner node ids); drop observations over 3x then 1x
     ``max_error_px`` (re-solving after each); keep points with ``min_track_length``
     observations in front of their cameras and ``min_angle_deg``. Returns (P, 3) points and
     their kept node arrays. Tracks are solved ``chunk_tracks`` at a time: the padded arrays
-    cost up to 25 KB per track (M = 48: rotations and the M x M ray angles); each track's
-    solve is its own and M is the same for all chunks, so chunking changes no result."""
+    cost up to 70 KB per track (M = 48: rotations, the M x M ray angles, temporaries); each
+    track's solve is its own and M is the same for all chunks, so chunking changes no result."""
     if not tracks:
         return np.zeros((0, 3)), []
     M = min(max(len(tr) for tr in tracks), conf.max_track_length)

@@ -49,7 +49,7 @@ def refine_points(
     image_poses: list[Rigid3d],
     conf: RefineConf | None = None,
     full_resolution_level: int = 0,
-    chunk_points: int = 4096,
+    chunk_points: int = 1024,
 ) -> tuple[np.ndarray, np.ndarray]:
     """New point positions (P, 3) and which points moved (P,) bool. ``desc_level`` holds
     pyramid level indices; ``full_resolution_level`` is the index of scale 1 (the builder's
