@@ -33,6 +33,14 @@ times the scene depth (estimated from tracks triangulated with the poses); witho
 --kf-window - 1 frames is taken (blurry frames are dropped). The choice is printed and stored in
 the bundle's manifest; keyframes go to a temporary folder removed afterwards.
 
+Extending a map: --extend BUNDLE with --images DIR and the new images' poses in the map's frame
+(--poses FILE --camera CAMERA, or --colmap MODEL) adds them to the bundle: only the new images
+are triangulated and described (their descriptors projected with the map's PCA, added to its
+index), so the work is that of the new images. The builder settings are the bundle's own.
+The result OUT/NAME has a new build id; BUNDLE is not changed (NAME may be its own name: it is
+replaced only once the new bundle is complete). Points are not shared across the old and new
+images: a place seen by both gets points from each side.
+
 CAMERA is a camera.json file or 'MODEL width height params...' in COLMAP order, e.g.
 'PINHOLE 640 480 525.505 525.505 320 240'. An existing bundle of the same name is refused unless
 --replace is given; it then stays intact until the new one is complete. A failed or cancelled
@@ -61,6 +69,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="COLMAP sparse model folder (cameras/images/points3D .txt or .bin)",
     )
     p.add_argument("--images", metavar="DIR", help="image folder")
+    p.add_argument(
+        "--extend",
+        metavar="BUNDLE",
+        help="add the images to this map bundle (poses in its frame: --poses or --colmap)",
+    )
     p.add_argument(
         "--poses", metavar="FILE", help="known poses (COLMAP list or TUM; with --video: TUM)"
     )
@@ -180,6 +193,13 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("give either --video or --images/--colmap, not both")
     if not args.images and not args.video:
         raise InputError("--images (an image folder) or --video (a video file) is required")
+    if args.extend and (args.video or (not args.poses and not args.colmap)):
+        raise InputError(
+            "--extend needs --images with the new images' poses in the map's frame (--poses "
+            "FILE --camera CAMERA, or --colmap MODEL)"
+        )
+    if args.extend and (args.preset != "default" or args.config):
+        raise InputError("--extend uses the bundle's own builder settings: no --preset/--config")
     if args.poses and not args.camera:
         raise InputError("--poses needs --camera (camera.json or 'PINHOLE w h fx fy cx cy')")
     existing = Path(args.out) / args.name
@@ -235,6 +255,22 @@ def run(args: argparse.Namespace) -> int:
     try:
         if args.video:
             path = _build_video(args, conf, sconf, bar)
+        elif args.extend:
+            from ..builder.extend import extend
+
+            path = extend(
+                args.extend,
+                args.name,
+                args.out,
+                images=args.images,
+                poses=args.poses,
+                camera=args.camera,
+                colmap=args.colmap,
+                sfm_conf=sconf,
+                stride=args.stride,
+                workdir=args.workdir,
+                progress=bar,
+            )
         else:
             path = main(
                 conf,

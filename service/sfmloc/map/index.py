@@ -99,6 +99,16 @@ class DescriptorIndex:
             index.add(np.ascontiguousarray(x[start : start + chunk_rows], dtype=np.float32))
         return cls(index, conf.nprobe)
 
+    def add(self, descriptors: np.ndarray, chunk_rows: int = 65536) -> None:
+        """Append descriptors (their ids continue from ``ntotal``), ``chunk_rows`` at a time;
+        the index must be trained and private (not ``from_buffer``). For ``sfmloc build
+        --extend``."""
+        if self._buffer is not None:
+            raise ValueError("an index read in place from a buffer is read-only")
+        for start in range(0, len(descriptors), max(1, chunk_rows)):
+            chunk = descriptors[start : start + chunk_rows]
+            self._index.add(np.ascontiguousarray(chunk, dtype=np.float32))
+
     def serialize(self) -> np.ndarray:
         """The index as a uint8 array (faiss's own stable binary format), to store as .npy."""
         return faiss.serialize_index(self._index)
