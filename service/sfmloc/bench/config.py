@@ -16,7 +16,10 @@ REDKITCHEN_CAMERA = "PINHOLE 640 480 525.505 525.505 320 240"
 REDKITCHEN_POSES = "pgt_sfm_seq01.txt"
 
 LOCALIZATION_SUITES = ("redkitchen", "redkitchen-split", "synthetic-walk", "synthetic-flight")
-SUITES = (*LOCALIZATION_SUITES, "robust", "throughput", "map")
+SUITES = (*LOCALIZATION_SUITES, "robust", "throughput", "map", "builder")
+# What `sfmloc bench` runs without --suite: the builder suite builds several redkitchen maps
+# (tens of minutes), so it runs only when asked for.
+DEFAULT_SUITES = tuple(s for s in SUITES if s != "builder")
 # The peers run next to our engine in every localization suite.
 PEERS = ("global-every-frame", "pycolmap-sift")
 OURS = "sfmloc"
@@ -48,6 +51,10 @@ SUITE_HELP = {
     "map": "build time, bundle size, load time and resident memory (fresh process) of the "
     "redkitchen "
     "bundle, per million descriptors",
+    "builder": "the map builder (issue 17; only when named): build peak memory per descriptor "
+    "on synthetic rooms, --extend (second half of redkitchen added to the first half's map) "
+    "against the map from all at once, and (--builder-parts) maps per input density and the "
+    "video target",
 }
 
 
@@ -71,7 +78,7 @@ class SiftPeerConf(StrictModel):
 
 
 class BenchConf(StrictModel):
-    suites: list[str] = Field(default_factory=lambda: list(SUITES))
+    suites: list[str] = Field(default_factory=lambda: list(DEFAULT_SUITES))
     data: Path = DEFAULT_DATA
     camera: str = REDKITCHEN_CAMERA
     poses: str = REDKITCHEN_POSES
@@ -109,6 +116,10 @@ class BenchConf(StrictModel):
     robust_peer_frames: int = Field(20, ge=1)
     robust_rows: list[str] | None = None
     robust_budget_s: float = Field(150.0, gt=0)
+    # The builder suite: its parts (extend, memory, density, video; see bench/builder.py) and
+    # the synthetic room sizes (mapping views) of its memory part.
+    builder_parts: list[str] = Field(default_factory=lambda: ["memory", "extend"])
+    builder_views: list[int] = Field(default_factory=lambda: [60, 240])
     reuse: bool = False  # reuse maps and synthetic data already under OUT/work
     quick: bool = False
 

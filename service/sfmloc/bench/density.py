@@ -102,6 +102,7 @@ def evaluate(bundle_dir: Path, data: Path, frames: int, n_reloc: int) -> dict:
         "points": bundle.n_points,
         "points_per_image_median": float(np.median(np.diff(bundle.image_points_ptr))),
         "replay_localized_pct": round(100 * s["localized_fraction"], 2),
+        "median_position_error_cm": round(100 * s["median_position_error_m"], 3),
         "replay_wrong": s["confident_wrong"],
         "replay_global_frames": s["global_frames"],
         "mean_ms_per_frame": round(s["latency_ms"]["mean"], 1),

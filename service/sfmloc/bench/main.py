@@ -391,6 +391,21 @@ def main(
         results["suites"]["robust"]["sift_peer_tuned"] = "sift_tuning" in results
         log.info("robust done (%.0f s so far)", time.perf_counter() - t_start)
 
+    if "builder" in conf.suites:
+        from .builder import run_builder
+
+        log.info("== builder: %s", ", ".join(conf.builder_parts))
+        results["suites"]["builder"] = {
+            "kind": "builder",
+            **run_builder(
+                work / "builder",
+                Path(conf.data),
+                conf.builder_parts,
+                views=conf.builder_views,
+            ),
+        }
+        log.info("builder done (%.0f s so far)", time.perf_counter() - t_start)
+
     need_real = [s for s in ("map", "throughput") if s in conf.suites]
     if need_real:
         rk = preps.get("redkitchen")

@@ -574,6 +574,11 @@ def write_report(results: dict, out: Path) -> Path:
                 "computed from the sizes, not measured).",
                 "",
             ]
+    bl = results.get("suites", {}).get("builder")
+    if bl:
+        from .builder import report_lines
+
+        L += ["## builder", "", SUITE_HELP["builder"] + ".", ""] + report_lines(bl)
     notes = results.get("notes", [])
     if notes:
         L += ["## Notes", ""] + [f"- {n}" for n in notes] + [""]

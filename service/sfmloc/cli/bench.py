@@ -8,7 +8,7 @@ import sys
 import textwrap
 
 SUITES_TEXT = """\
-Suites (--suite, repeatable; default: all):
+Suites (--suite, repeatable; default: all but builder):
 {suites}
 
 In every localization suite three methods run on the same frames and machine:
@@ -60,7 +60,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         action="append",
         choices=SUITES,
         metavar="NAME",
-        help="run this suite (repeatable; default all): " + ", ".join(SUITES),
+        help="run this suite (repeatable; default all but builder): " + ", ".join(SUITES),
     )
     p.add_argument(
         "--suites",
