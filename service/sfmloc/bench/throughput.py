@@ -157,7 +157,7 @@ def memory_rows(mem: dict[str, Any]) -> dict[str, Any]:
                 "processes": len(run["processes"]),
                 "rss_mb": run["total"]["rss_kb"] / 1024,
                 "pss_mb": run["total"]["pss_kb"] / 1024,
-                "private_mb": run["total"]["anon_kb"] / 1024,
+                "private_mb": run["total"].get("private_kb", 0) / 1024,
                 "server_pss_mb": run["processes"].get("server", {}).get("pss_kb", 0) / 1024,
                 "worker_pss_mb_max": max((w["pss_kb"] for w in workers), default=0) / 1024,
                 "index_file_mb_per_worker": max((w["index_file_kb"] for w in workers), default=0)

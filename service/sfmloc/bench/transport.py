@@ -469,9 +469,15 @@ def bench_memory(
                     "rss_kb": r.get("Rss", 0),
                     "pss_kb": r.get("Pss", 0),
                     "anon_kb": r.get("Anonymous", 0),
+                    # Pages this process alone maps (Anonymous also counts pages a forked
+                    # worker still shares with its siblings).
+                    "private_kb": r.get("Private_Clean", 0) + r.get("Private_Dirty", 0),
                     "index_file_kb": _mapped_kb(pid, "index_faiss"),
                 }
-            total = {k: sum(r[k] for r in rows.values()) for k in ("rss_kb", "pss_kb", "anon_kb")}
+            total = {
+                k: sum(r[k] for r in rows.values())
+                for k in ("rss_kb", "pss_kb", "anon_kb", "private_kb")
+            }
             out["runs"].append({"workers": w, "processes": rows, "total": total})
     return out
 

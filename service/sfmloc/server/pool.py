@@ -38,7 +38,7 @@ from ..threads import pin_threads_env, single_thread_env
 from . import protocol as P
 from .logfmt import event
 from .worker import worker_main
-from .zygote import Zygote
+from .zygote import Zygote, set_process_name
 
 log = logging.getLogger(__name__)
 
@@ -258,6 +258,7 @@ class WorkerPool:
     def _sender(self, h: WorkerHandle) -> None:
         """Writes to one worker's socket. A separate thread, so a busy worker (its socket
         full) never blocks the Zenoh or gRPC thread that handed over a frame."""
+        set_process_name(f"sfmloc-send-{h.index}")  # this thread's name in top -H, /proc
         while True:
             item = h.outbox.get()
             if item is None:
@@ -271,6 +272,7 @@ class WorkerPool:
                 return  # the reader notices the dead worker
 
     def _reader(self, h: WorkerHandle) -> None:
+        set_process_name(f"sfmloc-recv-{h.index}")
         while True:
             try:
                 msg = P.TO_SERVER.recv(h.conn)
