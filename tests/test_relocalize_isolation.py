@@ -71,6 +71,32 @@ def test_engine_deadline_ends_between_stages_and_a_far_one_changes_nothing(world
     np.testing.assert_allclose(far.cam_from_world.matrix(), free.cam_from_world.matrix())
 
 
+def test_the_cpu_budget_counts_work_not_waiting(world):
+    """The server's budget is this thread's CPU time: time spent waiting for the CPU (a busy
+    machine, the niced lane) or asleep does not use it up, as wall-clock time does; a CPU
+    budget already spent ends the request after its first stage, and a far one changes
+    nothing."""
+    from sfmloc.cameras import Camera
+    from sfmloc.engine import relocalize
+    from sfmloc.engine.relocalize import _OutOfTime, check_deadline
+    from sfmloc.map.bundle import MapBundle
+
+    wall_end, cpu_end = time.monotonic() + 0.05, time.thread_time() + 0.05
+    time.sleep(0.1)  # waiting, not working
+    check_deadline(None, "waiting", cpu_end)  # within the CPU budget
+    with pytest.raises(_OutOfTime):
+        check_deadline(wall_end, "waiting")
+    bundle = MapBundle(world.maps_dir / "room", verify=False)
+    cam = Camera.parse(world.camera_spec)
+    img = world.gray[10]
+    spent = relocalize(img, cam, bundle, cpu_deadline=time.thread_time() - 1.0)
+    assert spent.status.value == "LOST" and spent.message == "time budget exceeded after decoding"
+    free = relocalize(img, cam, bundle)
+    far = relocalize(img, cam, bundle, cpu_deadline=time.thread_time() + 3600.0)
+    assert free.localized and far.localized and far.inliers == free.inliers
+    np.testing.assert_allclose(far.cam_from_world.matrix(), free.cam_from_world.matrix())
+
+
 @pytest.fixture(scope="module")
 def budget_srv(world):
     """Thread workers, a relocalization lane, a 1 ms budget and one request per caller."""

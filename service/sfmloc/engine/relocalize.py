@@ -32,9 +32,13 @@ class _OutOfTime(Exception):
         self.stage = stage
 
 
-def check_deadline(deadline: float | None, stage: str) -> None:
-    """Between stages: past ``deadline`` (``time.monotonic()``), stop after ``stage``."""
+def check_deadline(deadline: float | None, stage: str, cpu_deadline: float | None = None) -> None:
+    """Between stages: past ``deadline`` (``time.monotonic()``) or ``cpu_deadline``
+    (``time.thread_time()``: this thread's CPU, a budget of work that a busy machine does not
+    shrink), stop after ``stage``."""
     if deadline is not None and time.monotonic() > deadline:
+        raise _OutOfTime(stage)
+    if cpu_deadline is not None and time.thread_time() > cpu_deadline:
         raise _OutOfTime(stage)
 
 
@@ -75,12 +79,13 @@ def pose_from_global(
     conf: EngineConf,
     neighbours: tuple[np.ndarray, np.ndarray] | None = None,
     deadline: float | None = None,
+    cpu_deadline: float | None = None,
 ) -> tuple[PoseEstimate, np.ndarray, np.ndarray, np.ndarray] | None:
     """GLOBAL-MATCHING + one-to-many RANSAC: (pose, inlier keypoints, their points, every
     keypoint's hypotheses), or None. ``neighbours``: the search of ``desc`` over the whole map,
     when already made (``matching.search_all``). ``deadline``: see ``relocalize``."""
     gm = global_matching(desc, bundle, conf, neighbours)
-    check_deadline(deadline, "search")
+    check_deadline(deadline, "search", cpu_deadline)
     if len(gm.set1_q) < 3:
         return None
     K = camera.K
@@ -95,7 +100,7 @@ def pose_from_global(
     if res is None:
         return None
     est, chosen = res
-    check_deadline(deadline, "RANSAC")
+    check_deadline(deadline, "RANSAC", cpu_deadline)
     if conf.global_verify:
         # Guided matching of the whole frame around the RANSAC pose (scope: the map points it
         # makes visible). A right pose gathers the matches the ratio test dropped; a chance one
@@ -177,6 +182,7 @@ def relocalize(
     conf: EngineConf | None = None,
     prior: Rigid3d | None = None,
     deadline: float | None = None,
+    cpu_deadline: float | None = None,
 ) -> FrameResult:
     """Localize a single image from scratch (stateless). With a ``prior`` (cam_from_world),
     the search is scoped to the database images that see the points the prior sees, and
@@ -186,12 +192,13 @@ def relocalize(
     ``deadline`` (``time.monotonic()``): checked between stages (image preparation, detection,
     description, search, RANSAC); past it the result is LOST, its message saying "time budget
     exceeded" and after which stage (a huge image or absurd intrinsics cannot hold a worker
-    for seconds: issue 16)."""
+    for seconds: issue 16). ``cpu_deadline`` (``time.thread_time()``) the same on this
+    thread's CPU time."""
     camera = as_camera(camera)  # a camera.json path or "MODEL w h params..." too
     conf = conf or EngineConf()
     timer = StageTimer()
     try:
-        return _relocalize(image, camera, bundle, conf, prior, deadline, timer)
+        return _relocalize(image, camera, bundle, conf, prior, deadline, cpu_deadline, timer)
     except _OutOfTime as exc:
         result = FrameResult(Status.LOST, 0.0, matching=Matching.GLOBAL)
         result.message = f"time budget exceeded after {exc.stage}"
@@ -206,16 +213,17 @@ def _relocalize(
     conf: EngineConf,
     prior: Rigid3d | None,
     deadline: float | None,
+    cpu_deadline: float | None,
     timer: StageTimer,
 ) -> FrameResult:
-    check_deadline(deadline, "decoding")
+    check_deadline(deadline, "decoding", cpu_deadline)
     gray = to_gray(image, camera)
     # A fine image is described at about the map's resolution (see ``Localizer``); the pose
     # does not depend on the scaling of the intrinsics.
     scale = map_working_scale(camera, bundle, conf)
     if scale != 1.0:
         gray, camera = to_working(gray, scale), camera.scaled(scale)
-    check_deadline(deadline, "image preparation")
+    check_deadline(deadline, "image preparation", cpu_deadline)
     corners = detect_corners(
         gray,
         rel_threshold=conf.gamma,
@@ -224,7 +232,7 @@ def _relocalize(
         subpixel=map_subpixel(conf, bundle.manifest.params),
     )
     timer.lap("detect")
-    check_deadline(deadline, "detection")
+    check_deadline(deadline, "detection", cpu_deadline)
     result = FrameResult(Status.LOST, 0.0, detected=len(corners), matching=Matching.GLOBAL)
     if len(corners) < conf.min_inliers:
         result.timings_ms = timer.total()
@@ -234,14 +242,16 @@ def _relocalize(
     prepared = extractor.prepare(gray)
     xy_u = camera.undistort_points(corners.xy) if camera.is_distorted else corners.xy
     desc = describe(extractor, bundle, prepared, corners.xy)
-    check_deadline(deadline, "description")
+    check_deadline(deadline, "description", cpu_deadline)
     est = None
     if prior is not None:
         near = match_near_prior(desc, xy_u, bundle, camera, conf, prior)
         est = None if near is None else near[0]
-        check_deadline(deadline, "the search near the prior")
+        check_deadline(deadline, "the search near the prior", cpu_deadline)
     if est is None:
-        res = pose_from_global(desc, xy_u, bundle, camera, conf, deadline=deadline)
+        res = pose_from_global(
+            desc, xy_u, bundle, camera, conf, deadline=deadline, cpu_deadline=cpu_deadline
+        )
         est = None if res is None else res[0]
     timer.lap("reloc")
     if est is not None:

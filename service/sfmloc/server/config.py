@@ -95,11 +95,13 @@ class ServerConfig(StrictModel):
     # Queued or running single-image requests of one caller (its token's name, else its
     # connection); beyond, RESOURCE_EXHAUSTED: one caller cannot fill the queue for all.
     max_relocalize_per_client: int = Field(4, ge=1)
-    # Most time one Relocalize may take on a worker, checked between the engine's stages
-    # (decoding, detection, description, search, RANSAC); past it the answer is LOST, "time
-    # budget exceeded". 0: no limit. A 640x480 relocalization takes 70-120 ms; a 4096x4096
-    # image 0.5-2.7 s under load ~13 (measured with `python -m sfmloc.bench.reliability
-    # --parts reloc`), blank or absurd intrinsics 4-4.6 s before this budget (issue 16).
+    # Most CPU time one Relocalize may take on a worker (CPU, not wall: waiting for a busy
+    # machine's cores does not count), checked between the engine's stages (decoding,
+    # detection, description, search, RANSAC); past it the answer is LOST, "time budget
+    # exceeded". The caller's gRPC deadline bounds the wall time. 0: no limit. A 640x480
+    # relocalization takes 70-120 ms; a 4096x4096 image 0.5-2.7 s under load ~13 (measured
+    # with `python -m sfmloc.bench.reliability --parts reloc`), blank or absurd intrinsics
+    # 4-4.6 s before this budget (issue 16).
     relocalize_budget_ms: float = Field(2000.0, ge=0)
     # Worker processes only for single-image Relocalize, besides ``workers`` (at a lower CPU
     # priority, nice +5): one client's relocalization (70-120 ms, seconds for a huge image)
