@@ -1,17 +1,18 @@
-"""sfmloc map inspect|verify|align: what a bundle holds, whether it is intact, and putting it
-in the user's frame."""
+"""sfmloc map inspect|verify|align|split: what a bundle holds, whether it is intact, putting it
+in the user's frame, and splitting it into sub-maps."""
 
 from __future__ import annotations
 
 import argparse
 import json
+import sys
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "map",
-        help="inspect, verify or align a map bundle",
-        description="Inspect, verify or align a map bundle.",
+        help="inspect, verify, align or split a map bundle",
+        description="Inspect, verify, align or split a map bundle.",
     )
     msub = p.add_subparsers(dest="map_command", metavar="ACTION", required=True)
     i = msub.add_parser(
@@ -35,9 +36,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "the lookup "
         "tables' consistency and that the ANN index loads. Exit 0 when intact, 1 otherwise.",
     )
-    v.add_argument("path", help="bundle folder")
+    v.add_argument("path", help="bundle folder (or a sub-map set folder: every part is checked)")
     v.set_defaults(func=run_verify)
     add_align_parser(msub)
+    add_split_parser(msub)
 
 
 def _load(path: str):
@@ -109,6 +111,10 @@ def run_inspect(args: argparse.Namespace) -> int:
 
 
 def run_verify(args: argparse.Namespace) -> int:
+    from ..map.submaps import is_submap_set
+
+    if is_submap_set(args.path):
+        return _verify_set(args.path)
     bundle, problems = _load(args.path)
     if bundle is None:
         for p in problems:
@@ -118,6 +124,94 @@ def run_verify(args: argparse.Namespace) -> int:
         f"{args.path}: ok ({bundle.n_points} points, {bundle.n_descriptors} descriptors, build "
         f"{bundle.build_id})"
     )
+    return 0
+
+
+def _verify_set(path: str) -> int:
+    from ..map.submaps import read_set_manifest, verify_submap_set
+
+    problems = verify_submap_set(path)
+    if problems:
+        for p in problems:
+            print(f"CORRUPT: {p}")
+        return 1
+    m = read_set_manifest(path)
+    print(
+        f"{path}: ok (sub-map set of {len(m.parts)} parts, {m.points} points, build {m.build_id})"
+    )
+    return 0
+
+
+SPLIT_DESCRIPTION = """\
+Split a map bundle into overlapping sub-maps for maps larger than memory (issue 14): each
+sub-map is a complete bundle (its own ANN index) made of a group of the map's camera clusters,
+plus the cameras within --overlap scene scales of them, and every point those cameras observe,
+under the whole map's point ids. A small global index (camera centres and axes, part bounding
+boxes and clusters, a place-recognition sample of descriptors) says which sub-maps a pose or a
+query touches. Written atomically like a bundle, with checksums: 'sfmloc map verify OUT/NAME'
+checks the set and every part. Give --parts K, or --max-points N (cut until each part holds at
+most N points; a camera cluster is never cut).
+"""
+
+
+def add_split_parser(msub: argparse._SubParsersAction) -> None:
+    sp = msub.add_parser(
+        "split",
+        help="split a bundle into overlapping sub-maps (out-of-core maps)",
+        description=SPLIT_DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    sp.add_argument("path", help="bundle folder to split")
+    how = sp.add_mutually_exclusive_group(required=True)
+    how.add_argument("--parts", type=int, help="number of sub-maps")
+    how.add_argument("--max-points", type=int, help="at most this many points per sub-map")
+    sp.add_argument(
+        "--out", default=None, help="folder to write the set into (default: beside the bundle)"
+    )
+    sp.add_argument("--name", default=None, help="name of the set (default: BUNDLE-submaps)")
+    sp.add_argument(
+        "--overlap",
+        type=float,
+        default=0.25,
+        help="cameras within this many scene scales of a part's own cameras join it (0.25)",
+    )
+    sp.add_argument(
+        "--vote-fraction",
+        type=float,
+        default=0.02,
+        help="share of every image's descriptors in the global place-recognition sample (0.02)",
+    )
+    sp.set_defaults(func=run_split)
+
+
+def run_split(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from ..errors import SfmlocError
+    from ..map.submaps import split_bundle
+
+    bundle, problems = _load(args.path)
+    if bundle is None:
+        for p in problems:
+            print(f"CORRUPT: {p}", file=sys.stderr)
+        return 1
+    out = Path(args.out) if args.out else Path(args.path).resolve().parent
+    name = args.name or f"{bundle.name}-submaps"
+    try:
+        path = split_bundle(
+            bundle,
+            out,
+            name,
+            parts=args.parts,
+            max_points=args.max_points,
+            overlap=args.overlap,
+            vote_fraction=args.vote_fraction,
+            progress=lambda msg: print(msg, file=sys.stderr, flush=True),
+        )
+    except SfmlocError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(f"wrote {path}")
     return 0
 
 
