@@ -122,6 +122,34 @@ def test_a_dead_worker_answers_its_frames_and_its_sessions_move_on(env):
     assert sinks["a"].poses[-1].seq == 1 and sinks["a"].poses[-1].localized
 
 
+def test_a_replacement_takes_back_sessions_until_the_workers_are_balanced(env):
+    """After a worker died (its sessions moved to the survivor), its replacement gets sessions
+    back: each moved session's state is freed on the old worker after what it has in flight
+    there, and its next frame goes to the replacement."""
+    pool, _, sm, sinks, submit = env
+    sessions = [submit(f"c{i}", 0) for i in range(4)]
+    for _, m in list(pool.frames):
+        _answer(sm, m)
+    dead = sessions[0].worker
+    pool.alive[dead] = False
+    sm.on_worker_dead(dead)
+    assert {s.worker for s in sessions} == {1 - dead}  # all on the survivor
+    busy = submit("c1", 1)  # a frame in flight on the survivor while the replacement comes
+    pool.alive[dead] = True
+    sm.on_worker_lost(dead)
+    on = [sum(s.worker == w for s in sessions) for w in (0, 1)]
+    assert on == [2, 2]
+    moved = [s for s in sessions if s.worker == dead]
+    assert sorted(pool.closed) == sorted((1 - dead, s.sid) for s in moved)
+    assert busy not in moved  # the idle ones went first
+    n = len(pool.frames)
+    for s in moved:
+        submit(s.client_id, 5)
+    assert [w for w, _ in pool.frames[n:]] == [dead, dead]
+    sm.on_worker_lost(dead)  # balanced: a second call moves nothing
+    assert [sum(s.worker == w for s in sessions) for w in (0, 1)] == [2, 2]
+
+
 def test_every_worker_dead_answers_the_frame_now(env):
     pool, _, sm, sinks, submit = env
     pool.alive = [False, False]

@@ -465,6 +465,32 @@ class SessionManager:
         live = [i for i in range(self.pool.n) if i != exclude and self.pool.is_alive(i)]
         return min(live, key=lambda i: (per_worker[i], i)) if live else None
 
+    def _rebalance_to(self, worker: int) -> builtins.list[tuple[int, int]]:
+        """Move sessions from the live worker holding the most to ``worker`` (a replacement)
+        while it holds two more (caller holds the lock); ``(from, sid)`` of each. A dead
+        worker's sessions all went to the survivors: without this, after a kill one worker
+        would carry every stream (over its core at 8 clients x 30 Hz) and the replacement
+        none. A moved session relocalizes on its next frame; a frame in flight finishes where
+        it is (at most one per session), the next goes to ``worker``."""
+        if not self.pool.is_alive(worker):
+            return []
+        moved: builtins.list[tuple[int, int]] = []
+        while True:
+            per = {i: 0 for i in range(self.pool.n) if self.pool.is_alive(i)}
+            for s in self._by_sid.values():
+                if s.worker in per:
+                    per[s.worker] += 1
+            src = max(per, key=lambda i: (per[i], -i))
+            if per[src] - per[worker] < 2:
+                return moved
+            # The idle ones first (nothing in flight), then the longest-open.
+            s = min(
+                (s for s in self._by_sid.values() if s.worker == src),
+                key=lambda s: (s.busy, s.sid),
+            )
+            s.worker = worker
+            moved.append((src, s.sid))
+
     def on_worker_dead(self, worker: int) -> None:
         """A worker died: every frame it had gets an UNAVAILABLE error pose now, and its
         sessions move to a live worker at once (their next frame relocalizes there), so that no
@@ -519,7 +545,8 @@ class SessionManager:
         )
 
     def on_worker_lost(self, worker: int) -> None:
-        """A worker was restarted: its sessions lost their state and in-flight frames."""
+        """A worker was restarted: its sessions lost their state and in-flight frames; then
+        sessions move to the replacement until the workers are balanced again."""
         from ..errors import UnavailableError
 
         with self._lock:
@@ -531,6 +558,11 @@ class SessionManager:
                 s.busy = False
                 s.pending.clear()
             self._idle.notify_all()
+            moved = self._rebalance_to(worker)
+        for src, sid in moved:  # after the frame it may have in flight there
+            self.pool.close_session(src, sid)
+        if moved:
+            event(log, logging.INFO, "sessions_rebalanced", worker=worker, sessions=len(moved))
         for s, seq in lost:
             self._send(
                 s,
