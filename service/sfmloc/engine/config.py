@@ -68,8 +68,16 @@ class EngineConf(StrictModel):
     # the paper's kappa1 rule). Tracks with 3D matches decay faster than tracks overall, and
     # without refilling the engine falls back to costly global matching (kappa2) first.
     # Measured on redkitchen (300 frames): 0 -> 11 global frames, median 1.5 cm; 40 -> 3 global
-    # frames, median 1.0 cm.
-    refill_3d: int = 40
+    # frames, median 1.0 cm. 40 -> 60 (issue 9, accuracy: the pose rests on more points; the
+    # errors are correlated from frame to frame, so more points, not more frames, average them
+    # out), same run, interleaved, CPU per frame new/old: redkitchen frames 0-399 / 400-999
+    # median 0.360 -> 0.336 / 0.343 -> 0.320 cm, inliers 71 -> 86 / 63 -> 86, CPU x1.06 /
+    # x1.08; synthetic walk median 0.362 -> 0.250 cm, localized 98.7 -> 100%, x1.01; orbit
+    # 0.282 -> 0.232 cm, x1.02; flight 0.306 -> 0.289 cm, x1.05; walk on the 3x map 0.381 ->
+    # 0.406 cm (mean 0.86 -> 0.58 cm), x1.01; at 10 Hz (100 frames) mixed: flight 0.311 ->
+    # 0.267, walk 0.264 -> 0.326, orbit 0.252 -> 0.323 cm. No wrong pose in any. 80:
+    # redkitchen 0.317 cm but CPU x1.16.
+    refill_3d: int = 60
     # Cluster voting: "sum" adds the strength of every neighbour (the literal reading of the
     # paper); "max" lets each query vote once per cluster, with its strongest neighbour there.
     # With PCA-32 DAISY the 50th neighbour is typically only 1.5x farther than the first, so
