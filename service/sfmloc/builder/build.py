@@ -75,6 +75,11 @@ class BuildConf(StrictModel):
     # unchunked, 1.7 GB for 23,702 tracks), so unchunked they were the build's largest
     # transient (issue 17).
     chunk_points: int = 1024
+    # --extend: a new image's descriptors may also go to the map's points seen by its
+    # extend_neighbors nearest map images looking within extend_max_angle_deg of it (0: the
+    # new images' own points only).
+    extend_neighbors: int = 5
+    extend_max_angle_deg: float = 45.0
 
 
 PRESETS: dict[str, dict[str, Any]] = {
@@ -181,7 +186,14 @@ def _describe(
     progress: Progress,
     should_cancel: CancelCheck | None,
     folder: Path | None,
+    extra_xyz: np.ndarray | None = None,
+    extra_rows: dict[str, np.ndarray] | None = None,
+    refine: bool = True,
 ) -> _Part:
+    """``extra_xyz`` (E, 3) and ``extra_rows`` (image name -> rows of it): more candidate
+    points per image (``--extend``: the map's points seen near the image); a descriptor of
+    extra row e has ``desc_point`` len(points_xyz) + e. ``refine`` False leaves the points
+    where they are (the caller refines)."""
     timings: dict[str, float] = {}
     if not rec.points3D:
         raise BuildError("the reconstruction has no 3D points", stage="sfm")
@@ -238,9 +250,13 @@ def _describe(
             raise BuildCancelled("cancelled", stage="descriptors")
         cam = rec.cameras[im.camera_id]
         gray = load_gray(image_dir / im.name, cam)
-        pts = image_points[i]
+        pts, cand_xyz = image_points[i], points_xyz[image_points[i]]
+        if extra_xyz is not None and extra_rows is not None and im.name in extra_rows:
+            e = extra_rows[im.name]
+            pts = np.concatenate([pts, len(points_xyz) + e])
+            cand_xyz = np.concatenate([cand_xyz, extra_xyz[e]])
         d = extract_image_descriptors(
-            gray, cam, im.cam_from_world, points_xyz[pts], conf.descriptors, extractor
+            gray, cam, im.cam_from_world, cand_xyz, conf.descriptors, extractor
         )
         store.append(d.raw)
         counts.append(len(d.raw))
@@ -265,22 +281,24 @@ def _describe(
     del dpoint, dimage, dlevel, dxy
 
     # ---- points moved to where their own full-resolution Harris keypoints triangulate
-    t0 = time.perf_counter()
-    progress("refine", 0.0, "re-triangulating points at their Harris keypoints")
-    points_xyz, moved = refine_points(
-        points_xyz,
-        desc_point,
-        desc_image,
-        desc_level,
-        desc_xy,
-        [rec.cameras[im.camera_id] for im in images],
-        [im.cam_from_world for im in images],
-        conf.refine,
-        full_resolution_level=conf.descriptors.up_levels,
-        chunk_points=conf.chunk_points,
-    )
-    timings["refine"] = time.perf_counter() - t0
-    progress("refine", 1.0, f"{int(moved.sum())} of {len(moved)} points refined")
+    moved = np.zeros(len(points_xyz), bool)
+    if refine:
+        t0 = time.perf_counter()
+        progress("refine", 0.0, "re-triangulating points at their Harris keypoints")
+        points_xyz, moved = refine_points(
+            points_xyz,
+            desc_point,
+            desc_image,
+            desc_level,
+            desc_xy,
+            [rec.cameras[im.camera_id] for im in images],
+            [im.cam_from_world for im in images],
+            conf.refine,
+            full_resolution_level=conf.descriptors.up_levels,
+            chunk_points=conf.chunk_points,
+        )
+        timings["refine"] = time.perf_counter() - t0
+        progress("refine", 1.0, f"{int(moved.sum())} of {len(moved)} points refined")
     info = {
         "corners_detected": n_corners,
         "points_refined": int(moved.sum()),

@@ -2,16 +2,20 @@
 
 The new images come with poses in the map's frame (known poses or a COLMAP model). Only they
 go through the builder's stages: points triangulated among them (SfM and Harris points, as in a
-full build), their descriptors, refined positions. Their raw descriptors are projected with the
-map's own PCA, so the old descriptors stay valid as they are; the new ones are added to the
-map's ANN index (retrained over all descriptors only when the map has grown past what its
-inverted lists were sized for); clusters and lookups are recomputed over all images. The work is
-that of the new images alone, not of the whole map again.
+full build) and their descriptors. A new image's corners may also describe the map's points
+seen by its nearest map images (``BuildConf.extend_neighbors``, looking the same way within
+``extend_max_angle_deg``): the map's points seen again get observations and descriptors from
+the new images, and are re-triangulated at their full-resolution keypoints in old and new
+images together (the refine stage, over the new points and those). Raw descriptors are
+projected with the map's own PCA, so the old descriptors stay valid as they are; the new ones
+are added to the map's ANN index (retrained over all descriptors only when the map has grown
+past what its inverted lists were sized for); clusters and lookups are recomputed over all
+images. The work is that of the new images, not of the whole map again.
 
-What a build from all the images at once has and this has not: tracks that join an old and a
-new image (a surface seen from both gets a point on each side) and old points' descriptors from
-the new images. The builder settings are the bundle's own (``manifest.params``), so old and new
-descriptors come from the same pyramid and detector.
+What a build from all the images at once has and this has not: new points are triangulated
+from the new images alone (a surface seen from both gets a point from each side). The builder
+settings are the bundle's own (``manifest.params``), so old and new descriptors come from the
+same pyramid and detector.
 
 The result is a new bundle (a new build id) written atomically: the base bundle is untouched,
 also when NAME is its own name (replaced only once the new one is complete).
@@ -44,6 +48,7 @@ from .build import (
     _noop,
 )
 from .desc_store import RawStore
+from .refine import refine_points
 
 
 def bundle_conf(params: dict[str, Any]) -> BuildConf:
@@ -135,8 +140,20 @@ def extend(
         folder = None
         if conf.stream_descriptors:
             folder = Path(workdir) if workdir is not None else Path(tempfile.gettempdir())
+        near = _nearby_points(old, rec, conf.extend_neighbors, conf.extend_max_angle_deg)
         with RawStore(RAW_DIM, folder, conf.chunk_rows) as store:
-            part = _describe(rec, image_dir, conf, store, report, should_cancel, folder)
+            part = _describe(
+                rec,
+                image_dir,
+                conf,
+                store,
+                report,
+                should_cancel,
+                folder,
+                extra_xyz=np.asarray(old.points_xyz),
+                extra_rows=near,
+                refine=False,
+            )
             timings.update(part.timings)
             t0 = time.perf_counter()
             report("pca", 0.0, f"projecting {len(store)} descriptors with the map's PCA")
@@ -191,6 +208,27 @@ def extend(
         raise BuildError("out of memory", stage=stage[0]) from None
 
 
+def _nearby_points(old: MapBundle, rec: Any, k: int, max_angle_deg: float) -> dict[str, np.ndarray]:
+    """Per new image: the map's points seen by its ``k`` nearest map images (camera centres)
+    that look within ``max_angle_deg`` of its direction; candidates for its descriptors, so
+    that old points seen again get observations and descriptors from the new images."""
+    if k <= 0 or old.n_images == 0:
+        return {}
+    poses = old.image_cam_from_world
+    centres = np.stack([T.center for T in poses])
+    dirs = np.stack([T.rotation[2] for T in poses])  # optical axes in the world
+    cos_min = np.cos(np.radians(max_angle_deg))
+    out = {}
+    for im in rec.images.values():
+        T = im.cam_from_world
+        ok = np.nonzero(dirs @ T.rotation[2] >= cos_min)[0]
+        if len(ok) == 0:
+            continue
+        near = ok[np.argsort(np.linalg.norm(centres[ok] - T.center, axis=1))[:k]]
+        out[im.name] = np.unique(np.concatenate([old.image_points(int(i)) for i in near]))
+    return out
+
+
 def _merge(
     old: MapBundle,
     part: Any,
@@ -217,10 +255,17 @@ def _merge(
     old_ptr = np.asarray(a("image_points_ptr"))
     old_idx = np.asarray(a("image_points_idx"), np.int64)
     image_points = [old_idx[old_ptr[i] : old_ptr[i + 1]] for i in range(I0)]
-    image_points += [p + P0 for p in part.image_points]
+    # The part's rows: its own points, then the map's (extra candidates, row - n_new).
+    n_new = len(part.point_ids)
+    row_map = np.concatenate([P0 + np.arange(n_new), np.arange(P0)])
+    new_desc_point = row_map[part.desc_point]
+    ptr = part.image_desc_ptr
+    for i, p in enumerate(part.image_points):
+        seen_old = np.unique(new_desc_point[ptr[i] : ptr[i + 1]])
+        image_points.append(np.union1d(p + P0, seen_old[seen_old < P0]))
     lookups = _lookups(part)
     lookups = {
-        "desc_point": np.concatenate([a("desc_point"), lookups["desc_point"] + P0]),
+        "desc_point": np.concatenate([a("desc_point"), new_desc_point]),
         "desc_image": np.concatenate([a("desc_image"), lookups["desc_image"] + I0]),
         "desc_level": np.concatenate([a("desc_level"), lookups["desc_level"]]),
         "desc_xy": np.concatenate([a("desc_xy"), lookups["desc_xy"]]),
@@ -256,17 +301,42 @@ def _merge(
         for im in part.images
     ]
     image_cam_from_world = np.concatenate([a("image_cam_from_world"), np.stack(new_poses)])
+    image_camera = np.concatenate(
+        [a("image_camera"), np.asarray(cam_of_new, np.int32)[part.image_camera]]
+    ).astype(np.int32)
+    # Points re-triangulated at their full-resolution keypoints in every image (as a build
+    # from all images does): the new points, and the map's points seen again in new images.
+    t0 = time.perf_counter()
+    progress("refine", 0.0, "re-triangulating points at their Harris keypoints")
+    xyz = np.concatenate([a("points_xyz"), part.points_xyz])
+    touched = np.zeros(len(xyz), bool)
+    touched[P0:] = True
+    touched[new_desc_point] = True
+    refined, moved = refine_points(
+        xyz,
+        lookups["desc_point"],
+        lookups["desc_image"],
+        lookups["desc_level"],
+        lookups["desc_xy"],
+        [cameras[c] for c in image_camera],
+        list(old.image_cam_from_world) + [im.cam_from_world for im in part.images],
+        conf.refine,
+        full_resolution_level=conf.descriptors.up_levels,
+        chunk_points=conf.chunk_points,
+    )
+    moved &= touched
+    xyz[moved] = refined[moved]
+    timings["refine"] = time.perf_counter() - t0
+    progress("refine", 1.0, f"{int(moved.sum())} of {int(touched.sum())} points refined")
     data = _map_data(
-        np.concatenate([a("points_xyz"), part.points_xyz]),
+        xyz,
         point_ids,
         np.concatenate([a("point_rgb"), part.point_rgb]),
         desc,
         lookups,
         image_cam_from_world,
         list(old.image_names) + [im.name for im in part.images],
-        np.concatenate(
-            [a("image_camera"), np.asarray(cam_of_new, np.int32)[part.image_camera]]
-        ).astype(np.int32),
+        image_camera,
         cameras,
         image_points,
         clusters,
@@ -274,5 +344,11 @@ def _merge(
         index_faiss,
         conf,
     )
-    info = {**index_info, **{f"added_{k}": v for k, v in part.info.items()}}
+    info = {
+        **index_info,
+        **{f"added_{k}": v for k, v in part.info.items()},
+        "added_points_refined": int(moved.sum()),
+        "map_points_seen_again": int(touched[:P0].sum()),
+        "map_points_moved": int(moved[:P0].sum()),
+    }
     return data, info

@@ -36,10 +36,10 @@ the bundle's manifest; keyframes go to a temporary folder removed afterwards.
 Extending a map: --extend BUNDLE with --images DIR and the new images' poses in the map's frame
 (--poses FILE --camera CAMERA, or --colmap MODEL) adds them to the bundle: only the new images
 are triangulated and described (their descriptors projected with the map's PCA, added to its
-index), so the work is that of the new images. The builder settings are the bundle's own.
-The result OUT/NAME has a new build id; BUNDLE is not changed (NAME may be its own name: it is
-replaced only once the new bundle is complete). Points are not shared across the old and new
-images: a place seen by both gets points from each side.
+index), so the work is that of the new images; the map's points seen again in them get their
+descriptors and are re-triangulated with them. The builder settings are the bundle's own.
+The result OUT/NAME has a new build id; BUNDLE is not changed (NAME may be its own name, with
+--replace: it is replaced only once the new bundle is complete).
 
 CAMERA is a camera.json file or 'MODEL width height params...' in COLMAP order, e.g.
 'PINHOLE 640 480 525.505 525.505 320 240'. An existing bundle of the same name is refused unless
