@@ -38,9 +38,10 @@ the most points is cut next, until there are ``parts`` parts (or every part hold
 
 It answers two questions without any sub-map in memory: which parts a *pose prior* touches
 (``parts_near``: parts ranked by how well their cameras cover it, weighting each camera by its
-distance in position, in scene scales, and viewing direction), and which parts a *query* touches (``vote``: each query descriptor's neighbours in
-the sample vote, with the paper's strength s_i0/s_ij within sigma, once per part, for every
-part holding the image the neighbour was seen in; parts are tried in order of their vote).
+distance in position, in scene scales, and viewing direction), and which parts a *query*
+touches (``vote``: each query descriptor's neighbours in the sample vote, with the paper's
+strength s_i0/s_ij within sigma, once per part, for every part holding the image the neighbour
+was seen in; parts are tried in order of their vote).
 Descriptors are labelled by image, not by point: neighbouring parts share most points, and so
 most clusters (in the synthetic room split in three, voting by points or by the points' clusters
 put a part holding the query image first for 23 of 40 images: no better than always part 0),
