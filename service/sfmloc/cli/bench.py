@@ -68,6 +68,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="the same as --suite, comma-separated (e.g. --suites robust)",
     )
     p.add_argument(
+        "--builder-parts",
+        metavar="A,B",
+        help="builder suite: its parts, comma-separated, of extend, memory, density, video "
+        "(default extend,memory)",
+    )
+    p.add_argument(
         "--robust-rows",
         metavar="PATTERNS",
         help="robust suite: only these rows, comma-separated names or groups, shell "
@@ -134,6 +140,16 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"unknown suite(s) {', '.join(bad)}; choose from {', '.join(SUITES)}")
     if chosen:
         changes["suites"] = list(dict.fromkeys(chosen))
+    if args.builder_parts:
+        from ..bench.builder import PARTS
+
+        parts = [s.strip() for s in args.builder_parts.split(",") if s.strip()]
+        bad_parts = [s for s in parts if s not in PARTS]
+        if bad_parts:
+            raise InputError(
+                f"unknown builder part(s) {', '.join(bad_parts)}; choose from {', '.join(PARTS)}"
+            )
+        changes["builder_parts"] = parts
     if args.robust_rows:
         changes["robust_rows"] = [s.strip() for s in args.robust_rows.split(",") if s.strip()]
     if args.robust_frames is not None:
