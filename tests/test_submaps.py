@@ -263,3 +263,31 @@ def test_lost_session_relocalizes_part_by_part(world, walk_set):
     assert loc.stats.votes >= 3
     assert loc.stats.max_resident_bytes <= budget
     loc.close()
+
+
+def test_vote_finds_the_room_of_a_frame(tmp_path_factory):
+    """Two different synthetic rooms (own textures) 20 m apart in one map, four parts: the
+    place-recognition vote of a video frame ranks first a part of the room the frame was
+    taken in, before any part is loaded (the order a lost session searches the parts in)."""
+    from sfmloc.bench.submaps import build_rooms
+
+    work = tmp_path_factory.mktemp("rooms")
+    rooms = build_rooms(
+        work, 2, width=640, height=480, views=20, frames=6, spacing=20.0, log=lambda m: None
+    )
+    whole = MapBundle(rooms.bundle)
+    s = SubmapSet(split_bundle(whole, work, "two", parts=4))
+    room_of_part = [
+        int(round(np.median(s.image_centers[s.part_images(k), 0]) // 20.0))
+        for k in range(s.n_parts)
+    ]
+    assert sorted(set(room_of_part)) == [0, 1]
+    loc = SubmapLocalizer(s, rooms.camera, memory_budget=10 * whole.memory_bytes())
+    import cv2
+
+    hits = 0
+    for path, room in zip(rooms.frames, rooms.room):
+        scores = loc.vote(cv2.imread(str(path), cv2.IMREAD_GRAYSCALE))
+        hits += room_of_part[int(np.argmax(scores))] == room
+    assert hits >= 0.9 * len(rooms.frames), (hits, len(rooms.frames))
+    assert loc.resident_parts() == []  # the vote needs no part in memory

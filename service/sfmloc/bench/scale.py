@@ -13,10 +13,16 @@ connects to the ones started before it, clients to all):
   clients) gets SIGKILL: for its clients the time from the kill to their next answer, and
   duplicates, and clients left without answers at the end.
 
-The map and frames are reliability.py's synthetic room (exact ground truth: wrong poses are
-counted too). On a 2-core machine the servers share the cores: the report states them.
+- ``submaps`` (in process, no server): a map ``--ratio`` times the memory budget (synthetic
+  rooms joined into one bundle, split into sub-maps) walked through by one camera with
+  ``SubmapLocalizer``, against a whole-map ``Localizer`` on the same frames (``submaps.py``).
+
+The map and frames of the server parts are reliability.py's synthetic room (exact ground truth:
+wrong poses are counted too). On a 2-core machine the servers share the cores: the report
+states them.
 
     python -m sfmloc.bench.scale --work /tmp/scale [--servers 3 --clients 12 --seconds 15]
+    python -m sfmloc.bench.scale --work /tmp/scale --parts submaps --rooms 8 --ratio 10
 """
 
 from __future__ import annotations
@@ -190,6 +196,19 @@ def run_kill(
 
 
 def run(args: argparse.Namespace) -> dict:
+    out_sub: dict[str, Any] = {}
+    if "submaps" in args.parts:
+        from .submaps import run_submaps
+
+        out_sub["submaps"] = run_submaps(
+            Path(args.work) / "rooms",
+            rooms=args.rooms,
+            parts_per_room=args.parts_per_room,
+            ratio=args.ratio,
+            log=_log,
+        )
+        if not args.parts - {"submaps"}:
+            return out_sub
     world = prepare(Path(args.work))
     ids = [f"s{i}" for i in range(args.servers)]
     clients = [f"scale-client-{i}" for i in range(args.clients)]
@@ -212,7 +231,7 @@ def run(args: argparse.Namespace) -> dict:
     if "kill" in args.parts:
         out["kill"] = run_kill(world, ids, clients, args.workers, args.rate, args.seconds)
     out["load_after"] = os.getloadavg()[0]
-    return out
+    return {**out, **out_sub}
 
 
 def parser() -> argparse.ArgumentParser:
@@ -230,8 +249,13 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--parts",
         default="alone,together,kill",
-        help="comma-separated: alone,together,kill (default all)",
+        help="comma-separated: alone,together,kill,submaps (default: the three server parts)",
     )
+    p.add_argument("--rooms", type=int, default=8, help="submaps: synthetic rooms (8)")
+    p.add_argument(
+        "--parts-per-room", type=float, default=3.0, help="submaps: sub-maps per room (3)"
+    )
+    p.add_argument("--ratio", type=float, default=10.0, help="submaps: map memory / budget (10)")
     p.add_argument("--out", help="write the results as JSON here too")
     return p
 

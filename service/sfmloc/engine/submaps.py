@@ -2,23 +2,23 @@
 
 ``SubmapLocalizer`` owns one plain ``Localizer`` and swaps the sub-map it runs on between
 frames: the per-frame core is unchanged, and a frame only ever meets one sub-map, which is
-always resident (a frame never waits for a load while it is tracked).
+always resident (a tracked frame waits for a load only when the budget cannot hold two parts).
 
 Per frame, before the ``Localizer`` runs:
 
-1. **Tracked** (a pose, published or withheld, within ``max_frame_gap_s``: the motion
-   filter's): the home part is the one whose cameras cover that pose best
-   (``SubmapSet.parts_near``: cameras weighted by their distance in position, in scene
-   scales, and viewing direction). The camera stays on its part until another covers it
-   better by the factor 1 + ``switch_margin`` (hysteresis: no flapping along a boundary).
-   When the home part is resident the session switches at once, its track table going
-   through the global point ids (``map.submaps.translate``: matches to points the new part
-   holds stay, the rest become pending); when it is not, it is loaded in the background and
-   the session keeps running on its current part (the parts overlap) until it is; when the
-   budget cannot hold both, the frame waits for the load (the old part is evicted first).
-   The part covering the pose predicted ``lookahead_s`` ahead (the filter's velocity) is
-   loaded in the background too, while the budget allows.
-2. **Lost** (no recent pose): the frame's keypoints are described and the parts
+1. **Tracked** (the last frame had a pose, published or withheld: the motion filter's): the
+   home part is the one whose cameras cover that pose best (``SubmapSet.parts_near``: cameras
+   weighted by their distance in position, in scene scales, and viewing direction). The camera
+   stays on its part until another covers it better by the factor 1 + ``switch_margin``
+   (hysteresis: no flapping along a boundary). When the home part is resident the session
+   switches at once, its track table going through the global point ids
+   (``map.submaps.translate``: matches to points the new part holds stay, the rest become
+   pending); when it is not, it is loaded in the background and the session keeps running on
+   its current part (the parts overlap) until it is; when the budget cannot hold both, the
+   frame waits for the load (the old part is evicted first). The part covering the pose
+   predicted ``lookahead_s`` ahead (the filter's velocity) is loaded in the background too,
+   while the budget allows.
+2. **Lost** (no pose on the last frame): the frame's keypoints are described and the parts
    ranked by their place-recognition vote (``SubmapSet.vote``); the session moves to the
    best-voted part not tried since it was lost, loading it now (a lost frame relocalizes
    anyway), so consecutive lost frames search the parts in order of their vote, one global
@@ -111,7 +111,8 @@ class SubmapLocalizer:
         self.inner: Localizer | None = None
         self.part: int | None = None
         self._part_points: np.ndarray | None = None  # global point rows of ``part``
-        self._tried: list[int] = []  # parts tried since the session was lost
+        self._tried: list[int] = []
+        self._prev_stamp: float | None = None  # parts tried since the session was lost
         self._extractor = DaisyExtractor()
         self._pca: Pca | None = None
 
@@ -125,17 +126,22 @@ class SubmapLocalizer:
             self._relocalize_order(frame)
         assert self.inner is not None
         res = self.inner.localize(frame, stamp)
+        self._prev_stamp = stamp
         if self.inner.last_posed_stamp == stamp:
             self._tried = []  # a pose (published or withheld): the search is over
         self.stats.max_resident_bytes = max(self.stats.max_resident_bytes, self.resident_bytes())
         return res
 
     def _known_pose(self, stamp: float) -> tuple[Rigid3d, np.ndarray] | None:
-        """The session's pose and centre velocity from its motion filter, when the inner
-        localizer had a pose recently (published or withheld: both update the filter), else
-        None (lost: the parts are searched by their vote)."""
+        """The session's pose and centre velocity from its motion filter when the last frame
+        had a pose (published or withheld: both update the filter), else None (lost: the
+        parts are searched by their vote; a session whose frames fail on its part must not
+        stay there on the strength of an old prediction: measured on two rooms 20 m apart,
+        the camera moved to the second stayed LOST on the first room's part for 30 frames)."""
         inner = self.inner
         if inner is None or inner.last_posed_stamp is None or not inner.filter.initialized:
+            return None
+        if inner.last_posed_stamp != self._prev_stamp:
             return None
         if not 0 <= stamp - inner.last_posed_stamp <= self.conf.max_frame_gap_s:
             return None
@@ -180,9 +186,13 @@ class SubmapLocalizer:
                 self._request(nxt, keep=keep, optional=True)
 
     # ------------------------------------------------------------------ lost
+    def vote(self, frame: np.ndarray) -> np.ndarray:
+        """The parts' place-recognition scores for ``frame`` (``SubmapSet.vote`` of its
+        keypoints' descriptors): the order a lost session tries them in."""
+        return self.set.vote(self._frame_descriptors(frame))
+
     def _relocalize_order(self, frame: np.ndarray) -> None:
-        desc = self._frame_descriptors(frame)
-        scores = self.set.vote(desc)
+        scores = self.vote(frame)
         self.stats.votes += 1
         order = [int(k) for k in np.argsort(-scores, kind="stable")]
         cand = [k for k in order if k not in self._tried]
