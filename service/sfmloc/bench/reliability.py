@@ -1,9 +1,10 @@
 """The ``reliability`` measurement (issues 12 and 16): bad input, dying workers, edited bundles,
 streams beside saturated relocalization.
 
-    python -m sfmloc.bench.reliability [--fuzz N] [--kills K] [--clients M] [--json OUT]
+    python -m sfmloc.bench.reliability [--parts P,..] [--fuzz N] [--kills K] [--clients M]
+        [--json OUT]
 
-Four parts, each bounded in count and time, against a real ``sfmloc serve`` subprocess on
+Six parts, each bounded in count and time, against a real ``sfmloc serve`` subprocess on
 loopback (Zenoh peer mode, no multicast) holding a small synthetic map with exact ground truth
 (rendered with ``sfmloc.synth``, built once under ``--work``):
 
@@ -26,6 +27,15 @@ loopback (Zenoh peer mode, no multicast) holding a small synthetic map with exac
              back: each client's poses per frame sent and p99 latency, beside its value alone.
              ``--redkitchen DIR`` streams the real frames against the built kitchen bundle;
              ``--server-arg=--relocalize-workers=0`` measures without the relocalization lane.
+
+``restart``  (not in the default parts) ``kill -9`` of the server under M streaming clients and
+             one ``sfmloc stream`` process, started again ``--restart-delay`` later on the
+             same ports: time to SERVING (beside a first start in the same run), to every
+             client's next pose, the old server's workers left, the outage the CLI printed.
+``soak``     (not in the default parts) ``--soak-streams`` clients streaming for
+             ``--soak-minutes`` while ``--soak-clients`` short-lived ``sfmloc stream``
+             processes (5 frames, own client ids) come and go: server and worker RSS, /dev/shm,
+             open files and sessions sampled; sessions left after the idle timeout.
 
 Nothing here asserts the targets: the table shows measured values beside them.
 """
@@ -611,6 +621,7 @@ def run_fuzz(
     hangs, crashes, sent = 0, 0, 0
     samples: dict[str, str] = {}
     hung: list[dict] = []
+    slowest: list[tuple[float, str, str, str]] = []  # (s, method, kind, code), the 5 slowest
     stop = threading.Event()
     with Server(world, workers) as srv:
         canary = StreamClient(
@@ -653,6 +664,7 @@ def run_fuzz(
                     continue
                 method, kind, msgs = gf.next()
                 kinds["grpc " + kind] += 1
+                t_call = time.monotonic()
                 try:
                     if method == "StreamLocalize":
                         for _ in stream(iter(msgs), timeout=deadline_s):
@@ -665,15 +677,22 @@ def run_fuzz(
                     if code in ("INTERNAL", "UNKNOWN") and code not in samples:
                         samples[code] = f"{method}: {exc.details()}"[:300]
                 codes[f"{method} {code}"] += 1
+                slowest.append((time.monotonic() - t_call, method, kind, code))
+                slowest = sorted(slowest, reverse=True)[:5]
                 if code == "DEADLINE_EXCEEDED":
                     hangs += 1
-                    # What hung, to reproduce it (the first few, hex of each message).
+                    # What hung, to reproduce it (the first few, hex of each message), and the
+                    # same request again at once without a deadline: stuck, or slow under load?
                     if len(hung) < 5:
                         hung.append(
                             {
                                 "method": method,
                                 "kind": kind,
                                 "messages_hex": [m.hex() for m in msgs],
+                                "again": _call_again(unary, stream, method, msgs),
+                                "canary_gap_s": canary.summary(t_call, time.monotonic())[
+                                    "max_gap_s"
+                                ],
                             }
                         )
                 if k % 1000 == 1 and health.health(timeout=deadline_s) != "SERVING":
@@ -702,9 +721,35 @@ def run_fuzz(
         "unknown": by_code["UNKNOWN"],
         "internal_unknown_samples": samples,
         "hung_requests": hung,
+        "slowest_grpc_calls": [
+            {"s": round(t, 2), "method": m, "kind": kd, "code": c} for t, m, kd, c in slowest
+        ],
         "canary": can,
         "canary_baseline": base,
         "canary_lost_pct": 100.0 * (can["sent"] - can["answered"]) / max(1, can["sent"]),
+    }
+
+
+def _call_again(unary: dict, stream: Any, method: str, msgs: list[bytes]) -> dict:
+    """The request that went past its deadline, sent again with 120 s: its time and code."""
+    import grpc
+
+    t, answers, last = time.monotonic(), 0, float("nan")
+    try:
+        if method == "StreamLocalize":
+            for _ in stream(iter(msgs), timeout=120.0):
+                answers += 1
+                last = time.monotonic() - t  # the last answer: the rest is the stream's end
+        else:
+            unary[method](msgs[0], timeout=120.0)
+        code = "OK"
+    except grpc.RpcError as exc:
+        code = exc.code().name
+    return {
+        "s": round(time.monotonic() - t, 2),
+        "code": code,
+        "answers": answers,
+        "last_answer_s": round(last, 2),
     }
 
 
@@ -1366,6 +1411,25 @@ def table(res: dict) -> list[str]:
                 "100,000",
             ),
             ("fuzz: crashes / hangs", f"{f['crashes']} / {f['hangs']}", "0 / 0"),
+            (
+                "fuzz: slowest gRPC calls",
+                ", ".join(
+                    f"{c['s']:.1f} s {c['method']} {c['code']}"
+                    for c in f.get("slowest_grpc_calls", [])[:3]
+                ),
+                "-",
+            ),
+            *[
+                (
+                    "  past the deadline, sent again",
+                    f"{h['method']} {h['kind']}: {h['again']['code']} after {h['again']['s']} s "
+                    f"({h['again']['answers']} answers, the last after "
+                    f"{h['again'].get('last_answer_s', float('nan'))} s); "
+                    f"canary gap {h['canary_gap_s']:.1f} s",
+                    "-",
+                )
+                for h in f.get("hung_requests", [])
+            ],
             ("fuzz: gRPC INTERNAL / UNKNOWN", f"{f['internal']} / {f['unknown']}", "0 / 0"),
             (
                 "fuzz: gRPC codes",
@@ -1854,6 +1918,8 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
+    # SIGTERM unwinds like Ctrl-C: the server subprocess is stopped, not left behind.
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     res = run(args)
     if args.json:
         Path(args.json).write_text(json.dumps(res, indent=1, default=str))
