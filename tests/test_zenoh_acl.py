@@ -127,3 +127,49 @@ def test_each_device_streams_and_reads_poses_only_under_its_own_id(world, pki, t
         # Without a client certificate the TLS handshake fails: no session at all.
         with pytest.raises(Exception, match="(?i)unable to connect"):
             _device(pki, tmp_path, None, endpoint)
+
+
+def test_devices_identified_by_zenoh_user_name(world, pki, tmp_path):
+    """--identify user: TLS without client certificates; Zenoh user names and passwords
+    (transport/auth/usrpwd) name the devices."""
+    from sfmloc.server.zenoh_acl import render
+    from sfmloc.server.zenoh_acl import server_config as acl_server_config
+
+    users = tmp_path / "users.txt"
+    users.write_text("drone-1:pw-one\ndrone-2:pw-two\n")
+    conf_file = tmp_path / "server-users.json5"
+    conf_file.write_text(
+        render(
+            acl_server_config(
+                ["drone-1", "drone-2"],
+                identify="user",
+                tls_ca=str(pki / "ca.pem"),
+                tls_cert=str(pki / "server.pem"),
+                tls_key=str(pki / "server.key"),
+                users_file=str(users),
+            )
+        )
+    )
+    endpoint = f"tls/localhost:{free_port()}"
+
+    def device(user: str, password: str) -> zenoh.Session:
+        c = zenoh.Config()
+        c.insert_json5("mode", '"client"')
+        c.insert_json5("connect/endpoints", f'["{endpoint}"]')
+        c.insert_json5("transport/link/tls/root_ca_certificate", f'"{pki / "ca.pem"}"')
+        c.insert_json5("transport/auth/usrpwd/user", f'"{user}"')
+        c.insert_json5("transport/auth/usrpwd/password", f'"{password}"')
+        return zenoh.open(c)
+
+    conf = server_config(world, endpoint, zenoh={"config_file": str(conf_file)})
+    with running_server(conf) as srv:
+        assert srv.server is not None
+        with device("drone-1", "pw-one") as z1, device("drone-2", "pw-two") as z2:
+            with FrameStreamer(z2, "room", "drone-1", camera(world), encoding="png") as fs:
+                fs.publish(data=world.png[0], encoding="png")  # forged: dropped
+            assert [p.seq for p in stream_lockstep(z2, "room", "drone-2", world, n=1)] == [0]
+            assert not any(s.client_id == "drone-1" for s in srv.server.facade.list_sessions())
+            own = stream_lockstep(z1, "room", "drone-1", world, n=2)
+            assert [p.seq for p in own] == [0, 1]
+        with pytest.raises(Exception, match="(?i)unable to connect"):
+            device("drone-1", "wrong-password")
