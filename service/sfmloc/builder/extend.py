@@ -33,7 +33,8 @@ import numpy as np
 from ..cameras import Camera
 from ..errors import BuildError, SfmlocError
 from ..features.daisy import RAW_DIM, Pca
-from ..map.bundle import MapBundle, validate_name, write_bundle
+from ..io.colmap import Reconstruction
+from ..map.bundle import MapBundle, MapData, validate_name, write_bundle
 from ..map.index import DescriptorIndex, choose_nlist
 from ..map.report import map_report
 from ..transforms import Rigid3d
@@ -46,6 +47,7 @@ from .build import (
     _lookups,
     _map_data,
     _noop,
+    _Part,
 )
 from .desc_store import RawStore
 from .refine import refine_points
@@ -208,7 +210,9 @@ def extend(
         raise BuildError("out of memory", stage=stage[0]) from None
 
 
-def _nearby_points(old: MapBundle, rec: Any, k: int, max_angle_deg: float) -> dict[str, np.ndarray]:
+def _nearby_points(
+    old: MapBundle, rec: Reconstruction, k: int, max_angle_deg: float
+) -> dict[str, np.ndarray]:
     """Per new image: the map's points seen by its ``k`` nearest map images (camera centres)
     that look within ``max_angle_deg`` of its direction; candidates for its descriptors, so
     that old points seen again get observations and descriptors from the new images."""
@@ -231,12 +235,12 @@ def _nearby_points(old: MapBundle, rec: Any, k: int, max_angle_deg: float) -> di
 
 def _merge(
     old: MapBundle,
-    part: Any,
+    part: _Part,
     desc_new: np.ndarray,
     conf: BuildConf,
     progress: Progress,
     timings: dict[str, float],
-) -> tuple[Any, dict[str, Any]]:
+) -> tuple[MapData, dict[str, Any]]:
     """The old map's arrays with the new part appended (points, images, descriptors), clusters
     over all images, the index extended."""
     P0, I0, D0 = old.n_points, old.n_images, old.n_descriptors
