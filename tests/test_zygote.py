@@ -88,3 +88,13 @@ def test_without_the_zygote_workers_start_as_fresh_interpreters(pool):
     assert new.pid != victim.pid and _ppid(new.pid) == os.getpid()
     assert victim.runner.exitcode is not None and pool.is_alive(1)
     assert not _zombies(os.getpid())
+
+
+def test_the_startup_bench_replaces_a_killed_worker_in_both_modes(world):
+    """``python -m sfmloc.bench.startup``'s restart part: a killed worker of a forked pool and
+    of a fresh-interpreter pool is replaced and serves the map again, timed."""
+    from sfmloc.bench.startup import MODES, restart_times
+
+    times = restart_times(world.maps_dir / "room", 1)
+    assert set(times) == set(MODES)
+    assert all(len(v) == 1 and 0 < v[0] < 120 for v in times.values())
