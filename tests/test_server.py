@@ -667,7 +667,12 @@ def test_load_map_only_from_the_maps_folders(world, z, grpc_client):
 
 
 def test_follow_builder_announcement_loads_the_map(world, z, grpc_client):
-    ann = MapAnnouncement("room3", "whatever-build", str(world.maps_dir / "room2"))
+    # The announced build id is the folder's: a folder of another build at that path would be
+    # fetched from the builder instead (bundles over the network), not loaded in its place.
+    from sfmloc.map.bundle import MapBundle
+
+    build_id = MapBundle(world.maps_dir / "room2", verify=False).build_id
+    ann = MapAnnouncement("room3", build_id, str(world.maps_dir / "room2"))
     z.put(map_announce_key("room3"), encode_map_announcement(ann))
     assert wait_until(lambda: "room3" in {m.name for m in grpc_client.list_maps()}, 60)
     assert grpc_client.get_map("room3").points == grpc_client.get_map("room2").points
