@@ -22,6 +22,7 @@ from server_helpers import (
 )
 from sfmloc.testing import free_port
 from sfmloc_client import FrameStreamer
+from sfmloc_client.discovery import list_server_ids, query_servers
 
 REPO = Path(__file__).resolve().parents[1]
 SERVER_FILE = REPO / "docker" / "zenoh-server-acl.json5"
@@ -123,6 +124,9 @@ def test_each_device_streams_and_reads_poses_only_under_its_own_id(world, pki, t
                 assert spied == []
             sessions = {s.client_id: s for s in loc.list_sessions()}
             assert sessions["drone-1"].frames == 5 and sessions["drone-2"].frames == 3
+            # Discovery stays open to devices: the server's token and its info queryable.
+            assert list_server_ids(z1, 5.0) == [srv.server.server_id]
+            assert [i.server_id for i in query_servers(z1, 5.0)] == [srv.server.server_id]
 
         # Without a client certificate the TLS handshake fails: no session at all.
         with pytest.raises(Exception, match="(?i)unable to connect"):
