@@ -291,3 +291,18 @@ def test_vote_finds_the_room_of_a_frame(tmp_path_factory):
         hits += room_of_part[int(np.argmax(scores))] == room
     assert hits >= 0.9 * len(rooms.frames), (hits, len(rooms.frames))
     assert loc.resident_parts() == []  # the vote needs no part in memory
+    # The walk: room 0's frames, then room 1's (a teleport: relocalization without a prior),
+    # with room for one part only.
+    budget = max(p.memory_bytes for p in s.manifest.parts)
+    loc = SubmapLocalizer(s, rooms.camera, memory_budget=budget)
+    posed = {0: 0, 1: 0}
+    for i, (path, gt, room) in enumerate(zip(rooms.frames, rooms.gt, rooms.room)):
+        r = loc.localize(cv2.imread(str(path), cv2.IMREAD_GRAYSCALE), i / 30.0)
+        if r.status is not Status.LOST and r.cam_from_world is not None:
+            err = np.linalg.norm(r.cam_from_world.center - gt.center)
+            assert err < 0.02 * s.scene_scale, (i, err)  # never a pose in the wrong room
+            assert room_of_part[loc.part] == room
+            posed[room] += 1
+    loc.close()
+    assert posed[0] >= 4 and posed[1] >= 4, posed
+    assert loc.stats.max_resident_bytes <= budget

@@ -206,6 +206,8 @@ def run(args: argparse.Namespace) -> dict:
             parts_per_room=args.parts_per_room,
             ratio=args.ratio,
             log=_log,
+            overlap=args.overlap,
+            vote_fraction=args.vote_fraction,
         )
         if not args.parts - {"submaps"}:
             return out_sub

@@ -140,6 +140,8 @@ def run_submaps(
     ratio: float = 10.0,
     log: Any = print,
     keep_rows: bool = False,
+    overlap: float = 0.25,
+    vote_fraction: float = 0.02,
 ) -> dict[str, Any]:
     """The part: build (or reuse) the rooms, split, walk with both localizers, report."""
     import cv2
@@ -154,7 +156,20 @@ def run_submaps(
     whole_map = MapBundle(world.bundle)
     n_parts = max(1, int(round(rooms * parts_per_room)))
     t0 = time.perf_counter()
-    set_path = split_bundle(whole_map, work / "sets", f"{whole_map.name}-x{n_parts}", parts=n_parts)
+    set_path = work / "sets" / f"{whole_map.name}-x{n_parts}-o{overlap:g}-v{vote_fraction:g}"
+    try:  # reused when it is a split of this very build
+        reused = SubmapSet(set_path, verify=False)
+        if reused.manifest.source.get("build_id") != whole_map.build_id:
+            raise ValueError("stale")
+    except Exception:  # noqa: BLE001 - absent, stale or broken: split again
+        split_bundle(
+            whole_map,
+            work / "sets",
+            set_path.name,
+            parts=n_parts,
+            overlap=overlap,
+            vote_fraction=vote_fraction,
+        )
     split_s = time.perf_counter() - t0
     sset = SubmapSet(set_path)
     map_bytes = whole_map.memory_bytes()
@@ -206,6 +221,8 @@ def run_submaps(
         "rows": rows if keep_rows else None,
         "rooms": rooms,
         "parts": sset.n_parts,
+        "overlap": overlap,
+        "vote_fraction": vote_fraction,
         "split_s": round(split_s, 2),
         "map_memory_mb": round(map_bytes / 1e6, 2),
         "budget_mb": round(budget / 1e6, 2),
