@@ -306,3 +306,15 @@ def test_vote_finds_the_room_of_a_frame(tmp_path_factory):
     loc.close()
     assert posed[0] >= 4 and posed[1] >= 4, posed
     assert loc.stats.max_resident_bytes <= budget
+
+
+def test_scale_bench_takes_the_submap_options():
+    from sfmloc.bench.scale import parser
+
+    a = parser().parse_args(
+        ["--work", "w", "--parts", "submaps", "--rooms", "2", "--overlap", "0.5",
+         "--vote-fraction", "0.05", "--parts-per-room", "2"]
+    )  # fmt: skip
+    assert (a.rooms, a.overlap, a.vote_fraction, a.parts_per_room, a.ratio) == (
+        2, 0.5, 0.05, 2.0, 10.0
+    )  # fmt: skip

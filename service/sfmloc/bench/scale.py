@@ -258,6 +258,15 @@ def parser() -> argparse.ArgumentParser:
         "--parts-per-room", type=float, default=3.0, help="submaps: sub-maps per room (3)"
     )
     p.add_argument("--ratio", type=float, default=10.0, help="submaps: map memory / budget (10)")
+    p.add_argument(
+        "--overlap", type=float, default=0.25, help="submaps: map split --overlap (0.25)"
+    )
+    p.add_argument(
+        "--vote-fraction",
+        type=float,
+        default=0.02,
+        help="submaps: map split --vote-fraction (0.02)",
+    )
     p.add_argument("--out", help="write the results as JSON here too")
     return p
 
