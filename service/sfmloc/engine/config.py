@@ -78,6 +78,19 @@ class EngineConf(StrictModel):
     # 0.267, walk 0.264 -> 0.326, orbit 0.252 -> 0.323 cm. No wrong pose in any. 80:
     # redkitchen 0.317 cm but CPU x1.16.
     refill_3d: int = 60
+    # ... and while the 3D matches cover fewer than this fraction of the 4x4 image cells that
+    # have keypoints (0: off): a pose from points bunched in part of the image is poorly
+    # constrained however many they are (on an orbit at 10 Hz the error grew 0.18 -> 0.74 cm
+    # as the surviving matches fell from 217 to 75 and fell back at the refill). Measured with
+    # refill_3d 60, all frames, interleaved, 0 -> 0.6 (and against refill_3d 40 with 0, the
+    # code before both), median, CPU per frame: redkitchen frames 0-399 0.336 -> 0.306 cm
+    # (0.360 before), x1.02; frames 400-999 0.320 -> 0.313 (0.343), x1.02 (x1.10 before);
+    # synthetic walk 0.250 -> 0.236 (0.362), mean 0.48 -> 0.32, x1.05; walk at 10 Hz 0.326 ->
+    # 0.205 (0.264); orbit at 10 Hz 0.323 -> 0.288 (0.252); flight 0.289 -> 0.271 (0.306),
+    # x1.04 (x1.07); flight at 10 Hz 0.267 -> 0.258 (0.311); walk on the 3x map 0.406 ->
+    # 0.321 (0.381), mean 0.58 -> 0.40 (0.86), x1.06. No wrong pose in any. 0.8: better
+    # still on the synthetic videos but CPU x1.09-1.26.
+    refill_coverage: float = 0.6
     # Cluster voting: "sum" adds the strength of every neighbour (the literal reading of the
     # paper); "max" lets each query vote once per cluster, with its strongest neighbour there.
     # With PCA-32 DAISY the 50th neighbour is typically only 1.5x farther than the first, so

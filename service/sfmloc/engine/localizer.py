@@ -217,7 +217,7 @@ class Localizer:
 
         table, used = self._track_2d(prev, kps, pred.cam_from_world)
         eta = len(table)
-        if eta < c.kappa1 or table.n_3d() < c.refill_3d:
+        if eta < c.kappa1 or table.n_3d() < c.refill_3d or self._uncovered(table, kps):
             table = self._add_good_features(table, kps, used)
         timer.lap("track")
 
@@ -337,6 +337,21 @@ class Localizer:
         table.brief = kps.brief[used]
         table.age += 1
         return table, used
+
+    def _uncovered(self, table: TrackTable, kps: Keypoints) -> bool:
+        """Whether the 3D matches cover fewer than ``refill_coverage`` of the image cells (a
+        4x4 grid) that have keypoints: a pose from points bunched in one part of the image is
+        poorly constrained, however many they are."""
+        c = self.conf
+        if c.refill_coverage <= 0 or len(kps) == 0:
+            return False
+        size = np.array([self.camera.width, self.camera.height], np.float64)
+
+        def cells(xy: np.ndarray) -> int:
+            ij = np.clip((xy * (4.0 / size)).astype(np.int64), 0, 3)
+            return len(np.unique(ij[:, 1] * 4 + ij[:, 0]))
+
+        return cells(table.xy[table.point >= 0]) < c.refill_coverage * cells(kps.xy)
 
     def _add_good_features(self, table: TrackTable, kps: Keypoints, used: np.ndarray) -> TrackTable:
         """ADD-GOOD-FEATURES: keypoints away from every tracked one join the table, pending,
