@@ -109,6 +109,11 @@ class DescriptorIndex:
             chunk = descriptors[start : start + chunk_rows]
             self._index.add(np.ascontiguousarray(chunk, dtype=np.float32))
 
+    def write(self, path: str) -> None:
+        """The bytes ``serialize`` returns, written to ``path`` (no copy in memory: the
+        builder reads them back once the index is gone)."""
+        faiss.write_index(self._index, str(path))
+
     def serialize(self) -> np.ndarray:
         """The index as a uint8 array (faiss's own stable binary format), to store as .npy."""
         return faiss.serialize_index(self._index)
