@@ -15,7 +15,7 @@ import pytest
 from sfmloc.engine.localizer import Localizer
 from sfmloc.engine.submaps import SubmapLocalizer
 from sfmloc.engine.types import Status
-from sfmloc.errors import InputError
+from sfmloc.errors import BundleError, InputError
 from sfmloc.map.bundle import MapBundle
 from sfmloc.map.submaps import (
     SET_MANIFEST,
@@ -89,6 +89,12 @@ def test_split_by_max_points_and_overlap(room, tmp_path):
     for k in range(3):  # overlap only adds cameras
         assert set(s.part_images(0)) <= set(range(room.n_images))
         assert len(wide.part_images(k)) >= 1
+
+
+def test_a_bundle_is_not_a_set(room, tmp_path):
+    with pytest.raises(BundleError, match="not a sub-map set"):
+        SubmapSet(room.path)
+    assert any("not a sub-map set" in p for p in verify_submap_set(tmp_path))
 
 
 def test_translate_keeps_global_ids():

@@ -264,8 +264,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--vote-fraction",
         type=float,
-        default=0.02,
-        help="submaps: map split --vote-fraction (0.02)",
+        default=0.05,
+        help="submaps: map split --vote-fraction (0.05)",
     )
     p.add_argument("--out", help="write the results as JSON here too")
     return p

@@ -141,7 +141,7 @@ def run_submaps(
     log: Any = print,
     keep_rows: bool = False,
     overlap: float = 0.25,
-    vote_fraction: float = 0.02,
+    vote_fraction: float = 0.05,
 ) -> dict[str, Any]:
     """The part: build (or reuse) the rooms, split, walk with both localizers, report."""
     import cv2

@@ -178,8 +178,8 @@ def add_split_parser(msub: argparse._SubParsersAction) -> None:
     sp.add_argument(
         "--vote-fraction",
         type=float,
-        default=0.02,
-        help="share of every image's descriptors in the global place-recognition sample (0.02)",
+        default=0.05,
+        help="share of every image's descriptors in the global place-recognition sample (0.05)",
     )
     sp.set_defaults(func=run_split)
 
