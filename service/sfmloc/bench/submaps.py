@@ -183,6 +183,7 @@ def run_submaps(
         stamp = i / 30.0
         for name, loc in (("whole", whole), ("submaps", sub)):
             before = (sub.stats.switches, sub.stats.sync_loads, sub.stats.loads)
+            loading = bool(sub.loading_parts())
             t = time.perf_counter()
             r = loc.localize(gray, stamp)
             ms = (time.perf_counter() - t) * 1e3
@@ -193,6 +194,8 @@ def run_submaps(
                 after = (sub.stats.switches, sub.stats.sync_loads, sub.stats.loads)
                 row["switched"] = after[0] > before[0]
                 row["waited"] = after[1] > before[1]
+                # a part loading on the thread during this frame (it competes for the CPU)
+                row["beside_a_load"] = loading or bool(sub.loading_parts())
                 row["part"] = sub.part
                 row["resident_bytes"] = sub.resident_bytes()
             rows[name].append(row)
@@ -213,7 +216,10 @@ def run_submaps(
         }
 
     s_rows = rows["submaps"]
-    plain = [r["ms"] for r in s_rows if not r["switched"] and not r["waited"]]
+    plain = [
+        r["ms"] for r in s_rows if not r["switched"] and not r["waited"] and not r["beside_a_load"]
+    ]
+    beside = [r["ms"] for r in s_rows if r["beside_a_load"] and not r["waited"]]
     switched = [r["ms"] for r in s_rows if r["switched"] and not r["waited"]]
     waited = [r["ms"] for r in s_rows if r["waited"]]
     st = sub.stats
@@ -241,6 +247,10 @@ def run_submaps(
         "submaps": summary(s_rows),
         "ms_frames_plain_p99": float(np.percentile(plain, 99)) if plain else None,
         "ms_frames_switching_max": max(switched) if switched else None,
+        "frames_beside_a_background_load": len(beside),
+        "ms_frames_beside_a_background_load_max": max(beside) if beside else None,
+        "ms_frames_plain_median": float(np.median(plain)) if plain else None,
+        "ms_frames_beside_a_background_load_median": float(np.median(beside)) if beside else None,
         "ms_frames_waiting_for_a_load_max": max(waited) if waited else None,
         "load": os.getloadavg()[0],
     }

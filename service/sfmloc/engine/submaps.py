@@ -150,6 +150,11 @@ class SubmapLocalizer:
     def resident_parts(self) -> list[int]:
         return list(self._resident)
 
+    def loading_parts(self) -> list[int]:
+        """Parts being loaded on the loader thread."""
+        with self._lock:
+            return [k for k, f in self._loading.items() if not f.done()]
+
     def resident_bytes(self) -> int:
         """Bytes of the resident parts plus those being loaded (what the budget bounds)."""
         with self._lock:
