@@ -76,20 +76,21 @@ class EngineConf(StrictModel):
     # 0.282 -> 0.232 cm, x1.02; flight 0.306 -> 0.289 cm, x1.05; walk on the 3x map 0.381 ->
     # 0.406 cm (mean 0.86 -> 0.58 cm), x1.01; at 10 Hz (100 frames) mixed: flight 0.311 ->
     # 0.267, walk 0.264 -> 0.326, orbit 0.252 -> 0.323 cm. No wrong pose in any. 80:
-    # redkitchen 0.317 cm but CPU x1.16.
-    refill_3d: int = 60
+    # redkitchen 0.317 cm but CPU x1.16. With the coverage rule below, over all 1000
+    # redkitchen frames (one run, interleaved, CPU per frame against 40 without it): 60 median
+    # 0.339 -> 0.313 cm but CPU x1.12, over issue 9's +10%; 50: 0.326 cm, x1.10; 40: 0.326 cm,
+    # x1.06 (the synthetic walk: the same poses at 40, 50 and 60). So 40.
+    refill_3d: int = 40
     # ... and while the 3D matches cover fewer than this fraction of the 4x4 image cells that
     # have keypoints (0: off): a pose from points bunched in part of the image is poorly
     # constrained however many they are (on an orbit at 10 Hz the error grew 0.18 -> 0.74 cm
-    # as the surviving matches fell from 217 to 75 and fell back at the refill). Measured with
-    # refill_3d 60, all frames, interleaved, 0 -> 0.6 (and against refill_3d 40 with 0, the
-    # code before both), median, CPU per frame: redkitchen frames 0-399 0.336 -> 0.306 cm
-    # (0.360 before), x1.02; frames 400-999 0.320 -> 0.313 (0.343), x1.02 (x1.10 before);
-    # synthetic walk 0.250 -> 0.236 (0.362), mean 0.48 -> 0.32, x1.05; walk at 10 Hz 0.326 ->
-    # 0.205 (0.264); orbit at 10 Hz 0.323 -> 0.288 (0.252); flight 0.289 -> 0.271 (0.306),
-    # x1.04 (x1.07); flight at 10 Hz 0.267 -> 0.258 (0.311); walk on the 3x map 0.406 ->
-    # 0.321 (0.381), mean 0.58 -> 0.40 (0.86), x1.06. No wrong pose in any. 0.8: better
-    # still on the synthetic videos but CPU x1.09-1.26.
+    # as the surviving matches fell from 217 to 75 and fell back at the refill). Measured
+    # with refill_3d 40, all frames, one run, interleaved, 0 -> 0.6, median, CPU per frame:
+    # redkitchen frames 0-999 0.339 -> 0.326 cm (mean 0.447 -> 0.444, p90 0.81 -> 0.80),
+    # x1.06; frames 400-999 0.343 -> 0.332; synthetic walk 0.362 -> 0.236 (mean 0.56 ->
+    # 0.32, localized 98.7 -> 100%), x1.06; flight 0.306 -> 0.221, x1.07; flight at 10 Hz
+    # 0.311 -> 0.282, x0.97; walk on the 3x map 0.381 -> 0.321 (mean 0.86 -> 0.40), x1.05.
+    # No wrong pose in any. 0.7: better still on some, CPU x1.05-1.14.
     refill_coverage: float = 0.6
     # Cluster voting: "sum" adds the strength of every neighbour (the literal reading of the
     # paper); "max" lets each query vote once per cluster, with its strongest neighbour there.
