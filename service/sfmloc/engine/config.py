@@ -92,6 +92,31 @@ class EngineConf(StrictModel):
     # 0.311 -> 0.282, x0.97; walk on the 3x map 0.381 -> 0.321 (mean 0.86 -> 0.40), x1.05.
     # No wrong pose in any. 0.7: better still on some, CPU x1.05-1.14.
     refill_coverage: float = 0.6
+    # A second start for a tracked frame whose motion prediction may be wrong: TRACK-2D and
+    # ESTIMATE-POSE again from the last pose (no motion); more inliers win, two poses farther
+    # apart than a wrong pose on similar support (second_start_tie) give no pose. It runs when
+    # the prediction extrapolates over more than second_start_dt_ratio x the previous frame
+    # interval, or the tracked pose kept under second_start_inliers x the last posed frame's
+    # inliers (0: off). The reliability bench's lockstep canary (frames one video frame apart,
+    # stamped when sent) got wrong TRACKING poses 5-19% of the scene scale off after slow
+    # answers: the prediction overshot by 3-10 frames, and near-planar tracked matches allow a
+    # second pose near it which the prior-seeded refinement kept (40 of 49 matches within 3 px,
+    # so RANSAC was skipped; RANSAC's pose had 47). Same world, stalls of 0.1-0.35 s in 15% of
+    # the intervals (seeds 1, 3, 5; 300 frames), main 1cdd020 -> this: wrong 9/2/1 -> 0/0/0;
+    # 10% (seeds 1, 2; 600 frames): 2/17 -> 0/0. Redkitchen at 30 Hz: runs on 3 of 300 frames
+    # (0.8 instead of 0.5: 70 of 300), CPU per frame x1.01.
+    second_start_dt_ratio: float = 1.5
+    second_start_inliers: float = 0.5
+    second_start_tie: float = 0.8
+    # An unverified tracked pose is checked against RANSAC on its matches without the prior:
+    # a pose farther away than a wrong pose, on >= second_start_tie of the inliers and nearer
+    # the motion prediction, means the matches admit two solutions (near-planar points) and
+    # the motion does not side with ours: the frame is LOST. Robust walk at 3 Hz (main
+    # 1cdd020), frame 23: TRACKING 31.5 cm (11.6% of the scene scale) off on 31 inliers (30 of
+    # its 33 matches true), refined from a wrong first estimate; RANSAC's pose 0.8 cm off on
+    # 31. Without the "nearer the prediction" condition frame 13 (right, 63 inliers; RANSAC's
+    # 57 for a pose 0.83 scene scales away) was lost too. False: off.
+    ambiguity_check: bool = True
     # Cluster voting: "sum" adds the strength of every neighbour (the literal reading of the
     # paper); "max" lets each query vote once per cluster, with its strongest neighbour there.
     # With PCA-32 DAISY the 50th neighbour is typically only 1.5x farther than the first, so

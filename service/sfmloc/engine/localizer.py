@@ -195,6 +195,9 @@ class Localizer:
         self.unverified = False  # tracking from a relocalization not verified yet
         self.last_posed_stamp: float | None = None
         self.last_inliers = 0  # of the last posed frame
+        self.last_pose: Rigid3d | None = None  # cam_from_world of the last posed frame
+        self.interval = 0.0  # seconds from the frame before the last to the last
+        self.last_interval = 0.0  # the same one frame earlier
 
     # ------------------------------------------------------------------ algorithm 1
     def localize(self, frame: np.ndarray, stamp: float) -> FrameResult:
@@ -225,9 +228,14 @@ class Localizer:
         matching = Matching.NONE
         est: PoseEstimate | None = None
         relocalized = False
+        ambiguous = ""  # why the frame's tracked poses were not trusted
         if len(c1) > c.kappa2:
             table, est = self._estimate_pose(table, pred.cam_from_world, pred.dt)
             timer.lap("pose")
+            if self._doubtful(pred, est):
+                table, est, eta, ambiguous = self._second_start(prev, kps, table, est, eta, pred.dt)
+                c1 = _match_ids(table)
+                timer.lap("pose")
             if est is not None:
                 table = self._reverify(table, est.cam_from_world)
                 batch = self._pending_batch(table)
@@ -235,7 +243,8 @@ class Localizer:
                     table = self._guided_matching(table, batch, image, est.cam_from_world)
                     matching = Matching.GUIDED
                     timer.lap("match")
-        can_recover = c.prior_recovery and len(self.scope_points) > 0
+        # (not around a prediction the frame contradicts: global matching decides)
+        can_recover = c.prior_recovery and len(self.scope_points) > 0 and not ambiguous
         if est is None and pred.cam_from_world is not None and can_recover:
             recovered = self._recover(kps, image, pred.cam_from_world, self.scope_points)
             if recovered is not None:
@@ -260,13 +269,20 @@ class Localizer:
         # A pose is a promise: judge it by its covariance before anyone relies on it.
         cert = None if est is None else certainty(est, self.K, self.bundle, c)
         timer.lap("pose")
-        message = ""
+        message = ambiguous if est is None else ""
         if est is not None and cert is not None and not relocalized and not cert.verified:
             if est.num_inliers < self.conf.collapse_ratio * self.last_inliers:
                 table, est, cert, message = self._verify_collapse(kps, image, est, table)
                 if est is not None:
                     relocalized, matching = True, Matching.GLOBAL
                 timer.lap("reloc")
+        if est is not None and cert is not None and not relocalized and not cert.verified:
+            message = self._other_solution(table, est, pred.cam_from_world)
+            if message:
+                # the matches do not decide between two poses: none; the next frame relocalizes
+                _unmatch(table, slice(None))
+                est, cert = None, None
+            timer.lap("pose")
         if est is not None and cert is not None and relocalized:
             message = self._contradiction(est, cert, pred.cam_from_world, stamp)
             if message:
@@ -279,6 +295,7 @@ class Localizer:
             filtered = self._kalman_filter_update(est.cam_from_world, relocalized, stamp)
             self.last_posed_stamp = stamp
             self.last_inliers = est.num_inliers
+            self.last_pose = est.cam_from_world
             self.scope_points = table.point[table.point >= 0].copy()
         timer.lap("filter")
         self.table = table  # the one place the track table is stored for the next frame
@@ -312,6 +329,7 @@ class Localizer:
         """KALMAN-FILTER-PREDICT: the pose expected at ``stamp`` (the filter and the clock
         move to ``stamp``)."""
         dt = 0.0 if self.last_stamp is None else stamp - self.last_stamp
+        self.last_interval, self.interval = self.interval, dt
         pred = self.filter.predict(stamp)
         self.last_stamp = stamp
         self.frames += 1
@@ -398,6 +416,94 @@ class Localizer:
             return table, None
         _unmatch(table, rows[~est.inlier_mask])
         return table, est
+
+    def _doubtful(self, pred: Prediction, est: PoseEstimate | None) -> bool:
+        """Whether the frame's tracked pose may rest on a wrong motion prediction: the
+        prediction extrapolates over a longer interval than the motion was measured on, or the
+        tracked pose kept too few of the last posed frame's inliers (or failed)."""
+        c = self.conf
+        if c.second_start_inliers <= 0 or self.last_pose is None or pred.cam_from_world is None:
+            return False
+        longer = self.last_interval > 0 and pred.dt > c.second_start_dt_ratio * self.last_interval
+        dropped = est is None or est.num_inliers < c.second_start_inliers * self.last_inliers
+        return longer or dropped
+
+    def _second_start(
+        self,
+        prev: TrackTable,
+        kps: Keypoints,
+        table: TrackTable,
+        est: PoseEstimate | None,
+        eta: int,
+        dt: float,
+    ) -> tuple[TrackTable, PoseEstimate | None, int, str]:
+        """TRACK-2D and ESTIMATE-POSE once more, started from the last posed frame's pose
+        instead of the prediction (no motion). A prediction that overshoots puts the tracking
+        windows on wrong corners and seeds the pose in the wrong one of the two solutions that
+        near-planar matches allow; its pose then explains fewer matches. The start whose pose
+        has more inliers wins (the prediction's on a tie). Two poses farther apart than a
+        wrong pose (``contradiction_position``, ``contradiction_deg``) on similar support
+        (``second_start_tie``) are no pose: the frame cannot tell which is right.
+        Returns the table, pose and tracked count chosen, and why there is no pose."""
+        assert self.last_pose is not None
+        c = self.conf
+        table_b, used = self._track_2d(prev, kps, self.last_pose)
+        eta_b = len(table_b)
+        if eta_b < c.kappa1 or table_b.n_3d() < c.refill_3d:
+            table_b = self._add_good_features(table_b, kps, used)
+        if table_b.n_3d() <= c.kappa2:
+            return table, est, eta, ""
+        table_b, est_b = self._estimate_pose(table_b, self.last_pose, dt)
+        if est_b is None:
+            return table, est, eta, ""
+        if est is None:
+            return table_b, est_b, eta_b, ""
+        dpos, drot = self._apart(est.cam_from_world, est_b.cam_from_world)
+        few, many = sorted((est.num_inliers, est_b.num_inliers))
+        apart = dpos > c.contradiction_position or drot > c.contradiction_deg
+        if apart and few >= c.second_start_tie * many:
+            _unmatch(table, slice(None))
+            why = (
+                f"ambiguous: {est.num_inliers} inliers from the motion prediction and "
+                f"{est_b.num_inliers} from the last pose, {dpos:.2f} scene scales / "
+                f"{drot:.0f} deg apart"
+            )
+            return table, None, eta, why
+        if est_b.num_inliers > est.num_inliers:
+            return table_b, est_b, eta_b, ""
+        return table, est, eta, ""
+
+    def _apart(self, a: Rigid3d, b: Rigid3d) -> tuple[float, float]:
+        """How far apart two poses are: centres in scene scales, rotation in degrees."""
+        dpos = float(np.linalg.norm(a.center - b.center)) / self.bundle.scene_scale
+        return dpos, rotation_angle_deg(a.rotation, b.rotation)
+
+    def _other_solution(self, table: TrackTable, est: PoseEstimate, pred: Rigid3d | None) -> str:
+        """Why an unverified tracked pose is not published (or ""): RANSAC on its matches,
+        without the prior, finds a pose farther from it than a wrong pose
+        (``contradiction_position``, ``contradiction_deg``) on at least ``second_start_tie``
+        of its inliers, and nearer the motion prediction than it. Near-planar matches admit
+        two solutions; the motion decides between them, and here it does not side with ours."""
+        c = self.conf
+        rows, pts = table.matches()
+        if not c.ambiguity_check or len(rows) <= c.kappa2:
+            return ""
+        xy, X = self._undistort(table.xy[rows]), self.bundle.points_xyz[pts]
+        other = estimate_pose(xy, X, self.K, c.ransac())
+        if other is None or other.num_inliers < c.second_start_tie * est.num_inliers:
+            return ""
+        dpos, drot = self._apart(est.cam_from_world, other.cam_from_world)
+        if dpos <= c.contradiction_position and drot <= c.contradiction_deg:
+            return ""
+        if pred is not None:
+            ours = self._apart(est.cam_from_world, pred)
+            theirs = self._apart(other.cam_from_world, pred)
+            if ours[0] <= theirs[0] and ours[1] <= theirs[1]:
+                return ""  # the other solution is farther from the motion: ours stands
+        return (
+            f"ambiguous: {est.num_inliers} inliers from the motion prior, {other.num_inliers} "
+            f"for a pose {dpos:.2f} scene scales / {drot:.0f} deg away"
+        )
 
     def _reverify(self, table: TrackTable, pose: Rigid3d) -> TrackTable:
         """Stored hypotheses of unmatched tracked keypoints, checked against the new pose."""
