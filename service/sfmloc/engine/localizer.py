@@ -449,7 +449,7 @@ class Localizer:
         c = self.conf
         table_b, used = self._track_2d(prev, kps, self.last_pose)
         eta_b = len(table_b)
-        if eta_b < c.kappa1 or table_b.n_3d() < c.refill_3d:
+        if eta_b < c.kappa1 or table_b.n_3d() < c.refill_3d or self._uncovered(table_b, kps):
             table_b = self._add_good_features(table_b, kps, used)
         if table_b.n_3d() <= c.kappa2:
             return table, est, eta, ""
