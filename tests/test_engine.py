@@ -631,7 +631,7 @@ def test_no_wrong_tracked_pose_when_the_motion_prediction_overshoots(world, bund
 
     bad, posed = wrong(EngineConf())
     assert bad == [] and posed >= 0.97 * len(frames)
-    bad_off, _ = wrong(EngineConf(second_start_inliers=0, ambiguity_check=False))
+    bad_off, _ = wrong(EngineConf(second_start_dt_ratio=0, ambiguity_check=False))
     assert bad_off and all(status == "TRACKING" for _, status in bad_off)
 
 

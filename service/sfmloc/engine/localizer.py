@@ -422,7 +422,7 @@ class Localizer:
         prediction extrapolates over a longer interval than the motion was measured on, or the
         tracked pose kept too few of the last posed frame's inliers (or failed)."""
         c = self.conf
-        if c.second_start_inliers <= 0 or self.last_pose is None or pred.cam_from_world is None:
+        if c.second_start_dt_ratio <= 0 or self.last_pose is None or pred.cam_from_world is None:
             return False
         longer = self.last_interval > 0 and pred.dt > c.second_start_dt_ratio * self.last_interval
         dropped = est is None or est.num_inliers < c.second_start_inliers * self.last_inliers
