@@ -319,17 +319,7 @@ def write_bundle(
             arrays=entries,
             keypoint_scales=data.keypoint_scales or _computed_keypoint_scales(data, params or {}),
         )
-        text = manifest.model_dump_json(indent=2).encode()
-        for fname, content in (
-            (MANIFEST, text),
-            (MANIFEST_SHA256, f"{hashlib.sha256(text).hexdigest()}  {MANIFEST}\n".encode()),
-        ):
-            with open(tmp / fname, "wb") as f:
-                f.write(content)
-                f.flush()
-                os.fsync(f.fileno())
-        _fsync_dir(tmp)
-        swap_into_place(tmp, final)
+        publish(tmp, final, manifest, MANIFEST, MANIFEST_SHA256)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
@@ -337,6 +327,23 @@ def write_bundle(
 
 
 _RENAME_EXCHANGE = 2
+
+
+def publish(tmp: Path, final: Path, manifest: BaseModel, name: str, sha_name: str) -> None:
+    """Finish a folder written in ``tmp``: its manifest as ``name`` and the manifest's checksum
+    as ``sha_name`` (``sha256sum -c`` format), everything on disk, then ``tmp`` swapped into
+    ``final`` (bundles and sub-map sets)."""
+    text = manifest.model_dump_json(indent=2).encode()
+    for fname, content in (
+        (name, text),
+        (sha_name, f"{hashlib.sha256(text).hexdigest()}  {name}\n".encode()),
+    ):
+        with open(tmp / fname, "wb") as f:
+            f.write(content)
+            f.flush()
+            os.fsync(f.fileno())
+    _fsync_dir(tmp)
+    swap_into_place(tmp, final)
 
 
 def swap_into_place(tmp: Path, final: Path) -> None:

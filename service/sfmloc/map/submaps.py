@@ -105,11 +105,10 @@ from .bundle import (
     ArrayEntry,
     MapBundle,
     MapData,
-    _fsync_dir,
     _read_small_file,
     _sha256,
+    publish,
     read_manifest,
-    swap_into_place,
     validate_name,
     verify_bundle,
     write_bundle,
@@ -460,17 +459,7 @@ def split_bundle(
             parts=part_entries,
             arrays=entries,
         )
-        text = manifest.model_dump_json(indent=2).encode()
-        for fname, content in (
-            (SET_MANIFEST, text),
-            (SET_SHA256, f"{hashlib.sha256(text).hexdigest()}  {SET_MANIFEST}\n".encode()),
-        ):
-            with open(tmp / fname, "wb") as f:
-                f.write(content)
-                f.flush()
-                os.fsync(f.fileno())
-        _fsync_dir(tmp)
-        swap_into_place(tmp, final)
+        publish(tmp, final, manifest, SET_MANIFEST, SET_SHA256)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
