@@ -38,7 +38,7 @@ from ..threads import pin_threads_env, single_thread_env
 from . import protocol as P
 from .logfmt import event
 from .worker import worker_main
-from .zygote import Zygote, set_process_name
+from .zygote import Zygote, relay_stderr, set_process_name
 
 log = logging.getLogger(__name__)
 
@@ -621,19 +621,7 @@ class _Process:
 
     def _pump(self) -> None:
         assert self.popen.stderr is not None
-        out = getattr(sys.stderr, "buffer", None)
-        for line in iter(self.popen.stderr.readline, b""):
-            text = line.decode("utf-8", "replace").strip()
-            if text:
-                self.last_line = text[-300:]
-            try:
-                if out is not None:
-                    out.write(line)
-                    out.flush()
-                else:
-                    sys.stderr.write(line.decode("utf-8", "replace"))
-            except (OSError, ValueError):
-                pass
+        relay_stderr(self.popen.stderr, self)
 
     def join(self, timeout: float | None = None) -> None:
         try:

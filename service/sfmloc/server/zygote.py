@@ -52,6 +52,26 @@ BOOTSTRAP = (
 
 
 # ============================================================================ server side
+
+
+def relay_stderr(stream: Any, holder: Any) -> None:
+    """Copy a child's stderr ``stream`` (binary, line by line) to ours until it closes, keeping
+    its last non-empty line (at most 300 characters) in ``holder.last_line``: why it died."""
+    out = getattr(sys.stderr, "buffer", None)
+    for line in iter(stream.readline, b""):
+        text = line.decode("utf-8", "replace").strip()
+        if text:
+            holder.last_line = text[-300:]
+        try:
+            if out is not None:
+                out.write(line)
+                out.flush()
+            else:
+                sys.stderr.write(line.decode("utf-8", "replace"))
+        except (OSError, ValueError):
+            pass
+
+
 class ForkedWorker:
     """A worker forked by the zygote, with the ``Popen``-like methods the pool uses. Its exit
     status comes from the zygote (it is the zygote's child, not ours)."""
@@ -66,20 +86,8 @@ class ForkedWorker:
 
     def _pump(self, fd: int) -> None:
         """Passes the worker's stderr through to ours and keeps its last line (why it died)."""
-        out = getattr(sys.stderr, "buffer", None)
         with os.fdopen(fd, "rb") as f:
-            for line in iter(f.readline, b""):
-                text = line.decode("utf-8", "replace").strip()
-                if text:
-                    self.last_line = text[-300:]
-                try:
-                    if out is not None:
-                        out.write(line)
-                        out.flush()
-                    else:
-                        sys.stderr.write(line.decode("utf-8", "replace"))
-                except (OSError, ValueError):
-                    pass
+            relay_stderr(f, self)
 
     def _set_exit(self, code: int) -> None:
         self._code = code
