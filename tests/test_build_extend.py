@@ -232,3 +232,41 @@ def test_an_index_extended_in_place_finds_the_added_descriptors():
     if shared.shared_buffer is not None:
         with pytest.raises(ValueError, match="read-only"):
             shared.add(x[:10])
+
+
+def test_system_and_opencv_failures_are_build_errors_naming_the_stage(tmp_path):
+    """One mapping for build.main and extend: a real OpenCV assertion (cv2.remap's map size
+    limit), a real OSError and MemoryError become a BuildError naming the running stage."""
+    import cv2
+
+    from sfmloc.builder.build import StageProgress, build_errors
+
+    seen = []
+    stages = StageProgress(lambda st, f, m: seen.append(st))
+    stages("descriptors", 0.5, "")
+    assert seen == ["descriptors"]
+    big = np.zeros((40000, 1), np.float32)  # over SHRT_MAX rows: OpenCV asserts
+    with pytest.raises(BuildError, match="OpenCV failed") as e:
+        with build_errors(stages, tmp_path):
+            cv2.remap(np.zeros((4, 4), np.uint8), big, big, cv2.INTER_LINEAR)
+    assert e.value.stage == "descriptors"
+    stages("write", 0.0, "")
+    with pytest.raises(BuildError, match="nowhere") as e:
+        with build_errors(stages, tmp_path):
+            open(tmp_path / "nowhere" / "x", "rb")
+    assert e.value.stage == "write"
+    with pytest.raises(BuildError, match="out of memory") as e:
+        with build_errors(stages, tmp_path):
+            raise MemoryError
+    assert e.value.stage == "write"
+
+
+def test_an_extension_that_cannot_be_written_is_a_write_error(maps, room, tmp_path):
+    from sfmloc.builder.extend import extend
+
+    out, base_path, _, _ = maps
+    blocker = tmp_path / "a-file"
+    blocker.write_text("not a folder")
+    with pytest.raises(BuildError) as e:
+        extend(base_path, "x", blocker / "maps", colmap=out / "sparse-b", images=room / "images")
+    assert e.value.stage == "write" and "a-file" in str(e.value), e.value

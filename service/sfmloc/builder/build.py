@@ -25,7 +25,8 @@ import logging
 import os
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -107,6 +108,42 @@ def preset(name: str) -> BuildConf:
 
 def _noop(stage: str, fraction: float, message: str) -> None:
     pass
+
+
+class StageProgress:
+    """A progress callback that passes reports on and remembers the stage running now, so
+    that an error can name it."""
+
+    def __init__(self, progress: Progress | None = None, stage: str = "input") -> None:
+        self.stage = stage
+        self._user = progress or _noop
+
+    def __call__(self, stage: str, fraction: float, message: str) -> None:
+        self.stage = stage
+        self._user(stage, fraction, message)
+
+
+@contextmanager
+def build_errors(stages: StageProgress, out_dir: str | Path) -> Iterator[None]:
+    """System and OpenCV failures inside as a ``BuildError`` naming the stage (not a
+    traceback): a full disk or permissions (``OSError``, with the file), an OpenCV limit or
+    assertion (e.g. an image too large for one call), running out of memory. One mapping for
+    every builder entry point (``main``, ``extend.extend``)."""
+    try:
+        yield
+    except OSError as exc:
+        raise BuildError(
+            f"{exc.strerror or exc} ({exc.filename or out_dir})", stage=stages.stage
+        ) from None
+    except cv2.error as exc:
+        # The detail is in the message's last line.
+        detail = str(exc).strip().splitlines()[-1] if str(exc).strip() else repr(exc)
+        raise BuildError(f"OpenCV failed: {detail}", stage=stages.stage) from None
+    except MemoryError:
+        raise BuildError(
+            "out of memory (fewer or smaller images, --preset fast, or a machine with more memory)",
+            stage=stages.stage,
+        ) from None
 
 
 def release_freed_memory() -> None:
@@ -508,13 +545,7 @@ def main(
     from . import sfm  # pycolmap is only needed here
 
     validate_name(name)
-    user_progress = progress or _noop
-    stage = ["input"]  # the stage running now, to name it in errors
-
-    def progress(st: str, fraction: float, message: str) -> None:
-        stage[0] = st
-        user_progress(st, fraction, message)
-
+    stages = StageProgress(progress)  # names the running stage in errors
     if images is None:
         raise BuildError("an image folder is required (--images)", stage="input")
     image_dir = Path(images)
@@ -524,14 +555,14 @@ def main(
     timings: dict[str, float] = {}
     t_all = time.perf_counter()
     t0 = t_all
-    try:
+    with build_errors(stages, out_dir):
         if colmap is not None:
             if poses is not None:
                 raise BuildError("give either --colmap or --poses, not both", stage="input")
             source = {"kind": "colmap", "model": str(colmap), "images": str(image_dir)}
-            progress("sfm", 0.0, f"reading COLMAP model {colmap}")
+            stages("sfm", 0.0, f"reading COLMAP model {colmap}")
             rec = sfm.load_colmap_input(
-                colmap, image_dir, conf=sfm_conf, progress=progress, should_cancel=should_cancel
+                colmap, image_dir, conf=sfm_conf, progress=stages, should_cancel=should_cancel
             )
         elif poses is not None:
             if cam is None:
@@ -551,7 +582,7 @@ def main(
                 cam,
                 conf=sfm_conf,
                 workdir=workdir,
-                progress=progress,
+                progress=stages,
                 should_cancel=should_cancel,
                 stride=stride,
             )
@@ -562,22 +593,22 @@ def main(
                 cam,
                 conf=sfm_conf,
                 workdir=workdir,
-                progress=progress,
+                progress=stages,
                 should_cancel=should_cancel,
                 stride=stride,
             )
         source.update(source_extra or {})
-        progress("sfm", 1.0, rec.summary())
+        stages("sfm", 1.0, rec.summary())
         timings["sfm"] = time.perf_counter() - t0
         log.info("reconstruction: %s", rec.summary())
         data, t_stages, index_info = assemble(
-            rec, image_dir, conf, progress, should_cancel, workdir=workdir
+            rec, image_dir, conf, stages, should_cancel, workdir=workdir
         )
         timings.update(t_stages)
         if should_cancel and should_cancel():
             raise BuildCancelled("cancelled", stage="write")
         t0 = time.perf_counter()
-        progress("write", 0.0, f"writing {Path(out_dir) / name}")
+        stages("write", 0.0, f"writing {Path(out_dir) / name}")
         params = conf.model_dump()
         if sfm_conf is not None and hasattr(sfm_conf, "model_dump"):
             params["sfm"] = sfm_conf.model_dump()
@@ -605,20 +636,5 @@ def main(
             index_info=index_info,
             report=report,
         )
-        progress("write", 1.0, str(path) + "".join(f"; WARNING: {w}" for w in report["warnings"]))
+        stages("write", 1.0, str(path) + "".join(f"; WARNING: {w}" for w in report["warnings"]))
         return path
-    except OSError as exc:
-        # A full disk, permissions, ...: name the file and the stage.
-        raise BuildError(
-            f"{exc.strerror or exc} ({exc.filename or out_dir})", stage=stage[0]
-        ) from None
-    except cv2.error as exc:
-        # An OpenCV limit or assertion (e.g. an image too large for one call) is a build error
-        # naming the stage, not a traceback; the detail is in the message's last line.
-        detail = str(exc).strip().splitlines()[-1] if str(exc).strip() else repr(exc)
-        raise BuildError(f"OpenCV failed: {detail}", stage=stage[0]) from None
-    except MemoryError:
-        raise BuildError(
-            "out of memory (fewer or smaller images, --preset fast, or a machine with more memory)",
-            stage=stage[0],
-        ) from None

@@ -42,12 +42,13 @@ from .build import (
     BuildConf,
     CancelCheck,
     Progress,
+    StageProgress,
     _clusters,
     _describe,
     _lookups,
     _map_data,
-    _noop,
     _Part,
+    build_errors,
 )
 from .desc_store import RawStore
 from .refine import refine_points
@@ -84,13 +85,7 @@ def extend(
     from . import sfm
 
     validate_name(name)
-    user_progress = progress or _noop
-    stage = ["input"]
-
-    def report(st: str, fraction: float, message: str) -> None:
-        stage[0] = st
-        user_progress(st, fraction, message)
-
+    report = StageProgress(progress)  # names the running stage in errors
     t_all = time.perf_counter()
     image_dir = Path(images)
     if not image_dir.is_dir():
@@ -109,7 +104,7 @@ def extend(
     cam = Camera.parse(camera) if isinstance(camera, (str, Path)) else camera
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
-    try:
+    with build_errors(report, out_dir):
         if colmap is not None:
             source: dict[str, Any] = {"kind": "colmap", "model": str(colmap)}
             rec = sfm.load_colmap_input(
@@ -202,12 +197,6 @@ def extend(
         )
         report("write", 1.0, str(path) + "".join(f"; WARNING: {w}" for w in rep["warnings"]))
         return path
-    except OSError as exc:
-        raise BuildError(
-            f"{exc.strerror or exc} ({exc.filename or out_dir})", stage=stage[0]
-        ) from None
-    except MemoryError:
-        raise BuildError("out of memory", stage=stage[0]) from None
 
 
 def _nearby_points(

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import Any
 
 DESCRIPTION = """\
 Build a map bundle (the paper's offline stage): multi-scale Harris + oriented DAISY descriptors
@@ -255,36 +256,24 @@ def run(args: argparse.Namespace) -> int:
     try:
         if args.video:
             path = _build_video(args, conf, sconf, bar)
-        elif args.extend:
-            from ..builder.extend import extend
-
-            path = extend(
-                args.extend,
-                args.name,
-                args.out,
-                images=args.images,
-                poses=args.poses,
-                camera=args.camera,
-                colmap=args.colmap,
-                sfm_conf=sconf,
-                stride=args.stride,
-                workdir=args.workdir,
-                progress=bar,
-            )
         else:
-            path = main(
-                conf,
-                args.name,
-                args.out,
-                colmap=args.colmap,
-                images=args.images,
-                poses=args.poses,
-                camera=args.camera,
-                sfm_conf=sconf,
-                stride=args.stride,
-                workdir=args.workdir,
-                progress=bar,
-            )
+            # The same inputs either way: a new bundle, or the images added to --extend's.
+            inputs: dict[str, Any] = {
+                "images": args.images,
+                "poses": args.poses,
+                "camera": args.camera,
+                "colmap": args.colmap,
+                "sfm_conf": sconf,
+                "stride": args.stride,
+                "workdir": args.workdir,
+                "progress": bar,
+            }
+            if args.extend:
+                from ..builder.extend import extend
+
+                path = extend(args.extend, args.name, args.out, **inputs)
+            else:
+                path = main(conf, args.name, args.out, **inputs)
         if aligning:
             path = _align_built(args, path, final_out)
     finally:
