@@ -130,17 +130,30 @@ def memory_part(work: Path, views: list[int]) -> dict:
 def density_part(work: Path, data: Path, frames: int, strides: list[int], n_reloc: int) -> dict:
     """Maps from every n-th frame, densest last: points, replay, relocalization per map, and
     whether each never decreases as images are added."""
-    from .density import build_map, evaluate
+    from .density import build_map, evaluate, interleaved_cpu
 
-    rows = []
+    rows, bundles = [], []
     for stride in sorted(strides, reverse=True):
         bundle, secs = build_map(work / "density", data, frames, stride, "geometric")
         row = {"stride": stride, "build_s": round(secs), **evaluate(bundle, data, frames, n_reloc)}
         rows.append(row)
+        bundles.append(bundle)
         print(json.dumps(row), flush=True)
     keys = ("points", "replay_localized_pct", "reloc_ok")
     monotone = {k: all(b[k] >= a[k] for a, b in zip(rows, rows[1:])) for k in keys}
-    return {"rows": rows, "never_decreases": monotone}
+    out: dict[str, Any] = {"rows": rows, "never_decreases": monotone}
+    if len(rows) > 1:
+        # The densest map's time against the sparsest's: replayed side by side (the rows'
+        # times are each measured at another moment of a shared machine's load).
+        dense, sparse = interleaved_cpu([bundles[-1], bundles[0]], data, frames)
+        out["interleaved"] = {
+            "densest": dense,
+            "sparsest": sparse,
+            "cpu_mean_ratio": round(dense["cpu_ms_mean"] / sparse["cpu_ms_mean"], 3),
+            "cpu_p99_ratio": round(dense["cpu_ms_p99"] / sparse["cpu_ms_p99"], 3),
+        }
+        print(json.dumps(out["interleaved"]), flush=True)
+    return out
 
 
 def _encode_video(data: Path, names: list[str], path: Path, fps: float = 30.0) -> Path:
@@ -279,16 +292,27 @@ def report_lines(res: dict[str, Any]) -> list[str]:
         L += [
             "maps per input density (redkitchen, known poses):",
             "",
-            "| every | points | localized % | wrong | reloc | ms/frame |",
-            "|---|---|---|---|---|---|",
+            "| every | images | points | localized % | wrong | global frames | reloc | "
+            "ms/frame mean | p99 | CPU ms mean |",
+            "|---|---|---|---|---|---|---|---|---|---|",
         ]
         for r in d["rows"]:
             L.append(
-                f"| {r['stride']} | {r['points']} | {r['replay_localized_pct']} | "
-                f"{r['replay_wrong']} | {r['reloc_ok']}/{r['reloc_of']} | "
-                f"{r['mean_ms_per_frame']} |"
+                f"| {r['stride']} | {r['images']} | {r['points']} | {r['replay_localized_pct']} | "
+                f"{r['replay_wrong']} | {r['replay_global_frames']} | "
+                f"{r['reloc_ok']}/{r['reloc_of']} | {r['mean_ms_per_frame']} | "
+                f"{r.get('p99_ms_per_frame', '-')} | {r.get('mean_cpu_ms_per_frame', '-')} |"
             )
         L += ["", f"never decreases as images are added: {d['never_decreases']}", ""]
+        il = d.get("interleaved")
+        if il:
+            L += [
+                f"densest vs sparsest map, replayed interleaved frame by frame: CPU ms per frame "
+                f"mean {il['densest']['cpu_ms_mean']} vs {il['sparsest']['cpu_ms_mean']} "
+                f"(x{il['cpu_mean_ratio']}; target <= 1.1), p99 {il['densest']['cpu_ms_p99']} "
+                f"vs {il['sparsest']['cpu_ms_p99']} (x{il['cpu_p99_ratio']})",
+                "",
+            ]
     v = res.get("video")
     if v:
         L += [

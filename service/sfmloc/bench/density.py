@@ -106,9 +106,48 @@ def evaluate(bundle_dir: Path, data: Path, frames: int, n_reloc: int) -> dict:
         "replay_wrong": s["confident_wrong"],
         "replay_global_frames": s["global_frames"],
         "mean_ms_per_frame": round(s["latency_ms"]["mean"], 1),
+        "p99_ms_per_frame": round(s["latency_ms"]["p99"], 1),
+        "mean_cpu_ms_per_frame": round(float(np.mean([r.cpu_ms for r in recs])), 1),
         "reloc_ok": ok,
         "reloc_of": n_reloc,
     }
+
+
+def interleaved_cpu(bundle_dirs: list[Path], data: Path, frames: int) -> list[dict]:
+    """The 30 Hz replay of the first ``frames`` frames through one ``Localizer`` per bundle,
+    interleaved frame by frame (the order alternating), so that the machine's load falls on
+    all alike: per bundle the CPU ms per frame (mean, p99) and the frames localized. Only
+    these same-run numbers compare the maps' times (issue 17's target: the every-frame map
+    within 10% of the every-10th's)."""
+    from ..cameras import Camera
+    from ..engine import EngineConf, Localizer
+    from ..eval.metrics import is_pose
+    from ..io.frames import FrameSource
+    from ..map.bundle import MapBundle
+
+    cam = Camera.parse(REDKITCHEN_CAMERA)
+    locs = [Localizer(MapBundle(b, verify=False), cam, EngineConf()) for b in bundle_dirs]
+    cpu: list[list[float]] = [[] for _ in locs]
+    ok = [0] * len(locs)
+    for frame in FrameSource(data):
+        if frame.index >= frames:
+            break
+        order = range(len(locs)) if frame.index % 2 == 0 else reversed(range(len(locs)))
+        for k in order:
+            c0 = time.process_time()
+            res = locs[k].localize(frame.image, frame.stamp)
+            cpu[k].append((time.process_time() - c0) * 1e3)
+            ok[k] += is_pose(res.status)
+    return [
+        {
+            "bundle": Path(b).name,
+            "cpu_ms_mean": round(float(np.mean(c)), 2),
+            "cpu_ms_p99": round(float(np.percentile(c, 99)), 2),
+            "localized": ok[k],
+            "frames": len(c),
+        }
+        for k, (b, c) in enumerate(zip(bundle_dirs, cpu))
+    ]
 
 
 def main(argv: list[str] | None = None) -> int:
