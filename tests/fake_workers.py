@@ -99,7 +99,18 @@ class FakeWorkers:
                     return
                 P.TO_SERVER.send(
                     conn,
-                    P.Result(msg.sid, msg.seq, msg.stamp_ns, msg.gen, "b", pose(), None, 0.1, 1.0),
+                    P.Result(
+                        msg.sid,
+                        msg.seq,
+                        msg.stamp_ns,
+                        msg.gen,
+                        "b",
+                        pose(),
+                        None,
+                        0.1,
+                        1.0,
+                        msg.ticket,
+                    ),
                 )
             elif isinstance(msg, P.Relocalize):
                 if msg.encoding == "die":

@@ -36,7 +36,7 @@ def test_reliability_tiny_run_computes_every_field(world, tmp_path):
             "--fuzz",
             "200",
             "--kills",
-            "1",
+            "2",  # one of a worker, one of its replacement while it loads
             "--clients",
             "1",
             "--interval",
@@ -75,7 +75,8 @@ def test_reliability_tiny_run_computes_every_field(world, tmp_path):
     assert cb["sent"] >= 1 and cb["localized"] <= cb["answered"] <= cb["sent"]
 
     k = res["kill"]
-    assert k["kills"] == 1 and k["clients"] == 1 and k["sent"] >= 1
+    assert k["kills"] == 2 and k["loading_kills"] == 1 and k["clients"] == 1 and k["sent"] >= 1
+    assert k["log"]["worker_lost"] == 2 and isinstance(k["log"]["problems"], list)
     assert k["answered"] + k["dropped_stale"] + k["unanswered"] >= k["answered"]
     assert math.isfinite(k["max_gap_s"]) and k["max_gap_s"] > 0
     assert isinstance(k["zombies_after_1s_max"], int) and isinstance(k["restarts"], int)
@@ -197,3 +198,33 @@ def test_reliability_restart_and_soak_parts_compute_every_field(world, tmp_path)
     lines = rel.table(res)
     assert any(ln.startswith("restart: SERVING after") for ln in lines)
     assert any(ln.startswith("soak: sessions max / left") for ln in lines)
+
+
+def test_kill_log_check_reads_what_the_log_says():
+    from sfmloc.bench.reliability import kill_log_check
+
+    def lost(pid, gen, start, code="-9", worker="0"):
+        return {
+            "pid": str(pid),
+            "worker": worker,
+            "gen": str(gen),
+            "exitcode": code,
+            "during_start": "true" if start else "false",
+        }
+
+    killed = [(10, False), (11, True)]
+    restarted = [{"worker": "0", "gen": "3"}]
+    ok = kill_log_check(killed, [lost(10, 1, False), lost(11, 2, True)], restarted, [])
+    assert ok["ok"] and ok["during_start"] == 1 and ok["worker_lost"] == 2
+    # a replacement logged as if it had served; a kill the log never mentions
+    bad = kill_log_check(killed, [lost(10, 1, False), lost(11, 2, False)], restarted, [])
+    assert not bad["ok"] and "pid 11: during_start=false" in bad["problems"][0]
+    assert not kill_log_check(killed, [lost(10, 1, False)], restarted, [])["ok"]
+    # the last generation lost was never followed by a restart that served
+    assert not kill_log_check(killed, [lost(10, 1, False), lost(11, 2, True)], [], [])["ok"]
+    # exit codes other than the kill's, generations out of order, a given-up worker
+    assert not kill_log_check([(10, False)], [lost(10, 1, False, code="null")], restarted, [])["ok"]
+    assert not kill_log_check(killed, [lost(11, 2, True), lost(10, 1, False)], restarted, [])["ok"]
+    assert not kill_log_check(killed, [lost(10, 1, False), lost(11, 2, True)], restarted, [{}])[
+        "ok"
+    ]

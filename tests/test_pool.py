@@ -49,7 +49,7 @@ class _Pool:
 
     def frame(self, worker: int, sid: int, seq: int, encoding: str = "gray8") -> None:
         self.pool.submit_frame(
-            worker, P.LocalizeFrame(sid, "a", 1, seq, seq * 10, CAM, encoding, b"x")
+            worker, P.LocalizeFrame(sid, "a", 1, seq, seq * 10, CAM, encoding, data=b"x")
         )
 
     def kill(self, worker: int) -> None:

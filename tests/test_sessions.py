@@ -72,6 +72,7 @@ def _answer(sm: SessionManager, msg: P.LocalizeFrame, status: str = "TRACKING") 
             None,
             0.1,
             1.0,
+            msg.ticket,
         )
     )
 
@@ -90,6 +91,48 @@ def test_latest_frame_only_one_in_the_worker_and_the_newest_waiting(env):
     assert [(p.seq, p.status, p.dropped) for p in got] == [(0, "TRACKING", 2), (3, "TRACKING", 2)]
     assert got[0].build_id == "build-1" and got[0].server_id == "srv" and got[0].map == "room"
     assert sm.wait_idle(0) and (s.frames, s.processed, s.localized) == (4, 2, 2)
+
+
+def test_a_frame_past_its_budget_is_answered_and_its_late_result_is_dropped(env):
+    """A frame stuck in its worker (starved, or a huge image) is answered DEADLINE_EXCEEDED
+    once its budget (wall, from receipt) passes; the frame behind it goes on at once; the stuck
+    frame's result, when it comes, is no second answer, even with the same seq (gRPC's 0)."""
+    pool, _, sm, sinks, _ = env
+    sink = ListSink()
+
+    def send(t_recv: float) -> None:
+        frame = Frame(7, 1000, CAM, "gray8", bytes(64 * 48))
+        sm.submit("room", "c", "zenoh", frame, t_recv, make_sink=lambda: sink)
+
+    budget = sm.frame_budget_ms / 1e3
+    send(t_recv=100.0)
+    send(t_recv=100.0 + budget - 0.1)  # waits behind the first
+    ((_, stuck),) = pool.frames
+    assert stuck.deadline > 0 and stuck.cpu_budget_ms == sm.frame_cpu_budget_ms
+    assert sm.expire_late(now=100.0 + budget - 0.05) == 0 and not sink.poses
+    assert sm.expire_late(now=100.0 + budget + 0.05) == 1
+    assert [(p.seq, p.error.code) for p in sink.poses] == [(7, "DEADLINE_EXCEEDED")]
+    assert "time budget" in sink.poses[0].message
+    assert len(pool.frames) == 2  # the waiting frame went on, with its own ticket
+    nxt = pool.frames[1][1]
+    assert nxt.ticket != stuck.ticket
+    _answer(sm, stuck, status="RELOCALIZED")  # the stuck frame's result, late
+    assert len(sink.poses) == 1 and sm.late_results == 1
+    _answer(sm, nxt)
+    assert [(p.seq, p.status) for p in sink.poses[1:]] == [(7, "TRACKING")]
+    assert sm.wait_idle(0)
+
+
+def test_frames_all_past_their_budget_are_all_answered(env):
+    pool, _, sm, sinks, submit = env
+    submit("c", 0)  # the fixture's frames arrive at t=0
+    submit("c", 1)
+    assert sm.expire_late(now=sm.frame_budget_ms / 1e3 + 1.0) == 2
+    assert [(p.seq, p.error.code) for p in sinks["c"].poses] == [
+        (0, "DEADLINE_EXCEEDED"),
+        (1, "DEADLINE_EXCEEDED"),
+    ]
+    assert len(pool.frames) == 1 and sm.wait_idle(0)  # nothing was sent on: too old already
 
 
 def test_sessions_spread_over_workers_and_other_clients_never_wait(env):

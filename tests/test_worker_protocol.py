@@ -35,7 +35,10 @@ POSE = P.PoseResult(
 MESSAGES = [
     (P.TO_WORKER, P.Load(7, "room", 3, "/maps/room", "b1")),
     (P.TO_WORKER, P.Drop("room", 3)),
-    (P.TO_WORKER, P.LocalizeFrame(5, "room", 3, 11, 123456789, CAM, "png", b"\x89PNG-bytes")),
+    (
+        P.TO_WORKER,
+        P.LocalizeFrame(5, "room", 3, 11, 123456789, CAM, "png", 7, 12.5, 900.0, b"\x89PNG"),
+    ),
     (P.TO_WORKER, P.Relocalize(8, "room", 3, CAM, "gray8", TF, 12.5, 2000.0, bytes(range(256)))),
     (P.TO_WORKER, P.Relocalize(9, "room", 3, CAM, "jpeg", None, data=b"")),
     (P.TO_WORKER, P.Reset(5)),
@@ -44,7 +47,7 @@ MESSAGES = [
     (P.TO_SERVER, P.Ready(1, 4242)),
     (P.TO_SERVER, P.Loaded(7, P.MapSummary(10, 20, 3, 2, 1.5, "b1", True), None, 12.0)),
     (P.TO_SERVER, P.Loaded(7, None, P.WorkerError("BundleError", "corrupt"), 1.0)),
-    (P.TO_SERVER, P.Result(5, 11, 123456789, 3, "b1", POSE, None, 1.0, 11.0)),
+    (P.TO_SERVER, P.Result(5, 11, 123456789, 3, "b1", POSE, None, 1.0, 11.0, 7)),
     (
         P.TO_SERVER,
         P.Result(5, 12, 0, 3, "", None, P.WorkerError("ImageDecodeError", "bad png"), 0.0, 1.0),

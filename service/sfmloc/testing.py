@@ -146,14 +146,16 @@ class ServerProcess:
         extra_args: tuple[str, ...] = (),
         env: dict[str, str] | None = None,
         cpus: set[int] | None = None,
+        stderr: Any = None,
     ) -> None:
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
         self.grpc = f"127.0.0.1:{free_port()}"
         cmd = serve_command(maps, self.endpoint, self.grpc, workers, kind, quiet, extra_args)
         # cpus: the server and every worker it starts (they inherit the affinity) run only on
         # these cores (benchmarks that give each server its own share of the machine).
+        # stderr: e.g. a file to read its log from.
         pin = (lambda: os.sched_setaffinity(0, cpus)) if cpus else None
-        self.proc = subprocess.Popen(cmd, env=env, preexec_fn=pin)  # env: e.g. a PYTHONPATH
+        self.proc = subprocess.Popen(cmd, env=env, preexec_fn=pin, stderr=stderr)
 
     def __enter__(self) -> ServerProcess:
         from sfmloc_client import LocalizationClient

@@ -52,6 +52,7 @@ import signal
 import struct
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 import zlib
@@ -192,10 +193,21 @@ def pingpong(n: int, k: int) -> int:
 class Server:
     """``sfmloc serve`` subprocess (testing.ServerProcess) plus what we watch of it."""
 
-    def __init__(self, world: World, workers: int, extra: tuple[str, ...] = ()) -> None:
+    def __init__(
+        self,
+        world: World,
+        workers: int,
+        extra: tuple[str, ...] = (),
+        log_path: Path | None = None,
+    ) -> None:
         from ..testing import ServerProcess
 
-        self.sp = ServerProcess(world.maps_dir, workers=workers, extra_args=extra)
+        # log_path: its log (warnings and errors: -q) goes there, to be read back (log_events).
+        self.log_path = log_path
+        self._log_file = open(log_path, "w") if log_path is not None else None  # noqa: SIM115
+        self.sp = ServerProcess(
+            world.maps_dir, workers=workers, extra_args=extra, stderr=self._log_file
+        )
 
     def __enter__(self) -> Server:
         self.sp.__enter__()
@@ -203,6 +215,43 @@ class Server:
 
     def __exit__(self, *exc: Any) -> None:
         self.sp.stop(30)
+        if self._log_file is not None:
+            self._log_file.close()
+
+    def log_events(self, name: str) -> list[dict[str, str]]:
+        """The server's log events ``name`` so far (key=value lines), fields as strings."""
+        if self.log_path is None:
+            return []
+        if self._log_file is not None:
+            self._log_file.flush()
+        out = []
+        for line in self.log_path.read_text(errors="replace").splitlines():
+            if f" event={name} " not in f"{line} ":
+                continue
+            out.append(dict(kv.split("=", 1) for kv in line.split() if "=" in kv))
+        return out
+
+    def worker_children(self) -> set[int]:
+        """The live worker processes, quickly (the kernel's lists of children, not a scan of
+        /proc): fast enough to catch a replacement before it has loaded the maps."""
+        out: set[int] = set()
+        for pid in [self.pid, *self._zygotes()]:
+            for kid in _children(pid):
+                try:
+                    comm = Path(f"/proc/{kid}/comm").read_text().strip()
+                except OSError:
+                    continue
+                if comm != "sfmloc-zygote":
+                    out.add(kid)
+        return out
+
+    def _zygotes(self) -> list[int]:
+        zs = []
+        for kid in _children(self.pid):
+            with contextlib.suppress(OSError):
+                if Path(f"/proc/{kid}/comm").read_text().strip() == "sfmloc-zygote":
+                    zs.append(kid)
+        return zs
 
     @property
     def pid(self) -> int:
@@ -256,6 +305,15 @@ class Server:
 
     def zombies(self) -> int:
         return sum(c["state"] == "Z" for c in self.children())
+
+
+def _children(pid: int) -> list[int]:
+    out: list[int] = []
+    with contextlib.suppress(OSError):
+        for task in Path(f"/proc/{pid}/task").iterdir():
+            with contextlib.suppress(OSError):
+                out += [int(c) for c in (task / "children").read_text().split()]
+    return out
 
 
 # ============================================================================ streaming clients
@@ -633,7 +691,8 @@ def run_fuzz(
         if baseline_s > 0:
             _log(f"fuzz: canary alone for {baseline_s:g} s (baseline)")
             time.sleep(baseline_s)
-        base = canary.summary(tb, time.monotonic())
+        tbe = time.monotonic()  # its summary at the end: the last frame's answer may be late
+        timeouts0 = canary.log.timeouts
         conf = make_zenoh_config("peer", connect=[srv.sp.endpoint], multicast=False)
         mb = 64 * 1024 * 1024
         opts = [("grpc.max_send_message_length", mb), ("grpc.max_receive_message_length", mb)]
@@ -707,6 +766,7 @@ def run_fuzz(
     for key, v in codes.items():
         by_code[key.split()[1]] += v
     can = canary.summary(t0, t1)
+    base = canary.summary(tb, tbe)
     return {
         "inputs": sent,
         "duration_s": round(fuzz_s, 1),
@@ -725,6 +785,8 @@ def run_fuzz(
             {"s": round(t, 2), "method": m, "kind": kd, "code": c} for t, m, kd, c in slowest
         ],
         "canary": can,
+        # lockstep frames of the canary not answered within --deadline (a stream's hang)
+        "canary_waits_over_deadline": canary.log.timeouts - timeouts0,
         "canary_baseline": base,
         "canary_lost_pct": 100.0 * (can["sent"] - can["answered"]) / max(1, can["sent"]),
     }
@@ -762,16 +824,29 @@ def run_kill(
     interval_s: float,
     workers: int,
     baseline_s: float = 0.0,
+    loading_kills: int = 2,
+    log_path: Path | None = None,
 ) -> dict:
-    """``kills`` kills, ``interval_s`` apart, under streaming clients; first ``baseline_s`` of
-    the same streams without a kill (the gaps and wrong poses this machine gives anyway)."""
+    """``kills`` kills, ``interval_s`` apart, under streaming clients; ``loading_kills`` of them
+    on a replacement still loading (killed as soon as it appears, right after the kill of the
+    worker it replaces); first ``baseline_s`` of the same streams without a kill (the gaps and
+    wrong poses this machine gives anyway). The server's log (``log_path``) is read back: one
+    ``worker_lost`` per kill (``during_start`` true exactly for the replacements), and every
+    restart bookkept by generation."""
     stop = threading.Event()
     recovery: list[float] = []
     zombies_after_1s: list[int] = []
     seen: set[int] = set()
     first: set[int] = set()
-    killed: list[int] = []
-    with Server(world, workers) as srv:
+    killed: list[tuple[int, bool]] = []  # (pid, a replacement still loading)
+    catch_s: list[float] = []  # a killed replacement: from its appearance to the kill
+    loading_kills = max(0, min(loading_kills, kills // 2))
+    plain = kills - loading_kills
+    # After which plain kills (0-based) the replacement is killed too: spread over the run.
+    after = {(k + 1) * plain // (loading_kills + 1) for k in range(loading_kills)}
+    if log_path is None:
+        log_path = Path(tempfile.mkdtemp(prefix="sfmloc-kill-")) / "server.log"
+    with Server(world, workers, log_path=log_path) as srv:
         cl = [
             StreamClient(world, srv.sp.endpoint, f"kill-client-{i}", stop, rate_hz=rate_hz)
             for i in range(clients)
@@ -786,21 +861,34 @@ def run_kill(
             _log(f"kill: {baseline_s:g} s of streaming without a kill (baseline)")
             time.sleep(baseline_s)
         t0 = time.monotonic()
-        base = _totals([c.summary(tb, t0) for c in cl])
         first = set(srv.stream_workers())
         seen.update(first)
-        for i in range(kills):
+        for i in range(plain):
             pids = srv.stream_workers()
             if not pids:
                 _log("kill: no live stream worker to kill")
                 time.sleep(0.5)
                 continue
             pid = pids[i % len(pids)]
+            before = srv.worker_children()
             t_kill = time.monotonic()
             with contextlib.suppress(ProcessLookupError):
                 os.kill(pid, signal.SIGKILL)
-            killed.append(pid)
-            _log(f"kill {i + 1}/{kills}: worker {pid}")
+            killed.append((pid, False))
+            _log(f"kill {len(killed)}/{kills}: worker {pid}")
+            if i in after:  # its replacement too, as soon as it appears
+                t_new = _kill_replacement(srv, before | {pid}, deadline=t_kill + 10.0)
+                if t_new is None:
+                    _log("kill: no replacement appeared within 10 s")
+                else:
+                    new_pid, t_seen = t_new
+                    killed.append((new_pid, True))
+                    seen.add(new_pid)  # a restart too (its own replacement follows)
+                    catch_s.append(t_seen)
+                    _log(
+                        f"kill {len(killed)}/{kills}: its replacement {new_pid}, "
+                        f"{1e3 * t_seen:.0f} ms after it appeared"
+                    )
             deadline = t_kill + interval_s
             rec = [float("nan")] * clients
             one_s_checked = False
@@ -812,9 +900,9 @@ def run_kill(
                     one_s_checked = True
                 for j, c in enumerate(cl):
                     if np.isnan(rec[j]):
-                        after = [t for t in c.log.localized_at if t > t_kill]
-                        if after:
-                            rec[j] = after[0] - t_kill
+                        posed = [t for t in c.log.localized_at if t > t_kill]
+                        if posed:
+                            rec[j] = posed[0] - t_kill
                 time.sleep(0.05)
             if not one_s_checked:
                 zombies_after_1s.append(srv.zombies())
@@ -824,11 +912,21 @@ def run_kill(
         for c in cl:
             c.join(10)
         alive = srv.alive()
+        time.sleep(0.5)  # the last restart's log lines
+        lost = srv.log_events("worker_lost")
+        restarted = srv.log_events("worker_restarted")
+        failed = srv.log_events("worker_start_failed")
+    # After the clients stopped: a frame sent just before t0 (or t1) and answered just after
+    # is answered, not silent (measured at t0, the baseline showed 4 of 800 "silent": one in
+    # flight per client).
+    base = _totals([c.summary(tb, t0) for c in cl])
     per = [c.summary(t0, t1) for c in cl]
     return {
         "baseline": base,
         **_totals(per),
         "kills": len(killed),
+        "loading_kills": sum(ld for _, ld in killed),
+        "replacement_caught_ms": [round(1e3 * t, 1) for t in catch_s],
         "clients": clients,
         "rate_hz": rate_hz,
         "interval_s": interval_s,
@@ -837,7 +935,68 @@ def run_kill(
         "zombies_after_1s_max": max(zombies_after_1s, default=0),
         "recovery_s_max": float(np.nanmax(recovery)) if any(np.isfinite(recovery)) else None,
         "kills_without_recovery": int(np.sum(~np.isfinite(recovery))),
+        "log": kill_log_check(killed, lost, restarted, failed),
+        "log_path": str(log_path),
         "clients_detail": per,
+    }
+
+
+def _kill_replacement(srv: Server, known: set[int], deadline: float) -> tuple[int, float] | None:
+    """Kill the first worker process not in ``known`` as soon as it appears: (pid, seconds
+    from seeing it to the kill), or None when none appeared by ``deadline``."""
+    while time.monotonic() < deadline:
+        new = srv.worker_children() - known
+        if new:
+            t_seen = time.monotonic()
+            pid = min(new)
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+            return pid, time.monotonic() - t_seen
+        time.sleep(0.002)
+    return None
+
+
+def kill_log_check(
+    killed: list[tuple[int, bool]],
+    lost: list[dict[str, str]],
+    restarted: list[dict[str, str]],
+    failed: list[dict[str, str]],
+) -> dict:
+    """What the server's log says about the kills: one ``worker_lost`` per killed pid, with
+    exit code -9 and ``during_start`` true exactly for the replacements killed while loading;
+    generations that grow by one per process of a worker index; the last generation of each
+    index ``worker_restarted`` (serving again); no ``worker_start_failed``."""
+    by_pid = {e.get("pid"): e for e in lost}
+    problems: list[str] = []
+    for pid, loading in killed:
+        e = by_pid.get(str(pid))
+        if e is None:
+            problems.append(f"no worker_lost for pid {pid}")
+            continue
+        if e.get("exitcode") != "-9":
+            problems.append(f"pid {pid}: exitcode={e.get('exitcode')}")
+        if e.get("during_start") != ("true" if loading else "false"):
+            problems.append(f"pid {pid}: during_start={e.get('during_start')}, loading={loading}")
+    gens: dict[str, list[int]] = {}
+    for e in lost:
+        gens.setdefault(e.get("worker", "?"), []).append(int(e.get("gen", "0")))
+    for w, g in gens.items():
+        if g != sorted(set(g)):
+            problems.append(f"worker {w}: lost generations out of order {g}")
+    last_restart: dict[str, int] = {}
+    for e in restarted:
+        last_restart[e.get("worker", "?")] = int(e.get("gen", "0"))
+    for w, g in gens.items():
+        if last_restart.get(w, 0) <= max(g):
+            problems.append(f"worker {w}: generation {max(g)} lost, no later one restarted")
+    problems += [f"worker_start_failed: {e}" for e in failed]
+    return {
+        "worker_lost": len(lost),
+        "during_start": sum(e.get("during_start") == "true" for e in lost),
+        "worker_restarted": len(restarted),
+        "start_failed": len(failed),
+        "problems": problems,
+        "ok": not problems,
     }
 
 
@@ -1412,6 +1571,11 @@ def table(res: dict) -> list[str]:
             ),
             ("fuzz: crashes / hangs", f"{f['crashes']} / {f['hangs']}", "0 / 0"),
             (
+                "fuzz: canary frames over the deadline",
+                str(f.get("canary_waits_over_deadline", "-")),
+                "0",
+            ),
+            (
                 "fuzz: slowest gRPC calls",
                 ", ".join(
                     f"{c['s']:.1f} s {c['method']} {c['code']}"
@@ -1495,6 +1659,27 @@ def table(res: dict) -> list[str]:
             ),
             ("kill: zombies 1 s after a kill (max)", str(k["zombies_after_1s_max"]), "0"),
             ("kill: worker restarts seen", str(k["restarts"]), f"{k['kills']}"),
+            (
+                "kill: of them replacements loading",
+                f"{k.get('loading_kills', 0)} (killed "
+                + ", ".join(f"{t:g}" for t in k.get("replacement_caught_ms", []))
+                + " ms after they appeared)",
+                "2",
+            ),
+            (
+                "kill: the server's log",
+                "right"
+                if k.get("log", {}).get("ok")
+                else "; ".join(k.get("log", {}).get("problems", ["not read"])[:3]),
+                "worker_lost per kill, during_start, generations",
+            ),
+            (
+                "  worker_lost / during_start / restarted",
+                f"{k.get('log', {}).get('worker_lost', 0)} / "
+                f"{k.get('log', {}).get('during_start', 0)} / "
+                f"{k.get('log', {}).get('worker_restarted', 0)} ({k.get('log_path', '')})",
+                "-",
+            ),
         ]
     r = res.get("reloc")
     if r:
@@ -1654,7 +1839,15 @@ def run(args: argparse.Namespace, world: World | None = None) -> dict:
     if "kill" in parts:
         _log(f"kill: {args.kills} kills under {args.clients} clients")
         res["kill"] = run_kill(
-            world, args.kills, args.clients, args.rate, args.interval, args.workers, args.baseline
+            world,
+            args.kills,
+            args.clients,
+            args.rate,
+            args.interval,
+            args.workers,
+            args.baseline,
+            args.loading_kills,
+            Path(args.work) / "kill-server.log",
         )
     if "reloc" in parts:
         _log(f"reloc: {args.clients} clients beside {args.reloc_callers} Relocalize callers")
@@ -1751,6 +1944,13 @@ def parser() -> argparse.ArgumentParser:
         help="gRPC deadline and canary wait per frame, s; over it is a hang (default %(default)s)",
     )
     p.add_argument("--kills", type=int, default=10, help="worker kills (default %(default)s)")
+    p.add_argument(
+        "--loading-kills",
+        type=int,
+        default=2,
+        help="of the kills, those of a replacement still loading, killed as soon as it "
+        "appears (default %(default)s)",
+    )
     p.add_argument(
         "--clients",
         type=int,

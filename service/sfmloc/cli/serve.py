@@ -126,6 +126,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "only)",
     )
     p.add_argument(
+        "--frame-budget-ms",
+        type=float,
+        metavar="MS",
+        help="a stream frame not answered this long after its receipt is answered "
+        "DEADLINE_EXCEEDED and the client's next frame goes on (default 2000; 0: none)",
+    )
+    p.add_argument(
         "--follow-builder",
         action="store_true",
         help="load bundles the builder announces on sfmloc/maps/*",
@@ -178,6 +185,7 @@ def overrides_from_args(args: argparse.Namespace) -> dict:
         "idle_timeout_s": args.idle_timeout,
         "metrics_port": args.metrics_port,
         "max_pending": args.max_pending,
+        "frame_budget_ms": args.frame_budget_ms,
         "server_id": args.server_id,
         "log_format": args.log_format,
         "relocalize_workers": args.relocalize_workers,

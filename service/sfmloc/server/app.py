@@ -100,6 +100,8 @@ class Server:
             idle_timeout_s=conf.idle_timeout_s,
             max_image_pixels=conf.max_image_pixels,
             max_pending=conf.max_pending,
+            frame_budget_ms=conf.frame_budget_ms,
+            frame_cpu_budget_ms=conf.frame_cpu_budget_ms,
         )
         # All the front ends see of the server.
         self.facade = Localization(
@@ -351,8 +353,14 @@ class Server:
             pass
 
     def _reap(self) -> None:
-        while not self._reaper_stop.wait(min(1.0, self.conf.idle_timeout_s / 4)):
+        # Every 0.1 s: frames past their time budget are answered within 0.1 s of it.
+        idle_every, t_idle = min(1.0, self.conf.idle_timeout_s / 4), time.monotonic()
+        while not self._reaper_stop.wait(0.1):
             try:
+                self.sessions.expire_late()
+                if time.monotonic() - t_idle < idle_every:
+                    continue
+                t_idle = time.monotonic()
                 self.sessions.expire_idle()
                 if self.zenoh is not None:
                     self.zenoh.rejections.flush()  # the summary of held-back lines, on time

@@ -91,6 +91,16 @@ class ServerConfig(StrictModel):
     # Rejected frames are logged at most 3 lines per client and 50 in all per interval; the
     # rest is summed up in one line per interval (a flood must not fill the disk).
     log_interval_s: float = Field(10.0, gt=0)
+    # A stream frame's time budget, wall time from its receipt: a frame not answered by then
+    # (a worker starved of CPU, a huge image) is answered DEADLINE_EXCEEDED, and its session's
+    # next frame goes on; a frame whose budget passed before its work started is not worked
+    # on. Before this, at load 20+, 1-2 of 20k fuzz inputs got a stream frame answered after
+    # ~21 s (issue 12). 0: no budget. Healthy frames take 8-80 ms of CPU.
+    frame_budget_ms: float = Field(2000.0, ge=0)
+    # The most CPU one stream frame may use once started (the worker stops it there: the
+    # session relocalizes next frame); a 4096x4096 frame must not hold its worker's other
+    # sessions for seconds. 0: no limit.
+    frame_cpu_budget_ms: float = Field(1000.0, ge=0)
     max_pending_relocalize: int = Field(16, ge=1)  # queued single-image requests, all workers
     # Queued or running single-image requests of one caller (its token's name, else its
     # connection); beyond, RESOURCE_EXHAUSTED: one caller cannot fill the queue for all.

@@ -60,6 +60,9 @@ class WorkerHandle:
     # once (stop and drops reach it) but serves only once it has reloaded the current maps.
     serving: bool = False
     pid: int = 0
+    # Which process of this index it is (1 for the first, +1 per restart): the restart
+    # bookkeeping and the log tell replacements of one index apart by it.
+    gen: int = 1
     threads: list[threading.Thread] = field(default_factory=list)
     ready: threading.Event = field(default_factory=threading.Event)  # this process said "ready"
 
@@ -125,7 +128,9 @@ class WorkerPool:
         # is dropped before any work (issue 16).
         self._reloc_queue: collections.deque[tuple[P.Relocalize, Future]] = collections.deque()
         self.restarts = 0
-        self._start_failures = [0] * (n + reloc_workers)  # deaths before "ready", per worker index
+        # Deaths in a row before serving, per worker index (reset once one serves).
+        self._start_failures = [0] * (n + reloc_workers)
+        self._gens = [0] * (n + reloc_workers)  # the last generation spawned, per worker index
         self._maps_version = 0  # bumped by every load/drop (a restart reloads until it is stable)
         self.fatal: Exception | None = None  # a worker that cannot start: the pool gives up
         self._started = False  # start() returned: every worker was ready once
@@ -149,6 +154,8 @@ class WorkerPool:
                     raise UnavailableError("the server stopped while its workers were starting")
                 if time.monotonic() > deadline:
                     raise UnavailableError(f"worker {i} did not start within {timeout:.0f} s")
+        with self._lock:
+            self._start_failures = [0] * len(self._start_failures)
         self._started = True
 
     def _spawn(self, i: int) -> WorkerHandle:
@@ -209,7 +216,8 @@ class WorkerPool:
                 target=self.thread_target, args=args, name=f"sfmloc-worker-{i}", daemon=True
             )
             runner.start()
-        h = WorkerHandle(i, Connection(ours.detach()), runner)
+        self._gens[i] += 1
+        h = WorkerHandle(i, Connection(ours.detach()), runner, gen=self._gens[i])
         h.threads = [
             threading.Thread(
                 target=self._sender, args=(h,), name=f"sfmloc-worker-{i}-send", daemon=True
@@ -325,15 +333,19 @@ class WorkerPool:
             or getattr(h.runner, "pid", 0)
             or getattr(getattr(h.runner, "popen", None), "pid", 0)
         )
-        started = h.ready.is_set()
+        # It had started when it served: ready, and (a replacement) its maps reloaded. One that
+        # died before had no sessions and counts towards the start failures.
+        started = h.ready.is_set() and h.serving
         event(
             log,
             logging.ERROR,
             "worker_lost",
             worker=h.index,
+            gen=h.gen,
             pid=pid,
             exitcode=code,
             during_start=not started,
+            said_ready=h.ready.is_set(),
             stderr=getattr(h.runner, "last_line", ""),
         )
         with self._lock:
@@ -364,6 +376,7 @@ class WorkerPool:
                 logging.ERROR,
                 "worker_start_failed",
                 worker=h.index,
+                gen=h.gen,
                 attempts=fails,
                 error=str(self.fatal),
             )
@@ -379,6 +392,15 @@ class WorkerPool:
             self.workers[h.index] = new
             self.restarts += 1
             self._changed.notify_all()
+        event(
+            log,
+            logging.WARNING,
+            "worker_restarting",
+            worker=h.index,
+            gen=new.gen,
+            replaces=h.gen,
+            attempt=fails + 1,
+        )
         if not reload:
             return  # start() waits on the replacement
         while not new.ready.wait(0.1):
@@ -403,6 +425,7 @@ class WorkerPool:
                     return  # it died while reloading: its own reader thread restarts it
                 if self._maps_version == version:
                     new.serving = True
+                    self._start_failures[h.index] = 0  # it serves: a later death starts afresh
                     self._changed.notify_all()
                     stale = loaded - set(self._maps)
                     break
@@ -413,9 +436,11 @@ class WorkerPool:
         self._pump_reloc()  # relocalizations queued while the lane's worker was restarting
         event(
             log,
-            logging.INFO,
+            logging.WARNING,  # with worker_lost, the story of a restart even at -q
             "worker_restarted",
             worker=h.index,
+            gen=new.gen,
+            replaces=h.gen,
             pid=new.pid,
             maps=len(loaded - stale),
         )

@@ -186,6 +186,15 @@ class LocalizeFrame(Message):
     stamp_ns: int
     camera: CameraTuple
     encoding: str
+    # The server's number for this dispatch, echoed in its Result: a result that comes back
+    # after its frame was answered otherwise (time budget, worker death) is told from the
+    # answer to a newer frame of the session, even when clients repeat seqs (gRPC's default 0).
+    ticket: int = 0
+    # The frame's time budget: ``deadline`` (time.monotonic(), one clock for the machine's
+    # processes; 0: none): a frame not started by then is answered DEADLINE_EXCEEDED without
+    # any work; ``cpu_budget_ms``: the most CPU it may use once started (0: no limit).
+    deadline: float = 0.0
+    cpu_budget_ms: float = 0.0
     data: bytes = payload()
 
     @classmethod
@@ -282,6 +291,7 @@ class Result(Message):
     error: WorkerError | None
     decode_ms: float
     worker_ms: float
+    ticket: int = 0  # the LocalizeFrame's
 
     @classmethod
     def from_wire(cls, values: Any) -> Result:

@@ -32,6 +32,7 @@ from sfmloc_client.wire import ErrorInfo, Frame, PoseMessage
 from ..cameras import Camera
 from ..engine.types import Status
 from ..errors import OverloadError, PermissionDeniedError
+from .limits import LogLimiter
 from .logfmt import event
 from .maps import MapRegistry
 from .metrics import ServerMetrics
@@ -83,6 +84,7 @@ class Session:
     pending: deque[_Pending] = field(default_factory=deque)  # newest frames waiting (bounded)
     camera: Any = None  # the last CameraSpec seen (validated once, not per frame)
     inflight_t_recv: dict[int, float] = field(default_factory=dict)  # seq -> receipt time
+    ticket: int = 0  # the dispatch number of the frame in its worker (0: none)
     closed: bool = False
     source: str = ""  # the sender of its first frame (Zenoh session id); "" = not given
 
@@ -103,6 +105,8 @@ class SessionManager:
         idle_timeout_s: float = 30.0,
         max_image_pixels: int = 4096 * 4096,
         max_pending: int = 1,
+        frame_budget_ms: float = 2000.0,
+        frame_cpu_budget_ms: float = 1000.0,
     ) -> None:
         self.pool = pool
         self.registry = registry
@@ -112,6 +116,11 @@ class SessionManager:
         self.idle_timeout_s = idle_timeout_s
         self.max_image_pixels = max_image_pixels
         self.max_pending = max_pending  # 1: latest-frame-only
+        self.frame_budget_ms = frame_budget_ms  # receipt to answer, wall (0: none)
+        self.frame_cpu_budget_ms = frame_cpu_budget_ms  # in the worker, once started (0: none)
+        self._tickets = itertools.count(1)
+        self.late_results = 0  # results that came after their frame was answered otherwise
+        self._late_log = LogLimiter(log, "frame_over_budget")  # an overload must not flood
         self._lock = threading.Lock()
         self._by_key: dict[tuple[str, str, str], Session] = {}
         self._by_sid: dict[int, Session] = {}
@@ -234,6 +243,15 @@ class SessionManager:
                     ),
                 )
                 return
+        deadline = 0.0
+        with self._lock:
+            ticket = s.ticket = next(self._tickets)
+            if self.frame_budget_ms:
+                t_recv = s.inflight_t_recv.get(frame.seq, time.perf_counter())
+                # t_recv is perf_counter (CLOCK_MONOTONIC on Linux, like time.monotonic, but
+                # not promised): the deadline is taken as an age, in the worker's clock.
+                age = time.perf_counter() - t_recv
+                deadline = time.monotonic() + self.frame_budget_ms / 1e3 - age
         self.pool.submit_frame(
             s.worker,
             LocalizeFrame(
@@ -244,6 +262,9 @@ class SessionManager:
                 frame.stamp_ns,
                 camera_tuple(frame.camera),
                 frame.encoding,
+                ticket,
+                deadline,
+                self.frame_cpu_budget_ms,
                 bytes(frame.data),
             ),
         )
@@ -257,6 +278,12 @@ class SessionManager:
             s = self._by_sid.get(msg.sid)
             if s is None:
                 return  # closed meanwhile
+            if msg.ticket and msg.ticket != s.ticket:
+                # Its frame was answered already (its time budget passed, or its worker was
+                # declared dead): answering again would be a second answer, and late.
+                self.late_results += 1
+                return
+            s.ticket = 0
             t_recv = s.inflight_t_recv.pop(msg.seq, now)
             s.busy = False
             if s.pending:
@@ -455,6 +482,68 @@ class SessionManager:
         for s in idle:
             self.close(s, "idle")
         return len(idle)
+
+    def expire_late(self, now: float | None = None) -> int:
+        """Answer DEADLINE_EXCEEDED each frame that is still in a worker (or waiting for one)
+        past its time budget, counted from its receipt, and send the session's next frame on:
+        a late or stuck frame (a starved worker, a huge image) costs its client that frame,
+        never the ones behind it. The frame's own result, if it comes, is dropped (its ticket
+        is no longer the session's). Returns the frames answered."""
+        if not self.frame_budget_ms:
+            return 0
+        from ..errors import DeadlineExceededError
+
+        now = time.perf_counter() if now is None else now
+        limit = self.frame_budget_ms / 1e3
+        late: builtins.list[tuple[Session, int]] = []
+        resume: builtins.list[tuple[Session, _Pending]] = []
+        with self._lock:
+            for s in self._by_sid.values():
+                if not s.busy or not s.inflight_t_recv:
+                    continue
+                seq, t_recv = next(iter(s.inflight_t_recv.items()))
+                if now - t_recv <= limit:
+                    continue
+                s.inflight_t_recv.clear()
+                s.ticket = 0
+                s.busy = False
+                late.append((s, seq))
+                while s.pending and now - s.pending[0].t_recv > limit:
+                    late.append((s, s.pending.popleft().frame.seq))  # as late: answered too
+                if s.pending and not self.draining:
+                    nxt = s.pending.popleft()
+                    s.busy = True
+                    s.inflight_t_recv[nxt.frame.seq] = nxt.t_recv
+                    resume.append((s, nxt))
+            if late:
+                self._idle.notify_all()
+        for s, seq in late:
+            s.errors += 1
+            self.metrics.frame_errors.inc(s.map, "DEADLINE_EXCEEDED")
+            exc = DeadlineExceededError(
+                f"no answer within the frame's time budget of {self.frame_budget_ms:.0f} ms (the "
+                "server is overloaded); the session goes on with the next frame"
+            )
+            if self._late_log.allow(s.client_id, "DEADLINE_EXCEEDED"):
+                event(
+                    log,
+                    logging.WARNING,
+                    "frame_over_budget",
+                    map=s.map,
+                    client=s.client_id,
+                    sid=s.sid,
+                    seq=seq,
+                    worker=s.worker,
+                )
+            self._send(s, self.error_pose(s.map, s.client_id, seq, 0, exc, dropped=s.dropped))
+        for s, nxt in resume:
+            entry = self.registry.find(s.map)
+            if entry is None:
+                self._reject_pending(s, nxt)
+            else:
+                self._dispatch(s, nxt.frame, entry.generation)
+        self._late_log.flush()
+        return len(late)
 
     def _live_worker(self, exclude: int = -1) -> int | None:
         """The live worker with the fewest sessions (caller holds the lock)."""

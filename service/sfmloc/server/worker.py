@@ -54,8 +54,10 @@ def worker_main(
     pin_threads_runtime()  # after the thread environment is set
     from .. import engine  # noqa: F401 - imported now (scipy, faiss...), not on the first frame
 
+    if is_process:  # the CPU budget of a frame (a timer signal reaches the main thread only)
+        signal.signal(signal.SIGPROF, _on_cpu_budget)
     try:
-        _Worker(conn, index, engine_conf_json, nice if is_process else 0).run()
+        _Worker(conn, index, engine_conf_json, nice if is_process else 0, is_process).run()
     finally:
         try:
             conn.close()
@@ -71,10 +73,13 @@ class _SessionState:
 
 
 class _Worker:
-    def __init__(self, conn: Any, index: int, engine_conf_json: str, nice: int = 0) -> None:
+    def __init__(
+        self, conn: Any, index: int, engine_conf_json: str, nice: int = 0, cpu_timer: bool = False
+    ) -> None:
         from ..engine.config import EngineConf
 
         self.nice = nice  # applied after the first load
+        self.cpu_timer = cpu_timer  # frames' CPU budgets enforced (a process's main thread)
         self.conn = conn
         self.index = index
         self.conf = EngineConf.model_validate_json(engine_conf_json)
@@ -175,28 +180,34 @@ class _Worker:
         return bundle
 
     def on_frame(self, m: P.LocalizeFrame) -> None:
-        from sfmloc_client.images import decode_image
-
-        from ..engine import Localizer
+        from ..errors import DeadlineExceededError
 
         t0 = time.perf_counter()
         pose: P.PoseResult | None = None
         error: P.WorkerError | None = None
-        decode_ms = 0.0
-        build_id = ""
+        # [build id, decode ms]: what a failed frame still reports
+        done: list[Any] = ["", 0.0]
         try:
-            key = (m.map, m.gen)
-            bundle = self._bundle(m.map, m.gen)
-            build_id = bundle.build_id
-            cam = self._camera(m.camera)
-            st = self.sessions.get(m.sid)
-            if st is None or st.map_key != key or st.camera_key != m.camera:
-                # New session, a replaced map or another camera: a fresh Localizer (relocalizes).
-                st = _SessionState(Localizer(bundle, cam, self.conf), key, m.camera)
-                self.sessions[m.sid] = st
-            img = decode_image(m.encoding, m.data, cam.width, cam.height)
-            decode_ms = (time.perf_counter() - t0) * 1e3
-            pose = P.PoseResult.of(st.localizer.localize(img, m.stamp_ns * 1e-9))
+            if m.deadline and time.monotonic() > m.deadline:
+                # Its budget passed while it waited behind other frames: no work (the server
+                # answered it already; frames behind it must not wait for it either).
+                raise DeadlineExceededError(
+                    "the frame waited past its time budget before its work could start (the "
+                    "server is overloaded); the session goes on with the next frame"
+                )
+            self._arm(m.cpu_budget_ms)
+            try:
+                pose = self._localize(m, done)
+            finally:
+                self._disarm()
+        except _CpuBudgetExceeded:
+            self.sessions.pop(m.sid, None)  # interrupted mid-frame: its state is not trusted
+            error = P.WorkerError.of(
+                DeadlineExceededError(
+                    f"the frame used its CPU budget of {m.cpu_budget_ms:.0f} ms and was stopped; "
+                    "the session relocalizes on its next frame"
+                )
+            )
         except Exception as exc:  # noqa: BLE001 - reported to the client, never fatal
             if not _expected(exc):
                 log.exception("worker %d: frame %s of session %d failed", self.index, m.seq, m.sid)
@@ -208,13 +219,47 @@ class _Worker:
                 m.seq,
                 m.stamp_ns,
                 m.gen,
-                build_id,
+                done[0],
                 pose,
                 error,
-                decode_ms,
+                done[1],
                 (time.perf_counter() - t0) * 1e3,
+                m.ticket,
             )
         )
+
+    def _localize(self, m: P.LocalizeFrame, done: list[Any]) -> P.PoseResult:
+        from sfmloc_client.images import decode_image
+
+        from ..engine import Localizer
+
+        t0 = time.perf_counter()
+        key = (m.map, m.gen)
+        bundle = self._bundle(m.map, m.gen)
+        done[0] = bundle.build_id
+        cam = self._camera(m.camera)
+        st = self.sessions.get(m.sid)
+        if st is None or st.map_key != key or st.camera_key != m.camera:
+            # New session, a replaced map or another camera: a fresh Localizer (relocalizes).
+            st = _SessionState(Localizer(bundle, cam, self.conf), key, m.camera)
+            self.sessions[m.sid] = st
+        img = decode_image(m.encoding, m.data, cam.width, cam.height)
+        done[1] = (time.perf_counter() - t0) * 1e3
+        return P.PoseResult.of(st.localizer.localize(img, m.stamp_ns * 1e-9))
+
+    def _arm(self, budget_ms: float) -> None:
+        """Start this frame's CPU budget: past it, SIGPROF interrupts the frame (between two
+        Python steps; a native call finishes first) with ``_CpuBudgetExceeded``."""
+        global _armed
+        if self.cpu_timer and budget_ms > 0:
+            _armed = True
+            signal.setitimer(signal.ITIMER_PROF, budget_ms / 1e3)
+
+    def _disarm(self) -> None:
+        global _armed
+        if self.cpu_timer:
+            _armed = False  # first: a signal from here on is ignored
+            signal.setitimer(signal.ITIMER_PROF, 0)
 
     def on_reset(self, m: P.Reset) -> None:
         st = self.sessions.get(m.sid)
@@ -268,6 +313,19 @@ class _Worker:
                 log.exception("worker %d: relocalize failed", self.index)
             error = P.WorkerError.of(exc)
         self.send(P.RelocResult(m.req, pose, error, (time.perf_counter() - t0) * 1e3))
+
+
+class _CpuBudgetExceeded(BaseException):
+    """A frame's CPU budget ran out. Not an ``Exception``: the engine's own ``except
+    Exception`` handlers must not swallow it and carry on with the frame."""
+
+
+_armed = False  # a frame's CPU budget is running (set and cleared by _Worker._arm/_disarm)
+
+
+def _on_cpu_budget(signum: int, frame: Any) -> None:
+    if _armed:
+        raise _CpuBudgetExceeded()
 
 
 def _expected(exc: BaseException) -> bool:
