@@ -242,6 +242,49 @@ def test_walk_across_submaps_as_a_whole_map_run(room, world, walk_set, whole_run
         assert st.evictions >= 1
 
 
+def test_sessions_share_one_cache_and_its_budget(world, walk_set):
+    """Two sessions on one ``PartCache`` (a server worker's): one copy of each part; the part
+    a session is on is never evicted for another session; with room for one part only, a
+    second session on another part is refused (OverloadError, never over the budget), and
+    once the first session ends its part may go."""
+    from sfmloc.engine.submaps import PartCache
+    from sfmloc.errors import OverloadError
+
+    sizes = [p.memory_bytes for p in walk_set.manifest.parts]
+    cache = PartCache(walk_set, max(sizes), background=False)
+    a = SubmapLocalizer(walk_set, world.camera_spec, cache=cache)
+    b = SubmapLocalizer(walk_set, world.camera_spec, cache=cache)
+    assert a.localize(world.gray[0], 0.0).status is not Status.LOST
+    home = a.part
+    assert cache.resident_parts() == [home]
+    # The same place: b shares a's part (no second load).
+    assert b.localize(world.gray[1], 1 / 30).status is not Status.LOST
+    assert b.part == home and cache.stats.loads == 1
+    # b jumps to a frame another part covers best: it cannot evict a's part.
+    far = int(np.argmax([
+        np.argmax(walk_set.parts_near(world.gt_cam_from_world[i])) != home
+        for i in range(len(world.gray))
+    ]))  # fmt: skip
+    assert far > 0
+    b.close()
+    c = SubmapLocalizer(walk_set, world.camera_spec, cache=cache)
+    c.part = int(np.argmax(walk_set.parts_near(world.gt_cam_from_world[far])))  # as if there
+    assert c.part != home
+    with pytest.raises(OverloadError, match="memory budget"):
+        cache.load_now(c.part, release=None)
+    assert cache.resident_bytes() <= max(sizes)
+    c.part = None
+    del a  # a server dropping a session: the cache held it weakly
+    import gc
+
+    gc.collect()
+    assert cache.pinned() == set()
+    cache.load_now(int(np.argmax(walk_set.parts_near(world.gt_cam_from_world[far]))))
+    assert home not in cache.resident_parts() and cache.stats.evictions == 1
+    assert cache.stats.max_resident_bytes <= max(sizes)
+    cache.close()
+
+
 def test_budget_below_a_part_is_refused(world, walk_set):
     smallest_ok = max(p.memory_bytes for p in walk_set.manifest.parts)
     with pytest.raises(InputError, match="largest sub-map"):

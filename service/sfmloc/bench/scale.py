@@ -317,7 +317,11 @@ def parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--ratio", type=float, default=10.0, help="submaps: map memory / budget (10)")
     p.add_argument(
-        "--overlap", type=float, default=0.25, help="submaps: map split --overlap (0.25)"
+        "--overlap",
+        type=float,
+        default=0.5,
+        help="submaps: map split --overlap (0.5: 8 rooms in 24 parts localized 318/320 frames, "
+        "0.25 313/320, parts 1.5x smaller)",
     )
     p.add_argument(
         "--vote-fraction",

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
-from pydantic import model_validator
+from pydantic import Field, model_validator
 
 from ..config import StrictModel
 from .pose import RansacParams
@@ -278,6 +278,17 @@ class EngineConf(StrictModel):
     # 1.35 m from the prediction.
     contradiction_position: float = 0.05
     contradiction_deg: float = 10.0
+    # ---- out-of-core maps (engine/submaps.py; issue 14)
+    # Resident sub-maps of a sub-map set, in MB, per engine worker (``sfmloc serve
+    # --map-memory``): the worker's sessions on the set share its parts within it. None: sub-map
+    # sets are refused (plain bundles are loaded whole either way).
+    map_memory_mb: float | None = Field(None, gt=0)
+    # Parts a frame without a pose is matched against (in the order of the vote) before it is
+    # answered LOST. 8 rooms in 24 parts, 320 frames (scale bench, --parts submaps): one part
+    # per frame from the next frame on, 291 localized (each room's first frames lost while the
+    # search went part by part); 2 from the frame that lost its part on (with the vote's ratio
+    # test), 313.
+    submap_lost_parts: int = Field(2, ge=1, le=16)
 
     @model_validator(mode="before")
     @classmethod

@@ -3,6 +3,8 @@
 ``SubmapLocalizer`` owns one plain ``Localizer`` and swaps the sub-map it runs on between
 frames: the per-frame core is unchanged, and a frame only ever meets one sub-map, which is
 always resident (a tracked frame waits for a load only when the budget cannot hold two parts).
+The resident parts live in a ``PartCache``, one per set and thread, which sessions may share
+(a server worker's sessions: ``server/submaps.py``).
 
 Per frame, before the ``Localizer`` runs:
 
@@ -18,11 +20,16 @@ Per frame, before the ``Localizer`` runs:
    frame waits for the load (the old part is evicted first). The part covering the pose
    predicted ``lookahead_s`` ahead (the filter's velocity) is loaded in the background too,
    while the budget allows.
-2. **Lost** (no pose on the last frame): the frame's keypoints are described and the parts
-   ranked by their place-recognition vote (``SubmapSet.vote``); the session moves to the
-   best-voted part not tried since it was lost, loading it now (a lost frame relocalizes
-   anyway), so consecutive lost frames search the parts in order of their vote, one global
-   matching per frame.
+2. **Lost** (no pose on the last frame, or none on this frame after tracking on its part: a
+   jump, a teleport between rooms): the frame's keypoints are described and the parts ranked
+   by their place-recognition vote (``SubmapSet.vote``); the frame is matched against up to
+   ``lost_parts_per_frame`` parts (``EngineConf.submap_lost_parts``, 2) not tried since the
+   session was lost, best-voted first, loading each now (a lost frame relocalizes anyway),
+   until one gives a pose; the next lost frames go on down the order. Measured on the scale
+   bench (8 rooms, 24 parts, overlap 0.25, one camera teleported from room to room): one part
+   per frame, starting on the next frame, localized 291/320 (the whole map 320); searching on
+   the frame that lost its part, two parts per frame, with the vote's ratio test, 313/320
+   (not measured apart); with overlap 0.5 too, 318/320.
 
 Memory: the resident parts' ``memory_bytes`` (as ``MapBundle.memory_bytes``: arrays touched by
 the engine plus the ANN index; a part being loaded counts from the moment its load starts)
@@ -35,15 +42,18 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
+import weakref
 from collections import OrderedDict
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from ..cameras import Camera, as_camera
-from ..errors import InputError
+from ..errors import InputError, OverloadError
 from ..features.daisy import DaisyExtractor, Pca
 from ..features.harris import detect_corners
 from ..map.bundle import MapBundle
@@ -59,40 +69,33 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class SubmapStats:
-    """What the session did with the parts (for tests, benches and logs)."""
+    """What the session (or, on a ``PartCache``, every session sharing it) did with the parts
+    (for tests, benches, logs and the server's metrics)."""
 
     switches: int = 0
     loads: int = 0
-    sync_loads: int = 0  # loads a frame waited for (only lost frames do)
+    sync_loads: int = 0  # loads a frame waited for (only lost frames do, when one part fits)
+    sync_load_ms: float = 0.0  # the time frames waited for those loads, in all
     evictions: int = 0
     skipped_prefetch: int = 0
+    failed_loads: int = 0
     max_resident_bytes: int = 0
     parts_used: set[int] = field(default_factory=set)
     votes: int = 0  # lost frames ranked by the vote
+    lost_tries: int = 0  # parts a lost frame was matched against
 
 
-class SubmapLocalizer:
-    """A ``Localizer`` over a ``SubmapSet`` within ``memory_budget`` bytes of resident parts.
+class PartCache:
+    """The resident parts of one ``SubmapSet`` within ``memory_budget`` bytes, shared by the
+    sessions of one thread (a server worker's: one copy of each part and one budget for all
+    of them). A part a session is on is never evicted; the others go least recently used
+    first. A session is forgotten when it is closed or garbage-collected (the cache holds it
+    weakly: a server dropping a session cannot leave its part resident for good).
+    ``background``: loads run on a loader thread (False: in the caller, for measurements).
+    Not thread-safe apart from that thread."""
 
-    ``localize(frame, stamp)`` as ``Localizer.localize``; ``part`` is the sub-map the last
-    frame ran on. Not thread-safe (one frame at a time), like ``Localizer``; the set is shared.
-    ``background``: load parts on a thread (False: load them in the frame, for measurements).
-    """
-
-    def __init__(
-        self,
-        submaps: SubmapSet,
-        camera: Camera | str | Path,
-        conf: EngineConf | None = None,
-        *,
-        memory_budget: int,
-        lookahead_s: float = 1.0,
-        switch_margin: float = 0.2,
-        background: bool = True,
-    ) -> None:
+    def __init__(self, submaps: SubmapSet, memory_budget: int, *, background: bool = True):
         self.set = submaps
-        self.camera_in = as_camera(camera)
-        self.conf = conf or EngineConf()
         biggest = max(p.memory_bytes for p in submaps.manifest.parts)
         if memory_budget < biggest:
             raise InputError(
@@ -101,35 +104,219 @@ class SubmapLocalizer:
                 "the map into smaller parts"
             )
         self.memory_budget = int(memory_budget)
-        self.lookahead_s = lookahead_s
-        self.switch_margin = switch_margin
         self.stats = SubmapStats()
         self._resident: OrderedDict[int, tuple[MapBundle, np.ndarray]] = OrderedDict()
         self._loading: dict[int, Future] = {}
-        self._lock = threading.Lock()  # guards the byte count shared with the loader
+        self._users: weakref.WeakSet[SubmapLocalizer] = weakref.WeakSet()
+        self._lock = threading.Lock()  # guards _loading, read by the byte count
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="submap-load") if background else None
+
+    # ------------------------------------------------------------------ state
+    def resident_parts(self) -> list[int]:
+        return list(self._resident)
+
+    def loading_parts(self) -> list[int]:
+        """Parts being loaded on the loader thread."""
+        with self._lock:
+            return [k for k, f in self._loading.items() if not f.done()]
+
+    def resident_bytes(self) -> int:
+        """Bytes of the resident parts plus those being loaded (what the budget bounds)."""
+        with self._lock:
+            parts = list(self._resident) + list(self._loading)
+        return sum(self.set.part_memory_bytes(k) for k in parts)
+
+    def register(self, user: SubmapLocalizer) -> None:
+        """A session whose part (``user.part``) must stay resident while it is on it."""
+        self._users.add(user)
+
+    def unregister(self, user: SubmapLocalizer) -> None:
+        self._users.discard(user)
+
+    def sessions(self) -> int:
+        return len(self._users)
+
+    def pinned(self, exclude: SubmapLocalizer | None = None) -> set[int]:
+        """The parts sessions are on (but ``exclude``'s)."""
+        return {u.part for u in list(self._users) if u is not exclude and u.part is not None}
+
+    def get(self, k: int) -> tuple[MapBundle, np.ndarray] | None:
+        """Part ``k`` when resident (it becomes the most recently used), else None."""
+        part = self._resident.get(k)
+        if part is not None:
+            self._resident.move_to_end(k)
+        return part
+
+    def is_pending(self, k: int) -> bool:
+        return k in self._resident or k in self._loading
+
+    # ------------------------------------------------------------------ loading
+    def _note(self, *stats: SubmapStats, **inc: float) -> None:
+        for st in (self.stats, *stats):
+            for name, v in inc.items():
+                setattr(st, name, getattr(st, name) + v)
+
+    def _room_for(
+        self, k: int, keep: set[int], optional: bool, stats: tuple, release: Any = None
+    ) -> bool:
+        """Evict least recently used parts (no session's but ``release``'s, not ``keep``)
+        until part ``k`` fits in the budget; False when it cannot (nothing is evicted then)."""
+        need = self.set.part_memory_bytes(k)
+        protect = set(keep) | self.pinned(exclude=release)
+        evictable = [j for j in self._resident if j not in protect]  # LRU first
+        used = self.resident_bytes()
+        free_up = []
+        for j in evictable:
+            if used + need <= self.memory_budget:
+                break
+            free_up.append(j)
+            used -= self.set.part_memory_bytes(j)
+        if used + need > self.memory_budget:
+            if optional:
+                self._note(*stats, skipped_prefetch=1)
+            return False
+        for j in free_up:
+            del self._resident[j]
+            self._note(*stats, evictions=1)
+        return True
+
+    def request(self, k: int, keep: set[int], optional: bool = False, stats: tuple = ()) -> bool:
+        """Start loading part ``k`` (in the background, or now without a loader thread);
+        False when it does not fit the budget beside the pinned parts and ``keep``."""
+        if self.is_pending(k):
+            return True
+        if not self._room_for(k, keep, optional, stats):
+            return False
+        if self._pool is None:
+            self._resident[k] = self.set.load_part(k)
+            self._note(*stats, loads=1)
+            return True
+        with self._lock:
+            self._loading[k] = self._pool.submit(self.set.load_part, k)
+        return True
+
+    def load_now(
+        self, k: int, stats: tuple = (), release: Any = None
+    ) -> tuple[MapBundle, np.ndarray]:
+        """Part ``k``, loaded now if it is not resident (waiting for its background load if
+        one runs); ``release``: a session about to leave its part (which may then be
+        evicted). ``OverloadError`` when it does not fit beside the sessions' parts."""
+        t0 = time.perf_counter()
+        fut = self._loading.get(k)
+        if fut is not None:
+            fut.result()
+            self.collect(stats)
+        part = self.get(k)
+        if part is None:
+            if not self._room_for(k, set(), False, stats, release):
+                raise OverloadError(
+                    f"sub-map {k} of {self.set.name} does not fit the memory budget "
+                    f"({self.memory_budget / 1e6:.1f} MB) beside the parts other sessions are "
+                    "on: raise the map memory budget"
+                )
+            part = self._resident[k] = self.set.load_part(k)
+            self._note(*stats, loads=1)
+        self._note(*stats, sync_loads=1, sync_load_ms=(time.perf_counter() - t0) * 1e3)
+        return part
+
+    def collect(self, stats: tuple = ()) -> None:
+        """Adopt the parts the loader thread has finished."""
+        for k, fut in list(self._loading.items()):
+            if fut.done():
+                with self._lock:
+                    del self._loading[k]
+                try:
+                    self._resident[k] = fut.result()
+                    self._note(*stats, loads=1)
+                except Exception as exc:  # noqa: BLE001 - a bad part must not stop the session
+                    self._note(*stats, failed_loads=1)
+                    log.error("sub-map %d failed to load: %s", k, exc)
+        used = self.resident_bytes()
+        for st in (self.stats, *stats):
+            st.max_resident_bytes = max(st.max_resident_bytes, used)
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+        self.collect()
+
+
+class SubmapLocalizer:
+    """A ``Localizer`` over a ``SubmapSet`` within ``memory_budget`` bytes of resident parts
+    (its own ``PartCache``), or over a ``cache`` shared with other sessions.
+
+    ``localize(frame, stamp)`` as ``Localizer.localize``; ``part`` is the sub-map the last
+    frame ran on. Not thread-safe (one frame at a time), like ``Localizer``.
+    ``lost_parts_per_frame``: parts a frame without a pose is matched against, in the order
+    of the vote, before it is answered LOST (default ``conf.submap_lost_parts``).
+    """
+
+    def __init__(
+        self,
+        submaps: SubmapSet,
+        camera: Camera | str | Path,
+        conf: EngineConf | None = None,
+        *,
+        memory_budget: int | None = None,
+        cache: PartCache | None = None,
+        lookahead_s: float = 1.0,
+        switch_margin: float = 0.2,
+        lost_parts_per_frame: int | None = None,
+        background: bool = True,
+    ) -> None:
+        if cache is None:
+            if memory_budget is None:
+                raise InputError("SubmapLocalizer needs a memory_budget or a shared cache")
+            cache = PartCache(submaps, memory_budget, background=background)
+            self._own_cache = True
+        else:
+            self._own_cache = False
+        if cache.set is not submaps:
+            raise InputError("the part cache belongs to another sub-map set")
+        self.set = submaps
+        self.cache = cache
+        self.camera_in = as_camera(camera)
+        self.conf = conf or EngineConf()
+        self.memory_budget = cache.memory_budget
+        self.lookahead_s = lookahead_s
+        self.switch_margin = switch_margin
+        self.lost_parts_per_frame = int(lost_parts_per_frame or self.conf.submap_lost_parts)
+        self.stats = SubmapStats()
         self.inner: Localizer | None = None
         self.part: int | None = None
         self._part_points: np.ndarray | None = None  # global point rows of ``part``
-        self._tried: list[int] = []
-        self._prev_stamp: float | None = None  # parts tried since the session was lost
+        self._tried: list[int] = []  # parts tried since the session was lost
+        self._prev_stamp: float | None = None
         self._extractor = DaisyExtractor()
         self._pca: Pca | None = None
+        cache.register(self)
+
+    @property
+    def _st(self) -> tuple[SubmapStats]:
+        return (self.stats,)
 
     # ------------------------------------------------------------------ public
     def localize(self, frame: np.ndarray, stamp: float) -> FrameResult:
-        self._collect_loads()
+        self.cache.collect(self._st)
         known = self._known_pose(stamp)
         if known is not None:
             self._follow(*known)
+            assert self.inner is not None
+            res = self.inner.localize(frame, stamp)
+            if self.inner.last_posed_stamp != stamp:
+                # Tracked, then nothing on its part: the camera left it (a jump, a teleport
+                # between rooms) or the frame is bad. The same frame searches the parts by
+                # their vote now rather than from the next frame on.
+                self._tried = [self.part] if self.part is not None else []
+                res = self._search(frame, stamp, res)
         else:
-            self._relocalize_order(frame)
-        assert self.inner is not None
-        res = self.inner.localize(frame, stamp)
+            res = self._search(frame, stamp, None)
         self._prev_stamp = stamp
-        if self.inner.last_posed_stamp == stamp:
+        if self.inner is not None and self.inner.last_posed_stamp == stamp:
             self._tried = []  # a pose (published or withheld): the search is over
-        self.stats.max_resident_bytes = max(self.stats.max_resident_bytes, self.resident_bytes())
+        self.stats.max_resident_bytes = max(
+            self.stats.max_resident_bytes, self.cache.resident_bytes()
+        )
         return res
 
     def _known_pose(self, stamp: float) -> tuple[Rigid3d, np.ndarray] | None:
@@ -148,23 +335,23 @@ class SubmapLocalizer:
         return inner.filter.current(), np.asarray(inner.filter.velocity, float)
 
     def resident_parts(self) -> list[int]:
-        return list(self._resident)
+        return self.cache.resident_parts()
 
     def loading_parts(self) -> list[int]:
         """Parts being loaded on the loader thread."""
-        with self._lock:
-            return [k for k, f in self._loading.items() if not f.done()]
+        return self.cache.loading_parts()
 
     def resident_bytes(self) -> int:
         """Bytes of the resident parts plus those being loaded (what the budget bounds)."""
-        with self._lock:
-            parts = list(self._resident) + list(self._loading)
-        return sum(self.set.part_memory_bytes(k) for k in parts)
+        return self.cache.resident_bytes()
 
     def close(self) -> None:
-        if self._pool is not None:
-            self._pool.shutdown(wait=True)
-        self._collect_loads()
+        """End the session: its part may be evicted (and its own cache is closed)."""
+        self.cache.unregister(self)
+        self.part = None
+        self.inner = None
+        if self._own_cache:
+            self.cache.close()
 
     # ------------------------------------------------------------------ tracked
     def _follow(self, pose: Rigid3d, velocity: np.ndarray) -> None:
@@ -175,20 +362,19 @@ class SubmapLocalizer:
         if cur is not None and cover[best] <= cover[cur] * (1.0 + self.switch_margin):
             want = cur  # hysteresis: no flapping along a boundary
         if want != cur:
-            if want in self._resident:
+            if self.cache.get(want) is not None:
                 self._switch(want)
-            elif not self._request(want, keep={cur} if cur is not None else set()):
-                # The budget cannot hold both: this frame waits for the load.
-                self._load_now(want)
-                self._switch(want)
+            elif not self.cache.request(want, keep=set(), stats=self._st):
+                # The budget cannot hold both: this frame waits for the load (the current
+                # part may be evicted: the switch translates the table from its point ids).
+                self._load_and_switch(want)
         # Ahead of the camera: the part covering the pose ``lookahead_s`` from now best.
         ahead = pose.center + velocity * self.lookahead_s
         if np.all(np.isfinite(ahead)):
             ahead_pose = Rigid3d(pose.rotation, -pose.rotation @ ahead)
             nxt = int(np.argmax(self.set.parts_near(ahead_pose)))
-            if nxt not in self._resident and nxt not in self._loading:
-                keep = {k for k in (self.part, want) if k is not None}
-                self._request(nxt, keep=keep, optional=True)
+            if not self.cache.is_pending(nxt):
+                self.cache.request(nxt, keep={want}, optional=True, stats=self._st)
 
     # ------------------------------------------------------------------ lost
     def vote(self, frame: np.ndarray) -> np.ndarray:
@@ -196,19 +382,30 @@ class SubmapLocalizer:
         keypoints' descriptors): the order a lost session tries them in."""
         return self.set.vote(self._frame_descriptors(frame))
 
-    def _relocalize_order(self, frame: np.ndarray) -> None:
+    def _search(self, frame: np.ndarray, stamp: float, res: FrameResult | None) -> FrameResult:
+        """Up to ``lost_parts_per_frame`` parts not tried since the session was lost, in the
+        order of the frame's vote, until one gives a pose (``res``: the frame's answer on
+        the part it tracked on, which counts as tried)."""
         scores = self.vote(frame)
         self.stats.votes += 1
         order = [int(k) for k in np.argsort(-scores, kind="stable")]
-        cand = [k for k in order if k not in self._tried]
-        if not cand:
-            self._tried, cand = [], order
-        k = cand[0]
-        self._tried.append(k)
-        if k != self.part:
-            if k not in self._resident:
-                self._load_now(k)
-            self._switch(k)
+        for _ in range(self.lost_parts_per_frame):
+            cand = [k for k in order if k not in self._tried]
+            if not cand:
+                if res is not None:
+                    break  # this frame has met every part
+                self._tried, cand = [], order
+            k = cand[0]
+            self._tried.append(k)
+            if k != self.part:
+                self._load_and_switch(k)
+            assert self.inner is not None
+            self.stats.lost_tries += 1
+            res = self.inner.localize(frame, stamp)
+            if self.inner.last_posed_stamp == stamp:
+                break
+        assert res is not None
+        return res
 
     def _frame_descriptors(self, frame: np.ndarray) -> np.ndarray:
         """The frame's keypoints described as global matching describes them."""
@@ -234,9 +431,16 @@ class SubmapLocalizer:
         return self._pca.project(self._extractor.describe(prepared, corners.xy, theta))
 
     # ------------------------------------------------------------------ parts
+    def _load_and_switch(self, k: int) -> None:
+        # The current part may go to make room (unless another session is on it): the switch
+        # translates the table from its point ids, kept in ``_part_points``.
+        self.cache.load_now(k, self._st, release=self)
+        self._switch(k)
+
     def _switch(self, k: int) -> None:
-        bundle, gpts = self._resident[k]
-        self._resident.move_to_end(k)
+        part = self.cache.get(k)
+        assert part is not None
+        bundle, gpts = part
         if self.inner is None:
             self.inner = Localizer(bundle, self.camera_in, self.conf)
         else:
@@ -258,70 +462,5 @@ class SubmapLocalizer:
             self.stats.switches += self.part is not None
             log.debug("sub-map %s -> %s", self.part, k)
         self.part = k
-        self._part_points = gpts  # kept after an eviction: the table is translated from it
+        self._part_points = gpts  # the table is translated from it at the next switch
         self.stats.parts_used.add(k)
-
-    def _room_for(self, k: int, keep: set[int], optional: bool) -> bool:
-        """Evict least recently used parts (not ``keep``, not the current one) until part
-        ``k`` fits in the budget; False when it cannot (nothing is evicted then)."""
-        need = self.set.part_memory_bytes(k)
-        protect = set(keep) | ({self.part} if self.part is not None else set())
-        evictable = [j for j in self._resident if j not in protect]  # LRU first
-        used = self.resident_bytes()
-        free_up = []
-        for j in evictable:
-            if used + need <= self.memory_budget:
-                break
-            free_up.append(j)
-            used -= self.set.part_memory_bytes(j)
-        if used + need > self.memory_budget:
-            if optional:
-                self.stats.skipped_prefetch += 1
-            return False
-        for j in free_up:
-            del self._resident[j]
-            self.stats.evictions += 1
-        return True
-
-    def _request(self, k: int, keep: set[int], optional: bool = False) -> bool:
-        """Start loading part ``k`` (in the background, or now without a loader thread);
-        False when it does not fit the budget beside ``keep`` and the current part."""
-        if k in self._loading or k in self._resident:
-            return True
-        if not self._room_for(k, keep, optional):
-            return False
-        if self._pool is None:
-            self._resident[k] = self.set.load_part(k)
-            self.stats.loads += 1
-            return True
-        with self._lock:
-            self._loading[k] = self._pool.submit(self.set.load_part, k)
-        return True
-
-    def _load_now(self, k: int) -> None:
-        fut = self._loading.get(k)
-        if fut is not None:
-            fut.result()
-            self._collect_loads()
-            return
-        # The current part may go: the switch translates the table from its point ids.
-        protect_current = self.part
-        self.part = None
-        ok = self._room_for(k, set(), optional=False)
-        self.part = protect_current
-        if not ok:
-            raise InputError(f"sub-map {k} does not fit the memory budget")  # checked in init
-        self._resident[k] = self.set.load_part(k)
-        self.stats.loads += 1
-        self.stats.sync_loads += 1
-
-    def _collect_loads(self) -> None:
-        for k, fut in list(self._loading.items()):
-            if fut.done():
-                with self._lock:
-                    del self._loading[k]
-                try:
-                    self._resident[k] = fut.result()
-                    self.stats.loads += 1
-                except Exception as exc:  # noqa: BLE001 - a bad part must not stop the session
-                    log.error("sub-map %d failed to load: %s", k, exc)
