@@ -60,7 +60,7 @@ class PoseUpdate(_message.Message):
     def __init__(self, seq: _Optional[int] = ..., stamp_ns: _Optional[int] = ..., pose: _Optional[_Union[_common_pb2.PoseEstimate, _Mapping]] = ..., dropped: _Optional[int] = ..., client_id: _Optional[str] = ..., error_code: _Optional[str] = ..., error_message: _Optional[str] = ...) -> None: ...
 
 class MapInfo(_message.Message):
-    __slots__ = ("name", "path", "build_id", "points", "descriptors", "images", "clusters", "memory_mb", "sessions", "loaded_utc")
+    __slots__ = ("name", "path", "build_id", "points", "descriptors", "images", "clusters", "memory_mb", "sessions", "loaded_utc", "submaps", "map_memory_mb", "resident_mb")
     NAME_FIELD_NUMBER: _ClassVar[int]
     PATH_FIELD_NUMBER: _ClassVar[int]
     BUILD_ID_FIELD_NUMBER: _ClassVar[int]
@@ -71,6 +71,9 @@ class MapInfo(_message.Message):
     MEMORY_MB_FIELD_NUMBER: _ClassVar[int]
     SESSIONS_FIELD_NUMBER: _ClassVar[int]
     LOADED_UTC_FIELD_NUMBER: _ClassVar[int]
+    SUBMAPS_FIELD_NUMBER: _ClassVar[int]
+    MAP_MEMORY_MB_FIELD_NUMBER: _ClassVar[int]
+    RESIDENT_MB_FIELD_NUMBER: _ClassVar[int]
     name: str
     path: str
     build_id: str
@@ -81,7 +84,10 @@ class MapInfo(_message.Message):
     memory_mb: float
     sessions: int
     loaded_utc: str
-    def __init__(self, name: _Optional[str] = ..., path: _Optional[str] = ..., build_id: _Optional[str] = ..., points: _Optional[int] = ..., descriptors: _Optional[int] = ..., images: _Optional[int] = ..., clusters: _Optional[int] = ..., memory_mb: _Optional[float] = ..., sessions: _Optional[int] = ..., loaded_utc: _Optional[str] = ...) -> None: ...
+    submaps: int
+    map_memory_mb: float
+    resident_mb: float
+    def __init__(self, name: _Optional[str] = ..., path: _Optional[str] = ..., build_id: _Optional[str] = ..., points: _Optional[int] = ..., descriptors: _Optional[int] = ..., images: _Optional[int] = ..., clusters: _Optional[int] = ..., memory_mb: _Optional[float] = ..., sessions: _Optional[int] = ..., loaded_utc: _Optional[str] = ..., submaps: _Optional[int] = ..., map_memory_mb: _Optional[float] = ..., resident_mb: _Optional[float] = ...) -> None: ...
 
 class ListMapsRequest(_message.Message):
     __slots__ = ()

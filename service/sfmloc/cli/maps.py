@@ -57,6 +57,9 @@ def _details(m) -> str:  # noqa: ANN001 - a MapInfo message
         ("sessions", f"{m.sessions}"),
         ("loaded", m.loaded_utc or "-"),
     ]
+    if m.submaps:  # a sub-map set served with --map-memory
+        rows.insert(7, ("sub-maps", f"{m.submaps}, {m.map_memory_mb:g} MB per worker"))
+        rows.insert(8, ("resident", f"{m.resident_mb:.1f} MB (the most one worker holds)"))
     return "\n".join(f"{k + ':':<13} {v}" for k, v in rows)
 
 

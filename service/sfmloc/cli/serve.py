@@ -113,6 +113,16 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "stream workers)",
     )
     p.add_argument(
+        "--map-memory",
+        type=float,
+        metavar="MB",
+        help="host sub-map sets (folders made by 'sfmloc map split') in the maps folder: each "
+        "engine worker keeps at most MB of a set's parts in memory, loading the parts near its "
+        "sessions' cameras and evicting the others; PER WORKER, so the server holds at most "
+        "(workers + relocalize workers) x MB of parts. Without it, sets are refused; whole "
+        "bundles are always loaded whole",
+    )
+    p.add_argument(
         "--idle-timeout",
         type=float,
         metavar="S",
@@ -234,6 +244,8 @@ def overrides_from_args(args: argparse.Namespace) -> dict:
         o["max_frame_bytes"] = int(args.max_message_mb * 1024 * 1024)
     if g:
         o["grpc"] = g
+    if args.map_memory is not None:
+        o["engine"] = {"map_memory_mb": args.map_memory}
     return o
 
 

@@ -52,6 +52,7 @@ from .metrics import MetricsServer, ServerMetrics
 from .pool import WorkerPool
 from .protocol import Result
 from .sessions import SessionManager
+from .submaps import add_submap_metrics
 
 log = logging.getLogger(__name__)
 
@@ -88,7 +89,9 @@ class Server:
             reloc_workers=conf.relocalize_workers,
             fork=conf.worker_start == "fork",
         )
-        self.registry = MapRegistry(self.pool, on_change=self._on_map_change)
+        self.registry = MapRegistry(
+            self.pool, on_change=self._on_map_change, map_memory_mb=conf.engine.map_memory_mb
+        )
         # gRPC bearer tokens and roles (None: authentication off).
         self.tokens = TokenTable.load(conf.grpc.tokens_file) if conf.grpc.tokens_file else None
         self.sessions = SessionManager(
@@ -120,6 +123,7 @@ class Server:
             maps=lambda: {(e.name, e.build_id): 1.0 for e in self.registry.list()},
             busy=lambda: {(str(i),): float(v) for i, v in enumerate(self.pool.inflight())},
         )
+        add_submap_metrics(self.metrics.registry, self.registry)
         self.executor = ThreadPoolExecutor(conf.grpc.threads, thread_name_prefix="sfmloc-blocking")
         self.zenoh: Any = None
         self.grpc: Any = None

@@ -158,6 +158,10 @@ class Localization:
     def list_maps(self) -> list[MapEntry]:
         return self._registry.list()
 
+    def map_resident_mb(self, entry: MapEntry) -> float:
+        """A sub-map set: the most one engine worker holds of it now (0 for a bundle)."""
+        return self._registry.resident_mb(entry)
+
     def load_map(self, path: str, name: str | None = None) -> MapEntry:
         """Load a bundle given by name or by a path inside the maps folders (LoadMap, builder
         announcements); anything else is refused before it is read. Blocks on the workers."""

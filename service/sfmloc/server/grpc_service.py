@@ -88,6 +88,9 @@ def _map_info(loc: Localization, e: Any) -> pb.MapInfo:
         memory_mb=e.memory_mb,
         sessions=n,
         loaded_utc=e.loaded_utc,
+        submaps=e.submaps,
+        map_memory_mb=e.map_memory_mb,
+        resident_mb=loc.map_resident_mb(e),
     )
 
 

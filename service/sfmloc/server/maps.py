@@ -23,6 +23,7 @@ from typing import Any
 
 from ..errors import BundleError, MapNotFoundError, PermissionDeniedError, WireError
 from ..map.bundle import MANIFEST, read_manifest, validate_name, verify_bundle
+from . import submaps
 from .logfmt import event
 from .pool import WorkerPool
 
@@ -72,9 +73,11 @@ class MapEntry:
     clusters: int
     memory_mb: float
     loaded_utc: str
+    submaps: int = 0  # parts of a sub-map set (0: a whole bundle)
+    map_memory_mb: float = 0.0  # a set's budget of resident parts per worker
 
     def summary(self) -> dict[str, Any]:
-        return {
+        out: dict[str, Any] = {
             "name": self.name,
             "build_id": self.build_id,
             "points": self.points,
@@ -82,6 +85,9 @@ class MapEntry:
             "memory_mb": self.memory_mb,
             "path": self.path,
         }
+        if self.submaps:
+            out.update(submaps=self.submaps, map_memory_mb=self.map_memory_mb)
+        return out
 
 
 class MapRegistry:
@@ -89,8 +95,10 @@ class MapRegistry:
         self,
         pool: WorkerPool,
         on_change: Callable[[str, MapEntry | None, MapEntry | None], None] | None = None,
+        map_memory_mb: float | None = None,
     ) -> None:
         self.pool = pool
+        self.map_memory_mb = map_memory_mb  # sub-map sets' budget per worker (None: refused)
         self.on_change = on_change or (lambda name, old, new: None)
         self._maps: dict[str, MapEntry] = {}
         self._lock = threading.Lock()  # guards _maps (reads are a dict lookup)
@@ -118,13 +126,17 @@ class MapRegistry:
         """Load (or atomically replace) the bundle at ``path`` as ``name`` (default: the
         bundle's own name). Raises ``BundleError`` for a missing or corrupt bundle."""
         path = Path(path).resolve()
-        manifest = read_manifest(path)
+        subset = submaps.check_set(path, self.map_memory_mb)  # None: a bundle
+        manifest = subset or read_manifest(path)
         name = validate_name(name or manifest.name)
         with self._lock:
             lock = self._load_locks.setdefault(name, threading.Lock())
         with lock:
             t0 = time.perf_counter()
-            problems = verify_bundle(path, checksums=True)
+            if subset is not None:
+                problems = submaps.verify_submap_set(path, checksums=True)
+            else:
+                problems = verify_bundle(path, checksums=True)
             if problems:
                 raise BundleError(f"map bundle {path} is corrupt: " + "; ".join(problems))
             with self._lock:
@@ -142,6 +154,8 @@ class MapRegistry:
                 clusters=summary.clusters,
                 memory_mb=summary.memory_mb,
                 loaded_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+                submaps=len(subset.parts) if subset is not None else 0,
+                map_memory_mb=(self.map_memory_mb or 0.0) if subset is not None else 0.0,
             )
             with self._lock:
                 old = self._maps.get(name)
@@ -162,6 +176,14 @@ class MapRegistry:
             )
             self.on_change(name, old, entry)
             return entry
+
+    def resident_mb(self, entry: MapEntry) -> float:
+        """The most any engine worker holds of a sub-map set now (its mapped files' resident
+        pages, as the kernel counts them); 0 for a bundle."""
+        if not entry.submaps:
+            return 0.0
+        pids = {h.pid for h in self.pool.workers if h.pid}
+        return max((submaps.resident_map_bytes(p, entry.path) for p in pids), default=0) / 1e6
 
     def unload(self, name: str) -> MapEntry:
         with self._lock:
@@ -184,7 +206,9 @@ class MapRegistry:
             log.warning("maps folder %s does not exist: starting without maps", folder)
             return loaded, failed
         for p in sorted(folder.iterdir()):
-            if p.name.startswith(".") or not p.is_dir() or not (p / MANIFEST).is_file():
+            if p.name.startswith(".") or not p.is_dir():
+                continue
+            if not (p / MANIFEST).is_file() and not submaps.is_submap_set(p):
                 continue
             try:
                 loaded.append(self.load(p))

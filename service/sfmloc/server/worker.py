@@ -117,17 +117,22 @@ class _Worker:
     # ------------------------------------------------------------------ maps
     def on_load(self, m: P.Load) -> None:
         from ..map.bundle import MapBundle
+        from .submaps import SubmapHost, is_submap_set
 
         t0 = time.perf_counter()
         try:
-            # The server verified the checksums once; here only the structure is checked.
-            b = MapBundle(m.path, verify=False)
-            if m.build_id and b.build_id != m.build_id:
-                raise BundleError(
-                    f"map bundle {m.path} changed while loading (build {b.build_id}, "
-                    f"expected {m.build_id}); retry"
-                )
-            _warm_up(b, self.conf)
+            b: Any
+            if is_submap_set(m.path):  # parts load per session, within the memory budget
+                b = SubmapHost(m.path, m.build_id, self.conf)
+            else:
+                # The server verified the checksums once; here only the structure is checked.
+                b = MapBundle(m.path, verify=False)
+                if m.build_id and b.build_id != m.build_id:
+                    raise BundleError(
+                        f"map bundle {m.path} changed while loading (build {b.build_id}, "
+                        f"expected {m.build_id}); retry"
+                    )
+                _warm_up(b, self.conf)
             self.bundles[(m.name, m.gen)] = b
             s = b.summary()
             # The index reads the bundle's mapped file in place: every worker shares one copy.
@@ -138,7 +143,7 @@ class _Worker:
                 clusters=int(s["clusters"]),
                 memory_mb=float(s["memory_mb"]),
                 build_id=str(s["build_id"]),
-                index_in_place=b.index.shared_buffer is not None,
+                index_in_place=isinstance(b, SubmapHost) or b.index.shared_buffer is not None,
             )
             answer = P.Loaded(m.req, summary, None, (time.perf_counter() - t0) * 1e3)
         except Exception as exc:  # noqa: BLE001
@@ -152,8 +157,10 @@ class _Worker:
         self.send(answer)
 
     def on_drop(self, m: P.Drop) -> None:
+        from .submaps import release
+
         key = (m.name, m.gen)
-        self.bundles.pop(key, None)
+        release(self.bundles.pop(key, None))
         for sid in [s for s, st in self.sessions.items() if st.map_key == key]:
             del self.sessions[sid]  # its next frame (on the new generation) starts afresh
 
@@ -231,7 +238,7 @@ class _Worker:
     def _localize(self, m: P.LocalizeFrame, done: list[Any]) -> P.PoseResult:
         from sfmloc_client.images import decode_image
 
-        from ..engine import Localizer
+        from .submaps import make_localizer
 
         t0 = time.perf_counter()
         key = (m.map, m.gen)
@@ -241,7 +248,7 @@ class _Worker:
         st = self.sessions.get(m.sid)
         if st is None or st.map_key != key or st.camera_key != m.camera:
             # New session, a replaced map or another camera: a fresh Localizer (relocalizes).
-            st = _SessionState(Localizer(bundle, cam, self.conf), key, m.camera)
+            st = _SessionState(make_localizer(bundle, cam, self.conf), key, m.camera)
             self.sessions[m.sid] = st
         img = decode_image(m.encoding, m.data, cam.width, cam.height)
         done[1] = (time.perf_counter() - t0) * 1e3
@@ -278,6 +285,7 @@ class _Worker:
         from ..engine import relocalize
         from ..errors import DeadlineExceededError
         from ..transforms import Rigid3d
+        from .submaps import relocalize_bundle
 
         t0 = time.perf_counter()
         pose: P.PoseResult | None = None
@@ -298,6 +306,7 @@ class _Worker:
             prior = None
             if m.prior is not None:
                 prior = Rigid3d.from_quat_xyzw(np.asarray(m.prior.quat_xyzw), np.asarray(m.prior.t))
+            bundle = relocalize_bundle(bundle, img, cam, prior)  # a sub-map set: one part
             result = relocalize(
                 img,
                 cam,
