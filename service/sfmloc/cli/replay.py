@@ -233,6 +233,7 @@ def run(args: argparse.Namespace) -> int:
                 "status": r.status,
                 "matching": r.matching,
                 "latency_ms": r.latency_ms,
+                "cpu_ms": r.cpu_ms,
                 "inliers": r.inliers,
                 "detected": r.detected,
                 "tracked": r.tracked,
