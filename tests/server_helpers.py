@@ -181,15 +181,19 @@ def stream_lockstep(
     n: int | None = None,
     encoding: str = "png",
     timeout: float = 30.0,
+    server: str | None = None,
 ) -> list[Any]:
-    """Stream the video frame by frame (each after the previous pose) and return the poses."""
+    """Stream the video frame by frame (each after the previous pose) and return the poses
+    (``server``: as ``FrameStreamer``'s, e.g. a server id to address the frames to)."""
     from sfmloc_client import FrameStreamer, PoseSubscriber, SourceFrame
 
     frames = world.png[: n or len(world.png)]
     got: list[Any] = []
     with (
         PoseSubscriber(z, map_name, client_id, callback=got.append) as poses,
-        FrameStreamer(z, map_name, client_id, camera(world), encoding=encoding) as fs,
+        FrameStreamer(
+            z, map_name, client_id, camera(world), encoding=encoding, server=server
+        ) as fs,
     ):
         assert fs.wait_for_server(timeout), "no server subscribed to the frames"
         src = [

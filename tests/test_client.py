@@ -11,6 +11,7 @@ import sys
 import msgpack
 import numpy as np
 import pytest
+import zenoh
 
 from server_helpers import (
     build_world,
@@ -47,6 +48,8 @@ from sfmloc_client import (
 from sfmloc_client.convert import pose_from_estimate_pb, pose_to_estimate_pb
 from sfmloc_client.errors import CameraModelError
 from sfmloc_client.wire import (
+    FRAME_KEYEXPR,
+    addressed_frame_keyexpr,
     decode_server_info,
     encode_server_info,
     frame_key,
@@ -238,6 +241,16 @@ def test_keys():
     assert frame_key("lab", "drone-1") == "sfmloc/lab/drone-1/frame"
     assert pose_key("lab", "drone-1") == "sfmloc/lab/drone-1/pose"
     assert parse_frame_key("sfmloc/lab/drone-1/frame") == ("lab", "drone-1")
+    # addressed to one server (one owner per session): no other server subscribes to it
+    assert frame_key("lab", "drone-1", "srv-2") == "sfmloc/lab/drone-1/frame/srv-2"
+    assert parse_frame_key("sfmloc/lab/drone-1/frame/srv-2") == ("lab", "drone-1")
+    assert addressed_frame_keyexpr("srv-2") == "sfmloc/*/*/frame/srv-2"
+    assert zenoh.KeyExpr(FRAME_KEYEXPR).intersects(zenoh.KeyExpr(frame_key("lab", "d")))
+    assert not zenoh.KeyExpr(FRAME_KEYEXPR).intersects(zenoh.KeyExpr(frame_key("lab", "d", "s")))
+    with pytest.raises(WireError):
+        frame_key("lab", "drone-1", "no/slash")
+    with pytest.raises(WireError):
+        parse_frame_key("sfmloc/lab/drone-1/frame/srv-2/extra")
     for bad in ("a/b", "*", "", "x" * 65, "-lead", "sp ace"):
         with pytest.raises(WireError):
             frame_key(bad, "c")

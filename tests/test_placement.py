@@ -30,7 +30,12 @@ from sfmloc_client import (
     make_zenoh_config,
 )
 from sfmloc_client.placement import choose, rendezvous_owner
-from sfmloc_client.wire import ServerInfo
+from sfmloc_client.wire import (
+    FRAME_KEYEXPR,
+    ServerInfo,
+    addressed_frame_keyexpr,
+    parse_frame_key,
+)
 
 
 # ------------------------------------------------------------------------------ the choice
@@ -102,6 +107,16 @@ def test_one_server_answers_each_client_and_clients_spread(world):
         clients = [f"cam-{i}" for i in range(6)]
         expected = {c: rendezvous_owner("room", c, ["alpha", "beta"]) for c in clients}
         assert set(expected.values()) == {"alpha", "beta"}  # these ids land on both
+        # What each server's subscriptions receive: the map-wide frame key (every server) gets
+        # nothing, alpha's key only the frames of alpha's clients (beta never sees them).
+        seen: dict[str, list[str]] = {"any": [], "alpha": []}
+        subs = [
+            z.declare_subscriber(FRAME_KEYEXPR, lambda s: seen["any"].append(str(s.key_expr))),
+            z.declare_subscriber(
+                addressed_frame_keyexpr("alpha"),
+                lambda s: seen["alpha"].append(parse_frame_key(str(s.key_expr))[1]),
+            ),
+        ]
         for c in clients:
             got: list = []
             assert _stream(z, world, c, range(4), got) == expected[c]
@@ -112,6 +127,11 @@ def test_one_server_answers_each_client_and_clients_spread(world):
             with LocalizationClient(f"127.0.0.1:{srv.grpc_port}") as gc:
                 ids = {s.client_id for s in gc.list_sessions()}
             assert ids == {c for c in clients if expected[c] == sid}
+        for sub in subs:
+            sub.undeclare()
+        assert seen["any"] == []
+        alphas = [c for c in clients if expected[c] == "alpha"]
+        assert collections.Counter(seen["alpha"]) == {c: 4 for c in alphas}
 
 
 def test_a_client_moves_when_its_server_disappears(world):

@@ -114,16 +114,28 @@ def test_each_device_streams_and_reads_poses_only_under_its_own_id(world, pki, t
                 assert [p.seq for p in own2] == [0, 1]
                 assert not any(s.client_id == "drone-1" for s in loc.list_sessions())
 
-                # drone-1 streams as itself: every frame answered, localized.
-                own1 = stream_lockstep(z1, "room", "drone-1", world, n=5)
-                assert [p.seq for p in own1] == list(range(5))
+                # The same forgery addressed to the server's own frame key: dropped too.
+                sid = srv.server.server_id
+                with FrameStreamer(
+                    z2, "room", "drone-1", camera(world), encoding="png", server=sid
+                ) as fs:
+                    fs.publish(data=world.png[0], encoding="png")
+                own2 = stream_lockstep(z2, "room", "drone-2", world, n=1, server=sid)
+                assert [p.seq for p in own2] == [0]
+                assert not any(s.client_id == "drone-1" for s in loc.list_sessions())
+
+                # drone-1 streams as itself: every frame answered, localized (the last two
+                # addressed to the server).
+                own1 = stream_lockstep(z1, "room", "drone-1", world, n=3)
+                own1 += stream_lockstep(z1, "room", "drone-1", world, n=2, server=sid)
+                assert [p.seq for p in own1] == [0, 1, 2, 0, 1]
                 assert sum(p.localized for p in own1) >= 4
                 # drone-2's subscription to drone-1's poses got none of them (a last round trip
                 # of drone-2's own orders it after every pose drone-1 got).
                 stream_lockstep(z2, "room", "drone-2", world, n=1)
                 assert spied == []
             sessions = {s.client_id: s for s in loc.list_sessions()}
-            assert sessions["drone-1"].frames == 5 and sessions["drone-2"].frames == 3
+            assert sessions["drone-1"].frames == 5 and sessions["drone-2"].frames == 4
             # Discovery stays open to devices: the server's token and its info queryable.
             assert list_server_ids(z1, 5.0) == [srv.server.server_id]
             assert [i.server_id for i in query_servers(z1, 5.0)] == [srv.server.server_id]

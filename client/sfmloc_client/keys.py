@@ -31,8 +31,18 @@ def check_name(value: str, what: str = "name") -> str:
     return value
 
 
-def frame_key(map_name: str, client_id: str) -> str:
-    return f"{ROOT}/{check_name(map_name, 'map name')}/{check_name(client_id, 'client id')}/frame"
+def frame_key(map_name: str, client_id: str, server_id: str = "") -> str:
+    """Where a client publishes its frames: ``sfmloc/<map>/<client>/frame`` reaches every server
+    hosting the map; with ``server_id``, ``.../frame/<server>`` reaches only that server (one
+    owner per session: the others never receive the frame, so N servers do not each take in
+    every client's images)."""
+    key = f"{ROOT}/{check_name(map_name, 'map name')}/{check_name(client_id, 'client id')}/frame"
+    return f"{key}/{check_name(server_id, 'server id')}" if server_id else key
+
+
+def addressed_frame_keyexpr(server_id: str) -> str:
+    """What a server subscribes to, besides ``FRAME_KEYEXPR``: frames addressed to it."""
+    return f"{FRAME_KEYEXPR}/{check_name(server_id, 'server id')}"
 
 
 def pose_key(map_name: str, client_id: str) -> str:
@@ -40,9 +50,10 @@ def pose_key(map_name: str, client_id: str) -> str:
 
 
 def parse_frame_key(key: str) -> tuple[str, str]:
-    """``(map, client)`` of a ``sfmloc/<map>/<client>/frame`` key (names not yet validated)."""
+    """``(map, client)`` of a ``sfmloc/<map>/<client>/frame`` key, or of one addressed to a
+    server (``.../frame/<server>``); names not yet validated."""
     parts = str(key).split("/")
-    if len(parts) != 4 or parts[0] != ROOT or parts[3] != "frame":
+    if len(parts) not in (4, 5) or parts[0] != ROOT or parts[3] != "frame":
         raise WireError(f"not a frame key: {key!r}")
     return parts[1], parts[2]
 

@@ -115,19 +115,28 @@ class FrameStreamer:
         self.undelivered = 0
         # The server binds our session to this id: another device under our client id is refused.
         self.source = str(session.zid())
-        self._pub = session.declare_publisher(
-            self.key,
-            priority=zenoh.Priority.DATA_HIGH,
-            congestion_control=zenoh.CongestionControl.DROP
+        self._session = session
+        self._publisher_options = {
+            "priority": zenoh.Priority.DATA_HIGH,
+            "congestion_control": zenoh.CongestionControl.DROP
             if congestion == "drop"
             else zenoh.CongestionControl.BLOCK,
-            express=True,
-        )
+            "express": True,
+        }
+        self._pub = self._declare(self.key)
+        self._addressed: dict[str, Any] = {}  # server id -> publisher on its frame key
+
+    def _declare(self, key: str) -> Any:
+        return self._session.declare_publisher(key, **self._publisher_options)
+
+    @staticmethod
+    def _matched(pub: Any) -> bool:
+        status = pub.matching_status  # a MatchingStatus (the stubs say bool)
+        return bool(getattr(status, "matching", status))
 
     def server_present(self) -> bool:
         """Whether a subscriber (a server) matches this client's frame key right now."""
-        status = self._pub.matching_status  # a MatchingStatus (the stubs say bool)
-        return bool(getattr(status, "matching", status))
+        return self._matched(self._pub)
 
     def wait_for_server(self, timeout: float = 5.0) -> bool:
         """Wait until a server subscribes to our frames (frames sent before would be lost)."""
@@ -159,12 +168,14 @@ class FrameStreamer:
         seq = self.next_seq if seq is None else int(seq)
         self.next_seq = seq + 1
         stamp_ns = time.time_ns() if stamp_ns is None else int(stamp_ns)
+        target = self.target()
         payload = encode_frame(
-            Frame(seq, stamp_ns, self.camera, encoding, data, self.source, self.target())
+            Frame(seq, stamp_ns, self.camera, encoding, data, self.source, target)
         )
+        pub = self._publisher(target)
         # When the frame went out (perf_counter): a large frame reaches the server before
         # put() returns, so latency is measured from here, not from after publish().
-        if not self.server_present():
+        if not self._matched(pub):
             self.undelivered += 1
             if self.undelivered % 100 == 1:
                 log.warning(
@@ -174,8 +185,21 @@ class FrameStreamer:
                     self.undelivered,
                 )
         self.last_put_time = time.perf_counter()
-        self._pub.put(payload)
+        pub.put(payload)
         return seq
+
+    def _publisher(self, target: str) -> Any:
+        """The publisher of frames for ``target`` (a server id: its own key, which no other
+        server receives; "": the map's key, every server hosting it)."""
+        if not target:
+            return self._pub
+        pub = self._addressed.get(target)
+        if pub is None:
+            if len(self._addressed) >= 16:  # servers come and go over weeks: keep a few
+                self._addressed.pop(next(iter(self._addressed))).undeclare()
+            pub = self._declare(frame_key(self.map_name, self.client_id, target))
+            self._addressed[target] = pub
+        return pub
 
     @property
     def server(self) -> str:
@@ -281,10 +305,12 @@ class FrameStreamer:
     def close(self) -> None:
         if self.placement is not None:
             self.placement.close()
-        try:
-            self._pub.undeclare()
-        except Exception:  # noqa: BLE001 - the session may be closed already
-            pass
+        for pub in (self._pub, *self._addressed.values()):
+            try:
+                pub.undeclare()
+            except Exception:  # noqa: BLE001 - the session may be closed already
+                pass
+        self._addressed.clear()
 
     def __enter__(self) -> FrameStreamer:
         return self

@@ -6,6 +6,7 @@ Key expressions
 
 =====================================  ====  ==================================================
 ``sfmloc/<map>/<client>/frame``        in    a frame envelope (``Frame``), client -> server
+``sfmloc/<map>/<client>/frame/<srv>``  in    the same, addressed to server ``<srv>`` only
 ``sfmloc/<map>/<client>/pose``         out   a pose message (``PoseMessage``), server -> client
 ``sfmloc/servers/<server-id>``               liveliness token of a running server
 ``sfmloc/servers/<server-id>/info``          queryable: ``ServerInfo`` (maps, sessions, load)
@@ -36,9 +37,11 @@ given one id do not share (and corrupt) one track table; a source silent for a f
 Unknown keys are ignored (newer clients may add some); missing or mistyped keys are errors.
 With several servers hosting a map, a frame that names ``server`` is processed (and answered)
 by that server only; the others ignore it silently. Without it every server hosting the map
-answers. ``FrameStreamer(server="auto")`` picks one (``placement.py``: rendezvous hashing of
-the client id over the ready servers hosting the map) and moves to another when its liveliness
-token drops.
+answers. A frame naming a server is published on that server's key, ``.../frame/<srv>``, which
+only that server subscribes to: the other servers never receive it (with N servers, N copies of
+every image on the network and N decodes otherwise). ``FrameStreamer(server="auto")`` picks one
+(``placement.py``: rendezvous hashing of the client id over the ready servers hosting the map)
+and moves to another when its liveliness token drops.
 
 Pose message (msgpack map), one per processed frame, and one per rejected frame::
 
@@ -112,6 +115,7 @@ from .keys import (
     ROOT,
     SERVER_INFO_KEYEXPR,
     SERVERS_KEYEXPR,
+    addressed_frame_keyexpr,
     bundle_file_key,
     bundle_key,
     check_name,
@@ -148,6 +152,7 @@ __all__ = [
     "PoseMessage",
     "ServerInfo",
     "Transform",
+    "addressed_frame_keyexpr",
     "bundle_file_key",
     "bundle_key",
     "check_name",

@@ -7,10 +7,12 @@ instance) whose subjects are devices identified by their TLS client certificate'
 (mutual TLS, ``cert_common_names``) or by a Zenoh user name (``transport/auth/usrpwd``,
 ``usernames``). Default: deny. Per device ``D``, on any map:
 
-- ingress ``put`` on ``sfmloc/*/D/frame`` (its frames);
+- ingress ``put`` on ``sfmloc/*/D/frame`` and ``sfmloc/*/D/frame/*`` (its frames, to any
+  server or addressed to one);
 - ingress ``declare_subscriber`` on ``sfmloc/*/D/pose`` and egress ``put`` on it (its poses);
 
-and for every device: the server's own subscription ``sfmloc/*/*/frame`` may be declared to it
+and for every device: the server's own subscriptions ``sfmloc/*/*/frame`` and ``.../frame/*``
+(frames addressed to it) may be declared to it
 (egress ``declare_subscriber``; without it a device routes no frame to the server: a rule for
 ``sfmloc/*/D/frame`` alone does not let the wider declaration out, measured with zenoh 1.10),
 and discovery (the server's liveliness token and info queryable under ``sfmloc/servers/**``).
@@ -69,7 +71,12 @@ def acl_section(
     for d in names:
         check_name(d, "device name")  # it is a key expression chunk: no '*', '/', '$'
     rules = [
-        _rule("server-frame-subscription", "egress", ["declare_subscriber"], [f"{ROOT}/*/*/frame"]),
+        _rule(
+            "server-frame-subscription",
+            "egress",
+            ["declare_subscriber"],
+            [f"{ROOT}/*/*/frame", f"{ROOT}/*/*/frame/*"],  # frames to any server / to this one
+        ),
         _rule(
             "discovery-in",
             "ingress",
@@ -88,7 +95,12 @@ def acl_section(
     common = [r["id"] for r in rules]
     for d in devices:
         own = [
-            _rule(f"{d}/frames-in", "ingress", ["put"], [f"{ROOT}/*/{d}/frame"]),
+            _rule(
+                f"{d}/frames-in",
+                "ingress",
+                ["put"],
+                [f"{ROOT}/*/{d}/frame", f"{ROOT}/*/{d}/frame/*"],
+            ),
             _rule(
                 f"{d}/poses-subscribe", "ingress", ["declare_subscriber"], [f"{ROOT}/*/{d}/pose"]
             ),

@@ -29,6 +29,7 @@ from sfmloc_client.wire import (
     MapAnnouncement,
     PoseMessage,
     ServerInfo,
+    addressed_frame_keyexpr,
     check_name,
     decode_frame,
     decode_map_announcement,
@@ -89,6 +90,7 @@ class ZenohFrontend:
         self.on_announcement = on_announcement
         self.z: zenoh.Session | None = None
         self._frame_sub: Any = None
+        self._addressed_sub: Any = None
         self._ros2_images: Any = None  # ros2_io.Ros2ImageIntake when ros2 images are on
         self._ros2_graph: Any = None  # ros2_io.Ros2Graph with ros2 on rmw_zenoh's keys
         self._token: Any = None
@@ -143,6 +145,10 @@ class ZenohFrontend:
         """Accept frames and become discoverable (once the maps are loaded)."""
         assert self.z is not None
         self._frame_sub = self.z.declare_subscriber(FRAME_KEYEXPR, self._on_frame)
+        # frames addressed to this server (one owner per session): no other server gets them
+        self._addressed_sub = self.z.declare_subscriber(
+            addressed_frame_keyexpr(self.server_id), self._on_frame
+        )
         if self.conf.ros2.enabled and self.conf.ros2.images:
             from .ros2_io import Ros2ImageIntake
 
@@ -159,13 +165,13 @@ class ZenohFrontend:
         if self._ros2_images is not None:
             self._ros2_images.close()
             self._ros2_images = None
-        for obj in (self._frame_sub, self._token):
+        for obj in (self._frame_sub, self._addressed_sub, self._token):
             if obj is not None:
                 try:
                     obj.undeclare()
                 except Exception:  # noqa: BLE001
                     pass
-        self._frame_sub = self._token = None
+        self._frame_sub = self._addressed_sub = self._token = None
 
     def close(self) -> None:
         self.stop_intake()
