@@ -5,6 +5,7 @@ goes on. The suite's numbers themselves are only ever measured by `sfmloc bench`
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import cv2
@@ -321,3 +322,14 @@ def test_a_row_runs_both_methods_on_the_same_frames_and_writes_per_frame_records
     peer = json.loads((tmp_path / "rows" / "t" / "frames-pycolmap-sift.json").read_text())
     assert [f["index"] for f in ours] == list(range(12))
     assert [f["index"] for f in peer] == robust.peer_frames(prep, 3) == [2, 6, 10]
+
+
+def test_localized_not_wrong_leaves_the_wrong_poses_out():
+    """The table's "localized, not wrong" column: a method's localized fraction counts its
+    wrong poses (the peer's on a thin map: 19 of 20 localized, 5 wrong), this one does not."""
+    from sfmloc.bench.robust_report import ROBUST_HEADER, right_pct
+
+    assert right_pct({"F": 20, "F_loc": 19, "wrong_poses": 5}) == 70.0
+    assert right_pct({"F": 20, "F_loc": 16, "wrong_poses": 0}) == 80.0
+    assert math.isnan(right_pct({"F": 0, "F_loc": 0, "wrong_poses": 0}))
+    assert ROBUST_HEADER.index("localized, not wrong") == ROBUST_HEADER.index("localized") + 1

@@ -335,6 +335,7 @@ def frame_dicts(records: list[FrameRecord]) -> list[dict]:
             "position_error_m": r.position_error_m,
             "rotation_error_deg": r.rotation_error_deg,
             "timings_ms": r.timings_ms,
+            "message": r.message,
         }
         for r in records
     ]

@@ -278,6 +278,14 @@ class EngineConf(StrictModel):
     # 1.35 m from the prediction.
     contradiction_position: float = 0.05
     contradiction_deg: float = 10.0
+    # ... and only while the last posed frame's pose was published: a prediction extrapolated
+    # from a withheld pose (the filter follows it) is no evidence (MEASURE). False: any.
+    contradiction_published_only: bool = True
+    # A pose about to be withheld as too uncertain (``max_position_sd``) is re-matched on the
+    # whole frame around itself (guided matching of every keypoint, scoped by the map points
+    # it makes visible; the recovery's rules) and replaced when that pose is more certain
+    # (MEASURE). False: off.
+    densify_uncertain: bool = True
     # ---- out-of-core maps (engine/submaps.py; issue 14)
     # Resident sub-maps of a sub-map set, in MB, per engine worker (``sfmloc serve
     # --map-memory``): the worker's sessions on the set share its parts within it. None: sub-map

@@ -52,7 +52,13 @@ from .frame import to_gray, to_working
 from .matching import guided_matching, search_all, verify_hypotheses
 from .motion_filter import make_pose_filter
 from .pose import PoseEstimate, estimate_pose
-from .relocalize import describe, map_working_scale, pose_from_global, pose_from_hypotheses
+from .relocalize import (
+    describe,
+    map_working_scale,
+    pose_from_global,
+    pose_from_hypotheses,
+    visible_points,
+)
 from .timing import StageTimer
 from .track_table import TrackTable
 from .tracker import Keypoints, extract_keypoints, free_candidates, map_subpixel, track_2d
@@ -198,6 +204,7 @@ class Localizer:
         self.last_pose: Rigid3d | None = None  # cam_from_world of the last posed frame
         self.interval = 0.0  # seconds from the frame before the last to the last
         self.last_interval = 0.0  # the same one frame earlier
+        self.motion_published = False  # the last posed frame's pose was published (not withheld)
 
     # ------------------------------------------------------------------ algorithm 1
     def localize(self, frame: np.ndarray, stamp: float) -> FrameResult:
@@ -269,6 +276,13 @@ class Localizer:
         # A pose is a promise: judge it by its covariance before anyone relies on it.
         cert = None if est is None else certainty(est, self.K, self.bundle, c)
         timer.lap("pose")
+        if est is not None and cert is not None and not relocalized and c.densify_uncertain:
+            if withheld(cert.position_sd, est.num_inliers, c) is not None:
+                dense = self._densify(kps, image, est, cert)
+                if dense is not None:
+                    table, est, cert = dense
+                    matching = Matching.GUIDED
+                timer.lap("match")
         message = ambiguous if est is None else ""
         if est is not None and cert is not None and not relocalized and not cert.verified:
             if est.num_inliers < self.conf.collapse_ratio * self.last_inliers:
@@ -303,6 +317,8 @@ class Localizer:
         status, message, self.unverified = _status(
             est, cert, relocalized, message, self.unverified, c
         )
+        if est is not None:  # the motion filter now rests on this pose: published or withheld
+            self.motion_published = status is not Status.LOST
         pose = est.cam_from_world if est is not None and status is not Status.LOST else None
         return FrameResult(
             status=status,
@@ -577,6 +593,27 @@ class Localizer:
         table.pending = table.point < 0
         return self._reverify(table, est.cam_from_world), est
 
+    def _densify(
+        self, kps: Keypoints, image: _FrameImage, est: PoseEstimate, cert: Certainty
+    ) -> tuple[TrackTable, PoseEstimate, Certainty] | None:
+        """A pose about to be withheld as too uncertain, re-matched on the whole frame: guided
+        matching of all the frame's keypoints around it, scoped by the map points it makes
+        visible, as in ``_recover`` (``densify_uncertain``). The tracks that survive on a thin
+        map are often bunched on one far plane; the frame sees more map points than they do.
+        Returns the restarted table, the pose and its certainty when that pose is more certain
+        (smaller centre sd), else None."""
+        visible = visible_points(self.camera, est.cam_from_world, self.bundle.points_xyz)
+        if len(visible) < self.conf.min_inliers:
+            return None
+        dense = self._recover(kps, image, est.cam_from_world, visible)
+        if dense is None:
+            return None
+        table, est_d = dense
+        cert_d = certainty(est_d, self.K, self.bundle, self.conf)
+        if not cert_d.position_sd < cert.position_sd:
+            return None
+        return table, est_d, cert_d
+
     def _global_matching(
         self, kps: Keypoints, image: _FrameImage
     ) -> tuple[TrackTable, PoseEstimate | None]:
@@ -629,7 +666,10 @@ class Localizer:
         c = self.conf
         last = self.last_posed_stamp
         recent = last is not None and stamp - last <= c.max_frame_gap_s
-        if cert.verified or pred is None or not recent:
+        # A prediction extrapolated from a withheld pose (too uncertain, or unverified on few
+        # inliers: ``contradiction_published_only``) is no evidence against a relocalization.
+        trusted = self.motion_published or not c.contradiction_published_only
+        if cert.verified or pred is None or not recent or not trusted:
             return ""
         dpos = np.linalg.norm(est.cam_from_world.center - pred.center) / self.bundle.scene_scale
         drot = rotation_angle_deg(est.cam_from_world.rotation, pred.rotation)

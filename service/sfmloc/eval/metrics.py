@@ -48,6 +48,7 @@ class FrameRecord:
     # other processes load the machine (the engine runs on one thread).
     cpu_ms: float | None = None
     covariance: np.ndarray | None = None  # 6x6 of cam_from_world (engine.pose.COVARIANCE_ORDER)
+    message: str = ""  # why the frame is LOST (or a pose withheld), when the method says
 
 
 def attach_errors(rec: FrameRecord, est: Rigid3d | None, gt: Rigid3d | None) -> None:

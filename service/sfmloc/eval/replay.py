@@ -57,6 +57,7 @@ def replay(
             timings_ms=dict(res.timings_ms),
             cpu_ms=cpu_ms,
             covariance=res.covariance,
+            message=res.message,
         )
         gt = (
             groundtruth[frame.index]
