@@ -15,6 +15,7 @@ from server_helpers import build_world, camera, client_zenoh, wait_until
 from sfmloc.errors import ConfigError
 from sfmloc.map.bundle import MapBundle
 from sfmloc.map.submaps import SubmapSet, part_folder, split_bundle
+from sfmloc.server.grpc_service import SERVICE_NAME
 from sfmloc.server.submaps import check_set, resident_map_bytes
 from sfmloc.testing import ServerProcess, free_port
 
@@ -60,7 +61,7 @@ def test_a_set_needs_a_budget_that_holds_its_largest_part(set_dir):
 
 
 def test_server_walks_a_client_across_submaps_under_the_budget(world, set_dir):
-    """One worker, a budget that holds one part of three: the client walks the synthetic
+    """A budget that holds one part of three: the client walks the synthetic
     video across parts over Zenoh; the worker never holds more than the budget of the set's
     files (kernel's count, sampled after every pose), the parts it holds change along the walk,
     the client stays localized with poses as good as a whole-map run's, and ListMaps and the
@@ -73,7 +74,7 @@ def test_server_walks_a_client_across_submaps_under_the_budget(world, set_dir):
     assert budget < sum(sizes) - min(sizes)  # two parts never fit
     metrics_port = free_port()
     extra = (
-        "--map-memory", f"{budget / 1e6:.6f}", "--relocalize-workers", "0",
+        "--map-memory", f"{budget / 1e6:.6f}", "--relocalize-workers", "1",
         "--metrics-port", str(metrics_port),
     )  # fmt: skip
     with ServerProcess(set_dir.parent, workers=1, extra_args=extra) as srv:
@@ -81,7 +82,9 @@ def test_server_walks_a_client_across_submaps_under_the_budget(world, set_dir):
             (info,) = c.list_maps()
         assert (info.name, info.submaps, info.points) == ("roomparts", 3, s.manifest.points)
         assert info.map_memory_mb == pytest.approx(budget / 1e6, rel=1e-6)
-        workers = _descendants(srv.proc.pid)  # the engine worker (and a zygote, no maps)
+        # The stream worker and the relocalization worker (and a zygote, no maps): each holds
+        # at most the budget (the walking session's part stays pinned on the stream worker).
+        workers = _descendants(srv.proc.pid)
         assert workers
         resident: list[int] = []
         parts_seen: set[int] = set()
@@ -106,6 +109,11 @@ def test_server_walks_a_client_across_submaps_under_the_budget(world, set_dir):
         body = urllib.request.urlopen(f"http://127.0.0.1:{metrics_port}/metrics").read().decode()
         with LocalizationClient(srv.grpc) as c:
             (info,) = c.list_maps()
+            assert c.health(f"{SERVICE_NAME}/roomparts") == "SERVING"
+            # Single images: on the best-voted part (no prior), within the same budget.
+            single = [c.relocalize(world.gray[k], "roomparts", camera(world), encoding="gray8")
+                      for k in (5, 30, 55)]  # fmt: skip
+        resident.append(max(resident_map_bytes(w, set_dir) for w in workers))
     n = len(world.gray)
     assert len(poses) == n
     errors = []
@@ -115,6 +123,11 @@ def test_server_walks_a_client_across_submaps_under_the_budget(world, set_dir):
             errors.append(np.linalg.norm(np.asarray(p.world_from_cam.t) - gt.center))
     assert len(errors) >= n - 2, f"{len(errors)}/{n} localized"
     assert max(errors) < 0.02 * s.scene_scale  # a pose is a promise: no wrong pose
+    for k, p in zip((5, 30, 55), single):
+        if p.localized:
+            gt = world.gt_cam_from_world[k]
+            assert np.linalg.norm(np.asarray(p.world_from_cam.t) - gt.center) < 0.02 * s.scene_scale
+    assert sum(p.localized for p in single) >= 2
     assert max(resident) <= budget, (max(resident), budget)
     assert min(resident) > 0  # the kernel's count sees the part the session is on
     assert len(parts_seen) >= 2, parts_seen  # the walk crossed parts: one was evicted
