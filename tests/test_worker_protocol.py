@@ -37,7 +37,13 @@ MESSAGES = [
     (P.TO_WORKER, P.Drop("room", 3)),
     (
         P.TO_WORKER,
-        P.LocalizeFrame(5, "room", 3, 11, 123456789, CAM, "png", 7, 12.5, 900.0, b"\x89PNG"),
+        P.LocalizeFrame(5, "room", 3, 11, 123456789, CAM, "png", 7, 12.5, 900.0, data=b"\x89PNG"),
+    ),
+    (
+        P.TO_WORKER,
+        P.LocalizeFrame(
+            5, "room", 3, 12, 1, CAM, "png", 8, prior=[0.0, 0.0, 0.0, 1.0, 1.0, 2.0, 3.0], data=b"x"
+        ),
     ),
     (P.TO_WORKER, P.Relocalize(8, "room", 3, CAM, "gray8", TF, 12.5, 2000.0, bytes(range(256)))),
     (P.TO_WORKER, P.Relocalize(9, "room", 3, CAM, "jpeg", None, data=b"")),
@@ -79,6 +85,9 @@ def test_a_message_for_the_other_side_or_malformed_is_refused_by_name():
     bad_tf[1] = [0.0, 1.0]
     with pytest.raises(ProtocolError, match="7 values"):
         P.TO_SERVER.decode(msgpack.packb(["reloc_result", 1, bad_tf, None, 1.0]))
+    short_prior = P.LocalizeFrame(5, "room", 3, 1, 1, CAM, "png", prior=[0.0, 1.0], data=b"x")
+    with pytest.raises(ProtocolError, match="a prior has 7 values"):
+        P.TO_WORKER.decode(P.TO_WORKER.encode(short_prior))
 
 
 def test_a_result_becomes_the_clients_pose_message():

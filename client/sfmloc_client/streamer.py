@@ -23,7 +23,7 @@ from .keys import check_name
 from .placement import Placement
 from .sources import SourceFrame, array_frames, open_source
 from .subscriber import PoseSubscriber
-from .wire import CameraSpec, Frame, encode_frame, frame_key
+from .wire import CameraSpec, Frame, PoseMessage, Transform, encode_frame, frame_key
 
 log = logging.getLogger(__name__)
 
@@ -125,6 +125,9 @@ class FrameStreamer:
         }
         self._pub = self._declare(self.key)
         self._addressed: dict[str, Any] = {}  # server id -> publisher on its frame key
+        # (cam_from_world, server id, time.monotonic()) of the last localized pose (note_pose)
+        self._last_pose: tuple[Transform, str, float] | None = None
+        self.handover_max_age_s = 5.0
 
     def _declare(self, key: str) -> Any:
         return self._session.declare_publisher(key, **self._publisher_options)
@@ -155,9 +158,13 @@ class FrameStreamer:
         encoding: str | None = None,
         seq: int | None = None,
         stamp_ns: int | None = None,
+        prior: Transform | None = None,
     ) -> int:
         """Send one frame (a numpy image, or already-encoded ``data`` in ``encoding``); returns
-        its ``seq`` (consecutive from 0 unless given)."""
+        its ``seq`` (consecutive from 0 unless given). ``prior``: an outside estimate of its
+        ``cam_from_world`` (wire.Frame's ``prior``, e.g. from GPS/IMU); without one, a frame
+        to a server that has not localized this client yet carries the last pose another
+        server gave (``note_pose``): after a failover the new server searches around it."""
         if data is None:
             if image is None:
                 raise ValueError("publish() needs an image or data")
@@ -169,8 +176,10 @@ class FrameStreamer:
         self.next_seq = seq + 1
         stamp_ns = time.time_ns() if stamp_ns is None else int(stamp_ns)
         target = self.target()
+        if prior is None:
+            prior = self._handover_prior(target)
         payload = encode_frame(
-            Frame(seq, stamp_ns, self.camera, encoding, data, self.source, target)
+            Frame(seq, stamp_ns, self.camera, encoding, data, self.source, target, prior)
         )
         pub = self._publisher(target)
         # When the frame went out (perf_counter): a large frame reaches the server before
@@ -187,6 +196,22 @@ class FrameStreamer:
         self.last_put_time = time.perf_counter()
         pub.put(payload)
         return seq
+
+    def note_pose(self, pose: PoseMessage | None) -> None:
+        """Remember the last localized pose and the server that gave it (``run()`` does this
+        with its ``poses``; a caller of ``publish()`` passes what its PoseSubscriber gets):
+        the handover prior after a move to another server."""
+        if pose is not None and pose.localized and pose.cam_from_world is not None:
+            self._last_pose = (pose.cam_from_world, pose.server_id, time.monotonic())
+
+    def _handover_prior(self, target: str) -> Transform | None:
+        """The last pose, for a frame to a server other than the one that gave it, while it
+        is at most ``handover_max_age_s`` old (then the new server's own poses take over)."""
+        last = self._last_pose
+        if last is None or not target or last[1] == target:
+            return None
+        pose, _, t = last
+        return pose if time.monotonic() - t <= self.handover_max_age_s else None
 
     def _publisher(self, target: str) -> Any:
         """The publisher of frames for ``target`` (a server id: its own key, which no other
@@ -268,6 +293,8 @@ class FrameStreamer:
                     time.sleep(delay)
                 t_next = max(t_next + period, time.monotonic() - period)  # no burst after a stall
             t0 = time.perf_counter()
+            if poses is not None:
+                self.note_pose(poses.last)
             if fr.data is not None:
                 seq = self.publish(data=fr.data, encoding=fr.encoding, stamp_ns=fr.stamp_ns)
             else:

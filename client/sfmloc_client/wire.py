@@ -27,7 +27,8 @@ Frame envelope (msgpack map; the image travels inside it, see "Why one envelope"
      "encoding": "gray8" | "bgr8" | "jpeg" | "png",
      "data": bin,
      "source": str,            # optional: the sender's Zenoh session id (FrameStreamer sets it)
-     "server": str}            # optional: the one server that answers it (see below)
+     "server": str,            # optional: the one server that answers it (see below)
+     "prior": {"quat_xyzw": [x, y, z, w], "t": [tx, ty, tz]}}   # optional, see below
 
 Raw encodings are row-major uint8, ``width*height`` (gray8) or ``width*height*3`` (bgr8) bytes.
 A session belongs to the ``source`` of its first frame: frames under the same map and client id
@@ -35,6 +36,12 @@ from another source are refused (PERMISSION_DENIED) while the session is active,
 given one id do not share (and corrupt) one track table; a source silent for a few seconds
 (a device that restarted) is replaced by the new one, whose session starts afresh.
 Unknown keys are ignored (newer clients may add some); missing or mistyped keys are errors.
+``prior`` is an outside estimate of the frame's ``cam_from_world`` in the map's frame (the
+client's last pose when it moves to another server, a GPS/IMU pose...). The server uses it only
+when it has no motion prediction of its own for the session (its first frame, after a loss):
+it looks for the frame around the prior (cheaper than global matching) before global matching;
+a pose found so is a relocalization (``RELOCALIZED``/``UNVERIFIED``, judged like one). A wrong
+prior costs time, not correctness. The quaternion need not be normalised (not zero).
 With several servers hosting a map, a frame that names ``server`` is processed (and answered)
 by that server only; the others ignore it silently. Without it every server hosting the map
 answers. A frame naming a server is published on that server's key, ``.../frame/<srv>``, which
@@ -317,6 +324,7 @@ class Frame:
     data: bytes
     source: str = ""  # the sender's Zenoh session id ("" : not given)
     server: str = ""  # the server id this frame is for ("" : every server hosting the map)
+    prior: Transform | None = None  # an outside estimate of cam_from_world (see the module doc)
 
     def validate(self) -> Frame:
         _uint(self.seq, "seq")
@@ -339,6 +347,13 @@ class Frame:
             raise WireError("source must be a string of at most 64 characters")
         if self.server:
             check_name(self.server, "server id")
+        if self.prior is not None:
+            if not isinstance(self.prior, Transform):
+                raise WireError("prior must be a Transform (quat_xyzw, t)")
+            q = _floats(self.prior.quat_xyzw, 4, "prior.quat_xyzw")
+            _floats(self.prior.t, 3, "prior.t")
+            if not 1e-6 < math.sqrt(sum(x * x for x in q)) < 1e6:
+                raise WireError("prior.quat_xyzw must be a nonzero quaternion")
         return self
 
 
@@ -355,6 +370,8 @@ def encode_frame(frame: Frame) -> bytes:
         d["source"] = frame.source
     if frame.server:
         d["server"] = frame.server
+    if frame.prior is not None:
+        d["prior"] = frame.prior.to_wire()
     return _pack(d)
 
 
@@ -372,6 +389,7 @@ def decode_frame(
         data=_get(d, "data", what),
         source=_str(d.get("source", ""), "source"),
         server=_str(d.get("server", ""), "server"),
+        prior=None if d.get("prior") is None else Transform.from_wire(d["prior"], "prior"),
     ).validate()
 
 

@@ -359,9 +359,12 @@ class StreamClient(threading.Thread):
         self._cv = threading.Condition()
         self.ready = threading.Event()
         self.failure: str | None = None
+        self._fs: Any = None  # the FrameStreamer, once open: it hands the last pose over
 
     def _on_pose(self, p: Any) -> None:
         now = time.monotonic()
+        if self._fs is not None:
+            self._fs.note_pose(p)  # after a failover the new server searches around it
         lg = self.log
         with self._cv:
             if p.seq is None:
@@ -409,6 +412,7 @@ class StreamClient(threading.Thread):
         ):
             if not fs.wait_for_server(30):
                 raise RuntimeError("no server subscribed to the frames")
+            self._fs = fs
             self.ready.set()
             seq, t_next = 0, time.monotonic()
             while not self.stop_ev.is_set():

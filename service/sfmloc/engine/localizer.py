@@ -207,9 +207,15 @@ class Localizer:
         self.motion_published = False  # the last posed frame's pose was published (not withheld)
 
     # ------------------------------------------------------------------ algorithm 1
-    def localize(self, frame: np.ndarray, stamp: float) -> FrameResult:
+    def localize(
+        self, frame: np.ndarray, stamp: float, prior: Rigid3d | None = None
+    ) -> FrameResult:
         """LOCALIZE-FRAME(f, T, M): one frame through the steps of Algorithm 1 (module
-        docstring)."""
+        docstring). ``prior``: an outside estimate of the frame's ``cam_from_world`` (the
+        client's last pose from another server after a failover, GPS/IMU), used only when the
+        engine has no motion prediction of its own (first frame, after a loss): the prior
+        recovery around it is tried before global matching, and a pose found so counts as a
+        relocalization (judged, and reported, like one)."""
         c = self.conf
         timer = StageTimer()
         gray = to_gray(frame, self.input_camera)
@@ -258,6 +264,14 @@ class Localizer:
                 table, est = recovered
                 matching = Matching.GUIDED
             timer.lap("reloc")  # the whole frame around the prediction: a relocalization
+        elif est is None and pred.cam_from_world is None and prior is not None:
+            if c.prior_recovery and prior.is_finite():
+                near = visible_points(self.camera, prior, self.bundle.points_xyz)
+                recovered = self._recover(kps, image, prior, near) if len(near) else None
+                if recovered is not None:
+                    table, est = recovered
+                    matching, relocalized = Matching.GUIDED, True
+            timer.lap("reloc")
         if est is None:
             table, est = self._global_matching(kps, image)
             matching = Matching.GLOBAL

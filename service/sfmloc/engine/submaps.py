@@ -296,10 +296,25 @@ class SubmapLocalizer:
         return (self.stats,)
 
     # ------------------------------------------------------------------ public
-    def localize(self, frame: np.ndarray, stamp: float) -> FrameResult:
+    def localize(
+        self, frame: np.ndarray, stamp: float, prior: Rigid3d | None = None
+    ) -> FrameResult:
+        """``Localizer.localize`` over the parts; ``prior`` (an outside estimate of the pose,
+        used when the session has no pose of its own) chooses the first part to search."""
         self.cache.collect(self._st)
         known = self._known_pose(stamp)
-        if known is not None:
+        if known is None and prior is not None and prior.is_finite():
+            # Lost or new, with an outside estimate (a failover, GPS): first the part that
+            # covers it best, searched around it; then the parts by their vote.
+            k = int(np.argmax(self.set.parts_near(prior)))
+            if k != self.part:
+                self._load_and_switch(k)
+            assert self.inner is not None
+            res = self.inner.localize(frame, stamp, prior)
+            if self.inner.last_posed_stamp != stamp:
+                self._tried = [k]
+                res = self._search(frame, stamp, res)
+        elif known is not None:
             self._follow(*known)
             assert self.inner is not None
             res = self.inner.localize(frame, stamp)

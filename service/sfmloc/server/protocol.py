@@ -195,12 +195,17 @@ class LocalizeFrame(Message):
     # any work; ``cpu_budget_ms``: the most CPU it may use once started (0: no limit).
     deadline: float = 0.0
     cpu_budget_ms: float = 0.0
+    # The client's outside estimate of cam_from_world (quat_xyzw + t, 7 values; wire.Frame's
+    # ``prior``), None: none.
+    prior: list[float] | None = None
     data: bytes = payload()
 
     @classmethod
     def from_wire(cls, values: Any) -> LocalizeFrame:
         m = super().from_wire(values)
         m.camera = _camera_from_wire(m.camera)
+        if m.prior is not None and len(m.prior) != 7:
+            raise ProtocolError(f"a prior has 7 values (quat_xyzw, t), got {len(m.prior)}")
         return m
 
 

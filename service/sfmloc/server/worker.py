@@ -252,7 +252,15 @@ class _Worker:
             self.sessions[m.sid] = st
         img = decode_image(m.encoding, m.data, cam.width, cam.height)
         done[1] = (time.perf_counter() - t0) * 1e3
-        return P.PoseResult.of(st.localizer.localize(img, m.stamp_ns * 1e-9))
+        prior = None
+        if m.prior is not None:  # validated by the server (wire.Frame): finite, nonzero quaternion
+            import numpy as np
+
+            from ..transforms import Rigid3d
+
+            q = np.asarray(m.prior[:4], np.float64)
+            prior = Rigid3d.from_quat_xyzw(q / np.linalg.norm(q), np.asarray(m.prior[4:], float))
+        return P.PoseResult.of(st.localizer.localize(img, m.stamp_ns * 1e-9, prior))
 
     def _arm(self, budget_ms: float) -> None:
         """Start this frame's CPU budget: past it, SIGPROF interrupts the frame (between two
