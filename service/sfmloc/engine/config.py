@@ -62,6 +62,30 @@ class EngineConf(StrictModel):
     # run each, same load): scoped 60/60 posed, 0 wrong, median 0.41 cm, CPU per query 90 ms;
     # reuse 60/60, 0 wrong, 0.33 cm, x0.76 CPU (the second search was 16 of the 90 ms).
     global_verify_search: Literal["reuse", "scoped"] = "reuse"
+    # A relocalization is also LOST when its inliers cover fewer than this fraction of the
+    # image cells (4x4) that have keypoints (0: off): a chance pose rests on a patch of
+    # repeated texture. 8 look-alike synthetic rooms (``bench.scale --parts submaps``, single
+    # images, every 2nd frame): the 13 wrong poses spread over 0.06-0.375, the right ones from
+    # 0.375 (1 UNVERIFIED), verified ones from 0.47; redkitchen non-map frames from 0.67, the
+    # synthetic room from 0.56.
+    min_inlier_spread: float = 0.4
+    # ... and when RANSAC, on the candidate matches the pose leaves unexplained, finds a pose at
+    # another place (beyond the wrong-pose limits ``contradiction_*``) with at least this
+    # fraction of its inliers (and ``recover_min_inliers``: places by chance gather 12-16)
+    # (0: off): the frame fits two places. A square room with four identical walls (the
+    # ``ambiguous_world`` of tests/test_engine.py), 60 single images: 24 were wrong, a pose
+    # turned by 90 deg with 1-2.5x the right one's inliers (right ones' second places 0-0.4x);
+    # with both tests 0 wrong, 19 right (0.15: 0 wrong, 12 right). Synthetic room: 60/60 right
+    # either way (0.15: 54/60); redkitchen: no second place reaches 10 inliers.
+    second_place_ratio: float = 0.25
+    # The search sets aside the points of the images that see at least ``second_place_share``
+    # of the pose's inliers (its place): there, frame 58's wrong pose (150 inliers) hid the right
+    # one (63 pairs, but 20 of 337 in set 1, out of RANSAC's reach); without the wrong place's
+    # points, 20 of 86. ``second_place_iterations``: the budget of each of its
+    # ``second_place_rounds`` RANSAC searches (2 rounds: the same 0 wrong, 19 right).
+    second_place_share: float = 0.25
+    second_place_iterations: int = 300
+    second_place_rounds: int = 1
 
     # ---- engineering choices the paper leaves open
     # Also ADD-GOOD-FEATURES when fewer tracked keypoints than this have a 3D match (0: only
@@ -184,6 +208,8 @@ class EngineConf(StrictModel):
     max_hamming: int = 80  # a track match must also be this close (of 256 bits)
     global_max_keypoints: int = 1000  # keypoints described for global matching
     nprobe: int = 16  # inverted lists scanned per ANN query
+    # ... by single-image relocalization's search over the whole map (0: ``nprobe``).
+    global_nprobe: int = 0
     max_hypotheses: int = 8  # one-to-many 3D hypotheses kept per keypoint
     ransac_threshold_px: float = 4.0  # inlier reprojection error in RANSAC
     ransac_confidence: float = 0.999

@@ -16,6 +16,7 @@ from ..map.bundle import MapBundle
 from ..transforms import Rigid3d
 from .certainty import certainty, withheld
 from .config import EngineConf
+from .distinct import inlier_spread, place_points, second_place
 from .frame import to_gray, to_working, working_scale
 from .matching import global_matching, guided_matching, verify_hypotheses
 from .pose import PoseEstimate, estimate_pose, estimate_pose_one_to_many, project
@@ -82,12 +83,30 @@ def pose_from_global(
     cpu_deadline: float | None = None,
 ) -> tuple[PoseEstimate, np.ndarray, np.ndarray, np.ndarray] | None:
     """GLOBAL-MATCHING + one-to-many RANSAC: (pose, inlier keypoints, their points, every
-    keypoint's hypotheses), or None. ``neighbours``: the search of ``desc`` over the whole map,
-    when already made (``matching.search_all``). ``deadline``: see ``relocalize``."""
+    keypoint's hypotheses), or None (``global_pose`` says why). ``neighbours``: the search of
+    ``desc`` over the whole map, when already made (``matching.search_all``). ``deadline``:
+    see ``relocalize``."""
+    return global_pose(desc, xy_u, bundle, camera, conf, neighbours, deadline, cpu_deadline)[0]
+
+
+def global_pose(
+    desc: np.ndarray,
+    xy_u: np.ndarray,
+    bundle: MapBundle,
+    camera: Camera,
+    conf: EngineConf,
+    neighbours: tuple[np.ndarray, np.ndarray] | None = None,
+    deadline: float | None = None,
+    cpu_deadline: float | None = None,
+) -> tuple[tuple[PoseEstimate, np.ndarray, np.ndarray, np.ndarray] | None, str]:
+    """``pose_from_global``'s answer and, when it is None, why."""
+    if neighbours is None and conf.global_nprobe:
+        neighbours = bundle.index.search(desc, conf.k, nprobe=conf.global_nprobe)
     gm = global_matching(desc, bundle, conf, neighbours)
     check_deadline(deadline, "search", cpu_deadline)
+    none = "no pose: too few consistent 2D-3D matches"
     if len(gm.set1_q) < 3:
-        return None
+        return None, none
     K = camera.K
     hyp = np.full((len(desc), conf.max_hypotheses), -1, np.int64)
     if len(gm.set2_q):
@@ -98,9 +117,10 @@ def pose_from_global(
         xy_u[gm.set1_q], X[gm.set1_p], gm.set2_q, xy_u[gm.set2_q], X[gm.set2_p], K, conf.ransac()
     )
     if res is None:
-        return None
+        return None, none
     est, chosen = res
     check_deadline(deadline, "RANSAC", cpu_deadline)
+    out: tuple[PoseEstimate, np.ndarray, np.ndarray, np.ndarray] | None = None
     if conf.global_verify:
         # Guided matching of the whole frame around the RANSAC pose (scope: the map points it
         # makes visible). A right pose gathers the matches the ratio test dropped; a chance one
@@ -111,13 +131,43 @@ def pose_from_global(
             vest, point = ver
             if vest.num_inliers >= est.num_inliers:
                 q = np.nonzero(point >= 0)[0]
-                return vest, q, point[q], hyp
-            # Confirmed, and the RANSAC pose has the more inliers (the narrower covariance).
-            return est, gm.set2_q[chosen], gm.set2_p[chosen], hyp
-    # Among hundreds of candidate matches, ten that agree can be chance: demand a fraction too.
-    if est.num_inliers < conf.global_min_inlier_ratio * len(gm.set1_q):
-        return None
-    return est, gm.set2_q[chosen], gm.set2_p[chosen], hyp
+                out = vest, q, point[q], hyp
+            else:
+                # Confirmed, and the RANSAC pose has the more inliers (the narrower covariance).
+                out = est, gm.set2_q[chosen], gm.set2_p[chosen], hyp
+    if out is None:
+        # Among hundreds of candidate matches, ten that agree can be chance: demand a fraction.
+        if est.num_inliers < conf.global_min_inlier_ratio * len(gm.set1_q):
+            return None, none
+        out = est, gm.set2_q[chosen], gm.set2_p[chosen], hyp
+    # Distinct: inliers over the image, and no other place nearly as good (``distinct``).
+    spread = inlier_spread(xy_u, xy_u[out[1]], camera.width, camera.height)
+    if spread < conf.min_inlier_spread:
+        return None, (
+            f"no pose: its {out[0].num_inliers} inliers cover {spread:.0%} of the image cells "
+            f"with keypoints (at least {conf.min_inlier_spread:.0%})"
+        )
+    if conf.second_place_ratio > 0:
+        other = second_place(
+            est,
+            (gm.set1_q, gm.set1_p),
+            (gm.set2_q, gm.set2_p),
+            xy_u,
+            X,
+            K,
+            conf,
+            bundle.scene_scale,
+            place_points(bundle, gm.set2_p[chosen], conf.second_place_share),
+        )
+        check_deadline(deadline, "the second-place test", cpu_deadline)
+        if other is not None:
+            dist = np.linalg.norm(other.cam_from_world.center - est.cam_from_world.center)
+            return None, (
+                f"ambiguous: another place {dist / bundle.scene_scale:.2f} scene scales away "
+                f"fits {other.num_inliers} matches against {est.num_inliers} "
+                "(repeated structure): no pose"
+            )
+    return out, ""
 
 
 def pose_from_hypotheses(
@@ -248,8 +298,9 @@ def _relocalize(
         near = match_near_prior(desc, xy_u, bundle, camera, conf, prior)
         est = None if near is None else near[0]
         check_deadline(deadline, "the search near the prior", cpu_deadline)
+    why = "no pose: too few consistent 2D-3D matches"
     if est is None:
-        res = pose_from_global(
+        res, why = global_pose(
             desc, xy_u, bundle, camera, conf, deadline=deadline, cpu_deadline=cpu_deadline
         )
         est = None if res is None else res[0]
@@ -258,15 +309,15 @@ def _relocalize(
         cert = certainty(est, camera.K, bundle, conf)
         timer.lap("pose")
         result.inliers = est.num_inliers
-        why = withheld(cert.position_sd, est.num_inliers, conf)
-        if why is not None:
-            result.message = why
+        held = withheld(cert.position_sd, est.num_inliers, conf)
+        if held is not None:
+            result.message = held
         else:
             # a single image has no next frame to confirm it: only the strict test verifies
             result.status = Status.RELOCALIZED if cert.verified else Status.UNVERIFIED
             result.cam_from_world = est.cam_from_world
             result.covariance = cert.covariance
     else:
-        result.message = "no pose: too few consistent 2D-3D matches"
+        result.message = why
     result.timings_ms = timer.total()
     return result
