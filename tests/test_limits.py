@@ -45,6 +45,24 @@ def test_rate_limiter_tracks_a_bounded_number_of_keys():
     assert len(rl._buckets) == 100
 
 
+def test_rate_limiter_forgets_clients_whose_bucket_is_full_again():
+    """Clients that came and went leave nothing behind once their bucket would be full again
+    (forgetting it then changes no answer); a client still refilling is kept."""
+    clk = Clock()
+    rl = RateLimiter(rate=10.0, burst=5.0, clock=clk)
+    for k in range(1000):
+        rl.allow(f"gone-{k}")
+    clk.t = 0.3
+    for _ in range(5):
+        rl.allow("busy")  # empties its bucket
+    clk.t = 0.6  # the others' buckets are full again (0.5 s at 10/s); busy's is not
+    assert rl.allow("new")
+    assert list(rl._buckets) == ["busy", "new"]
+    assert sum(rl.allow("busy") for _ in range(5)) == 3  # busy's state was kept: 3 tokens back
+    clk.t = 10.0  # everyone gone: the table empties without another frame
+    assert rl.prune() == 2 and len(rl) == 0
+
+
 def test_log_limiter_caps_lines_and_summarizes(caplog):
     clk = Clock()
     log = logging.getLogger("sfmloc.test.limits")

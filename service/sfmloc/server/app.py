@@ -368,6 +368,7 @@ class Server:
                 self.sessions.expire_idle()
                 if self.zenoh is not None:
                     self.zenoh.rejections.flush()  # the summary of held-back lines, on time
+                    self.zenoh.rate_limiter.prune()  # clients gone: their buckets too
             except Exception:  # noqa: BLE001
                 log.exception("idle-session reaper failed")
 

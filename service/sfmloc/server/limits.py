@@ -39,7 +39,30 @@ class RateLimiter:
             self._buckets[key] = (tokens - 1.0 if ok else tokens, now)
             while len(self._buckets) > self.max_keys:
                 self._buckets.popitem(last=False)
+            self._prune(now, keep=1)  # the last is this key's
             return ok
+
+    def prune(self) -> int:
+        """Forget the buckets idle long enough to be full again (called on every ``allow``
+        and by the server's reaper, so that the table empties when clients are gone)."""
+        with self._lock:
+            return self._prune(self.clock())
+
+    def _prune(self, now: float, keep: int = 0) -> int:
+        # A bucket idle long enough to be full again is the same as none: forgotten, so that
+        # clients that came and went cost nothing (issue 16). Least recently seen first: stop
+        # at the first one still refilling.
+        n, refill_s = 0, self.burst / self.rate
+        while len(self._buckets) > keep:
+            k, (_, t_k) = next(iter(self._buckets.items()))
+            if now - t_k < refill_s:
+                break
+            del self._buckets[k]
+            n += 1
+        return n
+
+    def __len__(self) -> int:
+        return len(self._buckets)
 
 
 class LogLimiter:

@@ -97,7 +97,7 @@ class ZenohFrontend:
         self._others: list[Any] = []
         # Announcements load maps, which blocks on the workers: never on Zenoh's thread.
         self._loader = ThreadPoolExecutor(1, thread_name_prefix="sfmloc-announce")
-        self._rate = RateLimiter(conf.max_client_fps, 2.0 * conf.max_client_fps)
+        self.rate_limiter = RateLimiter(conf.max_client_fps, 2.0 * conf.max_client_fps)
         self.rejections = LogLimiter(log, "frame_rejected", conf.log_interval_s)
 
     def open(self) -> None:
@@ -222,7 +222,7 @@ class ZenohFrontend:
         try:
             check_name(map_name, "map name")
             check_name(client_id, "client id")
-            if not self._rate.allow(f"{map_name}/{client_id}"):
+            if not self.rate_limiter.allow(f"{map_name}/{client_id}"):
                 self.loc.count_refused("rate")
                 raise OverloadError(
                     f"client {client_id!r} sends more than {self.conf.max_client_fps:g} frames/s: "
