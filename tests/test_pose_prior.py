@@ -6,6 +6,7 @@ time, never a wrong pose. Exact synthetic ground truth."""
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
 import pytest
@@ -134,3 +135,37 @@ def test_a_server_uses_the_prior_and_a_streamer_hands_over_the_last_pose(world):
             assert first.localized and first.matching == "guided", first
             fs.note_pose(first)  # s1 localized us: no more prior
             assert fs._handover_prior("s1") is None
+
+
+def test_a_grpc_stream_frame_carries_a_prior(world):
+    """StreamLocalize: a SourceFrame's prior goes as prior_cam_from_world; the first frame is
+    found around it; a malformed prior is that frame's INVALID_ARGUMENT, the stream goes on."""
+    from sfmloc_client import LocalizationClient, SourceFrame
+
+    bad = Transform((0.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0))  # no rotation: refused
+    frames = [
+        SourceFrame(data=world.png[K], encoding="png", prior=_wire(world.gt_cam_from_world[K])),
+        SourceFrame(data=world.png[K + 1], encoding="png", prior=bad),
+        SourceFrame(data=world.png[K + 2], encoding="png"),
+    ]
+
+    def paced():  # one at a time: no frame dropped as stale
+        for k, f in enumerate(frames):
+            yield f
+            deadline = time.monotonic() + 60
+            while len(poses) <= k and time.monotonic() < deadline:
+                time.sleep(0.01)
+
+    ep = zenoh_endpoint()
+    poses: list = []
+    with (
+        running_server(server_config(world, ep)) as srv,
+        LocalizationClient(f"127.0.0.1:{srv.grpc_port}") as gc,
+    ):
+        for p in gc.stream(paced(), "room", camera(world), encoding="png", timeout=60):
+            poses.append(p)
+    assert [p.seq for p in poses] == [0, 1, 2]
+    assert poses[0].localized and poses[0].matching == "guided", poses[0]
+    assert poses[1].error is not None and poses[1].error.code == "INVALID_ARGUMENT"
+    assert "quaternion" in poses[1].error.message
+    assert poses[2].localized

@@ -147,6 +147,8 @@ def _stream_requests(
         msg = pb.StreamFrame(
             seq=seq, stamp_ns=stamp, image=image_to_pb(enc, data, camera.width, camera.height)
         )
+        if isinstance(fr, SourceFrame) and fr.prior is not None:
+            msg.prior_cam_from_world.CopyFrom(transform_to_pb(fr.prior))
         if seq == 0:  # map, client and camera are only required on the first frame
             msg.map, msg.client_id = map_name, client_id
             msg.camera.CopyFrom(camera_to_pb(camera))

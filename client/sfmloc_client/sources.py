@@ -11,11 +11,14 @@ import fnmatch
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from .errors import ImageDecodeError, InputError
+
+if TYPE_CHECKING:
+    from .wire import Transform
 
 IMAGE_SUFFIXES = {
     ".jpg": "jpeg",
@@ -34,6 +37,9 @@ class SourceFrame:
     encoding: str | None = None  # encoding of ``data``
     stamp_ns: int | None = None  # the source's own timestamp, when it has one
     name: str = ""
+    # An outside estimate of the frame's cam_from_world (GPS/IMU) sent with it (wire.Frame's
+    # ``prior``; the gRPC StreamFrame's prior_cam_from_world)
+    prior: Transform | None = None
 
 
 def _cv2() -> Any:

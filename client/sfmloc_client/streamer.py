@@ -296,9 +296,11 @@ class FrameStreamer:
             if poses is not None:
                 self.note_pose(poses.last)
             if fr.data is not None:
-                seq = self.publish(data=fr.data, encoding=fr.encoding, stamp_ns=fr.stamp_ns)
+                seq = self.publish(
+                    data=fr.data, encoding=fr.encoding, stamp_ns=fr.stamp_ns, prior=fr.prior
+                )
             else:
-                seq = self.publish(fr.image, stamp_ns=fr.stamp_ns)
+                seq = self.publish(fr.image, stamp_ns=fr.stamp_ns, prior=fr.prior)
             stats.send_ms.append((time.perf_counter() - t0) * 1e3)
             stats.sent += 1
             stats.last_seq = seq

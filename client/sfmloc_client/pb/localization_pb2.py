@@ -25,7 +25,7 @@ _sym_db = _symbol_database.Default()
 from . import common_pb2 as sfmloc_dot_v1_dot_common__pb2
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x1csfmloc/v1/localization.proto\x12\tsfmloc.v1\x1a\x16sfmloc/v1/common.proto\"\x96\x01\n\x11RelocalizeRequest\x12\x0b\n\x03map\x18\x01 \x01(\t\x12\x1f\n\x05image\x18\x02 \x01(\x0b\x32\x10.sfmloc.v1.Image\x12!\n\x06\x63\x61mera\x18\x03 \x01(\x0b\x32\x11.sfmloc.v1.Camera\x12\x30\n\x14prior_cam_from_world\x18\x04 \x01(\x0b\x32\x12.sfmloc.v1.Rigid3d\";\n\x12RelocalizeResponse\x12%\n\x04pose\x18\x01 \x01(\x0b\x32\x17.sfmloc.v1.PoseEstimate\"\x90\x01\n\x0bStreamFrame\x12\x0b\n\x03map\x18\x01 \x01(\t\x12\x11\n\tclient_id\x18\x02 \x01(\t\x12\x0b\n\x03seq\x18\x03 \x01(\x04\x12\x10\n\x08stamp_ns\x18\x04 \x01(\x04\x12!\n\x06\x63\x61mera\x18\x05 \x01(\x0b\x32\x11.sfmloc.v1.Camera\x12\x1f\n\x05image\x18\x06 \x01(\x0b\x32\x10.sfmloc.v1.Image\"\xa1\x01\n\nPoseUpdate\x12\x0b\n\x03seq\x18\x01 \x01(\x04\x12\x10\n\x08stamp_ns\x18\x02 \x01(\x04\x12%\n\x04pose\x18\x03 \x01(\x0b\x32\x17.sfmloc.v1.PoseEstimate\x12\x0f\n\x07\x64ropped\x18\x04 \x01(\x04\x12\x11\n\tclient_id\x18\x05 \x01(\t\x12\x12\n\nerror_code\x18\x06 \x01(\t\x12\x15\n\rerror_message\x18\x07 \x01(\t\"\xf4\x01\n\x07MapInfo\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\x0c\n\x04path\x18\x02 \x01(\t\x12\x10\n\x08\x62uild_id\x18\x03 \x01(\t\x12\x0e\n\x06points\x18\x04 \x01(\x04\x12\x13\n\x0b\x64\x65scriptors\x18\x05 \x01(\x04\x12\x0e\n\x06images\x18\x06 \x01(\r\x12\x10\n\x08\x63lusters\x18\x07 \x01(\r\x12\x11\n\tmemory_mb\x18\x08 \x01(\x01\x12\x10\n\x08sessions\x18\t \x01(\r\x12\x12\n\nloaded_utc\x18\n \x01(\t\x12\x0f\n\x07submaps\x18\x0b \x01(\r\x12\x15\n\rmap_memory_mb\x18\x0c \x01(\x01\x12\x13\n\x0bresident_mb\x18\r \x01(\x01\"\x11\n\x0fListMapsRequest\"4\n\x10ListMapsResponse\x12 \n\x04maps\x18\x01 \x03(\x0b\x32\x12.sfmloc.v1.MapInfo\"\x1d\n\rGetMapRequest\x12\x0c\n\x04name\x18\x01 \x01(\t\",\n\x0eLoadMapRequest\x12\x0c\n\x04path\x18\x01 \x01(\t\x12\x0c\n\x04name\x18\x02 \x01(\t\" \n\x10UnloadMapRequest\x12\x0c\n\x04name\x18\x01 \x01(\t\">\n\x11UnloadMapResponse\x12\x10\n\x08unloaded\x18\x01 \x01(\x08\x12\x17\n\x0fsessions_closed\x18\x02 \x01(\r\"\xe5\x01\n\x0bSessionInfo\x12\x11\n\tclient_id\x18\x01 \x01(\t\x12\x0b\n\x03map\x18\x02 \x01(\t\x12\x11\n\ttransport\x18\x03 \x01(\t\x12\x0e\n\x06\x66rames\x18\x04 \x01(\x04\x12\x11\n\tlocalized\x18\x05 \x01(\x04\x12\x0f\n\x07\x64ropped\x18\x06 \x01(\x04\x12\x17\n\x0flast_latency_ms\x18\x07 \x01(\x01\x12\x17\n\x0fmean_latency_ms\x18\x08 \x01(\x01\x12-\n\x06status\x18\t \x01(\x0e\x32\x1d.sfmloc.v1.LocalizationStatus\x12\x0e\n\x06idle_s\x18\n \x01(\x01\"\"\n\x13ListSessionsRequest\x12\x0b\n\x03map\x18\x01 \x01(\t\"@\n\x14ListSessionsResponse\x12(\n\x08sessions\x18\x01 \x03(\x0b\x32\x16.sfmloc.v1.SessionInfo\"5\n\x13ResetSessionRequest\x12\x11\n\tclient_id\x18\x01 \x01(\t\x12\x0b\n\x03map\x18\x02 \x01(\t\"%\n\x14ResetSessionResponse\x12\r\n\x05reset\x18\x01 \x01(\x08\x32\xbf\x04\n\x0cLocalization\x12I\n\nRelocalize\x12\x1c.sfmloc.v1.RelocalizeRequest\x1a\x1d.sfmloc.v1.RelocalizeResponse\x12\x43\n\x0eStreamLocalize\x12\x16.sfmloc.v1.StreamFrame\x1a\x15.sfmloc.v1.PoseUpdate(\x01\x30\x01\x12\x43\n\x08ListMaps\x12\x1a.sfmloc.v1.ListMapsRequest\x1a\x1b.sfmloc.v1.ListMapsResponse\x12\x36\n\x06GetMap\x12\x18.sfmloc.v1.GetMapRequest\x1a\x12.sfmloc.v1.MapInfo\x12\x38\n\x07LoadMap\x12\x19.sfmloc.v1.LoadMapRequest\x1a\x12.sfmloc.v1.MapInfo\x12\x46\n\tUnloadMap\x12\x1b.sfmloc.v1.UnloadMapRequest\x1a\x1c.sfmloc.v1.UnloadMapResponse\x12O\n\x0cListSessions\x12\x1e.sfmloc.v1.ListSessionsRequest\x1a\x1f.sfmloc.v1.ListSessionsResponse\x12O\n\x0cResetSession\x12\x1e.sfmloc.v1.ResetSessionRequest\x1a\x1f.sfmloc.v1.ResetSessionResponseb\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x1csfmloc/v1/localization.proto\x12\tsfmloc.v1\x1a\x16sfmloc/v1/common.proto\"\x96\x01\n\x11RelocalizeRequest\x12\x0b\n\x03map\x18\x01 \x01(\t\x12\x1f\n\x05image\x18\x02 \x01(\x0b\x32\x10.sfmloc.v1.Image\x12!\n\x06\x63\x61mera\x18\x03 \x01(\x0b\x32\x11.sfmloc.v1.Camera\x12\x30\n\x14prior_cam_from_world\x18\x04 \x01(\x0b\x32\x12.sfmloc.v1.Rigid3d\";\n\x12RelocalizeResponse\x12%\n\x04pose\x18\x01 \x01(\x0b\x32\x17.sfmloc.v1.PoseEstimate\"\xc2\x01\n\x0bStreamFrame\x12\x0b\n\x03map\x18\x01 \x01(\t\x12\x11\n\tclient_id\x18\x02 \x01(\t\x12\x0b\n\x03seq\x18\x03 \x01(\x04\x12\x10\n\x08stamp_ns\x18\x04 \x01(\x04\x12!\n\x06\x63\x61mera\x18\x05 \x01(\x0b\x32\x11.sfmloc.v1.Camera\x12\x1f\n\x05image\x18\x06 \x01(\x0b\x32\x10.sfmloc.v1.Image\x12\x30\n\x14prior_cam_from_world\x18\x07 \x01(\x0b\x32\x12.sfmloc.v1.Rigid3d\"\xa1\x01\n\nPoseUpdate\x12\x0b\n\x03seq\x18\x01 \x01(\x04\x12\x10\n\x08stamp_ns\x18\x02 \x01(\x04\x12%\n\x04pose\x18\x03 \x01(\x0b\x32\x17.sfmloc.v1.PoseEstimate\x12\x0f\n\x07\x64ropped\x18\x04 \x01(\x04\x12\x11\n\tclient_id\x18\x05 \x01(\t\x12\x12\n\nerror_code\x18\x06 \x01(\t\x12\x15\n\rerror_message\x18\x07 \x01(\t\"\xf4\x01\n\x07MapInfo\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\x0c\n\x04path\x18\x02 \x01(\t\x12\x10\n\x08\x62uild_id\x18\x03 \x01(\t\x12\x0e\n\x06points\x18\x04 \x01(\x04\x12\x13\n\x0b\x64\x65scriptors\x18\x05 \x01(\x04\x12\x0e\n\x06images\x18\x06 \x01(\r\x12\x10\n\x08\x63lusters\x18\x07 \x01(\r\x12\x11\n\tmemory_mb\x18\x08 \x01(\x01\x12\x10\n\x08sessions\x18\t \x01(\r\x12\x12\n\nloaded_utc\x18\n \x01(\t\x12\x0f\n\x07submaps\x18\x0b \x01(\r\x12\x15\n\rmap_memory_mb\x18\x0c \x01(\x01\x12\x13\n\x0bresident_mb\x18\r \x01(\x01\"\x11\n\x0fListMapsRequest\"4\n\x10ListMapsResponse\x12 \n\x04maps\x18\x01 \x03(\x0b\x32\x12.sfmloc.v1.MapInfo\"\x1d\n\rGetMapRequest\x12\x0c\n\x04name\x18\x01 \x01(\t\",\n\x0eLoadMapRequest\x12\x0c\n\x04path\x18\x01 \x01(\t\x12\x0c\n\x04name\x18\x02 \x01(\t\" \n\x10UnloadMapRequest\x12\x0c\n\x04name\x18\x01 \x01(\t\">\n\x11UnloadMapResponse\x12\x10\n\x08unloaded\x18\x01 \x01(\x08\x12\x17\n\x0fsessions_closed\x18\x02 \x01(\r\"\xe5\x01\n\x0bSessionInfo\x12\x11\n\tclient_id\x18\x01 \x01(\t\x12\x0b\n\x03map\x18\x02 \x01(\t\x12\x11\n\ttransport\x18\x03 \x01(\t\x12\x0e\n\x06\x66rames\x18\x04 \x01(\x04\x12\x11\n\tlocalized\x18\x05 \x01(\x04\x12\x0f\n\x07\x64ropped\x18\x06 \x01(\x04\x12\x17\n\x0flast_latency_ms\x18\x07 \x01(\x01\x12\x17\n\x0fmean_latency_ms\x18\x08 \x01(\x01\x12-\n\x06status\x18\t \x01(\x0e\x32\x1d.sfmloc.v1.LocalizationStatus\x12\x0e\n\x06idle_s\x18\n \x01(\x01\"\"\n\x13ListSessionsRequest\x12\x0b\n\x03map\x18\x01 \x01(\t\"@\n\x14ListSessionsResponse\x12(\n\x08sessions\x18\x01 \x03(\x0b\x32\x16.sfmloc.v1.SessionInfo\"5\n\x13ResetSessionRequest\x12\x11\n\tclient_id\x18\x01 \x01(\t\x12\x0b\n\x03map\x18\x02 \x01(\t\"%\n\x14ResetSessionResponse\x12\r\n\x05reset\x18\x01 \x01(\x08\x32\xbf\x04\n\x0cLocalization\x12I\n\nRelocalize\x12\x1c.sfmloc.v1.RelocalizeRequest\x1a\x1d.sfmloc.v1.RelocalizeResponse\x12\x43\n\x0eStreamLocalize\x12\x16.sfmloc.v1.StreamFrame\x1a\x15.sfmloc.v1.PoseUpdate(\x01\x30\x01\x12\x43\n\x08ListMaps\x12\x1a.sfmloc.v1.ListMapsRequest\x1a\x1b.sfmloc.v1.ListMapsResponse\x12\x36\n\x06GetMap\x12\x18.sfmloc.v1.GetMapRequest\x1a\x12.sfmloc.v1.MapInfo\x12\x38\n\x07LoadMap\x12\x19.sfmloc.v1.LoadMapRequest\x1a\x12.sfmloc.v1.MapInfo\x12\x46\n\tUnloadMap\x12\x1b.sfmloc.v1.UnloadMapRequest\x1a\x1c.sfmloc.v1.UnloadMapResponse\x12O\n\x0cListSessions\x12\x1e.sfmloc.v1.ListSessionsRequest\x1a\x1f.sfmloc.v1.ListSessionsResponse\x12O\n\x0cResetSession\x12\x1e.sfmloc.v1.ResetSessionRequest\x1a\x1f.sfmloc.v1.ResetSessionResponseb\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -37,33 +37,33 @@ if not _descriptor._USE_C_DESCRIPTORS:
   _globals['_RELOCALIZERESPONSE']._serialized_start=220
   _globals['_RELOCALIZERESPONSE']._serialized_end=279
   _globals['_STREAMFRAME']._serialized_start=282
-  _globals['_STREAMFRAME']._serialized_end=426
-  _globals['_POSEUPDATE']._serialized_start=429
-  _globals['_POSEUPDATE']._serialized_end=590
-  _globals['_MAPINFO']._serialized_start=593
-  _globals['_MAPINFO']._serialized_end=837
-  _globals['_LISTMAPSREQUEST']._serialized_start=839
-  _globals['_LISTMAPSREQUEST']._serialized_end=856
-  _globals['_LISTMAPSRESPONSE']._serialized_start=858
-  _globals['_LISTMAPSRESPONSE']._serialized_end=910
-  _globals['_GETMAPREQUEST']._serialized_start=912
-  _globals['_GETMAPREQUEST']._serialized_end=941
-  _globals['_LOADMAPREQUEST']._serialized_start=943
-  _globals['_LOADMAPREQUEST']._serialized_end=987
-  _globals['_UNLOADMAPREQUEST']._serialized_start=989
-  _globals['_UNLOADMAPREQUEST']._serialized_end=1021
-  _globals['_UNLOADMAPRESPONSE']._serialized_start=1023
-  _globals['_UNLOADMAPRESPONSE']._serialized_end=1085
-  _globals['_SESSIONINFO']._serialized_start=1088
-  _globals['_SESSIONINFO']._serialized_end=1317
-  _globals['_LISTSESSIONSREQUEST']._serialized_start=1319
-  _globals['_LISTSESSIONSREQUEST']._serialized_end=1353
-  _globals['_LISTSESSIONSRESPONSE']._serialized_start=1355
-  _globals['_LISTSESSIONSRESPONSE']._serialized_end=1419
-  _globals['_RESETSESSIONREQUEST']._serialized_start=1421
-  _globals['_RESETSESSIONREQUEST']._serialized_end=1474
-  _globals['_RESETSESSIONRESPONSE']._serialized_start=1476
-  _globals['_RESETSESSIONRESPONSE']._serialized_end=1513
-  _globals['_LOCALIZATION']._serialized_start=1516
-  _globals['_LOCALIZATION']._serialized_end=2091
+  _globals['_STREAMFRAME']._serialized_end=476
+  _globals['_POSEUPDATE']._serialized_start=479
+  _globals['_POSEUPDATE']._serialized_end=640
+  _globals['_MAPINFO']._serialized_start=643
+  _globals['_MAPINFO']._serialized_end=887
+  _globals['_LISTMAPSREQUEST']._serialized_start=889
+  _globals['_LISTMAPSREQUEST']._serialized_end=906
+  _globals['_LISTMAPSRESPONSE']._serialized_start=908
+  _globals['_LISTMAPSRESPONSE']._serialized_end=960
+  _globals['_GETMAPREQUEST']._serialized_start=962
+  _globals['_GETMAPREQUEST']._serialized_end=991
+  _globals['_LOADMAPREQUEST']._serialized_start=993
+  _globals['_LOADMAPREQUEST']._serialized_end=1037
+  _globals['_UNLOADMAPREQUEST']._serialized_start=1039
+  _globals['_UNLOADMAPREQUEST']._serialized_end=1071
+  _globals['_UNLOADMAPRESPONSE']._serialized_start=1073
+  _globals['_UNLOADMAPRESPONSE']._serialized_end=1135
+  _globals['_SESSIONINFO']._serialized_start=1138
+  _globals['_SESSIONINFO']._serialized_end=1367
+  _globals['_LISTSESSIONSREQUEST']._serialized_start=1369
+  _globals['_LISTSESSIONSREQUEST']._serialized_end=1403
+  _globals['_LISTSESSIONSRESPONSE']._serialized_start=1405
+  _globals['_LISTSESSIONSRESPONSE']._serialized_end=1469
+  _globals['_RESETSESSIONREQUEST']._serialized_start=1471
+  _globals['_RESETSESSIONREQUEST']._serialized_end=1524
+  _globals['_RESETSESSIONRESPONSE']._serialized_start=1526
+  _globals['_RESETSESSIONRESPONSE']._serialized_end=1563
+  _globals['_LOCALIZATION']._serialized_start=1566
+  _globals['_LOCALIZATION']._serialized_end=2141
 # @@protoc_insertion_point(module_scope)

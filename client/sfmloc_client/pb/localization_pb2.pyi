@@ -26,20 +26,22 @@ class RelocalizeResponse(_message.Message):
     def __init__(self, pose: _Optional[_Union[_common_pb2.PoseEstimate, _Mapping]] = ...) -> None: ...
 
 class StreamFrame(_message.Message):
-    __slots__ = ("map", "client_id", "seq", "stamp_ns", "camera", "image")
+    __slots__ = ("map", "client_id", "seq", "stamp_ns", "camera", "image", "prior_cam_from_world")
     MAP_FIELD_NUMBER: _ClassVar[int]
     CLIENT_ID_FIELD_NUMBER: _ClassVar[int]
     SEQ_FIELD_NUMBER: _ClassVar[int]
     STAMP_NS_FIELD_NUMBER: _ClassVar[int]
     CAMERA_FIELD_NUMBER: _ClassVar[int]
     IMAGE_FIELD_NUMBER: _ClassVar[int]
+    PRIOR_CAM_FROM_WORLD_FIELD_NUMBER: _ClassVar[int]
     map: str
     client_id: str
     seq: int
     stamp_ns: int
     camera: _common_pb2.Camera
     image: _common_pb2.Image
-    def __init__(self, map: _Optional[str] = ..., client_id: _Optional[str] = ..., seq: _Optional[int] = ..., stamp_ns: _Optional[int] = ..., camera: _Optional[_Union[_common_pb2.Camera, _Mapping]] = ..., image: _Optional[_Union[_common_pb2.Image, _Mapping]] = ...) -> None: ...
+    prior_cam_from_world: _common_pb2.Rigid3d
+    def __init__(self, map: _Optional[str] = ..., client_id: _Optional[str] = ..., seq: _Optional[int] = ..., stamp_ns: _Optional[int] = ..., camera: _Optional[_Union[_common_pb2.Camera, _Mapping]] = ..., image: _Optional[_Union[_common_pb2.Image, _Mapping]] = ..., prior_cam_from_world: _Optional[_Union[_common_pb2.Rigid3d, _Mapping]] = ...) -> None: ...
 
 class PoseUpdate(_message.Message):
     __slots__ = ("seq", "stamp_ns", "pose", "dropped", "client_id", "error_code", "error_message")

@@ -182,7 +182,11 @@ class LocalizationService(pb_grpc.LocalizationServicer):
                             state["camera"] = _checked_camera(loc, req.camera)
                         cam = state["camera"]
                         enc, data = image_from_pb(req.image, cam)
-                        frame = Frame(req.seq, req.stamp_ns or time.time_ns(), cam, enc, data)
+                        prior = transform_from_pb(
+                            req.prior_cam_from_world, req.HasField("prior_cam_from_world")
+                        )
+                        stamp = req.stamp_ns or time.time_ns()
+                        frame = Frame(req.seq, stamp, cam, enc, data, prior=prior)
                         s = loc.submit_frame(
                             state["map"],
                             state["client"],
