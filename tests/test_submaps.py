@@ -353,7 +353,10 @@ def test_vote_finds_the_room_of_a_frame(tmp_path_factory):
             assert room_of_part[loc.part] == room
             posed[room] += 1
     loc.close()
-    assert posed[0] >= 4 and posed[1] >= 4, posed
+    # Every frame, room 1's first too: the frame that lost room 0's part searched the parts
+    # by their vote at once (up to two of them), not from the next frame on.
+    assert posed == {0: 6, 1: 6}, posed
+    assert loc.stats.lost_tries <= 4
     assert loc.stats.max_resident_bytes <= budget
 
 

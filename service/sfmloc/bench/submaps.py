@@ -265,6 +265,8 @@ def run_submaps(
         if stall_tracked
         else None,
         "stall_ms_tracked_frames_max": max(stall_tracked) if stall_tracked else None,
+        "tracked_frames_stalled_over_15ms": int(sum(ms > 15.0 for ms in stall_tracked)),
+        "tracked_frames": len(stall_tracked),
         "stall_ms_searching_frames_median": float(np.median(stall_search))
         if stall_search
         else None,
