@@ -419,6 +419,7 @@ class SubmapLocalizer:
         """Up to ``lost_parts_per_frame`` parts not tried since the session was lost, in the
         order of the frame's vote, until one gives a pose (``res``: the frame's answer on
         the part it tracked on, which counts as tried)."""
+        self._withheld_on = []  # lost: the parts are chosen by the vote again
         scores = self.vote(frame)
         self.stats.votes += 1
         order = [int(k) for k in np.argsort(-scores, kind="stable")]
