@@ -44,7 +44,7 @@ def test_reliability_tiny_run_computes_every_field(world, tmp_path):
             "--rate",
             "5",
             "--baseline",
-            "1",
+            "3",  # > the 2 s frame budget: the lockstep canary sends at least once, any load
             "--flips-per-file",
             "2",
             "--every-byte-under",
@@ -228,3 +228,16 @@ def test_kill_log_check_reads_what_the_log_says():
     assert not kill_log_check(killed, [lost(10, 1, False), lost(11, 2, True)], restarted, [{}])[
         "ok"
     ]
+
+
+def test_drops_are_counted_in_their_window_from_the_answers_around_it():
+    """Frames 0-9 sent at t=0-9; the answers carry the session's drop count so far. Frame 6
+    was dropped after the window's last answer (frame 5): it is a drop, not silence."""
+    from sfmloc.bench.reliability import ClientLog, _dropped_within
+
+    lg = ClientLog("c", sent={q: float(q) for q in range(10)})
+    lg.dropped_by_seq = {0: 0, 2: 1, 3: 1, 5: 2, 8: 4}  # 1 dropped, then 4, then 6 and 7
+    lg.answered = {q: q + 0.5 for q in lg.dropped_by_seq}
+    assert _dropped_within(lg, 3.0, 6.0) == 2  # frames 4 and 6 (7: after the window)
+    assert _dropped_within(lg, 0.0, 9.0) == 4  # 1, 4, 6, 7
+    assert _dropped_within(lg, 8.5, 9.5) == 0  # nothing answered there or after
