@@ -890,7 +890,7 @@ def test_engine_config_has_the_paper_defaults_and_env_overrides():
     )
     assert (c.batch_min, c.batch_max, c.top_images, c.min_inliers, c.ratio, c.gamma) == (
         100,
-        150,
+        100,
         30,
         10,
         0.75,
