@@ -217,8 +217,21 @@ class EngineConf(StrictModel):
     max_hamming: int = 80  # a track match must also be this close (of 256 bits)
     global_max_keypoints: int = 1000  # keypoints described for global matching
     nprobe: int = 16  # inverted lists scanned per ANN query
-    # ... by single-image relocalization's search over the whole map (0: ``nprobe``).
-    global_nprobe: int = 0
+    # Single-image relocalization (``relocalize``; not the tracker's global matching): its
+    # search over the whole map scans ``global_nprobe`` inverted lists (0: ``nprobe``) for the
+    # ``relocalize_max_keypoints`` strongest corners (0: ``global_max_keypoints``). Issue 10
+    # (relocalization p95 <= 40 ms). The search's flat quantizer (1000 queries x 1879 lists on
+    # redkitchen) is a third of the search whatever nprobe; the tail is RANSAC's (and the
+    # second-place test's). 100 redkitchen non-map frames (every 10th from 2, map every 10th),
+    # interleaved per frame, CPU against main before this (16 / 1000, no distinctness tests;
+    # load 40): 4 / 1000 mean x0.875, p95 x0.97 (the distinctness tests included), median
+    # 0.262 vs 0.270 cm; 4 / 800 x0.87, x0.95; 4 / 600 x0.81, x0.90; all 100/100, 0 wrong.
+    # Fewer corners cost elsewhere: the synthetic room (richer in corners than redkitchen's
+    # ~850) median 0.35 cm at 16 / 1000 -> 0.37 (4 / 1000), 0.45 (4 / 800), 0.46 (4 / 600);
+    # the 8 look-alike rooms: right RELOCALIZED 131 (4 / 1000), 132 (800), 124 (600). So 4 /
+    # 1000. RANSAC capped at 500 iterations: no change.
+    global_nprobe: int = 4
+    relocalize_max_keypoints: int = 0
     max_hypotheses: int = 8  # one-to-many 3D hypotheses kept per keypoint
     ransac_threshold_px: float = 4.0  # inlier reprojection error in RANSAC
     ransac_confidence: float = 0.999

@@ -277,7 +277,7 @@ def _relocalize(
     corners = detect_corners(
         gray,
         rel_threshold=conf.gamma,
-        max_corners=conf.global_max_keypoints,
+        max_corners=conf.relocalize_max_keypoints or conf.global_max_keypoints,
         border=conf.mu // 2,
         subpixel=map_subpixel(conf, bundle.manifest.params),
     )
