@@ -76,8 +76,11 @@ class EngineConf(StrictModel):
     # repeated texture. 8 look-alike synthetic rooms (``bench.scale --parts submaps``, single
     # images, every 2nd frame): the 13 wrong poses spread over 0.06-0.375, the right ones from
     # 0.375 (1 UNVERIFIED), verified ones from 0.47; redkitchen non-map frames from 0.67, the
-    # synthetic room from 0.56.
+    # synthetic room from 0.56. Only poses on fewer than ``spread_max_inliers`` inliers are
+    # judged (0: all): the wrong ones had 13-46; redkitchen frame 628, right (1.4 cm) on 113
+    # inliers bunched in 38% of the cells, was lost to it (global-every-frame 499/500).
     min_inlier_spread: float = 0.4
+    spread_max_inliers: int = 80
     # ... and when RANSAC, on the candidate matches the pose leaves unexplained, finds a pose at
     # another place (beyond the wrong-pose limits ``contradiction_*``) with at least this
     # fraction of its inliers (and ``recover_min_inliers``: places by chance gather 12-16)

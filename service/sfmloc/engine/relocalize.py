@@ -142,7 +142,7 @@ def global_pose(
         out = est, gm.set2_q[chosen], gm.set2_p[chosen], hyp
     # Distinct: inliers over the image, and no other place nearly as good (``distinct``).
     spread = inlier_spread(xy_u, xy_u[out[1]], camera.width, camera.height)
-    if spread < conf.min_inlier_spread:
+    if spread < conf.min_inlier_spread and out[0].num_inliers < conf.spread_max_inliers:
         return None, (
             f"no pose: its {out[0].num_inliers} inliers cover {spread:.0%} of the image cells "
             f"with keypoints (at least {conf.min_inlier_spread:.0%})"
