@@ -66,3 +66,16 @@ def test_sparse_3d_matches_trigger_a_refill(world, bundle, cam):
     off = Localizer(bundle, cam, EngineConf(refill_coverage=0))
     table.xy = corner
     assert not off._uncovered(table, kps)
+
+
+def test_projected_matches_in_the_final_refinement_lower_the_error(world, bundle, cam):
+    """A verified tracked pose is refined once more with the map points projecting onto the
+    frame's unmatched keypoints (``EngineConf.projected_refine``). The synthetic walk, mean /
+    90th percentile error, measured: at 10 Hz (20 frames) 0.57 / 0.98 cm without, 0.44 / 0.69
+    cm with; at 30 Hz (60 frames) 0.83 / 1.92 -> 0.67 / 1.32 cm. Every frame posed."""
+    assert EngineConf().projected_refine
+    for step, bound_mean, bound_p90 in ((3, 0.0050, 0.0080), (1, 0.0075, 0.0150)):
+        errs, _ = _position_errors(world, bundle, cam, EngineConf(), step=step)
+        assert len(errs) == len(range(0, len(world.gray), step))
+        mean, p90 = float(np.mean(errs)), float(np.percentile(errs, 90))
+        assert mean < bound_mean and p90 < bound_p90, (step, mean, p90)  # off missed both

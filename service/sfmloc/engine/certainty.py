@@ -36,7 +36,11 @@ def covariance(est: PoseEstimate, K: np.ndarray, bundle: MapBundle, conf: Engine
     extra = None
     if conf.map_noise_px > 0:
         z = est.inlier_X @ est.cam_from_world.rotation[2] + est.cam_from_world.translation[2]
-        extra = PointUncertainty.for_bundle(bundle).sigma_px(est.inlier_X, z, conf.map_noise_px)
+        pu = PointUncertainty.for_bundle(bundle)
+        if est.inlier_points is not None:
+            extra = pu.sigma_px_of(est.inlier_points, z, conf.map_noise_px)
+        else:
+            extra = pu.sigma_px(est.inlier_X, z, conf.map_noise_px)
     # The pixel noise is measured with the final refinement's own Cauchy weights
     # (``refine_loss_scale_px``), as the pose was estimated.
     return pose_covariance(

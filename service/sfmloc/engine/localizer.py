@@ -52,6 +52,7 @@ from .frame import to_gray, to_working
 from .matching import guided_matching, search_all, verify_hypotheses
 from .motion_filter import make_pose_filter
 from .pose import PoseEstimate, estimate_pose
+from .projected import ScopePoints, projected_matches, refine_with_projections, unmatched_only
 from .relocalize import (
     describe,
     map_working_scale,
@@ -179,6 +180,7 @@ class Localizer:
         self.K = self.camera.K
         self.subpixel = map_subpixel(self.conf, bundle.manifest.params)
         self.extractor = DaisyExtractor()
+        self._scope_points = ScopePoints(self.conf.projected_top_images)
         self.reset()
 
     def reset(self) -> None:
@@ -318,6 +320,10 @@ class Localizer:
                 _unmatch(table, slice(None))
                 est, cert = None, None
 
+        if est is not None and cert is not None and not relocalized and c.projected_refine:
+            est, cert = self._projected_refinement(est, cert, kps, table)
+            timer.lap("pose")
+
         filtered = None
         if est is not None:
             filtered = self._kalman_filter_update(est.cam_from_world, relocalized, stamp)
@@ -445,6 +451,7 @@ class Localizer:
             _unmatch(table, rows)
             return table, None
         _unmatch(table, rows[~est.inlier_mask])
+        est.inlier_points = pts[est.inlier_mask]
         return table, est
 
     def _doubtful(self, pred: Prediction, est: PoseEstimate | None) -> bool:
@@ -534,6 +541,42 @@ class Localizer:
             f"ambiguous: {est.num_inliers} inliers from the motion prior, {other.num_inliers} "
             f"for a pose {dpos:.2f} scene scales / {drot:.0f} deg away"
         )
+
+    def _projected_refinement(
+        self, est: PoseEstimate, cert: Certainty, kps: Keypoints, table: TrackTable
+    ) -> tuple[PoseEstimate, Certainty]:
+        """A verified tracked pose refined once more with the map points projecting onto the
+        frame's unmatched keypoints (``engine.projected``). The status rules judged the
+        tracked matches, and the covariance stays theirs (``refine_with_projections``)."""
+        c = self.conf
+        if not cert.verified:
+            return est, cert
+        rows, pts = table.matches()
+        kp_u = self._undistort(kps.xy)
+        kp_i, pt_i = projected_matches(
+            est.cam_from_world,
+            self.K,
+            self.camera.width,
+            self.camera.height,
+            kp_u,
+            self.bundle.points_xyz,
+            self._scope_points(self.bundle, pts),
+            c.projected_radius_px,
+            c.projected_clear_px,
+        )
+        # the table's positions are its keypoints' own
+        kp_i, pt_i = unmatched_only(kp_i, pt_i, kps.xy, table.xy[rows], pts)
+        if len(kp_i) == 0:
+            return est, cert
+        est = refine_with_projections(
+            est,
+            self.K,
+            kp_u[kp_i],
+            self.bundle.points_xyz[pt_i],
+            c.ransac(),
+            iterations=c.projected_iterations,
+        )
+        return est, cert
 
     def _reverify(self, table: TrackTable, pose: Rigid3d) -> TrackTable:
         """Stored hypotheses of unmatched tracked keypoints, checked against the new pose."""

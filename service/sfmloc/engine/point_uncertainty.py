@@ -103,6 +103,12 @@ class PointUncertainty:
         k = np.where(idx >= 0, self.kappa[np.maximum(idx, 0)], 0.0)
         return map_noise_px * k / np.maximum(z, 1e-9)
 
+    def sigma_px_of(
+        self, points: np.ndarray, z: np.ndarray, map_noise_px: float = MAP_NOISE_PX
+    ) -> np.ndarray:
+        """``sigma_px`` of the map points with indices ``points`` (no lookup by coordinates)."""
+        return map_noise_px * self.kappa[points] / np.maximum(z, 1e-9)
+
 
 def _row_keys(rows: np.ndarray) -> np.ndarray:
     """A 64-bit hash of each row of three uint64 words (the bytes of a float64 point)."""

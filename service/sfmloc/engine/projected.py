@@ -1,0 +1,180 @@
+"""More correspondences for a tracked frame's final refinement: map points associated with the
+frame's keypoints by projection at its pose (issue 9, accuracy).
+
+A tracked pose rests on the tracked keypoints that guided matching gave a 3D point (on
+redkitchen about 76) while most of the frame's Harris corners are the corners the map's points
+were triangulated from (the map is built from the same detector). At a pose already good to a
+fraction of a pixel, a map point seen by the images around the pose that projects within
+``radius_px`` of exactly one keypoint, with no other map point or keypoint near either, is the
+same corner: no descriptor is needed to tell, only the geometry. Ambiguous neighbourhoods
+(two keypoints or two projections close together: repeated texture, occlusion boundaries) are
+left out rather than guessed.
+
+``projected_matches`` returns those associations (``unmatched_only``: those the tracked matches
+do not already hold); ``refine_with_projections`` refines the pose once more on them together
+with the tracked inliers. The status and the covariance stay the tracked matches' (the
+associations were chosen for lying near the pose: their residuals understate the noise), and
+the associations never enter the track table: a wrong one is not carried to the next frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import cv2
+import numpy as np
+
+from ..map.bundle import MapBundle
+from ..transforms import Rigid3d
+from .matching import scope_images
+from .pose import PoseEstimate, RansacParams, reprojection_errors, robust_refine
+
+
+class ScopePoints:
+    """The map points seen by the ``top`` images that see most of a frame's matched points
+    (a point seen by several of them is listed once per image: ``projected_matches`` gives
+    the same pairs, and np.unique cost more than projecting the repeats). The last answer is
+    kept for the same images of the same bundle (a sub-map session swaps bundles)."""
+
+    def __init__(self, top: int) -> None:
+        self.top = top
+        self._key: tuple[MapBundle | None, bytes] = (None, b"")
+        self._points = np.zeros(0, np.int64)
+
+    def __call__(self, bundle: MapBundle, matched_points: np.ndarray) -> np.ndarray:
+        imgs = np.sort(scope_images(bundle, matched_points, self.top))
+        key = (bundle, imgs.tobytes())
+        if key[0] is not self._key[0] or key[1] != self._key[1]:
+            ptr = bundle.image_points_ptr
+            idx = bundle.image_points_idx
+            parts = [idx[ptr[i] : ptr[i + 1]] for i in imgs]
+            self._points = (
+                np.concatenate(parts).astype(np.int64) if parts else np.zeros(0, np.int64)
+            )
+            self._key = key
+        return self._points
+
+
+def projected_matches(
+    cam_from_world: Rigid3d,
+    K: np.ndarray,
+    width: int,
+    height: int,
+    kp_xy: np.ndarray,
+    points_xyz: np.ndarray,
+    candidates: np.ndarray,
+    radius_px: float,
+    clear_px: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(keypoint index, map point index) pairs: each candidate map point projecting within
+    ``radius_px`` of a keypoint (undistorted pixels ``kp_xy``) with no other keypoint near
+    it ("near": in the 3x3 cells of ``clear_px`` around it, which hold everything within
+    ``clear_px``); per keypoint, the closest such projection."""
+    empty = np.zeros(0, np.int64)
+    if len(candidates) == 0 or len(kp_xy) < 2:
+        return empty, empty
+    X = points_xyz[candidates]
+    pc = X @ cam_from_world.rotation.T + cam_from_world.translation
+    z = pc[:, 2]
+    front = z > 1e-9
+    uv = np.empty((len(X), 2))
+    zs = np.where(front, z, 1.0)
+    uv[:, 0] = K[0, 0] * pc[:, 0] / zs + K[0, 2]
+    uv[:, 1] = K[1, 1] * pc[:, 1] / zs + K[1, 2]
+    inside = (
+        front
+        & (uv[:, 0] >= -0.5)
+        & (uv[:, 0] <= width - 0.5)
+        & (uv[:, 1] >= -0.5)
+        & (uv[:, 1] <= height - 0.5)
+    )
+    cand, uv = candidates[inside], uv[inside]
+    if len(cand) == 0:
+        return empty, empty
+    # Neighbourhoods on a grid of clear_px cells: whatever lies within clear_px of a position
+    # lies in the 3x3 cells around its own, so one 3x3 box sum of the keypoint counts (and of
+    # their indices + 1: the index itself where the count is 1) and one of the projection
+    # counts decide every association (x0.2 of two k-d trees' CPU; float32 holds these integer
+    # sums exactly).
+    gw, gh = int(width / clear_px) + 3, int(height / clear_px) + 3
+
+    def cells(xy: np.ndarray) -> np.ndarray:
+        ij = np.floor(xy / clear_px).astype(np.int64) + 1
+        np.clip(ij[:, 0], 0, gw - 1, out=ij[:, 0])
+        np.clip(ij[:, 1], 0, gh - 1, out=ij[:, 1])
+        return ij[:, 1] * gw + ij[:, 0]
+
+    def box(flat: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+        grid = np.bincount(flat, weights, minlength=gw * gh).astype(np.float32)
+        out = cv2.boxFilter(
+            grid.reshape(gh, gw), -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT
+        )
+        return out.ravel()
+
+    kp_cell = cells(kp_xy)
+    p_cell = cells(uv)
+    kp_count = box(kp_cell)
+    kp_sum = box(kp_cell, np.arange(1, len(kp_xy) + 1, dtype=np.float64))
+    p_idx = np.nonzero(kp_count[p_cell] == 1)[0]  # one keypoint near the projection
+    kp = np.rint(kp_sum[p_cell[p_idx]]).astype(np.int64) - 1
+    d = kp_xy[kp] - uv[p_idx]
+    d2 = d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]
+    ok = d2 < radius_px * radius_px
+    p_idx, kp, d2 = p_idx[ok], kp[ok], d2[ok]
+    # Several map points may project onto one keypoint: mostly one corner triangulated more
+    # than once (on redkitchen a quarter of the projections have another within 1.7 px), so
+    # the closest is kept.
+    order = np.lexsort((d2, kp))
+    first = np.ones(len(order), bool)
+    first[1:] = kp[order[1:]] != kp[order[:-1]]
+    sel = order[first]
+    return kp[sel], cand[p_idx[sel]].astype(np.int64)
+
+
+def unmatched_only(
+    kp_i: np.ndarray,
+    pt_i: np.ndarray,
+    kp_xy: np.ndarray,
+    matched_xy: np.ndarray,
+    matched_points: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The pairs of ``projected_matches`` whose keypoint (position in ``kp_xy``) is not among
+    the tracked matches' positions ``matched_xy`` (the same keypoints, bytes equal) and whose
+    point is not among ``matched_points``."""
+    keep = np.ones(len(kp_i), bool)
+    if len(matched_xy):
+        used = np.sort(np.ascontiguousarray(matched_xy, np.float64).view(np.complex128).ravel())
+        key = np.ascontiguousarray(kp_xy[kp_i], np.float64).view(np.complex128).ravel()
+        keep &= used[np.minimum(np.searchsorted(used, key), len(used) - 1)] != key
+    if len(matched_points):
+        taken = np.sort(matched_points)
+        keep &= taken[np.minimum(np.searchsorted(taken, pt_i), len(taken) - 1)] != pt_i
+    return kp_i[keep], pt_i[keep]
+
+
+def refine_with_projections(
+    est: PoseEstimate,
+    K: np.ndarray,
+    extra_xy: np.ndarray,
+    extra_X: np.ndarray,
+    params: RansacParams,
+    keep_fraction: float = 0.9,
+    iterations: int = 2,
+) -> PoseEstimate:
+    """``est``'s pose refined once more with the robust loss on its inliers and the projected
+    matches (``extra_xy`` undistorted px, ``extra_X``). Everything else stays the tracked
+    matches' (inliers, their count, the inputs of the covariance): the projected matches were
+    chosen for lying near the pose, so their residuals understate the noise and they are no
+    independent evidence for it. Unchanged when the new pose keeps fewer than
+    ``keep_fraction`` of the tracked inliers within ``refine_threshold``."""
+    if est.inlier_xy is None or est.inlier_X is None or len(extra_xy) == 0:
+        return est
+    n = len(est.inlier_xy)
+    xy = np.concatenate([est.inlier_xy, extra_xy])
+    X = np.concatenate([est.inlier_X, extra_X])
+    # from a pose already refined on the tracked matches: two Gauss-Newton steps suffice
+    pose = robust_refine(est.cam_from_world, K, xy, X, params.loss_scale, iterations=iterations)
+    err = reprojection_errors(pose, K, est.inlier_xy, est.inlier_X)
+    if np.count_nonzero(err < params.refine_threshold) < keep_fraction * n:
+        return est
+    return replace(est, cam_from_world=pose, mean_error_px=float(err.mean()))

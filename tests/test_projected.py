@@ -1,0 +1,151 @@
+"""Projected matches for a tracked frame's final refinement (engine/projected.py), against
+exact synthetic ground truth: which map points are associated with which keypoints, and what
+the refinement on them does to the pose."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sfmloc.engine import EngineConf
+from sfmloc.engine.pose import RansacParams, estimate_pose, project
+from sfmloc.engine.projected import projected_matches, refine_with_projections
+from sfmloc.transforms import Rigid3d, pose_errors, rotmat_from_rotvec
+
+K = np.array([[525.0, 0, 320.0], [0, 525.0, 240.0], [0, 0, 1]])
+W, H = 640, 480
+
+
+def _points(rng, n, cam_from_world, margin=20):
+    uv = rng.uniform([margin, margin], [W - margin, H - margin], (n, 2))
+    z = rng.uniform(1.5, 6.0, n)
+    xc = np.hstack([(uv - K[:2, 2]) / K[0, 0] * z[:, None], z[:, None]])
+    return cam_from_world.inverse().apply(xc)
+
+
+def _spread(rng, n, min_dist):
+    """n image positions at least ``min_dist`` apart (dart throwing)."""
+    out: list[np.ndarray] = []
+    while len(out) < n:
+        p = rng.uniform([20, 20], [W - 20, H - 20])
+        if all(np.hypot(*(p - q)) >= min_dist for q in out):
+            out.append(p)
+    return np.array(out)
+
+
+def test_projected_matches_are_the_right_points_and_ambiguity_is_left_out():
+    rng = np.random.default_rng(5)
+    gt = Rigid3d(rotmat_from_rotvec([0.1, -0.2, 0.05]), [0.3, -0.1, 0.2])
+    # 300 corners at least 8 px apart, each the projection of a map point at its own depth
+    uv = _spread(rng, 300, 8.0)
+    z = rng.uniform(1.5, 6.0, len(uv))
+    X = gt.inverse().apply(np.hstack([(uv - K[:2, 2]) / K[0, 0] * z[:, None], z[:, None]]))
+    kp = uv + rng.normal(0, 0.3, uv.shape)  # the frame's keypoints: noisy corners
+    truth = np.arange(len(uv))
+    # 0-9: a second keypoint 1.5 px away (which of the two is the corner?): not associated
+    kp = np.vstack([kp, uv[:10] + [1.5, 0.0]])
+    # 10-19: a second map point (the same corner triangulated twice, a little off) projecting
+    # 0.8 px away: the closer of the two is taken
+    X_dup = gt.inverse().apply(
+        np.hstack([(uv[10:20] + [0.8, 0] - K[:2, 2]) / K[0, 0] * z[10:20, None], z[10:20, None]])
+    )
+    # a point behind the camera projecting onto corner 20's position is not a candidate
+    behind = gt.inverse().apply(
+        np.hstack([-(uv[20:21] - K[:2, 2]) / K[0, 0] * 2.0, np.array([[-2.0]])])
+    )
+    points = np.vstack([X, X_dup, behind])
+    dup_ids = np.arange(len(X), len(X) + 10)
+    # the pose the frame was tracked at: 0.3 px or so off
+    pose = Rigid3d(rotmat_from_rotvec([0.1003, -0.2, 0.05]), [0.3, -0.1, 0.2005])
+    assert np.abs(project(pose, K, X)[0] - uv).max() < 0.6
+    kp_i, pt_i = projected_matches(
+        pose, K, W, H, kp, points, np.arange(len(points)), radius_px=1.5, clear_px=3.0
+    )
+    assert len(np.unique(kp_i)) == len(kp_i)  # one point per keypoint
+    right = {int(k): int(k) for k in truth[10:]}
+    for k, p in zip(kp_i.tolist(), pt_i.tolist(), strict=True):
+        assert k < len(uv), "an ambiguous second keypoint was associated"
+        assert k >= 10, "a keypoint with another one 1.5 px away was associated"
+        if 10 <= k < 20:
+            assert p == k, "the farther of two projections was taken"
+        else:
+            assert p == right[k], (k, p)
+    assert not np.isin(dup_ids, pt_i).any()
+    assert len(points) - 1 not in pt_i.tolist()
+    # every unambiguous corner is found (290), whatever the pose's 0.3 px error
+    assert len(kp_i) == 290
+
+
+def test_a_refinement_with_projected_matches_lowers_the_pose_error():
+    """30 tracked matches and 300 projected ones, 0.7 px noise: the pose refined on all of them
+    is more accurate; its inliers (and their count) stay the tracked matches'."""
+    params = EngineConf().ransac()
+    tracked_err, both_err = [], []
+    for seed in range(10):
+        rng = np.random.default_rng(20 + seed)
+        gt = Rigid3d(rotmat_from_rotvec(rng.normal(0, 0.2, 3)), rng.normal(0, 0.5, 3))
+        X = _points(rng, 330, gt)
+        uv = project(gt, K, X)[0] + rng.normal(0, 0.7, (330, 2))
+        est = estimate_pose(uv[:30], X[:30], K, params)
+        assert est is not None
+        out = refine_with_projections(est, K, uv[30:], X[30:], params)
+        assert out.num_inliers == est.num_inliers and out.inlier_xy is est.inlier_xy
+        assert np.array_equal(out.inlier_mask, est.inlier_mask)
+        tracked_err.append(pose_errors(est.cam_from_world, gt)[0])
+        both_err.append(pose_errors(out.cam_from_world, gt)[0])
+    assert np.mean(both_err) < 0.5 * np.mean(tracked_err), (both_err, tracked_err)
+
+
+def test_projected_matches_that_contradict_the_tracked_ones_leave_the_pose_alone():
+    rng = np.random.default_rng(9)
+    gt = Rigid3d(rotmat_from_rotvec([0.05, 0.1, -0.1]), [0.1, 0.2, -0.3])
+    X = _points(rng, 330, gt)
+    uv = project(gt, K, X)[0] + rng.normal(0, 0.3, (330, 2))
+    params = RansacParams(loss_scale=1.0)
+    est = estimate_pose(uv[:30], X[:30], K, params)
+    assert est is not None
+    # 300 "projected" matches of another pose, 8 px off for the tracked matches
+    other = Rigid3d(gt.rotation, gt.translation + [0.05, 0.0, 0.0])
+    wrong_uv = project(other, K, X[30:])[0]
+    out = refine_with_projections(est, K, wrong_uv, X[30:], params)
+    assert out is est
+
+
+def test_pairs_the_tracked_matches_already_hold_are_dropped():
+    from sfmloc.engine.projected import unmatched_only
+
+    kp_xy = np.array([[10.0, 20.0], [30.5, 40.25], [50.0, 60.0], [70.0, 80.0]])
+    kp_i, pt_i = np.array([0, 1, 2, 3]), np.array([100, 101, 102, 103])
+    # keypoint 1 is tracked (with point 7); point 103 is tracked at another keypoint
+    k, p = unmatched_only(kp_i, pt_i, kp_xy, kp_xy[[1]].copy(), np.array([7, 103]))
+    assert k.tolist() == [0, 2] and p.tolist() == [100, 102]
+    k, p = unmatched_only(kp_i, pt_i, kp_xy, np.zeros((0, 2)), np.zeros(0, np.int64))
+    assert k.tolist() == [0, 1, 2, 3]
+
+
+def test_scope_points_follow_the_matched_points(bundle):
+    """The candidate points are those of the images seeing most of the matched points (each
+    once per image); the answer is reused for the same images of the same bundle, and made
+    again for other images (a relocalization elsewhere) or another bundle (a sub-map session
+    swaps them)."""
+    from sfmloc.engine.matching import scope_images
+    from sfmloc.engine.projected import ScopePoints
+    from sfmloc.map.bundle import MapBundle
+
+    ptr, idx = bundle.image_points_ptr, bundle.image_points_idx
+
+    def points_of(images):
+        return np.sort(np.concatenate([idx[ptr[i] : ptr[i + 1]] for i in images]))
+
+    scope = ScopePoints(top=3)
+    first = np.asarray(idx[ptr[0] : ptr[0] + 40], np.int64)
+    got = scope(bundle, first)
+    assert np.array_equal(np.sort(got), points_of(scope_images(bundle, first, 3)))
+    assert scope(bundle, first[:39]) is got  # the same images: reused
+    centers = np.array([T.center for T in bundle.image_cam_from_world])
+    far = int(np.argmax(np.linalg.norm(centers - centers[0], axis=1)))
+    other = np.asarray(idx[ptr[far] : ptr[far] + 40], np.int64)
+    moved = scope(bundle, other)
+    assert np.array_equal(np.sort(moved), points_of(scope_images(bundle, other, 3)))
+    assert not np.array_equal(np.sort(moved), np.sort(got))
+    twin = MapBundle(bundle.path)  # the same map loaded again: another bundle
+    assert scope(twin, other) is not moved
