@@ -482,9 +482,10 @@ def test_pose_covariance_jacobian_and_calibration_with_known_pixel_noise():
 def test_reported_covariance_is_calibrated_on_a_synthetic_video(world, bundle, cam):
     """Every non-LOST frame carries a finite, symmetric, positive definite 6x6 covariance, and
     over the synthetic video (exact ground truth) the NEES averages near its expected value: 6
-    for the 6 dof, 3 for the centre alone. Measured (EngineConf.map_noise_px): 6.1 and 2.8
-    (5.1 and 2.7 with the projected matches' refinement, which lowers the error and leaves the
-    covariance to the tracked matches); the previous model (map noise 0.75 px, the noise from
+    for the 6 dof, 3 for the centre alone. Measured (EngineConf.map_noise_px 0.35, with the
+    projected matches' refinement, which lowers the error and leaves the covariance to the
+    tracked matches): 5.3 and 2.6 (map noise 0.4: 4.85 and 2.4; 0.3: 5.8 and 2.9; without the
+    refinement at 0.4: 5.6 and 2.6); the previous model (map noise 0.75 px, the noise from
     the residuals' RMS), pessimistic: 4.6 and 1.7; the frame's pixel noise alone, optimistic:
     10.6 and 4.8. Consecutive frames
     share map points, so the 60 values are far from independent: the band is what separates
