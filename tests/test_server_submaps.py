@@ -53,7 +53,7 @@ def _descendants(pid: int) -> list[int]:
 def test_a_set_needs_a_budget_that_holds_its_largest_part(set_dir):
     with pytest.raises(ConfigError, match="--map-memory"):
         check_set(set_dir, None)
-    biggest = max(p.memory_bytes for p in SubmapSet(set_dir).manifest.parts)
+    biggest = SubmapSet(set_dir).largest_part_bytes()
     with pytest.raises(ConfigError, match="largest sub-map"):
         check_set(set_dir, (biggest - 1) / 1e6)
     assert check_set(set_dir, (biggest + 1) / 1e6) is not None
@@ -69,7 +69,7 @@ def test_server_walks_a_client_across_submaps_under_the_budget(world, set_dir):
     from sfmloc_client import FrameStreamer, LocalizationClient, PoseSubscriber
 
     s = SubmapSet(set_dir)
-    sizes = [p.memory_bytes for p in s.manifest.parts]
+    sizes = [s.part_memory_bytes(k) for k in range(s.n_parts)]
     budget = max(sizes) + 1000  # one part at a time: a switch evicts
     assert budget < sum(sizes) - min(sizes)  # two parts never fit
     metrics_port = free_port()

@@ -223,7 +223,7 @@ def test_walk_across_submaps_as_a_whole_map_run(room, world, walk_set, whole_run
     loaded in the background while the camera is on the current one) or one (a switch waits
     for the load): localized as often and as well as over the whole map, resident parts never
     above the budget."""
-    sizes = sorted((p.memory_bytes for p in walk_set.manifest.parts), reverse=True)
+    sizes = sorted((walk_set.part_memory_bytes(k) for k in range(walk_set.n_parts)), reverse=True)
     budget = sum(sizes[:fit])
     assert budget < sum(sizes)  # the whole set never fits
     loc = SubmapLocalizer(walk_set, world.camera_spec, memory_budget=budget)
@@ -250,7 +250,7 @@ def test_sessions_share_one_cache_and_its_budget(world, walk_set):
     from sfmloc.engine.submaps import PartCache
     from sfmloc.errors import OverloadError
 
-    sizes = [p.memory_bytes for p in walk_set.manifest.parts]
+    sizes = [walk_set.part_memory_bytes(k) for k in range(walk_set.n_parts)]
     cache = PartCache(walk_set, max(sizes), background=False)
     a = SubmapLocalizer(walk_set, world.camera_spec, cache=cache)
     b = SubmapLocalizer(walk_set, world.camera_spec, cache=cache)
@@ -286,7 +286,7 @@ def test_sessions_share_one_cache_and_its_budget(world, walk_set):
 
 
 def test_budget_below_a_part_is_refused(world, walk_set):
-    smallest_ok = max(p.memory_bytes for p in walk_set.manifest.parts)
+    smallest_ok = walk_set.largest_part_bytes()
     with pytest.raises(InputError, match="largest sub-map"):
         SubmapLocalizer(walk_set, world.camera_spec, memory_budget=smallest_ok - 1)
 
@@ -294,7 +294,7 @@ def test_budget_below_a_part_is_refused(world, walk_set):
 def test_lost_session_relocalizes_part_by_part(world, walk_set):
     """Without a prior, consecutive lost frames try the parts in the order of their vote, one
     per frame, and the session relocalizes (a blank frame in between loses it)."""
-    budget = max(p.memory_bytes for p in walk_set.manifest.parts)
+    budget = walk_set.largest_part_bytes()
     loc = SubmapLocalizer(walk_set, world.camera_spec, memory_budget=budget)
     blank = np.zeros_like(world.gray[0])
     posed = 0
@@ -342,7 +342,7 @@ def test_vote_finds_the_room_of_a_frame(tmp_path_factory):
     assert loc.resident_parts() == []  # the vote needs no part in memory
     # The walk: room 0's frames, then room 1's (a teleport: relocalization without a prior),
     # with room for one part only.
-    budget = max(p.memory_bytes for p in s.manifest.parts)
+    budget = s.largest_part_bytes()
     loc = SubmapLocalizer(s, rooms.camera, memory_budget=budget)
     posed = {0: 0, 1: 0}
     for i, (path, gt, room) in enumerate(zip(rooms.frames, rooms.gt, rooms.room)):

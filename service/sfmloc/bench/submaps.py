@@ -173,7 +173,7 @@ def run_submaps(
     split_s = time.perf_counter() - t0
     sset = SubmapSet(set_path)
     map_bytes = whole_map.memory_bytes()
-    biggest = max(p.memory_bytes for p in sset.manifest.parts)
+    biggest = sset.largest_part_bytes()
     budget = max(int(map_bytes / ratio), biggest)
     sub = SubmapLocalizer(sset, world.camera, memory_budget=budget)
     whole = Localizer(whole_map, world.camera)
@@ -242,7 +242,7 @@ def run_submaps(
         "map_memory_mb": round(map_bytes / 1e6, 2),
         "budget_mb": round(budget / 1e6, 2),
         "map_over_budget": round(map_bytes / budget, 2),
-        "part_memory_mb": [round(p.memory_bytes / 1e6, 2) for p in sset.manifest.parts],
+        "part_memory_mb": [round(sset.part_memory_bytes(k) / 1e6, 2) for k in range(sset.n_parts)],
         "global_index_mb": round(sset.memory_bytes() / 1e6, 3),
         "max_resident_mb": round(st.max_resident_bytes / 1e6, 2),
         "resident_within_budget": st.max_resident_bytes <= budget,

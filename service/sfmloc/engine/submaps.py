@@ -96,7 +96,7 @@ class PartCache:
 
     def __init__(self, submaps: SubmapSet, memory_budget: int, *, background: bool = True):
         self.set = submaps
-        biggest = max(p.memory_bytes for p in submaps.manifest.parts)
+        biggest = submaps.largest_part_bytes()
         if memory_budget < biggest:
             raise InputError(
                 f"a memory budget of {memory_budget / 1e6:.1f} MB cannot hold the largest "

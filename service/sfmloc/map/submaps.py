@@ -100,6 +100,7 @@ from ..errors import BundleError, InputError
 from ..features.daisy import Pca
 from ..transforms import Rigid3d
 from .bundle import (
+    ARRAY_SPECS,
     MANIFEST,
     MAX_MANIFEST_BYTES,
     ArrayEntry,
@@ -135,6 +136,7 @@ GLOBAL_SPECS: dict[str, tuple[str, int]] = {
 }
 POINTS_SPEC = ("<i8", 1)
 MIN_VOTES_PER_IMAGE = 8
+PAGE_BYTES = 4096  # mapped arrays are resident in whole pages
 VOTE_RATIO = 0.8  # SubmapSet.vote: the ratio test of a query's two nearest sample descriptors
 
 
@@ -629,7 +631,13 @@ class SubmapSet:
         return self._global_bytes
 
     def part_memory_bytes(self, k: int) -> int:
-        return self.manifest.parts[k].memory_bytes
+        """What part ``k`` holds once loaded, as the kernel counts it: its ``memory_bytes``
+        plus a page per array file (mapped arrays are resident in whole pages: on a 1.8 MB
+        part the kernel counted 7 KB more than ``memory_bytes``)."""
+        return part_resident_bytes(self.manifest.parts[k])
+
+    def largest_part_bytes(self) -> int:
+        return max((self.part_memory_bytes(k) for k in range(self.n_parts)), default=0)
 
     def part_images(self, k: int) -> np.ndarray:
         return self.part_images_idx[self.part_images_ptr[k] : self.part_images_ptr[k + 1]]
@@ -720,6 +728,11 @@ class SubmapSet:
             return scores
         votes = self.image_parts[self.vote_images[nn]].sum(axis=0)
         return votes / (len(nn) * np.maximum(self._vote_share, 1e-12))
+
+
+def part_resident_bytes(entry: PartEntry) -> int:
+    """A part's bytes in memory (``SubmapSet.part_memory_bytes``) from its manifest entry."""
+    return entry.memory_bytes + PAGE_BYTES * len(ARRAY_SPECS)
 
 
 def translate(rows: np.ndarray, from_points: np.ndarray, to_points: np.ndarray) -> np.ndarray:

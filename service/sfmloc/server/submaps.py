@@ -36,6 +36,7 @@ from ..map.submaps import (
     SetManifest,
     SubmapSet,
     is_submap_set,
+    part_resident_bytes,
     read_set_manifest,
     verify_submap_set,
 )
@@ -161,7 +162,7 @@ def check_set(path: Path, map_memory_mb: float | None) -> SetManifest | None:
     if map_memory_mb is None:
         budget_bytes(EngineConf(), path)  # raises: sets need a budget
     m = read_set_manifest(path)
-    biggest = max((p.memory_bytes for p in m.parts), default=0)
+    biggest = max((part_resident_bytes(p) for p in m.parts), default=0)
     if map_memory_mb is not None and biggest > map_memory_mb * 1e6:
         raise ConfigError(
             f"the map memory budget ({map_memory_mb:g} MB per worker) cannot hold the largest "
