@@ -501,6 +501,11 @@ class SubmapLocalizer:
             else:
                 inner.reset()  # nothing to translate from: start over on the new part
             inner.bundle = bundle
+            # Nothing may keep the previous part mapped (its pages would stay resident beyond
+            # the budget): the projected refinement's cache holds the bundle it was made on.
+            scope = getattr(inner, "_scope_points", None)
+            if scope is not None:
+                inner._scope_points = type(scope)(scope.top)
         if self.part != k:
             self.stats.switches += self.part is not None
             log.debug("sub-map %s -> %s", self.part, k)
