@@ -41,9 +41,7 @@ MESSAGES = [
     ),
     (
         P.TO_WORKER,
-        P.LocalizeFrame(
-            5, "room", 3, 12, 1, CAM, "png", 8, prior=[0.0, 0.0, 0.0, 1.0, 1.0, 2.0, 3.0], data=b"x"
-        ),
+        P.LocalizeFrame(5, "room", 3, 12, 1, CAM, "png", 8, prior=TF, data=b"x"),
     ),
     (P.TO_WORKER, P.Relocalize(8, "room", 3, CAM, "gray8", TF, 12.5, 2000.0, bytes(range(256)))),
     (P.TO_WORKER, P.Relocalize(9, "room", 3, CAM, "jpeg", None, data=b"")),
@@ -85,9 +83,11 @@ def test_a_message_for_the_other_side_or_malformed_is_refused_by_name():
     bad_tf[1] = [0.0, 1.0]
     with pytest.raises(ProtocolError, match="7 values"):
         P.TO_SERVER.decode(msgpack.packb(["reloc_result", 1, bad_tf, None, 1.0]))
-    short_prior = P.LocalizeFrame(5, "room", 3, 1, 1, CAM, "png", prior=[0.0, 1.0], data=b"x")
-    with pytest.raises(ProtocolError, match="a prior has 7 values"):
-        P.TO_WORKER.decode(P.TO_WORKER.encode(short_prior))
+    bad_prior = P.TO_WORKER.encode(P.LocalizeFrame(5, "room", 3, 1, 1, CAM, "png", data=b"x"))
+    fields = msgpack.unpackb(bad_prior)
+    fields[11] = [0.0, 1.0]  # LocalizeFrame.prior: 2 values instead of 7
+    with pytest.raises(ProtocolError, match="a transform has 7 values"):
+        P.TO_WORKER.decode(msgpack.packb(fields))
 
 
 def test_a_result_becomes_the_clients_pose_message():

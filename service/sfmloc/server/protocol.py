@@ -195,17 +195,20 @@ class LocalizeFrame(Message):
     # any work; ``cpu_budget_ms``: the most CPU it may use once started (0: no limit).
     deadline: float = 0.0
     cpu_budget_ms: float = 0.0
-    # The client's outside estimate of cam_from_world (quat_xyzw + t, 7 values; wire.Frame's
-    # ``prior``), None: none.
-    prior: list[float] | None = None
+    # The client's outside estimate of cam_from_world (wire.Frame's ``prior``), None: none.
+    prior: Transform | None = None
     data: bytes = payload()
+
+    def to_wire(self) -> list[Any]:
+        v = super().to_wire()
+        v[10] = _tf_to_wire(self.prior)
+        return v
 
     @classmethod
     def from_wire(cls, values: Any) -> LocalizeFrame:
         m = super().from_wire(values)
         m.camera = _camera_from_wire(m.camera)
-        if m.prior is not None and len(m.prior) != 7:
-            raise ProtocolError(f"a prior has 7 values (quat_xyzw, t), got {len(m.prior)}")
+        m.prior = _tf_from_wire(m.prior)
         return m
 
 

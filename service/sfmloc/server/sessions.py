@@ -265,7 +265,7 @@ class SessionManager:
                 ticket,
                 deadline,
                 self.frame_cpu_budget_ms,
-                None if frame.prior is None else [*frame.prior.quat_xyzw, *frame.prior.t],
+                frame.prior,
                 bytes(frame.data),
             ),
         )

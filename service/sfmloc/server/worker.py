@@ -238,6 +238,7 @@ class _Worker:
     def _localize(self, m: P.LocalizeFrame, done: list[Any]) -> P.PoseResult:
         from sfmloc_client.images import decode_image
 
+        from ..transforms import Rigid3d
         from .submaps import make_localizer
 
         t0 = time.perf_counter()
@@ -252,14 +253,8 @@ class _Worker:
             self.sessions[m.sid] = st
         img = decode_image(m.encoding, m.data, cam.width, cam.height)
         done[1] = (time.perf_counter() - t0) * 1e3
-        prior = None
-        if m.prior is not None:  # validated by the server (wire.Frame): finite, nonzero quaternion
-            import numpy as np
-
-            from ..transforms import Rigid3d
-
-            q = np.asarray(m.prior[:4], np.float64)
-            prior = Rigid3d.from_quat_xyzw(q / np.linalg.norm(q), np.asarray(m.prior[4:], float))
+        # validated by the server (wire.Frame): finite, nonzero quaternion (normalised here)
+        prior = None if m.prior is None else Rigid3d.from_transform(m.prior)
         return P.PoseResult.of(st.localizer.localize(img, m.stamp_ns * 1e-9, prior))
 
     def _arm(self, budget_ms: float) -> None:
@@ -286,7 +281,6 @@ class _Worker:
 
     # ------------------------------------------------------------------ single images
     def on_relocalize(self, m: P.Relocalize) -> None:
-        import numpy as np
 
         from sfmloc_client.images import decode_image
 
@@ -311,9 +305,7 @@ class _Worker:
             bundle = self._bundle(m.map, m.gen)
             cam = self._camera(m.camera)
             img = decode_image(m.encoding, m.data, cam.width, cam.height)
-            prior = None
-            if m.prior is not None:
-                prior = Rigid3d.from_quat_xyzw(np.asarray(m.prior.quat_xyzw), np.asarray(m.prior.t))
+            prior = None if m.prior is None else Rigid3d.from_transform(m.prior)
             bundle = relocalize_bundle(bundle, img, cam, prior)  # a sub-map set: one part
             result = relocalize(
                 img,
