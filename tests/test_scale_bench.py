@@ -67,3 +67,69 @@ def test_a_pinned_server_and_its_workers_run_on_its_core(world):
             todo += _children(p)
         assert len(tree) >= 2, tree  # the server and at least its worker
         assert {_allowed(p) for p in tree} == {str(core)}
+
+
+def test_the_client_core_is_left_to_the_clients():
+    from sfmloc.bench.scale import client_cores
+
+    cores = sorted(os.sched_getaffinity(0))
+    got = pinning(["s0", "s1", "s2"], pin=True, client_core=True)
+    if len(cores) >= 2:
+        servers = cores[:-1]
+        assert got == {f"s{i}": {servers[i % len(servers)]} for i in range(3)}
+        assert client_cores(True, True) == {cores[-1]}
+        assert all(cores[-1] not in c for c in got.values())
+    else:  # one core: nothing to leave
+        assert got == {f"s{i}": {cores[0]} for i in range(3)}
+        assert client_cores(True, True) is None
+    assert client_cores(False, True) is None and client_cores(True, False) is None
+
+
+def test_cpu_rows_and_the_together_vs_alone_comparison():
+    from sfmloc.bench.scale import cpu_comparison, cpu_rows
+
+    # 10 s: s0 used 8 CPU s, the clients 1, the machine 15 (6 by others); 500 poses
+    c0 = {"s0": 100.0, "clients": 50.0, "machine": 1000.0}
+    c1 = {"s0": 108.0, "clients": 51.0, "machine": 1015.0}
+    r = cpu_rows(c0, c1, 10.0, 500)
+    assert r["cores_used"]["servers"] == pytest.approx(0.8)
+    assert r["cores_used"]["other"] == pytest.approx(0.6)
+    assert r["cpu_ms_per_pose"]["servers"] == pytest.approx(16.0)
+    assert r["cpu_ms_per_pose"]["clients"] == pytest.approx(2.0)
+    alone = [
+        {"answered_in_window": 500, "cpu_ms_per_pose": {"servers": 16.0, "clients": 2.0}},
+        {"answered_in_window": 1500, "cpu_ms_per_pose": {"servers": 12.0, "clients": 2.0}},
+    ]
+    together = {"cpu_ms_per_pose": {"servers": 14.0, "clients": 3.0}}
+    got = cpu_comparison(alone, together)
+    assert got["cpu_ms_per_pose"]["alone"]["servers"] == pytest.approx(13.0)  # weighted
+    assert got["servers_cpu_per_pose_together_vs_alone"] == pytest.approx(14.0 / 13.0)
+    assert cpu_comparison(alone, {}) == {}
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="needs Linux /proc")
+def test_pin_process_pins_every_thread_of_this_process():
+    import threading
+
+    from sfmloc.bench.scale import pin_process
+
+    before = os.sched_getaffinity(0)
+    started, stop = threading.Event(), threading.Event()
+
+    def spin() -> None:  # a thread that exists before the pinning
+        started.set()
+        stop.wait(10)
+
+    t = threading.Thread(target=spin)
+    t.start()
+    started.wait(5)
+    core = {max(before)}
+    try:
+        pin_process(core)
+        tids = [int(x) for x in os.listdir("/proc/self/task")]
+        assert all(os.sched_getaffinity(tid) == core for tid in tids)
+    finally:
+        pin_process(before)
+        stop.set()
+        t.join()
+    assert os.sched_getaffinity(0) == before

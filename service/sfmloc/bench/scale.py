@@ -25,6 +25,16 @@ number of servers on its core (3 servers on 2 cores: two share one) and is the i
 10% of the sum of what the servers deliver alone"; ``together_vs_sum_alone`` is the plain
 ratio. The ``kill`` part is not pinned: the survivors may use the killed server's core.
 
+The clients are threads of this process (each its own Zenoh session) and cost CPU too (1.5-2 ms
+per pose: frames out, poses in, each pose checked against the ground truth). With
+``--client-core`` (default, 2+ cores) this process runs on the last core in alone and together
+and the servers share the others, so that both parts give the servers the same cores; without
+it the clients took a free core in alone but the servers' cores together (the comparison was
+not like with like). Each part reports the CPU of every server (its process and workers), of
+the clients and of the rest of the machine (other people's processes) over the measured
+window, per answered pose: ``servers_cpu_per_pose_together_vs_alone`` (near 1: several servers
+on one network cost no more per pose than one) holds on a busy machine, where rates do not.
+
     python -m sfmloc.bench.scale --work /tmp/scale [--servers 3 --clients 12 --seconds 15]
     python -m sfmloc.bench.scale --work /tmp/scale --parts submaps --rooms 8 --ratio 10
 """
@@ -111,21 +121,92 @@ def _clients(
     return cl
 
 
-def _measure(cl: list[StreamClient], stop: threading.Event, warmup_s: float, seconds: float):
+def _machine_cpu_s() -> float:
+    """Busy CPU seconds of the whole machine so far (every process, /proc/stat)."""
+    with open("/proc/stat") as f:
+        v = [int(x) for x in f.readline().split()[1:]]
+    idle = v[3] + (v[4] if len(v) > 4 else 0)  # idle + iowait
+    return (sum(v[:8]) - idle) / os.sysconf("SC_CLK_TCK")
+
+
+class CpuMeter:
+    """CPU seconds over the measured window of each server (its process and every descendant:
+    zygote, workers), of this process (the benchmark's clients: their threads and Zenoh
+    sessions) and of the whole machine (the rest is other people's processes)."""
+
+    def __init__(self, servers: dict[str, Any]) -> None:
+        from .transport import _child_pids
+
+        self.groups = {sid: [sp.proc.pid, *_child_pids(sp.proc.pid)] for sid, sp in servers.items()}
+        self.groups["clients"] = [os.getpid()]
+
+    def sample(self) -> dict[str, float]:
+        from .transport import _cpu_seconds
+
+        out = {k: sum(_cpu_seconds(p) for p in pids) for k, pids in self.groups.items()}
+        out["machine"] = _machine_cpu_s()
+        return out
+
+
+def cpu_rows(c0: dict[str, float], c1: dict[str, float], dt: float, poses: int) -> dict:
+    """Cores used (CPU s per s) and CPU ms per answered pose of each part between two
+    ``CpuMeter`` samples; ``servers`` sums the servers, ``other`` is the machine's rest."""
+    used = {k: (c1[k] - c0[k]) / dt for k in c0}
+    servers = sum(v for k, v in used.items() if k not in ("clients", "machine"))
+    used["servers"] = servers
+    used["other"] = max(0.0, used["machine"] - servers - used["clients"])
+    per = {k: 1e3 * v * dt / poses if poses else float("nan") for k, v in used.items()}
+    return {"cores_used": used, "cpu_ms_per_pose": per}
+
+
+def _measure(
+    cl: list[StreamClient],
+    stop: threading.Event,
+    warmup_s: float,
+    seconds: float,
+    meter: CpuMeter | None = None,
+):
     time.sleep(warmup_s)
+    c0 = meter.sample() if meter else None
     t0 = time.monotonic()
     time.sleep(seconds)
     t1 = time.monotonic()
+    c1 = meter.sample() if meter else None
     stop.set()
     for c in cl:
         c.join(15)
-    return [c.summary(t0, t1) for c in cl], t1 - t0
+    per = [c.summary(t0, t1) for c in cl]
+    cpu = {}
+    if c0 is not None and c1 is not None:
+        # poses answered in the window (what the servers' CPU of the window produced)
+        answered = sum(sum(1 for t in c.log.answered.values() if t0 <= t <= t1) for c in cl)
+        cpu = {**cpu_rows(c0, c1, t1 - t0, answered), "answered_in_window": answered}
+    return per, t1 - t0, cpu
 
 
-def pinning(ids: list[str], pin: bool) -> dict[str, set[int]] | None:
-    """Server ``i`` on core ``i mod cores`` (``pin``), else every server on every core."""
+def pinning(ids: list[str], pin: bool, client_core: bool = False) -> dict[str, set[int]] | None:
+    """Server ``i`` on core ``i mod cores`` (``pin``), else every server on every core. With
+    ``client_core`` (and at least 2 cores) the last core is left to the clients
+    (``client_cores``): the servers go round-robin over the others."""
     cores = sorted(os.sched_getaffinity(0))
+    if client_core and len(cores) >= 2:
+        cores = cores[:-1]
     return {sid: {cores[i % len(cores)]} for i, sid in enumerate(ids)} if pin else None
+
+
+def client_cores(pin: bool, client_core: bool) -> set[int] | None:
+    """The core this process (the benchmark's clients: their threads and Zenoh sessions) runs
+    on in alone and together: the last one when it is left to them, else None (any core)."""
+    cores = sorted(os.sched_getaffinity(0))
+    return {cores[-1]} if pin and client_core and len(cores) >= 2 else None
+
+
+def pin_process(cores: set[int]) -> None:
+    """Every thread of this process on ``cores`` (``sched_setaffinity`` binds one thread; the
+    threads a pinned thread starts inherit it, but Zenoh's runtime threads may exist already)."""
+    for tid in os.listdir("/proc/self/task"):
+        with contextlib.suppress(OSError):  # a thread that ended meanwhile
+            os.sched_setaffinity(int(tid), cores)
 
 
 def core_share(alone: list[dict], cpus: dict[str, set[int]] | None) -> float:
@@ -136,6 +217,31 @@ def core_share(alone: list[dict], cpus: dict[str, set[int]] | None) -> float:
         for r in alone
     }
     return sum(r["poses_per_s"] / sharing[r["server"]] for r in alone)
+
+
+def cpu_comparison(alone: list[dict], together: dict) -> dict:
+    """The servers' and the clients' CPU per answered pose, alone (all alone runs together)
+    and together: what a pose costs does not depend on what else runs on the machine, so
+    ``servers_cpu_per_pose_together_vs_alone`` near 1 says that several servers on one network
+    cost no more per pose than one (the rates may still differ: less CPU for the servers)."""
+    if not together.get("cpu_ms_per_pose") or not all(r.get("cpu_ms_per_pose") for r in alone):
+        return {}
+
+    def per_pose(key: str) -> float:
+        # CPU ms summed over the alone runs / poses summed: a weighted mean
+        cpu = sum(r["cpu_ms_per_pose"][key] * r["answered_in_window"] for r in alone)
+        return cpu / max(1, sum(r["answered_in_window"] for r in alone))
+
+    s_alone, c_alone = per_pose("servers"), per_pose("clients")
+    s_tog = together["cpu_ms_per_pose"]["servers"]
+    c_tog = together["cpu_ms_per_pose"]["clients"]
+    return {
+        "cpu_ms_per_pose": {
+            "alone": {"servers": s_alone, "clients": c_alone},
+            "together": {"servers": s_tog, "clients": c_tog},
+        },
+        "servers_cpu_per_pose_together_vs_alone": s_tog / s_alone if s_alone else None,
+    }
 
 
 def run_alone(
@@ -155,9 +261,11 @@ def run_alone(
         stop = threading.Event()
         with Servers(world, [sid], workers, cpus) as srv:
             cl = _clients(world, srv.endpoints, clients[k * share : (k + 1) * share], stop, None)
-            per, dt = _measure(cl, stop, 2.0, seconds)
+            per, dt, cpu = _measure(cl, stop, 2.0, seconds, CpuMeter(srv.procs))
         tot = _totals(per)
-        rows.append({"server": sid, "clients": share, "poses_per_s": tot["answered"] / dt, **tot})
+        rows.append(
+            {"server": sid, "clients": share, "poses_per_s": tot["answered"] / dt, **tot, **cpu}
+        )
     return rows
 
 
@@ -173,7 +281,7 @@ def run_together(
     stop = threading.Event()
     with Servers(world, ids, workers, cpus) as srv:
         cl = _clients(world, srv.endpoints, clients, stop, None)
-        per, dt = _measure(cl, stop, 2.0, seconds)
+        per, dt, cpu = _measure(cl, stop, 2.0, seconds, CpuMeter(srv.procs))
     tot = _totals(per)
     spread: dict[str, int] = {}
     for p in per:
@@ -184,6 +292,7 @@ def run_together(
         "clients_per_server": spread,
         "clients_on_two_servers": sum(len(p["servers"]) > 1 for p in per),
         **tot,
+        **cpu,
     }
 
 
@@ -264,15 +373,20 @@ def run(args: argparse.Namespace) -> dict:
     world = prepare(Path(args.work))
     ids = [f"s{i}" for i in range(args.servers)]
     clients = [f"scale-client-{i}" for i in range(args.clients)]
-    cpus = pinning(ids, args.pin)
+    cpus = pinning(ids, args.pin, args.client_core)
+    ccores = client_cores(args.pin, args.client_core)
+    all_cores = set(os.sched_getaffinity(0))
     out: dict[str, Any] = {
         "servers": args.servers,
         "clients": args.clients,
         "workers_per_server": args.workers,
         "cores": os.cpu_count(),
         "server_cores": {s: sorted(c) for s, c in cpus.items()} if cpus else "all",
+        "client_cores": sorted(ccores) if ccores else "all",
         "load_before": os.getloadavg()[0],
     }
+    if ccores:
+        pin_process(ccores)
     if "alone" in args.parts or "together" in args.parts:  # together is judged against alone
         out["alone"] = run_alone(world, ids, clients, args.workers, args.seconds, cpus)
     if "together" in args.parts:
@@ -286,6 +400,9 @@ def run(args: argparse.Namespace) -> dict:
         # the issue's target, on cores shared by servers: each server's rate alone over the
         # number of servers on its cores (2 servers on 2 cores: the plain sum)
         out["together_vs_core_share"] = together["poses_per_s"] / share if share else None
+        out.update(cpu_comparison(out["alone"], together))
+    if ccores:
+        pin_process(all_cores)
     if "kill" in args.parts:
         # unpinned: the survivors may use the victim's core (pinned, the 6 moved clients of a
         # 3-server run would land on the one core two survivors share and overload it)
@@ -335,6 +452,15 @@ def parser() -> argparse.ArgumentParser:
         default=True,
         help="server i (and its workers) on core i mod cores in alone and together, so that each "
         "server's rate alone is what its cores deliver (default on; --no-pin: all share all)",
+    )
+    p.add_argument(
+        "--client-core",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="with --pin on 2+ cores: the last core runs this process (the clients) in alone and "
+        "together and the servers share the others, so that the servers have the same cores in "
+        "both parts (default on; --no-client-core: the clients float over every core, free in "
+        "alone, taken from the servers together)",
     )
     p.add_argument("--out", help="write the results as JSON here too")
     return p
