@@ -234,6 +234,126 @@ def test_an_unloaded_map_answers_its_frames_not_found_and_ends_its_sessions(env)
     assert len(sinks["c"].poses) == 1
 
 
+# ============================================================================ worker queue
+def _queued(n: int):
+    """A session manager with ``worker_queue=1`` (one frame per worker at once), ``n`` workers."""
+    pool, reg = FakePool(n=n), _Registry()
+    reg.set("room", 1, "build-1")
+    sm = SessionManager(
+        pool, reg, ServerMetrics(), server_id="srv", max_image_pixels=64 * 48, worker_queue=1
+    )
+    sinks: dict[str, ListSink] = {}
+
+    def submit(client: str, seq: int, t_recv: float = 0.0):
+        frame = Frame(seq, seq * 1000, CAM, "gray8", bytes(64 * 48))
+        return sm.submit(
+            "room",
+            client,
+            "zenoh",
+            frame,
+            t_recv,
+            make_sink=lambda: sinks.setdefault(client, ListSink()),
+        )
+
+    return pool, sm, sinks, submit
+
+
+@pytest.fixture
+def queued():
+    return _queued(2)
+
+
+def _sent(pool: FakePool, worker: int) -> list[tuple[int, int]]:
+    return [(m.sid, m.seq) for w, m in pool.frames if w == worker]
+
+
+def test_a_full_worker_queues_its_sessions_and_they_take_turns_with_their_newest_frame(queued):
+    pool, sm, sinks, submit = queued
+    a, b, c, d = (submit(x, 0) for x in "abcd")  # a, c on one worker; b, d on the other
+    w = a.worker
+    assert c.worker == w and b.worker == d.worker != w
+    assert _sent(pool, w) == [(a.sid, 0)]  # c waits in the server, not in the worker's pipe
+    assert c.waiting and not c.busy
+    submit("c", 1)  # replaces c's waiting frame 0 (latest-frame-only, as behind a busy frame)
+    submit("a", 1)  # a is busy: waits behind its frame 0
+    assert [p.frame.seq for p in c.pending] == [1] and c.dropped == 1
+    _answer(sm, pool.frames[0][1])  # a's frame 0 done: c waited longer than a's frame 1
+    assert _sent(pool, w) == [(a.sid, 0), (c.sid, 1)]
+    assert a.waiting and [p.frame.seq for p in a.pending] == [1]
+    submit("a", 2)  # the newest of a goes on in its turn
+    _answer(sm, pool.frames[-1][1])
+    assert _sent(pool, w) == [(a.sid, 0), (c.sid, 1), (a.sid, 2)] and a.dropped == 1
+    _answer(sm, pool.frames[-1][1])
+    assert [(p.seq, p.dropped) for p in sinks["a"].poses] == [(0, 0), (2, 1)]
+    assert [p.seq for p in sinks["c"].poses] == [1]
+    submit("c", 2)  # the worker is idle: straight to it
+    assert _sent(pool, w)[-1] == (c.sid, 2) and c.busy and not c.waiting
+    assert _sent(pool, b.worker) == [(b.sid, 0)]  # the other worker: b's frame, d waiting
+    assert d.waiting
+
+
+def test_a_frame_past_its_budget_frees_its_slot_once():
+    """A stuck frame answered DEADLINE_EXCEEDED gives its worker's slot to the next session at
+    once (as without a queue); its late result frees nothing more."""
+    pool, sm, sinks, submit = _queued(1)
+    budget = sm.frame_budget_ms / 1e3
+    submit("a", 0, t_recv=100.0)
+    b = submit("b", 0, t_recv=100.0 + budget)  # waits for the worker
+    assert b.waiting
+    assert sm.expire_late(now=100.0 + budget + 0.05) == 1  # a's frame
+    stuck = pool.frames[0][1]
+    assert _sent(pool, 0) == [(1, 0), (b.sid, 0)]  # b's went on at once
+    c = submit("c", 0, t_recv=100.0 + budget)
+    assert c.waiting  # b's frame holds the slot
+    _answer(sm, stuck)  # late: no second answer, and it frees no slot (b's still holds it)
+    assert sm.late_results == 1 and [p.seq for p in sinks["a"].poses] == [0]
+    assert c.waiting and len(pool.frames) == 2
+    _answer(sm, pool.frames[-1][1])  # b done: c's turn
+    assert _sent(pool, 0)[-1] == (c.sid, 0)
+
+
+def test_frames_waiting_for_a_full_worker_past_their_budget_are_answered(queued):
+    pool, sm, sinks, submit = queued
+    a = submit("a", 0, t_recv=100.0)
+    submit("b", 0, t_recv=100.0)
+    c = submit("c", 0, t_recv=100.0)
+    assert c.worker == a.worker and c.waiting
+    budget = sm.frame_budget_ms / 1e3
+    sm.expire_late(now=100.0 + budget + 0.05)
+    assert [(p.seq, p.error.code) for p in sinks["c"].poses] == [(0, "DEADLINE_EXCEEDED")]
+    assert not c.pending
+
+
+def test_a_dead_worker_s_queued_sessions_move_and_wait_for_the_survivor(queued):
+    pool, sm, sinks, submit = queued
+    a, b, c = submit("a", 0), submit("b", 0), submit("c", 0)
+    dead = a.worker
+    assert c.worker == dead and c.waiting and b.worker != dead
+    submit("a", 1)
+    pool.alive[dead] = False
+    sm.on_worker_dead(dead)
+    assert [(p.seq, p.error.code) for p in sinks["a"].poses] == [(0, "UNAVAILABLE")]
+    assert a.worker == c.worker == b.worker
+    # the survivor is busy with b's frame: a and c wait for it, nothing went to the dead one
+    assert len(pool.frames) == 2 and a.waiting and c.waiting
+    _answer(sm, pool.frames[1][1])  # b done: the sessions that waited take their turns
+    _answer(sm, pool.frames[2][1])
+    _answer(sm, pool.frames[3][1])
+    assert sorted((m.sid, m.seq) for _, m in pool.frames[2:]) == [(a.sid, 1), (c.sid, 0)]
+    assert all(w == b.worker for w, _ in pool.frames[1:])
+    assert sm.wait_idle(0)
+
+
+def test_a_session_closed_while_it_waits_is_skipped(queued):
+    pool, sm, sinks, submit = queued
+    a, _, c, _ = submit("a", 0), submit("b", 0), submit("c", 0), submit("d", 0)
+    e = submit("e", 0)
+    assert c.waiting and e.waiting and e.worker == a.worker
+    sm.close(c, "test")
+    _answer(sm, pool.frames[0][1])
+    assert _sent(pool, a.worker) == [(a.sid, 0), (e.sid, 0)]
+
+
 # ============================================================================ map registry
 def test_registry_swaps_generations_in_one_step_and_drops_the_old_one(world):
     pool = FakePool()

@@ -136,6 +136,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "only)",
     )
     p.add_argument(
+        "--worker-queue",
+        type=int,
+        metavar="N",
+        help="stream frames in one engine worker at once; sessions whose worker is full wait in "
+        "the server with their newest frame and take turns (default 1; 0: no limit)",
+    )
+    p.add_argument(
         "--frame-budget-ms",
         type=float,
         metavar="MS",
@@ -195,6 +202,7 @@ def overrides_from_args(args: argparse.Namespace) -> dict:
         "idle_timeout_s": args.idle_timeout,
         "metrics_port": args.metrics_port,
         "max_pending": args.max_pending,
+        "worker_queue": args.worker_queue,
         "frame_budget_ms": args.frame_budget_ms,
         "server_id": args.server_id,
         "log_format": args.log_format,

@@ -105,6 +105,7 @@ class Server:
             max_pending=conf.max_pending,
             frame_budget_ms=conf.frame_budget_ms,
             frame_cpu_budget_ms=conf.frame_cpu_budget_ms,
+            worker_queue=conf.worker_queue,
         )
         # All the front ends see of the server.
         self.facade = Localization(

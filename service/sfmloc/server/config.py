@@ -82,6 +82,11 @@ class ServerConfig(StrictModel):
     # Frames of a session that may wait while its previous one is processed; older ones are
     # dropped. 1 = latest-frame-only (the default: the freshest pose, soonest).
     max_pending: int = Field(1, ge=1, le=8)
+    # Stream frames in one engine worker at once (running + queued in its pipe); a session
+    # whose worker is full waits in the server with its newest frame, and the waiting sessions
+    # of a worker take turns. 0: no limit (each session's frame goes to its worker at once,
+    # where it waits behind the other sessions' frames while newer ones arrive).
+    worker_queue: int = Field(1, ge=0, le=64)
     max_sessions: int = Field(256, ge=1)
     # Zenoh frame envelopes larger than this are refused (RESOURCE_EXHAUSTED).
     max_frame_bytes: int = Field(16 * 1024 * 1024, ge=1024)

@@ -9,6 +9,14 @@ processed next, never a growing queue, and other clients' frames never wait behi
 backlog. (``max_pending`` > 1 keeps that many newest frames instead: fewer drops after a slow
 frame, at the price of poses that are older when they come back.)
 
+With ``worker_queue`` = N > 0, at most N frames are in one engine worker at once (one
+running, N-1 in its pipe); a session whose worker is full waits here with its newest frame,
+and the worker's waiting sessions take turns (round-robin) as frames come back. Without the
+limit, each session's frame goes into its worker's pipe at once and waits there behind the
+other sessions' frames while newer frames of its own client arrive: under overload every pose
+was a pipe's worth of frames old (8 clients on 2 workers: p50 80 ms for 15 ms of engine). With
+it, a frame starts at most N-1 frames after it was picked, and it is the newest one then.
+
 Poses go back through the session's *sink* (a Zenoh publisher, or a gRPC stream's queue).
 Zenoh sessions end after ``idle_timeout_s`` without frames; gRPC sessions end with their stream.
 """
@@ -85,6 +93,7 @@ class Session:
     camera: Any = None  # the last CameraSpec seen (validated once, not per frame)
     inflight_t_recv: dict[int, float] = field(default_factory=dict)  # seq -> receipt time
     ticket: int = 0  # the dispatch number of the frame in its worker (0: none)
+    waiting: bool = False  # queued for its worker (full): its pending frames go on in turn
     closed: bool = False
     source: str = ""  # the sender of its first frame (Zenoh session id); "" = not given
 
@@ -107,6 +116,7 @@ class SessionManager:
         max_pending: int = 1,
         frame_budget_ms: float = 2000.0,
         frame_cpu_budget_ms: float = 1000.0,
+        worker_queue: int = 0,
     ) -> None:
         self.pool = pool
         self.registry = registry
@@ -119,6 +129,13 @@ class SessionManager:
         self.frame_budget_ms = frame_budget_ms  # receipt to answer, wall (0: none)
         self.frame_cpu_budget_ms = frame_cpu_budget_ms  # in the worker, once started (0: none)
         self._tickets = itertools.count(1)
+        # Stream frames in a worker at once (0: no limit; see the module's docstring). Each
+        # dispatched frame holds a slot of its worker until its result comes back (or it is
+        # answered otherwise: time budget, worker death); sessions whose worker is full queue.
+        self.worker_queue = worker_queue
+        self._slots: dict[int, int] = {}  # ticket -> worker
+        self._in_worker: dict[int, int] = {}  # worker -> slots held
+        self._waiting: dict[int, deque[Session]] = {}  # worker -> sessions in turn
         self.late_results = 0  # results that came after their frame was answered otherwise
         self._late_log = LogLimiter(log, "frame_over_budget")  # an overload must not flood
         self._lock = threading.Lock()
@@ -170,17 +187,102 @@ class SessionManager:
         with self._lock:
             if s.closed:
                 return s
-            if s.busy:
+            if s.busy or s.waiting:
                 if len(s.pending) >= self.max_pending:
                     s.pending.popleft()  # the stalest waiting frame makes room
                     s.dropped += 1
                     self.metrics.frames_dropped.inc(map_name)
                 s.pending.append(_Pending(frame, t_recv))
                 return s
-            s.busy = True
-            s.inflight_t_recv[frame.seq] = t_recv
-        self._dispatch(s, frame, entry.generation)
+            if not self._has_room(s.worker):
+                s.pending.append(_Pending(frame, t_recv))
+                self._wait(s)
+                return s
+            ticket = self._start(s, _Pending(frame, t_recv))
+        self._dispatch(s, frame, entry.generation, ticket)
         return s
+
+    # ------------------------------------------------------------------ worker slots
+    # (all of these: the caller holds self._lock)
+    def _has_room(self, worker: int) -> bool:
+        return not self.worker_queue or self._in_worker.get(worker, 0) < self.worker_queue
+
+    def _start(self, s: Session, p: _Pending) -> int:
+        """``s``'s frame ``p`` goes to its worker: the session is busy, the frame holds a slot
+        of the worker; its ticket."""
+        s.busy = True
+        s.inflight_t_recv[p.frame.seq] = p.t_recv
+        ticket = s.ticket = next(self._tickets)
+        self._slots[ticket] = s.worker
+        self._in_worker[s.worker] = self._in_worker.get(s.worker, 0) + 1
+        return ticket
+
+    def _free(self, ticket: int) -> None:
+        w = self._slots.pop(ticket, None)
+        if w is not None:
+            self._in_worker[w] -= 1
+
+    def _free_worker(self, worker: int) -> None:
+        """A dead worker's slots (its frames are answered by the caller)."""
+        for t in [t for t, w in self._slots.items() if w == worker]:
+            del self._slots[t]
+        self._in_worker[worker] = 0
+
+    def _unqueue(self, worker: int) -> None:
+        """Empty ``worker``'s queue (it died): its sessions that still have frames and live on
+        another worker now queue there; the others' frames go with them (the caller)."""
+        for s in self._waiting.pop(worker, ()):
+            s.waiting = False
+            if s.pending and not s.closed and s.worker != worker:
+                self._wait(s)
+
+    def _wait(self, s: Session) -> None:
+        """``s`` (pending frames, none in a worker) queues for its worker."""
+        if not s.waiting:
+            s.waiting = True
+            self._waiting.setdefault(s.worker, deque()).append(s)
+
+    def _take_turns(self) -> builtins.list[tuple[Session, _Pending, int]]:
+        """The frames that go on now: while a worker has room, its longest-waiting session's
+        next pending frame (the newest one, with latest-frame-only). The caller dispatches
+        them (``_dispatch_all``) once it released the lock."""
+        out: builtins.list[tuple[Session, _Pending, int]] = []
+        if not self.worker_queue:
+            return out
+        progress = True
+        while progress:  # again when a session moved to another worker's queue
+            progress = False
+            for w, q in list(self._waiting.items()):
+                while q and self._has_room(w):
+                    s = q.popleft()
+                    s.waiting = False
+                    progress = True
+                    if s.closed or s.busy or not s.pending:
+                        continue
+                    if s.worker != w:  # moved to another worker meanwhile: wait there
+                        self._wait(s)
+                        continue
+                    if self.draining:
+                        s.dropped += len(s.pending)
+                        self.metrics.frames_dropped.inc(s.map, value=len(s.pending))
+                        s.pending.clear()
+                        continue
+                    p = s.pending.popleft()
+                    out.append((s, p, self._start(s, p)))
+        return out
+
+    def _dispatch_all(self, items: builtins.list[tuple[Session, _Pending, int]]) -> None:
+        while items:
+            for s, p, ticket in items:
+                entry = self.registry.find(s.map)
+                if entry is None:
+                    self._reject_pending(s, p, ticket)
+                else:
+                    self._dispatch(s, p.frame, entry.generation, ticket)
+            if not self.worker_queue:
+                return
+            with self._lock:  # a rejected frame or a dead worker's slot made room
+                items = self._take_turns()
 
     def _open(
         self,
@@ -219,16 +321,22 @@ class SessionManager:
         )
         return s
 
-    def _dispatch(self, s: Session, frame: Frame, gen: int) -> None:
+    def _dispatch(self, s: Session, frame: Frame, gen: int, ticket: int) -> None:
+        """Send ``frame`` (started with ``_start``: ``ticket``) to ``s``'s worker."""
         if not self.pool.is_alive(s.worker):
             with self._lock:
                 target = self._live_worker(exclude=s.worker)
                 if target is None:  # every worker is down: answer now rather than never
                     s.busy = False
                     s.inflight_t_recv.pop(frame.seq, None)
+                    self._free(ticket)
                     self._idle.notify_all()
                 else:
                     s.worker = target
+                    if ticket in self._slots:  # the slot moves with it
+                        self._free(ticket)
+                        self._slots[ticket] = target
+                        self._in_worker[target] = self._in_worker.get(target, 0) + 1
             if target is None:
                 from ..errors import UnavailableError
 
@@ -245,7 +353,6 @@ class SessionManager:
                 return
         deadline = 0.0
         with self._lock:
-            ticket = s.ticket = next(self._tickets)
             if self.frame_budget_ms:
                 t_recv = s.inflight_t_recv.get(frame.seq, time.perf_counter())
                 # t_recv is perf_counter (CLOCK_MONOTONIC on Linux, like time.monotonic, but
@@ -274,48 +381,48 @@ class SessionManager:
     def on_result(self, msg: Result) -> None:
         """A worker finished a frame (called on the pool's pump thread)."""
         now = time.perf_counter()
-        nxt: _Pending | None = None
+        turns: builtins.list[tuple[Session, _Pending, int]] = []
         with self._lock:
+            self._free(msg.ticket)  # its worker has room again, whatever became of the frame
             s = self._by_sid.get(msg.sid)
-            if s is None:
-                return  # closed meanwhile
-            if msg.ticket and msg.ticket != s.ticket:
+            if s is not None and msg.ticket and msg.ticket != s.ticket:
                 # Its frame was answered already (its time budget passed, or its worker was
                 # declared dead): answering again would be a second answer, and late.
                 self.late_results += 1
-                return
-            s.ticket = 0
-            t_recv = s.inflight_t_recv.pop(msg.seq, now)
-            s.busy = False
-            if s.pending:
-                if self.draining or s.closed:
-                    s.dropped += len(s.pending)
-                    self.metrics.frames_dropped.inc(s.map, value=len(s.pending))
-                    s.pending.clear()
+                s = None
+            if s is not None:  # None: closed meanwhile, or late
+                s.ticket = 0
+                t_recv = s.inflight_t_recv.pop(msg.seq, now)
+                s.busy = False
+                if s.pending:
+                    if self.draining or s.closed:
+                        s.dropped += len(s.pending)
+                        self.metrics.frames_dropped.inc(s.map, value=len(s.pending))
+                        s.pending.clear()
+                    elif self.worker_queue:
+                        self._wait(s)  # behind the sessions that waited already: in turn
+                    else:
+                        nxt = s.pending.popleft()
+                        turns.append((s, nxt, self._start(s, nxt)))
+                latency_ms = (now - t_recv) * 1e3
+                s.processed += 1
+                s.last_latency_ms = latency_ms
+                s.latency_sum_ms += latency_ms
+                res = msg.pose
+                if res is not None:
+                    s.last_status = res.status
+                    s.localized += res.status != Status.LOST
                 else:
-                    nxt = s.pending.popleft()
-                    s.busy = True
-                    s.inflight_t_recv[nxt.frame.seq] = nxt.t_recv
-            latency_ms = (now - t_recv) * 1e3
-            s.processed += 1
-            s.last_latency_ms = latency_ms
-            s.latency_sum_ms += latency_ms
-            res = msg.pose
-            if res is not None:
-                s.last_status = res.status
-                s.localized += res.status != Status.LOST
-            else:
-                s.errors += 1
-                s.last_status = Status.LOST.value
-            dropped = s.dropped
-            if not s.busy:
+                    s.errors += 1
+                    s.last_status = Status.LOST.value
+                dropped = s.dropped
+            if self.worker_queue:
+                turns += self._take_turns()
+            if s is not None and not s.busy:
                 self._idle.notify_all()
-        if nxt is not None:
-            entry = self.registry.find(s.map)
-            if entry is None:
-                self._reject_pending(s, nxt)
-            else:
-                self._dispatch(s, nxt.frame, entry.generation)
+        self._dispatch_all(turns)  # the next frames first: the worker is idle meanwhile
+        if s is None:
+            return
         pose = self._pose(s, msg, latency_ms, dropped)
         if res is not None:
             self.metrics.frames_done.inc(s.map, res.status)
@@ -325,10 +432,13 @@ class SessionManager:
         self.metrics.latency.observe(s.map, value=latency_ms / 1e3)
         self._send(s, pose)
 
-    def _reject_pending(self, s: Session, p: _Pending) -> None:
+    def _reject_pending(self, s: Session, p: _Pending, ticket: int) -> None:
         from ..errors import MapNotFoundError
 
         with self._lock:
+            self._free(ticket)
+            if s.ticket == ticket:
+                s.ticket = 0
             s.busy = False
             s.inflight_t_recv.pop(p.frame.seq, None)
             self._idle.notify_all()
@@ -497,25 +607,35 @@ class SessionManager:
         now = time.perf_counter() if now is None else now
         limit = self.frame_budget_ms / 1e3
         late: builtins.list[tuple[Session, int]] = []
-        resume: builtins.list[tuple[Session, _Pending]] = []
+        resume: builtins.list[tuple[Session, _Pending, int]] = []
         with self._lock:
             for s in self._by_sid.values():
+                if s.waiting:  # queued for a full worker: its frames may have waited too long
+                    while s.pending and now - s.pending[0].t_recv > limit:
+                        late.append((s, s.pending.popleft().frame.seq))
+                    continue
                 if not s.busy or not s.inflight_t_recv:
                     continue
                 seq, t_recv = next(iter(s.inflight_t_recv.items()))
                 if now - t_recv <= limit:
                     continue
                 s.inflight_t_recv.clear()
+                # Its slot is freed with its answer: the frames behind go on at once, as
+                # without a worker queue (they wait in the worker's pipe if it is still busy).
+                self._free(s.ticket)
                 s.ticket = 0
                 s.busy = False
                 late.append((s, seq))
                 while s.pending and now - s.pending[0].t_recv > limit:
                     late.append((s, s.pending.popleft().frame.seq))  # as late: answered too
                 if s.pending and not self.draining:
-                    nxt = s.pending.popleft()
-                    s.busy = True
-                    s.inflight_t_recv[nxt.frame.seq] = nxt.t_recv
-                    resume.append((s, nxt))
+                    if self.worker_queue:
+                        self._wait(s)
+                    else:
+                        nxt = s.pending.popleft()
+                        resume.append((s, nxt, self._start(s, nxt)))
+            if self.worker_queue and late:
+                resume += self._take_turns()
             if late:
                 self._idle.notify_all()
         for s, seq in late:
@@ -537,12 +657,7 @@ class SessionManager:
                     worker=s.worker,
                 )
             self._send(s, self.error_pose(s.map, s.client_id, seq, 0, exc, dropped=s.dropped))
-        for s, nxt in resume:
-            entry = self.registry.find(s.map)
-            if entry is None:
-                self._reject_pending(s, nxt)
-            else:
-                self._dispatch(s, nxt.frame, entry.generation)
+        self._dispatch_all(resume)
         self._late_log.flush()
         return len(late)
 
@@ -589,11 +704,15 @@ class SessionManager:
 
         with self._lock:
             hit = [s for s in self._by_sid.values() if s.worker == worker]
-            lost, resume = [], []
+            lost = []
+            resume: builtins.list[tuple[Session, _Pending, int]] = []
+            self._free_worker(worker)  # its frames are answered here
+            self._unqueue(worker)
             for s in hit:
                 lost += [(s, seq) for seq in s.inflight_t_recv]
                 s.inflight_t_recv.clear()
                 s.busy = False
+                s.ticket = 0
                 target = self._live_worker(exclude=worker)
                 if target is not None:
                     s.worker = target
@@ -601,9 +720,12 @@ class SessionManager:
                     nxt = s.pending.pop()  # the newest waiting frame goes on, on the new worker
                     s.dropped += len(s.pending)
                     s.pending.clear()
-                    s.busy = True
-                    s.inflight_t_recv[nxt.frame.seq] = nxt.t_recv
-                    resume.append((s, nxt))
+                    if self.worker_queue:
+                        s.pending.append(nxt)
+                        self._wait(s)
+                    else:
+                        resume.append((s, nxt, self._start(s, nxt)))
+            resume += self._take_turns()
             self._idle.notify_all()
         for s, seq in lost:
             self._send(
@@ -619,12 +741,7 @@ class SessionManager:
                     ),
                 ),
             )
-        for s, nxt in resume:
-            entry = self.registry.find(s.map)
-            if entry is None:
-                self._reject_pending(s, nxt)
-            else:
-                self._dispatch(s, nxt.frame, entry.generation)
+        self._dispatch_all(resume)
         event(
             log,
             logging.WARNING,
@@ -642,11 +759,14 @@ class SessionManager:
         with self._lock:
             hit = [s for s in self._by_sid.values() if s.worker == worker]
             lost = []
+            self._free_worker(worker)  # its frames are answered here
             for s in hit:
                 lost += [(s, seq) for seq in s.inflight_t_recv]
                 s.inflight_t_recv.clear()
                 s.busy = False
+                s.ticket = 0
                 s.pending.clear()
+            self._unqueue(worker)
             self._idle.notify_all()
             moved = self._rebalance_to(worker)
         for src, sid in moved:  # after the frame it may have in flight there
