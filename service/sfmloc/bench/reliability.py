@@ -333,6 +333,10 @@ class ClientLog:
     wrong_detail: list = field(default_factory=list)  # (seq, status, error/scale, deg)
     dropped: int = 0  # the server's count of this stream's stale frames (last seen)
     timeouts: int = 0
+    # Per frame: seq -> (server it was sent to, whether it carried a pose prior); per answer:
+    # the fields needed to explain a wrong or missing pose afterwards (records()).
+    sent_to: dict[int, tuple[str, bool]] = field(default_factory=dict)
+    answers: dict[int, dict] = field(default_factory=dict)
 
 
 class StreamClient(threading.Thread):
@@ -374,6 +378,15 @@ class StreamClient(threading.Thread):
                 return
             lg.answered[p.seq] = now
             lg.servers[p.server_id] += 1
+            rec: dict[str, Any] = {
+                "server": p.server_id,
+                "status": p.status,
+                "matching": p.matching,
+                "inliers": p.inliers,
+                "error": None if p.error is None else p.error.code,
+                "message": p.message[:120],
+            }
+            lg.answers[p.seq] = rec
             lg.dropped = max(lg.dropped, p.dropped)
             lg.dropped_by_seq[p.seq] = p.dropped
             if p.error is not None:
@@ -382,6 +395,7 @@ class StreamClient(threading.Thread):
                 lg.localized_at.append(now)
                 lg.localized.add(p.seq)
                 err = pose_error(self.world, pingpong(len(self.world.gray), p.seq), p)
+                rec["err_scale"], rec["err_deg"] = round(err[0], 4), round(err[1], 2)
                 if pose_is_wrong(*err):
                     lg.wrong += 1
                     lg.wrong_seqs.add(p.seq)
@@ -420,6 +434,8 @@ class StreamClient(threading.Thread):
                 fs.publish(
                     data=self.world.gray[pingpong(n, seq)].tobytes(), encoding="gray8", seq=seq
                 )
+                # where it went and whether it carried the handover prior (what publish() did)
+                self.log.sent_to[seq] = (fs.server, fs._handover_prior(fs.server) is not None)
                 if self.rate_hz is None:
                     with self._cv:
                         if not self._cv.wait_for(
@@ -434,6 +450,28 @@ class StreamClient(threading.Thread):
             with self._cv:
                 last = seq - 1
                 self._cv.wait_for(lambda: last in self.log.answered, self.timeout)
+
+    def records(self, t_ref: float = 0.0) -> list[dict]:
+        """Every frame sent: seq, times (s, relative to ``t_ref``), the server it went to,
+        whether it carried a prior, and its answer (None: none)."""
+        lg = self.log
+        with self._cv:
+            out = []
+            for q, t in sorted(lg.sent.items()):
+                to, prior = lg.sent_to.get(q, ("", False))
+                a = lg.answered.get(q)
+                out.append(
+                    {
+                        "seq": q,
+                        "frame": pingpong(len(self.world.gray), q),
+                        "t_sent": round(t - t_ref, 4),
+                        "t_answer": None if a is None else round(a - t_ref, 4),
+                        "to": to,
+                        "prior": prior,
+                        "answer": lg.answers.get(q),
+                    }
+                )
+        return out
 
     def summary(self, t0: float, t1: float) -> dict:
         """The frames sent in [t0, t1]: answers, the server's stale drops among them, poses,
@@ -1232,6 +1270,7 @@ def run_soak(
     concurrency: int = 2,
     sample_s: float = 15.0,
     idle_timeout_s: float = 30.0,
+    server_args: tuple[str, ...] = (),
 ) -> dict:
     """``streams`` clients streaming at ``rate_hz`` for ``minutes`` while ``short_clients``
     short-lived ``sfmloc stream`` processes (5 frames each, their own client ids, at most
@@ -1246,7 +1285,7 @@ def run_soak(
     results: list[dict] = []
     lock = threading.Lock()
     counter = iter(range(short_clients))
-    extra = ("--idle-timeout", f"{idle_timeout_s:g}")
+    extra = ("--idle-timeout", f"{idle_timeout_s:g}", *server_args)
     with Server(world, workers, extra) as srv:
         t0 = time.monotonic()
         cl = [
@@ -1276,11 +1315,8 @@ def run_soak(
                     rc, out = p.returncode, p.stdout.strip().splitlines()
                 except subprocess.TimeoutExpired:
                     rc, out = -1, ["timeout"]
-                poses = 0
-                with contextlib.suppress(ValueError, IndexError):
-                    poses = int(out[-1].split()[0])
                 with lock:
-                    results.append({"rc": rc, "poses": poses, "s": time.monotonic() - ts})
+                    results.append({"rc": rc, "s": time.monotonic() - ts, **_stream_summary(out)})
 
         launchers = [threading.Thread(target=short_client, daemon=True) for _ in range(concurrency)]
         for th in launchers:
@@ -1328,6 +1364,13 @@ def run_soak(
         "short_clients_planned": short_clients,
         "short_exit_codes": {str(k): v for k, v in rcs.items()},
         "short_with_poses": sum(r["poses"] > 0 for r in results),
+        # what the short clients got: a pose (localized) at all, their frames' errors (the
+        # server's DEADLINE_EXCEEDED under load) and the server latency they saw (p99 of each)
+        "short_localized": sum(r["localized"] > 0 for r in results),
+        "short_frames_localized": sum(r["localized"] for r in results),
+        "short_frame_errors": sum(r["errors"] for r in results),
+        "short_latency_ms_p99_median": _nanmedian([r["latency_ms_p99"] for r in results]),
+        "short_latency_ms_p99_max": _nanmax([r["latency_ms_p99"] for r in results]),
         "short_s_p50": float(np.median([r["s"] for r in results])) if results else float("nan"),
         "rss_mb_warm": total(ref),
         "rss_mb_peak": total(peak),
@@ -1346,6 +1389,36 @@ def run_soak(
         "streams_detail": stream_summary,
         "samples": samples,
     }
+
+
+def _stream_summary(lines: list[str]) -> dict:
+    """The numbers of ``sfmloc stream``'s summary line (its last line): poses received,
+    frames localized, errors, server latency p50/p99 (NaN when absent)."""
+    import re
+
+    last = lines[-1] if lines else ""
+
+    def num(pattern: str, default: float = 0.0) -> float:
+        m = re.search(pattern, last)
+        return float(m.group(1)) if m else default
+
+    return {
+        "poses": int(num(r"^(\d+) poses received")),
+        "localized": int(num(r"; (\d+) localized")),
+        "errors": int(num(r"(\d+) errors")),
+        "latency_ms_p50": num(r"latency p50 ([\d.]+) ms", float("nan")),
+        "latency_ms_p99": num(r"p99 ([\d.]+) ms", float("nan")),
+    }
+
+
+def _nanmedian(xs: list[float]) -> float:
+    a = np.asarray(xs, float)
+    return float(np.nanmedian(a)) if np.isfinite(a).any() else float("nan")
+
+
+def _nanmax(xs: list[float]) -> float:
+    a = np.asarray(xs, float)
+    return float(np.nanmax(a)) if np.isfinite(a).any() else float("nan")
 
 
 # ============================================================================ part: restart
@@ -1808,7 +1881,14 @@ def table(res: dict) -> list[str]:
             (
                 "soak: short clients exit codes",
                 ", ".join(f"{k}: {v}" for k, v in sorted(so["short_exit_codes"].items()))
-                + f"; {so['short_with_poses']} got poses",
+                + f"; {so['short_with_poses']} got answers, {so['short_localized']} a pose",
+                f"{so['short_clients']} a pose",
+            ),
+            (
+                "soak: short clients' frames localized / errors; server latency p99 "
+                "(median, max over clients)",
+                f"{so['short_frames_localized']} / {so['short_frame_errors']}; "
+                f"{so['short_latency_ms_p99_median']:.0f}, {so['short_latency_ms_p99_max']:.0f} ms",
                 "-",
             ),
             (
@@ -1905,6 +1985,7 @@ def run(args: argparse.Namespace, world: World | None = None) -> dict:
             args.soak_concurrency,
             args.soak_sample,
             args.soak_idle_timeout,
+            tuple(args.server_arg),
         )
     if "restart" in parts:
         _log(f"restart: {args.restarts} server kills under {args.clients} clients")
@@ -2061,7 +2142,7 @@ def parser() -> argparse.ArgumentParser:
         "--server-arg",
         action="append",
         default=[],
-        help="extra `sfmloc serve` argument for the reloc part (repeatable), e.g. "
+        help="extra `sfmloc serve` argument for the reloc and soak parts (repeatable), e.g. "
         "--server-arg=--relocalize-workers=0",
     )
     p.add_argument(

@@ -304,7 +304,10 @@ def run_kill(
     rate_hz: float,
     seconds: float,
     cpus: dict[str, set[int]] | None = None,
+    records: Path | None = None,
 ) -> dict:
+    """``records``: write every client's per-frame records there (JSON; times relative to
+    the kill): which frame, which server, with a prior or not, the answer and its error."""
     from sfmloc_client.placement import rendezvous_owner
 
     owners = {c: rendezvous_owner(world.name, c, ids) for c in clients}
@@ -339,6 +342,16 @@ def run_kill(
             c.log.client_id for c in cl if not any(t > t1 - 2.0 for t in c.log.answered.values())
         ]
         per = [c.summary(t0, t1) for c in cl]
+        if records is not None:
+            records.write_text(
+                json.dumps({c.log.client_id: c.records(t_kill) for c in cl}, separators=(",", ":"))
+            )
+        wrong = [
+            {"client": c.log.client_id, **r}
+            for c in cl
+            for r in c.records(t_kill)
+            if r["seq"] in c.log.wrong_seqs
+        ]
     tot = _totals(per)
     rec = np.array(recovery)
     finite = rec[np.isfinite(rec)]
@@ -351,6 +364,7 @@ def run_kill(
         "never_recovered": int(np.sum(~np.isfinite(rec))),
         "stuck_clients": stuck,
         **tot,
+        "wrong_detail": wrong[:20],
     }
 
 
@@ -406,7 +420,15 @@ def run(args: argparse.Namespace) -> dict:
     if "kill" in args.parts:
         # unpinned: the survivors may use the victim's core (pinned, the 6 moved clients of a
         # 3-server run would land on the one core two survivors share and overload it)
-        out["kill"] = run_kill(world, ids, clients, args.workers, args.rate, args.seconds)
+        out["kill"] = run_kill(
+            world,
+            ids,
+            clients,
+            args.workers,
+            args.rate,
+            args.seconds,
+            records=Path(args.records) if args.records else None,
+        )
     out["load_after"] = os.getloadavg()[0]
     return {**out, **out_sub}
 
@@ -463,6 +485,9 @@ def parser() -> argparse.ArgumentParser:
         "alone, taken from the servers together)",
     )
     p.add_argument("--out", help="write the results as JSON here too")
+    p.add_argument(
+        "--records", help="kill: write every client's per-frame records (JSON) to this file"
+    )
     return p
 
 
