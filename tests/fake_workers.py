@@ -144,9 +144,13 @@ class FakePool:
         self.maps: dict[tuple[str, int], str] = {}  # (name, gen) -> path, on the workers
         self.dropped: list[tuple[str, int]] = []
         self.loading: dict[tuple[str, int], threading.Event] = {}  # hold a load_map
+        self.working: dict[int, int] = {}  # worker -> ticket of the frame it works on (test sets)
 
     def is_alive(self, worker: int) -> bool:
         return 0 <= worker < self.n and self.alive[worker]
+
+    def started(self, worker: int, ticket: int) -> bool:
+        return bool(ticket) and self.working.get(worker) == ticket
 
     def inflight(self) -> list[int]:
         return [0] * self.n

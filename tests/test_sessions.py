@@ -123,6 +123,38 @@ def test_a_frame_past_its_budget_is_answered_and_its_late_result_is_dropped(env)
     assert sm.wait_idle(0)
 
 
+def test_a_frame_in_the_works_is_left_to_its_cpu_budget_until_the_hang_limit(env):
+    """A frame its worker has started is not answered at the budget (that threw its CPU away
+    and queued the next frame behind it: under load every frame of most short-lived clients
+    went so); its result, past the budget, is its answer. Only past ``frame_hang_ms`` (its
+    worker stopped or stuck) is it answered DEADLINE_EXCEEDED."""
+    pool, _, sm, sinks, submit = env
+    budget, hang = sm.frame_budget_ms / 1e3, sm.frame_hang_ms / 1e3
+    assert hang > budget
+    submit("c", 0)  # at t=0
+    submit("c", 1)  # waits behind it
+    ((w, first),) = pool.frames
+    pool.working[w] = first.ticket
+    assert sm.expire_late(now=budget + 0.5) == 0 and not sinks["c"].poses  # in the works
+    _answer(sm, first, status="RELOCALIZED")  # its result, late: the answer
+    assert [(p.seq, p.status) for p in sinks["c"].poses] == [(0, "RELOCALIZED")]
+    assert sm.late_results == 0
+    # the waiting frame went on though its budget had passed (its worker will not work on it)
+    assert [m.seq for _, m in pool.frames] == [0, 1]
+    pool.working[w] = pool.frames[1][1].ticket
+    _answer(sm, pool.frames[1][1])
+    # a frame its worker never finishes: answered at the hang limit, not before
+    submit("c", 2)
+    third = pool.frames[2][1]
+    pool.working[w] = third.ticket
+    assert sm.expire_late(now=hang - 0.1) == 0
+    assert sm.expire_late(now=hang + 0.1) == 1
+    last = sinks["c"].poses[-1]
+    assert (last.seq, last.error.code) == (2, "DEADLINE_EXCEEDED")
+    assert "has not answered it" in last.message
+    assert sm.wait_idle(0)
+
+
 def test_frames_all_past_their_budget_are_all_answered(env):
     pool, _, sm, sinks, submit = env
     submit("c", 0)  # the fixture's frames arrive at t=0

@@ -146,8 +146,15 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--frame-budget-ms",
         type=float,
         metavar="MS",
-        help="a stream frame not answered this long after its receipt is answered "
-        "DEADLINE_EXCEEDED and the client's next frame goes on (default 2000; 0: none)",
+        help="a stream frame its worker has not started this long after its receipt is "
+        "answered DEADLINE_EXCEEDED and the client's next frame goes on (default 2000; 0: none)",
+    )
+    p.add_argument(
+        "--frame-hang-ms",
+        type=float,
+        metavar="MS",
+        help="a stream frame in the works is answered DEADLINE_EXCEEDED only when its worker "
+        "has not answered it this long after its receipt (stopped, stuck; default 8000)",
     )
     p.add_argument(
         "--follow-builder",
@@ -204,6 +211,7 @@ def overrides_from_args(args: argparse.Namespace) -> dict:
         "max_pending": args.max_pending,
         "worker_queue": args.worker_queue,
         "frame_budget_ms": args.frame_budget_ms,
+        "frame_hang_ms": args.frame_hang_ms,
         "server_id": args.server_id,
         "log_format": args.log_format,
         "relocalize_workers": args.relocalize_workers,

@@ -106,6 +106,7 @@ class Server:
             frame_budget_ms=conf.frame_budget_ms,
             frame_cpu_budget_ms=conf.frame_cpu_budget_ms,
             worker_queue=conf.worker_queue,
+            frame_hang_ms=conf.frame_hang_ms,
         )
         # All the front ends see of the server.
         self.facade = Localization(

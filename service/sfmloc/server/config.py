@@ -108,6 +108,11 @@ class ServerConfig(StrictModel):
     # session relocalizes next frame); a 4096x4096 frame must not hold its worker's other
     # sessions for seconds. 0: no limit.
     frame_cpu_budget_ms: float = Field(1000.0, ge=0)
+    # A frame its worker has started is not cut at frame_budget_ms (its CPU budget bounds it;
+    # cutting it threw the CPU spent away and queued the next frame behind it): only a worker
+    # that has not answered it this long after its receipt (stopped, stuck in native code)
+    # costs it its answer (DEADLINE_EXCEEDED). Below the 10 s a caller counts as a hang.
+    frame_hang_ms: float = Field(8000.0, ge=0)
     max_pending_relocalize: int = Field(16, ge=1)  # queued single-image requests, all workers
     # Queued or running single-image requests of one caller (its token's name, else its
     # connection); beyond, RESOURCE_EXHAUSTED: one caller cannot fill the queue for all.

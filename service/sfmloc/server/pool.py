@@ -18,6 +18,7 @@ pickle, and no spawn arguments).
 from __future__ import annotations
 
 import collections
+import contextlib
 import dataclasses
 import itertools
 import logging
@@ -54,6 +55,10 @@ class WorkerHandle:
         default_factory=queue.SimpleQueue
     )
     inflight: int = 0  # frames and relocalizations sent, not yet answered
+    # What it was sent that it answers, in order (the worker works through its messages one
+    # by one): a frame's ticket, 0 for a load or relocalization. The first is the one it works
+    # on now (``started``).
+    order: collections.deque[int] = field(default_factory=collections.deque)
     busy_ms: float = 0.0  # engine time so far (load reporting)
     alive: bool = True  # its pumps run (False once it died)
     # Takes part: frames, sessions and LoadMap go to it. A replacement is stored in the pool at
@@ -301,9 +306,11 @@ class WorkerPool:
             with self._lock:
                 h.inflight -= 1
                 h.busy_ms += msg.worker_ms
+                _answered(h.order, msg.ticket)
             self.on_result(msg)
         elif isinstance(msg, (P.Loaded, P.RelocResult)):
             with self._lock:
+                _answered(h.order, 0)
                 entry = self._futures.pop(msg.req, None)
                 if isinstance(msg, P.RelocResult):
                     h.inflight -= 1
@@ -462,6 +469,8 @@ class WorkerPool:
                 self._futures.pop(req, None)
             fut.set_exception(UnavailableError(f"worker {h.index} is restarting; retry"))
             return fut
+        with self._lock:
+            h.order.append(0)
         self._send(h, msg)
         return fut
 
@@ -515,7 +524,17 @@ class WorkerPool:
         h = self.workers[worker]
         with self._lock:
             h.inflight += 1
+            h.order.append(msg.ticket)
         self._send(h, msg)
+
+    def started(self, worker: int, ticket: int) -> bool:
+        """Whether worker ``worker`` is working on the frame of ``ticket`` now: everything
+        sent to it before has been answered (it works through its messages in order)."""
+        if not ticket or not 0 <= worker < len(self.workers):
+            return False
+        h = self.workers[worker]
+        with self._lock:
+            return h.alive and bool(h.order) and h.order[0] == ticket
 
     def reset_session(self, worker: int, sid: int) -> None:
         self._send(self.workers[worker], P.Reset(sid))
@@ -583,6 +602,7 @@ class WorkerPool:
                     continue
                 h = idle[0]
                 h.inflight += 1
+                h.order.append(0)
                 msg.req = next(self._req)
                 self._futures[msg.req] = (h.index, fut)
                 self._send(h, msg)
@@ -609,6 +629,16 @@ class WorkerPool:
 
     def busy_ms(self) -> list[float]:
         return [h.busy_ms for h in self.workers]
+
+
+def _answered(order: collections.deque[int], ticket: int) -> None:
+    """Strike an answered message from a worker's ``order`` (the first, as it answers in
+    order; searched, so that a stray answer cannot shift every later one)."""
+    if order and order[0] == ticket:
+        order.popleft()
+        return
+    with contextlib.suppress(ValueError):
+        order.remove(ticket)
 
 
 def _settle(fut: Future, result: Any = None, exc: BaseException | None = None) -> None:
