@@ -200,6 +200,24 @@ def test_reliability_restart_and_soak_parts_compute_every_field(world, tmp_path)
     assert any(ln.startswith("soak: sessions max / left") for ln in lines)
 
 
+def test_gaps_part_feeds_the_engine_an_overloaded_pattern_and_scores_it(world):
+    """The gaps part (no server): every pose it scores, wrong ones with their context."""
+    from sfmloc.bench import reliability as rel
+    from sfmloc.map.bundle import MapBundle
+
+    w = rel.World(
+        maps_dir=world.maps_dir,
+        camera=world.camera_spec,
+        gray=world.gray,
+        gt_cam_from_world=[np.asarray(g.matrix()) for g in world.gt_cam_from_world],
+        scene_scale=MapBundle(world.maps_dir / "room", verify=False).scene_scale,
+    )
+    g = rel.run_gaps(w, frames=25, seed=3, restart_p=0.2)
+    assert g["frames"] == 25 and g["restarts"] >= 1
+    assert 0 < g["posed"] <= 25 and g["wrong"] == len(g["wrong_detail"])
+    assert any(line.startswith("gaps") for line in rel.table({"gaps": g}))
+
+
 def test_kill_log_check_reads_what_the_log_says():
     from sfmloc.bench.reliability import kill_log_check
 
