@@ -224,3 +224,62 @@ def test_kernels_equal_the_plain_formulas_on_redkitchen_frames(redkitchen: Path)
         )
         sm = smooth_for_brief(gray)
         np.testing.assert_array_equal(compute_brief(sm, c.xy), reference_brief(sm, c.xy))
+
+
+def test_harris_equals_the_plain_formula_at_full_contrast_and_rejects_other_dtypes():
+    # The detector works on the raw Sobel (int16) and its products in float32, exact only while
+    # they are integers below 2^24: the extreme case is a 0/255 image (Sobel up to 1020,
+    # products up to 1040400).
+    rng = np.random.default_rng(11)
+    for shape in ((120, 160), (75, 101)):
+        img = (rng.random(shape) > 0.5).astype(np.uint8) * 255
+        yy, xx = np.mgrid[: shape[0] // 2, : shape[1]]
+        img[: shape[0] // 2] = ((yy // 5 + xx // 5) % 2 * 255).astype(np.uint8)  # checkerboard
+        np.testing.assert_array_equal(harris_response(img), reference_response(img))
+        for kw in SETTINGS:
+            assert_same_corners(img, **kw)
+    with pytest.raises(ValueError, match="uint8"):
+        detect_corners(np.zeros((40, 40), np.float32))
+    with pytest.raises(ValueError, match="uint8"):
+        harris_response(np.zeros((40, 40), np.uint16))
+
+
+def tracker_sequence(grays, **kw):
+    """Corners of consecutive frames detected as the tracker does: the threshold of a frame is
+    gamma times the previous frame's maximum (None on the first)."""
+    prev, out = None, []
+    for g in grays:
+        thr = None if prev is None else 0.001 * prev
+        c = assert_same_corners(g, threshold=thr, rel_threshold=0.001, **kw)
+        prev = c.max_response
+        out.append(c)
+    return out
+
+
+def test_harris_equals_the_plain_formula_with_the_previous_frames_threshold():
+    from sfmloc.cameras import Camera
+    from sfmloc.synth import Scene, make_trajectory, render_full
+
+    scene = Scene.room(0)
+    camera = Camera.pinhole(640, 480, 525.0, 525.0, 320.0, 240.0)
+    traj = make_trajectory("walk", 12, 3, scene)  # cam_from_world, 30 Hz
+    grays = [
+        cv2.cvtColor(render_full(scene, camera, T, noise_seed=(0, 5, i)).bgr, cv2.COLOR_BGR2GRAY)
+        for i, T in enumerate(traj[::3])
+    ]
+    cs = tracker_sequence(grays, max_corners=1500, border=16)
+    assert min(len(c) for c in cs) > 100
+    # A threshold over the image's maximum: no corners, and still the image's maximum.
+    g = grays[0]
+    c = assert_same_corners(g, threshold=2.0 * cs[0].max_response, border=16)
+    assert len(c) == 0 and c.max_response == cs[0].max_response
+
+
+def test_harris_equals_the_plain_formula_on_consecutive_redkitchen_frames(redkitchen: Path):
+    for start in (0, 500):
+        grays = [
+            cv2.imread(str(redkitchen / f"frame-{i:06d}.color.jpg"), cv2.IMREAD_GRAYSCALE)
+            for i in range(start, start + 6)
+        ]
+        cs = tracker_sequence(grays, max_corners=1500, border=16)
+        assert min(len(c) for c in cs) > 100

@@ -59,19 +59,43 @@ class Corners:
         return len(self.xy)
 
 
+# The detector computes on the raw Sobel of the uint8 image (int16, one cv2.spatialGradient
+# pass) rather than on Sobel / 8 in float32. Raw Sobel values are integers below 2^11 in
+# magnitude and their products integers below 2^21, exact in float32, so every plane
+# downstream is the unit-step one times a power of two (M x 64, the response x 4096); scaling
+# by a power of two commutes with float rounding, so responses, maxima and sub-pixel offsets
+# are bit for bit those of the unit-step formula (tests/test_feature_kernels.py).
+# Measured per 640x480 redkitchen frame (load ~9, one process): both gradients 0.11 ms against
+# 0.29 for two float32 Sobels, the three products 0.36 against 0.52 ms.
+#
+# Detectors measured against this one and not taken (issue 10; 50 redkitchen frames, tracker
+# settings, load ~24; time per frame with their NMS, share of our corners with one of theirs
+# within 1 / 2 px): ours 3.2 ms; cv2.cornerHarris (5x5 box window) 3.8 ms, 55% / 78%;
+# cv2.cornerMinEigenVal 4.3 ms, 50% / 81%; FAST (threshold 10, its NMS, strongest 1500)
+# 2.1 ms, 42% / 78%; ORB's FAST then Harris at FAST pixels 3.0 ms, 42% / 78%; our Harris at half
+# resolution 1.3 ms, 11% / 32% (the rendered walk: the same picture). None is both much
+# cheaper and the same corners, and the map's descriptors and refined points sit at these
+# corners (tau = 2 px, sub-pixel): a detector change needs every map rebuilt for a gain of at
+# most 1-2 ms. Computing the response only where a cheap bound (a b >= response) passes the
+# threshold is exact but slower: the bound passes 24% of a frame's pixels.
+_M_SCALE = 64.0  # (Sobel / 8)^2 -> Sobel^2
+_R_SCALE = _M_SCALE * _M_SCALE
+_INV_R_SCALE = np.float32(1.0 / _R_SCALE)
+
+
 class _Workspace:
-    """The full-image float32 buffers of one image shape, reused from call to call.
+    """The full-image buffers of one image shape, reused from call to call.
 
     A fresh 640x480 float32 image is 300 pages the kernel faults in and zeroes on first touch;
-    the detector needs six, and with numpy's temporaries for the response the page faults
-    cost more than the arithmetic: on this machine the response took 4-20 ms per frame with
-    fresh arrays and about 1 ms in reused buffers (the same arithmetic, the same results)."""
+    with numpy's temporaries for the response the page faults cost more than the arithmetic:
+    on this machine the response took 4-20 ms per frame with fresh arrays and about 1 ms in
+    reused buffers (the same arithmetic, the same results)."""
 
     def __init__(self, shape: tuple[int, int]) -> None:
         self.shape = shape
-        gx, gy, a, b, c, r = (np.empty(shape, np.float32) for _ in range(6))
-        self.gx, self.gy, self.a, self.b, self.c, self.r = gx, gy, a, b, c, r
-        self.ge = np.empty(shape, bool)
+        self.dx, self.dy = (np.empty(shape, np.int16) for _ in range(2))
+        a, b, c, r, s = (np.empty(shape, np.float32) for _ in range(5))
+        self.a, self.b, self.c, self.r, self.s = a, b, c, r, s
         self.gt = np.empty(shape, bool)
         self._interleaved: np.ndarray | None = None
 
@@ -84,7 +108,7 @@ class _Workspace:
 
 # One workspace per thread and image shape (the engine detects at one shape; the builder's
 # pyramid cycles through several). Images over the pixel limit get a workspace per call, so a
-# long-lived process does not hold the 30 bytes per pixel of a large image.
+# long-lived process does not hold the 26 bytes per pixel of a large image.
 _CACHE_SHAPES = 2
 # Widths at which one-channel and interleaved blurs round alike: a multiple of every vector
 # width (AVX-512: 16 floats), so neither has a scalar tail. 640, 320, 1280 are.
@@ -106,54 +130,64 @@ def _workspace(shape: tuple[int, int]) -> _Workspace:
     return ws
 
 
-def _response_into(gray: np.ndarray, sigma: float, k: float, ws: _Workspace) -> np.ndarray:
-    """The Harris response of ``gray`` in ``ws.r`` (gradients in ``ws.gx``, ``ws.gy``),
-    computed in the workspace's buffers: no full-image allocation. The arithmetic is that of
-    ``det(M) - k trace(M)^2`` written as numpy expressions, operation for operation (float32,
-    no fused multiply-add), so the response is bit-identical to the plain formula."""
-    ksize = int(2 * round(2.5 * sigma) + 1)
-    g = (ksize, ksize)
-    scale = 1.0 / 8.0  # Sobel / 8: unit pixel steps
-    cv2.Sobel(gray, cv2.CV_32F, 1, 0, dst=ws.gx, ksize=3, scale=scale)
-    cv2.Sobel(gray, cv2.CV_32F, 0, 1, dst=ws.gy, ksize=3, scale=scale)
-    if gray.shape[1] % _SIMD_COLUMNS == 0:
-        # M's entries as contiguous planes, each blurred in place (a third faster than the
-        # interleaved image below, and bit-identical to it at such widths).
-        for u, v, out in ((ws.gx, ws.gx, ws.a), (ws.gy, ws.gy, ws.b), (ws.gx, ws.gy, ws.c)):
-            np.multiply(u, v, out=out)
-            cv2.GaussianBlur(out, g, sigma, dst=out)
-        a, b, c = ws.a, ws.b, ws.c
-        p, t = c, a  # scratch: c once c * c is taken, a once a + b is
-    else:
-        # At other widths OpenCV's vector loops end on a scalar tail at different columns for
-        # one and three channels, and the last columns differ in rounding: blur the three
-        # products as one interleaved image, as the detector always did.
-        m = ws.interleaved()
-        np.multiply(ws.gx, ws.gx, out=m[..., 0])
-        np.multiply(ws.gy, ws.gy, out=m[..., 1])
-        np.multiply(ws.gx, ws.gy, out=m[..., 2])
-        cv2.GaussianBlur(m, g, sigma, dst=m)
-        a, b, c = m[..., 0], m[..., 1], m[..., 2]
-        p, t = ws.b, ws.c
-    r = ws.r
-    # ((a * b) - (c * c)) - ((k * (a + b)) * (a + b))
-    np.multiply(a, b, out=r)
-    np.multiply(c, c, out=p)
-    np.subtract(r, p, out=r)
-    np.add(a, b, out=p)
-    np.multiply(k, p, out=t)
-    np.multiply(t, p, out=t)
-    np.subtract(r, t, out=r)
-    return r
+class _Tensor:
+    """The Gaussian-integrated structure tensor (a, b, c) = (gx^2, gy^2, gx gy) of an image,
+    times ``_M_SCALE``, in a workspace's buffers (three planes, or one interleaved image)."""
+
+    def __init__(self, gray: np.ndarray, sigma: float, ws: _Workspace) -> None:
+        if gray.dtype != np.uint8:
+            raise ValueError(f"expected a uint8 grayscale image, got {gray.dtype}")
+        ksize = int(2 * round(2.5 * sigma) + 1)
+        g = (ksize, ksize)
+        cv2.spatialGradient(gray, ws.dx, ws.dy)
+        dx, dy = ws.dx, ws.dy
+        self.ws = ws
+        self.planar = gray.shape[1] % _SIMD_COLUMNS == 0
+        if self.planar:
+            # M's entries as contiguous planes, each blurred in place (a third faster than the
+            # interleaved image below, and bit-identical to it at such widths). The product of
+            # two int16 planes into float32 is one OpenCV pass, exact (integers below 2^21).
+            for u, v, out in ((dx, dx, ws.a), (dy, dy, ws.b), (dx, dy, ws.c)):
+                cv2.multiply(u, v, dst=out, dtype=cv2.CV_32F)
+                cv2.GaussianBlur(out, g, sigma, dst=out)
+            self.a, self.b, self.c = ws.a, ws.b, ws.c
+        else:
+            # At other widths OpenCV's vector loops end on a scalar tail at different columns
+            # for one and three channels, and the last columns differ in rounding: blur the
+            # three products as one interleaved image, as the detector always did.
+            m = ws.interleaved()
+            for i, (u, v) in enumerate(((dx, dx), (dy, dy), (dx, dy))):
+                np.multiply(u, v, out=m[..., i], dtype=np.float32)
+            cv2.GaussianBlur(m, g, sigma, dst=m)
+            self.a, self.b, self.c = m[..., 0], m[..., 1], m[..., 2]
+
+    def response_into(self, k: float) -> np.ndarray:
+        """The (scaled) response over the whole image in ``ws.r``, without full-image
+        allocation. The arithmetic is that of ``det(M) - k trace(M)^2`` written as numpy
+        expressions, operation for operation (float32, no fused multiply-add). Uses up the
+        tensor (its planes are scratch)."""
+        ws, a, b, c = self.ws, self.a, self.b, self.c
+        p, t = (c, a) if self.planar else (ws.b, ws.c)  # c once c * c is taken, a once a + b is
+        r = ws.r
+        # ((a * b) - (c * c)) - ((k * (a + b)) * (a + b))
+        np.multiply(a, b, out=r)
+        np.multiply(c, c, out=p)
+        np.subtract(r, p, out=r)
+        np.add(a, b, out=p)
+        np.multiply(k, p, out=t)
+        np.multiply(t, p, out=t)
+        np.subtract(r, t, out=r)
+        return r
 
 
 def harris_response(gray: np.ndarray, sigma: float = 1.0, k: float = 0.04) -> np.ndarray:
-    """Harris cornerness ``det(M) - k trace(M)^2`` (float32), M from Sobel gradients
-    integrated with a Gaussian of ``sigma`` pixels. Gradients are scaled to unit pixel steps
-    (Sobel / 8) so the response is comparable across images and pyramid levels."""
+    """Harris cornerness ``det(M) - k trace(M)^2`` (float32) of a uint8 image, M from Sobel
+    gradients integrated with a Gaussian of ``sigma`` pixels. Gradients are scaled to unit
+    pixel steps (Sobel / 8) so the response is comparable across images and pyramid levels."""
     if gray.ndim != 2:
         raise ValueError(f"expected a grayscale image, got shape {gray.shape}")
-    return _response_into(gray, sigma, k, _workspace(gray.shape)).copy()
+    r = _Tensor(gray, sigma, _workspace(gray.shape)).response_into(k)
+    return np.multiply(r, _INV_R_SCALE)
 
 
 def detect_corners(
@@ -185,37 +219,41 @@ def detect_corners(
         raise ValueError(f"expected a grayscale image, got shape {gray.shape}")
     h, w = gray.shape
     ws = _workspace(gray.shape)
-    R = _response_into(gray, sigma, 0.04, ws)
-    r_max = float(R.max()) if R.size else 0.0
-    thr = threshold if threshold is not None else rel_threshold * r_max
-    thr = max(float(thr), 1e-12)
-    # 3x3 local maxima above the threshold. Contiguous full-image masks: np.flatnonzero on one
-    # is ~10x faster than np.nonzero on a strided view of the interior.
-    dil = cv2.dilate(R, _KERNEL_3X3, dst=ws.b)
-    cand = np.greater_equal(R, dil, out=ws.ge)
-    np.logical_and(cand, np.greater(R, thr, out=ws.gt), out=cand)
+    tensor = _Tensor(gray, sigma, ws)
+    R = tensor.response_into(0.04)
+    r_max_s = float(R.max()) if R.size else 0.0
+    thr = threshold if threshold is not None else rel_threshold * r_max_s / _R_SCALE
+    thr_s = max(float(thr), 1e-12) * _R_SCALE  # exact: a power of two
+    # 3x3 local maxima above the threshold: the pixels over it first (2-6% of a redkitchen
+    # frame), then the maximum test on those only. Contiguous full-image masks: np.flatnonzero
+    # on one is ~10x faster than np.nonzero on a strided view of the interior.
+    idx = np.flatnonzero(np.greater(R, thr_s, out=ws.gt))
+    dil = cv2.dilate(R, _KERNEL_3X3, dst=ws.s)
+    r_flat = R.ravel()
+    resp_s = r_flat[idx]
+    idx = idx[resp_s >= dil.ravel()[idx]]
+    ys, xs = np.divmod(idx, w)
     if border > 0:
-        cand[:border, :] = False
-        cand[-border:, :] = False
-        cand[:, :border] = False
-        cand[:, -border:] = False
+        inside = (xs >= border) & (xs < w - border) & (ys >= border) & (ys < h - border)
+        idx, ys, xs = idx[inside], ys[inside], xs[inside]
     if mask is not None:
-        np.logical_and(cand, mask != 0, out=cand)
-    ys, xs = np.divmod(np.flatnonzero(cand), w)
-    resp = R[ys, xs]
+        allowed = mask[ys, xs] != 0
+        idx, ys, xs = idx[allowed], ys[allowed], xs[allowed]
+    resp_s = r_flat[idx]
     if max_corners and len(xs) > max_corners:
-        keep = np.argpartition(-resp, max_corners - 1)[:max_corners]
+        keep = np.argpartition(-resp_s, max_corners - 1)[:max_corners]
         keep.sort()  # raster order, deterministic
-        xs, ys, resp = xs[keep], ys[keep], resp[keep]
+        xs, ys, resp_s = xs[keep], ys[keep], resp_s[keep]
     xy = np.stack([xs, ys], axis=1).astype(np.float64)
     if method == "quadratic" and len(xs):
         xy += _subpixel_offsets(R, xs, ys)
     elif method == "forstner" and len(xs):
-        xy += _forstner_offsets(ws.gx, ws.gy, xs, ys)
+        xy += _forstner_offsets(ws.dx, ws.dy, xs, ys)
     xy += PIXEL_CENTER_OFFSET
     if border > 0 and len(xy):  # a sub-pixel step may not cross the border (descriptor support)
         xy = np.clip(xy, border, np.array([w - border, h - border], np.float64))
-    return Corners(xy=xy, response=resp.astype(np.float32), max_response=r_max)
+    resp = np.multiply(resp_s, _INV_R_SCALE)
+    return Corners(xy=xy, response=resp, max_response=r_max_s / _R_SCALE)
 
 
 _KERNEL_3X3 = np.ones((3, 3), np.uint8)
@@ -224,7 +262,8 @@ _KERNEL_3X3 = np.ones((3, 3), np.uint8)
 def _subpixel_offsets(R: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
     """Offsets of the maximum of a 2D quadratic fitted to the 3x3 responses around each
     maximum (Newton step ``-H^-1 g`` with central differences, including the cross term, which
-    matters for corners whose peak is elongated along a diagonal); clipped to half a pixel."""
+    matters for corners whose peak is elongated along a diagonal); clipped to half a pixel.
+    Scale-free: the scaled response gives the offsets of the unit-step one."""
     h, w = R.shape
     f = R.ravel()  # flat gathers: a third of the cost of R[ys, xs] pairs
     xm, xp = np.clip(xs - 1, 0, w - 1), np.clip(xs + 1, 0, w - 1)
@@ -257,7 +296,8 @@ def _forstner_offsets(gx: np.ndarray, gy: np.ndarray, xs: np.ndarray, ys: np.nda
     """Offsets from each pixel to the least-squares intersection of the edge lines in the
     window around it (Forstner): the point c minimizing ``sum_p (g_p . (p - c))^2``, one
     closed-form step. Where that system is ill-conditioned or the step leaves the window's
-    core, the offset is 0."""
+    core, the offset is 0. Scale-free in the gradients: the raw Sobel gives the same offsets
+    as Sobel / 8 (a power of two)."""
     h, w = gx.shape
     px = np.clip(xs[:, None] + _FO_X_INT, 0, w - 1)
     py = np.clip(ys[:, None] + _FO_Y_INT, 0, h - 1)
