@@ -124,9 +124,9 @@ def test_pairs_the_tracked_matches_already_hold_are_dropped():
 
 def test_scope_points_follow_the_matched_points(bundle):
     """The candidate points are those of the images seeing most of the matched points (each
-    once per image); the answer is reused for the same images of the same bundle, and made
-    again for other images (a relocalization elsewhere) or another bundle (a sub-map session
-    swaps them)."""
+    once, in the order of its first listing), with their coordinates; the answer is reused for
+    the same images of the same bundle, and made again for other images (a relocalization
+    elsewhere) or another bundle (a sub-map session swaps them)."""
     from sfmloc.engine.matching import scope_images
     from sfmloc.engine.projected import ScopePoints
     from sfmloc.map.bundle import MapBundle
@@ -134,12 +134,19 @@ def test_scope_points_follow_the_matched_points(bundle):
     ptr, idx = bundle.image_points_ptr, bundle.image_points_idx
 
     def points_of(images):
-        return np.sort(np.concatenate([idx[ptr[i] : ptr[i + 1]] for i in images]))
+        return np.unique(np.concatenate([idx[ptr[i] : ptr[i + 1]] for i in images]))
 
     scope = ScopePoints(top=3)
     first = np.asarray(idx[ptr[0] : ptr[0] + 40], np.int64)
     got = scope(bundle, first)
-    assert np.array_equal(np.sort(got), points_of(scope_images(bundle, first, 3)))
+    images = np.sort(scope_images(bundle, first, 3))
+    assert np.array_equal(np.sort(got), points_of(images))
+    listed = np.concatenate([idx[ptr[i] : ptr[i + 1]] for i in images])
+    assert len(listed) > len(got)  # the images share points: each is listed once
+    first_listing = [int(np.nonzero(listed == p)[0][0]) for p in got]
+    assert first_listing == sorted(first_listing)
+    pts, xyz = scope.with_xyz(bundle, first)
+    assert pts is got and np.array_equal(xyz, bundle.points_xyz[got])
     assert scope(bundle, first[:39]) is got  # the same images: reused
     centers = np.array([T.center for T in bundle.image_cam_from_world])
     far = int(np.argmax(np.linalg.norm(centers - centers[0], axis=1)))
@@ -149,3 +156,34 @@ def test_scope_points_follow_the_matched_points(bundle):
     assert not np.array_equal(np.sort(moved), np.sort(got))
     twin = MapBundle(bundle.path)  # the same map loaded again: another bundle
     assert scope(twin, other) is not moved
+
+
+def test_projected_matches_of_deduplicated_candidates_are_those_of_the_listing():
+    """``ScopePoints`` lists each point once (with its coordinates): the pairs are those of
+    the listing with repeats (a point seen by several scope images), ties included (two map
+    points at the same place: the first listed wins either way)."""
+    rng = np.random.default_rng(7)
+    gt = Rigid3d(rotmat_from_rotvec([0.05, 0.1, -0.02]), [0.1, 0.2, -0.1])
+    uv = _spread(rng, 200, 8.0)
+    z = rng.uniform(1.5, 6.0, len(uv))
+    X = gt.inverse().apply(np.hstack([(uv - K[:2, 2]) / K[0, 0] * z[:, None], z[:, None]]))
+    points = np.vstack([X, X[:20]])  # 200-219: byte-identical twins of 0-19
+    kp = uv + rng.normal(0, 0.3, uv.shape)
+    listing = np.concatenate(
+        [rng.permutation(len(points)), rng.choice(len(points), 150), np.arange(200, 220)]
+    )
+    _, first = np.unique(listing, return_index=True)
+    once = listing[np.sort(first)]
+    want = projected_matches(gt, K, W, H, kp, points, listing, radius_px=1.5, clear_px=3.0)
+    got = projected_matches(
+        gt, K, W, H, kp, points, once, 1.5, 3.0, np.ascontiguousarray(points[once])
+    )
+    assert len(want[0]) > 150
+    np.testing.assert_array_equal(got[0], want[0])
+    np.testing.assert_array_equal(got[1], want[1])
+    # of each pair of twins, the one listed first is taken
+    pos = {int(p): i for i, p in enumerate(once)}
+    for k, p in zip(*got, strict=True):
+        if k < 20:
+            twin = p + 200 if p < 200 else p - 200
+            assert pos[int(p)] < pos[int(twin)]

@@ -553,6 +553,7 @@ class Localizer:
             return est, cert
         rows, pts = table.matches()
         kp_u = self._undistort(kps.xy)
+        scope, scope_xyz = self._scope_points.with_xyz(self.bundle, pts)
         kp_i, pt_i = projected_matches(
             est.cam_from_world,
             self.K,
@@ -560,9 +561,10 @@ class Localizer:
             self.camera.height,
             kp_u,
             self.bundle.points_xyz,
-            self._scope_points(self.bundle, pts),
+            scope,
             c.projected_radius_px,
             c.projected_clear_px,
+            scope_xyz,
         )
         # the table's positions are its keypoints' own
         kp_i, pt_i = unmatched_only(kp_i, pt_i, kps.xy, table.xy[rows], pts)

@@ -31,28 +31,38 @@ from .pose import PoseEstimate, RansacParams, reprojection_errors, robust_refine
 
 
 class ScopePoints:
-    """The map points seen by the ``top`` images that see most of a frame's matched points
-    (a point seen by several of them is listed once per image: ``projected_matches`` gives
-    the same pairs, and np.unique cost more than projecting the repeats). The last answer is
-    kept for the same images of the same bundle (a sub-map session swaps bundles)."""
+    """The map points seen by the ``top`` images that see most of a frame's matched points,
+    each once (in the order of its first listing: ``projected_matches`` then gives the same
+    pairs as from the listing with repeats, half of it on redkitchen), and their coordinates.
+    The last answer is kept for the same images of the same bundle (a sub-map session swaps
+    bundles; on redkitchen the images change every ~6 frames), so the deduplication and the
+    gather of the coordinates are paid once per scope, not per frame."""
 
     def __init__(self, top: int) -> None:
         self.top = top
         self._key: tuple[MapBundle | None, bytes] = (None, b"")
         self._points = np.zeros(0, np.int64)
+        self._xyz = np.zeros((0, 3))
 
     def __call__(self, bundle: MapBundle, matched_points: np.ndarray) -> np.ndarray:
+        return self.with_xyz(bundle, matched_points)[0]
+
+    def with_xyz(
+        self, bundle: MapBundle, matched_points: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The scope's point indices and their coordinates (N, 3)."""
         imgs = np.sort(scope_images(bundle, matched_points, self.top))
         key = (bundle, imgs.tobytes())
         if key[0] is not self._key[0] or key[1] != self._key[1]:
             ptr = bundle.image_points_ptr
             idx = bundle.image_points_idx
             parts = [idx[ptr[i] : ptr[i + 1]] for i in imgs]
-            self._points = (
-                np.concatenate(parts).astype(np.int64) if parts else np.zeros(0, np.int64)
-            )
+            listed = np.concatenate(parts).astype(np.int64) if parts else np.zeros(0, np.int64)
+            _, first = np.unique(listed, return_index=True)
+            self._points = listed[np.sort(first)]
+            self._xyz = np.ascontiguousarray(bundle.points_xyz[self._points], np.float64)
             self._key = key
-        return self._points
+        return self._points, self._xyz
 
 
 def projected_matches(
@@ -65,32 +75,32 @@ def projected_matches(
     candidates: np.ndarray,
     radius_px: float,
     clear_px: float,
+    candidates_xyz: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """(keypoint index, map point index) pairs: each candidate map point projecting within
     ``radius_px`` of a keypoint (undistorted pixels ``kp_xy``) with no other keypoint near
     it ("near": in the 3x3 cells of ``clear_px`` around it, which hold everything within
-    ``clear_px``); per keypoint, the closest such projection."""
+    ``clear_px``); per keypoint, the closest such projection (the first listed candidate on
+    a tie). ``candidates_xyz``: ``points_xyz[candidates]`` when the caller has it
+    (``ScopePoints.with_xyz``)."""
     empty = np.zeros(0, np.int64)
     if len(candidates) == 0 or len(kp_xy) < 2:
         return empty, empty
-    X = points_xyz[candidates]
+    X = points_xyz[candidates] if candidates_xyz is None else candidates_xyz
     pc = X @ cam_from_world.rotation.T + cam_from_world.translation
     z = pc[:, 2]
     front = z > 1e-9
-    uv = np.empty((len(X), 2))
     zs = np.where(front, z, 1.0)
-    uv[:, 0] = K[0, 0] * pc[:, 0] / zs + K[0, 2]
-    uv[:, 1] = K[1, 1] * pc[:, 1] / zs + K[1, 2]
-    inside = (
-        front
-        & (uv[:, 0] >= -0.5)
-        & (uv[:, 0] <= width - 0.5)
-        & (uv[:, 1] >= -0.5)
-        & (uv[:, 1] <= height - 0.5)
-    )
-    cand, uv = candidates[inside], uv[inside]
-    if len(cand) == 0:
+    u = K[0, 0] * pc[:, 0] / zs + K[0, 2]
+    v = K[1, 1] * pc[:, 1] / zs + K[1, 2]
+    inside = np.nonzero(
+        front & (u >= -0.5) & (u <= width - 0.5) & (v >= -0.5) & (v <= height - 0.5)
+    )[0]
+    if len(inside) == 0:
         return empty, empty
+    # (coordinates as separate vectors: no (N, 2) stacking; x0.5 CPU with the deduplicated
+    # candidates, the same pairs)
+    u, v = u[inside], v[inside]
     # Neighbourhoods on a grid of clear_px cells: whatever lies within clear_px of a position
     # lies in the 3x3 cells around its own, so one 3x3 box sum of the keypoint counts (and of
     # their indices + 1: the index itself where the count is 1) and one of the projection
@@ -98,11 +108,12 @@ def projected_matches(
     # sums exactly).
     gw, gh = int(width / clear_px) + 3, int(height / clear_px) + 3
 
-    def cells(xy: np.ndarray) -> np.ndarray:
-        ij = np.floor(xy / clear_px).astype(np.int64) + 1
-        np.clip(ij[:, 0], 0, gw - 1, out=ij[:, 0])
-        np.clip(ij[:, 1], 0, gh - 1, out=ij[:, 1])
-        return ij[:, 1] * gw + ij[:, 0]
+    def cells(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        i = np.floor(x / clear_px).astype(np.int64) + 1
+        j = np.floor(y / clear_px).astype(np.int64) + 1
+        np.clip(i, 0, gw - 1, out=i)
+        np.clip(j, 0, gh - 1, out=j)
+        return j * gw + i
 
     def box(flat: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
         grid = np.bincount(flat, weights, minlength=gw * gh).astype(np.float32)
@@ -111,14 +122,15 @@ def projected_matches(
         )
         return out.ravel()
 
-    kp_cell = cells(kp_xy)
-    p_cell = cells(uv)
+    kp_cell = cells(kp_xy[:, 0], kp_xy[:, 1])
+    p_cell = cells(u, v)
     kp_count = box(kp_cell)
     kp_sum = box(kp_cell, np.arange(1, len(kp_xy) + 1, dtype=np.float64))
     p_idx = np.nonzero(kp_count[p_cell] == 1)[0]  # one keypoint near the projection
     kp = np.rint(kp_sum[p_cell[p_idx]]).astype(np.int64) - 1
-    d = kp_xy[kp] - uv[p_idx]
-    d2 = d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]
+    du = kp_xy[kp, 0] - u[p_idx]
+    dv = kp_xy[kp, 1] - v[p_idx]
+    d2 = du * du + dv * dv
     ok = d2 < radius_px * radius_px
     p_idx, kp, d2 = p_idx[ok], kp[ok], d2[ok]
     # Several map points may project onto one keypoint: mostly one corner triangulated more
@@ -128,7 +140,7 @@ def projected_matches(
     first = np.ones(len(order), bool)
     first[1:] = kp[order[1:]] != kp[order[:-1]]
     sel = order[first]
-    return kp[sel], cand[p_idx[sel]].astype(np.int64)
+    return kp[sel], candidates[inside[p_idx[sel]]].astype(np.int64)
 
 
 def unmatched_only(
