@@ -104,8 +104,8 @@ def projected_matches(
     # Neighbourhoods on a grid of clear_px cells: whatever lies within clear_px of a position
     # lies in the 3x3 cells around its own, so one 3x3 box sum of the keypoint counts (and of
     # their indices + 1: the index itself where the count is 1) and one of the projection
-    # counts decide every association (x0.2 of two k-d trees' CPU; float32 holds these integer
-    # sums exactly).
+    # counts decide every association (x0.2 of two k-d trees' CPU; float64 holds these integer
+    # sums exactly, and bincount's own float64 grid is filtered without a conversion).
     gw, gh = int(width / clear_px) + 3, int(height / clear_px) + 3
 
     def cells(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -116,7 +116,7 @@ def projected_matches(
         return j * gw + i
 
     def box(flat: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
-        grid = np.bincount(flat, weights, minlength=gw * gh).astype(np.float32)
+        grid = np.bincount(flat, weights, minlength=gw * gh).astype(np.float64, copy=False)
         out = cv2.boxFilter(
             grid.reshape(gh, gw), -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT
         )
