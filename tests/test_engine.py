@@ -978,3 +978,33 @@ def test_recovery_around_the_prediction_with_either_search(world, bundle, cam):
         assert "reloc" in r.timings_ms
         dp, dr = pose_errors(r.cam_from_world, world.gt_cam_from_world[4])
         assert dp < 0.02 * bundle.scene_scale and dr < 1.0, (search, dp, dr)
+
+
+def test_a_handful_of_pending_keypoints_waits_while_the_frame_has_matches(bundle, cam):
+    """MATCHES-PENDING, lazily: fewer than ``guided_min_pending`` pending keypoints wait for
+    more while the table holds at least ``refill_3d`` matches; with fewer matches every
+    pending keypoint is tried at once; a full batch is capped at ``batch_max``."""
+    from sfmloc.engine.track_table import TrackTable
+
+    conf = EngineConf()
+    loc = Localizer(bundle, cam, conf)
+
+    def table(matched: int, pending: int) -> TrackTable:
+        t = TrackTable.empty(conf.max_hypotheses)
+        n = matched + pending
+        t.append(np.arange(n), np.zeros((n, 2)), np.zeros((n, 4), np.uint64))
+        t.age[:] = 3
+        t.point[:matched] = np.arange(matched)
+        t.pending[:] = False
+        t.pending[matched:] = True
+        return t
+
+    few = conf.guided_min_pending - 1
+    assert conf.guided_min_pending > 1 and conf.refill_3d > 1
+    assert len(loc._pending_batch(table(conf.refill_3d, few))) == 0  # waits
+    rows = loc._pending_batch(table(conf.refill_3d - 1, few))  # few matches: at once
+    assert rows.tolist() == list(range(conf.refill_3d - 1, conf.refill_3d - 1 + few))
+    assert len(loc._pending_batch(table(60, conf.guided_min_pending))) == conf.guided_min_pending
+    assert len(loc._pending_batch(table(60, conf.batch_max + 7))) == conf.batch_max
+    eager = Localizer(bundle, cam, EngineConf(guided_min_pending=1))
+    assert len(eager._pending_batch(table(60, 1))) == 1

@@ -603,7 +603,15 @@ class Localizer:
         """MATCHES-PENDING: the rows guided matching takes this frame (at most ``batch_max``
         of the keypoints tracked for at least a frame, not matched, not tried yet)."""
         pending = table.pending & (table.point < 0) & (table.age >= 1)
-        return np.nonzero(pending)[0][: self.conf.batch_max]
+        rows = np.nonzero(pending)[0]
+        c = self.conf
+        if len(rows) < c.guided_min_pending and table.n_3d() >= c.refill_3d:
+            # Lazy (the paper's lazy evaluation, one step further): a handful of pending
+            # keypoints waits for more while the frame rests on enough matches; a batch pays
+            # the DAISY preparation of the whole frame and the search's fixed cost whatever
+            # its size. Most such keypoints are dropped by the tracker before their turn.
+            return rows[:0]
+        return rows[: c.batch_max]
 
     def _guided_matching(
         self, table: TrackTable, rows: np.ndarray, image: _FrameImage, pose: Rigid3d
