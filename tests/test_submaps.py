@@ -370,3 +370,82 @@ def test_scale_bench_takes_the_submap_options():
     assert (a.rooms, a.overlap, a.vote_fraction, a.parts_per_room, a.ratio) == (
         2, 0.5, 0.05, 2.0, 10.0
     )  # fmt: skip
+
+
+# ---------------------------------------------------------------- lost search, switches
+@pytest.fixture(scope="module")
+def places_set(room, tmp_path_factory) -> SubmapSet:
+    # Four parts overlapping by a quarter of the scene scale: part 0 holds most of the images
+    # of parts 1 and 2 (0.67, 0.73 measured), not of part 3 (0.41).
+    path = split_bundle(room, tmp_path_factory.mktemp("places"), "places", parts=4, overlap=0.25)
+    return SubmapSet(path)
+
+
+def test_covered_by_tells_the_parts_of_one_place(places_set):
+    s = places_set
+    assert np.all(s.covered_by([]) == 0)
+    assert np.all(s.covered_by(list(range(s.n_parts))) == 1.0)
+    for k in range(s.n_parts):
+        c = s.covered_by([k])
+        assert c[k] == 1.0
+        mine = set(s.part_images(k).tolist())
+        for j in range(s.n_parts):
+            theirs = s.part_images(j).tolist()
+            assert c[j] == pytest.approx(sum(i in mine for i in theirs) / len(theirs))
+
+
+def test_a_lost_frame_tries_another_place_next_while_it_loads(world, places_set):
+    """A frame without a pose tries the best-voted part, then the best-voted part of another
+    place (not mostly made of the first one's images), loaded on the thread while the first
+    was matched."""
+    from sfmloc.engine.submaps import SAME_PLACE
+
+    s = places_set
+    cover = np.array([s.covered_by([k]) for k in range(s.n_parts)])
+    # A blank frame has no descriptors: every part votes 0 and the order is 0, 1, 2, ...
+    order = list(range(s.n_parts))
+    same = [j for j in order[1:] if cover[0, j] >= SAME_PLACE]
+    other = [j for j in order[1:] if cover[0, j] < SAME_PLACE]
+    assert same and other and same[0] < other[0]  # the set has both (checked, not assumed)
+    sizes = sorted((s.part_memory_bytes(k) for k in range(s.n_parts)), reverse=True)
+    loc = SubmapLocalizer(s, world.camera_spec, memory_budget=sizes[0] + sizes[1])
+    r = loc.localize(np.zeros_like(world.gray[0]), 0.0)
+    assert r.status is Status.LOST
+    assert loc.stats.lost_tries == 2
+    assert loc.stats.parts_used == {0, other[0]}  # not part 0's sibling
+    assert loc.stats.prefetched_tries == 1  # the second was loading during the first
+    assert loc.stats.max_resident_bytes <= sizes[0] + sizes[1]
+    loc.close()
+
+
+def test_swap_bundle_keeps_tracks_and_lets_the_old_part_go(world, walk_set):
+    """``Localizer.swap_bundle``: matches to points the new part holds stay (same global
+    point), the others become pending, and nothing keeps the old part referenced (its mapped
+    pages would stay resident beyond the budget)."""
+    import gc
+    import weakref
+
+    a = int(np.argmax(walk_set.parts_near(world.gt_cam_from_world[0])))
+    overlap = walk_set.covered_by([a])
+    overlap[a] = -1
+    b = int(np.argmax(overlap))  # the neighbour sharing most of a's images
+    bundle_a, pts_a = walk_set.load_part(a)
+    bundle_b, pts_b = walk_set.load_part(b)
+    loc = Localizer(bundle_a, world.camera_spec)
+    for i in range(5):
+        loc.localize(world.gray[i], i / 30.0)
+    t = loc.table
+    before = np.where(t.point >= 0, pts_a[np.maximum(t.point, 0)], -1)
+    assert (before >= 0).sum() > 20
+    gone = weakref.ref(bundle_a)
+    loc.swap_bundle(bundle_b, lambda rows: translate(rows, pts_a, pts_b))
+    after = np.where(t.point >= 0, pts_b[np.maximum(t.point, 0)], -1)
+    kept = after >= 0
+    assert kept.sum() > 0 and np.all(after[kept] == before[kept])
+    dropped = (before >= 0) & ~kept
+    assert np.all(~np.isin(before[dropped], pts_b)) and np.all(t.pending[dropped])
+    assert np.all(np.isin(pts_b[loc.scope_points], pts_a))
+    del bundle_a
+    gc.collect()
+    assert gone() is None
+    assert loc.localize(world.gray[5], 5 / 30.0).status is not Status.LOST

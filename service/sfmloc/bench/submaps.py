@@ -272,6 +272,12 @@ def run_submaps(
         else None,
         "frames_searching_parts": len(stall_search),
         "parts_tried_by_lost_frames": st.lost_tries,
+        "parts_tried_already_loading": st.prefetched_tries,
+        "stall_ms_searching_frames_p90": float(np.percentile(stall_search, 90))
+        if stall_search
+        else None,
+        "stall_ms_searching_frames_max": max(stall_search) if stall_search else None,
+        "searching_frames_stalled_over_15ms": int(sum(ms > 15.0 for ms in stall_search)),
         "lost_frames": [
             (i, r["room"], r["part"], r["message"][:60])
             for i, r in enumerate(s_rows)

@@ -37,6 +37,7 @@ produced; ``localize`` stores it back once, at the end.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -207,6 +208,25 @@ class Localizer:
         self.interval = 0.0  # seconds from the frame before the last to the last
         self.last_interval = 0.0  # the same one frame earlier
         self.motion_published = False  # the last posed frame's pose was published (not withheld)
+
+    def swap_bundle(
+        self, bundle: MapBundle, point_rows: Callable[[np.ndarray], np.ndarray]
+    ) -> None:
+        """Run on ``bundle``, another part of the same map, from the next frame on (a sub-map
+        switch, ``engine/submaps.py``), keeping tracks and motion: ``point_rows`` maps point
+        rows of the current bundle to rows of ``bundle`` (-1 where it lacks the point, and for
+        -1). Matches to points the new bundle holds stay matches, the others become pending
+        (guided matching tries them again there). Nothing keeps the old bundle referenced:
+        its mapped pages would stay resident beyond a sub-map budget."""
+        t = self.table
+        new_point = point_rows(t.point)
+        t.pending = t.pending | ((t.point >= 0) & (new_point < 0))
+        t.point = new_point
+        t.hyp = point_rows(t.hyp)
+        sp = point_rows(self.scope_points)
+        self.scope_points = sp[sp >= 0]
+        self.bundle = bundle
+        self._scope_points = ScopePoints(self.conf.projected_top_images)  # held the old bundle
 
     # ------------------------------------------------------------------ algorithm 1
     def localize(

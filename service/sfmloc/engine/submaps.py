@@ -25,11 +25,19 @@ Per frame, before the ``Localizer`` runs:
    by their place-recognition vote (``SubmapSet.vote``); the frame is matched against up to
    ``lost_parts_per_frame`` parts (``EngineConf.submap_lost_parts``, 2) not tried since the
    session was lost, best-voted first, loading each now (a lost frame relocalizes anyway),
-   until one gives a pose; the next lost frames go on down the order. Measured on the scale
-   bench (8 rooms, 24 parts, overlap 0.25, one camera teleported from room to room): one part
-   per frame, starting on the next frame, localized 291/320 (the whole map 320); searching on
-   the frame that lost its part, two parts per frame, with the vote's ratio test, 313/320
-   (not measured apart); with overlap 0.5 too, 318/320.
+   until one gives a pose; the next lost frames go on down the order. After the first part,
+   parts mostly made of the images of parts the frame tried already (the same place:
+   ``SubmapSet.covered_by`` at least ``SAME_PLACE``) go after the other places, and
+   the part to try next is loaded on the thread while the current one is matched.
+   Measured on the scale bench (8 rooms, 24 parts, overlap 0.25, one camera teleported from
+   room to room): one part per frame, starting on the next frame, localized 291/320 (the
+   whole map 320); searching on the frame that lost its part, two parts per frame, with the
+   vote's ratio test, 313/320 (not measured apart); with overlap 0.5 too, 318/320. 24 rooms,
+   72 parts: 936/960; the vote put a look-alike room's three parts first for the first frames
+   of rooms 11 and 15, and both tries went to that room: with other places first, 940/960
+   (bench numbers in the README). Counting as the same place the parts tried since the
+   session was lost (not only by this frame) lost a room's second frame on 8 rooms: its first
+   frame, which no part could localize, had tried the right room's part.
 
 Memory: the resident parts' ``memory_bytes`` (as ``MapBundle.memory_bytes``: arrays touched by
 the engine plus the ANN index; a part being loaded counts from the moment its load starts)
@@ -66,6 +74,10 @@ from .types import FrameResult, Status
 
 log = logging.getLogger(__name__)
 
+# ``_search``: a part of which at least this fraction of images belongs to parts a lost frame
+# has tried is the same place (tried after the other places).
+SAME_PLACE = 0.5
+
 
 @dataclass
 class SubmapStats:
@@ -83,6 +95,7 @@ class SubmapStats:
     parts_used: set[int] = field(default_factory=set)
     votes: int = 0  # lost frames ranked by the vote
     lost_tries: int = 0  # parts a lost frame was matched against
+    prefetched_tries: int = 0  # of those, parts already loaded or loading when tried
 
 
 class PartCache:
@@ -428,27 +441,51 @@ class SubmapLocalizer:
         self.stats.votes += 1
         order = [int(k) for k in np.argsort(-scores, kind="stable")]
         here = [self.part] if res is not None and self.part is not None else []
+        k = self._next_part(order, here, first=True)
         for n in range(self.lost_parts_per_frame):
-            fresh = [k for k in order if k not in self._tried and k not in here]
-            if not fresh:
-                self._tried = []  # every part was tried: down the order again
-                fresh = [k for k in order if k not in here]
-            cand = ([k for k in order if k not in here][:1] if n == 0 else []) + fresh
-            if not cand:
+            if k is None:
                 break  # this frame has met every part
-            k = cand[0]
             here.append(k)
             if k not in self._tried:
                 self._tried.append(k)
+            nxt = self._next_part(order, here) if n + 1 < self.lost_parts_per_frame else None
             if k != self.part:
+                self.stats.prefetched_tries += self.cache.is_pending(k)
                 self._load_and_switch(k)
+            else:
+                self.stats.prefetched_tries += 1
+            if nxt is not None:
+                # The part to try if this one fails loads on the thread while this one is
+                # matched (a lost frame's second load no longer stalls it in full).
+                self.cache.request(nxt, keep={k}, optional=True, stats=self._st)
             assert self.inner is not None
             self.stats.lost_tries += 1
             res = self.inner.localize(frame, stamp)
             if self.inner.last_posed_stamp == stamp:
                 break
+            k = nxt
         assert res is not None
         return res
+
+    def _next_part(self, order: list[int], here: list[int], first: bool = False) -> int | None:
+        """The next part a lost frame tries (``order``: its vote's; ``here``: the parts it
+        met already): ``first``, the best-voted; else the best-voted not tried since the
+        session was lost, other places first; None when the frame has met every part."""
+        if first:
+            cand = [k for k in order if k not in here]
+            return cand[0] if cand else None
+        fresh = [k for k in order if k not in self._tried and k not in here]
+        if not fresh:
+            self._tried = []  # every part was tried: down the order again
+            fresh = [k for k in order if k not in here]
+        # Another place first: parts mostly made of the images of parts this frame tried go
+        # after the others (overlapping parts of one place fail together on a frame: 24 rooms,
+        # 3 parts each, the vote ranked a look-alike room's three parts before the right
+        # room's, and the first frames of rooms 11 and 15 spent both tries on them).
+        seen = self.set.covered_by(here)
+        other = [k for k in fresh if seen[k] < SAME_PLACE]
+        cand = other or fresh
+        return cand[0] if cand else None
 
     def _frame_descriptors(self, frame: np.ndarray) -> np.ndarray:
         """The frame's keypoints described as global matching describes them."""
@@ -487,25 +524,9 @@ class SubmapLocalizer:
         if self.inner is None:
             self.inner = Localizer(bundle, self.camera_in, self.conf)
         else:
-            old_pts = self._part_points
-            inner = self.inner
-            if old_pts is not None:
-                t = inner.table
-                new_point = translate(t.point, old_pts, gpts)
-                lost = (t.point >= 0) & (new_point < 0)
-                t.point = new_point
-                t.pending = t.pending | lost
-                t.hyp = translate(t.hyp, old_pts, gpts)
-                sp = translate(inner.scope_points, old_pts, gpts)
-                inner.scope_points = sp[sp >= 0]
-            else:
-                inner.reset()  # nothing to translate from: start over on the new part
-            inner.bundle = bundle
-            # Nothing may keep the previous part mapped (its pages would stay resident beyond
-            # the budget): the projected refinement's cache holds the bundle it was made on.
-            scope = getattr(inner, "_scope_points", None)
-            if scope is not None:
-                inner._scope_points = type(scope)(scope.top)
+            old_pts = self._part_points  # set with ``inner``
+            assert old_pts is not None
+            self.inner.swap_bundle(bundle, lambda rows: translate(rows, old_pts, gpts))
         if self.part != k:
             self.stats.switches += self.part is not None
             log.debug("sub-map %s -> %s", self.part, k)

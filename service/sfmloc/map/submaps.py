@@ -704,6 +704,15 @@ class SubmapSet:
         w = np.exp(-((d / radius) ** 2))
         return (w[:, None] * self.image_parts).sum(axis=0)
 
+    def covered_by(self, parts: list[int]) -> np.ndarray:
+        """Per part, the fraction of its images that ``parts`` hold (1 for those parts: their
+        overlap tells how much of one place two parts are)."""
+        if not parts:
+            return np.zeros(self.n_parts)
+        held = np.any(self.image_parts[:, list(parts)], axis=1)
+        n = self.image_parts.sum(axis=0)
+        return (self.image_parts & held[:, None]).sum(axis=0) / np.maximum(n, 1)
+
     def vote(self, desc: np.ndarray, ratio: float = VOTE_RATIO) -> np.ndarray:
         """Place-recognition scores of the parts for query descriptors ``desc``: each query's
         nearest descriptor in the sample votes for every part holding the image it was seen
