@@ -89,3 +89,86 @@ def test_no_second_place_without_a_twin_or_below_the_ratio():
     lower = conf.model_copy(update={"second_place_ratio": 0.15})
     other = second_place(best, set1, set2, uv, points, K, lower, scene_scale=3.0)
     assert other is not None and other.num_inliers >= 25
+
+
+def _ranked_scene(seed: int, ranked: bool, n: int = 300, right: int = 110):
+    """``n`` keypoints of a camera at ``gt``; ``right`` of them matched to their point, the
+    others to a random one (set 1, one match per keypoint), each keypoint with two more wrong
+    hypotheses (set 2). ``ranked``: the right matches first in set 1, as global matching's
+    ratio ranking puts most of them (else in random order)."""
+    rng = np.random.default_rng(seed)
+    gt = Rigid3d(rotmat_from_rotvec([0.1, -0.2, 0.05]), [0.3, 0.1, 0.4])
+    uv = rng.uniform([20, 20], [620, 460], (n, 2))
+    z = rng.uniform(1.5, 6.0, n)
+    X = gt.inverse().apply(np.hstack([(uv - K[:2, 2]) / K[0, 0] * z[:, None], z[:, None]]))
+    points = np.vstack([X, rng.uniform(-3, 3, (2 * n, 3))])
+    uv = uv + rng.normal(0, 0.3, uv.shape)
+    good = np.arange(n) < right if ranked else rng.permutation(n) < right
+    p1 = np.where(good, np.arange(n), n + rng.integers(0, 2 * n, n))
+    q2 = np.repeat(np.arange(n), 3)
+    p2 = np.stack([p1, n + rng.integers(0, 2 * n, n), n + rng.integers(0, 2 * n, n)], 1).ravel()
+    return gt, uv, points, (np.arange(n), p1), (q2, p2)
+
+
+def test_prosac_stop_ends_ranked_ransac_sooner_on_the_same_pose():
+    """With the right matches ranked first, the pool rule stops within two batches where the
+    whole-set rule (37% inliers) runs on; both find the true pose on the same inliers."""
+    conf = EngineConf()
+    gt, uv, points, (q1, p1), (q2, p2) = _ranked_scene(7, ranked=True)
+    runs = {}
+    for pool_stop in (False, True):
+        stats: dict[str, int] = {}
+        res = estimate_pose_one_to_many(
+            uv[q1],
+            points[p1],
+            q2,
+            uv[q2],
+            points[p2],
+            K,
+            conf.ransac(),
+            pool_stop=pool_stop,
+            stats=stats,
+        )
+        assert res is not None
+        dp, dr = pose_errors(res[0].cam_from_world, gt)
+        assert dp < 0.005 and dr < 0.1, (pool_stop, dp, dr)
+        runs[pool_stop] = (stats["iterations"], res[0].num_inliers)
+    assert runs[True][0] <= 32, runs
+    assert runs[False][0] >= 4 * runs[True][0], runs
+    assert abs(runs[True][1] - runs[False][1]) <= 2 and runs[True][1] >= 105, runs
+
+
+def test_prosac_stop_does_not_cut_short_an_unranked_search():
+    """Right matches spread through the ranking: the pools are no richer than the whole set,
+    so the pool rule stops no sooner than half the whole-set rule's iterations."""
+    conf = EngineConf()
+    gt, uv, points, (q1, p1), (q2, p2) = _ranked_scene(8, ranked=False)
+    iters = {}
+    for pool_stop in (False, True):
+        stats: dict[str, int] = {}
+        res = estimate_pose_one_to_many(
+            uv[q1],
+            points[p1],
+            q2,
+            uv[q2],
+            points[p2],
+            K,
+            conf.ransac(),
+            pool_stop=pool_stop,
+            stats=stats,
+        )
+        assert res is not None and pose_errors(res[0].cam_from_world, gt)[0] < 0.005
+        iters[pool_stop] = stats["iterations"]
+    assert iters[True] >= 0.5 * iters[False] and iters[False] >= 64, iters
+
+
+def test_minimal_samples_are_three_distinct_indices_in_the_pool():
+    from sfmloc.engine.pose import _minimal_samples
+
+    rng = np.random.default_rng(0)
+    for pool in (3, 4, 8, 500):
+        s = _minimal_samples(rng, pool, 200)
+        assert s.shape == (200, 3) and s.min() >= 0 and s.max() < pool
+        assert np.all((s[:, 0] != s[:, 1]) & (s[:, 0] != s[:, 2]) & (s[:, 1] != s[:, 2]))
+    # every index of a small pool is drawn (no bias to the front)
+    assert set(_minimal_samples(rng, 8, 200).ravel()) == set(range(8))

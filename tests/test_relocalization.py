@@ -10,7 +10,7 @@ from sfmloc.cameras import Camera
 from sfmloc.engine import EngineConf, Status, relocalize
 from sfmloc.engine.matching import global_matching, neighbour_strengths, restrict_neighbours
 from sfmloc.engine.pose import estimate_pose_one_to_many
-from sfmloc.engine.relocalize import describe, match_near_prior, visible_points
+from sfmloc.engine.relocalize import describe, global_pose, match_near_prior, visible_points
 from sfmloc.features.daisy import DaisyExtractor
 from sfmloc.features.harris import detect_corners
 from sfmloc.transforms import Rigid3d, pose_errors, rotmat_from_rotvec
@@ -39,7 +39,8 @@ def _ransac_pose(gray, bundle, cam, conf):
 
 
 def test_verification_confirms_right_relocalizations_with_more_inliers(world, bundle, cam):
-    on, off = EngineConf(), EngineConf(global_verify=False)
+    # every pose verified (by default strong ones are not: the next test)
+    on, off = EngineConf(global_verify_min_inliers=0), EngineConf(global_verify=False)
     limit = 0.05 * bundle.scene_scale  # the wrong-pose threshold
     for i in (5, 25, 50):
         gt = world.gt_cam_from_world[i]
@@ -60,6 +61,53 @@ def test_verification_confirms_right_relocalizations_with_more_inliers(world, bu
             assert len(q) >= on.recover_min_inliers
             uv, _ = cam.project(gt, bundle.points_xyz[point[q]])
             assert np.median(np.linalg.norm(uv - xy[q], axis=1)) < 2.0
+
+
+def test_strong_relocalizations_skip_verification_and_stay_as_accurate(world, bundle, cam):
+    """A RANSAC pose with ``global_verify_min_inliers`` inliers and ``global_verify_min_ratio``
+    of the ratio-test matches is published on its own inliers (RANSAC's, not the guided
+    matching's), refined with the robust loss, as close to the truth as the verified pose; a
+    weaker one is still verified (the same answer as verifying every pose)."""
+    # (the small synthetic world: 79-98 inliers, 17-19% of set 1; a lower bar than the default)
+    skip = EngineConf(global_verify_min_inliers=90, global_verify_min_ratio=0.1)
+    always = EngineConf(global_verify_min_inliers=0)
+    scale = bundle.scene_scale
+    strong = weak = 0
+    for i in (5, 15, 25, 40, 50):
+        gt = world.gt_cam_from_world[i]
+        xy, desc = _features(world.gray[i], bundle, skip)
+        nb = bundle.index.search(desc, skip.k, nprobe=skip.global_nprobe)  # global_pose's
+        gm = global_matching(desc, bundle, skip, nb)
+        X = bundle.points_xyz
+        res = estimate_pose_one_to_many(
+            xy[gm.set1_q],
+            X[gm.set1_p],
+            gm.set2_q,
+            xy[gm.set2_q],
+            X[gm.set2_p],
+            cam.K,
+            skip.ransac(),
+            pool_stop=skip.global_pool_stop,
+        )
+        assert res is not None
+        est, chosen = res
+        got, _ = global_pose(desc, xy, bundle, cam, skip, nb)
+        ver, _ = global_pose(desc, xy, bundle, cam, always, nb)
+        assert got is not None and ver is not None
+        e, e_ver = (
+            pose_errors(got[0].cam_from_world, gt)[0],
+            pose_errors(ver[0].cam_from_world, gt)[0],
+        )
+        if est.num_inliers >= max(90, 0.1 * len(gm.set1_q)):
+            strong += 1
+            assert got[0].num_inliers == est.num_inliers
+            np.testing.assert_array_equal(got[1], gm.set2_q[chosen])
+            assert e < 0.01 * scale and e < 2 * e_ver + 0.001 * scale, (i, e, e_ver)
+        else:
+            weak += 1
+            assert got[0].num_inliers == ver[0].num_inliers
+            np.testing.assert_array_equal(got[1], ver[1])
+    assert strong >= 1 and weak >= 1, (strong, weak)  # both paths taken
 
 
 def test_verification_rejects_chance_poses(world, bundle, cam):

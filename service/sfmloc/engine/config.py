@@ -81,6 +81,10 @@ class EngineConf(StrictModel):
     # run each, same load): scoped 60/60 posed, 0 wrong, median 0.41 cm, CPU per query 90 ms;
     # reuse 60/60, 0 wrong, 0.33 cm, x0.76 CPU (the second search was 16 of the 90 ms).
     global_verify_search: Literal["reuse", "scoped"] = "reuse"
+    # ... but only for RANSAC poses with fewer than ``global_verify_min_inliers`` inliers or
+    # under ``global_verify_min_ratio`` of the ratio-test matches (0: every pose is verified).
+    global_verify_min_inliers: int = 100
+    global_verify_min_ratio: float = 0.25
     # A relocalization is also LOST when its inliers cover fewer than this fraction of the
     # image cells (4x4) that have keypoints (0: off): a chance pose rests on a patch of
     # repeated texture. 8 look-alike synthetic rooms (``bench.scale --parts submaps``, single
@@ -244,6 +248,10 @@ class EngineConf(StrictModel):
     # the 8 look-alike rooms: right RELOCALIZED 131 (4 / 1000), 132 (800), 124 (600). So 4 /
     # 1000. RANSAC capped at 500 iterations: no change.
     global_nprobe: int = 4
+    # Global matching's RANSAC (and the second-place test's) also stops by PROSAC's rule: once
+    # an all-inlier sample of the best pose would have been drawn from the ranked pools it
+    # sampled (``estimate_pose_one_to_many(pool_stop=...)``). False: only the whole-set rule.
+    global_pool_stop: bool = True
     relocalize_max_keypoints: int = 0
     max_hypotheses: int = 8  # one-to-many 3D hypotheses kept per keypoint
     ransac_threshold_px: float = 4.0  # inlier reprojection error in RANSAC

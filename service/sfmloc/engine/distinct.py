@@ -78,7 +78,9 @@ def second_place(
             lg = math.log(1 - conf.ransac_confidence) / math.log(1 - w**3)
             budget = min(budget, math.ceil(lg))
         params = replace(conf.ransac(need), max_iterations=max(16, budget))
-        res = estimate_pose_one_to_many(xy1[k1], X1[k1], q2[k2], xy2[k2], X2[k2], K, params)
+        res = estimate_pose_one_to_many(
+            xy1[k1], X1[k1], q2[k2], xy2[k2], X2[k2], K, params, pool_stop=conf.global_pool_stop
+        )
         if res is None:
             return None
         other = res[0]

@@ -5,6 +5,7 @@ single image), and ``relocalize``, the stateless single-image query."""
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +20,14 @@ from .config import EngineConf
 from .distinct import inlier_spread, place_points, second_place
 from .frame import to_gray, to_working, working_scale
 from .matching import global_matching, guided_matching, verify_hypotheses
-from .pose import PoseEstimate, estimate_pose, estimate_pose_one_to_many, project
+from .pose import (
+    PoseEstimate,
+    estimate_pose,
+    estimate_pose_one_to_many,
+    project,
+    reprojection_errors,
+    robust_refine,
+)
 from .timing import StageTimer
 from .tracker import map_subpixel
 from .types import FrameResult, Matching, Status
@@ -114,14 +122,22 @@ def global_pose(
         hyp[gm.set2_q, rank] = gm.set2_p
     X = bundle.points_xyz
     res = estimate_pose_one_to_many(
-        xy_u[gm.set1_q], X[gm.set1_p], gm.set2_q, xy_u[gm.set2_q], X[gm.set2_p], K, conf.ransac()
+        xy_u[gm.set1_q],
+        X[gm.set1_p],
+        gm.set2_q,
+        xy_u[gm.set2_q],
+        X[gm.set2_p],
+        K,
+        conf.ransac(),
+        pool_stop=conf.global_pool_stop,
     )
     if res is None:
         return None, none
     est, chosen = res
     check_deadline(deadline, "RANSAC", cpu_deadline)
     out: tuple[PoseEstimate, np.ndarray, np.ndarray, np.ndarray] | None = None
-    if conf.global_verify:
+    strong = conf.global_verify and _needs_no_verification(est.num_inliers, len(gm.set1_q), conf)
+    if conf.global_verify and not strong:
         # Guided matching of the whole frame around the RANSAC pose (scope: the map points it
         # makes visible). A right pose gathers the matches the ratio test dropped; a chance one
         # does not reach ``recover_min_inliers``. See ``EngineConf.global_verify``.
@@ -139,7 +155,10 @@ def global_pose(
         # Among hundreds of candidate matches, ten that agree can be chance: demand a fraction.
         if est.num_inliers < conf.global_min_inlier_ratio * len(gm.set1_q):
             return None, none
-        out = est, gm.set2_q[chosen], gm.set2_p[chosen], hyp
+        # Not verified for its strength: refined like a verified pose (a Cauchy loss on its
+        # inliers), which the guided matching's pose would have been.
+        fine = robust_final(est, K, conf) if strong else est
+        out = fine, gm.set2_q[chosen], gm.set2_p[chosen], hyp
     # Distinct: inliers over the image, and no other place nearly as good (``distinct``).
     spread = inlier_spread(xy_u, xy_u[out[1]], camera.width, camera.height)
     if spread < conf.min_inlier_spread and out[0].num_inliers < conf.spread_max_inliers:
@@ -168,6 +187,31 @@ def global_pose(
                 "(repeated structure): no pose"
             )
     return out, ""
+
+
+def robust_final(est: PoseEstimate, K: np.ndarray, conf: EngineConf) -> PoseEstimate:
+    """``est`` refined on its inliers with the Cauchy loss of ``refine_loss_scale_px`` (the
+    same inliers; as ``pose.final_refinement`` but without re-selecting them, which would mix
+    several hypotheses of one keypoint)."""
+    if conf.refine_loss_scale_px <= 0 or est.inlier_xy is None or est.inlier_X is None:
+        return est
+    xy, X = est.inlier_xy, est.inlier_X
+    pose = robust_refine(est.cam_from_world, K, xy, X, conf.refine_loss_scale_px)
+    err = reprojection_errors(pose, K, xy, X)
+    return replace(est, cam_from_world=pose, mean_error_px=float(err.mean()))
+
+
+def _needs_no_verification(inliers: int, candidates: int, conf: EngineConf) -> bool:
+    """A RANSAC pose far above what chance gathers (``global_verify_min_inliers`` inliers and
+    ``global_verify_min_ratio`` of the ratio-test matches) is not re-matched by guided matching:
+    the verification rejects chance poses, which had 10-47 inliers (2-13%), and a pose on that
+    many inliers gains no accuracy from it. The distinctness tests still judge it."""
+    if conf.global_verify_min_inliers <= 0:
+        return False
+    return (
+        inliers >= conf.global_verify_min_inliers
+        and inliers >= conf.global_verify_min_ratio * candidates
+    )
 
 
 def pose_from_hypotheses(
