@@ -292,9 +292,8 @@ def test_pyramid_scales_and_coordinates():
 
 def test_daisy_pools_each_channel_as_the_pooling_matrix_says():
     """The 104 dimensions are, per region j and channel c, the Gaussian pooling of c's
-    rectified gradients (``region-major``: index 8 j + c), before normalization: checked
-    against a direct per-keypoint computation (pooling in the channels' own layout changed the
-    sums' order only: 1e-7)."""
+    rectified gradients (region-major: index 8 j + c), before normalization: checked against a
+    direct per-keypoint computation in float64."""
     from sfmloc.features.daisy import _normalize_clip
 
     ex = DaisyExtractor()

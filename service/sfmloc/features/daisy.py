@@ -75,7 +75,6 @@ class DaisyExtractor:
         gx, gy = np.meshgrid(c, c)
         self._grid_xy = np.stack([gx.ravel(), gy.ravel()], axis=1).astype(np.float32)  # (g*g, 2)
         self._pool = _pooling_matrix(p).astype(np.float32)  # (13, grid*grid)
-        self._pool_t = np.ascontiguousarray(self._pool.T)  # (grid*grid, 13)
         # Orientation window.
         go = p.ori_grid + 2
         co = (np.arange(go) - (go - 1) / 2.0) * p.ori_spacing
@@ -148,14 +147,10 @@ class DaisyExtractor:
         for i, comp in enumerate((gx, gy, d1, d2)):
             comp = comp.reshape(n, m)
             np.maximum(comp, 0, out=feats[2 * i])
-            # max(-c, 0) = -min(c, 0), written in place (no negated copy of the channel)
-            np.minimum(comp, 0, out=feats[2 * i + 1])
-            np.negative(feats[2 * i + 1], out=feats[2 * i + 1])
-        # Pool: (8n, m) @ (m, 13) -> (8, n, 13) -> (n, 13, 8). The channels are pooled in their
-        # own layout: pooling (13, m) @ (m, 8n) needed a transposed copy of all of them (8 x n x
-        # m floats, 12.8 MB for 1000 keypoints), the largest cost of the call.
-        pooled = feats.reshape(8 * n, m) @ self._pool_t
-        desc = pooled.reshape(8, n, 13).transpose(1, 2, 0).reshape(n, RAW_DIM)
+            np.maximum(-comp, 0, out=feats[2 * i + 1])
+        # Pool: (13, m) @ (m, 8n) -> (13, 8, n) -> (n, 13, 8)
+        pooled = self._pool @ feats.transpose(2, 0, 1).reshape(m, 8 * n)
+        desc = pooled.reshape(13, 8, n).transpose(2, 0, 1).reshape(n, RAW_DIM)
         return _normalize_clip(desc, p.clip)
 
     def compute(self, gray: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
