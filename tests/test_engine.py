@@ -774,10 +774,17 @@ def test_single_images_of_identical_walls_are_never_wrong(ambiguous_world):
     assert sum(r.status is Status.RELOCALIZED for r in res) >= 12
     assert sum(r.message.startswith("ambiguous") for r in res) >= 10
     # Without the second-place and spread tests these frames come out wrong (a pose turned by
-    # 90 deg onto a twin wall, with more inliers than the right one): the test bites.
+    # 90 deg onto a twin wall, with more inliers than the right one): the test bites. (Published
+    # RELOCALIZED when verified by guided matching, UNVERIFIED when, strong enough to skip that,
+    # it fails the strict test: a pose either way.)
     off = EngineConf(second_place_ratio=0, min_inlier_spread=0)
     for i in (40, 58):
         r = relocalize(gray[i], cam, bundle, off)
+        assert r.status in (Status.RELOCALIZED, Status.UNVERIFIED)
+        assert pose_errors(r.cam_from_world, gt[i])[0] > limit
+        r = relocalize(
+            gray[i], cam, bundle, off.model_copy(update={"global_verify_min_inliers": 0})
+        )
         assert r.status is Status.RELOCALIZED
         assert pose_errors(r.cam_from_world, gt[i])[0] > limit
 
