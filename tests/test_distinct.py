@@ -28,6 +28,23 @@ def test_inlier_spread_counts_cells_with_keypoints():
     assert occupied_cells(np.array([[640.0, 480.0]]), 640, 480) == 1
 
 
+def test_inlier_spread_over_the_cells_the_map_reaches():
+    """With the projections of the map points the pose makes visible, only the cells holding
+    keypoints and such a projection count: a map reaching the left quarter of the view."""
+    rng = np.random.default_rng(1)
+    xy = rng.uniform([0, 0], [640, 480], (400, 2))
+    left = xy[xy[:, 0] < 160]  # the 4 cells of the first column
+    assert inlier_spread(xy, left, 640, 480) == 4 / 16
+    assert inlier_spread(xy, left, 640, 480, xy_visible=left) == 1.0
+    assert inlier_spread(xy, left[left[:, 1] < 240], 640, 480, xy_visible=left) == 0.5
+    # a visible point where no keypoint is does not count, nor an inlier outside those cells
+    blank = xy[xy[:, 1] < 360]  # no keypoints in the bottom row
+    visible = np.vstack([left, [[600.0, 470.0]]])
+    assert inlier_spread(blank, visible, 640, 480, xy_visible=visible) == 1.0
+    assert inlier_spread(xy, xy, 640, 480, xy_visible=left) == 1.0
+    assert inlier_spread(xy, left, 640, 480, xy_visible=np.zeros((0, 2))) == 0.0
+
+
 def _twin_scene(n_twin: int, seed: int = 3):
     """150 points seen by ``gt``; the first ``n_twin`` also exist as a twin, moved by a
     90 deg turn about the vertical axis (a square room's identical walls), seen at the same

@@ -7,8 +7,11 @@ does not reject a relocalization."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
+from sfmloc.cameras import Camera
 from sfmloc.engine import EngineConf, Localizer, Matching, Status
+from sfmloc.engine.relocalize import relocalize
 from sfmloc.transforms import pose_errors
 
 # A frame far enough into the synthetic video that the tracker runs on matches it has carried
@@ -102,3 +105,62 @@ def test_a_prediction_from_a_withheld_pose_does_not_reject_a_relocalization(worl
             assert r.cam_from_world is None and "motion prediction" in r.message
         else:
             assert pose_errors(r.cam_from_world, gt_far)[0] < 0.05 * bundle.scene_scale
+
+
+# The thin map below: the points the frame THIN_FRAME sees in the left THIN_WIDTH of its view
+# (a map that reaches one side of the room), built by the real builder.
+THIN_FRAME, THIN_WIDTH = 35, 0.25
+
+
+@pytest.fixture(scope="module")
+def thin_bundle(world, tmp_path_factory):
+    from sfmloc.builder.build import BuildConf, assemble
+    from sfmloc.engine.pose import project
+    from sfmloc.io.colmap import INVALID_POINT3D_ID, Image, Reconstruction, read_model
+    from sfmloc.map.bundle import MapBundle, write_bundle
+
+    rec = read_model(world.root / "synth" / "sparse")
+    cam = Camera.parse(world.camera_spec)
+    pids = np.array(sorted(rec.points3D))
+    X = np.array([rec.points3D[p].xyz for p in pids])
+    uv, z = project(world.gt_cam_from_world[THIN_FRAME], cam.K, X)
+    inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < THIN_WIDTH * cam.width)
+    inside &= (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+    keep = pids[inside]
+    images = {}
+    for iid, im in rec.images.items():
+        ids = im.point3D_ids.copy()
+        ids[~np.isin(ids, keep)] = INVALID_POINT3D_ID
+        images[iid] = Image(iid, im.name, im.camera_id, im.cam_from_world, im.points2D.copy(), ids)
+    sub = Reconstruction(dict(rec.cameras), images, {int(p): rec.points3D[int(p)] for p in keep})
+    data, timings, info = assemble(sub, world.root / "synth" / "images", BuildConf())
+    out = tmp_path_factory.mktemp("thin")
+    return MapBundle(write_bundle(data, out, "thin", timings_s=timings, index_info=info))
+
+
+def test_a_relocalization_on_a_map_reaching_part_of_the_view_is_judged_where_it_reaches(
+    world, thin_bundle, cam
+):
+    """A map whose points lie in a quarter of the view: a right relocalization has its inliers
+    there only, a fraction of the image cells with keypoints. Judged against the cells the
+    map reaches from the pose (spread_cells "visible") it is published and right; judged
+    against every cell with keypoints (the former rule) it is lost to the spread test."""
+    limit = 0.05 * thin_bundle.scene_scale
+    right = 0
+    for i in (THIN_FRAME, THIN_FRAME + 5, THIN_FRAME + 10):
+        gt = world.gt_cam_from_world[i]
+        old = relocalize(world.gray[i], cam, thin_bundle, EngineConf(spread_cells="keypoints"))
+        assert old.status is Status.LOST and "of the image cells with keypoints" in old.message
+        r = relocalize(world.gray[i], cam, thin_bundle, EngineConf())
+        assert "cover" not in r.message, r.message
+        if r.cam_from_world is not None:
+            dp, dr = pose_errors(r.cam_from_world, gt)
+            assert dp < limit and dr < 10, (i, dp, dr)
+            right += dp < 0.02 * thin_bundle.scene_scale
+    assert right >= 2
+    # Frames whose view the thin map barely reaches: whatever the status, never a wrong pose.
+    for i in range(0, len(world.gray), 3):
+        r = relocalize(world.gray[i], cam, thin_bundle, EngineConf())
+        if r.cam_from_world is not None:
+            dp, dr = pose_errors(r.cam_from_world, world.gt_cam_from_world[i])
+            assert dp < limit and dr < 10, (i, r.status, r.inliers, dp, dr)

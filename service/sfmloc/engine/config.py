@@ -100,6 +100,13 @@ class EngineConf(StrictModel):
     # inliers bunched in 38% of the cells, was lost to it (global-every-frame 499/500).
     min_inlier_spread: float = 0.4
     spread_max_inliers: int = 80
+    # Which cells that fraction is of: "visible": the cells with keypoints where a map point
+    # the pose makes visible projects (no pose can have an inlier in the others); "keypoints":
+    # every cell with keypoints. A thin map covers part of the view: robust density-6x
+    # (synthetic mapping views at 6x the spacing, 777 points) frames 218-285 were all lost,
+    # right global poses (26 and 62 inliers, 1% and 0.1% of the scene scale off) covering 20%
+    # and 27% of the cells with keypoints but 3 of 4 and 4 of 7 of those the map reaches.
+    spread_cells: Literal["visible", "keypoints"] = "visible"
     # ... and when RANSAC, on the candidate matches the pose leaves unexplained, finds a pose at
     # another place (beyond the wrong-pose limits ``contradiction_*``) with at least this
     # fraction of its inliers (and ``recover_min_inliers``: places by chance gather 12-16)

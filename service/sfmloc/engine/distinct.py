@@ -18,16 +18,36 @@ from .pose import PoseEstimate, estimate_pose_one_to_many, reprojection_errors
 
 def occupied_cells(xy: np.ndarray, width: int, height: int, grid: int = 4) -> int:
     """How many cells of a ``grid`` x ``grid`` partition of the image hold a point of ``xy``."""
+    return len(cell_ids(xy, width, height, grid))
+
+
+def cell_ids(xy: np.ndarray, width: int, height: int, grid: int = 4) -> np.ndarray:
+    """The cells of a ``grid`` x ``grid`` partition of the image that hold a point of ``xy``."""
     if len(xy) == 0:
-        return 0
+        return np.zeros(0, np.int64)
     size = np.array([width, height], np.float64)
     ij = np.clip((xy * (grid / size)).astype(np.int64), 0, grid - 1)
-    return len(np.unique(ij[:, 1] * grid + ij[:, 0]))
+    return np.unique(ij[:, 1] * grid + ij[:, 0])
 
 
-def inlier_spread(xy_all: np.ndarray, xy_inliers: np.ndarray, width: int, height: int) -> float:
-    """The fraction of the image cells (4x4) with keypoints that hold an inlier."""
-    return occupied_cells(xy_inliers, width, height) / max(1, occupied_cells(xy_all, width, height))
+def inlier_spread(
+    xy_all: np.ndarray,
+    xy_inliers: np.ndarray,
+    width: int,
+    height: int,
+    xy_visible: np.ndarray | None = None,
+) -> float:
+    """The fraction of the image cells (4x4) with keypoints that hold an inlier. With
+    ``xy_visible`` (where the map points the pose makes visible project), only the cells
+    with keypoints and a visible map point count: a cell the map has no point in cannot hold
+    an inlier at any pose, so a thin map's right pose is not judged by it (robust density-6x:
+    right relocalizations on 26-62 inliers covered 3 of 4 and 4 of 7 such cells, 20-27% of
+    the cells with keypoints)."""
+    cells = cell_ids(xy_all, width, height)
+    if xy_visible is not None:
+        cells = np.intersect1d(cells, cell_ids(xy_visible, width, height))
+    inl = np.intersect1d(cell_ids(xy_inliers, width, height), cells)
+    return len(inl) / max(1, len(cells))
 
 
 def second_place(

@@ -160,12 +160,18 @@ def global_pose(
         fine = robust_final(est, K, conf) if strong else est
         out = fine, gm.set2_q[chosen], gm.set2_p[chosen], hyp
     # Distinct: inliers over the image, and no other place nearly as good (``distinct``).
-    spread = inlier_spread(xy_u, xy_u[out[1]], camera.width, camera.height)
-    if spread < conf.min_inlier_spread and out[0].num_inliers < conf.spread_max_inliers:
-        return None, (
-            f"no pose: its {out[0].num_inliers} inliers cover {spread:.0%} of the image cells "
-            f"with keypoints (at least {conf.min_inlier_spread:.0%})"
-        )
+    if out[0].num_inliers < conf.spread_max_inliers:
+        visible = None
+        if conf.spread_cells == "visible":
+            pose = out[0].cam_from_world
+            visible = project(pose, K, X[visible_points(camera, pose, X)])[0]
+        spread = inlier_spread(xy_u, xy_u[out[1]], camera.width, camera.height, visible)
+        if spread < conf.min_inlier_spread:
+            where = "with keypoints" + (" and visible map points" if visible is not None else "")
+            return None, (
+                f"no pose: its {out[0].num_inliers} inliers cover {spread:.0%} of the image "
+                f"cells {where} (at least {conf.min_inlier_spread:.0%})"
+            )
     if conf.second_place_ratio > 0:
         other = second_place(
             est,
