@@ -164,3 +164,21 @@ def test_a_relocalization_on_a_map_reaching_part_of_the_view_is_judged_where_it_
         if r.cam_from_world is not None:
             dp, dr = pose_errors(r.cam_from_world, world.gt_cam_from_world[i])
             assert dp < limit and dr < 10, (i, r.status, r.inliers, dp, dr)
+
+
+def test_a_frame_lost_to_global_matching_says_why(world, thin_bundle, cam):
+    """The tracker's LOST after global matching carries global matching's reason (which test
+    the frame failed), not a generic one: a frame the thin map does not reach, and a frame
+    whose pose the former spread rule rejected."""
+    r = Localizer(thin_bundle, cam, EngineConf()).localize(world.gray[0], 0.0)
+    assert r.status is Status.LOST and r.matching is Matching.GLOBAL
+    assert r.message == "no pose: too few consistent 2D-3D matches", r.message
+    old = EngineConf(spread_cells="keypoints")
+    r = Localizer(thin_bundle, cam, old).localize(world.gray[THIN_FRAME], 0.0)
+    assert r.status is Status.LOST and r.matching is Matching.GLOBAL
+    assert r.message.startswith("no pose: its") and "cells with keypoints" in r.message, r.message
+    r = Localizer(thin_bundle, cam, EngineConf()).localize(world.gray[THIN_FRAME], 0.0)
+    assert r.cam_from_world is not None and r.status is Status.UNVERIFIED, r.message
+    assert pose_errors(r.cam_from_world, world.gt_cam_from_world[THIN_FRAME])[0] < (
+        0.02 * thin_bundle.scene_scale
+    )

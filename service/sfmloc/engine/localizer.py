@@ -56,8 +56,8 @@ from .pose import PoseEstimate, estimate_pose
 from .projected import ScopePoints, projected_matches, refine_with_projections, unmatched_only
 from .relocalize import (
     describe,
+    global_pose,
     map_working_scale,
-    pose_from_global,
     pose_from_hypotheses,
     visible_points,
 )
@@ -294,10 +294,12 @@ class Localizer:
                     table, est = recovered
                     matching, relocalized = Matching.GUIDED, True
             timer.lap("reloc")
+        lost_why = ambiguous  # why the frame has no pose, when it has none
         if est is None:
-            table, est = self._global_matching(kps, image)
+            table, est, why = self._global_matching(kps, image)
             matching = Matching.GLOBAL
             relocalized = est is not None
+            lost_why = lost_why or why
             timer.lap("reloc")
         c2 = _match_ids(table)
         if len(c2) > c.kappa2 and c2 != c1 and not relocalized:
@@ -319,7 +321,7 @@ class Localizer:
                     table, est, cert = dense
                     matching = Matching.GUIDED
                 timer.lap("match")
-        message = ambiguous if est is None else ""
+        message = lost_why if est is None else ""
         if est is not None and cert is not None and not relocalized and not cert.verified:
             if est.num_inliers < self.conf.collapse_ratio * self.last_inliers:
                 table, est, cert, message = self._verify_collapse(kps, image, est, table)
@@ -703,27 +705,28 @@ class Localizer:
 
     def _global_matching(
         self, kps: Keypoints, image: _FrameImage
-    ) -> tuple[TrackTable, PoseEstimate | None]:
+    ) -> tuple[TrackTable, PoseEstimate | None, str]:
         """GLOBAL-MATCHING on the frame's keypoints: a new table restarted from them (with
-        their matches when a pose was found) and the pose."""
+        their matches when a pose was found), the pose, and why there is none (the frame's
+        message: a LOST says which test it failed)."""
         c = self.conf
         table = self._restart_table(kps)
         if len(table) < c.min_inliers:
-            return table, None
+            return table, None, f"only {len(table)} keypoints in the frame"
         xy_u = self._undistort(table.xy)
         desc = image.describe_all(self.bundle, table.xy)
-        res = pose_from_global(
+        res, why = global_pose(
             desc, xy_u, self.bundle, self.camera, c, image.search_all(self.bundle, c, table.xy)
         )
         if res is None:
-            return table, None
+            return table, None, why
         est, q, p, hyp = res
         table.hyp = hyp
         table.point[q] = p
         # Keypoints the global search could not match stay pending: guided matching, scoped by
         # the new pose, gets another try at them over the next frames.
         table.pending = table.point < 0
-        return table, est
+        return table, est, ""
 
     def _verify_collapse(
         self, kps: Keypoints, image: _FrameImage, est: PoseEstimate, table: TrackTable
@@ -734,7 +737,7 @@ class Localizer:
         it passes the strict test; else no pose (withheld, not adopted: the next frame
         relocalizes)."""
         c = self.conf
-        table_g, est_g = self._global_matching(kps, image)
+        table_g, est_g, _ = self._global_matching(kps, image)
         cert_g = None if est_g is None else certainty(est_g, self.K, self.bundle, c)
         if est_g is not None and cert_g is not None and cert_g.verified:
             return table_g, est_g, cert_g, ""
