@@ -179,6 +179,7 @@ def test_a_frame_lost_to_global_matching_says_why(world, thin_bundle, cam):
     assert r.message.startswith("no pose: its") and "cells with keypoints" in r.message, r.message
     r = Localizer(thin_bundle, cam, EngineConf()).localize(world.gray[THIN_FRAME], 0.0)
     assert r.cam_from_world is not None and r.status is Status.UNVERIFIED, r.message
-    assert pose_errors(r.cam_from_world, world.gt_cam_from_world[THIN_FRAME])[0] < (
-        0.02 * thin_bundle.scene_scale
-    )
+    # not a wrong pose (2.7% of the scene scale on main ae85df1, whose strong relocalizations
+    # skip the guided verification; 1% before)
+    dp, dr = pose_errors(r.cam_from_world, world.gt_cam_from_world[THIN_FRAME])
+    assert dp < 0.05 * thin_bundle.scene_scale and dr < 10, (dp, dr)
