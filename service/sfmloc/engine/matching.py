@@ -10,9 +10,10 @@ set 1 holds each keypoint's best point when the best two pass the ratio test (0.
 point whose strength is within that ratio of the best (one-to-many).
 
 ``guided_matching``: the scope is the top-30 database images by number of already-matched 3D
-points they see; the k-ANN search is restricted to their descriptors (faiss rejects the others
-before computing distances); the same strengths give one-to-many hypotheses, which are verified
-geometrically against the pose from the known matches.
+points they see (an image counts for a fraction of one where the map holds near-duplicates of
+it: ``scope.image_weights``); the k-ANN search is restricted to their descriptors (faiss rejects
+the others before computing distances); the same strengths give one-to-many hypotheses, which
+are verified geometrically against the pose from the known matches.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from ..map.index import bitmap_from_ranges
 from ..transforms import Rigid3d
 from .config import EngineConf
 from .pose import reprojection_errors
+from .scope import image_weights
 
 
 @dataclass
@@ -179,8 +181,12 @@ def global_matching(
     return GlobalMatches(s1q, s1p, s2q, s2p, selected, int(in_s.sum()), (D, I))
 
 
-def scope_images(bundle: MapBundle, matched_points: np.ndarray, top: int) -> np.ndarray:
-    """The ``top`` database images seeing the most of ``matched_points`` (at least one)."""
+def scope_images(
+    bundle: MapBundle, matched_points: np.ndarray, top: int, weights: np.ndarray | None = None
+) -> np.ndarray:
+    """The ``top`` database images seeing the most of ``matched_points`` (at least one).
+    ``weights``: per image, the fraction of a place it counts for (``scope.image_weights``):
+    ranked images are taken until their weights add up to ``top``."""
     pi_ptr, pi_idx = bundle.point_images()
     p = matched_points
     cnt = pi_ptr[p + 1] - pi_ptr[p]
@@ -190,8 +196,12 @@ def scope_images(bundle: MapBundle, matched_points: np.ndarray, top: int) -> np.
     offs = np.arange(total) - np.repeat(np.cumsum(cnt) - cnt, cnt)
     imgs = pi_idx[np.repeat(pi_ptr[p], cnt) + offs]
     counts = np.bincount(imgs, minlength=bundle.n_images)
-    order = np.argsort(-counts, kind="stable")[:top]
-    return order[counts[order] > 0]
+    order = np.argsort(-counts, kind="stable")
+    order = order[: int(np.count_nonzero(counts))]
+    if weights is None:
+        return order[:top]
+    # the first images whose weights reach top (a little slack for the float sum)
+    return order[: int(np.searchsorted(np.cumsum(weights[order]), top - 1e-6)) + 1]
 
 
 @dataclass
@@ -219,7 +229,9 @@ def guided_matching(
     nq = len(desc)
     H = conf.max_hypotheses
     out = GuidedMatches(np.full(nq, -1, np.int64), np.full((nq, H), -1, np.int64), 0)
-    imgs = scope_images(bundle, matched_points, conf.top_images)
+    imgs = scope_images(
+        bundle, matched_points, conf.top_images, image_weights(bundle, conf.scope_radius)
+    )
     if nq == 0 or len(imgs) == 0:
         return out
     out.n_images = len(imgs)

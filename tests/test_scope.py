@@ -1,0 +1,143 @@
+"""Guided matching's scope covers a place, whatever the map's density (engine/scope.py; issue
+17): a synthetic corridor walked at 30 Hz, mapped from every frame and from every 10th, the
+same map points; a frame's matched points scope the same stretch of corridor in both maps.
+The wall is 25 units away (the scene scale): scope_radius 0.02 is 0.5 units, 5 frames."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sfmloc.builder.clusters import ClusterConf, cluster_images
+from sfmloc.cameras import Camera
+from sfmloc.engine.config import EngineConf
+from sfmloc.engine.matching import scope_images
+from sfmloc.engine.scope import duplicate_counts, image_weights
+from sfmloc.map.bundle import MapBundle, MapData, write_bundle
+from sfmloc.map.index import DescriptorIndex
+from sfmloc.transforms import Rigid3d
+
+STEP = 0.1  # corridor length units walked per frame
+HALF = 1.25  # a camera sees the points within this of its position: frames 10 apart share 60%
+DENSITY = 40  # points per unit of corridor
+DEPTH = 25.0  # the wall's distance: the scene scale
+LENGTH = 100.0
+
+
+def _corridor_points() -> np.ndarray:
+    return np.arange(0.0, LENGTH, 1.0 / DENSITY)
+
+
+def _corridor_map(tmp_path, stride: int) -> MapBundle:
+    """A bundle of every ``stride``-th frame of the walk: image k sees the corridor points
+    within HALF of its position (real arrays, written and loaded like any bundle)."""
+    u = _corridor_points()
+    n_points = len(u)
+    centres = np.arange(0.0, LENGTH, STEP)[::stride]
+    image_points = [np.nonzero(np.abs(u - c) <= HALF)[0] for c in centres]
+    n_images = len(centres)
+    rng = np.random.default_rng(stride)
+    per_image = 4  # descriptors: a few per image, enough for a valid index
+    desc = rng.standard_normal((n_images * per_image, 32)).astype(np.float16)
+    desc_image = np.repeat(np.arange(n_images), per_image).astype(np.int32)
+    desc_point = np.concatenate([p[:per_image] for p in image_points]).astype(np.int32)
+    ip_ptr = np.concatenate([[0], np.cumsum([len(p) for p in image_points])]).astype(np.int64)
+    cl = cluster_images(image_points, n_points, ClusterConf(max_size=8))
+    pc_ptr, pc_idx = cl.point_clusters(image_points, n_points)
+    ci_ptr = np.concatenate([[0], np.cumsum([len(c) for c in cl.images])]).astype(np.int64)
+    cam_from_world = np.zeros((n_images, 7))
+    cam_from_world[:, 0] = 1.0
+    cam_from_world[:, 4] = -centres
+    data = MapData(
+        points_xyz=np.stack([u, np.zeros(n_points), np.full(n_points, DEPTH)], axis=1),
+        point_ids=np.arange(n_points) + 1,
+        point_rgb=np.zeros((n_points, 3), np.uint8),
+        descriptors=desc,
+        desc_point=desc_point,
+        desc_image=desc_image,
+        desc_level=np.zeros(len(desc), np.uint8),
+        desc_xy=rng.uniform(0, 100, (len(desc), 2)).astype(np.float32),
+        image_desc_ptr=np.arange(n_images + 1, dtype=np.int64) * per_image,
+        image_cam_from_world=cam_from_world,
+        image_camera=np.zeros(n_images, np.int32),
+        image_points_ptr=ip_ptr,
+        image_points_idx=np.concatenate(image_points).astype(np.int32),
+        cluster_images_ptr=ci_ptr,
+        cluster_images_idx=np.concatenate(cl.images).astype(np.int32),
+        point_clusters_ptr=pc_ptr,
+        point_clusters_idx=pc_idx,
+        pca_mean=np.zeros(104, np.float32),
+        pca_basis=np.eye(104, 32, dtype=np.float32),
+        index_faiss=DescriptorIndex.build(desc.astype(np.float32)).serialize(),
+        cameras=[Camera.pinhole(640, 480, 500, 500, 320, 240)],
+        image_names=[f"frame-{i * stride:04d}.png" for i in range(n_images)],
+    )
+    return MapBundle(write_bundle(data, tmp_path, f"corridor-s{stride}"))
+
+
+@pytest.fixture(scope="module")
+def maps(tmp_path_factory):
+    root = tmp_path_factory.mktemp("scope")
+    return {s: _corridor_map(root, s) for s in (10, 1)}
+
+
+def _covered(bundle: MapBundle, imgs: np.ndarray) -> np.ndarray:
+    """The corridor points the scope's images see."""
+    ptr, idx = bundle.image_points_ptr, bundle.image_points_idx
+    return np.unique(np.concatenate([idx[ptr[i] : ptr[i + 1]] for i in imgs]))
+
+
+def test_duplicates_count_the_images_from_one_viewpoint(maps):
+    conf = EngineConf()
+    assert maps[10].scene_scale == pytest.approx(DEPTH)
+    # every 10th frame: neighbours 1 unit apart, beyond 0.02 * 25
+    assert np.all(duplicate_counts(maps[10], conf.scope_radius) == 1)
+    assert np.all(image_weights(maps[10], conf.scope_radius) == 1.0)
+    # every frame: the frames within 0.5 units, 5 on either side (the 5th at the limit: 4-5)
+    # and itself in the corridor's middle, fewer at its ends
+    d = duplicate_counts(maps[1], conf.scope_radius)
+    assert np.all((d[10:-10] >= 9) & (d[10:-10] <= 11))
+    assert d[0] in (5, 6)
+    # 0: the paper's scope, every image counts 1
+    assert np.all(image_weights(maps[1], 0.0) == 1.0)
+
+
+def test_images_looking_elsewhere_are_not_duplicates(tmp_path):
+    b = _corridor_map(tmp_path, 1)
+    conf = EngineConf()
+    d0 = duplicate_counts(b, conf.scope_radius)
+    T = b.image_cam_from_world[500]
+    turn = np.array([[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])  # 90 deg about y
+    b.image_cam_from_world[500] = Rigid3d(turn @ T.rotation, turn @ T.translation)
+    d1 = duplicate_counts(b, conf.scope_radius)
+    assert d1[500] == 1 and d0[500] >= 9
+    near = np.array([496, 497, 498, 499, 501, 502, 503, 504])  # within 0.5 units of it
+    assert np.all(d1[near] == d0[near] - 1)
+
+
+@pytest.mark.parametrize("centre", [10.0, 50.0, 97.5])
+def test_the_scope_covers_the_same_place_at_every_density(maps, centre):
+    conf = EngineConf()
+    u = _corridor_points()
+    matched = np.nonzero(np.abs(u - centre) <= 1.0)[0]  # what a frame there has matched
+    top = 3
+    sparse = scope_images(maps[10], matched, top, image_weights(maps[10], conf.scope_radius))
+    assert len(sparse) == top  # every image counts 1: the paper's scope, unchanged
+    assert np.array_equal(sparse, scope_images(maps[10], matched, top))
+    want = _covered(maps[10], sparse)
+    dense_w = scope_images(maps[1], matched, top, image_weights(maps[1], conf.scope_radius))
+    dense_n = scope_images(maps[1], matched, top)
+    got_w, got_n = _covered(maps[1], dense_w), _covered(maps[1], dense_n)
+    # the weighted scope of the dense map covers the sparse map's place (within one frame's
+    # step), not ten times less of it
+    assert np.isin(want, got_w).mean() >= 0.95
+    assert len(got_w) <= 1.3 * len(want)
+    assert len(dense_w) >= 5 * top
+    # the paper's image count on the dense map: a much narrower stretch
+    assert np.isin(want, got_n).mean() < 0.7
+
+
+def test_weights_are_cached_per_bundle(maps):
+    w1 = image_weights(maps[1], 0.02)
+    assert image_weights(maps[1], 0.02) is w1
+    assert image_weights(maps[1], 0.03) is not w1
