@@ -88,7 +88,7 @@ def _covered(bundle: MapBundle, imgs: np.ndarray) -> np.ndarray:
 
 
 def test_duplicates_count_the_images_from_one_viewpoint(maps):
-    conf = EngineConf()
+    conf = EngineConf(scope_radius=0.02)  # the dense-video setting (default 0: the paper's)
     assert maps[10].scene_scale == pytest.approx(DEPTH)
     # every 10th frame: neighbours 1 unit apart, beyond 0.02 * 25
     assert np.all(duplicate_counts(maps[10], conf.scope_radius) == 1)
@@ -104,7 +104,7 @@ def test_duplicates_count_the_images_from_one_viewpoint(maps):
 
 def test_images_looking_elsewhere_are_not_duplicates(tmp_path):
     b = _corridor_map(tmp_path, 1)
-    conf = EngineConf()
+    conf = EngineConf(scope_radius=0.02)  # the dense-video setting (default 0: the paper's)
     d0 = duplicate_counts(b, conf.scope_radius)
     T = b.image_cam_from_world[500]
     turn = np.array([[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])  # 90 deg about y
@@ -117,7 +117,7 @@ def test_images_looking_elsewhere_are_not_duplicates(tmp_path):
 
 @pytest.mark.parametrize("centre", [10.0, 50.0, 97.5])
 def test_the_scope_covers_the_same_place_at_every_density(maps, centre):
-    conf = EngineConf()
+    conf = EngineConf(scope_radius=0.02)  # the dense-video setting (default 0: the paper's)
     u = _corridor_points()
     matched = np.nonzero(np.abs(u - centre) <= 1.0)[0]  # what a frame there has matched
     top = 3
