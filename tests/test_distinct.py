@@ -127,25 +127,30 @@ def _ranked_scene(seed: int, ranked: bool, n: int = 300, right: int = 110):
     return gt, uv, points, (np.arange(n), p1), (q2, p2)
 
 
+def _ranked_ransac(seed: int, ranked: bool, pool_stop: bool):
+    """Global RANSAC (default conf) on ``_ranked_scene``: (true pose, result, stats)."""
+    gt, uv, points, (q1, p1), (q2, p2) = _ranked_scene(seed, ranked=ranked)
+    stats: dict[str, int] = {}
+    res = estimate_pose_one_to_many(
+        uv[q1],
+        points[p1],
+        q2,
+        uv[q2],
+        points[p2],
+        K,
+        EngineConf().ransac(),
+        pool_stop=pool_stop,
+        stats=stats,
+    )
+    return gt, res, stats
+
+
 def test_prosac_stop_ends_ranked_ransac_sooner_on_the_same_pose():
     """With the right matches ranked first, the pool rule stops within two batches where the
     whole-set rule (37% inliers) runs on; both find the true pose on the same inliers."""
-    conf = EngineConf()
-    gt, uv, points, (q1, p1), (q2, p2) = _ranked_scene(7, ranked=True)
     runs = {}
     for pool_stop in (False, True):
-        stats: dict[str, int] = {}
-        res = estimate_pose_one_to_many(
-            uv[q1],
-            points[p1],
-            q2,
-            uv[q2],
-            points[p2],
-            K,
-            conf.ransac(),
-            pool_stop=pool_stop,
-            stats=stats,
-        )
+        gt, res, stats = _ranked_ransac(7, ranked=True, pool_stop=pool_stop)
         assert res is not None
         dp, dr = pose_errors(res[0].cam_from_world, gt)
         assert dp < 0.005 and dr < 0.1, (pool_stop, dp, dr)
@@ -158,22 +163,9 @@ def test_prosac_stop_ends_ranked_ransac_sooner_on_the_same_pose():
 def test_prosac_stop_does_not_cut_short_an_unranked_search():
     """Right matches spread through the ranking: the pools are no richer than the whole set,
     so the pool rule stops no sooner than half the whole-set rule's iterations."""
-    conf = EngineConf()
-    gt, uv, points, (q1, p1), (q2, p2) = _ranked_scene(8, ranked=False)
     iters = {}
     for pool_stop in (False, True):
-        stats: dict[str, int] = {}
-        res = estimate_pose_one_to_many(
-            uv[q1],
-            points[p1],
-            q2,
-            uv[q2],
-            points[p2],
-            K,
-            conf.ransac(),
-            pool_stop=pool_stop,
-            stats=stats,
-        )
+        gt, res, stats = _ranked_ransac(8, ranked=False, pool_stop=pool_stop)
         assert res is not None and pose_errors(res[0].cam_from_world, gt)[0] < 0.005
         iters[pool_stop] = stats["iterations"]
     assert iters[True] >= 0.5 * iters[False] and iters[False] >= 64, iters
