@@ -180,3 +180,5 @@ def test_replay_cli_names_the_clock(world, tmp_path, capsys):
     s = json.loads(out.read_text())
     assert s["clock"] == "file-name stems in ms" and s["clock_gaps_over_max"] == 0
     assert s["status_counts"]["LOST"] == 0
+    # per-frame records say why a frame has no pose ("" for every posed frame here)
+    assert [r["message"] for r in s["per_frame"]] == [""] * 8

@@ -240,6 +240,7 @@ def run(args: argparse.Namespace) -> int:
                 "tracked_3d": r.tracked_3d,
                 "position_error_m": r.position_error_m,
                 "rotation_error_deg": r.rotation_error_deg,
+                "message": r.message,  # why a frame is LOST (or its pose withheld)
             }
             for r in records
         ]
