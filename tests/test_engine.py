@@ -665,6 +665,55 @@ def test_an_unverified_pose_with_another_solution_nearer_the_motion_is_not_publi
     assert loc._other_solution(loc.table, right, true) == ""
 
 
+def test_an_ambiguous_tracked_pose_is_checked_by_global_matching(world, bundle, cam, monkeypatch):
+    """Issue 9 (robust walk at 3 Hz, frame 23: LOST as ambiguous, 61 inliers from the motion
+    prior against 60 for a pose 0.10 scene scales away, while global matching on the frame
+    finds ~500): a tracked pose the ambiguity check rejects is checked by global matching on
+    the same frame and adopted as RELOCALIZED when that passes the strict test; off
+    (``ambiguity_relocalize``), or when global matching is not verified either, the frame is
+    LOST as before. The check's verdict is forced on frame 7 (this world's frames are not
+    ambiguous); everything else runs for real, against exact ground truth."""
+    n, k = 9, 7
+    probe = Localizer(bundle, cam)
+    tracked = [probe.localize(world.gray[i], i / 30) for i in range(n)]
+    assert [r.status for r in tracked[1:]] == [Status.TRACKING] * (n - 1)
+    # frame k's tracked pose unverified (the check runs on those only), a global one verified:
+    # the strict test asks for one inlier more than tracking kept there (90 of ~105)
+    strict = tracked[k].inliers + 1
+    assert relocalize(world.gray[k], cam, bundle).inliers >= strict + 5
+    original = Localizer._other_solution
+
+    def verdict(self, table, est, pred):
+        if self.frames == k + 1:  # Localizer.frames counts frames: frame k is the (k+1)th
+            return "ambiguous: forced by the test"
+        return original(self, table, est, pred)
+
+    monkeypatch.setattr(Localizer, "_other_solution", verdict)
+
+    def run(conf: EngineConf) -> list:
+        loc = Localizer(bundle, cam, conf)
+        return [loc.localize(world.gray[i], i / 30) for i in range(n)]
+
+    limit = 0.05 * bundle.scene_scale
+    on = run(EngineConf(verified_min_inliers=strict))
+    assert on[k].status is Status.RELOCALIZED and on[k].matching is Matching.GLOBAL, on[k].message
+    assert on[k].inliers >= strict
+    dp, dr = pose_errors(on[k].cam_from_world, world.gt_cam_from_world[k])
+    assert dp < 0.01 * bundle.scene_scale and dr < 1.0
+    for r, gt in zip(on[k + 1 :], world.gt_cam_from_world[k + 1 : n]):  # tracked on from it
+        assert r.localized and r.matching is not Matching.GLOBAL, (r.status, r.message)
+        assert pose_errors(r.cam_from_world, gt)[0] < limit
+    for conf in (
+        EngineConf(verified_min_inliers=strict, ambiguity_relocalize=False),
+        EngineConf(verified_min_inliers=10**6),  # global matching not verified either
+    ):
+        res = run(conf)
+        assert res[k].status is Status.LOST and res[k].cam_from_world is None
+        assert res[k].message == "ambiguous: forced by the test"
+        for r, gt in zip(res, world.gt_cam_from_world[:n]):
+            assert r.cam_from_world is None or pose_errors(r.cam_from_world, gt)[0] < limit
+
+
 def test_weak_relocalization_against_the_motion_is_rejected(world, bundle, cam):
     """Tracking frames 0-9, then a frame from far along the video: global matching finds it.
     Verified, it is RELOCALIZED; unverified, it contradicts the motion prediction and is LOST

@@ -199,6 +199,12 @@ class EngineConf(StrictModel):
     # 31. Without the "nearer the prediction" condition frame 13 (right, 63 inliers; RANSAC's
     # 57 for a pose 0.83 scene scales away) was lost too. False: off.
     ambiguity_check: bool = True
+    # A tracked pose the ambiguity check rejects is checked by global matching on the frame
+    # (adopted as RELOCALIZED when it passes the strict test, as collapse_ratio's check), so
+    # the frame need not wait for the next to relocalize. Robust walk at 3 Hz (main d1def86),
+    # frame 23: LOST (61 inliers from the motion prior, 60 for a pose 0.10 scene scales /
+    # 4 deg away) -> RELOCALIZED; localized 29 -> 30 of 30. False: LOST, as before.
+    ambiguity_relocalize: bool = True
     # Cluster voting: "sum" adds the strength of every neighbour (the literal reading of the
     # paper); "max" lets each query vote once per cluster, with its strongest neighbour there.
     # With PCA-32 DAISY the 50th neighbour is typically only 1.5x farther than the first, so

@@ -330,6 +330,14 @@ class Localizer:
                 timer.lap("reloc")
         if est is not None and cert is not None and not relocalized and not cert.verified:
             message = self._other_solution(table, est, pred.cam_from_world)
+            if message and c.ambiguity_relocalize:
+                # the matches do not decide between two poses: this frame's global matching
+                # does, when it passes the strict test (as a collapsed pose is checked)
+                table_g, est_g, cert_g = self._verified_global(kps, image)
+                if est_g is not None:
+                    table, est, cert, message = table_g, est_g, cert_g, ""
+                    relocalized, matching = True, Matching.GLOBAL
+                timer.lap("reloc")
             if message:
                 # the matches do not decide between two poses: none; the next frame relocalizes
                 _unmatch(table, slice(None))
@@ -736,10 +744,8 @@ class Localizer:
         matches) is checked as a relocalization: global matching on this frame, adopted when
         it passes the strict test; else no pose (withheld, not adopted: the next frame
         relocalizes)."""
-        c = self.conf
-        table_g, est_g, _ = self._global_matching(kps, image)
-        cert_g = None if est_g is None else certainty(est_g, self.K, self.bundle, c)
-        if est_g is not None and cert_g is not None and cert_g.verified:
+        table_g, est_g, cert_g = self._verified_global(kps, image)
+        if est_g is not None and cert_g is not None:
             return table_g, est_g, cert_g, ""
         _unmatch(table, slice(None))
         why = (
@@ -747,6 +753,18 @@ class Localizer:
             "not verified, and no verified relocalization"
         )
         return table, None, None, why
+
+    def _verified_global(
+        self, kps: Keypoints, image: _FrameImage
+    ) -> tuple[TrackTable, PoseEstimate | None, Certainty | None]:
+        """Global matching on this frame, kept only when its pose passes the strict test (a
+        check of a doubtful tracked pose: an unverified relocalization would not settle it).
+        Returns the restarted table, the pose and its certainty, or (table, None, None)."""
+        table_g, est_g, _ = self._global_matching(kps, image)
+        cert_g = None if est_g is None else certainty(est_g, self.K, self.bundle, self.conf)
+        if est_g is None or cert_g is None or not cert_g.verified:
+            return table_g, None, None
+        return table_g, est_g, cert_g
 
     def _contradiction(
         self, est: PoseEstimate, cert: Certainty, pred: Rigid3d | None, stamp: float
