@@ -5,6 +5,7 @@ bad variant specs are named."""
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import pytest
@@ -22,6 +23,8 @@ def test_ab_finds_identical_and_different_variants(world, tmp_path, capsys):
     fewer.write_text(json.dumps({"gamma": 0.05}))  # a much higher Harris threshold
     same = tmp_path / "same.json"
     same.write_text("{}")
+    copy = tmp_path / "room-copy"  # another bundle folder for one variant (--map)
+    shutil.copytree(world.maps_dir / "room", copy)
     out = tmp_path / "ab.json"
     rc = ab.main(
         [
@@ -41,6 +44,10 @@ def test_ab_finds_identical_and_different_variants(world, tmp_path, capsys):
             f"same={TREE}",
             "--variant",
             f"fewer={TREE}",
+            "--variant",
+            f"copy={TREE}",
+            "--map",
+            f"copy={copy}",
             "--config",
             f"same={same}",
             "--config",
@@ -51,7 +58,9 @@ def test_ab_finds_identical_and_different_variants(world, tmp_path, capsys):
     )
     assert rc == 0
     doc = json.loads(out.read_text())["variants"]
-    assert set(doc) == {"base", "same", "fewer"}
+    assert set(doc) == {"base", "same", "fewer", "copy"}
+    assert doc["copy"]["map"] == str(copy.resolve()) and doc["base"]["map"] is None
+    assert doc["copy"]["vs_base"]["identical_poses"] == 1.0  # the same map in another folder
     assert all(v["cpu_recorded"] for v in doc.values())
     assert doc["same"]["vs_base"]["on"] == "cpu"
     assert doc["same"]["vs_base"]["identical_poses"] == 1.0
@@ -61,6 +70,21 @@ def test_ab_finds_identical_and_different_variants(world, tmp_path, capsys):
     assert "localized 12/12" in doc["base"]["accuracy"]
     text = capsys.readouterr().out
     assert "vs base (cpu)" in text and "identical poses 100.0%" in text
+    assert "map room-copy, CPU" in text
+
+
+def test_ab_replays_a_variant_s_own_map(world, tmp_path, capsys):
+    """A variant's --map is the bundle it replays: a folder whose arrays are missing fails
+    that variant's replay, named."""
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    shutil.copy(world.maps_dir / "room" / "manifest.json", broken / "manifest.json")
+    synth = world.root / "synth"
+    args = [str(world.maps_dir / "room"), str(synth / "video")]
+    args += ["--camera", str(synth / "camera.json"), "--max-frames", "2", "--reps", "1"]
+    args += ["--variant", f"base={TREE}", "--variant", f"other={TREE}", "--map", f"other={broken}"]
+    assert ab.main(args) == 2
+    assert "variant other: sfmloc replay failed" in capsys.readouterr().err
 
 
 def test_ab_names_bad_variants(tmp_path):
@@ -76,3 +100,7 @@ def test_ab_names_bad_variants(tmp_path):
         ab.parse_variants([f"a={TREE}", f"b={TREE}"], [f"c={tmp_path}"])
     with pytest.raises(InputError, match="not found"):
         ab.parse_variants([f"a={TREE}", f"b={TREE}"], [f"b={tmp_path / 'none.json'}"])
+    with pytest.raises(InputError, match="not a map bundle"):
+        ab.parse_variants([f"a={TREE}", f"b={TREE}"], [], [f"b={tmp_path}"])
+    with pytest.raises(InputError, match="NAME=BUNDLE for a named variant"):
+        ab.parse_variants([f"a={TREE}", f"b={TREE}"], [], [f"c={tmp_path}"])

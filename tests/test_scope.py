@@ -12,7 +12,7 @@ from sfmloc.builder.clusters import ClusterConf, cluster_images
 from sfmloc.cameras import Camera
 from sfmloc.engine.config import EngineConf
 from sfmloc.engine.matching import scope_images
-from sfmloc.engine.scope import duplicate_counts, image_weights
+from sfmloc.engine.scope import duplicate_counts, image_weights, is_dense
 from sfmloc.map.bundle import MapBundle, MapData, write_bundle
 from sfmloc.map.index import DescriptorIndex
 from sfmloc.transforms import Rigid3d
@@ -135,6 +135,31 @@ def test_the_scope_covers_the_same_place_at_every_density(maps, centre):
     assert len(dense_w) >= 5 * top
     # the paper's image count on the dense map: a much narrower stretch
     assert np.isin(want, got_n).mean() < 0.7
+
+
+def test_only_maps_from_dense_video_get_the_place_sized_scope(tmp_path, maps):
+    """The default engine weights images on a map whose median image has a near-duplicate
+    (dense video), and keeps the paper's scope where only some images have one (redkitchen's
+    every-10th map: 20% of its images, whose weighting cost it accuracy)."""
+    conf = EngineConf()
+    r, m = conf.scope_radius, conf.scope_min_duplicates
+    assert r > 0 and m > 1
+    dense = duplicate_counts(maps[1], r)
+    assert is_dense(dense, m)
+    assert np.array_equal(image_weights(maps[1], r, m), 1.0 / dense)
+    assert image_weights(maps[1], r, m).sum() < 0.15 * maps[1].n_images
+    assert np.all(image_weights(maps[10], r, m) == 1.0)
+    # a sparse map with every 5th image taken again 0.3 units (0.012 scene scales) on: 40% of
+    # its images have a duplicate, the median image none
+    b = _corridor_map(tmp_path, 10)
+    for k in range(0, b.n_images, 5):
+        c = b.image_cam_from_world[k].center + np.array([0.3, 0.0, 0.0])
+        b.image_cam_from_world[k + 1] = Rigid3d(np.eye(3), -c)
+    d = duplicate_counts(b, r)
+    assert (d > 1).mean() == pytest.approx(0.4)
+    assert not is_dense(d, m)
+    assert np.all(image_weights(b, r, m) == 1.0)
+    assert np.any(image_weights(b, r) < 1.0)  # by the radius alone it would be weighted
 
 
 def test_weights_are_cached_per_bundle(maps):

@@ -16,6 +16,9 @@ between their camera centres. The load average is printed before and after.
         --variant main=/work/main --variant mine=/work/wt-speed \\
         [--config mine=engine.json] [--json ab.json]
 
+``--map NAME=BUNDLE`` gives a variant its own map (the same frames): two maps compared in one
+run, e.g. redkitchen from every frame against every 10th (issue 17's time target).
+
 A tree whose ``sfmloc replay`` does not record per-frame CPU (before this tool) is compared on
 latency only (said in the output).
 """
@@ -43,11 +46,15 @@ class Variant:
     name: str
     tree: Path
     config: Path | None = None
+    map: Path | None = None
     runs: list[dict] = field(default_factory=list)
 
 
-def parse_variants(specs: list[str], configs: list[str]) -> list[Variant]:
-    """``NAME=TREE`` specs (a checkout with ``service/sfmloc``), ``NAME=FILE`` configs."""
+def parse_variants(
+    specs: list[str], configs: list[str], maps: list[str] | None = None
+) -> list[Variant]:
+    """``NAME=TREE`` specs (a checkout with ``service/sfmloc``), ``NAME=FILE`` configs,
+    ``NAME=BUNDLE`` maps (a variant replaying another map than the positional one)."""
     out: dict[str, Variant] = {}
     for spec in specs:
         name, sep, tree = spec.partition("=")
@@ -66,6 +73,13 @@ def parse_variants(specs: list[str], configs: list[str]) -> list[Variant]:
         if not Path(file).is_file():
             raise InputError(f"variant {name}: config {file} not found")
         out[name].config = Path(file).resolve()
+    for spec in maps or []:
+        name, sep, bundle = spec.partition("=")
+        if not sep or name not in out:
+            raise InputError(f"--map wants NAME=BUNDLE for a named variant, got {spec!r}")
+        if not (Path(bundle) / "manifest.json").is_file():
+            raise InputError(f"variant {name}: {bundle} is not a map bundle (no manifest.json)")
+        out[name].map = Path(bundle).resolve()
     if len(out) < 2:
         raise InputError(
             "give at least two --variant NAME=TREE (the same tree twice with different "
@@ -90,7 +104,8 @@ def run_once(v: Variant, args: argparse.Namespace, work: Path, rep: int) -> dict
     """One replay of variant ``v`` in its own process; its JSON summary, per-frame CPU (or
     latency) and trajectory."""
     js, traj = work / f"{v.name}-{rep}.json", work / f"{v.name}-{rep}.tum"
-    cmd = [args.python, "-m", "sfmloc", "replay", str(args.map), str(args.frames)]
+    bundle = v.map if v.map is not None else args.map
+    cmd = [args.python, "-m", "sfmloc", "replay", str(bundle), str(args.frames)]
     cmd += ["--camera", args.camera, "--json", str(js), "--trajectory", str(traj)]
     cmd += ["--start", str(args.start), "--max-frames", str(args.max_frames), "--no-verify"]
     if args.groundtruth:
@@ -159,6 +174,7 @@ def compare(variants: list[Variant]) -> dict:
         row = {
             "tree": str(v.tree),
             "config": str(v.config) if v.config else None,
+            "map": str(v.map) if v.map else None,
             "cpu_recorded": all(r["cpu"] for r in v.runs),
             "ms_mean": float(np.mean([m.mean() for m in ms])),
             "ms_p99": float(np.mean([np.percentile(m, 99) for m in ms])),
@@ -194,6 +210,8 @@ def format_report(result: dict, load_before: str, load_after: str, reps: int) ->
     for n in names:
         r = result[n]
         what = "CPU" if r["cpu_recorded"] else "latency (no per-frame CPU in this tree)"
+        if r.get("map"):
+            what = f"map {Path(r['map']).name}, {what}"
         lines.append(
             f"{n:12s} {what}: mean {r['ms_mean']:.2f} ms, p99 {r['ms_p99']:.2f} ms; latency "
             f"mean {r['latency_mean']:.2f}, p99 {r['latency_p99']:.2f} ms"
@@ -249,6 +267,15 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="NAME=FILE",
         help="an engine config (JSON/TOML) for the named variant",
     )
+    ap.add_argument(
+        "--map",
+        dest="maps",
+        action="append",
+        default=[],
+        metavar="NAME=BUNDLE",
+        help="replay this map bundle for the named variant instead of MAP (to compare maps, "
+        "e.g. from every frame against every 10th, in one run)",
+    )
     ap.add_argument("--reps", type=int, default=2, help="repetitions per variant (default 2)")
     ap.add_argument("--json", type=Path, help="write the comparison here")
     ap.add_argument("--python", default=sys.executable, help="interpreter for the replays")
@@ -258,7 +285,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        variants = parse_variants(args.variant, args.config)
+        variants = parse_variants(args.variant, args.config, args.maps)
         if args.reps < 1 or args.max_frames < 1:
             raise InputError("--reps and --max-frames must be at least 1")
         load_before = _load()

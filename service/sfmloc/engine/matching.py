@@ -230,7 +230,10 @@ def guided_matching(
     H = conf.max_hypotheses
     out = GuidedMatches(np.full(nq, -1, np.int64), np.full((nq, H), -1, np.int64), 0)
     imgs = scope_images(
-        bundle, matched_points, conf.top_images, image_weights(bundle, conf.scope_radius)
+        bundle,
+        matched_points,
+        conf.top_images,
+        image_weights(bundle, conf.scope_radius, conf.scope_min_duplicates),
     )
     if nq == 0 or len(imgs) == 0:
         return out

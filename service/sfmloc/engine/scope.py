@@ -28,7 +28,9 @@ from ..map.bundle import MapBundle
 
 MAX_ANGLE_DEG = 15.0  # images looking more than this apart see different things
 
-_cache: weakref.WeakKeyDictionary[MapBundle, dict[float, np.ndarray]] = weakref.WeakKeyDictionary()
+_cache: weakref.WeakKeyDictionary[MapBundle, dict[tuple[float, float], np.ndarray]] = (
+    weakref.WeakKeyDictionary()
+)
 
 
 def duplicate_counts(bundle: MapBundle, radius: float) -> np.ndarray:
@@ -50,14 +52,23 @@ def duplicate_counts(bundle: MapBundle, radius: float) -> np.ndarray:
     return out
 
 
-def image_weights(bundle: MapBundle, radius: float) -> np.ndarray:
+def is_dense(counts: np.ndarray, min_duplicates: float) -> bool:
+    """A map from dense video: its median image has at least ``min_duplicates`` images
+    (itself included) from its viewpoint (``counts``: ``duplicate_counts``)."""
+    return len(counts) > 0 and float(np.median(counts)) >= min_duplicates
+
+
+def image_weights(bundle: MapBundle, radius: float, min_duplicates: float = 0.0) -> np.ndarray:
     """Per image, the fraction of a place it counts for in a scope: ``1 / duplicate_counts``
-    (all 1 when ``radius`` is 0: the paper's image count). Cached per bundle."""
+    on a dense map (``is_dense`` with ``min_duplicates``), all 1 on a sparser one and when
+    ``radius`` is 0: the paper's image count. Cached per bundle."""
     if not radius > 0.0:
         return np.ones(bundle.n_images)
     per = _cache.setdefault(bundle, {})
-    w = per.get(radius)
+    key = (radius, min_duplicates)
+    w = per.get(key)
     if w is None:
-        w = 1.0 / duplicate_counts(bundle, radius)
-        per[radius] = w
+        d = duplicate_counts(bundle, radius)
+        w = 1.0 / d if is_dense(d, min_duplicates) else np.ones(bundle.n_images)
+        per[key] = w
     return w
