@@ -391,3 +391,69 @@ def test_bundle_refuses_symlinks_and_a_missing_checksum(tmp_path):
     (path / "manifest.json").symlink_to(tmp_path / "m.json")
     with pytest.raises(BundleError, match="not a regular file"):
         read_manifest(path)
+
+
+def _nested(depth: int, fn):
+    return fn() if depth == 0 else _nested(depth - 1, fn)
+
+
+def test_npy_loads_on_two_threads_at_once_both_succeed(tmp_path):
+    """numpy parses a .npy header with ast.literal_eval, and CPython 3.11's AST constructor
+    keeps its recursion depth in state all threads share: one thread's parse inside another's
+    failed the other with SystemError "AST constructor recursion depth mismatch" (a test
+    server's worker threads loading a map together: room2 did not load). Forced here: each
+    time the collector runs while thread A is in ast.parse, thread B loads (from a deeper
+    stack) before A goes on. With plain np.load, A fails on Python 3.11.7; load_npy serializes
+    the loads (B waits for A), and both succeed."""
+    import gc
+    import sys
+    import threading
+
+    from sfmloc.map.bundle import load_npy
+
+    p = tmp_path / "a.npy"
+    np.save(p, np.arange(12, dtype=np.float32).reshape(3, 4))
+    go, done = threading.Event(), threading.Event()
+    errors: list[BaseException] = []
+    loaded: list[np.ndarray] = []
+    b_waited = threading.Event()
+
+    def on_gc(phase: str, info: dict) -> None:
+        in_parse = sys._getframe(1).f_code.co_name == "parse"  # the frame calling compile()
+        if threading.current_thread() is a and phase == "start" and in_parse:
+            if not b_waited.is_set():
+                done.clear()
+                go.set()
+                if not done.wait(1.0):
+                    b_waited.set()  # B is held until A's load is done
+
+    def load(depth: int) -> None:
+        try:
+            loaded.append(_nested(depth, lambda: np.asarray(load_npy(p, mmap_mode="r"))))
+        except Exception as exc:  # noqa: BLE001 - the failure the test is about
+            errors.append(exc)
+
+    def b_loop() -> None:
+        while go.wait(10.0) and len(loaded) < 50:
+            go.clear()
+            load(7)
+            done.set()
+            if not a.is_alive():
+                return
+
+    a = threading.Thread(target=load, args=(0,))
+    b = threading.Thread(target=b_loop)
+    threshold = gc.get_threshold()
+    gc.callbacks.append(on_gc)
+    gc.set_threshold(1)  # the collector runs at (nearly) every allocation, in A's parse too
+    try:
+        b.start()
+        a.start()
+        a.join(60)
+        go.set()
+        b.join(60)
+    finally:
+        gc.set_threshold(*threshold)
+        gc.callbacks.remove(on_gc)
+    assert not errors, errors
+    assert len(loaded) >= 2 and all(np.array_equal(x, loaded[0]) for x in loaded)

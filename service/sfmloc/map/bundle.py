@@ -53,6 +53,7 @@ import os
 import re
 import shutil
 import stat
+import threading
 import time
 import uuid
 from dataclasses import dataclass, field
@@ -213,6 +214,21 @@ class MapData:
             clusters=len(self.cluster_images_ptr) - 1,
             observations=len(self.image_points_idx),
         )
+
+
+# numpy parses a .npy header with ast.literal_eval, and CPython 3.11's AST constructor keeps its
+# recursion depth in state shared by all threads: two threads parsing at once can fail one of
+# them with "SystemError: AST constructor recursion depth mismatch" (CPython gh-106905). A test
+# server (thread workers, in the test process) then failed to load a map in a clean-clone
+# `make test` (room2: "cannot load image_camera.npy"). Every .npy this package reads goes
+# through load_npy, one at a time.
+_NPY_LOCK = threading.Lock()
+
+
+def load_npy(path: str | Path, mmap_mode: Any = None) -> np.ndarray:
+    """``np.load`` of a .npy (never pickles), serialized across threads (see _NPY_LOCK)."""
+    with _NPY_LOCK:
+        return np.load(path, mmap_mode=mmap_mode, allow_pickle=False)
 
 
 # ============================================================================ writing
@@ -463,7 +479,7 @@ def verify_bundle(path: str | Path, checksums: bool = True) -> list[str]:
             problems.append(f"{apath.name}: checksum mismatch (corrupt)")
             continue
         try:
-            arr = np.load(apath, mmap_mode="r", allow_pickle=False)
+            arr = load_npy(apath, mmap_mode="r")
         except Exception as exc:  # noqa: BLE001 - any failure to parse the .npy is corruption
             problems.append(f"{apath.name}: unreadable .npy ({exc})")
             continue
@@ -504,7 +520,7 @@ class MapBundle:
                     f"map bundle {self.path}: {entry.file} is missing or not a regular file"
                 )
             try:
-                a[aname] = np.load(apath, mmap_mode="r", allow_pickle=False)
+                a[aname] = load_npy(apath, mmap_mode="r")
             except Exception as exc:  # noqa: BLE001
                 raise BundleError(
                     f"map bundle {self.path}: cannot load {entry.file} ({exc})"

@@ -108,6 +108,7 @@ from .bundle import (
     MapData,
     _read_small_file,
     _sha256,
+    load_npy,
     publish,
     read_manifest,
     validate_name,
@@ -516,7 +517,7 @@ def _array_problems(
     if checksums and _sha256(apath) != entry.sha256:
         return [f"{entry.file}: checksum mismatch (corrupt)"]
     try:
-        arr = np.load(apath, mmap_mode="r", allow_pickle=False)
+        arr = load_npy(apath, mmap_mode="r")
     except Exception as exc:  # noqa: BLE001 - any failure to parse the .npy is corruption
         return [f"{entry.file}: unreadable .npy ({exc})"]
     if (
@@ -578,9 +579,9 @@ class SubmapSet:
                 raise BundleError(f"sub-map set {self.path}: {problems[0]}")
             file = self.path / m.arrays[aname].file
             if aname == "vote_desc":  # only the index built from it stays in memory
-                a[aname] = np.load(file, mmap_mode="r", allow_pickle=False)
+                a[aname] = load_npy(file, mmap_mode="r")
             else:
-                a[aname] = np.load(file, allow_pickle=False)
+                a[aname] = load_npy(file)
         K = len(m.parts)
         for aname, n in (
             ("part_images_ptr", K + 1),
@@ -650,7 +651,7 @@ class SubmapSet:
         entry = self.manifest.arrays.get(points_array(k))
         if entry is None:
             raise BundleError(f"sub-map set {self.path}: no {points_array(k)} array")
-        arr = np.load(self.path / entry.file, allow_pickle=False)
+        arr = load_npy(self.path / entry.file)
         if arr.dtype.str != np.dtype(POINTS_SPEC[0]).str or arr.ndim != 1:
             raise BundleError(f"sub-map set {self.path}: {entry.file} has the wrong dtype/shape")
         return arr
@@ -674,8 +675,8 @@ class SubmapSet:
         pdir = self.path / self.manifest.parts[0].folder
         m = read_manifest(pdir)
         try:
-            mean = np.load(pdir / m.arrays["pca_mean"].file, allow_pickle=False)
-            basis = np.load(pdir / m.arrays["pca_basis"].file, allow_pickle=False)
+            mean = load_npy(pdir / m.arrays["pca_mean"].file)
+            basis = load_npy(pdir / m.arrays["pca_basis"].file)
         except (KeyError, OSError, ValueError) as exc:
             raise BundleError(f"sub-map set {self.path}: cannot read the PCA ({exc})") from None
         return Pca(np.asarray(mean, np.float32), np.asarray(basis, np.float32))
