@@ -75,6 +75,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import signal
     import sys
     import threading
 
@@ -97,8 +98,22 @@ def run(args: argparse.Namespace) -> int:
         )
     except OSError as exc:
         raise InputError(f"cannot listen on {args.host}:{args.port}: {exc.strerror}") from None
+    # SIGINT and SIGTERM stop it, by handlers of its own (as `sfmloc serve` and `router`): a
+    # command started in the background of a script (`make test &`) inherits SIGINT ignored,
+    # and Python then raises no KeyboardInterrupt: the viewer ignored Ctrl-C and kill -INT
+    # (test_view_command_serves_until_interrupted failed in every such full-suite run).
+    stop = threading.Event()
+    caught: list[int] = []
+
+    def on_signal(signum: int, _frame: object) -> None:
+        caught.append(signum)
+        stop.set()
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, on_signal)
     with zenoh.open(zenoh_config(args)) as z, PoseFeed(z, state), viewer:
         maps = ", ".join(sorted(viewer.maps())) or "none yet"
         print(f"sfmloc view on {viewer.url} (maps: {maps}); Ctrl-C stops", file=sys.stderr)
-        threading.Event().wait()  # until interrupted (main turns Ctrl-C into exit 130)
-    return 0
+        stop.wait()
+    print(f"sfmloc view: stopped ({signal.Signals(caught[0]).name})", file=sys.stderr)
+    return 128 + caught[0]  # as the shell reports a command a signal ended (Ctrl-C: 130)
