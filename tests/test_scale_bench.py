@@ -133,3 +133,85 @@ def test_pin_process_pins_every_thread_of_this_process():
         stop.set()
         t.join()
     assert os.sched_getaffinity(0) == before
+
+
+def _bench_world(world):
+    """The test world as the reliability/scale benches' ``World``."""
+    import numpy as np
+
+    from sfmloc.bench.reliability import World
+    from sfmloc.map.bundle import MapBundle
+
+    return World(
+        maps_dir=world.maps_dir,
+        camera=world.camera_spec,
+        gray=world.gray,
+        gt_cam_from_world=[np.asarray(g.matrix()) for g in world.gt_cam_from_world],
+        scene_scale=MapBundle(world.maps_dir / "room", verify=False).scene_scale,
+    )
+
+
+def _stream(bw, endpoint: str, client_id: str, stamp_hz: float | None, frames: int = 8):
+    """A lockstep StreamClient against the server at ``endpoint`` until ``frames`` answers."""
+    import threading
+    import time
+
+    from sfmloc.bench.reliability import StreamClient
+    from sfmloc.bench.scale import wait_warm
+
+    stop = threading.Event()
+    c = StreamClient(bw, endpoint, client_id, stop, stamp_hz=stamp_hz)
+    t_wall0 = time.time_ns()
+    c.start()
+    assert c.ready.wait(60), c.failure
+    waited = wait_warm([c], frames, 90)
+    assert len(c.log.answered) >= frames, (waited, c.failure)
+    assert waited < 90
+    stop.set()
+    c.join(30)
+    assert c.failure is None, c.failure
+    assert len(c.log.answered) >= frames, f"{len(c.log.answered)} answers"
+    return c, t_wall0, time.time_ns()
+
+
+def test_lockstep_frames_carry_the_video_clock_not_the_send_time(world):
+    """--stamps video (the scale bench's default): frame k is stamped k / stamp_hz after the
+    first, whatever the server's latency (the engine sees the clip's own motion); without
+    stamp_hz each is stamped when sent (the server's latency becomes the camera's speed)."""
+    from sfmloc.bench.scale import frame_mix
+    from sfmloc.testing import ServerProcess
+
+    bw = _bench_world(world)
+    with ServerProcess(world.maps_dir, workers=1) as sp:
+        video, w0, w1 = _stream(bw, sp.endpoint, "stamps-video", 30.0)
+        wall, v0, v1 = _stream(bw, sp.endpoint, "stamps-wall", None)
+    st = {q: a["stamp_ns"] for q, a in video.log.answers.items()}
+    first = st[0]
+    assert w0 <= first <= w1
+    assert all(st[q] - first == round(q * 1e9 / 30.0) for q in st), st
+    # the server's answers are what it localized with that stamp: poses, not errors
+    assert len(video.log.localized) >= len(st) // 2
+    sw = {q: a["stamp_ns"] for q, a in wall.log.answers.items()}
+    assert all(v0 <= t <= v1 for t in sw.values())
+    # lockstep: frame q+1 is sent after frame q's answer, its wall stamp after q's receipt
+    for q in sorted(sw)[:-1]:
+        if q + 1 in sw:
+            assert sw[q + 1] > sw[q]
+    mix = frame_mix([video], 0.0, float("inf"))
+    assert sum(mix["matching"].values()) == len(video.log.answered)
+    assert mix["interval_ms_mean"] > 0
+
+
+def test_alone_gives_each_server_the_clients_it_owns_together():
+    from sfmloc.bench.scale import owned_clients
+    from sfmloc_client.placement import rendezvous_owner
+
+    ids = ["s0", "s1", "s2"]
+    clients = [f"scale-client-{i}" for i in range(12)]
+    got = owned_clients("room", clients, ids)
+    assert sorted(c for cs in got.values() for c in cs) == sorted(clients)  # a partition
+    for sid, cs in got.items():
+        assert all(rendezvous_owner("room", c, ids) == sid for c in cs)
+    # the bench's 12 clients do not spread 4/4/4: alone must not assume they do
+    assert sorted(len(cs) for cs in got.values()) != [4, 4, 4]
+    assert owned_clients("room", [], ids) == {"s0": [], "s1": [], "s2": []}

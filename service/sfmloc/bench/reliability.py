@@ -356,9 +356,16 @@ class StreamClient(threading.Thread):
         timeout: float = 5.0,
         server: str | None = None,
         more_endpoints: tuple[str, ...] = (),
+        stamp_hz: float | None = None,
     ) -> None:
         super().__init__(daemon=True, name=client_id)
         self.world, self.endpoint, self.stop_ev = world, endpoint, stop
+        # Frame k's stamp: None, the wall clock when sent; else the video's own clock, the
+        # first frame's send time + k / stamp_hz. The frames are a fixed clip (one video frame
+        # of motion apart, whenever sent): stamped when sent in lockstep, the engine sees the
+        # camera's speed change with the server's latency and works harder when it is slow
+        # (bench/scale.py, "stamps").
+        self.stamp_hz = stamp_hz
         self.rate_hz, self.timeout = rate_hz, timeout
         # Several servers (bench/scale.py): FrameStreamer(server=...) and every endpoint.
         self.server, self.endpoints = server, (endpoint, *more_endpoints)
@@ -388,6 +395,7 @@ class StreamClient(threading.Thread):
                 "inliers": p.inliers,
                 "error": None if p.error is None else p.error.code,
                 "message": p.message[:120],
+                "stamp_ns": p.stamp_ns,
             }
             lg.answers[p.seq] = rec
             lg.dropped = max(lg.dropped, p.dropped)
@@ -431,11 +439,16 @@ class StreamClient(threading.Thread):
                 raise RuntimeError("no server subscribed to the frames")
             self._fs = fs
             self.ready.set()
-            seq, t_next = 0, time.monotonic()
+            seq, t_next, t0_ns = 0, time.monotonic(), time.time_ns()
             while not self.stop_ev.is_set():
                 self.log.sent[seq] = time.monotonic()
                 fs.publish(
-                    data=self.world.gray[pingpong(n, seq)].tobytes(), encoding="gray8", seq=seq
+                    data=self.world.gray[pingpong(n, seq)].tobytes(),
+                    encoding="gray8",
+                    seq=seq,
+                    stamp_ns=None
+                    if self.stamp_hz is None
+                    else t0_ns + round(seq * 1e9 / self.stamp_hz),
                 )
                 # where it went and whether it carried the handover prior (what publish() did)
                 self.log.sent_to[seq] = (fs.server, fs._handover_prior(fs.server) is not None)

@@ -101,6 +101,7 @@ def _clients(
     ids: list[str],
     stop: threading.Event,
     rate_hz: float | None,
+    stamp_hz: float | None = None,
 ) -> list[StreamClient]:
     cl = [
         StreamClient(
@@ -111,6 +112,7 @@ def _clients(
             rate_hz=rate_hz,
             server="auto",
             more_endpoints=tuple(endpoints[1:]),
+            stamp_hz=stamp_hz,
         )
         for cid in ids
     ]
@@ -147,6 +149,77 @@ class CpuMeter:
         out["machine"] = _machine_cpu_s()
         return out
 
+    def threads(self) -> dict[str, dict[str, float]]:
+        """Per thread kind of the servers (summed over servers): CPU seconds and voluntary /
+        involuntary context switches so far, keyed by process name / thread name (workers,
+        zygote, the server's Zenoh runtime threads, pumps ...): where the servers' CPU goes."""
+        out: dict[str, dict[str, float]] = {}
+        for k, pids in self.groups.items():
+            if k == "clients":
+                continue
+            for pid in pids:
+                for key, row in _thread_rows(pid).items():
+                    acc = out.setdefault(key, {"cpu_s": 0.0, "vcs": 0.0, "ivcs": 0.0, "n": 0})
+                    for f in ("cpu_s", "vcs", "ivcs", "n"):
+                        acc[f] += row[f]
+        return out
+
+
+def _thread_rows(pid: int) -> dict[str, dict[str, float]]:
+    """``{"process/thread": {cpu_s, vcs, ivcs, n}}`` of every thread of ``pid`` (Linux /proc;
+    empty once it is gone). Thread names are grouped without their trailing digits."""
+    import re
+
+    tck = os.sysconf("SC_CLK_TCK")
+    rows: dict[str, dict[str, float]] = {}
+    try:
+        with open(f"/proc/{pid}/comm") as f:
+            pname = f.read().strip()
+        tids = os.listdir(f"/proc/{pid}/task")
+    except OSError:
+        return rows
+    for tid in tids:
+        try:
+            with open(f"/proc/{pid}/task/{tid}/stat") as f:
+                head, rest = f.read().rsplit(")", 1)
+            tname = head.split("(", 1)[1]
+            fields = rest.split()
+            cpu = (int(fields[11]) + int(fields[12])) / tck
+            vcs = ivcs = 0
+            with open(f"/proc/{pid}/task/{tid}/status") as f:
+                for line in f:
+                    if line.startswith("voluntary_ctxt_switches"):
+                        vcs = int(line.split()[1])
+                    elif line.startswith("nonvoluntary_ctxt_switches"):
+                        ivcs = int(line.split()[1])
+        except (OSError, ValueError, IndexError):
+            continue
+        key = f"{pname}/{re.sub(r'[-_ ]?[0-9]+$', '', tname)}"
+        acc = rows.setdefault(key, {"cpu_s": 0.0, "vcs": 0.0, "ivcs": 0.0, "n": 0})
+        acc["cpu_s"] += cpu
+        acc["vcs"] += vcs
+        acc["ivcs"] += ivcs
+        acc["n"] += 1
+    return rows
+
+
+def thread_rows_delta(
+    t0: dict[str, dict[str, float]], t1: dict[str, dict[str, float]], poses: int
+) -> dict[str, dict[str, float]]:
+    """Per thread kind between two ``CpuMeter.threads`` samples, per answered pose: CPU ms and
+    context switches (voluntary: it waited; involuntary: it was preempted)."""
+    out = {}
+    for key, b in t1.items():
+        a = t0.get(key, {"cpu_s": 0.0, "vcs": 0.0, "ivcs": 0.0})
+        n = max(1, poses)
+        out[key] = {
+            "threads": int(b["n"]),
+            "cpu_ms_per_pose": round(1e3 * (b["cpu_s"] - a["cpu_s"]) / n, 3),
+            "vcs_per_pose": round((b["vcs"] - a["vcs"]) / n, 2),
+            "ivcs_per_pose": round((b["ivcs"] - a["ivcs"]) / n, 2),
+        }
+    return dict(sorted(out.items(), key=lambda kv: -kv[1]["cpu_ms_per_pose"]))
+
 
 def cpu_rows(c0: dict[str, float], c1: dict[str, float], dt: float, poses: int) -> dict:
     """Cores used (CPU s per s) and CPU ms per answered pose of each part between two
@@ -159,19 +232,43 @@ def cpu_rows(c0: dict[str, float], c1: dict[str, float], dt: float, poses: int) 
     return {"cores_used": used, "cpu_ms_per_pose": per}
 
 
+# The measured window starts once every client has had this many answers (and warmup_s has
+# passed): a session's first frames cost more than its steady state (synthetic room, engine in
+# process, CPU ms: frame 0 ~220 with global matching, frames 1-7 23-27, from frame 8 on ~17;
+# about 220 ms extra per session). A warm-up in seconds alone covered ~22 frames per client
+# alone (one server on the core, 4 clients) but ~5 together (three servers on that core, 12
+# clients): the start-up of every together session fell inside its window, none of alone's.
+WARMUP_FRAMES = 10
+
+
+def wait_warm(cl: list[StreamClient], frames: int, timeout: float) -> float:
+    """Wait until every client has ``frames`` answers (or ``timeout`` s); the seconds waited."""
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout:
+        if all(len(c.log.answered) >= frames or not c.is_alive() for c in cl):
+            break
+        time.sleep(0.05)
+    return time.monotonic() - t0
+
+
 def _measure(
     cl: list[StreamClient],
     stop: threading.Event,
     warmup_s: float,
     seconds: float,
     meter: CpuMeter | None = None,
+    warmup_frames: int = WARMUP_FRAMES,
+    warmup_timeout: float = 300.0,
 ):
     time.sleep(warmup_s)
+    waited = wait_warm(cl, warmup_frames, warmup_timeout)
     c0 = meter.sample() if meter else None
+    th0 = meter.threads() if meter else None
     t0 = time.monotonic()
     time.sleep(seconds)
     t1 = time.monotonic()
     c1 = meter.sample() if meter else None
+    th1 = meter.threads() if meter else None
     stop.set()
     for c in cl:
         c.join(15)
@@ -180,8 +277,38 @@ def _measure(
     if c0 is not None and c1 is not None:
         # poses answered in the window (what the servers' CPU of the window produced)
         answered = sum(sum(1 for t in c.log.answered.values() if t0 <= t <= t1) for c in cl)
-        cpu = {**cpu_rows(c0, c1, t1 - t0, answered), "answered_in_window": answered}
+        cpu = {
+            **cpu_rows(c0, c1, t1 - t0, answered),
+            "answered_in_window": answered,
+            "warmup_s": warmup_s + waited,
+        }
+        if th0 is not None and th1 is not None:
+            cpu["server_threads"] = thread_rows_delta(th0, th1, answered)
+        cpu["frames"] = frame_mix(cl, t0, t1)
     return per, t1 - t0, cpu
+
+
+def frame_mix(cl: list[StreamClient], t0: float, t1: float) -> dict:
+    """What the engine did with the frames answered in [t0, t1] (how they were matched:
+    GLOBAL is a relocalization, the costly kind) and the clients' frame intervals (send to
+    send): their mean and coefficient of variation, what the engine sees of the camera's
+    motion when frames are stamped when sent."""
+    kinds: dict[str, int] = {}
+    gaps: list[float] = []
+    for c in cl:
+        lg = c.log
+        for q, t in lg.answered.items():
+            if t0 <= t <= t1:
+                k = str((lg.answers.get(q) or {}).get("matching"))
+                kinds[k] = kinds.get(k, 0) + 1
+        sent = sorted(t for t in lg.sent.values() if t0 <= t <= t1)
+        gaps += [b - a for a, b in zip(sent, sent[1:])]
+    g = np.array(gaps)
+    return {
+        "matching": kinds,
+        "interval_ms_mean": float(1e3 * g.mean()) if g.size else None,
+        "interval_cv": float(g.std() / g.mean()) if g.size and g.mean() > 0 else None,
+    }
 
 
 def pinning(ids: list[str], pin: bool, client_core: bool = False) -> dict[str, set[int]] | None:
@@ -224,6 +351,7 @@ def cpu_comparison(alone: list[dict], together: dict) -> dict:
     and together: what a pose costs does not depend on what else runs on the machine, so
     ``servers_cpu_per_pose_together_vs_alone`` near 1 says that several servers on one network
     cost no more per pose than one (the rates may still differ: less CPU for the servers)."""
+    alone = [r for r in alone if r.get("clients", 1)]  # a server that owned no client: not run
     if not together.get("cpu_ms_per_pose") or not all(r.get("cpu_ms_per_pose") for r in alone):
         return {}
 
@@ -244,6 +372,19 @@ def cpu_comparison(alone: list[dict], together: dict) -> dict:
     }
 
 
+def owned_clients(map_name: str, clients: list[str], ids: list[str]) -> dict[str, list[str]]:
+    """The clients each server of ``ids`` owns when all of them serve ``map_name`` (the
+    rendezvous placement the clients' ``server="auto"`` makes)."""
+    from sfmloc_client.placement import rendezvous_owner
+
+    out: dict[str, list[str]] = {sid: [] for sid in ids}
+    for c in clients:
+        owner = rendezvous_owner(map_name, c, ids)
+        if owner is not None:
+            out[owner].append(c)
+    return out
+
+
 def run_alone(
     world: World,
     ids: list[str],
@@ -251,20 +392,28 @@ def run_alone(
     workers: int,
     seconds: float,
     cpus: dict[str, set[int]] | None = None,
+    stamp_hz: float | None = None,
+    warmup_frames: int = WARMUP_FRAMES,
 ):
-    """Each server alone (on its cores) with its share of the clients (lockstep): poses per
-    second."""
+    """Each server alone (on its cores) with the clients it owns in ``together`` (rendezvous
+    placement over ``ids``; lockstep): poses per second. The same clients per server in both
+    parts (12 clients over s0-s2 go 3/6/3, not 4/4/4), so that each server's frames come from
+    as many clients alone as together. A server that owns none is not run (0 poses/s)."""
     rows = []
-    share = max(1, len(clients) // len(ids))
-    for k, sid in enumerate(ids):
-        _log(f"scale alone: server {sid} with {share} lockstep client(s) for {seconds:g} s")
+    owned = owned_clients(world.name, clients, ids)
+    for sid in ids:
+        mine = owned[sid]
+        if not mine:
+            rows.append({"server": sid, "clients": 0, "poses_per_s": 0.0})
+            continue
+        _log(f"scale alone: server {sid} with {len(mine)} lockstep client(s) for {seconds:g} s")
         stop = threading.Event()
         with Servers(world, [sid], workers, cpus) as srv:
-            cl = _clients(world, srv.endpoints, clients[k * share : (k + 1) * share], stop, None)
-            per, dt, cpu = _measure(cl, stop, 2.0, seconds, CpuMeter(srv.procs))
+            cl = _clients(world, srv.endpoints, mine, stop, None, stamp_hz)
+            per, dt, cpu = _measure(cl, stop, 2.0, seconds, CpuMeter(srv.procs), warmup_frames)
         tot = _totals(per)
         rows.append(
-            {"server": sid, "clients": share, "poses_per_s": tot["answered"] / dt, **tot, **cpu}
+            {"server": sid, "clients": len(mine), "poses_per_s": tot["answered"] / dt, **tot, **cpu}
         )
     return rows
 
@@ -276,12 +425,14 @@ def run_together(
     workers: int,
     seconds: float,
     cpus: dict[str, set[int]] | None = None,
+    stamp_hz: float | None = None,
+    warmup_frames: int = WARMUP_FRAMES,
 ) -> dict:
     _log(f"scale together: {len(ids)} servers, {len(clients)} lockstep clients, {seconds:g} s")
     stop = threading.Event()
     with Servers(world, ids, workers, cpus) as srv:
-        cl = _clients(world, srv.endpoints, clients, stop, None)
-        per, dt, cpu = _measure(cl, stop, 2.0, seconds, CpuMeter(srv.procs))
+        cl = _clients(world, srv.endpoints, clients, stop, None, stamp_hz)
+        per, dt, cpu = _measure(cl, stop, 2.0, seconds, CpuMeter(srv.procs), warmup_frames)
     tot = _totals(per)
     spread: dict[str, int] = {}
     for p in per:
@@ -389,6 +540,7 @@ def run(args: argparse.Namespace) -> dict:
     clients = [f"scale-client-{i}" for i in range(args.clients)]
     cpus = pinning(ids, args.pin, args.client_core)
     ccores = client_cores(args.pin, args.client_core)
+    stamp_hz = args.stamp_hz if args.stamps == "video" else None
     all_cores = set(os.sched_getaffinity(0))
     out: dict[str, Any] = {
         "servers": args.servers,
@@ -397,14 +549,20 @@ def run(args: argparse.Namespace) -> dict:
         "cores": os.cpu_count(),
         "server_cores": {s: sorted(c) for s, c in cpus.items()} if cpus else "all",
         "client_cores": sorted(ccores) if ccores else "all",
+        "stamps": args.stamps if args.stamps == "wall" else f"video {args.stamp_hz:g} Hz",
+        "warmup_frames": args.warmup_frames,
         "load_before": os.getloadavg()[0],
     }
     if ccores:
         pin_process(ccores)
     if "alone" in args.parts or "together" in args.parts:  # together is judged against alone
-        out["alone"] = run_alone(world, ids, clients, args.workers, args.seconds, cpus)
+        out["alone"] = run_alone(
+            world, ids, clients, args.workers, args.seconds, cpus, stamp_hz, args.warmup_frames
+        )
     if "together" in args.parts:
-        together = run_together(world, ids, clients, args.workers, args.seconds, cpus)
+        together = run_together(
+            world, ids, clients, args.workers, args.seconds, cpus, stamp_hz, args.warmup_frames
+        )
         total_alone = sum(r["poses_per_s"] for r in out["alone"])
         share = core_share(out["alone"], cpus)
         out["together"] = together
@@ -483,6 +641,24 @@ def parser() -> argparse.ArgumentParser:
         "together and the servers share the others, so that the servers have the same cores in "
         "both parts (default on; --no-client-core: the clients float over every core, free in "
         "alone, taken from the servers together)",
+    )
+    p.add_argument(
+        "--stamps",
+        choices=("video", "wall"),
+        default="video",
+        help="lockstep frames' stamps in alone and together: 'video' (default), the clip's own "
+        "clock (frame k at k/--stamp-hz s), so the engine does the same work per frame however "
+        "slow the servers are; 'wall', the time each was sent (the engine then sees the camera "
+        "move faster when the servers are slower: more relocalizations and second starts, "
+        "more CPU per pose together than alone)",
+    )
+    p.add_argument("--stamp-hz", type=float, default=30.0, help="the video clock (30 Hz)")
+    p.add_argument(
+        "--warmup-frames",
+        type=int,
+        default=WARMUP_FRAMES,
+        help="alone and together: the window starts once every client has had this many "
+        f"answers (and 2 s passed): sessions' costlier first frames stay out ({WARMUP_FRAMES})",
     )
     p.add_argument("--out", help="write the results as JSON here too")
     p.add_argument(
