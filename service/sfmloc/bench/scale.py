@@ -4,8 +4,8 @@ Zenoh network, clients with ``server="auto"`` (one owner per session, placement.
 Parts, each with real server processes on loopback (peer mode, no multicast; every server
 connects to the ones started before it, clients to all):
 
-- ``alone``: each server by itself with its share of the clients in lockstep (next frame when
-  the previous pose is back): the poses per second one server delivers.
+- ``alone``: each server by itself with the clients it owns in ``together``, in lockstep (next
+  frame when the previous pose is back): the poses per second one server delivers.
 - ``together``: all servers and all clients in lockstep: total poses per second against the
   sum of ``alone``, every frame answered exactly once (duplicates counted), how the clients
   spread over the servers.
@@ -24,6 +24,11 @@ what its core delivers; ``together_vs_core_share`` divides each server's rate al
 number of servers on its core (3 servers on 2 cores: two share one) and is the issue's "within
 10% of the sum of what the servers deliver alone"; ``together_vs_sum_alone`` is the plain
 ratio. The ``kill`` part is not pinned: the survivors may use the killed server's core.
+
+Like with like: in both parts the window starts once every client has had ``--warmup-frames``
+answers (sessions' first frames cost more), and lockstep frames carry the clip's own clock
+(``--stamps video``): stamped when sent, slower servers looked like a faster camera to the
+engine (more global matching per pose, the more so the busier the machine).
 
 The clients are threads of this process (each its own Zenoh session) and cost CPU too (1.5-2 ms
 per pose: frames out, poses in, each pose checked against the ground truth). With
