@@ -162,6 +162,22 @@ class Collected:
         return len(self.items)
 
 
+@contextlib.contextmanager
+def streaming_client(endpoint: str, world: World, client_id: str, map_name: str = "room"):
+    """A client on its own Zenoh session to ``endpoint``: a ``FrameStreamer`` (yielded once a
+    server takes its frames) and a ``Collected`` of its poses, ``(fs, got)``."""
+    from sfmloc_client import FrameStreamer, PoseSubscriber
+
+    got = Collected()
+    with (
+        client_zenoh(endpoint) as z,
+        PoseSubscriber(z, map_name, client_id, callback=got.append),
+        FrameStreamer(z, map_name, client_id, camera(world)) as fs,
+    ):
+        assert fs.wait_for_server(30), "no server subscribed to the frames"
+        yield fs, got
+
+
 def wait_until(pred: Any, timeout: float = 30.0, every: float = 0.02) -> bool:
     """Poll ``pred`` until true, for state with nothing to wait on (another process, a file,
     a remote health status); the tests assert on the outcome, never on the time taken."""

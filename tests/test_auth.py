@@ -9,15 +9,10 @@ from pathlib import Path
 
 import pytest
 
-from server_helpers import build_world, camera, running_server, server_config, zenoh_endpoint
+from server_helpers import camera, running_server, server_config, zenoh_endpoint
 from sfmloc.errors import ConfigError
 from sfmloc.server.auth import TokenTable, add_token, token_sha256
 from sfmloc_client import LocalizationClient, RemoteError
-
-
-@pytest.fixture(scope="module")
-def world(tmp_path_factory):
-    return build_world(tmp_path_factory.getbasetemp())
 
 
 @pytest.fixture(scope="module")

@@ -9,25 +9,25 @@ import math
 import numpy as np
 import pytest
 
-from server_helpers import build_world
-
 
 @pytest.fixture(scope="module")
-def world(tmp_path_factory):
-    return build_world(tmp_path_factory.getbasetemp())
-
-
-def test_reliability_tiny_run_computes_every_field(world, tmp_path):
+def w(world):
+    """The synthetic world as the reliability measurement takes it."""
     from sfmloc.bench import reliability as rel
     from sfmloc.map.bundle import MapBundle
 
-    w = rel.World(
+    return rel.World(
         maps_dir=world.maps_dir,
         camera=world.camera_spec,
         gray=world.gray,
         gt_cam_from_world=[np.asarray(g.matrix()) for g in world.gt_cam_from_world],
         scene_scale=MapBundle(world.maps_dir / "room", verify=False).scene_scale,
     )
+
+
+def test_reliability_tiny_run_computes_every_field(world, w, tmp_path):
+    from sfmloc.bench import reliability as rel
+
     # The exact ground truth scores itself as right, and a pose 10% of the scene off as wrong.
     assert not rel.pose_is_wrong(0.0, 0.0) and rel.pose_is_wrong(0.1, 0.0)
     assert [rel.pingpong(4, k) for k in range(8)] == [0, 1, 2, 3, 2, 1, 0, 1]
@@ -94,18 +94,10 @@ def test_reliability_tiny_run_computes_every_field(world, tmp_path):
     assert any(line.startswith("bundle: refused by verify / load") for line in lines)
 
 
-def test_reliability_reloc_part_computes_every_field(world, tmp_path):
+def test_reliability_reloc_part_computes_every_field(w, tmp_path):
     """The isolation part (issue 16): streams alone, then beside Relocalize callers."""
     from sfmloc.bench import reliability as rel
-    from sfmloc.map.bundle import MapBundle
 
-    w = rel.World(
-        maps_dir=world.maps_dir,
-        camera=world.camera_spec,
-        gray=world.gray,
-        gt_cam_from_world=[np.asarray(g.matrix()) for g in world.gt_cam_from_world],
-        scene_scale=MapBundle(world.maps_dir / "room", verify=False).scene_scale,
-    )
     images = rel.reloc_images(w, 256)
     assert [(k, e) for k, e, _, _ in images] == [("blank", "png"), ("textured", "jpeg")]
     assert all(c.split()[1:3] == ["256", "256"] for *_, c in images)
@@ -140,19 +132,11 @@ def test_reliability_reloc_part_computes_every_field(world, tmp_path):
     assert any(line.startswith("reloc: p99 latency") for line in rel.table(res))
 
 
-def test_reliability_restart_and_soak_parts_compute_every_field(world, tmp_path):
+def test_reliability_restart_and_soak_parts_compute_every_field(w, tmp_path):
     """Server kill -9 and restart under a client and an `sfmloc stream` process; a short soak
     with short-lived `sfmloc stream` processes (issues 12 and 16): the fields, not the targets."""
     from sfmloc.bench import reliability as rel
-    from sfmloc.map.bundle import MapBundle
 
-    w = rel.World(
-        maps_dir=world.maps_dir,
-        camera=world.camera_spec,
-        gray=world.gray,
-        gt_cam_from_world=[np.asarray(g.matrix()) for g in world.gt_cam_from_world],
-        scene_scale=MapBundle(world.maps_dir / "room", verify=False).scene_scale,
-    )
     args = rel.parser().parse_args(
         [
             "--parts",
@@ -200,18 +184,10 @@ def test_reliability_restart_and_soak_parts_compute_every_field(world, tmp_path)
     assert any(ln.startswith("soak: sessions max / left") for ln in lines)
 
 
-def test_gaps_part_feeds_the_engine_an_overloaded_pattern_and_scores_it(world):
+def test_gaps_part_feeds_the_engine_an_overloaded_pattern_and_scores_it(w):
     """The gaps part (no server): every pose it scores, wrong ones with their context."""
     from sfmloc.bench import reliability as rel
-    from sfmloc.map.bundle import MapBundle
 
-    w = rel.World(
-        maps_dir=world.maps_dir,
-        camera=world.camera_spec,
-        gray=world.gray,
-        gt_cam_from_world=[np.asarray(g.matrix()) for g in world.gt_cam_from_world],
-        scene_scale=MapBundle(world.maps_dir / "room", verify=False).scene_scale,
-    )
     g = rel.run_gaps(w, frames=25, seed=3, restart_p=0.2)
     assert g["frames"] == 25 and g["restarts"] >= 1
     assert 0 < g["posed"] <= 25 and g["wrong"] == len(g["wrong_detail"])

@@ -17,14 +17,9 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from server_helpers import build_world, free_port, wait_until, zenoh_endpoint
+from server_helpers import free_port, wait_until, zenoh_endpoint
 from sfmloc.cameras import Camera
 from sfmloc.map.bundle import MapBundle, verify_bundle
-
-
-@pytest.fixture(scope="module")
-def world(tmp_path_factory):
-    return build_world(tmp_path_factory.getbasetemp())
 
 
 # ----------------------------------------------------------------------------- assignment

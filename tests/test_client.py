@@ -14,7 +14,6 @@ import pytest
 import zenoh
 
 from server_helpers import (
-    build_world,
     camera,
     client_zenoh,
     running_server,
@@ -370,11 +369,6 @@ def test_zenoh_config_builder():
 
 
 # ----------------------------------------------------------------------------- against a server
-@pytest.fixture(scope="module")
-def world(tmp_path_factory):
-    return build_world(tmp_path_factory.getbasetemp())
-
-
 @pytest.fixture(scope="module")
 def server(world):
     ep = zenoh_endpoint()

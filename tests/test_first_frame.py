@@ -11,13 +11,8 @@ import threading
 import pytest
 import zenoh
 
-from server_helpers import build_world, camera, running_server, server_config, zenoh_endpoint
+from server_helpers import camera, running_server, server_config, zenoh_endpoint
 from sfmloc_client import FrameStreamer, PoseSubscriber, SourceFrame, make_zenoh_config
-
-
-@pytest.fixture(scope="module")
-def world(tmp_path_factory):
-    return build_world(tmp_path_factory.getbasetemp())
 
 
 def test_a_client_started_before_its_server_loses_no_frame_silently(world, caplog):

@@ -13,15 +13,7 @@ import time
 
 import pytest
 
-from server_helpers import (
-    Collected,
-    camera,
-    client_zenoh,
-    running_server,
-    server_config,
-    zenoh_endpoint,
-)
-from sfmloc_client import FrameStreamer, PoseSubscriber
+from server_helpers import running_server, server_config, streaming_client, zenoh_endpoint
 
 BUDGET_MS = 3000.0  # far above a frame at load 20 (first frames: ~100 ms CPU)
 HANG_MS = 10000.0  # a frame in the works is answered DEADLINE_EXCEEDED only past this
@@ -59,13 +51,7 @@ def test_a_starved_worker_costs_its_frames_an_error_not_an_answer_late(world, ze
     the one queued behind it at the budget); once it runs again, the stale frames it finds are
     dropped unworked and their results are no second answer; poses resume."""
     pool, sessions = srv.server.pool, srv.server.sessions
-    got = Collected()
-    with (
-        client_zenoh(zep) as z,
-        PoseSubscriber(z, "room", "starved", callback=got.append),
-        FrameStreamer(z, "room", "starved", camera(world)) as fs,
-    ):
-        assert fs.wait_for_server(30)
+    with streaming_client(zep, world, "starved") as (fs, got):
         for seq in range(3):
             assert _send(fs, world, got, seq).error is None
         pid = pool.workers[0].pid
@@ -96,14 +82,8 @@ def test_a_frame_over_its_cpu_budget_is_stopped_and_the_worker_goes_on(world, ze
     DEADLINE_EXCEEDED, the worker lives on, and the session relocalizes on its next frame."""
     pool, sessions = srv.server.pool, srv.server.sessions
     pid = pool.workers[0].pid
-    got = Collected()
     normal = sessions.frame_cpu_budget_ms
-    with (
-        client_zenoh(zep) as z,
-        PoseSubscriber(z, "room", "heavy", callback=got.append),
-        FrameStreamer(z, "room", "heavy", camera(world)) as fs,
-    ):
-        assert fs.wait_for_server(30)
+    with streaming_client(zep, world, "heavy") as (fs, got):
         assert _send(fs, world, got, 0).localized
         sessions.frame_cpu_budget_ms = 1.0  # any real frame needs more
         try:
@@ -132,13 +112,7 @@ def test_a_frame_in_the_works_past_its_budget_still_gets_its_pose(world, zep, sr
     934 short-lived clients); the session tracks on."""
     pool, sessions = srv.server.pool, srv.server.sessions
     late_before = sessions.late_results
-    got = Collected()
-    with (
-        client_zenoh(zep) as z,
-        PoseSubscriber(z, "room", "slowed", callback=got.append),
-        FrameStreamer(z, "room", "slowed", camera(world)) as fs,
-    ):
-        assert fs.wait_for_server(30)
+    with streaming_client(zep, world, "slowed") as (fs, got):
         pid = pool.workers[0].pid
         cpu0 = _cpu_s(pid)
         # The first frame of a session relocalizes (~100 ms CPU and more): stop the worker once

@@ -7,16 +7,9 @@ from __future__ import annotations
 import json
 
 import numpy as np
-import pytest
 
-from server_helpers import build_world
 from sfmloc.cameras import Camera
 from sfmloc.transforms import Rigid3d, rotmat_from_rotvec
-
-
-@pytest.fixture(scope="module")
-def world(tmp_path_factory):
-    return build_world(tmp_path_factory.getbasetemp())
 
 
 def _unit(x: np.ndarray) -> np.ndarray:

@@ -5,10 +5,7 @@ from __future__ import annotations
 
 import logging
 
-import pytest
-
 from server_helpers import (
-    build_world,
     client_zenoh,
     running_server,
     server_config,
@@ -81,11 +78,6 @@ def test_log_limiter_caps_lines_and_summarizes(caplog):
     f = summary[0].fields
     assert f["count"] == 997 + 953 and f["codes"] == {"INVALID_ARGUMENT": 1950}
     assert f["top_clients"][0] == "loud"
-
-
-@pytest.fixture(scope="module")
-def world(tmp_path_factory):
-    return build_world(tmp_path_factory.getbasetemp())
 
 
 def test_a_flood_is_refused_logged_in_summary_and_others_are_served(world, caplog):

@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from server_helpers import build_world
 from sfmloc.cameras import Camera
 from sfmloc.engine import EngineConf, Localizer
 from sfmloc.engine.motion_filter import DecoupledPoseFilter, Se3PoseFilter, se3_exp, se3_log
@@ -184,11 +183,6 @@ def test_renamed_settings_are_clear_errors():
 
 
 # ----------------------------------------------------------------------------- the engine
-@pytest.fixture(scope="module")
-def world(tmp_path_factory):
-    return build_world(tmp_path_factory.getbasetemp())
-
-
 def test_scaled_rooms_behave_identically(world):
     """The room at 0.01x and 100x (map points, mapping poses and ground truth; the same
     images) gives the same statuses and the same errors relative to the scene. The walk moves

@@ -13,7 +13,6 @@ import numpy as np
 import pytest
 
 from server_helpers import (
-    build_world,
     camera,
     client_zenoh,
     running_server,
@@ -26,11 +25,6 @@ from sfmloc_client.grpc_client import relocalize_request
 from sfmloc_client.pb.localization_pb2_grpc import LocalizationStub
 
 SIDE = 4096
-
-
-@pytest.fixture(scope="module")
-def world(tmp_path_factory):
-    return build_world(tmp_path_factory.getbasetemp())
 
 
 def big_camera(

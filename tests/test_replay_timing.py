@@ -10,7 +10,6 @@ import shutil
 import numpy as np
 import pytest
 
-from server_helpers import build_world
 from sfmloc.cameras import Camera
 from sfmloc.errors import InputError
 from sfmloc.eval.replay import replay
@@ -18,11 +17,6 @@ from sfmloc.io.frames import FrameSource
 from sfmloc.map.bundle import MapBundle
 
 N = 24  # frames replayed per clock
-
-
-@pytest.fixture(scope="module")
-def world(tmp_path_factory):
-    return build_world(tmp_path_factory.getbasetemp())
 
 
 def _folder(tmp_path, world, names, indices=None):

@@ -18,7 +18,6 @@ import zenoh
 
 from server_helpers import (
     Collected,
-    build_world,
     camera,
     client_zenoh,
     free_port,
@@ -46,11 +45,6 @@ from sfmloc_client import (
 from sfmloc_client.discovery import list_server_ids
 from sfmloc_client.errors import CameraModelError
 from sfmloc_client.wire import frame_key, map_announce_key
-
-
-@pytest.fixture(scope="module")
-def world(tmp_path_factory):
-    return build_world(tmp_path_factory.getbasetemp())
 
 
 @pytest.fixture(scope="module")

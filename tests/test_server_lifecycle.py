@@ -14,7 +14,6 @@ import grpc
 import pytest
 
 from server_helpers import (
-    build_world,
     camera,
     client_zenoh,
     free_port,
@@ -28,11 +27,6 @@ from sfmloc import errors as E
 from sfmloc.testing import serve_command
 from sfmloc_client import LocalizationClient
 from sfmloc_client.discovery import list_server_ids
-
-
-@pytest.fixture(scope="module")
-def world(tmp_path_factory):
-    return build_world(tmp_path_factory.getbasetemp())
 
 
 # ----------------------------------------------------------------------------- start-up

@@ -14,15 +14,9 @@ import threading
 from pathlib import Path
 
 import cv2
-import pytest
 
-from server_helpers import build_world, wait_until
+from server_helpers import wait_until
 from sfmloc.testing import ServerProcess, serve_command
-
-
-@pytest.fixture(scope="module")
-def world(tmp_path_factory):
-    return build_world(tmp_path_factory.getbasetemp())
 
 
 def _children(pid: int) -> list[int]:

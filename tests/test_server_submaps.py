@@ -11,18 +11,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from server_helpers import build_world, camera, client_zenoh, wait_until
+from server_helpers import camera, client_zenoh, wait_until
 from sfmloc.errors import ConfigError
 from sfmloc.map.bundle import MapBundle
 from sfmloc.map.submaps import SubmapSet, part_folder, split_bundle
 from sfmloc.server.grpc_service import SERVICE_NAME
 from sfmloc.server.submaps import check_set, resident_map_bytes
 from sfmloc.testing import ServerProcess, free_port
-
-
-@pytest.fixture(scope="module")
-def world(tmp_path_factory):
-    return build_world(tmp_path_factory.getbasetemp())
 
 
 @pytest.fixture(scope="module")

@@ -13,9 +13,7 @@ import os
 import subprocess
 import sys
 
-import pytest
-
-from server_helpers import build_world, free_port, zenoh_endpoint
+from server_helpers import free_port, zenoh_endpoint
 from sfmloc.testing import serve_command
 
 N_WARMUP, N_CLIENTS, N_FRAMES = 3, 20, 3
@@ -71,11 +69,6 @@ def _shm_segments(pids: list[int]) -> set[str]:
         with open(f"/proc/{pid}/maps") as f:
             held |= {line.split()[-1] for line in f if "/dev/shm/" in line}
     return held
-
-
-@pytest.fixture(scope="module")
-def world(tmp_path_factory):
-    return build_world(tmp_path_factory.getbasetemp())
 
 
 def test_server_memory_does_not_grow_with_clients_that_come_and_go(world, tmp_path):

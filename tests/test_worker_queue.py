@@ -11,7 +11,6 @@ import time
 import pytest
 
 from server_helpers import (
-    build_world,
     camera,
     client_zenoh,
     running_server,
@@ -21,11 +20,6 @@ from server_helpers import (
 from sfmloc_client import FrameStreamer, PoseSubscriber
 
 CLIENTS, FRAMES = 3, 30
-
-
-@pytest.fixture(scope="module")
-def world(tmp_path_factory):
-    return build_world(tmp_path_factory.getbasetemp())
 
 
 def _flood(world, queue: int) -> tuple[int, dict[str, list]]:

@@ -14,7 +14,6 @@ import pytest
 import zenoh
 
 from server_helpers import (
-    build_world,
     camera,
     running_server,
     server_config,
@@ -27,11 +26,6 @@ from sfmloc_client.discovery import list_server_ids, query_servers
 REPO = Path(__file__).resolve().parents[1]
 SERVER_FILE = REPO / "docker" / "zenoh-server-acl.json5"
 DEVICE_FILE = REPO / "docker" / "zenoh-device.json5"
-
-
-@pytest.fixture(scope="module")
-def world(tmp_path_factory):
-    return build_world(tmp_path_factory.getbasetemp())
 
 
 def _openssl(*args: str, cwd: Path) -> None:

@@ -11,7 +11,6 @@ import threading
 
 import pytest
 
-from server_helpers import build_world
 from sfmloc.bench.transport import _child_pids
 from sfmloc.server import protocol as P
 from sfmloc.server.pool import WorkerPool
@@ -26,11 +25,6 @@ def _ppid(pid: int) -> int:
 def _zombies(parent: int) -> list[str]:
     out = subprocess.run(["ps", "-o", "stat=", "--ppid", str(parent)], capture_output=True)
     return [s for s in out.stdout.decode().split() if s.startswith("Z")]
-
-
-@pytest.fixture(scope="module")
-def world(tmp_path_factory):
-    return build_world(tmp_path_factory.mktemp("zygote-world"))
 
 
 @pytest.fixture
