@@ -452,6 +452,21 @@ class EngineConf(StrictModel):
     # search went part by part); 2 from the frame that lost its part on (with the vote's ratio
     # test), 313.
     submap_lost_parts: int = Field(2, ge=1, le=16)
+    # CPU time (this thread's, ms) a frame without a pose may spend matching parts before it
+    # is answered LOST: after ``submap_lost_parts`` parts, further parts in the order of the
+    # vote while the frame's search has used less than this (0: ``submap_lost_parts`` only).
+    # CPU, not wall time: on a shared machine the wall time of a try varies tenfold with the
+    # load, and the number of parts a frame meets must not. A part that does not hold the
+    # frame costs a full RANSAC (1000 iterations, no pose stops it early): 200-250 ms CPU per
+    # part on the 24 rooms at load 20 (this 2-core Xeon). 24 rooms in 72 parts, the camera
+    # teleported from room to room (the sub-map walk alone, with the search order of
+    # ``engine/submaps.py``): 600 ms, the 11 rooms around the entries lost before 432/440;
+    # 1000 ms, all 24 rooms 956/960 (3-4 parts a searching frame, ~370 ms CPU each, 0 wrong;
+    # 940 before with 2 parts and the old order). Only frames of a session without a pose pay
+    # it (room entries, a teleport): tracked frames never search.
+    submap_search_cpu_ms: float = Field(1000.0, ge=0.0)
+    # The hard cap on the parts one lost frame meets with the CPU budget above.
+    submap_search_max_parts: int = Field(8, ge=1, le=64)
 
     @model_validator(mode="before")
     @classmethod
