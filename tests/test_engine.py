@@ -18,6 +18,7 @@ from sfmloc.engine.pose import (
     estimate_pose,
     estimate_pose_one_to_many,
     pose_covariance,
+    pose_covariances,
     pose_error_vector,
     project,
     reprojection_errors,
@@ -634,8 +635,80 @@ def test_no_wrong_tracked_pose_when_the_motion_prediction_overshoots(world, bund
 
     bad, posed = wrong(EngineConf())
     assert bad == [] and posed >= 0.97 * len(frames)
-    bad_off, _ = wrong(EngineConf(second_start_dt_ratio=0, ambiguity_check=False))
+    # (the whole-frame re-match of a pose resting on one match, or on a weak consensus of its
+    # tracked matches, catches these frames too: off as well)
+    off = EngineConf(
+        second_start_dt_ratio=0,
+        ambiguity_check=False,
+        covariance_leave_one_out=False,
+        track_consensus=0,
+    )
+    bad_off, _ = wrong(off)
     assert bad_off and all(status == "TRACKING" for _, status in bad_off)
+
+
+def test_no_wrong_tracked_pose_after_a_gap_on_one_influential_wrong_match(world, bundle, cam):
+    """Issue 9 (the reliability bench's gaps pattern, seed 1: a TRACKING pose 5.1% of the scene
+    scale off after a 0.8 s gap, 76 -> 21 inliers, and the two frames tracked from it): after
+    the gap 20 right tracked matches lie on a far wall, which leaves the pose free along one
+    direction (centre sd 8.6% of the scene scale), and one wrong match on a near point fixed
+    it there, wrongly (sd 0.6% with it). Judged without its most influential match the pose
+    is too uncertain, and the whole frame re-matched around it gives the right one. The same
+    frames as the bench (a relocalization after a 1.1 s gap starts them, so a fresh engine
+    replays them exactly), exact ground truth: every frame posed, none wrong; judging all the
+    matches (main d1def86), frames 967, 970 and 971 are wrong."""
+    n = len(world.gray)
+    period = 2 * (n - 1)
+    seqs = [949, 950, 951, 955, 956, 957, 958, 959, 967, 970, 971, 977]
+    limit = 0.05 * bundle.scene_scale
+
+    def replay(conf: EngineConf) -> tuple[list[int], int]:
+        loc = Localizer(bundle, cam, conf)
+        bad, posed = [], 0
+        for seq in seqs:
+            f = seq % period if seq % period < n else period - seq % period
+            r = loc.localize(world.gray[f], seq * 0.1)
+            if r.cam_from_world is None:
+                continue
+            posed += 1
+            dp, dr = pose_errors(r.cam_from_world, world.gt_cam_from_world[f])
+            if dp > limit or dr > 10:
+                bad.append(seq)
+        return bad, posed
+
+    assert replay(EngineConf()) == ([], len(seqs))
+    bad_all, _ = replay(EngineConf(covariance_leave_one_out=False))
+    assert 967 in bad_all
+
+
+def test_leave_one_out_covariance_is_the_covariance_without_the_worst_match():
+    """``pose_covariances``' second matrix is the covariance of the matches without the one
+    whose removal widens the centre's sd most (checked by removing each in turn, at a noise
+    floor that fixes the variance), and a pose resting on one near point among far ones on a
+    plane says so: its sd without it is several times its sd with it."""
+    rng = np.random.default_rng(0)
+    K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
+    pose = Rigid3d(np.eye(3), np.zeros(3))
+    X = rng.uniform([-1, -1, 4], [1, 1, 6], (30, 3))
+    uv = X[:, :2] / X[:, 2:] * 500 + [320, 240] + rng.normal(0, 0.5, (30, 2))
+    cov, loo = pose_covariances(pose, K, uv, X, min_noise_px=2.0)
+    worst = max(
+        (
+            pose_covariance(pose, K, np.delete(uv, i, 0), np.delete(X, i, 0), min_noise_px=2.0)
+            for i in range(30)
+        ),
+        key=lambda c: np.linalg.eigvalsh(c[3:, 3:]).max(),
+    )
+    np.testing.assert_allclose(loo, worst, rtol=1e-8, atol=1e-12)
+    assert np.linalg.eigvalsh(loo[3:, 3:]).max() > np.linalg.eigvalsh(cov[3:, 3:]).max()
+    # 20 points on a far plane and one near point
+    far = np.column_stack([rng.uniform(-3, 3, (20, 2)), np.full(20, 10.0)])
+    X2 = np.vstack([far, [[0.3, 0.2, 1.5]]])
+    uv2 = X2[:, :2] / X2[:, 2:] * 500 + [320, 240] + rng.normal(0, 0.5, (21, 2))
+    cov2, loo2 = pose_covariances(pose, K, uv2, X2)
+    sd = np.sqrt(np.linalg.eigvalsh(cov2[3:, 3:]).max())
+    sd_loo = np.sqrt(np.linalg.eigvalsh(loo2[3:, 3:]).max())
+    assert sd_loo > 3 * sd
 
 
 def test_an_unverified_pose_with_another_solution_nearer_the_motion_is_not_published(
@@ -947,10 +1020,9 @@ def test_engine_config_has_the_paper_defaults_and_env_overrides():
         25,
         10,
     )
-    # batch_max: the paper's 100-150 halved for the p99 (config.py)
     assert (c.batch_min, c.batch_max, c.top_images, c.min_inliers, c.ratio, c.gamma) == (
         100,
-        50,
+        100,
         30,
         10,
         0.75,
@@ -1017,34 +1089,6 @@ def test_a_failed_recovery_and_its_global_matching_describe_and_search_once(
     assert (
         pose_errors(r.cam_from_world, world.gt_cam_from_world[far])[0] < 0.05 * bundle.scene_scale
     )
-
-
-def test_the_trackers_global_matching_scans_global_nprobe_lists(world, bundle, cam, monkeypatch):
-    """The tracker's global matching (a first frame: no tracks, no motion) searches the whole
-    map with ``global_nprobe`` inverted lists, as single-image relocalization does (0: with
-    ``nprobe``), and still finds the pose."""
-    from sfmloc.engine.types import Matching
-
-    search = bundle.index.search
-    probes: list[int | None] = []  # nprobe of each search over the whole map
-
-    def recording_search(q, k, allowed=None, nprobe=None):
-        if allowed is None:
-            probes.append(nprobe)
-        return search(q, k, allowed=allowed, nprobe=nprobe)
-
-    monkeypatch.setattr(bundle.index, "search", recording_search)
-    for conf, want in (
-        (EngineConf(), EngineConf().global_nprobe),
-        (EngineConf(global_nprobe=0), EngineConf().nprobe),
-    ):
-        probes.clear()
-        r = Localizer(bundle, cam, conf).localize(world.gray[0], 0.0)
-        assert r.matching == Matching.GLOBAL and r.status is Status.RELOCALIZED, r.message
-        assert probes and set(probes) == {want}, probes
-        dp, _ = pose_errors(r.cam_from_world, world.gt_cam_from_world[0])
-        assert dp < 0.02 * bundle.scene_scale
-    assert EngineConf().global_nprobe < EngineConf().nprobe
 
 
 def test_recovery_around_the_prediction_with_either_search(world, bundle, cam):

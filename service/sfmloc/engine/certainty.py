@@ -11,7 +11,7 @@ import numpy as np
 from ..map.bundle import MapBundle
 from .config import EngineConf
 from .point_uncertainty import PointUncertainty
-from .pose import PoseEstimate, pose_covariance
+from .pose import PoseEstimate, pose_covariances
 
 
 @dataclass(frozen=True)
@@ -19,20 +19,34 @@ class Certainty:
     covariance: np.ndarray  # 6x6 of cam_from_world (``engine.pose.COVARIANCE_ORDER``)
     position_sd: float  # centre sd in its worst direction, in scene scales (inf: unknown)
     verified: bool  # passes the strict test (``EngineConf.verified_position_sd``)
+    # ``position_sd`` without the pose's most influential match
+    # (``EngineConf.covariance_leave_one_out``; else the same): what it would be if that match
+    # were wrong. The tracker re-matches a frame whose pose would be withheld by it.
+    position_sd_loo: float = float("nan")
 
 
 def certainty(est: PoseEstimate, K: np.ndarray, bundle: MapBundle, conf: EngineConf) -> Certainty:
     """The covariance of ``est`` and what it says about the pose."""
-    cov = covariance(est, K, bundle, conf)
+    cov, loo = covariances(est, K, bundle, conf)
     sd = position_sd(cov) / bundle.scene_scale
-    return Certainty(cov, sd, is_verified(est, sd, conf))
+    sd_loo = position_sd(loo) / bundle.scene_scale
+    return Certainty(cov, sd, is_verified(est, sd, conf), sd_loo)
 
 
 def covariance(est: PoseEstimate, K: np.ndarray, bundle: MapBundle, conf: EngineConf) -> np.ndarray:
     """The pose's 6x6 covariance from its final refinement's inliers (``pose_covariance``),
     with the map points' own uncertainty (``point_uncertainty``) unless switched off."""
+    return covariances(est, K, bundle, conf)[0]
+
+
+def covariances(
+    est: PoseEstimate, K: np.ndarray, bundle: MapBundle, conf: EngineConf
+) -> tuple[np.ndarray, np.ndarray]:
+    """``covariance``, and the same without the most influential match when
+    ``covariance_leave_one_out`` (else the same matrix)."""
     if est.inlier_xy is None or est.inlier_X is None:
-        return np.full((6, 6), np.inf)
+        inf = np.full((6, 6), np.inf)
+        return inf, inf
     extra = None
     if conf.map_noise_px > 0:
         z = est.inlier_X @ est.cam_from_world.rotation[2] + est.cam_from_world.translation[2]
@@ -43,13 +57,14 @@ def covariance(est: PoseEstimate, K: np.ndarray, bundle: MapBundle, conf: Engine
             extra = pu.sigma_px(est.inlier_X, z, conf.map_noise_px)
     # The pixel noise is measured with the final refinement's own Cauchy weights
     # (``refine_loss_scale_px``), as the pose was estimated.
-    return pose_covariance(
+    return pose_covariances(
         est.cam_from_world,
         K,
         est.inlier_xy,
         est.inlier_X,
         point_sigma_px=extra,
         loss_scale=conf.refine_loss_scale_px,
+        leave_one_out=conf.covariance_leave_one_out,
     )
 
 

@@ -42,19 +42,8 @@ class EngineConf(StrictModel):
     # suite's thin maps: every 30th frame 985 -> 989 localized (98.2 -> 98.5% within 5 cm), every
     # 60th 853 -> 851 (84.7 -> 84.3%), 0 wrong either way (before the thin-map changes of
     # 0a01d7f, 100 and 120 gave 5 wrong poses on the every-60th map; 140-151 none).
-    # 100 -> 50 (issue 10, p99; with the lazy guided matching of df61e1b a batch waits for 20
-    # pending keypoints, so halving it spreads the search over more frames, not more queries).
-    # Same run, interleaved, redkitchen 1000 frames, 2 repetitions (load ~20): CPU p99 x0.834,
-    # mean x0.910 (a second run, with the two changes before it: p99 x0.866, mean x1.013); median
-    # 0.269 -> 0.279 cm, within 5 cm / 5 deg 99.8 -> 99.7%, localized 1000 -> 999 (one LOST),
-    # 0 wrong. The median moves that much with any batch size: 60 gives 0.294 cm (p99 x0.92),
-    # 75 0.276 cm (x0.94). Synthetic walk (300 frames): p99 x0.832, mean x0.967, median 0.172
-    # -> 0.171 cm, 0 wrong. Robust rows (300 frames, engine only): 0 new wrong pose on any;
-    # density-6x 237 -> 237 localized, median 1.83 -> 1.87 cm; redkitchen every 30th 300/300,
-    # median 0.52 -> 0.49 cm; every 60th 300/300, 0.56 -> 0.57 cm; walk 3 Hz 29 -> 30
-    # localized; walk 10 Hz 100 -> 100, 1 -> 1 wrong (the known frame).
     batch_min: int = 100
-    batch_max: int = 50
+    batch_max: int = 100
     # Lazy guided matching: fewer pending keypoints than this wait for more (while the frame
     # holds at least refill_3d matches; with fewer, every one is tried at once). A batch pays
     # the whole frame's DAISY preparation and the search's fixed cost whatever its size, and
@@ -393,6 +382,19 @@ class EngineConf(StrictModel):
     # 5.76 / 2.88); redkitchen 1000 frames mean / median 8.1 / 5.2 -> 9.4 / 6.1 (main without
     # the refinement: 9.5 / 6.6; 0.3: 10.9 / 7.1). The 150-frame videos above not re-measured.
     map_noise_px: float = 0.35
+    # A tracked pose whose centre sd without its most influential match (the one whose removal
+    # widens it most; ``pose_covariances``) is over ``max_position_sd`` is re-matched on the
+    # whole frame (``densify_uncertain``), replaced when the re-matched pose passes the strict
+    # test: a certainty resting on one match cannot check that match, fitted by the pose. Synthetic
+    # room, the reliability bench's gaps pattern (seed 1): after a 0.8 s gap, 20 right matches
+    # on a far wall (sd 8.6% of the scene scale without the 21st) and one wrong on a near point
+    # gave a TRACKING pose 5.1% off with sd 0.6%; re-matched, 97 inliers, 0.19% off. The
+    # status rules and the reported covariance stay those of all the matches: judged
+    # without it, redkitchen frame 462 (2.4% off, sd 1.4%, 5.8% without one) was withheld,
+    # and the tracks that followed gave frame 468 6.0% off (main: 2.0%); so did replacing
+    # frame 466 by a re-match only more certain (3.5% -> 2.9% off, sd 2.0%). False: all
+    # matches (no re-match for it).
+    covariance_leave_one_out: bool = True
     # A pose whose centre standard deviation (worst direction) exceeds this fraction of the
     # scene scale is withheld (LOST; the tracker still follows it). Redkitchen replay (1000
     # frames, map every 10th, map_noise_px 0.5, before the Cauchy refinement): the wrong poses
@@ -452,6 +454,14 @@ class EngineConf(StrictModel):
     # pose there is withheld for its sd). Cost: one whole-frame search (~35-50 ms at load 20)
     # per frame it runs on. False: off.
     densify_uncertain: bool = True
+    # ... and so is (replaced only by a verified re-match) a tracked pose whose inliers are
+    # fewer than this fraction of the frame's tracked 2D-3D matches (0: never): most tracking
+    # windows then held the wrong corner (a prediction far off: the first frame after a
+    # relocalization, with no motion known yet), and a consensus of the rest can be one of
+    # wrong matches. Robust walk at 10 Hz, frame 1: 31 of 131 tracked matches (25 right), 11
+    # of the 31 wrong, a TRACKING pose 5.2% of the scene scale off with sd 0.6% -> 643
+    # inliers, 0.02% off. Synthetic walk, flight, orbit at 10 and 3 Hz: 3 frames under 0.5.
+    track_consensus: float = 0.5
     # ---- out-of-core maps (engine/submaps.py; issue 14)
     # Resident sub-maps of a sub-map set, in MB, per engine worker (``sfmloc serve
     # --map-memory``): the worker's sessions on the set share its parts within it. None: sub-map
@@ -463,21 +473,6 @@ class EngineConf(StrictModel):
     # search went part by part); 2 from the frame that lost its part on (with the vote's ratio
     # test), 313.
     submap_lost_parts: int = Field(2, ge=1, le=16)
-    # CPU time (this thread's, ms) a frame without a pose may spend matching parts before it
-    # is answered LOST: after ``submap_lost_parts`` parts, further parts in the order of the
-    # vote while the frame's search has used less than this (0: ``submap_lost_parts`` only).
-    # CPU, not wall time: on a shared machine the wall time of a try varies tenfold with the
-    # load, and the number of parts a frame meets must not. A part that does not hold the
-    # frame costs a full RANSAC (1000 iterations, no pose stops it early): 200-250 ms CPU per
-    # part on the 24 rooms at load 20 (this 2-core Xeon). 24 rooms in 72 parts, the camera
-    # teleported from room to room (the sub-map walk alone, with the search order of
-    # ``engine/submaps.py``): 600 ms, the 11 rooms around the entries lost before 432/440;
-    # 1000 ms, all 24 rooms 956/960 (3-4 parts a searching frame, ~370 ms CPU each, 0 wrong;
-    # 940 before with 2 parts and the old order). Only frames of a session without a pose pay
-    # it (room entries, a teleport): tracked frames never search.
-    submap_search_cpu_ms: float = Field(1000.0, ge=0.0)
-    # The hard cap on the parts one lost frame meets with the CPU budget above.
-    submap_search_max_parts: int = Field(8, ge=1, le=64)
 
     @model_validator(mode="before")
     @classmethod

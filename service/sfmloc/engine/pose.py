@@ -72,7 +72,25 @@ def pose_covariance(
     min_noise_px: float = MIN_NOISE_PX,
     point_sigma_px: np.ndarray | None = None,
     loss_scale: float = 0.0,
+    leave_one_out: bool = False,
 ) -> np.ndarray:
+    """``pose_covariances``' plain covariance, or with ``leave_one_out`` its second."""
+    cov, loo = pose_covariances(
+        cam_from_world, K, xy, X, min_noise_px, point_sigma_px, loss_scale, leave_one_out
+    )
+    return loo if leave_one_out else cov
+
+
+def pose_covariances(
+    cam_from_world: Rigid3d,
+    K: np.ndarray,
+    xy: np.ndarray,
+    X: np.ndarray,
+    min_noise_px: float = MIN_NOISE_PX,
+    point_sigma_px: np.ndarray | None = None,
+    loss_scale: float = 0.0,
+    leave_one_out: bool = True,
+) -> tuple[np.ndarray, np.ndarray]:
     """6x6 covariance of a refined pose (order ``COVARIANCE_ORDER``) from its inlier
     correspondences (undistorted pixels ``xy`` (N,2), world points ``X`` (N,3)): the
     Gauss-Newton normal matrix J^T J of the reprojection residuals, inverted and scaled by the
@@ -80,10 +98,19 @@ def pose_covariance(
     ``point_sigma_px`` (N,), each correspondence's variance is the residual variance plus that
     term squared (the map point's own error, projected: ``point_uncertainty``), and the normal
     matrix is weighted accordingly. All-infinite when the geometry does not constrain the pose
-    (fewer than 4 points, degenerate)."""
+    (fewer than 4 points, degenerate).
+
+    Returns that covariance and, with ``leave_one_out`` (else the same matrix twice), the
+    covariance without the one correspondence whose removal widens the centre's standard
+    deviation most (``_without_most_influential``): a pose whose certainty rests on a single
+    match cannot check that match (its residual is small whatever the pose: the pose is fitted
+    to it), and a wrong one moves the pose unseen. Synthetic room after a 0.8 s gap: 20 right
+    matches on a far wall (centre sd 8.6% of the scene scale) and one wrong on a near point:
+    sd 0.6% with it, the pose 5.1% off."""
     n = len(xy)
+    inf = np.full((6, 6), np.inf)
     if n < 4:
-        return np.full((6, 6), np.inf)
+        return inf, inf
     R_cw = cam_from_world.rotation
     c = cam_from_world.center
     d = np.asarray(X, np.float64) - c  # (N, 3) world-frame rays from the centre
@@ -112,19 +139,52 @@ def pose_covariance(
     dof = max(2 * float(rw.sum()) - 6, 1.0)
     var = max(float(np.sum(rw * r2)) / dof, min_noise_px**2)
     if point_sigma_px is None:
-        H = (J * np.repeat(rw, 2)[:, None]).T @ J / var
+        w = np.repeat(rw / var, 2)
     else:
         w = np.repeat(rw / (var + np.asarray(point_sigma_px, np.float64) ** 2), 2)
-        H = (J * w[:, None]).T @ J
+    H = (J * w[:, None]).T @ J
     if not np.all(np.isfinite(H)):
-        return np.full((6, 6), np.inf)
+        return inf, inf
     # H is symmetric: one eigendecomposition gives its condition number and its inverse
     # (np.linalg.cond's SVD and np.linalg.inv cost twice as much)
     ev, V = np.linalg.eigh(H)
     if not ev[0] > 0 or ev[-1] > 1e12 * ev[0]:
-        return np.full((6, 6), np.inf)
+        return inf, inf
     cov = (V / ev) @ V.T
-    return 0.5 * (cov + cov.T)
+    cov = 0.5 * (cov + cov.T)
+    return cov, (_without_most_influential(cov, J, w) if leave_one_out else cov)
+
+
+def _without_most_influential(cov: np.ndarray, J: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """The covariance ``cov`` (of the information sum of ``J``'s rows weighted by ``w``, two
+    rows per correspondence) without the correspondence whose removal widens the camera
+    centre's standard deviation most (its worst direction). Each removal is a rank-2 downdate
+    (Woodbury): cov_-i = cov + A_i^T (W_i^-1 - J_i cov J_i^T)^-1 A_i, A_i = J_i cov. A
+    correspondence the pose cannot do without (leverage 1: the downdated information is
+    singular) gives an all-infinite covariance."""
+    n = len(J) // 2
+    if n <= 4:
+        return np.full((6, 6), np.inf)
+    Ji = J.reshape(n, 2, 6)
+    A = Ji @ cov  # (n, 2, 6)
+    S = -np.einsum("nij,nkj->nik", A, Ji)  # -J_i cov J_i^T
+    S[:, 0, 0] += 1.0 / w[0::2]
+    S[:, 1, 1] += 1.0 / w[1::2]
+    det = S[:, 0, 0] * S[:, 1, 1] - S[:, 0, 1] * S[:, 1, 0]
+    # W_i^-1 - J_i cov J_i^T is positive definite exactly when the downdate leaves the
+    # information positive definite; relative tolerance: leverage within 1e-9 of 1 is 1
+    scale = (1.0 / w[0::2]) * (1.0 / w[1::2])
+    ok = (det > 1e-9 * scale) & (S[:, 0, 0] > 0)
+    if not ok.all():
+        return np.full((6, 6), np.inf)
+    Sinv = np.empty_like(S)
+    Sinv[:, 0, 0], Sinv[:, 1, 1] = S[:, 1, 1] / det, S[:, 0, 0] / det
+    Sinv[:, 0, 1], Sinv[:, 1, 0] = -S[:, 0, 1] / det, -S[:, 1, 0] / det
+    Ap = A[:, :, 3:]  # the centre block only decides which removal is worst
+    pos = cov[3:, 3:] + np.einsum("nki,nkl,nlj->nij", Ap, Sinv, Ap)
+    worst = int(np.argmax(np.linalg.eigvalsh(pos)[:, -1]))
+    out = cov + A[worst].T @ Sinv[worst] @ A[worst]
+    return 0.5 * (out + out.T)
 
 
 def pose_error_vector(est_cam_from_world: Rigid3d, gt_cam_from_world: Rigid3d) -> np.ndarray:
