@@ -187,3 +187,74 @@ def test_projected_matches_of_deduplicated_candidates_are_those_of_the_listing()
         if k < 20:
             twin = p + 200 if p < 200 else p - 200
             assert pos[int(p)] < pos[int(twin)]
+
+
+def _reference_projected_matches(cam_from_world, K, width, height, kp_xy, X, radius_px, clear_px):
+    """projected_matches as it was written before its neighbourhood sums were gathered at the
+    projections' cells: two 3x3 box filters over the whole cell grid (cv2.boxFilter)."""
+    import cv2
+
+    pc = X @ cam_from_world.rotation.T + cam_from_world.translation
+    z = pc[:, 2]
+    front = z > 1e-9
+    zs = np.where(front, z, 1.0)
+    u = K[0, 0] * pc[:, 0] / zs + K[0, 2]
+    v = K[1, 1] * pc[:, 1] / zs + K[1, 2]
+    inside = np.nonzero(
+        front & (u >= -0.5) & (u <= width - 0.5) & (v >= -0.5) & (v <= height - 0.5)
+    )[0]
+    u, v = u[inside], v[inside]
+    gw, gh = int(width / clear_px) + 3, int(height / clear_px) + 3
+
+    def cells(x, y):
+        i = np.clip(np.floor(x / clear_px).astype(np.int64) + 1, 0, gw - 1)
+        j = np.clip(np.floor(y / clear_px).astype(np.int64) + 1, 0, gh - 1)
+        return j * gw + i
+
+    def box(flat, weights=None):
+        grid = np.bincount(flat, weights, minlength=gw * gh).astype(np.float64)
+        out = cv2.boxFilter(
+            grid.reshape(gh, gw), -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT
+        )
+        return out.ravel()
+
+    kp_cell, p_cell = cells(kp_xy[:, 0], kp_xy[:, 1]), cells(u, v)
+    kp_count = box(kp_cell)
+    kp_sum = box(kp_cell, np.arange(1, len(kp_xy) + 1, dtype=np.float64))
+    p_idx = np.nonzero(kp_count[p_cell] == 1)[0]
+    kp = np.rint(kp_sum[p_cell[p_idx]]).astype(np.int64) - 1
+    d2 = (kp_xy[kp, 0] - u[p_idx]) ** 2 + (kp_xy[kp, 1] - v[p_idx]) ** 2
+    ok = d2 < radius_px * radius_px
+    p_idx, kp, d2 = p_idx[ok], kp[ok], d2[ok]
+    order = np.lexsort((d2, kp))
+    first = np.ones(len(order), bool)
+    first[1:] = kp[order[1:]] != kp[order[:-1]]
+    sel = order[first]
+    return kp[sel], inside[p_idx[sel]].astype(np.int64)
+
+
+def test_projected_matches_are_those_of_the_box_filter_formulation():
+    """The neighbourhood sums gathered at the projections' cells give the pairs of the two
+    whole-grid box filters they replace, at the image's edges and corners too (cells clipped
+    onto the border, keypoints and projections just outside the image) and in crowded cells."""
+    rng = np.random.default_rng(11)
+    pose = Rigid3d(rotmat_from_rotvec([0.05, -0.1, 0.02]), [0.1, 0.0, 0.3])
+    for trial in range(20):
+        n = 300 if trial % 2 else 1500  # sparse, then crowded (several keypoints per cell)
+        kp = rng.uniform(-2.0, [W + 2.0, H + 2.0], (n, 2))
+        kp[:40] = rng.choice([0.0, 0.4, W - 0.6, W - 0.1], 40)[:, None] * [1, 0] + rng.choice(
+            [0.0, 0.3, H - 0.6, H - 0.2], 40
+        )[:, None] * [0, 1]
+        # map points projecting onto some keypoints (within a pixel), the rest anywhere
+        uv = np.vstack(
+            [kp[::2] + rng.normal(0, 0.6, kp[::2].shape), rng.uniform(-5, W + 5, (200, 2))]
+        )
+        z = rng.uniform(1.5, 6.0, len(uv))
+        xc = np.hstack([(uv - K[:2, 2]) / K[0, 0] * z[:, None], z[:, None]])
+        X = pose.inverse().apply(xc)
+        for clear in (2.0, 3.0, 7.5):
+            got = projected_matches(pose, K, W, H, kp, X, np.arange(len(X)), 1.5, clear)
+            want = _reference_projected_matches(pose, K, W, H, kp, X, 1.5, clear)
+            np.testing.assert_array_equal(got[0], want[0])
+            np.testing.assert_array_equal(got[1], want[1])
+            assert len(got[0]) > 0

@@ -195,3 +195,41 @@ def test_a_stream_keeps_every_frame_beside_slow_relocalizations(world):
     assert sorted(p.seq for p in poses) == list(range(30))
     assert all(p.error is None for p in poses)
     assert sum(p.localized for p in poses) >= 28
+
+
+def test_a_queued_relocalization_is_answered_before_the_callers_deadline(world):
+    """No CPU budget, a relocalization lane (a process) busy for seconds with one request: one
+    queued behind it for all of its deadline is answered RESOURCE_EXHAUSTED ("the lane was
+    busy") before that deadline by the server's reaper, not left to the caller's own
+    DEADLINE_EXCEEDED (what the fuzz counts as a hang)."""
+    conf = server_config(
+        world,
+        zenoh_endpoint(),
+        workers=1,
+        worker_kind="process",
+        relocalize_workers=1,
+        relocalize_budget_ms=0.0,
+        grpc={"address": "127.0.0.1:0", "max_message_mb": 32.0},
+    )
+    # k = 1e30: about 4 s of work on a quiet machine before any time budget (issue 16)
+    heavy = relocalize_request(
+        textured_jpeg(world), "room", big_camera(world, "SIMPLE_RADIAL", k=1e30), encoding="jpeg"
+    )
+    small = relocalize_request(world.png[3], "room", camera(world), encoding="png")
+    with running_server(conf) as srv:
+        target = f"127.0.0.1:{srv.grpc_port}"
+        opts = [("grpc.use_local_subchannel_pool", 1), ("grpc.max_send_message_length", 1 << 25)]
+        with (
+            grpc.insecure_channel(target, options=opts) as a,
+            grpc.insecure_channel(target, options=opts) as b,
+        ):
+            first = LocalizationStub(a).Relocalize.future(heavy, timeout=30.0)
+            time.sleep(0.3)  # the lane has taken it
+            t1 = time.monotonic()
+            with pytest.raises(grpc.RpcError) as queued:
+                LocalizationStub(b).Relocalize(small, timeout=2.0)
+            t_queued = time.monotonic() - t1
+            first.cancel()
+    assert queued.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED, queued.value.details()
+    assert "relocalization lane was busy" in queued.value.details()
+    assert t_queued < 2.0

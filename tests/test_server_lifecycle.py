@@ -149,8 +149,10 @@ def test_relocalizations_run_on_their_own_lane_beside_a_stream(world):
     ):
         pool = srv.server.pool
         stream_w, lane_w = pool.workers
-        # +5, capped at 19 (the kernel's lowest priority: `nice -n 19 make test` starts there)
-        assert _nice(lane_w.pid) == min(_nice(stream_w.pid) + 5, 19)
+        # relocalize_nice (+15), capped at 19 (the kernel's lowest priority: `nice -n 19 make
+        # test` starts there)
+        assert conf.relocalize_nice == 15
+        assert _nice(lane_w.pid) == min(_nice(stream_w.pid) + 15, 19)
         busy0 = pool.busy_ms()
         first = c.relocalize(world.png[10], "room", camera(world), encoding="png")
         assert first.localized

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from sfmloc.engine.config import EngineConf
 from sfmloc.engine.localizer import Localizer
 from sfmloc.engine.submaps import SubmapLocalizer
 from sfmloc.engine.types import Status
@@ -408,13 +409,81 @@ def test_a_lost_frame_tries_another_place_next_while_it_loads(world, places_set)
     other = [j for j in order[1:] if cover[0, j] < SAME_PLACE]
     assert same and other and same[0] < other[0]  # the set has both (checked, not assumed)
     sizes = sorted((s.part_memory_bytes(k) for k in range(s.n_parts)), reverse=True)
-    loc = SubmapLocalizer(s, world.camera_spec, memory_budget=sizes[0] + sizes[1])
+    two = EngineConf(submap_lost_parts=2, submap_search_cpu_ms=0)  # no CPU budget: 2 parts
+    loc = SubmapLocalizer(s, world.camera_spec, two, memory_budget=sizes[0] + sizes[1])
     r = loc.localize(np.zeros_like(world.gray[0]), 0.0)
     assert r.status is Status.LOST
     assert loc.stats.lost_tries == 2
     assert loc.stats.parts_used == {0, other[0]}  # not part 0's sibling
     assert loc.stats.prefetched_tries == 1  # the second was loading during the first
     assert loc.stats.max_resident_bytes <= sizes[0] + sizes[1]
+    loc.close()
+
+
+def test_a_lost_frame_meets_more_parts_within_its_cpu_budget(world, places_set):
+    """Past ``submap_lost_parts``, a frame without a pose goes on down the vote while its
+    search has used less than ``submap_search_cpu_ms`` of CPU, up to
+    ``submap_search_max_parts``: a real frame of the room, on a set whose parts are all of
+    the room, is posed by the first part it meets (the budget costs a posed frame nothing);
+    a blank frame meets every part with a budget, two without, one with ``submap_lost_parts``
+    1 and a budget already spent by its first part, and resident parts stay within the
+    budget throughout."""
+    s = places_set
+    sizes = sorted((s.part_memory_bytes(k) for k in range(s.n_parts)), reverse=True)
+    budget = sizes[0] + sizes[1]
+    blank = np.zeros_like(world.gray[0])
+    tries = {}
+    for name, conf in {
+        "budget": EngineConf(submap_search_cpu_ms=60_000, submap_search_max_parts=16),
+        "none": EngineConf(submap_search_cpu_ms=0),
+        "spent": EngineConf(submap_lost_parts=1, submap_search_cpu_ms=1e-6),
+    }.items():
+        loc = SubmapLocalizer(s, world.camera_spec, conf, memory_budget=budget)
+        assert loc.localize(blank, 0.0).status is Status.LOST
+        tries[name] = (loc.stats.lost_tries, len(loc.stats.parts_used))
+        assert loc.stats.search_cpu_ms > 0
+        r = loc.localize(world.gray[0], 0.1)
+        assert r.status is not Status.LOST, r.message
+        assert loc.stats.lost_tries == tries[name][0] + 1  # posed by the first part it met
+        assert loc.stats.max_resident_bytes <= budget
+        loc.close()
+    assert tries == {"budget": (s.n_parts, s.n_parts), "none": (2, 2), "spent": (1, 1)}
+
+
+def test_the_search_order_discounts_tried_places_and_failed_parts(world, places_set):
+    """``_next_part`` on real parts: after a part fails, its place's other parts are
+    discounted (another place comes next unless the vote prefers the place by far), and a
+    part that failed on an earlier lost frame comes after parts the vote prefers about as
+    much, but is not excluded (the camera moves: it may hold the next frame)."""
+    from sfmloc.engine.submaps import PLACE_DISCOUNT, RETRY_DISCOUNT, SAME_PLACE
+
+    s = places_set
+    cover = s.covered_by([0])
+    same = [j for j in range(1, s.n_parts) if cover[j] >= SAME_PLACE]
+    other = [j for j in range(1, s.n_parts) if cover[j] < SAME_PLACE]
+    assert same and other  # the set has both (checked, not assumed)
+    a, b = same[0], other[0]
+    loc = SubmapLocalizer(s, world.camera_spec, memory_budget=10 * s.largest_part_bytes())
+
+    def nxt(scores: dict[int, float], here: list[int], fails: dict[int, int]) -> int | None:
+        v = np.zeros(s.n_parts)
+        for k, x in scores.items():
+            v[k] = x
+        order = [int(k) for k in np.argsort(-v, kind="stable")]
+        loc._fails = dict(fails)
+        return loc._next_part(order, here, v)
+
+    # Part 0 failed on this frame: its sibling ``a`` scores half; ``b`` wins unless ``a`` is
+    # voted more than 1 / PLACE_DISCOUNT times as much.
+    assert nxt({0: 10, a: 9, b: 5}, [0], {}) == b
+    assert nxt({0: 10, a: 9, b: 0.9 * 9 * PLACE_DISCOUNT}, [0], {}) == a
+    # On a later frame part 0 failed before: it comes after a part voted nearly as much...
+    assert nxt({0: 10, a: 9, b: 1}, [], {0: 1}) == a
+    # ... but before one the vote hardly prefers, and it is never excluded.
+    assert nxt({0: 10, a: 1.1 * 10 * RETRY_DISCOUNT, b: 1}, [], {0: 1}) == a
+    assert nxt({0: 10, a: 0.9 * 10 * RETRY_DISCOUNT, b: 1}, [], {0: 1}) == 0
+    assert nxt({0: 10}, [], {k: 3 for k in range(1, s.n_parts)} | {0: 9}) == 0
+    assert nxt({}, list(range(s.n_parts)), {}) is None  # the frame met every part
     loc.close()
 
 

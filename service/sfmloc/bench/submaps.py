@@ -184,6 +184,7 @@ def run_submaps(
         for name, loc in (("whole", whole), ("submaps", sub)):
             before = (sub.stats.switches, sub.stats.sync_loads, sub.stats.loads)
             waited_ms, tries = sub.stats.sync_load_ms, sub.stats.lost_tries
+            search_cpu = sub.stats.search_cpu_ms
             loading = bool(sub.loading_parts())
             t = time.perf_counter()
             r = loc.localize(gray, stamp)
@@ -199,6 +200,7 @@ def run_submaps(
                 row["beside_a_load"] = loading or bool(sub.loading_parts())
                 row["stall_ms"] = sub.stats.sync_load_ms - waited_ms  # waiting for loads
                 row["tries"] = sub.stats.lost_tries - tries  # parts a lost frame met
+                row["search_cpu_ms"] = sub.stats.search_cpu_ms - search_cpu
                 row["inliers"] = r.inliers
                 row["message"] = r.message
                 row["part"] = sub.part
@@ -272,6 +274,14 @@ def run_submaps(
         else None,
         "frames_searching_parts": len(stall_search),
         "parts_tried_by_lost_frames": st.lost_tries,
+        "parts_tried_per_searching_frame_max": max((r["tries"] for r in s_rows), default=0),
+        # CPU (the frame's thread) the searching frames spent on the parts they tried
+        "search_cpu_ms_per_searching_frame_median": float(
+            np.median([r["search_cpu_ms"] for r in s_rows if r["tries"] > 0])
+        )
+        if stall_search
+        else None,
+        "search_cpu_ms_per_try": st.search_cpu_ms / max(1, st.lost_tries),
         "parts_tried_already_loading": st.prefetched_tries,
         "stall_ms_searching_frames_p90": float(np.percentile(stall_search, 90))
         if stall_search

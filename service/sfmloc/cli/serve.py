@@ -265,8 +265,27 @@ def overrides_from_args(args: argparse.Namespace) -> dict:
     return o
 
 
+def prestart_zygote() -> None:
+    """Start the worker zygote before anything else of the server: its imports are the longest
+    part of a start (issue 16: SERVING within 2 s of a restart); they then overlap this
+    process's own. The image limit is a guess (the configuration is not read yet): the pool
+    checks it and starts another zygote if the configuration says otherwise."""
+    import os
+
+    from ..server.zygote import prestart
+
+    try:
+        pixels = int(os.environ.get("SFMLOC_MAX_IMAGE_PIXELS", "") or 4096 * 4096)
+    except ValueError:
+        pixels = 4096 * 4096
+    prestart(pixels)
+
+
 def run(args: argparse.Namespace) -> int:
     import logging
+
+    if args.worker_kind != "thread":
+        prestart_zygote()  # a no-op when `sfmloc` (cli.main) already started it
 
     from ..config import load_config
     from ..server.app import run_server

@@ -42,8 +42,19 @@ class EngineConf(StrictModel):
     # suite's thin maps: every 30th frame 985 -> 989 localized (98.2 -> 98.5% within 5 cm), every
     # 60th 853 -> 851 (84.7 -> 84.3%), 0 wrong either way (before the thin-map changes of
     # 0a01d7f, 100 and 120 gave 5 wrong poses on the every-60th map; 140-151 none).
+    # 100 -> 50 (issue 10, p99; with the lazy guided matching of df61e1b a batch waits for 20
+    # pending keypoints, so halving it spreads the search over more frames, not more queries).
+    # Same run, interleaved, redkitchen 1000 frames, 2 repetitions (load ~20): CPU p99 x0.834,
+    # mean x0.910 (a second run, with the two changes before it: p99 x0.866, mean x1.013); median
+    # 0.269 -> 0.279 cm, within 5 cm / 5 deg 99.8 -> 99.7%, localized 1000 -> 999 (one LOST),
+    # 0 wrong. The median moves that much with any batch size: 60 gives 0.294 cm (p99 x0.92),
+    # 75 0.276 cm (x0.94). Synthetic walk (300 frames): p99 x0.832, mean x0.967, median 0.172
+    # -> 0.171 cm, 0 wrong. Robust rows (300 frames, engine only): 0 new wrong pose on any;
+    # density-6x 237 -> 237 localized, median 1.83 -> 1.87 cm; redkitchen every 30th 300/300,
+    # median 0.52 -> 0.49 cm; every 60th 300/300, 0.56 -> 0.57 cm; walk 3 Hz 29 -> 30
+    # localized; walk 10 Hz 100 -> 100, 1 -> 1 wrong (the known frame).
     batch_min: int = 100
-    batch_max: int = 100
+    batch_max: int = 50
     # Lazy guided matching: fewer pending keypoints than this wait for more (while the frame
     # holds at least refill_3d matches; with fewer, every one is tried at once). A batch pays
     # the whole frame's DAISY preparation and the search's fixed cost whatever its size, and
@@ -473,6 +484,21 @@ class EngineConf(StrictModel):
     # search went part by part); 2 from the frame that lost its part on (with the vote's ratio
     # test), 313.
     submap_lost_parts: int = Field(2, ge=1, le=16)
+    # CPU time (this thread's, ms) a frame without a pose may spend matching parts before it
+    # is answered LOST: after ``submap_lost_parts`` parts, further parts in the order of the
+    # vote while the frame's search has used less than this (0: ``submap_lost_parts`` only).
+    # CPU, not wall time: on a shared machine the wall time of a try varies tenfold with the
+    # load, and the number of parts a frame meets must not. A part that does not hold the
+    # frame costs a full RANSAC (1000 iterations, no pose stops it early): 200-250 ms CPU per
+    # part on the 24 rooms at load 20 (this 2-core Xeon). 24 rooms in 72 parts, the camera
+    # teleported from room to room (the sub-map walk alone, with the search order of
+    # ``engine/submaps.py``): 600 ms, the 11 rooms around the entries lost before 432/440;
+    # 1000 ms, all 24 rooms 956/960 (3-4 parts a searching frame, ~370 ms CPU each, 0 wrong;
+    # 940 before with 2 parts and the old order). Only frames of a session without a pose pay
+    # it (room entries, a teleport): tracked frames never search.
+    submap_search_cpu_ms: float = Field(1000.0, ge=0.0)
+    # The hard cap on the parts one lost frame meets with the CPU budget above.
+    submap_search_max_parts: int = Field(8, ge=1, le=64)
 
     @model_validator(mode="before")
     @classmethod

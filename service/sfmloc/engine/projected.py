@@ -21,7 +21,6 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-import cv2
 import numpy as np
 
 from ..map.bundle import MapBundle
@@ -102,32 +101,33 @@ def projected_matches(
     # candidates, the same pairs)
     u, v = u[inside], v[inside]
     # Neighbourhoods on a grid of clear_px cells: whatever lies within clear_px of a position
-    # lies in the 3x3 cells around its own, so one 3x3 box sum of the keypoint counts (and of
-    # their indices + 1: the index itself where the count is 1) and one of the projection
-    # counts decide every association (x0.2 of two k-d trees' CPU; float64 holds these integer
-    # sums exactly, and bincount's own float64 grid is filtered without a conversion).
+    # lies in the 3x3 cells around its own, so the keypoint counts (and the sums of their
+    # indices + 1: the index itself where the count is 1) over the 3x3 cells around each
+    # projection decide every association (x0.2 of two k-d trees' CPU). The sums are taken at
+    # the projections' cells only, 9 gathers from a grid padded by one empty cell, not as box
+    # filters over the whole grid (~35k cells for a few hundred projections): the same integer
+    # sums, exact either way (x0.5 CPU of this function, the same pairs).
     gw, gh = int(width / clear_px) + 3, int(height / clear_px) + 3
+    pw = gw + 2  # padded row length
+    offsets = (np.arange(-1, 2)[:, None] * pw + np.arange(-1, 2)).ravel()
 
     def cells(x: np.ndarray, y: np.ndarray) -> np.ndarray:
         i = np.floor(x / clear_px).astype(np.int64) + 1
         j = np.floor(y / clear_px).astype(np.int64) + 1
         np.clip(i, 0, gw - 1, out=i)
         np.clip(j, 0, gh - 1, out=j)
-        return j * gw + i
+        return (j + 1) * pw + (i + 1)
 
-    def box(flat: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
-        grid = np.bincount(flat, weights, minlength=gw * gh).astype(np.float64, copy=False)
-        out = cv2.boxFilter(
-            grid.reshape(gh, gw), -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT
-        )
-        return out.ravel()
+    def near(flat: np.ndarray, at: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+        """Sums of ``weights`` (counts without) over the 3x3 cells around each cell ``at``."""
+        grid = np.bincount(flat, weights, minlength=pw * (gh + 2))
+        return grid[at[:, None] + offsets].sum(axis=1)
 
     kp_cell = cells(kp_xy[:, 0], kp_xy[:, 1])
     p_cell = cells(u, v)
-    kp_count = box(kp_cell)
-    kp_sum = box(kp_cell, np.arange(1, len(kp_xy) + 1, dtype=np.float64))
-    p_idx = np.nonzero(kp_count[p_cell] == 1)[0]  # one keypoint near the projection
-    kp = np.rint(kp_sum[p_cell[p_idx]]).astype(np.int64) - 1
+    p_idx = np.nonzero(near(kp_cell, p_cell) == 1)[0]  # one keypoint near the projection
+    kp_sum = near(kp_cell, p_cell[p_idx], np.arange(1, len(kp_xy) + 1, dtype=np.float64))
+    kp = np.rint(kp_sum).astype(np.int64) - 1
     du = kp_xy[kp, 0] - u[p_idx]
     dv = kp_xy[kp, 1] - v[p_idx]
     d2 = du * du + dv * dv

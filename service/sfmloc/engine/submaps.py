@@ -22,22 +22,27 @@ Per frame, before the ``Localizer`` runs:
    while the budget allows.
 2. **Lost** (no pose on the last frame, or none on this frame after tracking on its part: a
    jump, a teleport between rooms): the frame's keypoints are described and the parts ranked
-   by their place-recognition vote (``SubmapSet.vote``); the frame is matched against up to
-   ``lost_parts_per_frame`` parts (``EngineConf.submap_lost_parts``, 2) not tried since the
-   session was lost, best-voted first, loading each now (a lost frame relocalizes anyway),
-   until one gives a pose; the next lost frames go on down the order. After the first part,
-   parts mostly made of the images of parts the frame tried already (the same place:
-   ``SubmapSet.covered_by`` at least ``SAME_PLACE``) go after the other places, and
-   the part to try next is loaded on the thread while the current one is matched.
+   by their place-recognition vote (``SubmapSet.vote``); the frame is matched against parts
+   in that order, loading each now (a lost frame relocalizes anyway), until one gives a pose:
+   ``lost_parts_per_frame`` parts (``EngineConf.submap_lost_parts``, 2) at least, then more
+   while the frame's search has used less than ``EngineConf.submap_search_cpu_ms`` of its
+   thread's CPU (at most ``submap_search_max_parts``). The vote is discounted by
+   ``PLACE_DISCOUNT`` for each part of the same place (``SubmapSet.covered_by`` at least
+   ``SAME_PLACE``) the frame met already, and by ``RETRY_DISCOUNT`` for each earlier lost
+   frame the part failed on (``_next_part``), and the part to try next is loaded on the
+   thread while the current one is matched.
    Measured on the scale bench (8 rooms, 24 parts, overlap 0.25, one camera teleported from
    room to room): one part per frame, starting on the next frame, localized 291/320 (the
    whole map 320); searching on the frame that lost its part, two parts per frame, with the
    vote's ratio test, 313/320 (not measured apart); with overlap 0.5 too, 318/320. 24 rooms,
    72 parts: 936/960; the vote put a look-alike room's three parts first for the first frames
-   of rooms 11 and 15, and both tries went to that room: with other places first, 940/960
-   (bench numbers in the README). Counting as the same place the parts tried since the
-   session was lost (not only by this frame) lost a room's second frame on 8 rooms: its first
-   frame, which no part could localize, had tried the right room's part.
+   of rooms 11 and 15, and both tries went to that room: with other places first, 940/960.
+   The parts tried since the session was lost then went after every other part: room 13's
+   three parts voted 15, 14 and 7 against at most 3 for any other room; its best-voted part
+   failed frames 0-5 on the second-place test, each frame's second try went to another room,
+   and its third part, which poses frame 0, was met once (frame 1, which it does not pose).
+   With the discounts and a CPU budget of 1000 ms (3-4 parts a searching frame), 956/960,
+   0 wrong (the walk alone, load 23; bench numbers in the README).
 
 Memory: the resident parts' ``memory_bytes`` (as ``MapBundle.memory_bytes``: arrays touched by
 the engine plus the ANN index; a part being loaded counts from the moment its load starts)
@@ -77,6 +82,11 @@ log = logging.getLogger(__name__)
 # ``_search``: a part of which at least this fraction of images belongs to parts a lost frame
 # has tried is the same place (tried after the other places).
 SAME_PLACE = 0.5
+# ``_next_part``: a part's vote counts this much less for each part of its place a lost frame
+# tried already.
+PLACE_DISCOUNT = 0.5
+# ``_next_part``: and this much less for each lost frame of the session it failed on.
+RETRY_DISCOUNT = 0.5
 
 
 @dataclass
@@ -96,6 +106,7 @@ class SubmapStats:
     votes: int = 0  # lost frames ranked by the vote
     lost_tries: int = 0  # parts a lost frame was matched against
     prefetched_tries: int = 0  # of those, parts already loaded or loading when tried
+    search_cpu_ms: float = 0.0  # this thread's CPU time lost frames spent searching, in all
 
 
 class PartCache:
@@ -298,7 +309,7 @@ class SubmapLocalizer:
         self.inner: Localizer | None = None
         self.part: int | None = None
         self._part_points: np.ndarray | None = None  # global point rows of ``part``
-        self._tried: list[int] = []  # parts tried since the session was lost
+        self._fails: dict[int, int] = {}  # lost frames each part failed since the session was lost
         self._withheld_on: list[int] = []  # parts with poses withheld since the last published
         self._prev_stamp: float | None = None
         self._extractor = DaisyExtractor()
@@ -326,7 +337,7 @@ class SubmapLocalizer:
             assert self.inner is not None
             res = self.inner.localize(frame, stamp, prior)
             if self.inner.last_posed_stamp != stamp:
-                self._tried = [k]
+                self._fails = {k: 1}
                 res = self._search(frame, stamp, res)
         elif known is not None:
             self._follow(*known)
@@ -336,7 +347,7 @@ class SubmapLocalizer:
                 # Tracked, then nothing on its part: the camera left it (a jump, a teleport
                 # between rooms) or the frame is bad. The same frame searches the parts by
                 # their vote now rather than from the next frame on.
-                self._tried = [self.part] if self.part is not None else []
+                self._fails = {self.part: 1} if self.part is not None else {}
                 res = self._search(frame, stamp, res)
             elif res.status is Status.LOST and self.part is not None:
                 self._withheld_on.append(self.part)  # the next frame tries another part
@@ -346,7 +357,7 @@ class SubmapLocalizer:
             res = self._search(frame, stamp, None)
         self._prev_stamp = stamp
         if self.inner is not None and self.inner.last_posed_stamp == stamp:
-            self._tried = []  # a pose (published or withheld): the search is over
+            self._fails = {}  # a pose (published or withheld): the search is over
         self.stats.max_resident_bytes = max(
             self.stats.max_resident_bytes, self.cache.resident_bytes()
         )
@@ -429,26 +440,33 @@ class SubmapLocalizer:
         return self.set.vote(self._frame_descriptors(frame))
 
     def _search(self, frame: np.ndarray, stamp: float, res: FrameResult | None) -> FrameResult:
-        """Up to ``lost_parts_per_frame`` parts, in the order of the frame's vote, until one
-        gives a pose (``res``: the frame's answer on the part it tracked on, not tried again
-        in this frame): first the best-voted part, every frame (a part that failed on one
-        frame may hold the next: 24 rooms, room 8's first frame failed on the part that had
-        its next 35 frames, and the session, which went on only to parts it had not tried,
-        never came back to it), then the best-voted ones not tried since the session was
-        lost, so that consecutive lost frames go down the order."""
+        """Parts in the order of the frame's vote until one gives a pose (``res``: the frame's
+        answer on the part it tracked on, not tried again in this frame): first the best-voted
+        part, every frame (a part that failed on one frame may hold the next: 24 rooms, room
+        8's first frame failed on the part that had its next 35 frames, and the session, which
+        went on only to parts it had not tried, never came back to it), then the best-voted
+        ones not tried since the session was lost (``_next_part``), so that consecutive lost
+        frames go down the order. ``lost_parts_per_frame`` parts at least, then more while
+        the frame's search has used less than ``conf.submap_search_cpu_ms`` of this thread's
+        CPU (at most ``conf.submap_search_max_parts``)."""
         self._withheld_on = []  # lost: the parts are chosen by the vote again
+        t_cpu = time.thread_time()
+        budget_ms = self.conf.submap_search_cpu_ms
+        cap = self.lost_parts_per_frame
+        if budget_ms > 0:
+            cap = max(cap, self.conf.submap_search_max_parts)
         scores = self.vote(frame)
         self.stats.votes += 1
         order = [int(k) for k in np.argsort(-scores, kind="stable")]
         here = [self.part] if res is not None and self.part is not None else []
-        k = self._next_part(order, here, first=True)
-        for n in range(self.lost_parts_per_frame):
+        k = self._next_part(order, here, scores)
+        for n in range(cap):
             if k is None:
                 break  # this frame has met every part
+            if n >= self.lost_parts_per_frame and (time.thread_time() - t_cpu) * 1e3 >= budget_ms:
+                break
             here.append(k)
-            if k not in self._tried:
-                self._tried.append(k)
-            nxt = self._next_part(order, here) if n + 1 < self.lost_parts_per_frame else None
+            nxt = self._next_part(order, here, scores) if n + 1 < cap else None
             if k != self.part:
                 self.stats.prefetched_tries += self.cache.is_pending(k)
                 self._load_and_switch(k)
@@ -463,29 +481,41 @@ class SubmapLocalizer:
             res = self.inner.localize(frame, stamp)
             if self.inner.last_posed_stamp == stamp:
                 break
+            self._fails[k] = self._fails.get(k, 0) + 1
             k = nxt
+        self.stats.search_cpu_ms += (time.thread_time() - t_cpu) * 1e3
         assert res is not None
         return res
 
-    def _next_part(self, order: list[int], here: list[int], first: bool = False) -> int | None:
-        """The next part a lost frame tries (``order``: its vote's; ``here``: the parts it
-        met already): ``first``, the best-voted; else the best-voted not tried since the
-        session was lost, other places first; None when the frame has met every part."""
-        if first:
-            cand = [k for k in order if k not in here]
-            return cand[0] if cand else None
-        fresh = [k for k in order if k not in self._tried and k not in here]
-        if not fresh:
-            self._tried = []  # every part was tried: down the order again
-            fresh = [k for k in order if k not in here]
-        # Another place first: parts mostly made of the images of parts this frame tried go
-        # after the others (overlapping parts of one place fail together on a frame: 24 rooms,
-        # 3 parts each, the vote ranked a look-alike room's three parts before the right
-        # room's, and the first frames of rooms 11 and 15 spent both tries on them).
-        seen = self.set.covered_by(here)
-        other = [k for k in fresh if seen[k] < SAME_PLACE]
-        cand = other or fresh
-        return cand[0] if cand else None
+    def _next_part(self, order: list[int], here: list[int], scores: np.ndarray) -> int | None:
+        """The next part a lost frame tries (``order``: its vote's, ``scores`` the vote;
+        ``here``: the parts it met already), None when it has met every part: the best by
+        the vote discounted by ``PLACE_DISCOUNT`` for each part of the same place (at least
+        ``SAME_PLACE`` of its images in that part) the frame met, and by ``RETRY_DISCOUNT``
+        for each lost frame the part failed since the session was lost (equal ones: other
+        places first, then the less tried, then the vote's order).
+
+        Overlapping parts of one place often fail together on a frame (24 rooms, 3 parts each:
+        the vote ranked a look-alike room's three parts before the right room's, and the first
+        frames of rooms 11 and 15 spent both their tries on them), so another place comes
+        next, unless the vote prefers this place by far: the right room's best-voted part may
+        fail on the second-place or spread test where another part of the room poses the
+        frame (rooms 8 and 13: room 13 voted 15, 14 and 7 against at most 3 for the other
+        rooms; its first part failed 24 frames in a row, its third posed frame 0). A part
+        that failed is tried again on later frames rather than never until every part was
+        (the camera moves: room 8's first frame failed on the part that held its next 35
+        frames), after the parts the vote prefers about as much and have not failed."""
+        cand = np.asarray([k for k in order if k not in here], np.int64)
+        if len(cand) == 0:
+            return None
+        same = np.zeros(self.set.n_parts)
+        for t in here:
+            same += self.set.covered_by([t]) >= SAME_PLACE
+        fails = np.array([self._fails.get(int(k), 0) for k in cand], float)
+        eff = np.maximum(scores[cand], 0.0) * PLACE_DISCOUNT ** same[cand]
+        eff = eff * RETRY_DISCOUNT**fails
+        key = np.lexsort((np.arange(len(cand)), fails, same[cand], -eff))
+        return int(cand[key[0]])
 
     def _frame_descriptors(self, frame: np.ndarray) -> np.ndarray:
         """The frame's keypoints described as global matching describes them."""

@@ -53,6 +53,7 @@ from .pool import WorkerPool
 from .protocol import Result
 from .sessions import SessionManager
 from .submaps import add_submap_metrics
+from .zygote import discard_prestarted
 
 log = logging.getLogger(__name__)
 
@@ -87,6 +88,7 @@ class Server:
             max_pending_relocalize=conf.max_pending_relocalize,
             max_image_pixels=conf.max_image_pixels,
             reloc_workers=conf.relocalize_workers,
+            reloc_nice=conf.relocalize_nice,
             fork=conf.worker_start == "fork",
         )
         self.registry = MapRegistry(
@@ -261,6 +263,7 @@ class Server:
             await self._open_front_ends()
         finally:
             await workers  # its error first: a front end's own error would follow from it
+        discard_prestarted()  # not taken: this configuration does not fork its workers
         event(
             log,
             logging.INFO,
@@ -364,6 +367,7 @@ class Server:
         while not self._reaper_stop.wait(0.1):
             try:
                 self.sessions.expire_late()
+                self.pool.expire_relocalizations()
                 if time.monotonic() - t_idle < idle_every:
                     continue
                 t_idle = time.monotonic()

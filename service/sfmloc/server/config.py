@@ -126,10 +126,17 @@ class ServerConfig(StrictModel):
     # 4-4.6 s before this budget (issue 16).
     relocalize_budget_ms: float = Field(2000.0, ge=0)
     # Worker processes only for single-image Relocalize, besides ``workers`` (at a lower CPU
-    # priority, nice +5): one client's relocalization (70-120 ms, seconds for a huge image)
-    # never holds a worker that streaming sessions' frames wait on. 0: Relocalize runs on the
-    # stream workers (the least busy one), delaying its sessions' frames by 2-3 frames.
+    # priority, ``relocalize_nice``): one client's relocalization (70-120 ms, seconds for a
+    # huge image) never holds a worker that streaming sessions' frames wait on. 0: Relocalize
+    # runs on the stream workers (the least busy one), delaying its sessions' frames by 2-3
+    # frames.
     relocalize_workers: int = Field(1, ge=0, le=16)
+    # How much lower the relocalization lane's CPU priority is than the stream workers' (nice
+    # increment, capped at 19 by the kernel). Streams are real time, a single image is not:
+    # with callers keeping the lane busy, +5 (the kernel's weight 335 against a stream
+    # worker's 1024) still took a quarter of the core it shares with a stream worker; +15
+    # (weight 36) takes 3%, and an idle machine still gives the lane all it wants.
+    relocalize_nice: int = Field(15, ge=0, le=19)
     # Largest camera (width x height) accepted; also caps what OpenCV decodes in a worker, so a
     # small JPEG claiming a huge image cannot exhaust its memory.
     max_image_pixels: int = Field(4096 * 4096, ge=1)

@@ -34,12 +34,12 @@ from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from typing import Any
 
-from ..errors import DeadlineExceededError, OverloadError, UnavailableError
-from ..threads import pin_threads_env, single_thread_env
+from ..errors import OverloadError, UnavailableError
+from ..threads import pin_threads_env
 from . import protocol as P
 from .logfmt import event
 from .worker import worker_main
-from .zygote import Zygote, relay_stderr, set_process_name
+from .zygote import Zygote, relay_stderr, set_process_name, take_prestarted, worker_env
 
 log = logging.getLogger(__name__)
 
@@ -93,7 +93,7 @@ class WorkerPool:
         max_pending_relocalize: int = 16,
         max_image_pixels: int = 4096 * 4096,
         reloc_workers: int = 0,
-        reloc_nice: int = 5,
+        reloc_nice: int = 15,
         thread_target: Callable[..., None] = worker_main,
         fork: bool = True,
     ) -> None:
@@ -144,7 +144,8 @@ class WorkerPool:
     def start(self, timeout: float = 120.0) -> None:
         pin_threads_env()
         if self.fork:
-            self._zygote = Zygote(self._worker_env())
+            env = self._worker_env()
+            self._zygote = take_prestarted(env) or Zygote(env)
         for i in range(self.n + self.reloc_workers):
             self.workers.append(self._spawn(i))
             self.workers[i].serving = True  # no map is loaded before start() returns
@@ -236,11 +237,7 @@ class WorkerPool:
         return h
 
     def _worker_env(self) -> dict[str, str]:
-        env = single_thread_env()  # in place before numpy loads
-        # OpenCV refuses to decode larger images (decompression bombs: a small JPEG that
-        # claims a huge size would otherwise be decoded before its size is checked).
-        env["OPENCV_IO_MAX_IMAGE_PIXELS"] = str(self.max_image_pixels)
-        return env
+        return worker_env(self.max_image_pixels)
 
     def stop(self, timeout: float = 10.0) -> None:
         self._stopping = True
@@ -332,6 +329,26 @@ class WorkerPool:
     def _worker_lost(self, h: WorkerHandle) -> None:
         """A worker died (a crash in native code, killed): fail what it had, restart it with
         the current maps, and tell the sessions (they relocalize on the new worker)."""
+        # It had started when it served: ready, and (a replacement) its maps reloaded. One that
+        # died before had no sessions and counts towards the start failures.
+        started = h.ready.is_set() and h.serving
+        with self._lock:
+            h.alive = False
+            self._changed.notify_all()
+            h.outbox.put(None)
+            lost = [r for r, (w, _) in self._futures.items() if w == h.index]
+            futures = [self._futures.pop(r)[1] for r in lost]
+        # Its answers first, then the bookkeeping: the socket's EOF is the death (the kernel
+        # closes it with the process), while its exit status comes from the zygote's SIGCHLD
+        # report, a wake-up of another process later (tens of ms on a loaded machine), which
+        # the frames it had and its sessions' next frames need not wait for.
+        for f in futures:
+            _settle(f, exc=UnavailableError(f"worker {h.index} died; retry"))
+        if started and not self._stopping:
+            try:
+                self.on_dead(h.index)  # at once: answer its frames, move its sessions
+            except Exception:  # noqa: BLE001 - the restart must go on
+                log.exception("handling the death of worker %d failed", h.index)
         if self.kind == "process":
             h.runner.join(5)  # reap it now: no zombie, and its exit code is known
         code = getattr(h.runner, "exitcode", None)
@@ -340,9 +357,6 @@ class WorkerPool:
             or getattr(h.runner, "pid", 0)
             or getattr(getattr(h.runner, "popen", None), "pid", 0)
         )
-        # It had started when it served: ready, and (a replacement) its maps reloaded. One that
-        # died before had no sessions and counts towards the start failures.
-        started = h.ready.is_set() and h.serving
         event(
             log,
             logging.ERROR,
@@ -355,21 +369,8 @@ class WorkerPool:
             said_ready=h.ready.is_set(),
             stderr=getattr(h.runner, "last_line", ""),
         )
-        with self._lock:
-            h.alive = False
-            self._changed.notify_all()
-            h.outbox.put(None)
-            lost = [r for r, (w, _) in self._futures.items() if w == h.index]
-            futures = [self._futures.pop(r)[1] for r in lost]
-        for f in futures:
-            _settle(f, exc=UnavailableError(f"worker {h.index} died; retry"))
         if self._stopping:
             return
-        if started:
-            try:
-                self.on_dead(h.index)  # at once: answer its frames, move its sessions
-            except Exception:  # noqa: BLE001 - the restart must go on
-                log.exception("handling the death of worker %d failed", h.index)
         fails = 0 if started else self._start_failures[h.index] + 1
         self._start_failures[h.index] = fails
         if fails >= MAX_START_FAILURES:
@@ -607,12 +608,30 @@ class WorkerPool:
                 self._futures[msg.req] = (h.index, fut)
                 self._send(h, msg)
         for f in expired:
-            _settle(
-                f,
-                exc=DeadlineExceededError(
-                    "the caller's deadline passed while the relocalization was queued"
-                ),
-            )
+            _settle(f, exc=_lane_busy())
+
+    def expire_relocalizations(self) -> int:
+        """Answer the queued relocalizations whose time is up (``Relocalize.deadline``: when
+        the answer must go back to reach the caller in time) at once, not when a lane worker
+        frees up, which may be seconds after the caller gave up. The server calls it every
+        0.1 s. Returns how many."""
+        now = time.monotonic()
+        with self._lock:
+            if not self._reloc_queue:
+                return 0
+            keep: collections.deque[tuple[P.Relocalize, Future]] = collections.deque()
+            expired: list[Future] = []
+            for msg, fut in self._reloc_queue:
+                if fut.done():
+                    continue
+                if msg.deadline and now >= msg.deadline:
+                    expired.append(fut)
+                else:
+                    keep.append((msg, fut))
+            self._reloc_queue = keep
+        for f in expired:
+            _settle(f, exc=_lane_busy())
+        return len(expired)
 
     def _fail_all(self, exc: Exception) -> None:
         with self._lock:
@@ -629,6 +648,13 @@ class WorkerPool:
 
     def busy_ms(self) -> list[float]:
         return [h.busy_ms for h in self.workers]
+
+
+def _lane_busy() -> OverloadError:
+    return OverloadError(
+        "the relocalization lane was busy for the whole of the call's deadline (the work did "
+        "not start); retry later or with a longer deadline"
+    )
 
 
 def _answered(order: collections.deque[int], ticket: int) -> None:

@@ -132,6 +132,10 @@ class _Worker:
                         f"map bundle {m.path} changed while loading (build {b.build_id}, "
                         f"expected {m.build_id}); retry"
                     )
+                if self.conf.scope_radius > 0:  # computed now, not by the first frame
+                    from ..engine.scope import image_weights
+
+                    image_weights(b, self.conf.scope_radius, self.conf.scope_min_duplicates)
                 _warm_up(b, self.conf)
             self.bundles[(m.name, m.gen)] = b
             s = b.summary()
@@ -285,7 +289,7 @@ class _Worker:
         from sfmloc_client.images import decode_image
 
         from ..engine import relocalize
-        from ..errors import DeadlineExceededError
+        from ..errors import OverloadError
         from ..transforms import Rigid3d
         from .submaps import relocalize_bundle
 
@@ -295,7 +299,12 @@ class _Worker:
         try:
             start = time.monotonic()
             if m.deadline and start >= m.deadline:
-                raise DeadlineExceededError("the caller's deadline passed before the work started")
+                # ``deadline`` is when the answer must leave to reach the caller in time
+                # (facade.answer_by): RESOURCE_EXHAUSTED before the caller's own deadline.
+                raise OverloadError(
+                    "no time was left of the call's deadline when the work could start; retry "
+                    "later or with a longer deadline"
+                )
             # The work ends at the caller's deadline (wall clock) or when it has used its budget
             # of this thread's CPU, whichever comes first. CPU, not wall: on a busy machine (or
             # on the relocalization lane, niced) a 100 ms CPU relocalization took 2-3.6 s of

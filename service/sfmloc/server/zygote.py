@@ -36,12 +36,15 @@ from typing import Any
 
 import msgpack
 
+from ..threads import THREAD_VARS, single_thread_env
+
 log = logging.getLogger(__name__)
 
 # Process names (/proc/PID/comm) of the zygote and of the workers it forks.
 ZYGOTE_NAME = "sfmloc-zygote"
 WORKER_NAME = "sfmloc-worker"
 MAX_MSG = 64 * 1024  # one spawn request (the engine configuration is a few kB)
+MAX_PIXELS_VAR = "OPENCV_IO_MAX_IMAGE_PIXELS"
 
 # How the zygote starts: by module path, without the working directory on sys.path (as
 # ``pool._BOOTSTRAP``: a folder named ``sfmloc`` where the server started must not shadow it).
@@ -138,6 +141,7 @@ class Zygote:
     """The server's handle on its zygote process: ``spawn`` forks a worker."""
 
     def __init__(self, env: dict[str, str]) -> None:
+        self.env = env
         ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
         fd = theirs.fileno()
         self.proc = subprocess.Popen(
@@ -257,20 +261,74 @@ class Zygote:
         self._reader.join(timeout)
 
 
+def worker_env(max_image_pixels: int) -> dict[str, str]:
+    """The environment of the zygote (hence of every worker): one thread for BLAS/OpenMP, in
+    place before numpy loads, and OpenCV's decoding limit, which OpenCV reads once when it
+    loads (so it must be right before the zygote imports cv2: it cannot be sent later)."""
+    env = single_thread_env()
+    # OpenCV refuses to decode larger images (decompression bombs: a small JPEG that claims a
+    # huge size would otherwise be decoded before its size is checked).
+    env[MAX_PIXELS_VAR] = str(max_image_pixels)
+    return env
+
+
+# The zygote started ahead of the server (``prestart``), until the pool takes it.
+_prestarted: Zygote | None = None
+
+
+def prestart(max_image_pixels: int) -> None:
+    """Start the zygote now, before the server process imports its own modules: its imports
+    (OpenCV, faiss, scipy, the engine: the longest part of a server start) then overlap the
+    server's (gRPC, Zenoh, pydantic, the configuration) instead of following them. The pool
+    takes it (``take_prestarted``) if it was started with the environment the pool needs;
+    ``max_image_pixels`` is therefore a guess made before the configuration is read, checked
+    when it is taken."""
+    global _prestarted
+    if _prestarted is None:
+        _prestarted = Zygote(worker_env(max_image_pixels))
+
+
+def take_prestarted(env: dict[str, str]) -> Zygote | None:
+    """The prestarted zygote if it has the environment ``env`` the pool's workers need (else it
+    is stopped: a wrong guess costs only its start); None without one."""
+    global _prestarted
+    z, _prestarted = _prestarted, None
+    if z is None:
+        return None
+    if all(z.env.get(k) == env.get(k) for k in (MAX_PIXELS_VAR, *THREAD_VARS)) and z.alive:
+        return z
+    z.close()
+    return None
+
+
+def discard_prestarted() -> None:
+    """Stop a prestarted zygote nobody took (the configuration asked for no forking)."""
+    global _prestarted
+    z, _prestarted = _prestarted, None
+    if z is not None:
+        z.close()
+
+
 # ============================================================================ zygote side
 def _preload() -> None:
-    """Everything a worker imports before its first message, imported once here."""
+    """Everything a worker imports before its first message, and what its first map load
+    imports (the sub-map host: 0.33-0.4 s per worker at load 14, after the fork), imported
+    once here."""
     from ..threads import pin_threads_env
 
     pin_threads_env()  # before numpy loads
+    import concurrent.futures.thread  # noqa: F401
+
     import cv2  # noqa: F401
+    import scipy.spatial  # noqa: F401 - the scope weights (engine.scope), not the server's
 
     from sfmloc_client import images  # noqa: F401
 
     from .. import engine  # noqa: F401
-    from ..engine import config  # noqa: F401
+    from ..engine import config, submaps  # noqa: F401
     from ..map import bundle  # noqa: F401
     from . import logfmt, protocol, worker  # noqa: F401
+    from .submaps import SubmapHost  # noqa: F401 - the server side of sub-map sets
 
 
 def set_process_name(name: str) -> None:
@@ -383,4 +441,14 @@ def _main() -> None:
     os._exit(0)
 
 
-__all__ = ["WORKER_NAME", "ZYGOTE_NAME", "ForkedWorker", "Zygote", "set_process_name"]
+__all__ = [
+    "WORKER_NAME",
+    "ZYGOTE_NAME",
+    "ForkedWorker",
+    "Zygote",
+    "discard_prestarted",
+    "prestart",
+    "set_process_name",
+    "take_prestarted",
+    "worker_env",
+]
