@@ -676,9 +676,12 @@ def test_no_wrong_tracked_pose_after_a_gap_on_one_influential_wrong_match(world,
                 bad.append(seq)
         return bad, posed
 
-    assert replay(EngineConf()) == ([], len(seqs))
-    bad_all, _ = replay(EngineConf(covariance_leave_one_out=False))
+    # (guided batches of 100, as measured: with batches of 50, 34bb399, these frames take other
+    # tracks, 3.3% off at worst with the re-match on or off)
+    assert replay(EngineConf(batch_max=100)) == ([], len(seqs))
+    bad_all, _ = replay(EngineConf(batch_max=100, covariance_leave_one_out=False))
     assert 967 in bad_all
+    assert replay(EngineConf()) == ([], len(seqs))
 
 
 def test_leave_one_out_covariance_is_the_covariance_without_the_worst_match():
