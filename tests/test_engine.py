@@ -1095,34 +1095,6 @@ def test_a_failed_recovery_and_its_global_matching_describe_and_search_once(
     )
 
 
-def test_the_trackers_global_matching_scans_global_nprobe_lists(world, bundle, cam, monkeypatch):
-    """The tracker's global matching (a first frame: no tracks, no motion) searches the whole
-    map with ``global_nprobe`` inverted lists, as single-image relocalization does (0: with
-    ``nprobe``), and still finds the pose."""
-    from sfmloc.engine.types import Matching
-
-    search = bundle.index.search
-    probes: list[int | None] = []  # nprobe of each search over the whole map
-
-    def recording_search(q, k, allowed=None, nprobe=None):
-        if allowed is None:
-            probes.append(nprobe)
-        return search(q, k, allowed=allowed, nprobe=nprobe)
-
-    monkeypatch.setattr(bundle.index, "search", recording_search)
-    for conf, want in (
-        (EngineConf(), EngineConf().global_nprobe),
-        (EngineConf(global_nprobe=0), EngineConf().nprobe),
-    ):
-        probes.clear()
-        r = Localizer(bundle, cam, conf).localize(world.gray[0], 0.0)
-        assert r.matching == Matching.GLOBAL and r.status is Status.RELOCALIZED, r.message
-        assert probes and set(probes) == {want}, probes
-        dp, _ = pose_errors(r.cam_from_world, world.gt_cam_from_world[0])
-        assert dp < 0.02 * bundle.scene_scale
-    assert EngineConf().global_nprobe < EngineConf().nprobe
-
-
 def test_recovery_around_the_prediction_with_either_search(world, bundle, cam):
     """Tracks lost, motion known: the frame is recovered by guided matching of all its
     keypoints around the prediction (not global matching), whether the candidates come from

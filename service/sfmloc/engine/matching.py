@@ -62,11 +62,8 @@ def neighbour_strengths(D: np.ndarray, I: np.ndarray, sigma: float) -> np.ndarra
 def search_all(
     desc: np.ndarray, bundle: MapBundle, conf: EngineConf
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The k-ANN search of ``desc`` over the whole map (global matching's): ``global_nprobe``
-    inverted lists, as single-image relocalization (``relocalize.global_pose``), 0: ``nprobe``.
-    The tracker's global matching scanned 16 lists where single-image relocalization, on the
-    same search, scans 4 (issue 10)."""
-    return bundle.index.search(desc, conf.k, nprobe=conf.global_nprobe or conf.nprobe)
+    """The k-ANN search of ``desc`` over the whole map (global matching's)."""
+    return bundle.index.search(desc, conf.k, nprobe=conf.nprobe)
 
 
 def restrict_neighbours(
