@@ -1023,10 +1023,9 @@ def test_engine_config_has_the_paper_defaults_and_env_overrides():
         25,
         10,
     )
-    # batch_max: the paper's 100-150 halved for the p99 (config.py)
     assert (c.batch_min, c.batch_max, c.top_images, c.min_inliers, c.ratio, c.gamma) == (
         100,
-        50,
+        100,
         30,
         10,
         0.75,

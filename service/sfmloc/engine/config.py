@@ -42,19 +42,8 @@ class EngineConf(StrictModel):
     # suite's thin maps: every 30th frame 985 -> 989 localized (98.2 -> 98.5% within 5 cm), every
     # 60th 853 -> 851 (84.7 -> 84.3%), 0 wrong either way (before the thin-map changes of
     # 0a01d7f, 100 and 120 gave 5 wrong poses on the every-60th map; 140-151 none).
-    # 100 -> 50 (issue 10, p99; with the lazy guided matching of df61e1b a batch waits for 20
-    # pending keypoints, so halving it spreads the search over more frames, not more queries).
-    # Same run, interleaved, redkitchen 1000 frames, 2 repetitions (load ~20): CPU p99 x0.834,
-    # mean x0.910 (a second run, with the two changes before it: p99 x0.866, mean x1.013); median
-    # 0.269 -> 0.279 cm, within 5 cm / 5 deg 99.8 -> 99.7%, localized 1000 -> 999 (one LOST),
-    # 0 wrong. The median moves that much with any batch size: 60 gives 0.294 cm (p99 x0.92),
-    # 75 0.276 cm (x0.94). Synthetic walk (300 frames): p99 x0.832, mean x0.967, median 0.172
-    # -> 0.171 cm, 0 wrong. Robust rows (300 frames, engine only): 0 new wrong pose on any;
-    # density-6x 237 -> 237 localized, median 1.83 -> 1.87 cm; redkitchen every 30th 300/300,
-    # median 0.52 -> 0.49 cm; every 60th 300/300, 0.56 -> 0.57 cm; walk 3 Hz 29 -> 30
-    # localized; walk 10 Hz 100 -> 100, 1 -> 1 wrong (the known frame).
     batch_min: int = 100
-    batch_max: int = 50
+    batch_max: int = 100
     # Lazy guided matching: fewer pending keypoints than this wait for more (while the frame
     # holds at least refill_3d matches; with fewer, every one is tried at once). A batch pays
     # the whole frame's DAISY preparation and the search's fixed cost whatever its size, and
