@@ -224,7 +224,14 @@ def test_a_queued_relocalization_is_answered_before_the_callers_deadline(world):
             grpc.insecure_channel(target, options=opts) as b,
         ):
             first = LocalizationStub(a).Relocalize.future(heavy, timeout=30.0)
-            time.sleep(0.3)  # the lane has taken it
+            # Wait until the lane has taken it (its decode comes first: a fixed sleep let the
+            # small request reach the lane first on a loaded machine, and it was answered OK).
+            pool = srv.server.pool
+            lane = pool.workers[pool.n :]
+            t0 = time.monotonic()
+            while not any(h.inflight for h in lane) and time.monotonic() - t0 < 20.0:
+                time.sleep(0.02)
+            assert any(h.inflight for h in lane), "the heavy request never reached the lane"
             t1 = time.monotonic()
             with pytest.raises(grpc.RpcError) as queued:
                 LocalizationStub(b).Relocalize(small, timeout=2.0)
