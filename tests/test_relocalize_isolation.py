@@ -4,6 +4,8 @@ on their own lane. Real gRPC and Zenoh servers on loopback, the synthetic room's
 
 from __future__ import annotations
 
+import os
+import signal
 import threading
 import time
 
@@ -198,10 +200,11 @@ def test_a_stream_keeps_every_frame_beside_slow_relocalizations(world):
 
 
 def test_a_queued_relocalization_is_answered_before_the_callers_deadline(world):
-    """No CPU budget, a relocalization lane (a process) busy for seconds with one request: one
-    queued behind it for all of its deadline is answered RESOURCE_EXHAUSTED ("the lane was
-    busy") before that deadline by the server's reaper, not left to the caller's own
-    DEADLINE_EXCEEDED (what the fuzz counts as a hang)."""
+    """No CPU budget, a relocalization lane (a process) held by one request (its worker
+    SIGSTOPped once it has it: how long a heavy request takes varies, 0.4 s to seconds, and the
+    test must not depend on it): one queued behind it for all of its deadline is answered
+    RESOURCE_EXHAUSTED ("the lane was busy") before that deadline by the server's reaper, not
+    left to the caller's own DEADLINE_EXCEEDED (what the fuzz counts as a hang)."""
     conf = server_config(
         world,
         zenoh_endpoint(),
@@ -232,10 +235,17 @@ def test_a_queued_relocalization_is_answered_before_the_callers_deadline(world):
             while not any(h.inflight for h in lane) and time.monotonic() - t0 < 20.0:
                 time.sleep(0.02)
             assert any(h.inflight for h in lane), "the heavy request never reached the lane"
-            t1 = time.monotonic()
-            with pytest.raises(grpc.RpcError) as queued:
-                LocalizationStub(b).Relocalize(small, timeout=2.0)
-            t_queued = time.monotonic() - t1
+            held = [h.pid for h in lane if h.inflight]
+            for pid in held:
+                os.kill(pid, signal.SIGSTOP)
+            try:
+                t1 = time.monotonic()
+                with pytest.raises(grpc.RpcError) as queued:
+                    LocalizationStub(b).Relocalize(small, timeout=2.0)
+                t_queued = time.monotonic() - t1
+            finally:
+                for pid in held:
+                    os.kill(pid, signal.SIGCONT)
             first.cancel()
     assert queued.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED, queued.value.details()
     assert "relocalization lane was busy" in queued.value.details()
