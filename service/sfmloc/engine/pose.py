@@ -72,13 +72,11 @@ def pose_covariance(
     min_noise_px: float = MIN_NOISE_PX,
     point_sigma_px: np.ndarray | None = None,
     loss_scale: float = 0.0,
-    leave_one_out: bool = False,
 ) -> np.ndarray:
-    """``pose_covariances``' plain covariance, or with ``leave_one_out`` its second."""
-    cov, loo = pose_covariances(
-        cam_from_world, K, xy, X, min_noise_px, point_sigma_px, loss_scale, leave_one_out
-    )
-    return loo if leave_one_out else cov
+    """``pose_covariances``' plain covariance (without the leave-one-out work)."""
+    return pose_covariances(
+        cam_from_world, K, xy, X, min_noise_px, point_sigma_px, loss_scale, leave_one_out=False
+    )[0]
 
 
 def pose_covariances(
