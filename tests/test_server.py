@@ -905,7 +905,10 @@ def test_load_map_while_a_worker_restarts(world, z, srv, grpc_client):
     # two new sessions: one lands on the replacement, which must hold "window"
     for cid in ("win-a", "win-b"):
         poses = stream_lockstep(z, "window", cid, world, n=4)
-        assert all(p.error is None for p in poses) and poses[-1].localized, cid
+        assert all(p.error is None for p in poses) and poses[-1].localized, (
+            cid,
+            [(p.seq, p.status, p.error) for p in poses],
+        )
     assert {s.worker for s in srv.server.sessions.list("window")} >= {0}
     grpc_client.unload_map("window")
 
