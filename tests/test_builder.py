@@ -107,6 +107,21 @@ def builder(tmp_path_factory):
     svc.stop()
 
 
+@pytest.fixture(scope="module")
+def small_model(world, tmp_path_factory):
+    """Every 4th of the world's 40 mapping images (10) and the points they see, as a COLMAP
+    model: what the service tests that let a build run to the end build. They check the service
+    (progress, announcement, a late server, the fetch, a killed worker), none the map's size, and
+    a build of the 10 images takes a quarter of the 40's time (4 builds: ~50 -> ~15 s). The
+    cancel and kill tests stop a build of all 40: it must still be running when they do."""
+    from sfmloc.bench.robust_data import write_subset_model
+
+    model, _ = write_subset_model(
+        world.root / "synth" / "sparse", tmp_path_factory.mktemp("small-model") / "sparse", 4
+    )
+    return model
+
+
 def _stub(svc):
     from sfmloc_client.pb import builder_pb2_grpc
 
@@ -114,20 +129,21 @@ def _stub(svc):
     return ch, builder_pb2_grpc.MapBuilderStub(ch)
 
 
-def _colmap_request(world, name, **kw):
+def _colmap_request(world, name, model=None, **kw):
+    """A build of the world's model (``model``: another COLMAP model of its images)."""
     from sfmloc_client.pb import builder_pb2 as pb
 
     return pb.SubmitBuildRequest(
         name=name,
         colmap=pb.ColmapInput(
-            model_dir=str(world.root / "synth" / "sparse"),
+            model_dir=str(model or world.root / "synth" / "sparse"),
             image_dir=str(world.root / "synth" / "images"),
         ),
         **kw,
     )
 
 
-def test_submit_watch_and_zenoh_announcement(world, builder):
+def test_submit_watch_and_zenoh_announcement(world, builder, small_model):
     import zenoh
 
     from sfmloc_client import make_zenoh_config
@@ -148,7 +164,7 @@ def test_submit_watch_and_zenoh_announcement(world, builder):
         assert wait_until(lambda: svc.session.put("sfmloc/test/probe", b"") or probes, 20)
         ch, stub = _stub(svc)
         with ch:
-            job_id = stub.SubmitBuild(_colmap_request(world, "synthroom")).job_id
+            job_id = stub.SubmitBuild(_colmap_request(world, "synthroom", small_model)).job_id
             events = list(stub.WatchBuild(pb.WatchBuildRequest(job_id=job_id)))
             job = stub.GetBuild(pb.GetBuildRequest(job_id=job_id))
             listed = {j.job_id for j in stub.ListBuilds(pb.ListBuildsRequest()).jobs}
@@ -173,7 +189,9 @@ def test_submit_watch_and_zenoh_announcement(world, builder):
     assert wait_until(lambda: not any(svc.jobs.work_root.iterdir()), 20)
 
 
-def test_a_server_started_after_the_announcement_loads_the_map(world, builder, tmp_path):
+def test_a_server_started_after_the_announcement_loads_the_map(
+    world, builder, small_model, tmp_path
+):
     """The builder repeats its announcements when a server appears, and answers queries for
     them: a server that starts after a build (following the builder) still loads the map."""
     import zenoh
@@ -186,7 +204,7 @@ def test_a_server_started_after_the_announcement_loads_the_map(world, builder, t
     svc, ep, out = builder
     ch, stub = _stub(svc)
     with ch:
-        job_id = stub.SubmitBuild(_colmap_request(world, "latecomer")).job_id
+        job_id = stub.SubmitBuild(_colmap_request(world, "latecomer", small_model)).job_id
         assert (
             list(stub.WatchBuild(pb.WatchBuildRequest(job_id=job_id)))[-1].state
             == pb.BUILD_STATE_SUCCEEDED
@@ -216,7 +234,9 @@ def test_a_server_started_after_the_announcement_loads_the_map(world, builder, t
         assert wait_until(lambda: c.health() == "SERVING", 10)
 
 
-def test_a_server_without_the_builders_folder_fetches_the_bundle(world, builder, tmp_path):
+def test_a_server_without_the_builders_folder_fetches_the_bundle(
+    world, builder, small_model, tmp_path
+):
     """Issue 13: a server on another Zenoh endpoint with its own maps folder (no shared path,
     the builder's folder not among its roots) loads a bundle the builder service built: the
     files come over Zenoh, verified by the bundle's checksums, into the server's folder."""
@@ -229,7 +249,7 @@ def test_a_server_without_the_builders_folder_fetches_the_bundle(world, builder,
     svc, ep, out = builder
     ch, stub = _stub(svc)
     with ch:
-        job_id = stub.SubmitBuild(_colmap_request(world, "faraway")).job_id
+        job_id = stub.SubmitBuild(_colmap_request(world, "faraway", small_model)).job_id
         assert (
             list(stub.WatchBuild(pb.WatchBuildRequest(job_id=job_id)))[-1].state
             == pb.BUILD_STATE_SUCCEEDED
@@ -286,7 +306,7 @@ def test_cancel_leaves_no_bundle(world, builder, tmp_path):
     assert not (out / "cancelled").exists()
 
 
-def test_a_killed_build_worker_does_not_take_the_service_down(world, builder):
+def test_a_killed_build_worker_does_not_take_the_service_down(world, builder, small_model):
     from sfmloc_client.pb import builder_pb2 as pb
 
     svc, _, out = builder
@@ -302,7 +322,7 @@ def test_a_killed_build_worker_does_not_take_the_service_down(world, builder):
         assert events[-1].state == pb.BUILD_STATE_FAILED
         assert "died" in events[-1].error and "-9" in events[-1].error
         # the service carries on: the next build succeeds
-        job2 = stub.SubmitBuild(_colmap_request(world, "after-crash")).job_id
+        job2 = stub.SubmitBuild(_colmap_request(world, "after-crash", small_model)).job_id
         last = list(stub.WatchBuild(pb.WatchBuildRequest(job_id=job2)))[-1]
         assert last.state == pb.BUILD_STATE_SUCCEEDED
     assert not (out / "crashing").exists()
