@@ -1364,10 +1364,15 @@ def run_soak(
         for c in cl:
             c.join(10)
         stream_summary = [c.summary(t0 + warmup, t_end) for c in cl]
-        # Every session should end by itself: wait out the idle timeout (plus the server's
-        # expiry period) and count what is left.
-        time.sleep(idle_timeout_s + 6.0)
+        # Every session should end by itself: wait out the idle timeout (plus up to 6 s for
+        # the server's expiry period) and count what is left; no longer than until none is
+        # (no client is left to open one).
+        deadline = time.monotonic() + idle_timeout_s + 6.0
+        time.sleep(idle_timeout_s)
         final = soak_sample(srv, t0)
+        while final["sessions"] and time.monotonic() < deadline:
+            time.sleep(min(0.5, max(0.0, deadline - time.monotonic())))
+            final = soak_sample(srv, t0)
         alive = srv.alive()
     after = [s for s in samples if s["t_s"] >= warmup]
     ref = after[0] if after else (samples[-1] if samples else final)
