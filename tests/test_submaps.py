@@ -5,6 +5,7 @@ ground truth)."""
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -283,6 +284,90 @@ def test_sessions_share_one_cache_and_its_budget(world, walk_set):
     cache.load_now(int(np.argmax(walk_set.parts_near(world.gt_cam_from_world[far]))))
     assert home not in cache.resident_parts() and cache.stats.evictions == 1
     assert cache.stats.max_resident_bytes <= max(sizes)
+    cache.close()
+
+
+class _KernelCounted(SubmapSet):
+    """A set that asks the kernel how much of its parts this process holds (the resident
+    pages of its mappings of the part folders, ``/proc/self/smaps``: what a budget promises
+    to bound) after every part load, on whichever thread loads it, and on ``sample()``."""
+
+    def __init__(self, path: Path) -> None:
+        super().__init__(path, verify=False)
+        self.peak = 0
+
+    def held(self) -> int:
+        from sfmloc.map.submaps import part_folder
+        from sfmloc.server.submaps import resident_map_bytes
+
+        by_file: dict[str, int] = {}  # one read of smaps; the global index is not a part
+        resident_map_bytes(os.getpid(), self.path, per_file=by_file)
+        folders = tuple(part_folder(k) + "/" for k in range(self.n_parts))
+        return sum(b for f, b in by_file.items() if f.startswith(folders))
+
+    def sample(self) -> int:
+        self.peak = max(self.peak, self.held())
+        return self.peak
+
+    def load_part(self, k: int, *, verify: bool = False):  # noqa: ANN201 - as SubmapSet's
+        out = super().load_part(k, verify=verify)
+        self.sample()  # the moment a switch holds most: the new part is in, the old not gone
+        return out
+
+
+@pytest.fixture
+def own_set(room, tmp_path) -> Path:
+    # A folder of its own: the kernel's count covers every mapping of it in this process.
+    return split_bundle(room, tmp_path, "ownset", parts=3)
+
+
+def test_the_kernel_never_holds_more_of_the_parts_than_the_budget(world, own_set):
+    """Room for one part of three (a server worker's ``--map-memory`` in
+    tests/test_server_submaps.py): along the walk, at every part load and every frame, the
+    pages this process maps of the parts stay within the budget. A switch used to evict the
+    session's part from the books and load the next while the session's ``Localizer`` still
+    mapped the old one: 2,252,800 B of parts against a 1,860,596 B budget right after the
+    load (a server worker: 2,064,384 sampled during a switch)."""
+    s = _KernelCounted(own_set)
+    budget = s.largest_part_bytes() + 1000
+    assert 2 * min(s.part_memory_bytes(k) for k in range(s.n_parts)) > budget  # one at a time
+    loc = SubmapLocalizer(s, world.camera_spec, memory_budget=budget)
+    localized = 0
+    for i, gray in enumerate(world.gray):
+        localized += loc.localize(gray, i / 30.0).status is not Status.LOST
+        s.sample()
+    assert localized >= len(world.gray) - 2
+    assert len(loc.stats.parts_used) >= 2 and loc.stats.evictions >= 1  # it crossed parts
+    assert 0 < s.peak <= budget, (s.peak, budget)
+    assert loc.stats.max_resident_bytes <= budget
+    loc.close()
+
+
+def test_an_evicted_part_a_caller_still_holds_counts_until_it_is_let_go(world, own_set):
+    """The bundle ``load_now`` returned (a single-image relocalization's part) stays mapped
+    while its caller holds it, evicted or not: it counts against the budget until then (a
+    load that would need its room is refused), and its room is free once it is let go."""
+    import gc
+
+    from sfmloc.engine.submaps import PartCache
+    from sfmloc.errors import OverloadError
+
+    s = _KernelCounted(own_set)
+    budget = s.largest_part_bytes() + 1000
+    cache = PartCache(s, budget, background=False)
+    held = cache.load_now(0)[0]
+    assert held.points_xyz.sum() != 0  # in use: its pages are touched
+    with pytest.raises(OverloadError, match="memory budget"):
+        cache.load_now(1)
+    assert s.sample() <= budget and cache.resident_bytes() <= budget
+    assert cache.leaving_parts() == [0] and cache.resident_parts() == []
+    del held
+    gc.collect()
+    assert cache.leaving_parts() == []
+    part = cache.load_now(1)[0]
+    assert part.n_points > 0 and cache.resident_parts() == [1]
+    assert s.sample() <= budget and cache.stats.max_resident_bytes <= budget
+    del part
     cache.close()
 
 

@@ -243,6 +243,14 @@ class Localizer:
         self.bundle = bundle
         self._scope_points = ScopePoints(self.conf.projected_top_images)  # held the old bundle
 
+    def detach_bundle(self) -> None:
+        """Let the bundle go before the next ``swap_bundle`` (which does not read the old
+        one): a sub-map session whose budget holds one part drops its part before the next
+        one loads, since the kernel keeps a part's pages resident while anything maps it
+        (``engine/submaps.py``). The localizer must not run until ``swap_bundle``."""
+        self.bundle = None  # type: ignore[assignment]
+        self._scope_points = ScopePoints(self.conf.projected_top_images)
+
     # ------------------------------------------------------------------ algorithm 1
     def localize(
         self, frame: np.ndarray, stamp: float, prior: Rigid3d | None = None

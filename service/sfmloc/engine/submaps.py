@@ -48,11 +48,19 @@ Memory: the resident parts' ``memory_bytes`` (as ``MapBundle.memory_bytes``: arr
 the engine plus the ANN index; a part being loaded counts from the moment its load starts)
 never exceed ``memory_budget``; the least recently used parts other than the current one are
 evicted first, and a prefetch that does not fit is skipped. The global index is outside the
-budget (``SubmapSet.memory_bytes``, small).
+budget (``SubmapSet.memory_bytes``, small). An evicted part counts until the kernel has
+unmapped it, not until the cache forgets it: its pages stay resident while anything holds a
+view of its arrays (``MapBundle.mappings``, held weakly). A session whose part is evicted to
+load the next in its place lets go of it first (``Localizer.detach_bundle``): before, it held
+the old part through its ``Localizer`` while the new one loaded, and a server worker with room
+for one part of the test world's three held 2,064,384 B of the set against a 1,860,596 B
+budget (the kernel's count, sampled during a switch; 2,252,800 in-process right after the
+load).
 """
 
 from __future__ import annotations
 
+import gc
 import logging
 import threading
 import time
@@ -131,6 +139,12 @@ class PartCache:
         self.stats = SubmapStats()
         self._resident: OrderedDict[int, tuple[MapBundle, np.ndarray]] = OrderedDict()
         self._loading: dict[int, Future] = {}
+        self._loading_now: int | None = None  # a part loading in the caller's thread
+        # Evicted parts something may still map (weak references to their memory maps): they
+        # count against the budget until the kernel has let them go.
+        self._leaving: list[tuple[int, list[weakref.ref]]] = []
+        self._evicted = 0  # evictions so far; ``_room_for`` collects cycles once per new one
+        self._collected_at = -1
         self._users: weakref.WeakSet[SubmapLocalizer] = weakref.WeakSet()
         self._lock = threading.Lock()  # guards _loading, read by the byte count
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="submap-load") if background else None
@@ -145,10 +159,31 @@ class PartCache:
             return [k for k, f in self._loading.items() if not f.done()]
 
     def resident_bytes(self) -> int:
-        """Bytes of the resident parts plus those being loaded (what the budget bounds)."""
+        """Bytes of the resident parts, those being loaded, and evicted ones something still
+        maps (what the budget bounds: what the kernel holds of the set's parts)."""
         with self._lock:
             parts = list(self._resident) + list(self._loading)
+            if self._loading_now is not None:
+                parts.append(self._loading_now)
+            parts += [k for k, refs in self._leaving if any(r() is not None for r in refs)]
         return sum(self.set.part_memory_bytes(k) for k in parts)
+
+    def leaving_parts(self) -> list[int]:
+        """Evicted parts still mapped (a session or a caller holds a view of them)."""
+        self._prune()
+        with self._lock:
+            return [k for k, _ in self._leaving]
+
+    def _prune(self) -> None:
+        with self._lock:
+            self._leaving = [
+                (k, refs) for k, refs in self._leaving if any(r() is not None for r in refs)
+            ]
+
+    def _peak(self, stats: tuple = ()) -> None:
+        used = self.resident_bytes()
+        for st in (self.stats, *stats):
+            st.max_resident_bytes = max(st.max_resident_bytes, used)
 
     def register(self, user: SubmapLocalizer) -> None:
         """A session whose part (``user.part``) must stay resident while it is on it."""
@@ -184,24 +219,62 @@ class PartCache:
         self, k: int, keep: set[int], optional: bool, stats: tuple, release: Any = None
     ) -> bool:
         """Evict least recently used parts (no session's but ``release``'s, not ``keep``)
-        until part ``k`` fits in the budget; False when it cannot (nothing is evicted then)."""
+        until part ``k`` fits in the budget; False when it cannot (nothing is evicted then,
+        or what was evicted is still mapped elsewhere and keeps counting). ``release``'s part,
+        when evicted, is let go by its session before this returns (``_let_go``)."""
         need = self.set.part_memory_bytes(k)
         protect = set(keep) | self.pinned(exclude=release)
-        evictable = [j for j in self._resident if j not in protect]  # LRU first
-        used = self.resident_bytes()
-        free_up = []
-        for j in evictable:
-            if used + need <= self.memory_budget:
+        free_up: list[int] = []
+        for attempt in range(2):
+            self._prune()
+            used = self.resident_bytes()
+            free_up = []
+            for j in [j for j in self._resident if j not in protect]:  # LRU first
+                if used + need <= self.memory_budget:
+                    break
+                free_up.append(j)
+                used -= self.set.part_memory_bytes(j)
+            if used + need <= self.memory_budget or attempt or not self._collect_cycles():
                 break
-            free_up.append(j)
-            used -= self.set.part_memory_bytes(j)
         if used + need > self.memory_budget:
-            if optional:
-                self._note(*stats, skipped_prefetch=1)
-            return False
+            return self._no_room(optional, stats)
         for j in free_up:
-            del self._resident[j]
+            self._evict(j)
             self._note(*stats, evictions=1)
+        if release is not None and release.part in free_up:
+            release._let_go()
+        # The truth: an evicted part counts until nothing maps it (a reference cycle, or a
+        # caller still holding the bundle ``load_now`` gave it).
+        self._prune()
+        if self.resident_bytes() + need > self.memory_budget:
+            self._collect_cycles()
+            self._prune()
+            if self.resident_bytes() + need > self.memory_budget:
+                return self._no_room(optional, stats)
+        return True
+
+    def _no_room(self, optional: bool, stats: tuple) -> bool:
+        if optional:
+            self._note(*stats, skipped_prefetch=1)
+        return False
+
+    def _evict(self, j: int) -> None:
+        # A method of its own: no local name outlives the eviction holding the part.
+        bundle = self._resident.pop(j)[0]
+        refs = [weakref.ref(m) for m in bundle.mappings()]
+        with self._lock:
+            self._leaving.append((j, refs))
+        self._evicted += 1
+
+    def _collect_cycles(self) -> bool:
+        """Collect garbage cycles when an evicted part is still mapped (once per eviction
+        since the last collection: a part a caller really holds stays counted); True when
+        something was left to collect."""
+        self._prune()
+        if not self._leaving or self._collected_at == self._evicted:
+            return False
+        self._collected_at = self._evicted
+        gc.collect()
         return True
 
     def request(self, k: int, keep: set[int], optional: bool = False, stats: tuple = ()) -> bool:
@@ -212,12 +285,24 @@ class PartCache:
         if not self._room_for(k, keep, optional, stats):
             return False
         if self._pool is None:
-            self._resident[k] = self.set.load_part(k)
+            self._resident[k] = self._load(k)
             self._note(*stats, loads=1)
+            self._peak(stats)
             return True
         with self._lock:
             self._loading[k] = self._pool.submit(self.set.load_part, k)
+        self._peak(stats)
         return True
+
+    def _load(self, k: int) -> tuple[MapBundle, np.ndarray]:
+        """Part ``k`` loaded in the caller's thread (counted while it loads)."""
+        with self._lock:
+            self._loading_now = k
+        try:
+            return self.set.load_part(k)
+        finally:
+            with self._lock:
+                self._loading_now = None
 
     def load_now(
         self, k: int, stats: tuple = (), release: Any = None
@@ -238,8 +323,9 @@ class PartCache:
                     f"({self.memory_budget / 1e6:.1f} MB) beside the parts other sessions are "
                     "on: raise the map memory budget"
                 )
-            part = self._resident[k] = self.set.load_part(k)
+            part = self._resident[k] = self._load(k)
             self._note(*stats, loads=1)
+            self._peak(stats)
         self._note(*stats, sync_loads=1, sync_load_ms=(time.perf_counter() - t0) * 1e3)
         return part
 
@@ -255,9 +341,8 @@ class PartCache:
                 except Exception as exc:  # noqa: BLE001 - a bad part must not stop the session
                     self._note(*stats, failed_loads=1)
                     log.error("sub-map %d failed to load: %s", k, exc)
-        used = self.resident_bytes()
-        for st in (self.stats, *stats):
-            st.max_resident_bytes = max(st.max_resident_bytes, used)
+        self._prune()
+        self._peak(stats)
 
     def close(self) -> None:
         if self._pool is not None:
@@ -542,10 +627,26 @@ class SubmapLocalizer:
 
     # ------------------------------------------------------------------ parts
     def _load_and_switch(self, k: int) -> None:
-        # The current part may go to make room (unless another session is on it): the switch
-        # translates the table from its point ids, kept in ``_part_points``.
-        self.cache.load_now(k, self._st, release=self)
+        # The current part may go to make room (unless another session is on it): the session
+        # lets go of it before the load (``_let_go``), and the switch translates the table
+        # from its point ids, kept in ``_part_points``.
+        try:
+            self.cache.load_now(k, self._st, release=self)
+        except BaseException:
+            if self.inner is not None and self.inner.bundle is None:
+                # It let its part go and the load failed: the next frame starts afresh.
+                self.inner = None
+                self.part = None
+                self._part_points = None
+            raise
         self._switch(k)
+
+    def _let_go(self) -> None:
+        """The cache evicted this session's part to load another in its place: no reference
+        to it may outlive this call (the kernel keeps a part's pages resident while anything
+        maps it); the track table keeps the part's global ids (``_part_points``)."""
+        if self.inner is not None:
+            self.inner.detach_bundle()
 
     def _switch(self, k: int) -> None:
         part = self.cache.get(k)

@@ -49,6 +49,7 @@ import ctypes.util
 import errno
 import hashlib
 import json
+import mmap
 import os
 import re
 import shutil
@@ -605,6 +606,18 @@ class MapBundle:
     # ------------------------------------------------------------------ accessors
     def array(self, name: str) -> np.ndarray:
         return self._a[name]
+
+    def mappings(self) -> list[Any]:
+        """The memory maps (``mmap.mmap``) of its array files. A map stays mapped, and its
+        touched pages resident, while anything holds a view of it, the bundle or not: a
+        weak reference to each tells when the kernel has let the bundle's pages go
+        (``engine.submaps.PartCache`` counts a part until then)."""
+        out: list[Any] = []
+        for arr in self._a.values():
+            m = getattr(arr, "_mmap", None)  # np.load(mmap_mode=...) gives an np.memmap
+            if isinstance(m, mmap.mmap) and all(m is not o for o in out):
+                out.append(m)
+        return out
 
     @property
     def n_points(self) -> int:

@@ -134,21 +134,26 @@ def release(bundle: Any) -> None:
         bundle.close()
 
 
-def resident_map_bytes(pid: int, folder: str | Path) -> int:
+def resident_map_bytes(pid: int, folder: str | Path, per_file: dict[str, int] | None = None) -> int:
     """Resident bytes of process ``pid``'s mappings of files under ``folder`` (the map's
-    memory-mapped arrays and index as the kernel counts them); 0 when unreadable."""
+    memory-mapped arrays and index as the kernel counts them); 0 when unreadable.
+    ``per_file``: filled with the bytes of each file (its path relative to ``folder``)."""
     root = str(Path(folder).resolve()) + "/"
     total = 0
-    inside = False
+    inside: str | None = None
     try:
         with open(f"/proc/{pid}/smaps", encoding="utf-8", errors="replace") as f:
             for line in f:
                 first = line.split(None, 1)[0] if line.strip() else ""
                 if "-" in first and not first.endswith(":"):  # a mapping's header line
                     parts = line.split(None, 5)
-                    inside = len(parts) == 6 and parts[5].strip().startswith(root)
-                elif inside and first == "Rss:":
-                    total += int(line.split()[1]) * 1024
+                    name = parts[5].strip() if len(parts) == 6 else ""
+                    inside = name[len(root) :] if name.startswith(root) else None
+                elif inside is not None and first == "Rss:":
+                    b = int(line.split()[1]) * 1024
+                    total += b
+                    if per_file is not None:
+                        per_file[inside] = per_file.get(inside, 0) + b
     except (OSError, ValueError, IndexError):
         return 0
     return total
