@@ -202,6 +202,7 @@ class Server:
         workers: int,
         extra: tuple[str, ...] = (),
         log_path: Path | None = None,
+        quiet: bool = True,
     ) -> None:
         from ..testing import ServerProcess
 
@@ -209,7 +210,7 @@ class Server:
         self.log_path = log_path
         self._log_file = open(log_path, "w") if log_path is not None else None  # noqa: SIM115
         self.sp = ServerProcess(
-            world.maps_dir, workers=workers, extra_args=extra, stderr=self._log_file
+            world.maps_dir, workers=workers, extra_args=extra, stderr=self._log_file, quiet=quiet
         )
 
     def __enter__(self) -> Server:
@@ -396,6 +397,9 @@ class StreamClient(threading.Thread):
                 "error": None if p.error is None else p.error.code,
                 "message": p.message[:120],
                 "stamp_ns": p.stamp_ns,
+                "latency_ms": round(p.latency_ms, 1),
+                "engine_ms": round(p.engine_ms, 1),
+                "dropped": p.dropped,
             }
             lg.answers[p.seq] = rec
             lg.dropped = max(lg.dropped, p.dropped)
@@ -906,14 +910,18 @@ def run_kill(
     baseline_s: float = 0.0,
     loading_kills: int = 2,
     log_path: Path | None = None,
+    records: Path | None = None,
 ) -> dict:
     """``kills`` kills, ``interval_s`` apart, under streaming clients; ``loading_kills`` of them
     on a replacement still loading (killed as soon as it appears, right after the kill of the
     worker it replaces); first ``baseline_s`` of the same streams without a kill (the gaps and
     wrong poses this machine gives anyway). The server's log (``log_path``) is read back: one
     ``worker_lost`` per kill (``during_start`` true exactly for the replacements), and every
-    restart bookkept by generation."""
+    restart bookkept by generation. ``records``: write every client's per-frame records there
+    (JSON; times in seconds relative to the first kill) with the kills' times, also as wall
+    clock (the server log's ``ts``), to line a kill's story up with the log."""
     stop = threading.Event()
+    kill_times: list[dict] = []  # per kill: pid, loading, monotonic and wall time
     recovery: list[float] = []
     zombies_after_1s: list[int] = []
     seen: set[int] = set()
@@ -926,7 +934,8 @@ def run_kill(
     after = {(k + 1) * plain // (loading_kills + 1) for k in range(loading_kills)}
     if log_path is None:
         log_path = Path(tempfile.mkdtemp(prefix="sfmloc-kill-")) / "server.log"
-    with Server(world, workers, log_path=log_path) as srv:
+    # At info level: the sessions' moves (session_open, sessions_rebalanced) are in the story.
+    with Server(world, workers, log_path=log_path, quiet=False) as srv:
         cl = [
             StreamClient(world, srv.sp.endpoint, f"kill-client-{i}", stop, rate_hz=rate_hz)
             for i in range(clients)
@@ -954,6 +963,7 @@ def run_kill(
             t_kill = time.monotonic()
             with contextlib.suppress(ProcessLookupError):
                 os.kill(pid, signal.SIGKILL)
+            kill_times.append({"pid": pid, "loading": False, "t": t_kill, "wall": time.time()})
             killed.append((pid, False))
             _log(f"kill {len(killed)}/{kills}: worker {pid}")
             if i in after:  # its replacement too, as soon as it appears
@@ -962,6 +972,8 @@ def run_kill(
                     _log("kill: no replacement appeared within 10 s")
                 else:
                     new_pid, t_seen = t_new
+                    t_k, wall = time.monotonic(), time.time()
+                    kill_times.append({"pid": new_pid, "loading": True, "t": t_k, "wall": wall})
                     killed.append((new_pid, True))
                     seen.add(new_pid)  # a restart too (its own replacement follows)
                     catch_s.append(t_seen)
@@ -1001,6 +1013,17 @@ def run_kill(
     # flight per client).
     base = _totals([c.summary(tb, t0) for c in cl])
     per = [c.summary(t0, t1) for c in cl]
+    if records is not None:
+        records.write_text(
+            json.dumps(
+                {
+                    "kills": [{**k, "t": round(k["t"] - t0, 4)} for k in kill_times],
+                    "window": [0.0, round(t1 - t0, 4)],
+                    "clients": {c.log.client_id: c.records(t0) for c in cl},
+                },
+                separators=(",", ":"),
+            )
+        )
     return {
         "baseline": base,
         **_totals(per),
@@ -2055,6 +2078,7 @@ def run(args: argparse.Namespace, world: World | None = None) -> dict:
             args.baseline,
             args.loading_kills,
             Path(args.work) / "kill-server.log",
+            records=Path(args.records) if args.records else None,
         )
     if "reloc" in parts:
         _log(f"reloc: {args.clients} clients beside {args.reloc_callers} Relocalize callers")
@@ -2339,6 +2363,10 @@ def parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", help="also write the full results to this file")
+    p.add_argument(
+        "--records",
+        help="kill: write every client's per-frame records and the kills' times (JSON) here",
+    )
     return p
 
 
