@@ -81,6 +81,9 @@ def test_reliability_tiny_run_computes_every_field(world, w, tmp_path):
     assert math.isfinite(k["max_gap_s"]) and k["max_gap_s"] > 0
     assert isinstance(k["zombies_after_1s_max"], int) and isinstance(k["restarts"], int)
     assert k["recovery_s_max"] is None or k["recovery_s_max"] > 0
+    # the server's counts at shutdown, read back from its log (at info level)
+    assert k["exact"]["sessions_not_closed"] == [] and k["exact"]["lost"] >= 0
+    assert k["exact"]["silent"] >= 0  # more answers than frames kept would be a miscount
     kb = k["baseline"]
     assert kb["sent"] >= 1 and kb["answered"] <= kb["sent"] and kb["wrong"] <= kb["localized"]
 

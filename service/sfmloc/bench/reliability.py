@@ -911,6 +911,7 @@ def run_kill(
     loading_kills: int = 2,
     log_path: Path | None = None,
     records: Path | None = None,
+    server_args: tuple[str, ...] = (),
 ) -> dict:
     """``kills`` kills, ``interval_s`` apart, under streaming clients; ``loading_kills`` of them
     on a replacement still loading (killed as soon as it appears, right after the kill of the
@@ -935,7 +936,7 @@ def run_kill(
     if log_path is None:
         log_path = Path(tempfile.mkdtemp(prefix="sfmloc-kill-")) / "server.log"
     # At info level: the sessions' moves (session_open, sessions_rebalanced) are in the story.
-    with Server(world, workers, log_path=log_path, quiet=False) as srv:
+    with Server(world, workers, server_args, log_path=log_path, quiet=False) as srv:
         cl = [
             StreamClient(world, srv.sp.endpoint, f"kill-client-{i}", stop, rate_hz=rate_hz)
             for i in range(clients)
@@ -1013,6 +1014,7 @@ def run_kill(
     # flight per client).
     base = _totals([c.summary(tb, t0) for c in cl])
     per = [c.summary(t0, t1) for c in cl]
+    exact = exact_silence(cl, log_path)
     if records is not None:
         records.write_text(
             json.dumps(
@@ -1039,9 +1041,38 @@ def run_kill(
         "recovery_s_max": float(np.nanmax(recovery)) if any(np.isfinite(recovery)) else None,
         "kills_without_recovery": int(np.sum(~np.isfinite(recovery))),
         "log": kill_log_check(killed, lost, restarted, failed),
+        "exact": exact,
         "log_path": str(log_path),
         "clients_detail": per,
     }
+
+
+def exact_silence(cl: list[StreamClient], log_path: Path) -> dict:
+    """Frames without an answer, exactly, over each client's whole run (baseline and kills):
+    the server's own counts when it closed the session at shutdown (``session_close``: frames
+    received, frames it dropped as stale) against the client's (frames sent, answers).
+    ``silent`` = received - answered - dropped: frames the server had and never answered;
+    ``lost`` = sent - received: frames that never reached it. The windowed ``unanswered``
+    counts are estimates: a pose carries its session's drop count when it is answered, which
+    includes frames sent after it (dropped while it was in the worker), so a window's edge can
+    count a dropped frame as silent or the other way round."""
+    closes: dict[str, dict[str, str]] = {}
+    with contextlib.suppress(OSError):
+        for line in log_path.read_text(errors="replace").splitlines():
+            if " event=session_close " in f"{line} ":
+                f = dict(kv.split("=", 1) for kv in line.split() if "=" in kv)
+                closes[f.get("client", "")] = f
+    silent = lost = 0
+    unknown: list[str] = []
+    for c in cl:
+        e = closes.get(c.log.client_id)
+        if e is None:
+            unknown.append(c.log.client_id)
+            continue
+        frames, dropped = int(e.get("frames", 0)), int(e.get("dropped", 0))
+        silent += frames - len(c.log.answered) - dropped
+        lost += len(c.log.sent) - frames
+    return {"silent": silent, "lost": lost, "sessions_not_closed": unknown}
 
 
 def _kill_replacement(srv: Server, known: set[int], deadline: float) -> tuple[int, float] | None:
@@ -1846,8 +1877,15 @@ def table(res: dict) -> list[str]:
             (
                 "kill: frames answered / sent",
                 f"{k['answered']} / {k['sent']} (server dropped "
-                f"{k['dropped_stale']} stale, {k['unanswered']} silent)",
+                f"{k['dropped_stale']} stale, ~{k['unanswered']} silent)",
                 "every frame",
+            ),
+            (
+                "  silent / lost, exact (whole run)",
+                f"{k['exact']['silent']} / {k['exact']['lost']}"
+                if "exact" in k and not k["exact"]["sessions_not_closed"]
+                else "? (no session_close in the server's log)",
+                "0 / 0",
             ),
             (
                 "  without kills (baseline)",
@@ -2079,6 +2117,7 @@ def run(args: argparse.Namespace, world: World | None = None) -> dict:
             args.loading_kills,
             Path(args.work) / "kill-server.log",
             records=Path(args.records) if args.records else None,
+            server_args=tuple(args.server_arg),
         )
     if "reloc" in parts:
         _log(f"reloc: {args.clients} clients beside {args.reloc_callers} Relocalize callers")
@@ -2271,8 +2310,9 @@ def parser() -> argparse.ArgumentParser:
         "--server-arg",
         action="append",
         default=[],
-        help="extra `sfmloc serve` argument for the reloc and soak parts (repeatable), e.g. "
-        "--server-arg=--relocalize-workers=0",
+        help="extra `sfmloc serve` argument for the kill, reloc and soak parts (repeatable), "
+        "e.g. --server-arg=--relocalize-workers=0 (the kill part tells the relocalization "
+        "lane's worker by its lower priority: not when the server runs at nice 19)",
     )
     p.add_argument(
         "--redkitchen",
