@@ -14,6 +14,7 @@ from functools import lru_cache
 
 import cv2
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 
 N_BITS = 256
 N_WORDS = N_BITS // 64
@@ -75,10 +76,74 @@ def compute_brief(smoothed: np.ndarray, xy: np.ndarray, patch_size: int = 32) ->
     # COLMAP coordinates -> nearest array index.
     cx = np.clip(np.floor(xy[:, 0]).astype(np.intp), 0, w - 1)
     cy = np.clip(np.floor(xy[:, 1]).astype(np.intp), 0, h - 1)
+    flat = np.ascontiguousarray(smoothed)
+    packed = np.empty((n, N_BITS // 8), np.uint8)
+    # Keypoints whose whole test window lies in the image (all of them, as the engine detects
+    # with a border) read their pixels from a copy of that window: one small contiguous
+    # patch per keypoint, then the same 512 columns of every patch. The same pixels as the
+    # flat gather below (bit for bit), at ~0.75 of its CPU on redkitchen frames (~700
+    # keypoints): the gather's (N, 512) index array is 8 bytes per pixel read.
+    half = patch_size // 2 - 1
+    inside = (cx >= half) & (cx < w - half) & (cy >= half) & (cy < h - half)
+    if inside.all():
+        _brief_windows(flat, cx, cy, half, patch_size, packed)
+    else:
+        ins = np.flatnonzero(inside)
+        out = np.flatnonzero(~inside)
+        if len(ins):
+            packed[ins] = _brief_windows(
+                flat,
+                cx[ins],
+                cy[ins],
+                half,
+                patch_size,
+                np.empty((len(ins), N_BITS // 8), np.uint8),
+            )
+        packed[out] = _brief_gather(flat, cx[out], cy[out], patch_size)
+    return packed.view(np.uint64)
+
+
+@lru_cache(maxsize=16)
+def _window_offsets(patch_size: int) -> np.ndarray:
+    """(512,) offsets of the tests' pixels in a row-major (2 half + 1)^2 window around the
+    keypoint: the first pixel of each of the 256 tests, then the second."""
+    half = patch_size // 2 - 1
+    side = 2 * half + 1
+    pat = brief_pattern(patch_size) + half
+    off = np.concatenate([pat[:, 1] * side + pat[:, 0], pat[:, 3] * side + pat[:, 2]])
+    off = off.astype(np.intp)
+    off.setflags(write=False)  # shared through the cache
+    return off
+
+
+def _brief_windows(
+    image: np.ndarray,
+    cx: np.ndarray,
+    cy: np.ndarray,
+    half: int,
+    patch_size: int,
+    packed: np.ndarray,
+) -> np.ndarray:
+    """BRIEF of keypoints at pixels (cx, cy), each at least ``half`` pixels inside ``image``,
+    into ``packed`` (N, 32) uint8."""
+    side = 2 * half + 1
+    windows = sliding_window_view(image, (side, side))
+    off = _window_offsets(patch_size)
+    patches = windows[cy - half, cx - half].reshape(len(cx), side * side)
+    v = np.take(patches, off, axis=1)
+    packed[:] = np.packbits(np.less(v[:, :N_BITS], v[:, N_BITS:]), axis=1)
+    return packed
+
+
+def _brief_gather(image: np.ndarray, cx: np.ndarray, cy: np.ndarray, patch_size: int) -> np.ndarray:
+    """BRIEF of keypoints at pixels (cx, cy) anywhere in ``image``: flat indices of the
+    tests' pixels, clamped to the image (``mode="clip"``), (N, 32) uint8."""
+    w = image.shape[1]
     base = cy * w + cx
-    flat = np.ascontiguousarray(smoothed).reshape(-1)
+    flat = image.reshape(-1)
     off = _flat_offsets(patch_size, w)
     idx, vals, bits = _buffers()
+    n = len(cx)
     packed = np.empty((n, N_BITS // 8), np.uint8)
     for s in range(0, n, _CHUNK):
         e = min(n, s + _CHUNK)
@@ -87,7 +152,7 @@ def compute_brief(smoothed: np.ndarray, xy: np.ndarray, patch_size: int = 32) ->
         np.take(flat, i, mode="clip", out=v)  # "clip": indices clamped to the image
         np.less(v[:, :N_BITS], v[:, N_BITS:], out=t)
         packed[s:e] = np.packbits(t, axis=1)
-    return packed.view(np.uint64)
+    return packed
 
 
 def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
