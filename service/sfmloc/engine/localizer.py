@@ -464,7 +464,7 @@ class Localizer:
         size = np.array([self.camera.width, self.camera.height], np.float64)
 
         def cells(xy: np.ndarray) -> int:
-            ij = np.clip((xy * (4.0 / size)).astype(np.int64), 0, 3)
+            ij = np.minimum(np.maximum((xy * (4.0 / size)).astype(np.int64), 0), 3)
             return int(np.count_nonzero(np.bincount(ij[:, 1] * 4 + ij[:, 0], minlength=16)))
 
         return cells(table.xy[table.point >= 0]) < c.refill_coverage * cells(kps.xy)

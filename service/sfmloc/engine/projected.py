@@ -114,8 +114,8 @@ def projected_matches(
     def cells(x: np.ndarray, y: np.ndarray) -> np.ndarray:
         i = np.floor(x / clear_px).astype(np.int64) + 1
         j = np.floor(y / clear_px).astype(np.int64) + 1
-        np.clip(i, 0, gw - 1, out=i)
-        np.clip(j, 0, gh - 1, out=j)
+        np.minimum(np.maximum(i, 0, out=i), gw - 1, out=i)  # np.clip's wrapper: ~10 us a call
+        np.minimum(np.maximum(j, 0, out=j), gh - 1, out=j)
         return (j + 1) * pw + (i + 1)
 
     def near(flat: np.ndarray, at: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:

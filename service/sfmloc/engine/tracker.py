@@ -76,7 +76,7 @@ def window_pairs(pred: np.ndarray, cand: np.ndarray, half: float) -> tuple[np.nd
     lo, hi = c.min(axis=0) - 3, c.max(axis=0) + 1
     with np.errstate(invalid="ignore"):
         w = np.floor((pred - half) / half)
-    w = np.clip(np.where(np.isnan(w), lo, w), lo, hi).astype(np.int64)
+    w = np.minimum(np.maximum(np.where(np.isnan(w), lo, w), lo), hi).astype(np.int64)
     ncols, nrows = hi[0] + 3 - lo[0], hi[1] + 3 - lo[1]
     c -= lo
     cid = c[:, 1] * ncols + c[:, 0]

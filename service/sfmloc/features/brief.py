@@ -74,8 +74,8 @@ def compute_brief(smoothed: np.ndarray, xy: np.ndarray, patch_size: int = 32) ->
         return np.zeros((0, N_WORDS), np.uint64)
     h, w = smoothed.shape
     # COLMAP coordinates -> nearest array index.
-    cx = np.clip(np.floor(xy[:, 0]).astype(np.intp), 0, w - 1)
-    cy = np.clip(np.floor(xy[:, 1]).astype(np.intp), 0, h - 1)
+    cx = np.minimum(np.maximum(np.floor(xy[:, 0]).astype(np.intp), 0), w - 1)
+    cy = np.minimum(np.maximum(np.floor(xy[:, 1]).astype(np.intp), 0), h - 1)
     flat = np.ascontiguousarray(smoothed)
     packed = np.empty((n, N_BITS // 8), np.uint8)
     # Keypoints whose whole test window lies in the image (all of them, as the engine detects
