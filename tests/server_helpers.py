@@ -24,6 +24,8 @@ WIDTH, HEIGHT = 640, 480
 N_MAPPING, N_FRAMES = 40, 60
 _lock = threading.Lock()
 _worlds: dict[Path, World] = {}
+_scenes: dict[tuple[int, str], Any] = {}
+_scenes_lock = threading.Lock()
 
 
 @dataclass
@@ -96,6 +98,23 @@ def build_world(base: Path) -> World:
         )
         _worlds[base] = world
         return world
+
+
+def room_scene(seed: int = 0, conf: Any = None) -> Any:
+    """``sfmloc.synth.Scene.room(seed, conf)``, built once per test session and shared (~1.5 s
+    CPU a build): the tests only read it (render, ray-cast, trajectories); the renderer's
+    mipmaps are kept in its cache, built once too. Twelve tests in nine files ask for the
+    world's room (seed 0, the default scene). test_synth builds its own: it checks that a build
+    is deterministic."""
+    from sfmloc.synth import Scene
+    from sfmloc.synth.scene import SceneConf
+
+    conf = conf or SceneConf()
+    key = (seed, conf.model_dump_json())
+    with _scenes_lock:
+        if key not in _scenes:
+            _scenes[key] = Scene.room(seed, conf)
+        return _scenes[key]
 
 
 def zenoh_endpoint() -> str:

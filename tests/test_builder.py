@@ -28,14 +28,15 @@ def test_descriptors_are_assigned_to_the_right_3d_points(world):
     feature of the whole scene (not only the model's points) must be the point it was assigned
     to. Catches pixel-convention and pyramid-scale errors, keypoints on occluders, and corners
     assigned to a neighbouring point."""
+    from server_helpers import room_scene
     from sfmloc.io.colmap import read_model
-    from sfmloc.synth import Scene, SynthConf, render_geometry
+    from sfmloc.synth import SynthConf, render_geometry
     from sfmloc.synth.model import feature_index_of_points
 
     conf = SynthConf.model_validate(
         json.loads((world.root / "synth" / "scene.json").read_text())["config"]
     )
-    scene = Scene.room(conf.seed, conf.scene)
+    scene = room_scene(conf.seed, conf.scene)
     bundle = MapBundle(world.maps_dir / "room")
     # Points are identified by their source (COLMAP) id: the builder's refinement moves them
     # to their Harris keypoints, so their positions are no longer the exact features.

@@ -242,9 +242,10 @@ def test_kalman_filter_follows_constant_velocity_and_angular_velocity():
 def test_tracking_keeps_identities():
     """Keypoints tracked from one rendered frame to the next are the same scene points: back-
     project each through the exact depth map and the ground-truth poses."""
-    from sfmloc.synth import Scene, make_trajectory, render
+    from server_helpers import room_scene
+    from sfmloc.synth import make_trajectory, render
 
-    scene = Scene.room(seed=0)
+    scene = room_scene(0)
     cam = Camera.pinhole(640, 480, 525.0, 525.0, 320.0, 240.0)
     poses = make_trajectory("walk", 40, seed=0, scene=scene)
     conf = EngineConf()

@@ -152,10 +152,11 @@ def test_harris_equals_the_plain_formula_across_sizes_and_settings(shape):
 
 
 def test_harris_equals_the_plain_formula_on_rendered_views_with_exact_corners():
+    from server_helpers import room_scene
     from sfmloc.cameras import Camera
-    from sfmloc.synth import Scene, mapping_views, render_full
+    from sfmloc.synth import mapping_views, render_full
 
-    scene = Scene.room(0)
+    scene = room_scene(0)
     camera = Camera.pinhole(640, 480, 525.0, 525.0, 320.0, 240.0)
     n = 0
     for i, T in enumerate(mapping_views(scene, 6, seed=1)[::2]):
@@ -257,10 +258,11 @@ def tracker_sequence(grays, **kw):
 
 
 def test_harris_equals_the_plain_formula_with_the_previous_frames_threshold():
+    from server_helpers import room_scene
     from sfmloc.cameras import Camera
-    from sfmloc.synth import Scene, make_trajectory, render_full
+    from sfmloc.synth import make_trajectory, render_full
 
-    scene = Scene.room(0)
+    scene = room_scene(0)
     camera = Camera.pinhole(640, 480, 525.0, 525.0, 320.0, 240.0)
     traj = make_trajectory("walk", 12, 3, scene)  # cam_from_world, 30 Hz
     grays = [

@@ -74,10 +74,11 @@ def test_forstner_corners_are_closer_to_exact_projections_on_a_rendered_view():
     # Exact ground truth: the renderer's texture corners, projected (the visible ones).
     from scipy.spatial import cKDTree
 
+    from server_helpers import room_scene
     from sfmloc.cameras import Camera
-    from sfmloc.synth import Scene, mapping_views, render_full, visible_points
+    from sfmloc.synth import mapping_views, render_full, visible_points
 
-    scene = Scene.room(0)
+    scene = room_scene(0)
     camera = Camera.pinhole(640, 480, 525.0, 525.0, 320.0, 240.0)
     dist = {"forstner": [], "quadratic": [], "none": []}
     for i, T in enumerate(mapping_views(scene, 12, seed=0)[::4]):

@@ -72,10 +72,11 @@ def test_epipolar_matching_and_triangulation_recover_exact_points():
 def test_harris_points_lie_on_the_scene_surfaces(world):
     """On the rendered room (exact poses), every Harris point reprojects onto its corners and
     lies on the surface the rendered depth map shows at those corners."""
+    from server_helpers import room_scene
     from sfmloc.builder.build import BuildConf, load_gray
     from sfmloc.builder.harris_points import HarrisPointsConf, harris_points
     from sfmloc.io.colmap import read_model
-    from sfmloc.synth import Scene, SynthConf, render_geometry
+    from sfmloc.synth import SynthConf, render_geometry
 
     rec = read_model(world.root / "synth" / "sparse")
     dc = BuildConf().descriptors
@@ -93,7 +94,7 @@ def test_harris_points_lie_on_the_scene_surfaces(world):
     sconf = SynthConf.model_validate(
         json.loads((world.root / "synth" / "scene.json").read_text())["config"]
     )
-    scene = Scene.room(sconf.seed, sconf.scene)
+    scene = room_scene(sconf.seed, sconf.scene)
     cam = rec.cameras[1]
     rel_err, reproj = [], []
     for im in list(new.images.values())[::5]:
@@ -181,11 +182,12 @@ def test_a_thin_map_keeps_two_view_harris_points_on_the_surfaces(world):
     than ``two_view_below`` points) keeps two-view Harris tracks: more points than with
     ``two_view_below`` 0, the same points for the longer tracks, and the two-view points on the
     scene's surfaces (exact depth maps). The full 40 views are not thin: no two-view track."""
+    from server_helpers import room_scene
     from sfmloc.bench.robust_data import every_kth_image, subset_model
     from sfmloc.builder.build import BuildConf, load_gray
     from sfmloc.builder.harris_points import HarrisPointsConf, harris_points
     from sfmloc.io.colmap import read_model
-    from sfmloc.synth import Scene, SynthConf
+    from sfmloc.synth import SynthConf
 
     full = read_model(world.root / "synth" / "sparse")
     thin = subset_model(full, every_kth_image(full, 3))
@@ -215,7 +217,7 @@ def test_a_thin_map_keeps_two_view_harris_points_on_the_surfaces(world):
     sconf = SynthConf.model_validate(
         json.loads((world.root / "synth" / "scene.json").read_text())["config"]
     )
-    scene = Scene.room(sconf.seed, sconf.scene)
+    scene = room_scene(sconf.seed, sconf.scene)
     ids_two = {pid for pid, p in kept.points3D.items() if pid not in thin.points3D}
     ids_two &= {pid for pid, p in kept.points3D.items() if len(p.track_image_ids) == 2}
     only_two = type(kept)(

@@ -287,7 +287,9 @@ def test_known_poses_in_the_synthetic_room(tmp_path):
     synth = pytest.importorskip(
         "sfmloc.synth", reason="sfmloc.synth (the synthetic room) is not available"
     )
-    scene = synth.Scene.room(seed=0)
+    from server_helpers import room_scene
+
+    scene = room_scene(0)
     cam = Camera.pinhole(320, 240, 262.5, 262.5, 160.0, 120.0)
     poses = synth.make_trajectory("walk", 120, seed=0, scene=scene)[::8]
     (tmp_path / "img").mkdir()

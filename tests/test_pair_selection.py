@@ -127,7 +127,9 @@ def _walk_images(tmp_path, n: int, every: int = 1):
     synth = pytest.importorskip(
         "sfmloc.synth", reason="sfmloc.synth (the synthetic room) is not available"
     )
-    scene = synth.Scene.room(seed=0)
+    from server_helpers import room_scene
+
+    scene = room_scene(0)
     cam = Camera.pinhole(320, 240, 262.5, 262.5, 160.0, 120.0)
     poses = synth.make_trajectory("walk", n, seed=0, scene=scene, fps=30.0)[::every]
     (tmp_path / "img").mkdir()

@@ -52,10 +52,11 @@ def video(walk, tmp_path_factory):
 
 
 def _exact_median_depth(root: Path, cam: Camera, poses) -> float:
-    from sfmloc.synth import Scene, SynthConf, render_geometry
+    from server_helpers import room_scene
+    from sfmloc.synth import SynthConf, render_geometry
 
     conf = SynthConf.model_validate(json.loads((root / "scene.json").read_text())["config"])
-    scene = Scene.room(conf.seed, conf.scene)
+    scene = room_scene(conf.seed, conf.scene)
     meds = []
     for T in poses[::10]:
         depth, _ = render_geometry(scene, cam, T)

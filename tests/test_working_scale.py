@@ -26,9 +26,9 @@ F640 = 525.0  # the world's focal length at 640x480
 
 @pytest.fixture(scope="module")
 def scene(world):
+    from server_helpers import room_scene
     from sfmloc.synth import preset
     from sfmloc.synth.renderer import prepare
-    from sfmloc.synth.scene import Scene
 
     conf = preset(
         "small",
@@ -37,7 +37,7 @@ def scene(world):
         mapping_views=N_MAPPING,
         trajectory={"n_frames": N_FRAMES},
     )
-    sc = Scene.room(conf.seed, conf.scene)
+    sc = room_scene(conf.seed, conf.scene)
     prepare(sc)
     return sc, conf
 
