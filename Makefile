@@ -15,10 +15,17 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/sfmloc demo
 
-# The guards run first (seconds; mypy ~25 s without its cache), then the suite. test-deps
-# installs the browser the viewer's test uses, where it can (never fails).
-test: test-deps lint typecheck
-	$(BIN)/python -m pytest -q
+# ruff runs first (seconds), then the suite with mypy beside it: mypy (~25 s without its cache,
+# one core) on the second core while the suite's first tests run (mostly one core: OMP/BLAS
+# pinned to one thread) instead of before them. mypy's findings are printed after the suite and
+# fail the run; when it finds none, pytest's summary stays the last line. test-deps installs
+# the browser the viewer's test uses, where it can (never fails).
+test: test-deps lint $(STAMP)
+	@echo "$(BIN)/mypy --cache-dir $(VENV)/.mypy_cache (beside the suite; findings after it)"
+	@$(BIN)/mypy --cache-dir $(VENV)/.mypy_cache > $(VENV)/mypy.log 2>&1 & mypy=$$!; \
+	$(BIN)/python -m pytest -q; rc=$$?; \
+	if ! wait $$mypy; then cat $(VENV)/mypy.log; echo "make test: mypy failed" >&2; rc=1; fi; \
+	exit $$rc
 
 # What the tests need beyond Python: Debian's chromium for the viewer's browser test
 # (tests/test_viewer.py). Never fails: where it cannot install (no root, not Debian), it says so
