@@ -175,3 +175,49 @@ def test_two_view_points_are_kept_only_where_the_map_would_be_sparse(corner_maps
     b4 = MapBundle(dense[3], verify=False)
     assert min(len(p.track_image_ids) for p in rec.points3D.values()) == 3
     assert len(rec.points3D) == b4.n_points
+
+
+def test_known_poses_harris_points_keep_two_view_tracks_when_the_sfm_did(corner_maps, tmp_path):
+    """With known poses, the Harris stage keeps two-view tracks when the SfM stage kept
+    two-view points (HarrisPointsConf.follow_sfm_two_view), whatever its own count rule (here
+    off: two_view_below 0); the two-view Harris points lie on the true planes. When the SfM
+    kept none, or the switch is off, every Harris point has 3+ views."""
+    from sfmloc.builder.harris_points import HARRIS_POINT_ID_BASE
+
+    d3 = corner_maps[3]
+    scene = corner_maps["scene"]
+
+    def build_with(min_track: int, follow: bool) -> MapBundle:
+        conf = merge_presets(
+            build.preset("default"),
+            harris_points={"two_view_below": 0, "follow_sfm_two_view": follow},
+            refine={"enabled": False},
+        )
+        name = f"h{min_track}{int(follow)}"
+        build.main(
+            conf,
+            name,
+            tmp_path,
+            images=d3["dir"] / "images",
+            poses=d3["pose_file"],
+            camera=CAM,
+            sfm_conf=sfm.sfm_conf("default", min_track_length=min_track, two_view_below=0),
+        )
+        return MapBundle(tmp_path / name, verify=False)
+
+    def harris_tracks(b: MapBundle) -> tuple[np.ndarray, np.ndarray]:
+        tracks = np.bincount(b.image_points_idx, minlength=b.n_points)
+        h = b.array("point_ids") >= HARRIS_POINT_ID_BASE
+        return tracks[h], b.points_xyz[h]
+
+    kept = build_with(2, True)
+    assert kept.manifest.params["harris_points"]["keep_two_view"] is True
+    tracks, xyz = harris_tracks(kept)
+    assert np.sum(tracks == 2) > 100, np.bincount(tracks)
+    d = scene.distance(xyz[tracks == 2])  # ~3 m scene, ~2.6 m away
+    assert np.median(d) < 0.005, np.median(d)
+    assert np.percentile(d, 80) < 0.02, np.percentile(d, 80)
+    for b in (build_with(3, True), build_with(2, False)):
+        assert b.manifest.params["harris_points"]["keep_two_view"] is False
+        tracks, _ = harris_tracks(b)
+        assert len(tracks) == 0 or tracks.min() >= 3

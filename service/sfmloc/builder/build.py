@@ -586,6 +586,11 @@ def main(
                 should_cancel=should_cancel,
                 stride=stride,
             )
+            if conf.harris_points.follow_sfm_two_view and any(
+                len(p.track_image_ids) == 2 for p in rec.points3D.values()
+            ):
+                # the SfM kept two-view points (its tracks are filtered to its minimum length)
+                conf = merge_presets(conf, harris_points={"keep_two_view": True})
         else:
             source = {"kind": "images-only", "images": str(image_dir), "stride": stride}
             rec = sfm.reconstruct_images_only(
