@@ -197,6 +197,60 @@ def test_relocalizations_run_on_their_own_lane_beside_a_stream(world):
         assert answers and all(a.error is None for a in answers)
 
 
+def _kernel_takes_slices() -> bool:
+    """Whether this kernel sets a SCHED_OTHER task's slice (EEVDF, Linux 6.12+): tried on a
+    child process, not on the test's own threads."""
+    from sfmloc.server.sched import set_slice
+
+    with subprocess.Popen(["sleep", "30"]) as child:
+        try:
+            return set_slice(child.pid, 7.0)
+        finally:
+            child.kill()
+
+
+def test_stream_workers_get_frame_long_scheduler_slices_the_lane_does_not(world):
+    """worker_slice_ms: the stream worker (and its replacement after a crash) runs with that
+    scheduler slice, so workers sharing a core are not switched every 1.4 ms (the kernel's
+    default on 2 cores) onto each other's caches; the niced relocalization lane keeps the
+    default; its nice value is untouched; frames are served."""
+    from sfmloc.server.sched import get_slice_ns
+
+    if not _kernel_takes_slices():
+        pytest.skip("this kernel does not take a per-task slice (sched_setattr, Linux 6.12+)")
+    from sfmloc_client import FrameStreamer, PoseSubscriber
+
+    default = get_slice_ns(0)
+    ep = zenoh_endpoint()
+    conf = server_config(
+        world, ep, workers=1, worker_kind="process", relocalize_workers=1, worker_slice_ms=25
+    )
+    with running_server(conf) as srv, client_zenoh(ep) as z:
+        pool = srv.server.pool
+        stream_w, lane_w = pool.workers
+        assert get_slice_ns(stream_w.pid) == 25_000_000
+        assert get_slice_ns(lane_w.pid) == default != 25_000_000
+        assert _nice(lane_w.pid) == min(_nice(stream_w.pid) + 15, 19)
+        old = stream_w.pid
+        os.kill(old, signal.SIGKILL)
+        assert pool.wait_for(lambda: pool.workers[0].pid not in (0, old), 60)
+        assert pool.wait_for(lambda: pool.workers[0].serving, 60)
+        assert get_slice_ns(pool.workers[0].pid) == 25_000_000
+        got: list = []
+        with (
+            PoseSubscriber(z, "room", "sliced", callback=got.append) as sub,
+            FrameStreamer(z, "room", "sliced", camera(world)) as fs,
+        ):
+            assert fs.wait_for_server(30)
+            for k in range(5):
+                seq = fs.publish(
+                    data=world.png[k], encoding="png", seq=k, stamp_ns=int(k * 1e9 / 30)
+                )
+                assert sub.wait_for(seq, 60)
+        assert [p.seq for p in got] == list(range(5)) and all(p.error is None for p in got)
+        assert sum(p.localized for p in got) >= 4
+
+
 # ----------------------------------------------------------------------------- shutdown
 def test_stop_finishes_in_flight_relocalizations(world):
     from sfmloc.testing import ServerThread

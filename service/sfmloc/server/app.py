@@ -89,6 +89,7 @@ class Server:
             max_image_pixels=conf.max_image_pixels,
             reloc_workers=conf.relocalize_workers,
             reloc_nice=conf.relocalize_nice,
+            worker_slice_ms=conf.worker_slice_ms,
             fork=conf.worker_start == "fork",
         )
         self.registry = MapRegistry(

@@ -137,6 +137,11 @@ class ServerConfig(StrictModel):
     # worker's 1024) still took a quarter of the core it shares with a stream worker; +15
     # (weight 36) takes 3%, and an idle machine still gives the lane all it wants.
     relocalize_nice: int = Field(15, ge=0, le=19)
+    # The stream workers' scheduler time slice in ms (Linux 6.12+, ``sched.py``; 0: the
+    # kernel's default, 1.4 ms on 2 cores). A frame is ~12-14 ms of CPU: with the default,
+    # workers sharing a core (co-located servers, other CPU-bound tenants) were switched ~10
+    # times per frame, each switch onto another process's caches.
+    worker_slice_ms: float = Field(0.0, ge=0, le=100)
     # Largest camera (width x height) accepted; also caps what OpenCV decodes in a worker, so a
     # small JPEG claiming a huge image cannot exhaust its memory.
     max_image_pixels: int = Field(4096 * 4096, ge=1)

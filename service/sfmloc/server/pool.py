@@ -38,6 +38,7 @@ from ..errors import OverloadError, UnavailableError
 from ..threads import pin_threads_env
 from . import protocol as P
 from .logfmt import event
+from .sched import set_slice
 from .worker import worker_main
 from .zygote import Zygote, relay_stderr, set_process_name, take_prestarted, worker_env
 
@@ -94,6 +95,7 @@ class WorkerPool:
         max_image_pixels: int = 4096 * 4096,
         reloc_workers: int = 0,
         reloc_nice: int = 15,
+        worker_slice_ms: float = 0.0,
         thread_target: Callable[..., None] = worker_main,
         fork: bool = True,
     ) -> None:
@@ -103,6 +105,9 @@ class WorkerPool:
         # holds a worker that streams' frames queue on. 0: they share the stream workers.
         self.reloc_workers = reloc_workers
         self.reloc_nice = reloc_nice
+        # The stream workers' scheduler slice (sched.py): frame-long, so workers sharing a
+        # core do not refill each other's caches every 1.4 ms. 0: the kernel's default.
+        self.worker_slice_ms = worker_slice_ms
         self.kind = kind
         # What a thread worker runs: ``worker_main``, or a fake speaking the protocol (tests).
         self.thread_target = thread_target
@@ -321,6 +326,14 @@ class WorkerPool:
             if isinstance(msg, P.RelocResult):
                 self._pump_reloc()
         elif isinstance(msg, P.Ready):
+            if self.kind == "process" and h.index < self.n and self.worker_slice_ms > 0:
+                # the relocalization lane keeps the default: niced, it should yield at once
+                if not set_slice(msg.pid, self.worker_slice_ms):
+                    log.info(
+                        "worker %d: the kernel did not take a %g ms slice (default kept)",
+                        h.index,
+                        self.worker_slice_ms,
+                    )
             with self._changed:
                 h.pid = msg.pid
                 h.ready.set()
