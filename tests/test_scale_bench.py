@@ -215,3 +215,77 @@ def test_alone_gives_each_server_the_clients_it_owns_together():
     # the bench's 12 clients do not spread 4/4/4: alone must not assume they do
     assert sorted(len(cs) for cs in got.values()) != [4, 4, 4]
     assert owned_clients("room", [], ids) == {"s0": [], "s1": [], "s2": []}
+
+
+def test_same_frames_phase_covers_exactly_the_frames_between_the_holds(world):
+    """Two lockstep clients against a real server: both wait at the first hold, run frames
+    3..7 together on release and wait at the second; the phase counts exactly those 2 x 5
+    poses and the server's CPU for them; released, they go on past it."""
+    import threading
+
+    from sfmloc.bench.reliability import StreamClient
+    from sfmloc.bench.scale import CpuMeter, same_frame_holds, same_frames_phase, wait_warm
+    from sfmloc.testing import ServerProcess
+
+    bw = _bench_world(world)
+    holds = same_frame_holds(3, 5)
+    assert sorted(holds) == [3, 8] and same_frame_holds(3, 0) == {}
+    stop = threading.Event()
+    with ServerProcess(world.maps_dir, workers=1) as sp:
+        cl = [
+            StreamClient(bw, sp.endpoint, f"held-{i}", stop, stamp_hz=30.0, holds=holds)
+            for i in range(2)
+        ]
+        for c in cl:
+            c.start()
+        try:
+            for c in cl:
+                assert c.ready.wait(60), c.failure
+            got = same_frames_phase(cl, holds, CpuMeter({"s0": sp}), 120)
+            assert wait_warm(cl, 11, 120) < 120  # released: they go on
+        finally:
+            stop.set()
+            for c in cl:
+                c.join(30)
+    assert all(c.failure is None for c in cl), [c.failure for c in cl]
+    assert got["complete"] and got["frames"] == [3, 8]
+    assert got["expected"] == 10 and got["answered"] == 10 and got["errors"] == 0
+    assert sum(got["matching"].values()) == 10
+    assert got["servers_cpu_s"] > 0 and got["seconds"] > 0
+    assert got["servers_cpu_ms_per_pose"] == pytest.approx(1e3 * got["servers_cpu_s"] / 10)
+    for c in cl:
+        assert all(q in c.log.answered for q in range(3, 8))
+    # the holds: no client sent frame 3 before both had frame 2's answer, nor 8 before 7's
+    for k in (3, 8):
+        assert min(c.log.sent[k] for c in cl) >= max(c.log.answered[k - 1] for c in cl)
+
+
+def test_same_frames_comparison_adds_the_alone_times_and_weighs_the_cpu():
+    from sfmloc.bench.scale import same_frames_comparison
+
+    def row(cpu_s, poses, secs):
+        return {
+            "complete": True,
+            "answered": poses,
+            "expected": poses,
+            "servers_cpu_s": cpu_s,
+            "seconds": secs,
+            "frames": [10, 70],
+            "matching": {"none": poses},
+        }
+
+    alone = [
+        {"clients": 3, "same_frames": row(2.7, 180, 3.0)},
+        {"clients": 6, "same_frames": row(5.4, 360, 6.0)},
+        {"clients": 0, "poses_per_s": 0.0},  # owned no client: not run
+    ]
+    together = {"same_frames": row(9.0, 540, 10.0)}
+    got = same_frames_comparison(alone, together)
+    assert got["servers_cpu_ms_per_pose"]["alone"] == pytest.approx(15.0)
+    assert got["servers_cpu_ms_per_pose"]["together"] == pytest.approx(9000 / 540)
+    assert got["servers_cpu_per_pose_together_vs_alone"] == pytest.approx((9000 / 540) / 15)
+    assert got["time_alone_sum_vs_together"] == pytest.approx(0.9)
+    assert got["poses"] == {"alone": 540, "together": 540, "expected": 540}
+    assert got["matching"]["alone"] == {"none": 540}
+    assert same_frames_comparison(alone, {}) == {}
+    assert same_frames_comparison(alone[:1] + [{"clients": 6}], together) == {}

@@ -358,6 +358,7 @@ class StreamClient(threading.Thread):
         server: str | None = None,
         more_endpoints: tuple[str, ...] = (),
         stamp_hz: float | None = None,
+        holds: dict[int, threading.Event] | None = None,
     ) -> None:
         super().__init__(daemon=True, name=client_id)
         self.world, self.endpoint, self.stop_ev = world, endpoint, stop
@@ -374,6 +375,11 @@ class StreamClient(threading.Thread):
         self._cv = threading.Condition()
         self.ready = threading.Event()
         self.failure: str | None = None
+        # Before sending seq k in ``holds`` the client waits for holds[k] (lockstep: every
+        # earlier frame answered or timed out): several clients then cover the same frames
+        # between two holds (bench/scale.py, "same frames"). ``held`` is the seq it waits at.
+        self.holds = holds or {}
+        self.held: int | None = None
         self._fs: Any = None  # the FrameStreamer, once open: it hands the last pose over
 
     def _on_pose(self, p: Any) -> None:
@@ -445,6 +451,13 @@ class StreamClient(threading.Thread):
             self.ready.set()
             seq, t_next, t0_ns = 0, time.monotonic(), time.time_ns()
             while not self.stop_ev.is_set():
+                if seq in self.holds:
+                    self.held = seq
+                    while not self.holds[seq].wait(0.05) and not self.stop_ev.is_set():
+                        pass
+                    self.held = None
+                    if self.stop_ev.is_set():
+                        break
                 self.log.sent[seq] = time.monotonic()
                 fs.publish(
                     data=self.world.gray[pingpong(n, seq)].tobytes(),

@@ -40,6 +40,14 @@ the clients and of the rest of the machine (other people's processes) over the m
 window, per answered pose: ``servers_cpu_per_pose_together_vs_alone`` (near 1: several servers
 on one network cost no more per pose than one) holds on a busy machine, where rates do not.
 
+Same frames (``--same-frames``, 60): a time window covers more of the clip alone (faster)
+than together, and the clip's frames differ in cost (guided matching ~21 ms of CPU, tracking
+alone ~14 ms), so before the timed window every client is held, then all run their next 60
+frames and are held again: the servers' CPU and the wall time for exactly these frames of the
+same sessions, alone and together (``same_frames``: ``servers_cpu_per_pose_together_vs_alone``
+and ``time_alone_sum_vs_together``, the alone runs' times added up against together's, on the
+cores they share: the issue's target on equal work and equal cores).
+
     python -m sfmloc.bench.scale --work /tmp/scale [--servers 3 --clients 12 --seconds 15]
     python -m sfmloc.bench.scale --work /tmp/scale --parts submaps --rooms 8 --ratio 10
 """
@@ -77,7 +85,9 @@ class Servers:
         self.procs: dict[str, Any] = {}
         endpoints: list[str] = []
         for sid in ids:
-            extra: tuple[str, ...] = ("--server-id", sid)
+            # a client held for the same-frames phase's slowest (minutes under load) keeps its
+            # session (30 s by default): no restart, with its global matching, inside the phase
+            extra: tuple[str, ...] = ("--server-id", sid, "--idle-timeout", "600")
             for ep in endpoints:
                 extra += ("--zenoh-connect", ep)
             sp = ServerProcess(
@@ -107,6 +117,7 @@ def _clients(
     stop: threading.Event,
     rate_hz: float | None,
     stamp_hz: float | None = None,
+    holds: dict[int, threading.Event] | None = None,
 ) -> list[StreamClient]:
     cl = [
         StreamClient(
@@ -118,6 +129,7 @@ def _clients(
             server="auto",
             more_endpoints=tuple(endpoints[1:]),
             stamp_hz=stamp_hz,
+            holds=holds,
         )
         for cid in ids
     ]
@@ -244,6 +256,9 @@ def cpu_rows(c0: dict[str, float], c1: dict[str, float], dt: float, poses: int) 
 # alone (one server on the core, 4 clients) but ~5 together (three servers on that core, 12
 # clients): the start-up of every together session fell inside its window, none of alone's.
 WARMUP_FRAMES = 10
+# Frames of every client in the same-frames phase (after the warm-up): half the clip's
+# ping-pong period (118), ~700 poses for 12 clients.
+SAME_FRAMES = 60
 
 
 def wait_warm(cl: list[StreamClient], frames: int, timeout: float) -> float:
@@ -256,6 +271,68 @@ def wait_warm(cl: list[StreamClient], frames: int, timeout: float) -> float:
     return time.monotonic() - t0
 
 
+def same_frame_holds(warmup_frames: int, same_frames: int) -> dict[int, threading.Event]:
+    """The clients' holds of the same-frames phase: every client waits before frame
+    ``warmup_frames`` and before ``warmup_frames + same_frames`` (none: ``same_frames`` 0)."""
+    if same_frames <= 0:
+        return {}
+    return {warmup_frames: threading.Event(), warmup_frames + same_frames: threading.Event()}
+
+
+def wait_held(cl: list[StreamClient], seq: int, timeout: float) -> bool:
+    """Wait until every client (still running) waits at its hold before ``seq``."""
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout:
+        if all(c.held == seq or not c.is_alive() for c in cl):
+            return True
+        time.sleep(0.02)
+    return False
+
+
+def same_frames_phase(
+    cl: list[StreamClient],
+    holds: dict[int, threading.Event],
+    meter: CpuMeter,
+    timeout: float,
+) -> dict:
+    """Every client's frames ``a .. b-1`` (the two holds), each client starting at ``a`` at
+    once: the servers' CPU and the wall time for exactly these frames. The same frames of the
+    same sessions (the engine's work per frame depends on the frame and the session's history,
+    not on the timing: video stamps), so alone and together do the same work; a time window
+    instead covers more of the clip alone (faster) than together, and the clip's frames differ
+    in cost (guided matching ~21 ms, tracking alone ~14 ms of CPU: in one run the window's
+    poses were 25% guided alone, 43% together)."""
+    a, b = sorted(holds)
+    reached_a = wait_held(cl, a, timeout)
+    c0, t0 = meter.sample(), time.monotonic()
+    holds[a].set()
+    reached_b = wait_held(cl, b, timeout)
+    t1, c1 = time.monotonic(), meter.sample()
+    answered = sum(1 for c in cl for q in range(a, b) if q in c.log.answered)
+    kinds: dict[str, int] = {}
+    errors = 0
+    for c in cl:
+        for q in range(a, b):
+            ans = c.log.answers.get(q) or {}
+            k = str(ans.get("matching"))
+            kinds[k] = kinds.get(k, 0) + 1
+            errors += ans.get("error") is not None
+    rows = cpu_rows(c0, c1, t1 - t0, answered)
+    holds[b].set()
+    return {
+        "frames": [a, b],
+        "complete": reached_a and reached_b,
+        "expected": len(cl) * (b - a),
+        "answered": answered,
+        "errors": errors,
+        "seconds": t1 - t0,
+        "servers_cpu_s": rows["cores_used"]["servers"] * (t1 - t0),
+        "servers_cpu_ms_per_pose": rows["cpu_ms_per_pose"]["servers"],
+        "cores_used": rows["cores_used"],
+        "matching": kinds,
+    }
+
+
 def _measure(
     cl: list[StreamClient],
     stop: threading.Event,
@@ -264,7 +341,11 @@ def _measure(
     meter: CpuMeter | None = None,
     warmup_frames: int = WARMUP_FRAMES,
     warmup_timeout: float = 300.0,
+    holds: dict[int, threading.Event] | None = None,
 ):
+    same = {}
+    if holds and meter is not None:
+        same = same_frames_phase(cl, holds, meter, warmup_timeout)
     time.sleep(warmup_s)
     waited = wait_warm(cl, warmup_frames, warmup_timeout)
     c0 = meter.sample() if meter else None
@@ -290,6 +371,8 @@ def _measure(
         if th0 is not None and th1 is not None:
             cpu["server_threads"] = thread_rows_delta(th0, th1, answered)
         cpu["frames"] = frame_mix(cl, t0, t1)
+    if same:
+        cpu["same_frames"] = same
     return per, t1 - t0, cpu
 
 
@@ -377,6 +460,43 @@ def cpu_comparison(alone: list[dict], together: dict) -> dict:
     }
 
 
+def same_frames_comparison(alone: list[dict], together: dict) -> dict:
+    """Alone and together on the same frames (every client's frames ``--warmup-frames`` ..
+    ``+ --same-frames``, ``same_frames_phase``): the servers' CPU per pose, and the time
+    together against the alone runs' times added up. The alone runs had the cores the
+    servers share together (``--pin``), one server at a time: the sum of their times is what
+    those cores take for all these frames with one server per run, so
+    ``time_alone_sum / time_together`` >= 0.9 is the issue's "within 10% of what the servers
+    deliver alone" on equal work and equal cores; the servers' CPU for the frames shows
+    what several servers on one network cost beyond one."""
+    rows = [r["same_frames"] for r in alone if r.get("clients") and r.get("same_frames")]
+    tog = together.get("same_frames")
+    if not tog or not rows or len(rows) != sum(1 for r in alone if r.get("clients")):
+        return {}
+    cpu_a, poses_a = sum(r["servers_cpu_s"] for r in rows), sum(r["answered"] for r in rows)
+    t_a = sum(r["seconds"] for r in rows)
+    per_a = 1e3 * cpu_a / max(1, poses_a)
+    per_t = 1e3 * tog["servers_cpu_s"] / max(1, tog["answered"])
+    return {
+        "frames": tog["frames"],
+        "poses": {"alone": poses_a, "together": tog["answered"], "expected": tog["expected"]},
+        "complete": all(r["complete"] for r in rows) and tog["complete"],
+        "servers_cpu_ms_per_pose": {"alone": per_a, "together": per_t},
+        "servers_cpu_per_pose_together_vs_alone": per_t / per_a if per_a else None,
+        "seconds": {"alone_sum": t_a, "together": tog["seconds"]},
+        "time_alone_sum_vs_together": t_a / tog["seconds"] if tog["seconds"] else None,
+        "matching": {"alone": _sum_kinds(r["matching"] for r in rows), "together": tog["matching"]},
+    }
+
+
+def _sum_kinds(dicts: Any) -> dict[str, int]:
+    out: dict[str, int] = {}
+    for d in dicts:
+        for k, v in d.items():
+            out[k] = out.get(k, 0) + v
+    return out
+
+
 def owned_clients(map_name: str, clients: list[str], ids: list[str]) -> dict[str, list[str]]:
     """The clients each server of ``ids`` owns when all of them serve ``map_name`` (the
     rendezvous placement the clients' ``server="auto"`` makes)."""
@@ -399,6 +519,7 @@ def run_alone(
     cpus: dict[str, set[int]] | None = None,
     stamp_hz: float | None = None,
     warmup_frames: int = WARMUP_FRAMES,
+    same_frames: int = 0,
 ):
     """Each server alone (on its cores) with the clients it owns in ``together`` (rendezvous
     placement over ``ids``; lockstep): poses per second. The same clients per server in both
@@ -414,8 +535,11 @@ def run_alone(
         _log(f"scale alone: server {sid} with {len(mine)} lockstep client(s) for {seconds:g} s")
         stop = threading.Event()
         with Servers(world, [sid], workers, cpus) as srv:
-            cl = _clients(world, srv.endpoints, mine, stop, None, stamp_hz)
-            per, dt, cpu = _measure(cl, stop, 2.0, seconds, CpuMeter(srv.procs), warmup_frames)
+            holds = same_frame_holds(warmup_frames, same_frames)
+            cl = _clients(world, srv.endpoints, mine, stop, None, stamp_hz, holds)
+            per, dt, cpu = _measure(
+                cl, stop, 2.0, seconds, CpuMeter(srv.procs), warmup_frames, holds=holds
+            )
         tot = _totals(per)
         rows.append(
             {"server": sid, "clients": len(mine), "poses_per_s": tot["answered"] / dt, **tot, **cpu}
@@ -432,12 +556,16 @@ def run_together(
     cpus: dict[str, set[int]] | None = None,
     stamp_hz: float | None = None,
     warmup_frames: int = WARMUP_FRAMES,
+    same_frames: int = 0,
 ) -> dict:
     _log(f"scale together: {len(ids)} servers, {len(clients)} lockstep clients, {seconds:g} s")
     stop = threading.Event()
     with Servers(world, ids, workers, cpus) as srv:
-        cl = _clients(world, srv.endpoints, clients, stop, None, stamp_hz)
-        per, dt, cpu = _measure(cl, stop, 2.0, seconds, CpuMeter(srv.procs), warmup_frames)
+        holds = same_frame_holds(warmup_frames, same_frames)
+        cl = _clients(world, srv.endpoints, clients, stop, None, stamp_hz, holds)
+        per, dt, cpu = _measure(
+            cl, stop, 2.0, seconds, CpuMeter(srv.procs), warmup_frames, holds=holds
+        )
     tot = _totals(per)
     spread: dict[str, int] = {}
     for p in per:
@@ -562,11 +690,27 @@ def run(args: argparse.Namespace) -> dict:
         pin_process(ccores)
     if "alone" in args.parts or "together" in args.parts:  # together is judged against alone
         out["alone"] = run_alone(
-            world, ids, clients, args.workers, args.seconds, cpus, stamp_hz, args.warmup_frames
+            world,
+            ids,
+            clients,
+            args.workers,
+            args.seconds,
+            cpus,
+            stamp_hz,
+            args.warmup_frames,
+            args.same_frames,
         )
     if "together" in args.parts:
         together = run_together(
-            world, ids, clients, args.workers, args.seconds, cpus, stamp_hz, args.warmup_frames
+            world,
+            ids,
+            clients,
+            args.workers,
+            args.seconds,
+            cpus,
+            stamp_hz,
+            args.warmup_frames,
+            args.same_frames,
         )
         total_alone = sum(r["poses_per_s"] for r in out["alone"])
         share = core_share(out["alone"], cpus)
@@ -578,6 +722,9 @@ def run(args: argparse.Namespace) -> dict:
         # number of servers on its cores (2 servers on 2 cores: the plain sum)
         out["together_vs_core_share"] = together["poses_per_s"] / share if share else None
         out.update(cpu_comparison(out["alone"], together))
+        same = same_frames_comparison(out["alone"], together)
+        if same:
+            out["same_frames"] = same
     if ccores:
         pin_process(all_cores)
     if "kill" in args.parts:
@@ -664,6 +811,14 @@ def parser() -> argparse.ArgumentParser:
         default=WARMUP_FRAMES,
         help="alone and together: the window starts once every client has had this many "
         f"answers (and 2 s passed): sessions' costlier first frames stay out ({WARMUP_FRAMES})",
+    )
+    p.add_argument(
+        "--same-frames",
+        type=int,
+        default=SAME_FRAMES,
+        help="alone and together: before the timed window, every client's next this many "
+        "frames after the warm-up, all clients starting at once: the servers' CPU and time for "
+        f"exactly these frames in both parts (same_frames; 0: skip) ({SAME_FRAMES})",
     )
     p.add_argument("--out", help="write the results as JSON here too")
     p.add_argument(
