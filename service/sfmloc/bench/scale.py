@@ -660,8 +660,103 @@ def run_kill(
     }
 
 
+def share_child(work: Path, frames: int, slice_ms: float, core: int, start: float) -> dict:
+    """One engine process of the ``share`` part: on ``core``, a Localizer over the clip's
+    frames 10 .. 10 + ``frames`` (after 10 warm-up frames), started at wall time ``start``:
+    its CPU per frame and involuntary context switches."""
+    from ..cameras import Camera
+    from ..engine import Localizer
+    from ..map.bundle import MapBundle
+    from ..threads import pin_threads
+    from .reliability import pingpong
+
+    os.sched_setaffinity(0, {core})
+    pin_threads(True)
+    world = prepare(work)
+    loc = Localizer(MapBundle(world.bundle, verify=False), Camera.parse(world.camera))
+    n = len(world.gray)
+    for seq in range(10):
+        loc.localize(world.gray[pingpong(n, seq)], seq / 30.0, None)
+    if slice_ms > 0:
+        from ..server.sched import set_slice
+
+        set_slice(0, slice_ms)
+    while time.time() < start:
+        time.sleep(0.01)
+    c0, t0 = time.thread_time(), time.monotonic()
+    for seq in range(10, 10 + frames):
+        loc.localize(world.gray[pingpong(n, seq)], seq / 30.0, None)
+    cpu, wall = time.thread_time() - c0, time.monotonic() - t0
+    ivcs = 0
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith("nonvoluntary_ctxt_switches"):
+                ivcs = int(line.split()[1])
+    return {"frames": frames, "cpu_s": cpu, "wall_s": wall, "ivcs": ivcs}
+
+
+def run_share(work: Path, procs: int, frames: int, slice_ms: float, rounds: int, core: int) -> dict:
+    """What sharing one core costs without servers or Zenoh: ``procs`` engine processes on
+    ``core``, each localizing the same frames, against one alone (the same frames), with the
+    kernel's default scheduler slice and with ``slice_ms`` (sched.py), interleaved over
+    ``rounds``: CPU per frame of each phase and ``cpu_per_frame_shared_vs_alone`` per slice."""
+    import subprocess
+
+    prepare(work)  # built once here, not by every child at once
+    phases = [(1, 0.0), (procs, 0.0), (1, slice_ms), (procs, slice_ms)]
+    rows = []
+    for rd in range(rounds):
+        for n, sl in phases if rd % 2 == 0 else phases[::-1]:
+            start = time.time() + 20.0  # every child imported and warmed up by then
+            spec = f"{frames}:{sl}:{core}:{start}"
+            cmd = [sys.executable, "-m", "sfmloc.bench.scale", "--work", str(work)]
+            kids = [
+                subprocess.Popen([*cmd, "--share-child", spec], stdout=subprocess.PIPE, text=True)
+                for _ in range(n)
+            ]
+            outs = [json.loads(k.communicate()[0].strip().splitlines()[-1]) for k in kids]
+            tot = sum(o["frames"] for o in outs)
+            rows.append(
+                {
+                    "round": rd,
+                    "procs": n,
+                    "slice_ms": sl,
+                    "cpu_ms_per_frame": 1e3 * sum(o["cpu_s"] for o in outs) / tot,
+                    "ivcs_per_frame": sum(o["ivcs"] for o in outs) / tot,
+                    "load": os.getloadavg()[0],
+                }
+            )
+            _log(f"scale share: {rows[-1]}")
+
+    def mean(n: int, sl: float) -> float:
+        v = [r["cpu_ms_per_frame"] for r in rows if r["procs"] == n and r["slice_ms"] == sl]
+        return float(np.mean(v))
+
+    return {
+        "procs": procs,
+        "frames": frames,
+        "core": core,
+        "rows": rows,
+        "cpu_per_frame_shared_vs_alone": {
+            "default_slice": mean(procs, 0.0) / mean(1, 0.0),
+            f"slice_{slice_ms:g}_ms": mean(procs, slice_ms) / mean(1, slice_ms),
+        },
+    }
+
+
 def run(args: argparse.Namespace) -> dict:
     out_sub: dict[str, Any] = {}
+    if "share" in args.parts:
+        out_sub["share"] = run_share(
+            Path(args.work),
+            args.servers,
+            args.share_frames,
+            args.share_slice_ms,
+            args.share_rounds,
+            min(os.sched_getaffinity(0)),
+        )
+        if not args.parts - {"share"}:
+            return out_sub
     if "submaps" in args.parts:
         from .submaps import run_submaps
 
@@ -766,7 +861,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--parts",
         default="alone,together,kill",
-        help="comma-separated: alone,together,kill,submaps (default: the three server parts)",
+        help="comma-separated: alone,together,kill,submaps,share (default: the three server "
+        "parts; share: --servers engine processes on one core against one, no servers)",
     )
     p.add_argument("--rooms", type=int, default=8, help="submaps: synthetic rooms (8)")
     p.add_argument(
@@ -828,6 +924,15 @@ def parser() -> argparse.ArgumentParser:
         "frames after the warm-up, all clients starting at once: the servers' CPU and time for "
         f"exactly these frames in both parts (same_frames; 0: skip) ({SAME_FRAMES})",
     )
+    p.add_argument("--share-frames", type=int, default=118, help="share: frames per process (118)")
+    p.add_argument(
+        "--share-slice-ms",
+        type=float,
+        default=20.0,
+        help="share: the long scheduler slice tried against the kernel's default (20)",
+    )
+    p.add_argument("--share-rounds", type=int, default=2, help="share: rounds (2)")
+    p.add_argument("--share-child", help=argparse.SUPPRESS)
     p.add_argument("--out", help="write the results as JSON here too")
     p.add_argument(
         "--records", help="kill: write every client's per-frame records (JSON) to this file"
@@ -837,6 +942,11 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
+    if args.share_child:  # one process of the share part
+        frames, sl, core, start = args.share_child.split(":")
+        got = share_child(Path(args.work), int(frames), float(sl), int(core), float(start))
+        print(json.dumps(got))
+        return 0
     args.parts = set(args.parts.split(","))
     res = run(args)
     text = json.dumps(res, indent=2, default=str)
