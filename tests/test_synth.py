@@ -39,7 +39,22 @@ N_MAP = 20
 
 @pytest.fixture(scope="module")
 def scene() -> Scene:
-    return Scene.room(0)
+    """The world's room, shared (server_helpers.room_scene); the determinism test below builds
+    its own again to compare."""
+    from server_helpers import room_scene
+
+    return room_scene(0)
+
+
+def test_run_refuses_a_scene_of_another_seed_or_conf(scene, tmp_path):
+    """``run(scene=...)`` takes a prebuilt room only for the seed and scene it was built for."""
+    from sfmloc.synth import preset
+    from sfmloc.synth.main import run
+
+    for conf in (preset("small", seed=1), preset("small", scene={"n_boxes": 3})):
+        with pytest.raises(ValueError, match="given for seed"):
+            run(conf, tmp_path / "out", scene=scene)
+    assert not (tmp_path / "out").exists()
 
 
 @pytest.fixture(scope="module")
