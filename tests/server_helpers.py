@@ -71,7 +71,7 @@ def build_world(base: Path) -> World:
             mapping_views=N_MAPPING,
             trajectory={"n_frames": N_FRAMES},
         )
-        run(conf, root / "synth", overwrite=True)
+        run(conf, root / "synth", overwrite=True, scene=room_scene(conf.seed, conf.scene))
         rec = read_model(root / "synth" / "sparse")
         data, timings, info = assemble(rec, root / "synth" / "images", BuildConf())
         maps_dir, spare = root / "maps", root / "spare"
@@ -103,9 +103,9 @@ def build_world(base: Path) -> World:
 def room_scene(seed: int = 0, conf: Any = None) -> Any:
     """``sfmloc.synth.Scene.room(seed, conf)``, built once per test session and shared (~1.5 s
     CPU a build): the tests only read it (render, ray-cast, trajectories); the renderer's
-    mipmaps are kept in its cache, built once too. Twelve tests in nine files ask for the
-    world's room (seed 0, the default scene). test_synth builds its own: it checks that a build
-    is deterministic."""
+    mipmaps are kept in its cache, built once too. The world, four other test data sets
+    (``synth.main.run(scene=...)``) and thirteen tests in ten files render the world's room
+    (seed 0, the default scene); test_synth's determinism test builds another to compare."""
     from sfmloc.synth import Scene
     from sfmloc.synth.scene import SceneConf
 

@@ -28,11 +28,13 @@ from sfmloc.transforms import Rigid3d, rotmat_from_rotvec
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory) -> Path:
     """A tiny `sfmloc synth` data set: 12 mapping views and 30 video frames at 160x120."""
+    from server_helpers import room_scene
     from sfmloc.synth import preset
     from sfmloc.synth.main import run
 
     out = tmp_path_factory.mktemp("robust") / "synth"
-    run(preset("small", width=160, height=120, mapping_views=12, trajectory={"n_frames": 30}), out)
+    conf = preset("small", width=160, height=120, mapping_views=12, trajectory={"n_frames": 30})
+    run(conf, out, scene=room_scene(conf.seed, conf.scene))
     return out
 
 

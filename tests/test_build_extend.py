@@ -25,12 +25,13 @@ FRAMES = 40
 
 @pytest.fixture(scope="module")
 def room(tmp_path_factory):
+    from server_helpers import room_scene
     from sfmloc.synth import preset
     from sfmloc.synth.main import run
 
     root = tmp_path_factory.mktemp("extend") / "room"
     conf = preset("small", width=480, height=360, mapping_views=24, trajectory={"n_frames": FRAMES})
-    run(conf, root)
+    run(conf, root, scene=room_scene(conf.seed, conf.scene))
     return root
 
 

@@ -56,11 +56,13 @@ def test_raw_store_returns_what_was_appended(tmp_path, on_disk):
 
 @pytest.fixture(scope="module")
 def room(tmp_path_factory):
+    from server_helpers import room_scene
     from sfmloc.synth import preset
     from sfmloc.synth.main import run
 
     root = tmp_path_factory.mktemp("mem") / "synth"
-    run(preset("small", width=480, height=360, mapping_views=16, trajectory={"n_frames": 2}), root)
+    conf = preset("small", width=480, height=360, mapping_views=16, trajectory={"n_frames": 2})
+    run(conf, root, scene=room_scene(conf.seed, conf.scene))
     return root
 
 

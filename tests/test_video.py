@@ -25,12 +25,13 @@ W, H, N_FRAMES = 320, 240, 120
 @pytest.fixture(scope="module")
 def walk(tmp_path_factory):
     """A 4 s walk through the synthetic room at 30 Hz, 320x240, its frames and exact poses."""
+    from server_helpers import room_scene
     from sfmloc.synth import preset
     from sfmloc.synth.main import run
 
     root = tmp_path_factory.mktemp("video") / "synth"
     conf = preset("small", width=W, height=H, mapping_views=4, trajectory={"n_frames": N_FRAMES})
-    run(conf, root)
+    run(conf, root, scene=room_scene(conf.seed, conf.scene))
     frames = [cv2.imread(str(p)) for p in sorted((root / "video").glob("frame-*.png"))]
     gt = read_poses(root / "video_poses.txt").by_stem()
     return root, frames, [gt[f"frame-{i:06d}"] for i in range(len(frames))]
