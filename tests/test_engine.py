@@ -826,6 +826,7 @@ def ambiguous_world(tmp_path_factory):
     """A square room whose four walls carry the same texture (``repeat_walls``), two boxes."""
     import cv2
 
+    from server_helpers import room_scene
     from sfmloc.builder.build import BuildConf, assemble
     from sfmloc.io.colmap import read_model
     from sfmloc.io.poses import read_poses
@@ -840,7 +841,7 @@ def ambiguous_world(tmp_path_factory):
         trajectory={"n_frames": 60},
         scene={"size": (5.0, 5.0, 3.0), "repeat_walls": True, "n_boxes": 2},
     )
-    run(conf, root / "synth")
+    run(conf, root / "synth", scene=room_scene(conf.seed, conf.scene))
     data, timings, info = assemble(
         read_model(root / "synth" / "sparse"), root / "synth" / "images", BuildConf()
     )
@@ -860,9 +861,9 @@ def test_no_wrong_pose_on_a_scene_with_identical_walls(ambiguous_world):
     """Repeated texture on every wall: whatever the status, no pose beyond the wrong-pose limit
     (5% of the scene scale or 10 deg), and the video is still localized."""
     bundle, cam, gray, gt = ambiguous_world
-    from sfmloc.synth.scene import Scene
+    from server_helpers import room_scene
 
-    walls = Scene.room(0, SynthSceneConf(size=(5.0, 5.0, 3.0), repeat_walls=True, n_boxes=2))
+    walls = room_scene(0, SynthSceneConf(size=(5.0, 5.0, 3.0), repeat_walls=True, n_boxes=2))
     textures = [f.texture for f in walls.faces if f.recipe[0] == "wall"]
     assert len(textures) == 4 and all(np.array_equal(t, textures[0]) for t in textures)
     limit = 0.05 * bundle.scene_scale
