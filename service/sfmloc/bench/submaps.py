@@ -233,6 +233,7 @@ def run_submaps(
     # speed issue's p99 target; frames searching for their part pay for the parts they try.
     stall_tracked = [r["stall_ms"] for r in s_rows if r["tries"] == 0]
     stall_search = [r["stall_ms"] for r in s_rows if r["tries"] > 0]
+    stall_all = [r["stall_ms"] for r in s_rows]  # issue 14: no frame waits > 15 ms for loads
     st = sub.stats
     return {
         "rows": rows if keep_rows else None,
@@ -263,6 +264,10 @@ def run_submaps(
         "ms_frames_plain_median": float(np.median(plain)) if plain else None,
         "ms_frames_beside_a_background_load_median": float(np.median(beside)) if beside else None,
         "ms_frames_waiting_for_a_load_max": max(waited) if waited else None,
+        "stall_ms_all_frames_p50": float(np.percentile(stall_all, 50)) if stall_all else None,
+        "stall_ms_all_frames_p99": float(np.percentile(stall_all, 99)) if stall_all else None,
+        "stall_ms_all_frames_max": max(stall_all) if stall_all else None,
+        "frames_stalled_over_15ms": int(sum(ms > 15.0 for ms in stall_all)),
         "stall_ms_tracked_frames_p99": float(np.percentile(stall_tracked, 99))
         if stall_tracked
         else None,
