@@ -535,6 +535,37 @@ def test_a_lost_frame_meets_more_parts_within_its_cpu_budget(world, places_set):
     assert tries == {"budget": (s.n_parts, s.n_parts), "none": (2, 2), "spent": (1, 1)}
 
 
+def test_a_frame_never_waits_for_a_part_load(world, walk_set):
+    """With the loader thread (a server worker's), a frame uses the parts that are resident:
+    a new session's first frame, with nothing resident, is answered LOST at once while the
+    parts its vote ranks first load behind it, and the next frame is posed by them; along the
+    walk no frame waits for a load (room for two parts: a switch loads ahead). With
+    ``submap_load_wait_ms`` a frame may wait that long for a part being loaded."""
+    sizes = sorted((walk_set.part_memory_bytes(k) for k in range(walk_set.n_parts)), reverse=True)
+    budget = sizes[0] + sizes[1]
+    never = EngineConf(submap_load_wait_ms=0)
+    loc = SubmapLocalizer(walk_set, world.camera_spec, never, memory_budget=budget)
+    r = loc.localize(world.gray[0], 0.0)
+    assert r.status is Status.LOST and "loading" in r.message, r.message
+    assert loc.stats.lost_tries == 0 and loc.stats.unready_lost == 1
+    scheduled = loc.loading_parts() + loc.resident_parts()
+    assert scheduled
+    for k in loc.loading_parts():  # the test waits for the loader, not the frame
+        loc.cache.wait_for(k, 60.0)
+    assert set(scheduled) <= set(loc.resident_parts())
+    r = loc.localize(world.gray[1], 1 / 30)
+    assert r.status is not Status.LOST, r.message
+    assert loc.stats.sync_loads == 0 and loc.stats.sync_load_ms == 0  # no frame waited
+    assert loc.stats.max_resident_bytes <= budget
+    loc.close()
+    patient = EngineConf(submap_load_wait_ms=30_000)
+    loc = SubmapLocalizer(walk_set, world.camera_spec, patient, memory_budget=budget)
+    r = loc.localize(world.gray[0], 0.0)
+    assert r.status is not Status.LOST, r.message  # it waited for its first part
+    assert loc.stats.sync_load_ms > 0 and loc.stats.unready_lost == 0
+    loc.close()
+
+
 def test_the_search_order_discounts_tried_places_and_failed_parts(world, places_set):
     """``_next_part`` on real parts: after a part fails, its place's other parts are
     discounted (another place comes next unless the vote prefers the place by far), and a

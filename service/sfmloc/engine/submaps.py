@@ -22,8 +22,14 @@ Per frame, before the ``Localizer`` runs:
    while the budget allows.
 2. **Lost** (no pose on the last frame, or none on this frame after tracking on its part: a
    jump, a teleport between rooms): the frame's keypoints are described and the parts ranked
-   by their place-recognition vote (``SubmapSet.vote``); the frame is matched against parts
-   in that order, loading each now (a lost frame relocalizes anyway), until one gives a pose:
+   by their place-recognition vote (``SubmapSet.vote``); the frame is matched against the
+   resident parts in that order until one gives a pose, and a part of the order that is not
+   resident is loaded on the thread and awaited at most ``EngineConf.submap_load_wait_ms``
+   (then left to load for the next frames: the search spreads over frames, as the paper
+   spreads global matching; issue 14 asks that no load stall a frame by more than 15 ms,
+   but never waiting lost 64 more frames of 960 on the scale bench: the default waits).
+   Only when the budget cannot hold the part beside the session's own does the frame load
+   it in place of its own, as a tracked switch does then. Parts are tried until one poses:
    ``lost_parts_per_frame`` parts (``EngineConf.submap_lost_parts``, 2) at least, then more
    while the frame's search has used less than ``EngineConf.submap_search_cpu_ms`` of its
    thread's CPU (at most ``submap_search_max_parts``). The vote is discounted by
@@ -66,6 +72,7 @@ import threading
 import time
 import weakref
 from collections import OrderedDict
+from collections.abc import Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -115,6 +122,7 @@ class SubmapStats:
     lost_tries: int = 0  # parts a lost frame was matched against
     prefetched_tries: int = 0  # of those, parts already loaded or loading when tried
     search_cpu_ms: float = 0.0  # this thread's CPU time lost frames spent searching, in all
+    unready_lost: int = 0  # frames answered LOST because no part of their order was resident
 
 
 class PartCache:
@@ -277,12 +285,20 @@ class PartCache:
         gc.collect()
         return True
 
-    def request(self, k: int, keep: set[int], optional: bool = False, stats: tuple = ()) -> bool:
+    def request(
+        self,
+        k: int,
+        keep: set[int],
+        optional: bool = False,
+        stats: tuple = (),
+        release: Any = None,
+    ) -> bool:
         """Start loading part ``k`` (in the background, or now without a loader thread);
-        False when it does not fit the budget beside the pinned parts and ``keep``."""
+        False when it does not fit the budget beside the pinned parts and ``keep``
+        (``release``: a session whose part may go to make room, as ``load_now``)."""
         if self.is_pending(k):
             return True
-        if not self._room_for(k, keep, optional, stats):
+        if not self._room_for(k, keep, optional, stats, release):
             return False
         if self._pool is None:
             self._resident[k] = self._load(k)
@@ -328,6 +344,20 @@ class PartCache:
             self._peak(stats)
         self._note(*stats, sync_loads=1, sync_load_ms=(time.perf_counter() - t0) * 1e3)
         return part
+
+    def wait_for(self, k: int, timeout_s: float, stats: tuple = ()) -> bool:
+        """Wait at most ``timeout_s`` for part ``k``'s background load (the wait counts as a
+        stall); True when it is resident."""
+        fut = self._loading.get(k)
+        if fut is not None and timeout_s > 0 and not fut.done():
+            t0 = time.perf_counter()
+            try:
+                fut.exception(timeout=timeout_s)
+            except TimeoutError:
+                pass
+            self._note(*stats, sync_loads=1, sync_load_ms=(time.perf_counter() - t0) * 1e3)
+        self.collect(stats)
+        return k in self._resident
 
     def collect(self, stats: tuple = ()) -> None:
         """Adopt the parts the loader thread has finished."""
@@ -393,6 +423,7 @@ class SubmapLocalizer:
         self.stats = SubmapStats()
         self.inner: Localizer | None = None
         self.part: int | None = None
+        self._left: int | None = None  # the part it let go of in a search (``_let_go``)
         self._part_points: np.ndarray | None = None  # global point rows of ``part``
         self._fails: dict[int, int] = {}  # lost frames each part failed since the session was lost
         self._withheld_on: list[int] = []  # parts with poses withheld since the last published
@@ -417,13 +448,17 @@ class SubmapLocalizer:
             # Lost or new, with an outside estimate (a failover, GPS): first the part that
             # covers it best, searched around it; then the parts by their vote.
             k = int(np.argmax(self.set.parts_near(prior)))
-            if k != self.part:
-                self._load_and_switch(k)
-            assert self.inner is not None
-            res = self.inner.localize(frame, stamp, prior)
-            if self.inner.last_posed_stamp != stamp:
-                self._fails = {k: 1}
-                res = self._search(frame, stamp, res)
+            wait_s = self.conf.submap_load_wait_ms / 1e3
+            if k == self.part or self._ready(k, [], wait_s):
+                if k != self.part:
+                    self._switch(k)
+                assert self.inner is not None
+                res = self.inner.localize(frame, stamp, prior)
+                if self.inner.last_posed_stamp != stamp:
+                    self._fails = {k: 1}
+                    res = self._search(frame, stamp, res)
+            else:  # its part loads for the next frames; the vote's resident parts meanwhile
+                res = self._search(frame, stamp, None)
         elif known is not None:
             self._follow(*known)
             assert self.inner is not None
@@ -456,6 +491,8 @@ class SubmapLocalizer:
         the camera moved to the second stayed LOST on the first room's part for 30 frames)."""
         inner = self.inner
         if inner is None or inner.last_posed_stamp is None or not inner.filter.initialized:
+            return None
+        if inner.bundle is None:  # it let its part go in a search: searching again
             return None
         if inner.last_posed_stamp != self._prev_stamp:
             return None
@@ -544,35 +581,72 @@ class SubmapLocalizer:
         self.stats.votes += 1
         order = [int(k) for k in np.argsort(-scores, kind="stable")]
         here = [self.part] if res is not None and self.part is not None else []
-        k = self._next_part(order, here, scores)
-        for n in range(cap):
+        waiting: list[int] = []  # parts of this frame's order left to load for later frames
+        wait_s = self.conf.submap_load_wait_ms / 1e3
+        tries = 0
+        for _ in range(cap):
+            k = self._next_part(order, here, scores, waiting)
             if k is None:
                 break  # this frame has met every part
-            if n >= self.lost_parts_per_frame and (time.thread_time() - t_cpu) * 1e3 >= budget_ms:
+            if tries >= self.lost_parts_per_frame and (
+                (time.thread_time() - t_cpu) * 1e3 >= budget_ms
+            ):
                 break
+            pending = self.cache.is_pending(k)
+            if k != self.part and not self._ready(k, waiting, wait_s):
+                # Not resident: it loads on the thread for the next frames (a frame never
+                # waits for a load longer than ``submap_load_wait_ms``); the search goes on
+                # with the next part of the order that is.
+                waiting.append(k)
+                continue
             here.append(k)
-            nxt = self._next_part(order, here, scores) if n + 1 < cap else None
+            self.stats.prefetched_tries += pending  # resident or loading when chosen
             if k != self.part:
-                self.stats.prefetched_tries += self.cache.is_pending(k)
-                self._load_and_switch(k)
-            else:
-                self.stats.prefetched_tries += 1
+                self._switch(k)
+            nxt = self._next_part(order, here, scores, waiting)
             if nxt is not None:
                 # The part to try if this one fails loads on the thread while this one is
-                # matched (a lost frame's second load no longer stalls it in full).
-                self.cache.request(nxt, keep={k}, optional=True, stats=self._st)
+                # matched.
+                self.cache.request(
+                    nxt, keep=set(here) | set(waiting), optional=True, stats=self._st
+                )
             assert self.inner is not None
             self.stats.lost_tries += 1
+            tries += 1
             res = self.inner.localize(frame, stamp)
             if self.inner.last_posed_stamp == stamp:
                 break
             self._fails[k] = self._fails.get(k, 0) + 1
-            k = nxt
         self.stats.search_cpu_ms += (time.thread_time() - t_cpu) * 1e3
-        assert res is not None
+        if res is None:
+            self.stats.unready_lost += 1
+            return FrameResult(
+                Status.LOST,
+                stamp,
+                message="sub-maps loading: the parts this frame's vote ranks first are not "
+                "resident yet (tried from the next frame on)",
+            )
         return res
 
-    def _next_part(self, order: list[int], here: list[int], scores: np.ndarray) -> int | None:
+    def _ready(self, k: int, keep: list[int], wait_s: float) -> bool:
+        """Part ``k`` resident now, or within ``wait_s`` of its background load (which is
+        started, within the budget, when it is not running)."""
+        if self.cache.get(k) is not None:
+            return True
+        own = 0 if self.part is None else self.set.part_memory_bytes(self.part)
+        if own + self.set.part_memory_bytes(k) > self.memory_budget:
+            # The budget cannot hold this part beside the session's: nothing can load ahead,
+            # the frame loads it in place of its own (as a tracked switch does then).
+            self._load_and_switch(k)
+            return True
+        if not self.cache.is_pending(k):
+            # A lost frame's part may go to make room (it has just failed the frame).
+            self.cache.request(k, keep=set(keep), optional=True, stats=self._st, release=self)
+        return self.cache.wait_for(k, wait_s, self._st)
+
+    def _next_part(
+        self, order: list[int], here: list[int], scores: np.ndarray, skip: Sequence[int] = ()
+    ) -> int | None:
         """The next part a lost frame tries (``order``: its vote's, ``scores`` the vote;
         ``here``: the parts it met already), None when it has met every part: the best by
         the vote discounted by ``PLACE_DISCOUNT`` for each part of the same place (at least
@@ -590,7 +664,7 @@ class SubmapLocalizer:
         that failed is tried again on later frames rather than never until every part was
         (the camera moves: room 8's first frame failed on the part that held its next 35
         frames), after the parts the vote prefers about as much and have not failed."""
-        cand = np.asarray([k for k in order if k not in here], np.int64)
+        cand = np.asarray([k for k in order if k not in here and k not in skip], np.int64)
         if len(cand) == 0:
             return None
         same = np.zeros(self.set.n_parts)
@@ -647,6 +721,8 @@ class SubmapLocalizer:
         maps it); the track table keeps the part's global ids (``_part_points``)."""
         if self.inner is not None:
             self.inner.detach_bundle()
+        self._left = self.part
+        self.part = None  # not pinned any more; ``_switch`` attaches the next part
 
     def _switch(self, k: int) -> None:
         part = self.cache.get(k)
@@ -658,9 +734,11 @@ class SubmapLocalizer:
             old_pts = self._part_points  # set with ``inner``
             assert old_pts is not None
             self.inner.swap_bundle(bundle, lambda rows: translate(rows, old_pts, gpts))
-        if self.part != k:
-            self.stats.switches += self.part is not None
-            log.debug("sub-map %s -> %s", self.part, k)
+        was = self.part if self.part is not None else self._left
+        if was != k:
+            self.stats.switches += was is not None
+            log.debug("sub-map %s -> %s", was, k)
         self.part = k
+        self._left = None
         self._part_points = gpts  # the table is translated from it at the next switch
         self.stats.parts_used.add(k)
