@@ -181,3 +181,45 @@ def test_a_localizer_prepares_the_per_bundle_tables_before_its_first_frame(tmp_p
     assert b in point_uncertainty._cache
     w = scope._cache[b][(0.02, 2.0)]
     assert np.allclose(w, 1.0 / duplicate_counts(b, 0.02))  # the dense map's weights
+
+
+def test_the_guided_search_scans_fewer_lists_only_on_maps_from_dense_video(maps):
+    """nprobe / sqrt(n) on the every-frame corridor (n: its median image's near-duplicates,
+    10-11 here), nprobe on the every-10th one and when switched off."""
+    from sfmloc.engine.scope import guided_nprobe
+
+    conf = EngineConf(scope_radius=0.02, scope_min_duplicates=2.0, nprobe=16)
+    assert guided_nprobe(maps[10], conf) == 16
+    n = float(np.median(duplicate_counts(maps[1], 0.02)))
+    assert 9 <= n <= 11
+    assert guided_nprobe(maps[1], conf) == round(16 / np.sqrt(n)) == 5
+    assert guided_nprobe(maps[1], conf.model_copy(update={"scope_dense_nprobe": False})) == 16
+    assert guided_nprobe(maps[1], conf.model_copy(update={"nprobe": 32})) == round(32 / np.sqrt(n))
+    assert guided_nprobe(maps[1], conf.model_copy(update={"nprobe": 4})) == 4  # at least 4
+
+
+def test_guided_matching_searches_with_the_dense_maps_nprobe(maps):
+    from sfmloc.engine.matching import guided_matching
+
+    conf = EngineConf(scope_radius=0.02, scope_min_duplicates=2.0, nprobe=16)
+    u = _corridor_points()
+    matched = np.nonzero(np.abs(u - 50.0) <= 1.0)[0]
+    rng = np.random.default_rng(0)
+    for stride, want in ((1, 5), (10, 16)):
+        b = maps[stride]
+        seen: list[int | None] = []
+        search = b.index.search
+
+        def spy(*a, _search=search, _seen=seen, **kw):
+            _seen.append(kw.get("nprobe"))
+            return _search(*a, **kw)
+
+        b.index.search = spy  # the real search runs; only its nprobe is recorded
+        try:
+            desc = rng.standard_normal((8, 32)).astype(np.float32)
+            xy = rng.uniform(0, 400, (8, 2))
+            K = b.cameras[0].K
+            guided_matching(desc, xy, b, matched, b.image_cam_from_world[0], K, conf)
+        finally:
+            del b.index.search
+        assert seen == [want], (stride, seen)

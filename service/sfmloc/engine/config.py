@@ -74,6 +74,15 @@ class EngineConf(StrictModel):
     # identical to the paper's scope (300 frames).
     scope_radius: float = 0.02
     scope_min_duplicates: float = 2.0
+    # On those maps the guided (scoped) k-ANN search scans nprobe / sqrt(n) inverted lists, n
+    # the median image's near-duplicates (engine/scope.py guided_nprobe; redkitchen every
+    # frame: n 11, 5 lists; every 2nd 7, every 4th 9; every 10th and sparser: nprobe): the
+    # lists of a map holding each place n times over are sqrt(n) times as long. Every-frame
+    # map, 1000 frames (nice 19, load 10-16): against main b9ec1f9 CPU per frame x0.919, p99
+    # x0.843, localized 1000 -> 999 (one LOST), median 0.273 -> 0.270 cm, 0 wrong (bench.ab);
+    # against the every-10th map, interleaved frame by frame: x1.080 -> x1.044, p99 x1.41 ->
+    # x1.16 (at 6 lists the search 1.82 -> 1.14 ms per frame). False: nprobe everywhere.
+    scope_dense_nprobe: bool = True
     ratio: float = 0.75  # ratio test on 3D point strengths
     min_inliers: int = 10  # a pose with fewer inliers is rejected
     # Global matching also needs this fraction of its ratio-test matches as inliers: 10 inliers

@@ -27,7 +27,7 @@ from ..map.index import bitmap_from_ranges
 from ..transforms import Rigid3d
 from .config import EngineConf
 from .pose import reprojection_errors
-from .scope import image_weights
+from .scope import guided_nprobe, image_weights
 
 
 @dataclass
@@ -245,7 +245,8 @@ def guided_matching(
     else:
         ptr = bundle.image_desc_ptr
         allowed = bitmap_from_ranges(bundle.n_descriptors, ptr[imgs], ptr[imgs + 1])
-        D, I = bundle.index.search(desc, conf.k, allowed=allowed, nprobe=conf.nprobe)
+        npr = guided_nprobe(bundle, conf)
+        D, I = bundle.index.search(desc, conf.k, allowed=allowed, nprobe=npr)
     w = neighbour_strengths(D, I, conf.sigma)
     cands = point_candidates(I, w, bundle.desc_point)
     _, _, q2, p2 = match_sets(cands, conf.ratio, H)

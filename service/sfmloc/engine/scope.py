@@ -20,6 +20,7 @@ every-10th), so near-duplicates by points were rare on both maps.
 from __future__ import annotations
 
 import weakref
+from typing import Any
 
 import numpy as np
 
@@ -77,3 +78,30 @@ def image_weights(bundle: MapBundle, radius: float, min_duplicates: float = 0.0)
         w = 1.0 / d if is_dense(d, min_duplicates) else np.ones(bundle.n_images)
         per[key] = w
     return w
+
+
+def guided_nprobe(bundle: MapBundle, conf: Any) -> int:
+    """Inverted lists the scoped (guided) k-ANN search scans per query: ``conf.nprobe``, on a
+    map from dense video (``is_dense``) divided by the square root of its median image's
+    near-duplicate count ``n`` (``conf.scope_dense_nprobe``; at least 4). The index's lists
+    grow as the square root of its descriptors (``map.index.choose_nlist``), and a map from
+    every frame holds each place's descriptors ``n`` times over: scanning ``nprobe /
+    sqrt(n)`` of its lists scans as many entries per query as ``nprobe`` on the map of one
+    image per place."""
+    if not (conf.scope_dense_nprobe and conf.scope_radius > 0):
+        return int(conf.nprobe)
+    per = _nprobe_cache.setdefault(bundle, {})
+    key = (float(conf.scope_radius), float(conf.scope_min_duplicates), int(conf.nprobe))
+    got = per.get(key)
+    if got is None:
+        d = duplicate_counts(bundle, conf.scope_radius)
+        got = int(conf.nprobe)
+        if is_dense(d, conf.scope_min_duplicates):
+            got = max(min(4, got), int(round(conf.nprobe / np.sqrt(float(np.median(d))))))
+        per[key] = got
+    return got
+
+
+_nprobe_cache: weakref.WeakKeyDictionary[MapBundle, dict[tuple[float, float, int], int]] = (
+    weakref.WeakKeyDictionary()
+)
