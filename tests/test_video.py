@@ -17,7 +17,7 @@ from sfmloc.builder.video import VideoConf, extract_keyframes, interpolate_pose,
 from sfmloc.cameras import Camera
 from sfmloc.errors import BuildError, InputError
 from sfmloc.io.poses import read_poses, write_tum
-from sfmloc.transforms import align_umeyama, pose_errors, rotation_angle_deg
+from sfmloc.transforms import Rigid3d, align_umeyama, pose_errors, rotation_angle_deg
 
 W, H, N_FRAMES = 320, 240, 120
 
@@ -91,7 +91,7 @@ def test_interpolated_poses_match_the_exact_poses(walk, tmp_path):
 def test_posed_keyframes_from_an_encoded_video(walk, video, tmp_path):
     root, frames, gt = walk
     cam = Camera.from_json(root / "camera.json")
-    conf = VideoConf()
+    conf = VideoConf(max_interval_s=0.0)  # the motion rule alone (the time rule: below)
     kf = extract_keyframes(video, tmp_path / "kf", conf, poses=root / "groundtruth.tum", camera=cam)
     rep = kf.report
     assert rep.frames == N_FRAMES and rep.clock == "pos_msec"
@@ -312,3 +312,29 @@ def test_a_map_built_from_a_video_without_poses(walk, video, tmp_path):
     s, R, t = align_umeyama(est, true)
     extent = np.linalg.norm(true.max(0) - true.min(0))
     assert np.max(np.linalg.norm(s * est @ R.T + t - true, axis=1)) < 0.02 * extent
+
+
+def test_a_dwelling_camera_gets_keyframes_after_max_interval():
+    """A camera standing still for 3 s, then turning 2 deg per frame: by motion alone one
+    keyframe covers the 3 s; with ``max_interval_s`` 1 s, one per second of them too."""
+    from sfmloc.builder.video import FrameStats, select_keyframes
+
+    n, fps = 120, 30.0
+    yaw = np.where(np.arange(n) < 90, 0.0, 2.0 * (np.arange(n) - 89))
+    poses = [Rigid3d.from_rotvec(np.array([0.0, np.radians(a), 0.0]), np.zeros(3)) for a in yaw]
+    stats = FrameStats(
+        times=np.arange(n) / fps,
+        sharpness=np.ones(n),
+        flow=np.zeros(n),
+        clock="pos_msec",
+        fps=fps,
+        scene_depth=2.0,
+    )
+    conf = VideoConf(sharpness_window=1, max_interval_s=0.0)
+    keys, rep = select_keyframes(stats, conf, poses)
+    # motion only: frame 0, then each 5 deg of the turn (yaw 2 deg at frame 90, +2 per frame)
+    assert keys[:3] == [0, 92, 95], keys
+    assert rep.dropped_motion == n - len(keys)
+    timed, rep_t = select_keyframes(stats, conf.model_copy(update={"max_interval_s": 1.0}), poses)
+    assert timed[:6] == [0, 30, 60, 90, 93, 96], timed
+    assert rep_t.keyframes == len(timed) and rep_t.dropped_motion == n - len(timed)

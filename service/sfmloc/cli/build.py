@@ -31,8 +31,10 @@ index / fps when the container has none; the first frame is at 0 s. A frame beco
 after enough motion since the last keyframe: with poses, --kf-rotation degrees or --kf-translation
 times the scene depth (estimated from tracks triangulated with the poses); without poses,
 --kf-flow of the image diagonal of median corner motion. The sharpest of that frame and its next
---kf-window - 1 frames is taken (blurry frames are dropped). The choice is printed and stored in
-the bundle's manifest; keyframes go to a temporary folder removed afterwards.
+--kf-window - 1 frames is taken (blurry frames are dropped); with poses, a keyframe is also
+due after --kf-interval seconds without one (a camera dwelling on a spot). The choice is
+printed and stored in the bundle's manifest; keyframes go to a temporary folder removed
+afterwards.
 
 Extending a map: --extend BUNDLE with --images DIR and the new images' poses in the map's frame
 (--poses FILE --camera CAMERA, or --colmap MODEL) adds them to the bundle: only the new images
@@ -97,6 +99,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         metavar="F",
         help="video without poses: keyframe after this image motion, of the diagonal "
         "(default 0.05)",
+    )
+    p.add_argument(
+        "--kf-interval",
+        type=float,
+        metavar="S",
+        help="video with poses: a keyframe also after S seconds without one (default 0.2; 0: off)",
     )
     p.add_argument(
         "--kf-window",
@@ -315,6 +323,7 @@ def _build_video(args: argparse.Namespace, conf, sconf, bar):
             ("min_translation", args.kf_translation),
             ("min_flow", args.kf_flow),
             ("sharpness_window", args.kf_window),
+            ("max_interval_s", args.kf_interval),
         )
         if v is not None
     }
