@@ -184,11 +184,14 @@ def test_a_localizer_prepares_the_per_bundle_tables_before_its_first_frame(tmp_p
 
 
 def test_the_guided_search_scans_fewer_lists_only_on_maps_from_dense_video(maps):
-    """nprobe / sqrt(n) on the every-frame corridor (n: its median image's near-duplicates,
-    10-11 here), nprobe on the every-10th one and when switched off."""
+    """With scope_dense_nprobe (off by default): nprobe / sqrt(n) on the every-frame corridor
+    (n: its median image's near-duplicates, 10-11 here), nprobe on the every-10th one."""
     from sfmloc.engine.scope import guided_nprobe
 
-    conf = EngineConf(scope_radius=0.02, scope_min_duplicates=2.0, nprobe=16)
+    assert guided_nprobe(maps[1], EngineConf(scope_radius=0.02, nprobe=16)) == 16  # off
+    conf = EngineConf(
+        scope_radius=0.02, scope_min_duplicates=2.0, nprobe=16, scope_dense_nprobe=True
+    )
     assert guided_nprobe(maps[10], conf) == 16
     n = float(np.median(duplicate_counts(maps[1], 0.02)))
     assert 9 <= n <= 11
@@ -201,7 +204,9 @@ def test_the_guided_search_scans_fewer_lists_only_on_maps_from_dense_video(maps)
 def test_guided_matching_searches_with_the_dense_maps_nprobe(maps):
     from sfmloc.engine.matching import guided_matching
 
-    conf = EngineConf(scope_radius=0.02, scope_min_duplicates=2.0, nprobe=16)
+    conf = EngineConf(
+        scope_radius=0.02, scope_min_duplicates=2.0, nprobe=16, scope_dense_nprobe=True
+    )
     u = _corridor_points()
     matched = np.nonzero(np.abs(u - 50.0) <= 1.0)[0]
     rng = np.random.default_rng(0)

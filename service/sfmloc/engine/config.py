@@ -81,8 +81,11 @@ class EngineConf(StrictModel):
     # map, 1000 frames (nice 19, load 10-16): against main b9ec1f9 CPU per frame x0.919, p99
     # x0.843, localized 1000 -> 999 (one LOST), median 0.273 -> 0.270 cm, 0 wrong (bench.ab);
     # against the every-10th map, interleaved frame by frame: x1.080 -> x1.044, p99 x1.41 ->
-    # x1.16 (at 6 lists the search 1.82 -> 1.14 ms per frame). False: nprobe everywhere.
-    scope_dense_nprobe: bool = True
+    # x1.16 (at 6 lists the search 1.82 -> 1.14 ms per frame). Off by default: the one LOST
+    # frame makes the every-frame map's replay 99.9% against 100% from every 2nd frame (issue
+    # 17: localized must never decrease as images are added), and without it the every-frame
+    # map already runs at x1.080-1.096 the every-10th's (target x1.10).
+    scope_dense_nprobe: bool = False
     ratio: float = 0.75  # ratio test on 3D point strengths
     min_inliers: int = 10  # a pose with fewer inliers is rejected
     # Global matching also needs this fraction of its ratio-test matches as inliers: 10 inliers
