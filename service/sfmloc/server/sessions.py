@@ -357,6 +357,8 @@ class SessionManager:
             if target is None:
                 from ..errors import UnavailableError
 
+                # counted as on_worker_dead counts its answers: s.errors and the metric agree
+                self.metrics.frame_errors.inc(s.map, "UNAVAILABLE")
                 self._send(
                     s,
                     self.error_pose(
