@@ -683,16 +683,23 @@ def share_child(work: Path, frames: int, slice_ms: float, core: int, start: floa
         set_slice(0, slice_ms)
     while time.time() < start:
         time.sleep(0.01)
-    c0, t0 = time.thread_time(), time.monotonic()
+    c0, t0, i0 = time.thread_time(), time.monotonic(), _involuntary_switches()
     for seq in range(10, 10 + frames):
         loc.localize(world.gray[pingpong(n, seq)], seq / 30.0, None)
     cpu, wall = time.thread_time() - c0, time.monotonic() - t0
-    ivcs = 0
-    with open("/proc/self/status") as f:
+    # the timed frames' switches only: the count since start also held the imports, the
+    # world's load and the warm-up frames, which the per-frame figure divides by ``frames``
+    ivcs = _involuntary_switches() - i0
+    return {"frames": frames, "cpu_s": cpu, "wall_s": wall, "ivcs": ivcs}
+
+
+def _involuntary_switches() -> int:
+    """This process's involuntary context switches so far (0 where /proc cannot tell)."""
+    with contextlib.suppress(OSError, ValueError), open("/proc/self/status") as f:
         for line in f:
             if line.startswith("nonvoluntary_ctxt_switches"):
-                ivcs = int(line.split()[1])
-    return {"frames": frames, "cpu_s": cpu, "wall_s": wall, "ivcs": ivcs}
+                return int(line.split()[1])
+    return 0
 
 
 def run_share(work: Path, procs: int, frames: int, slice_ms: float, rounds: int, core: int) -> dict:
@@ -714,7 +721,13 @@ def run_share(work: Path, procs: int, frames: int, slice_ms: float, rounds: int,
                 subprocess.Popen([*cmd, "--share-child", spec], stdout=subprocess.PIPE, text=True)
                 for _ in range(n)
             ]
-            outs = [json.loads(k.communicate()[0].strip().splitlines()[-1]) for k in kids]
+            # every child waited for before any is judged: one that failed must not leave
+            # the others running on the core unwaited
+            texts = [(k.communicate()[0], k.returncode) for k in kids]
+            bad = [rc for _, rc in texts if rc != 0]
+            if bad:
+                raise RuntimeError(f"scale share: {len(bad)} of {n} children failed (exit {bad})")
+            outs = [json.loads(t.strip().splitlines()[-1]) for t, _ in texts]
             tot = sum(o["frames"] for o in outs)
             rows.append(
                 {
