@@ -354,6 +354,9 @@ def _measure(
     same = {}
     if holds and meter is not None:
         same = same_frames_phase(cl, holds, meter, warmup_timeout)
+    elif holds:  # nothing to measure the phase with: the clients must not wait at its holds
+        for ev in holds.values():
+            ev.set()
     time.sleep(warmup_s)
     waited = wait_warm(cl, warmup_frames, warmup_timeout)
     c0 = meter.sample() if meter else None
