@@ -74,6 +74,7 @@ import weakref
 from collections import OrderedDict
 from collections.abc import Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import wait as futures_wait
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -351,10 +352,9 @@ class PartCache:
         fut = self._loading.get(k)
         if fut is not None and timeout_s > 0 and not fut.done():
             t0 = time.perf_counter()
-            try:
-                fut.exception(timeout=timeout_s)
-            except TimeoutError:
-                pass
+            # futures.wait: no exception on a timeout (Python 3.10, which pyproject allows,
+            # raises concurrent.futures.TimeoutError there, not the builtin TimeoutError)
+            futures_wait([fut], timeout=timeout_s)
             self._note(*stats, sync_loads=1, sync_load_ms=(time.perf_counter() - t0) * 1e3)
         self.collect(stats)
         return k in self._resident
