@@ -20,11 +20,14 @@ every-10th), so near-duplicates by points were rare on both maps.
 from __future__ import annotations
 
 import weakref
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..map.bundle import MapBundle
+
+if TYPE_CHECKING:
+    from .config import EngineConf
 
 MAX_ANGLE_DEG = 15.0  # images looking more than this apart see different things
 
@@ -80,7 +83,7 @@ def image_weights(bundle: MapBundle, radius: float, min_duplicates: float = 0.0)
     return w
 
 
-def guided_nprobe(bundle: MapBundle, conf: Any) -> int:
+def guided_nprobe(bundle: MapBundle, conf: EngineConf) -> int:
     """Inverted lists the scoped (guided) k-ANN search scans per query: ``conf.nprobe``, on a
     map from dense video (``is_dense``) divided by the square root of its median image's
     near-duplicate count ``n`` (``conf.scope_dense_nprobe``; at least 4). The index's lists
