@@ -1069,20 +1069,24 @@ def exact_silence(cl: list[StreamClient], log_path: Path) -> dict:
     counts are estimates: a pose carries its session's drop count when it is answered, which
     includes frames sent after it (dropped while it was in the worker), so a window's edge can
     count a dropped frame as silent or the other way round."""
-    closes: dict[str, dict[str, str]] = {}
+    # A client may have had several sessions (one expired or was taken over): each close
+    # counts its own frames, so they add up; keeping only the last would count the earlier
+    # sessions' frames as lost.
+    closes: dict[str, list[dict[str, str]]] = {}
     with contextlib.suppress(OSError):
         for line in log_path.read_text(errors="replace").splitlines():
             if " event=session_close " in f"{line} ":
                 f = dict(kv.split("=", 1) for kv in line.split() if "=" in kv)
-                closes[f.get("client", "")] = f
+                closes.setdefault(f.get("client", ""), []).append(f)
     silent = lost = 0
     unknown: list[str] = []
     for c in cl:
-        e = closes.get(c.log.client_id)
-        if e is None:
+        es = closes.get(c.log.client_id)
+        if not es:
             unknown.append(c.log.client_id)
             continue
-        frames, dropped = int(e.get("frames", 0)), int(e.get("dropped", 0))
+        frames = sum(int(e.get("frames", 0)) for e in es)
+        dropped = sum(int(e.get("dropped", 0)) for e in es)
         silent += frames - len(c.log.answered) - dropped
         lost += len(c.log.sent) - frames
     return {"silent": silent, "lost": lost, "sessions_not_closed": unknown}
