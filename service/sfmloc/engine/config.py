@@ -506,9 +506,9 @@ class EngineConf(StrictModel):
     # by more than the speed issue's p99 target (15 ms), but never waiting costs poses: 24
     # rooms in 72 parts at 10x the budget (scale bench --parts submaps --rooms 24 --ratio 10,
     # load 12-18, same command): waiting, 956/960 localized, stall p99 55 ms, max 130 ms,
-    # 26 frames over 15 ms; 0, 892/960 (each room's first frame, and one room lost 31 frames
-    # in a row while its parts churned through a budget of ~2 parts), stall p99 0 ms, max 351
-    # ms (5 frames: a part that does not fit beside the session's own loads in its place).
+    # 26 frames over 15 ms; 0, 922/960 (load 6-7; most rooms' first frame, and a few more
+    # while the search goes one part per frame), stall p99 0 ms, max 56 ms (2 frames over 15:
+    # a part that does not fit beside the session's own loads in its place).
     submap_load_wait_ms: float = Field(60_000.0, ge=0.0, le=60_000.0)
 
     @model_validator(mode="before")

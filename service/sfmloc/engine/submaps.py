@@ -583,6 +583,17 @@ class SubmapLocalizer:
         here = [self.part] if res is not None and self.part is not None else []
         waiting: list[int] = []  # parts of this frame's order left to load for later frames
         wait_s = self.conf.submap_load_wait_ms / 1e3
+        if wait_s == 0:
+            # A frame that never waits tries the resident parts of its order: a load it
+            # schedules must not evict those not tried yet (24 rooms, ~2 parts in the budget:
+            # each frame's load evicted the part the last frame had loaded for the search
+            # before it was tried, and a room lost 31 frames in a row). Tried ones may go.
+            resident = set(self.cache.resident_parts())
+            waiting_keep = [
+                k for k in order[: 2 * cap] if k in resident and self._fails.get(k, 0) == 0
+            ]
+        else:
+            waiting_keep = []
         tries = 0
         for _ in range(cap):
             k = self._next_part(order, here, scores, waiting)
@@ -593,7 +604,7 @@ class SubmapLocalizer:
             ):
                 break
             pending = self.cache.is_pending(k)
-            if k != self.part and not self._ready(k, waiting, wait_s):
+            if k != self.part and not self._ready(k, waiting + waiting_keep, wait_s):
                 # Not resident: it loads on the thread for the next frames (a frame never
                 # waits for a load longer than ``submap_load_wait_ms``); the search goes on
                 # with the next part of the order that is.
