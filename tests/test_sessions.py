@@ -234,6 +234,62 @@ def test_every_worker_dead_answers_the_frame_now(env):
     assert sm.wait_idle(0)
 
 
+class _Window:
+    """Runs ``then`` once, at the next ``is_alive`` of ``pool``: with the pool armed after the
+    session exists, that is ``_dispatch``'s check, after ``_start`` let go of the lock (where
+    another thread's frame, or a worker's death, can come in)."""
+
+    def __init__(self, pool: FakePool, then) -> None:
+        self.pool, self.then, self.fired = pool, then, False
+        self.is_alive = pool.is_alive
+        pool.is_alive = self  # type: ignore[method-assign]
+
+    def __call__(self, worker: int) -> bool:
+        if not self.fired:
+            self.fired = True
+            self.then()
+        return self.is_alive(worker)
+
+
+def test_a_frame_that_came_while_the_last_worker_was_found_dead_is_answered(env):
+    """Frame 1 has started (the session is busy) when its dispatch finds no worker alive;
+    frame 2 came meanwhile and waits for it: both are answered UNAVAILABLE, not frame 1 alone
+    (frame 2 waited in silence until the session's next frame, never for a lockstep client)."""
+    pool, _, sm, sinks, submit = env
+    s = submit("c", 0)
+    _answer(sm, pool.frames[-1][1])
+    pool.alive = [False, False]  # both died; on_worker_dead has run (nothing was in them)
+    _Window(pool, lambda: submit("c", 2))
+    submit("c", 1)
+    assert [(p.seq, p.error.code) for p in sinks["c"].poses[1:]] == [
+        (1, "UNAVAILABLE"),
+        (2, "UNAVAILABLE"),
+    ]
+    assert not s.pending and not s.busy and s.errors == 2 and sm.wait_idle(0)
+    pool.alive = [True, True]  # a replacement serves: the session goes on
+    submit("c", 3)
+    _answer(sm, pool.frames[-1][1])
+    assert [p.seq for p in sinks["c"].poses] == [0, 1, 2, 3]
+
+
+def test_a_frame_its_dead_worker_answered_is_not_answered_again_by_its_dispatch(env):
+    """The worker a frame was started for dies before its dispatch looks (the pool's reader
+    thread answers it in on_worker_dead): the dispatch must not answer it a second time."""
+    pool, _, sm, sinks, submit = env
+    s = submit("c", 0)
+    _answer(sm, pool.frames[-1][1])
+    n = len(pool.frames)
+
+    def dies() -> None:
+        pool.alive = [False, False]
+        sm.on_worker_dead(s.worker)
+
+    _Window(pool, dies)
+    submit("c", 1)
+    assert [(p.seq, p.error.code) for p in sinks["c"].poses[1:]] == [(1, "UNAVAILABLE")]
+    assert len(pool.frames) == n and not s.busy and s.errors == 1
+
+
 def test_frames_follow_a_replaced_map_to_its_new_generation(env):
     pool, reg, sm, sinks, submit = env
     submit("c", 0)

@@ -140,3 +140,60 @@ def test_a_moved_session_is_found_around_its_last_pose(world, z, srv):
     assert (first.status, first.matching) == ("RELOCALIZED", "guided"), first
     assert all(p.localized for p in after[after.index(first) :])
     assert pool.wait_for(lambda: _all_serving(pool), 120)
+
+
+def test_a_frame_left_on_its_old_worker_is_answered_by_it_when_the_new_one_dies(world, z, srv):
+    """A replacement takes a session over (``_rebalance_to``) while the session's frame still
+    runs on its old worker, and the replacement dies: that frame is the old worker's to
+    answer, with its pose, once (it was answered UNAVAILABLE at the replacement's death and the
+    old worker's pose was dropped as stale)."""
+    pool = srv.server.pool
+    assert pool.wait_for(lambda: _all_serving(pool), 120)
+    zygote = pool._zygote
+    assert zygote is not None and zygote.alive
+    # The earlier tests' idle sessions would be rebalanced first (idle before busy): end them.
+    for s in srv.server.sessions.list():
+        srv.server.sessions.close(s, "test")
+    got = {c: Collected() for c in ("left", "right")}
+    with contextlib.ExitStack() as stack:
+        fs = {}
+        for c in got:
+            stack.enter_context(PoseSubscriber(z, "room", c, callback=got[c].append))
+            fs[c] = stack.enter_context(FrameStreamer(z, "room", c, camera(world)))
+        for c in got:
+            assert fs[c].wait_for_server(30)
+            fs[c].publish(data=world.png[0], encoding="png", seq=0, stamp_ns=0)
+            assert got[c].has_seq(0)
+        ss = [_session(srv, c) for c in got]
+        old = pool.workers[ss[0].worker]
+        other = pool.workers[1 - old.index]
+        os.kill(zygote.proc.pid, signal.SIGSTOP)  # the replacement waits until both are busy
+        try:
+            os.kill(other.pid, signal.SIGKILL)
+            assert pool.wait_for(lambda: not other.alive, 60)
+            assert wait_until(lambda: all(s.worker == old.index for s in ss), 60)
+            os.kill(old.pid, signal.SIGSTOP)  # frame 1 of both stays in it
+            for c in got:
+                fs[c].publish(data=world.png[1], encoding="png", seq=1, stamp_ns=int(1e9 / 30))
+            assert wait_until(lambda: all(s.busy for s in ss), 60)
+        finally:
+            os.kill(zygote.proc.pid, signal.SIGCONT)
+        try:
+            # The replacement serves and takes one of the two (both busy) over.
+            assert wait_until(lambda: any(s.worker != old.index for s in ss), 120)
+            moved = next(s for s in ss if s.worker != old.index)
+            new = pool.workers[moved.worker]
+            assert moved.busy and new is not other
+            os.kill(new.pid, signal.SIGKILL)
+            assert pool.wait_for(lambda: not new.alive, 60)
+            assert wait_until(lambda: moved.worker == old.index, 60)  # moved back at its death
+        finally:
+            os.kill(old.pid, signal.SIGCONT)
+        for c in got:
+            assert got[c].has_seq(1)
+            fs[c].publish(data=world.png[2], encoding="png", seq=2, stamp_ns=int(2e9 / 30))
+            assert got[c].has_seq(2)
+    for c in got:
+        assert [p.seq for p in got[c]] == [0, 1, 2]  # one answer each
+        assert all(p.error is None for p in got[c]), [(p.seq, p.error) for p in got[c]]
+    assert pool.wait_for(lambda: _all_serving(pool), 120)

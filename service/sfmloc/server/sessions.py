@@ -339,13 +339,22 @@ class SessionManager:
     def _dispatch(self, s: Session, frame: Frame, gen: int, ticket: int) -> None:
         """Send ``frame`` (started with ``_start``: ``ticket``) to ``s``'s worker."""
         if not self.pool.is_alive(s.worker):
+            waiting: builtins.list[tuple[int, int]] = []  # (seq, stamp_ns)
             with self._lock:
+                if s.ticket != ticket:
+                    return  # answered meanwhile (its worker's death, its time budget): once
                 target = self._live_worker(exclude=s.worker)
                 if target is None:  # every worker is down: answer now rather than never
                     s.busy = False
+                    s.ticket = 0
                     s.errors += 1
                     s.inflight_t_recv.pop(frame.seq, None)
                     self._free(ticket)
+                    # Frames that came since it started wait for it: nothing would send them
+                    # on (on_worker_dead has run), and a lockstep client sends no next frame.
+                    waiting = [(p.frame.seq, p.frame.stamp_ns) for p in s.pending]
+                    s.errors += len(waiting)
+                    s.pending.clear()
                     self._idle.notify_all()
                 else:
                     s.worker = target
@@ -358,18 +367,21 @@ class SessionManager:
                 from ..errors import UnavailableError
 
                 # counted as on_worker_dead counts its answers: s.errors and the metric agree
-                self.metrics.frame_errors.inc(s.map, "UNAVAILABLE")
-                self._send(
-                    s,
-                    self.error_pose(
-                        s.map,
-                        s.client_id,
-                        frame.seq,
-                        frame.stamp_ns,
-                        UnavailableError("no engine worker is running (one is restarting); retry"),
-                        dropped=s.dropped,
-                    ),
-                )
+                for seq, stamp_ns in [(frame.seq, frame.stamp_ns), *waiting]:
+                    self.metrics.frame_errors.inc(s.map, "UNAVAILABLE")
+                    self._send(
+                        s,
+                        self.error_pose(
+                            s.map,
+                            s.client_id,
+                            seq,
+                            stamp_ns,
+                            UnavailableError(
+                                "no engine worker is running (one is restarting); retry"
+                            ),
+                            dropped=s.dropped,
+                        ),
+                    )
                 return
         deadline = 0.0
         with self._lock:
@@ -766,7 +778,11 @@ class SessionManager:
             self._unqueue(worker)
             target: int | None = None
             for s in hit:
-                if s.busy and (s.ticket in on_it or s.worker == worker):
+                # Only a frame sent to it: a session moved here (``_rebalance_to``) while its
+                # frame still ran on its old worker keeps that frame, which the old worker
+                # answers with its pose (or whose own death answers it). A busy session's
+                # ticket always holds a slot (``_start``; freed only with its answer).
+                if s.busy and s.ticket in on_it:
                     lost += [(s, seq) for seq in s.inflight_t_recv]
                     s.inflight_t_recv.clear()
                     s.busy = False
