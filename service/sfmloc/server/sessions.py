@@ -364,24 +364,11 @@ class SessionManager:
                         self._slots[ticket] = target
                         self._in_worker[target] = self._in_worker.get(target, 0) + 1
             if target is None:
-                from ..errors import UnavailableError
-
-                # counted as on_worker_dead counts its answers: s.errors and the metric agree
-                for seq, stamp_ns in [(frame.seq, frame.stamp_ns), *waiting]:
-                    self.metrics.frame_errors.inc(s.map, "UNAVAILABLE")
-                    self._send(
-                        s,
-                        self.error_pose(
-                            s.map,
-                            s.client_id,
-                            seq,
-                            stamp_ns,
-                            UnavailableError(
-                                "no engine worker is running (one is restarting); retry"
-                            ),
-                            dropped=s.dropped,
-                        ),
-                    )
+                self._answer_unavailable(
+                    s,
+                    [(frame.seq, frame.stamp_ns), *waiting],
+                    "no engine worker is running (one is restarting); retry",
+                )
                 return
         deadline = 0.0
         with self._lock:
@@ -521,6 +508,27 @@ class SessionManager:
             latency_ms=latency_ms,
             dropped=dropped,
         )
+
+    def _answer_unavailable(
+        self, s: Session, frames: builtins.list[tuple[int, int]], message: str
+    ) -> None:
+        """Answer each (seq, stamp_ns) of ``s`` with an UNAVAILABLE error pose (a worker's
+        death), counted in the metric as the caller counted it in ``s.errors``."""
+        from ..errors import UnavailableError
+
+        for seq, stamp_ns in frames:
+            self.metrics.frame_errors.inc(s.map, "UNAVAILABLE")
+            self._send(
+                s,
+                self.error_pose(
+                    s.map,
+                    s.client_id,
+                    seq,
+                    stamp_ns,
+                    UnavailableError(message),
+                    dropped=s.dropped,
+                ),
+            )
 
     def error_pose(
         self,
@@ -763,8 +771,6 @@ class SessionManager:
         have its last frame on the old worker. With no live worker to move to, the frames
         waiting for one are answered too: kept, they waited in silence until a replacement
         served (and on_worker_lost then dropped them without a word)."""
-        from ..errors import UnavailableError
-
         with self._lock:
             on_it = {t for t, w in self._slots.items() if w == worker}
             hit = [
@@ -815,23 +821,14 @@ class SessionManager:
                 s.errors += 1
             self._idle.notify_all()
         for s, seq in lost:
-            self.metrics.frame_errors.inc(s.map, "UNAVAILABLE")
-            self._send(
+            self._answer_unavailable(
                 s,
-                self.error_pose(
-                    s.map,
-                    s.client_id,
-                    seq,
-                    0,
-                    UnavailableError(
-                        "the worker processing this frame died; the session goes on (worker "
-                        f"{s.worker}) and relocalizes"
-                        if self.pool.is_alive(s.worker)
-                        else "the worker processing this frame died and no other engine worker "
-                        "is running (one is restarting); retry"
-                    ),
-                    dropped=s.dropped,
-                ),
+                [(seq, 0)],
+                "the worker processing this frame died; the session goes on (worker "
+                f"{s.worker}) and relocalizes"
+                if self.pool.is_alive(s.worker)
+                else "the worker processing this frame died and no other engine worker "
+                "is running (one is restarting); retry",
             )
         self._dispatch_all(resume)
         event(
