@@ -186,6 +186,27 @@ def test_video_input_errors_are_clear(walk, video, tmp_path):
         extract_keyframes(video, tmp_path / "d", poses=late, camera=cam)
 
 
+def test_a_negative_keyframe_interval_is_refused_clearly(tmp_path):
+    """``max_interval_s`` below 0 would silently mean "off" (0): refused by the config, and by
+    ``sfmloc build --video --kf-interval`` with the flag named, before any decoding."""
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError, match=r"max_interval_s\n.*greater than or equal to 0"):
+        VideoConf(max_interval_s=-0.5)
+    assert VideoConf(max_interval_s=0.0).max_interval_s == 0.0  # 0: the motion rule alone
+    out = tmp_path / "maps"
+    r = subprocess.run(
+        [sys.executable, "-m", "sfmloc", "build", "v", "--out", str(out)]
+        + ["--video", str(tmp_path / "none.avi"), "--kf-interval", "-1"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode == 2, (r.returncode, r.stderr)
+    assert "--kf-interval -1.0: Input should be greater than or equal to 0" in r.stderr, r.stderr
+    assert "Traceback" not in r.stderr and not out.exists()
+
+
 def test_a_map_built_from_an_encoded_video_localizes(walk, video, tmp_path):
     """sfmloc build --video --poses (the CLI, a subprocess): keyframes triangulated with their
     poses; the map localizes the video's own frames (decoded from the same lossy video)."""

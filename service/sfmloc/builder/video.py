@@ -44,6 +44,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+from pydantic import Field
 
 from ..cameras import Camera
 from ..config import StrictModel
@@ -71,7 +72,7 @@ class VideoConf(StrictModel):
     # 0.2 s 116 keyframes 0.263 cm (17,952 points; 100% localized, 0 wrong, 40/40
     # relocalized). Not the decoding: every 10th frame decoded from the video, 0.275 cm; the
     # original JPEGs of the 73 motion keyframes, 0.317 cm.
-    max_interval_s: float = 0.2
+    max_interval_s: float = Field(0.2, ge=0)  # refused below 0 (it would silently mean off)
     sharpness_window: int = 5  # frames: the sharpest of a trigger frame and the next ones
     max_pose_gap_s: float = 0.2  # interpolate only between poses at most this far apart
     max_time_diff_s: float = 0.02  # frames this close beyond the log's ends take its end pose

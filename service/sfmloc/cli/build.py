@@ -314,19 +314,26 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _build_video(args: argparse.Namespace, conf, sconf, bar):
-    from ..builder.video import VideoConf, build_from_video
+    from pydantic import ValidationError
 
-    changes = {
-        k: v
-        for k, v in (
-            ("min_rotation_deg", args.kf_rotation),
-            ("min_translation", args.kf_translation),
-            ("min_flow", args.kf_flow),
-            ("sharpness_window", args.kf_window),
-            ("max_interval_s", args.kf_interval),
-        )
-        if v is not None
+    from ..builder.video import VideoConf, build_from_video
+    from ..errors import ConfigError
+
+    flags = {
+        "min_rotation_deg": ("--kf-rotation", args.kf_rotation),
+        "min_translation": ("--kf-translation", args.kf_translation),
+        "min_flow": ("--kf-flow", args.kf_flow),
+        "sharpness_window": ("--kf-window", args.kf_window),
+        "max_interval_s": ("--kf-interval", args.kf_interval),
     }
+    changes = {k: v for k, (_, v) in flags.items() if v is not None}
+    try:
+        video_conf = VideoConf(**changes)
+    except ValidationError as exc:
+        bad = ", ".join(
+            f"{flags[str(e['loc'][0])][0]} {e['input']}: {e['msg']}" for e in exc.errors()
+        )
+        raise ConfigError(f"invalid video keyframe option: {bad}") from None
     return build_from_video(
         conf,
         args.name,
@@ -334,7 +341,7 @@ def _build_video(args: argparse.Namespace, conf, sconf, bar):
         video=args.video,
         poses=args.poses,
         camera=args.camera,
-        video_conf=VideoConf(**changes),
+        video_conf=video_conf,
         sfm_conf=sconf,
         workdir=args.workdir,
         progress=bar,
