@@ -289,3 +289,28 @@ def test_same_frames_comparison_adds_the_alone_times_and_weighs_the_cpu():
     assert got["matching"]["alone"] == {"none": 540}
     assert same_frames_comparison(alone, {}) == {}
     assert same_frames_comparison(alone[:1] + [{"clients": 6}], together) == {}
+
+
+def test_held_parts_keep_sessions_and_the_kill_part_runs_servers_as_deployed(tmp_path):
+    """The servers' options as ``sfmloc serve`` parses them: lockstep parts (clients held
+    for the same-frames phase) keep an idle session 600 s and wait for no frame budget; the
+    kill part (paced clients, never held) runs the server's defaults (30 s, the budget on)."""
+    from sfmloc.bench.scale import server_args
+    from sfmloc.cli.main import build_parser
+    from sfmloc.cli.serve import overrides_from_args
+    from sfmloc.config import load_config
+    from sfmloc.server.config import ServerConfig
+
+    def conf(extra: tuple[str, ...]) -> ServerConfig:
+        args = build_parser().parse_args(["serve", "--maps", str(tmp_path), *extra])
+        return load_config(ServerConfig, None, environ={}, overrides=overrides_from_args(args))
+
+    default = load_config(ServerConfig, None, environ={}, overrides={"maps": str(tmp_path)})
+    eps = ["tcp/127.0.0.1:7447"]
+    held = conf(server_args("s1", eps, wait_budget=False))
+    assert held.idle_timeout_s == 600.0 and held.frame_budget_ms == 0
+    assert held.server_id == "s1" and held.zenoh.connect == eps
+    kill = conf(server_args("s1", eps, idle_timeout_s=None))
+    assert kill.idle_timeout_s == default.idle_timeout_s == 30.0
+    assert kill.frame_budget_ms == default.frame_budget_ms > 0
+    assert kill.server_id == "s1" and kill.zenoh.connect == eps

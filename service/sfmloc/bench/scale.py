@@ -69,6 +69,35 @@ import numpy as np
 
 from .reliability import StreamClient, World, _log, _totals, prepare
 
+# Lockstep parts hold clients for the same-frames phase's slowest (minutes under load): a held
+# session must not expire (30 s by default), or it restarts, with its global matching, inside
+# the phase.
+HELD_IDLE_TIMEOUT_S = 600.0
+
+
+def server_args(
+    sid: str,
+    endpoints: list[str],
+    wait_budget: bool = True,
+    idle_timeout_s: float | None = HELD_IDLE_TIMEOUT_S,
+) -> tuple[str, ...]:
+    """``sfmloc serve`` options of bench server ``sid``, connected to ``endpoints``.
+    ``idle_timeout_s`` None: the server's default (the kill part: paced clients, never held,
+    measured as deployed)."""
+    extra: tuple[str, ...] = ("--server-id", sid)
+    if idle_timeout_s is not None:
+        extra += ("--idle-timeout", f"{idle_timeout_s:g}")
+    if not wait_budget:
+        # Lockstep parts: no frame is answered DEADLINE_EXCEEDED for waiting. 12 sessions
+        # starting at once (~220 ms CPU each for frame 0) on one shared core waited past the
+        # 2 s budget together, never alone: those sessions then began at a later frame, and the
+        # engine's work on the same later frames differed (same frames 10-69 of every client:
+        # 192 guided matchings alone, 248 together)
+        extra += ("--frame-budget-ms", "0")
+    for ep in endpoints:
+        extra += ("--zenoh-connect", ep)
+    return extra
+
 
 class Servers:
     """``n`` ``sfmloc serve`` processes (``s0``, ``s1``, ...) chained on loopback."""
@@ -80,28 +109,17 @@ class Servers:
         workers: int,
         cpus: dict[str, set[int]] | None = None,
         wait_budget: bool = True,
+        idle_timeout_s: float | None = HELD_IDLE_TIMEOUT_S,
     ) -> None:
         from ..testing import ServerProcess
 
         self.procs: dict[str, Any] = {}
         endpoints: list[str] = []
         for sid in ids:
-            # a client held for the same-frames phase's slowest (minutes under load) keeps its
-            # session (30 s by default): no restart, with its global matching, inside the phase
-            extra: tuple[str, ...] = ("--server-id", sid, "--idle-timeout", "600")
-            if not wait_budget:
-                # Lockstep parts: no frame is answered DEADLINE_EXCEEDED for waiting. 12
-                # sessions starting at once (~220 ms CPU each for frame 0) on one shared core
-                # waited past the 2 s budget together, never alone: those sessions then began
-                # at a later frame, and the engine's work on the same later frames differed
-                # (same frames 10-69 of every client: 192 guided matchings alone, 248 together)
-                extra += ("--frame-budget-ms", "0")
-            for ep in endpoints:
-                extra += ("--zenoh-connect", ep)
             sp = ServerProcess(
                 world.maps_dir,
                 workers=workers,
-                extra_args=extra,
+                extra_args=server_args(sid, endpoints, wait_budget, idle_timeout_s),
                 cpus=(cpus or {}).get(sid),
             )
             self.procs[sid] = sp
@@ -613,7 +631,8 @@ def run_kill(
         f"{victim} (owner of {len(moved)}) after {seconds / 2:g} s"
     )
     stop = threading.Event()
-    with Servers(world, ids, workers, cpus) as srv:
+    # as deployed: the frame budget and the idle timeout are the server's defaults
+    with Servers(world, ids, workers, cpus, idle_timeout_s=None) as srv:
         cl = _clients(world, srv.endpoints, clients, stop, rate_hz)
         time.sleep(2.0)  # warm up: every session tracking
         t0 = time.monotonic()
