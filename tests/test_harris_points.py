@@ -245,3 +245,78 @@ def test_a_thin_map_keeps_two_view_harris_points_on_the_surfaces(world):
     _, st_full = harris_points(full, images, load_gray, conf, det)
     assert st_full["two_view_kept"] == 0, st_full
     assert st_full["median_points_per_image_long"] >= conf.two_view_below
+
+
+def _solve_all_then_drop(tracks, node_img, geo, conf, per_image_base, chunk_tracks):
+    """The stage before 3+-view tracks were solved first: every track solved, the short points
+    dropped afterwards unless the map is thin (the reference ``_solve_kept`` must equal)."""
+    from sfmloc.builder.harris_points import _solve
+
+    conf2 = conf.model_copy(update={"min_track_length": 2})
+    pts, obs, _ = _solve(tracks, node_img, geo, conf2, chunk_tracks)
+    long = np.array([len(o) >= conf.min_track_length for o in obs], bool)
+    per_image = per_image_base.astype(np.float64, copy=True)
+    for o in (o for o, k in zip(obs, long) if k):
+        per_image[node_img[o]] += 1
+    median = float(np.median(per_image))
+    kept = int(conf.keep_two_view or median < conf.two_view_below)
+    if not kept:
+        pts, obs = pts[long], [o for o, k in zip(obs, long) if k]
+    return pts, obs, {"median_points_per_image_long": int(round(median)), "two_view_kept": kept}
+
+
+def test_two_view_tracks_solved_only_when_kept_give_the_same_points():
+    """``_solve_kept`` solves the tracks of 3+ views first and the two-view ones only on a thin
+    map: the points (positions, observations, order) must be exactly those of solving every
+    track and dropping the short ones after, on a thin and on a non-thin map. Tracks of 2-6
+    noisy views, some with an outlier observation (a 3-view track can end with 2), some far
+    points below the minimum triangulation angle; chunks of 7 tracks."""
+    from sfmloc.builder.harris_points import HarrisPointsConf, _solve_kept
+
+    rng = np.random.default_rng(3)
+    n_img, f = 8, 500.0
+    poses = [Rigid3d(rotmat_from_rotvec([0, 0.03 * k, 0]), [-0.2 * k, 0, 0]) for k in range(n_img)]
+    cam = Camera("PINHOLE", 640, 480, [f, f, 320, 240])
+    xn, node_img, tracks = [], [], []
+    n = 0
+    for p in range(400):
+        depth = rng.uniform(3, 6) if p % 10 else rng.uniform(200, 400)  # far: angle < 1 deg
+        X = np.array([rng.uniform(-1, 1), rng.uniform(-0.7, 0.7), depth])
+        k = int(rng.choice([2, 2, 2, 3, 4, 6]))
+        imgs = np.sort(rng.choice(n_img, k, replace=False))
+        for j, i in enumerate(imgs):
+            x = cam.cam_from_img(cam.project(poses[i], X[None])[0])[0]
+            x = x + rng.normal(0, 0.2 / f, 2)
+            if p % 5 == 1 and j == 0:
+                x = x + [0, 8.0 / f]  # off its epipolar lines: dropped, the track shortens
+            xn.append(x)
+            node_img.append(i)
+        tracks.append(np.arange(n, n + k))
+        n += k
+    node_img = np.array(node_img)
+    geo = {
+        "R": np.stack([T.rotation for T in poses]),
+        "t": np.stack([T.translation for T in poses]),
+        "f": np.full(n_img, f),
+        "c": np.stack([T.center for T in poses]),
+        "xn": np.array(xn),
+    }
+    track_len = np.repeat([len(tr) for tr in tracks], [len(tr) for tr in tracks])
+    base = np.zeros(n_img)
+    for below, keep in ((0, False), (10**6, False), (0, True)):
+        conf = HarrisPointsConf(two_view_below=below, keep_two_view=keep)
+        pts, obs, st = _solve_kept(tracks, node_img, geo, conf, base, chunk_tracks=7)
+        ref_pts, ref_obs, ref_st = _solve_all_then_drop(tracks, node_img, geo, conf, base, 7)
+        assert st == ref_st
+        assert st["two_view_kept"] == int(below > 0 or keep)
+        assert np.array_equal(pts, ref_pts)
+        assert len(obs) == len(ref_obs) and all(np.array_equal(a, b) for a, b in zip(obs, ref_obs))
+        # the cases meant: two-view points from two-view tracks and from longer tracks that
+        # lost an observation (kept on a thin map only), and tracks rejected for their angle
+        short = [o for o in obs if len(o) < conf.min_track_length]
+        from_long = sum(track_len[o[0]] >= conf.min_track_length for o in short)
+        if st["two_view_kept"]:
+            assert len(short) > 100 and from_long > 5, (len(short), from_long)
+            assert len(pts) < len(tracks) - 20, len(pts)
+        else:
+            assert not short

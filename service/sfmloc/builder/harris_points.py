@@ -448,7 +448,7 @@ def _harris_points(
     tracks = np.split(nodes, start[1:]) if len(nodes) else []
     if conf.extend_px > 0:
         # two-view tracks too: extended, they may reach min_track_length
-        pts_xyz, obs_nodes = _solve(
+        pts_xyz, obs_nodes, _ = _solve(
             tracks, node_img, geo, conf.model_copy(update={"min_track_length": 2}), chunk_tracks
         )
         # what the points that already have min_track_length views observe
@@ -462,22 +462,9 @@ def _harris_points(
         del desc_all
     else:
         obs_nodes = tracks
-    # Solved keeping two-view tracks: a track's solve is its own, so the points of longer
-    # tracks are the same as when solved with min_track_length, and two-view ones can be
-    # dropped afterwards if the map is not thin.
-    pts_xyz, obs_nodes = _solve(
-        obs_nodes, node_img, geo, conf.model_copy(update={"min_track_length": 2}), chunk_tracks
-    )
-    long = np.array([len(o) >= max(2, conf.min_track_length) for o in obs_nodes], bool)
-    per_image = _sfm_points_per_image(rec, images) if conf.mode == "add" else np.zeros(n_img)
-    for o in (o for o, k in zip(obs_nodes, long) if k):
-        per_image[node_img[o]] += 1
-    median = float(np.median(per_image)) if n_img else 0.0
-    stats["median_points_per_image_long"] = int(round(median))
-    stats["two_view_kept"] = int(conf.keep_two_view or (n_img > 0 and median < conf.two_view_below))
-    if not stats["two_view_kept"]:
-        pts_xyz = pts_xyz[long] if len(pts_xyz) else pts_xyz
-        obs_nodes = [o for o, k in zip(obs_nodes, long) if k]
+    base = _sfm_points_per_image(rec, images) if conf.mode == "add" else np.zeros(n_img)
+    pts_xyz, obs_nodes, thin_stats = _solve_kept(obs_nodes, node_img, geo, conf, base, chunk_tracks)
+    stats.update(thin_stats)
     stats["points"] = len(pts_xyz)
     stats["observations"] = int(sum(len(o) for o in obs_nodes))
     if progress:
@@ -529,28 +516,76 @@ def _sfm_points_per_image(rec: Reconstruction, images: list[Image]) -> np.ndarra
     )
 
 
+def _solve_kept(
+    tracks: list[np.ndarray],
+    node_img: np.ndarray,
+    geo: dict,
+    conf: HarrisPointsConf,
+    per_image_base: np.ndarray,
+    chunk_tracks: int = 1024,
+) -> tuple[np.ndarray, list[np.ndarray], dict[str, int]]:
+    """The points of ``tracks`` (in track order) and their observations: the points of
+    ``min_track_length`` views, and the two-view ones too when the map is thin (the median
+    image sees fewer than ``two_view_below`` of those and ``per_image_base``, its SfM points in
+    mode "add") or ``keep_two_view``. Tracks of fewer views than ``min_track_length`` can only
+    give such short points: they are solved only when those are kept (on redkitchen every 10th,
+    not thin, most tracks are two-view). Each track's solve is its own (with the same padding
+    M), so the points are those of solving all tracks and dropping the short ones after."""
+    min_len = max(2, conf.min_track_length)
+    conf2 = conf.model_copy(update={"min_track_length": 2})
+    M = min(max((len(tr) for tr in tracks), default=0), conf.max_track_length)
+    is_long = np.array([len(tr) >= min_len for tr in tracks], bool)
+    long_in = np.nonzero(is_long)[0]
+    pts_l, obs_l, src_l = _solve(
+        [tracks[i] for i in long_in], node_img, geo, conf2, chunk_tracks, M
+    )
+    src_l = long_in[src_l]
+    long = np.array([len(o) >= min_len for o in obs_l], bool)
+    per_image = per_image_base.astype(np.float64, copy=True)
+    for o in (o for o, k in zip(obs_l, long) if k):
+        per_image[node_img[o]] += 1
+    median = float(np.median(per_image)) if len(per_image) else 0.0
+    kept = int(conf.keep_two_view or (len(per_image) > 0 and median < conf.two_view_below))
+    stats = {"median_points_per_image_long": int(round(median)), "two_view_kept": kept}
+    if not kept:
+        return pts_l[long], [o for o, k in zip(obs_l, long) if k], stats
+    short_in = np.nonzero(~is_long)[0]
+    pts_s, obs_s, src_s = _solve(
+        [tracks[i] for i in short_in], node_img, geo, conf2, chunk_tracks, M
+    )
+    # back to track order (the points' ids, so the bundle is what one solve of all gave)
+    order = np.argsort(np.concatenate([src_l, short_in[src_s]]), kind="stable")
+    obs_all = obs_l + obs_s
+    return np.concatenate([pts_l, pts_s])[order], [obs_all[i] for i in order], stats
+
+
 def _solve(
     tracks: list[np.ndarray],
     node_img: np.ndarray,
     geo: dict,
     conf: HarrisPointsConf,
     chunk_tracks: int = 1024,
-):
+    M: int | None = None,
+) -> tuple[np.ndarray, list[np.ndarray], np.ndarray]:
     """Triangulate tracks (arrays of corner node ids); drop observations over 3x then 1x
     ``max_error_px`` (re-solving after each); keep points with ``min_track_length``
-    observations in front of their cameras and ``min_angle_deg``. Returns (P, 3) points and
-    their kept node arrays. Tracks are solved ``chunk_tracks`` at a time: the padded arrays
-    cost up to 70 KB per track (M = 48: rotations, the M x M ray angles, temporaries); each
-    track's solve is its own and M is the same for all chunks, so chunking changes no result."""
+    observations in front of their cameras and ``min_angle_deg``. Returns (P, 3) points, their
+    kept node arrays and the indices of their tracks in ``tracks``. Tracks are solved
+    ``chunk_tracks`` at a time: the padded arrays cost up to 70 KB per track (M = 48: rotations,
+    the M x M ray angles, temporaries); each track's solve is its own and M (default: the
+    longest track's length, at most ``max_track_length``) is the same for all chunks, so
+    chunking changes no result."""
     if not tracks:
-        return np.zeros((0, 3)), []
-    M = min(max(len(tr) for tr in tracks), conf.max_track_length)
-    xs, kept = [], []
+        return np.zeros((0, 3)), [], np.zeros(0, np.int64)
+    if M is None:
+        M = min(max(len(tr) for tr in tracks), conf.max_track_length)
+    xs, kept, src = [], [], []
     for s in range(0, len(tracks), max(1, chunk_tracks)):
-        X, nodes = _solve_chunk(tracks[s : s + chunk_tracks], M, node_img, geo, conf)
+        X, nodes, idx = _solve_chunk(tracks[s : s + chunk_tracks], M, node_img, geo, conf)
         xs.append(X)
         kept.extend(nodes)
-    return np.concatenate(xs), kept
+        src.append(idx + s)
+    return np.concatenate(xs), kept, np.concatenate(src)
 
 
 def _solve_chunk(
@@ -567,11 +602,14 @@ def _solve_chunk(
     obs = geo["xn"][node]
     min_len = max(2, conf.min_track_length)
     X = np.zeros((len(tracks), 3))
+    src = np.arange(len(tracks))
     for limit in (3 * conf.max_error_px, conf.max_error_px, None):
         ok = valid.sum(1) >= min_len
-        X, obs, R, t, f, valid, node, im_i = (a[ok] for a in (X, obs, R, t, f, valid, node, im_i))
+        X, obs, R, t, f, valid, node, im_i, src = (
+            a[ok] for a in (X, obs, R, t, f, valid, node, im_i, src)
+        )
         if len(X) == 0:  # every track of the chunk too short
-            return np.zeros((0, 3)), []
+            return np.zeros((0, 3)), [], np.zeros(0, np.int64)
         X = triangulate_tracks(obs, R, t, valid, conf.iterations)
         err, z = _errors_px(X, obs, R, t, f)
         if limit is not None:
@@ -584,7 +622,7 @@ def _solve_chunk(
     cos = np.where(valid[:, :, None] & valid[:, None, :], cos, 1.0)
     good &= np.degrees(np.arccos(np.clip(cos.min(axis=(1, 2)), -1, 1))) >= conf.min_angle_deg
     good &= np.all(np.isfinite(X), axis=1)
-    return X[good], [node[c][valid[c]] for c in np.nonzero(good)[0]]
+    return X[good], [node[c][valid[c]] for c in np.nonzero(good)[0]], src[good]
 
 
 def _extend(
