@@ -28,6 +28,10 @@ from ..transforms import Rigid3d
 from .matching import scope_images
 from .pose import PoseEstimate, RansacParams, reprojection_errors, robust_refine
 
+# ``projected_matches`` adds a neighbourhood's keypoint count and index sum in one float64
+# grid up to this many keypoints (exact integers below 2^53).
+_ONE_GRID_MAX_KEYPOINTS = 100_000
+
 
 class ScopePoints:
     """The map points seen by the ``top`` images that see most of a frame's matched points,
@@ -118,16 +122,27 @@ def projected_matches(
         np.minimum(np.maximum(j, 0, out=j), gh - 1, out=j)
         return (j + 1) * pw + (i + 1)
 
-    def near(flat: np.ndarray, at: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
-        """Sums of ``weights`` (counts without) over the 3x3 cells around each cell ``at``."""
-        grid = np.bincount(flat, weights, minlength=pw * (gh + 2))
-        return grid[at[:, None] + offsets].sum(axis=1)
-
     kp_cell = cells(kp_xy[:, 0], kp_xy[:, 1])
     p_cell = cells(u, v)
-    p_idx = np.nonzero(near(kp_cell, p_cell) == 1)[0]  # one keypoint near the projection
-    kp_sum = near(kp_cell, p_cell[p_idx], np.arange(1, len(kp_xy) + 1, dtype=np.float64))
-    kp = np.rint(kp_sum).astype(np.int64) - 1
+    # The count and the index sum in one grid, one bincount and one gather (CPU x0.6 of two):
+    # each keypoint weighs 1 + (its index + 1) * span, span a power of two above the keypoint
+    # count, so a 3x3 sum is its count (at most the keypoint count: below the span) plus its
+    # index sum times the span; integers, exact in float64 below 2^53 (n + span n (n + 1) / 2:
+    # up to ~10^5 keypoints; more take the two sums apart).
+    n_kp = len(kp_xy)
+    if n_kp <= _ONE_GRID_MAX_KEYPOINTS:
+        span = float(1 << n_kp.bit_length())
+        weights = np.arange(1, n_kp + 1, dtype=np.float64) * span + 1.0
+        grid = np.bincount(kp_cell, weights, minlength=pw * (gh + 2))
+        total = grid[p_cell[:, None] + offsets].sum(axis=1)
+        index_sum = np.floor(total / span)
+        p_idx = np.nonzero(total - index_sum * span == 1.0)[0]  # one keypoint near it
+        kp = index_sum[p_idx].astype(np.int64) - 1
+    else:
+        counts = np.bincount(kp_cell, minlength=pw * (gh + 2))
+        p_idx = np.nonzero(counts[p_cell[:, None] + offsets].sum(axis=1) == 1)[0]
+        sums = np.bincount(kp_cell, np.arange(1, n_kp + 1.0), minlength=pw * (gh + 2))
+        kp = np.rint(sums[p_cell[p_idx, None] + offsets].sum(axis=1)).astype(np.int64) - 1
     du = kp_xy[kp, 0] - u[p_idx]
     dv = kp_xy[kp, 1] - v[p_idx]
     d2 = du * du + dv * dv
