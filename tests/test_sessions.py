@@ -333,7 +333,7 @@ def _queued(n: int):
     sinks: dict[str, ListSink] = {}
 
     def submit(client: str, seq: int, t_recv: float = 0.0):
-        frame = Frame(seq, seq * 1000, CAM, "gray8", bytes(64 * 48))
+        frame = Frame(seq, int(t_recv * 1e9), CAM, "gray8", bytes(64 * 48))  # stamped at receipt
         return sm.submit(
             "room",
             client,
@@ -362,22 +362,86 @@ def test_a_full_worker_queues_its_sessions_and_they_take_turns_with_their_newest
     assert c.worker == w and b.worker == d.worker != w
     assert _sent(pool, w) == [(a.sid, 0)]  # c waits in the server, not in the worker's pipe
     assert c.waiting and not c.busy
-    submit("c", 1)  # replaces c's waiting frame 0 (latest-frame-only, as behind a busy frame)
-    submit("a", 1)  # a is busy: waits behind its frame 0
+    submit("c", 1, t_recv=0.5)  # replaces c's waiting frame 0 (latest-frame-only)
+    submit("a", 1, t_recv=0.95)  # a is busy: waits behind its frame 0
     assert [p.frame.seq for p in c.pending] == [1] and c.dropped == 1
-    _answer(sm, pool.frames[0][1])  # a's frame 0 done: c waited longer than a's frame 1
-    assert _sent(pool, w) == [(a.sid, 0), (c.sid, 1)]
-    assert a.waiting and [p.frame.seq for p in a.pending] == [1]
-    submit("a", 2)  # the newest of a goes on in its turn
+    # a's frame 0 done: a's next frame will track (due 0.1), c's will relocalize (new: due
+    # cold_gap_s = 1.0 after it began to wait at 0), so a goes first
+    _answer(sm, pool.frames[0][1])
+    assert _sent(pool, w) == [(a.sid, 0), (a.sid, 1)]
+    submit("a", 2, t_recv=1.0)
+    _answer(sm, pool.frames[-1][1])  # a is due at 1.05 now, after c: c's turn
+    assert _sent(pool, w) == [(a.sid, 0), (a.sid, 1), (c.sid, 1)]
+    assert a.waiting and [p.frame.seq for p in a.pending] == [2]
+    submit("a", 3, t_recv=1.1)  # the newest of a goes on in its turn
     _answer(sm, pool.frames[-1][1])
-    assert _sent(pool, w) == [(a.sid, 0), (c.sid, 1), (a.sid, 2)] and a.dropped == 1
+    assert _sent(pool, w) == [(a.sid, 0), (a.sid, 1), (c.sid, 1), (a.sid, 3)] and a.dropped == 1
     _answer(sm, pool.frames[-1][1])
-    assert [(p.seq, p.dropped) for p in sinks["a"].poses] == [(0, 0), (2, 1)]
+    assert [(p.seq, p.dropped) for p in sinks["a"].poses] == [(0, 0), (1, 0), (3, 1)]
     assert [p.seq for p in sinks["c"].poses] == [1]
     submit("c", 2)  # the worker is idle: straight to it
     assert _sent(pool, w)[-1] == (c.sid, 2) and c.busy and not c.waiting
     assert _sent(pool, b.worker) == [(b.sid, 0)]  # the other worker: b's frame, d waiting
     assert d.waiting
+
+
+def test_a_session_that_tracks_goes_before_one_that_relocalizes_until_its_deadline(queued):
+    """Turns of a full worker, earliest deadline first: a session whose frame will track (its
+    last was posed, within the engine's frame gap) is due live_gap_s after its last frame; one
+    whose frame will relocalize (new here) cold_gap_s after it began to wait. So c (new, waiting
+    since t=0: due at 1.0) waits behind a's tracked frames until a's next one is due later."""
+    pool, sm, sinks, submit = queued
+    a = submit("a", 0, t_recv=0.0)
+    submit("b", 0, t_recv=0.0)  # the other worker
+    c = submit("c", 0, t_recv=0.0)
+    w = a.worker
+    assert c.worker == w and c.waiting
+    t = 0.0
+    for k in range(1, 60):  # a tracks at 30 Hz; each of its frames waits behind the last
+        t = k / 30
+        submit("a", k, t_recv=t)
+        _answer(sm, [m for ww, m in pool.frames if ww == w][-1])
+        if _sent(pool, w)[-1][0] == c.sid:
+            break
+    # a's frames went first while a was due before c: a's last frame before c's turn came
+    # after 1.0 - live_gap_s; c's turn came then, not later
+    assert _sent(pool, w)[-1] == (c.sid, 0)
+    first_a = [seq for sid, seq in _sent(pool, w) if sid == a.sid]
+    assert first_a == list(range(len(first_a)))  # every frame of a, newest each time
+    due = [k / 30 + sm.live_gap_s for k in first_a[-2:]]  # a's two last deadlines
+    assert due[0] < sm.cold_gap_s <= due[1]  # (a tie goes to the one queued first: c)
+    assert c.dropped == 0 and [p.seq for p in sinks["c"].poses] == []
+    _answer(sm, pool.frames[-1][1])  # c relocalized: c and a (both waiting) take turns now
+    assert [p.seq for p in sinks["c"].poses] == [0]
+
+
+def test_a_lost_or_stale_session_waits_as_one_that_relocalizes():
+    pool, sm, sinks, submit = _queued(1)
+    a = submit("a", 0, t_recv=0.0)
+    c = submit("c", 0, t_recv=0.0)
+    assert c.waiting
+    _answer(sm, pool.frames[0][1], status="LOST")  # a lost its track; c's turn
+    _answer(sm, pool.frames[-1][1])  # c posed (its first frame, t=0)
+    assert [p.seq for p in sinks["c"].poses] == [0]
+    submit("x", 0, t_recv=0.1)  # a third session holds the worker meanwhile
+    submit("a", 1, t_recv=0.2)  # LOST: relocalizes, due 1.2
+    submit("c", 1, t_recv=0.2)  # posed 0.2 s before: tracks, due 0.1
+    assert a.waiting and c.waiting
+    _answer(sm, pool.frames[-1][1])  # x done: c before a, which waited first
+    assert _sent(pool, 0)[-2:] == [(3, 0), (c.sid, 1)]
+    _answer(sm, pool.frames[-1][1])
+    assert _sent(pool, 0)[-1] == (a.sid, 1)
+    _answer(sm, pool.frames[-1][1])  # a posed now (at 0.2)
+    # A posed session whose newest frame comes past the engine's frame gap (track_gap_s)
+    # relocalizes: it waits as one that relocalizes, due cold_gap_s after it began to wait
+    submit("x", 1, t_recv=5.0)  # x's frame holds the worker
+    submit("c", 2, t_recv=5.0)  # c's last frame came at 0.2: 4.8 s, relocalizes (due 6.0)
+    submit("a", 2, t_recv=0.25)  # a's last frame came at 0.2: tracks (due 0.3)
+    assert c.waiting and a.waiting
+    _answer(sm, pool.frames[-1][1])
+    assert _sent(pool, 0)[-1] == (a.sid, 2)
+    _answer(sm, pool.frames[-1][1])
+    assert _sent(pool, 0)[-1] == (c.sid, 2)  # and c is not left behind
 
 
 def test_a_frame_past_its_budget_frees_its_slot_once():

@@ -148,7 +148,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         type=int,
         metavar="N",
         help="stream frames in one engine worker at once; sessions whose worker is full wait in "
-        "the server with their newest frame and take turns (default 0: no limit)",
+        "the server with their newest frame and take turns, tracked sessions first (default 2; "
+        "0: no limit)",
     )
     p.add_argument(
         "--frame-budget-ms",

@@ -110,6 +110,7 @@ class Server:
             frame_cpu_budget_ms=conf.frame_cpu_budget_ms,
             worker_queue=conf.worker_queue,
             frame_hang_ms=conf.frame_hang_ms,
+            track_gap_s=conf.engine.max_frame_gap_s,
         )
         # All the front ends see of the server.
         self.facade = Localization(

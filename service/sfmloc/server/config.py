@@ -84,11 +84,13 @@ class ServerConfig(StrictModel):
     max_pending: int = Field(1, ge=1, le=8)
     # Stream frames in one engine worker at once (running + queued in its pipe); a session
     # whose worker is full waits in the server with its newest frame, and the waiting sessions
-    # of a worker take turns (fresher poses under overload). 0 (default): no limit, each
-    # session's frame goes to its worker at once, where it waits behind the other sessions'
-    # frames while newer ones arrive. Not the default yet: measured only at load 24-60 (p50
-    # latency lower, delivered rate within that load's noise, see README).
-    worker_queue: int = Field(0, ge=0, le=64)
+    # of a worker take turns, tracked ones before relocalizing ones (sessions.py): under
+    # overload poses stay fresh and sessions keep their tracks. 0: no limit, each session's
+    # frame goes to its worker at once, where it waits behind the other sessions' frames while
+    # newer ones arrive, and no turns are chosen (16 clients on 2 workers collapsed into
+    # relocalizations, see README). 2 (default): one frame waits in the pipe while one runs,
+    # so the worker never idles for a round trip through the server.
+    worker_queue: int = Field(2, ge=0, le=64)
     max_sessions: int = Field(256, ge=1)
     # Zenoh frame envelopes larger than this are refused (RESOURCE_EXHAUSTED).
     max_frame_bytes: int = Field(16 * 1024 * 1024, ge=1024)

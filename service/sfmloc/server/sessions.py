@@ -17,6 +17,19 @@ other sessions' frames while newer frames of its own client arrive: under overlo
 was a pipe's worth of frames old (8 clients on 2 workers: p50 80 ms for 15 ms of engine). With
 it, a frame starts at most N-1 frames after it was picked, and it is the newest one then.
 
+Whose turn it is (a full worker, sessions waiting): the earliest *deadline* first. A session
+whose next frame will track (its last frame was posed, within the engine's
+``max_frame_gap_s`` of this one) is due ``live_gap_s`` (0.1 s) after its last frame's receipt;
+one whose frame will relocalize (new, LOST, or past that gap: 5-20x a tracked frame's CPU) is
+due ``cold_gap_s`` (1 s) after it began to wait. Among tracked sessions that is round-robin;
+a relocalizing one waits behind them for up to about ``cold_gap_s``, then goes first. Plain
+round-robin collapsed under overload: when every session relocalized at once (the bench's
+start, 16 clients on 2 workers), one round of 8 relocalizations per worker took over a second,
+so every session's next frame came after a gap past ``max_frame_gap_s`` and relocalized again,
+for good (throughput suite at b6d63a1: 16 clients 44.9 poses/s, 40 ms of CPU per pose, 12
+clients 126/s at 14.6 ms). Deadlines let the first relocalized sessions keep tracking while the
+others relocalize one by one.
+
 Poses go back through the session's *sink* (a Zenoh publisher, or a gRPC stream's queue).
 Zenoh sessions end after ``idle_timeout_s`` without frames; gRPC sessions end with their stream.
 """
@@ -60,6 +73,8 @@ SOURCE_TAKEOVER_S = 3.0
 # old. As the client's own handover after a failover (FrameStreamer.handover_max_age_s).
 HANDOVER_MAX_AGE_S = 5.0
 UNKNOWN_MAP = "(not loaded)"  # metrics label of frames for maps this server does not host
+# Last statuses after which the session's next frame tracks (a LOST one relocalizes).
+_POSED = frozenset({Status.TRACKING.value, Status.RELOCALIZED.value, Status.UNVERIFIED.value})
 
 
 class Sink(Protocol):
@@ -106,6 +121,11 @@ class Session:
     last_pose: Any = None
     last_pose_t: float = 0.0
     handover: bool = False
+    # Receipt time and stamp of its last frame sent to a worker (None: none yet), and when it
+    # began to wait for its worker's turn (its newest frame's receipt then): its deadline.
+    last_t_recv: float | None = None
+    last_stamp_ns: int = 0
+    wait_since: float = 0.0
 
     @property
     def mean_latency_ms(self) -> float:
@@ -128,6 +148,9 @@ class SessionManager:
         frame_cpu_budget_ms: float = 1000.0,
         worker_queue: int = 0,
         frame_hang_ms: float = 8000.0,
+        live_gap_s: float = 0.1,
+        cold_gap_s: float = 1.0,
+        track_gap_s: float = 1.0,
     ) -> None:
         self.pool = pool
         self.registry = registry
@@ -148,6 +171,13 @@ class SessionManager:
         # dispatched frame holds a slot of its worker until its result comes back (or it is
         # answered otherwise: time budget, worker death); sessions whose worker is full queue.
         self.worker_queue = worker_queue
+        # Turns of a full worker's waiting sessions, earliest deadline first (module docstring):
+        # a tracked session is due live_gap_s after its last frame, a relocalizing one
+        # cold_gap_s after it began to wait; track_gap_s is the engine's max_frame_gap_s (a
+        # longer gap relocalizes).
+        self.live_gap_s = live_gap_s
+        self.cold_gap_s = cold_gap_s
+        self.track_gap_s = track_gap_s
         self._slots: dict[int, int] = {}  # ticket -> worker
         self._in_worker: dict[int, int] = {}  # worker -> slots held
         self._waiting: dict[int, deque[Session]] = {}  # worker -> sessions in turn
@@ -227,6 +257,7 @@ class SessionManager:
         of the worker; its ticket."""
         s.busy = True
         s.inflight_t_recv[p.frame.seq] = p.t_recv
+        s.last_t_recv, s.last_stamp_ns = p.t_recv, p.frame.stamp_ns
         ticket = s.ticket = next(self._tickets)
         self._slots[ticket] = s.worker
         self._in_worker[s.worker] = self._in_worker.get(s.worker, 0) + 1
@@ -255,7 +286,38 @@ class SessionManager:
         """``s`` (pending frames, none in a worker) queues for its worker."""
         if not s.waiting:
             s.waiting = True
+            s.wait_since = s.pending[-1].t_recv if s.pending else time.perf_counter()
             self._waiting.setdefault(s.worker, deque()).append(s)
+
+    def _deadline(self, s: Session) -> float:
+        """When ``s``'s waiting frame is due (module docstring): soon after its last frame if
+        it will track, later if it will relocalize. Sessions without a frame to send go first
+        (they are skipped at once)."""
+        if s.closed or s.busy or not s.pending:
+            return float("-inf")
+        last = s.last_t_recv
+        tracks = (  # as the engine decides it: by the frames' stamps
+            last is not None
+            and not s.handover
+            and s.last_status in _POSED
+            and 0 <= s.pending[-1].frame.stamp_ns - s.last_stamp_ns <= self.track_gap_s * 1e9
+        )
+        if tracks:
+            assert last is not None
+            return last + self.live_gap_s
+        return s.wait_since + self.cold_gap_s
+
+    def _next_turn(self, q: deque[Session]) -> Session:
+        """Take the session with the earliest deadline out of a worker's queue (the first
+        queued among equals)."""
+        best, due = 0, self._deadline(q[0])
+        for i in range(1, len(q)):
+            d = self._deadline(q[i])
+            if d < due:
+                best, due = i, d
+        s = q[best]
+        del q[best]
+        return s
 
     def _take_turns(self) -> builtins.list[tuple[Session, _Pending, int]]:
         """The frames that go on now: while a worker has room, its longest-waiting session's
@@ -269,7 +331,7 @@ class SessionManager:
             progress = False
             for w, q in list(self._waiting.items()):
                 while q and self._has_room(w):
-                    s = q.popleft()
+                    s = self._next_turn(q)
                     s.waiting = False
                     progress = True
                     if s.closed or s.busy or not s.pending:
