@@ -364,3 +364,28 @@ def test_sift_peer_pose_is_right_on_synthetic_frames(sift_world, search):
         dp, dr = pose_errors(res.cam_from_world, world.gt_cam_from_world[k])
         assert dp < 0.02 and dr < 0.3, f"frame {k}: {dp * 100:.2f} cm, {dr:.2f} deg"
         assert res.inliers >= 50 and set(res.timings_ms) >= {"extract", "match", "pose", "total"}
+
+
+def test_throughput_rows_show_the_worst_client_and_the_relocalized_share():
+    from sfmloc.bench.throughput import aggregate
+
+    def client(received: int, statuses: dict[str, int]) -> dict:
+        return {
+            "sent": 300,
+            "received": received,
+            "drop_pct": 100.0 * (300 - received) / 300,
+            "latency_ms_p50": 20.0,
+            "latency_ms_p99": 40.0,
+            "engine_ms_mean": 12.0,
+            "errors": received - sum(statuses.values()),
+            "statuses": statuses,
+        }
+
+    row = aggregate(
+        [client(150, {"TRACKING": 140, "RELOCALIZED": 10}), client(60, {"RELOCALIZED": 50})], 30.0
+    )
+    assert row["delivered_hz_worst_client"] == 6.0  # 60 of 300 frames at 30 Hz
+    assert row["delivered_hz_per_client"] == 10.5
+    assert row["relocalized_pct"] == 30.0  # 60 of the 200 poses without error
+    cells = report.throughput_rows({"suites": {"throughput": {"rows": [row]}}})[0]
+    assert cells[-2:] == ["6.0", "30.0%"]

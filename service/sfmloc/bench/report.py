@@ -179,6 +179,8 @@ def throughput_rows(results: dict) -> list[list[str]]:
             + ("%" if "dropped_pct_worst_client" in r else ""),
             f1(_server_cpu_ms(r), 2),
             f1(r.get("capacity_hz"), 0),
+            f1(r.get("delivered_hz_worst_client")),
+            f1(r.get("relocalized_pct")) + ("%" if "relocalized_pct" in r else ""),
         ]
         for r in t["rows"]
     ]
@@ -227,6 +229,8 @@ THROUGHPUT_HEADER = [
     "worst client dropped",
     "server CPU per pose (ms)",
     "capacity (Hz)",
+    "worst client (Hz)",
+    "poses relocalized",
 ]
 
 
@@ -520,7 +524,10 @@ def write_report(results: dict, out: Path) -> Path:
             "wall) per pose delivered; capacity: the pose rate that CPU per pose would sustain "
             "on all of this machine's cores with nothing else running (a bound from the "
             "measured CPU, not a measured rate: the benchmark's clients and other jobs share "
-            "the cores).",
+            "the cores). Worst client: the delivered rate of the client served least (fairness, "
+            "against per client); poses relocalized: RELOCALIZED among the poses delivered (far "
+            "above the 1-client row's: frames after gaps relocalize, at 5-20x a tracked frame's "
+            "CPU).",
             "",
         ]
         if memory_rows(results):

@@ -51,11 +51,24 @@ def aggregate(clients: list[dict[str, Any]], rate_hz: float) -> dict[str, Any]:
     worst = max((c["drop_pct"] for c in clients), default=float("nan"))
     # A client sends `sent` frames in sent / rate seconds; poses delivered over that time.
     per_client = [c["received"] * rate_hz / c["sent"] if c["sent"] else 0.0 for c in clients]
+    # Poses by status over all clients: a share of RELOCALIZED far above the 1-client run's is
+    # the collapse under overload (every frame after a gap relocalizes, at 5-20x the CPU).
+    statuses: dict[str, int] = {}
+    for c in clients:
+        for k, v in c.get("statuses", {}).items():
+            statuses[k] = statuses.get(k, 0) + v
+    posed = sum(statuses.values())
     return {
         "clients": len(clients),
         "offered_hz": rate_hz * len(clients),
         "delivered_hz_total": float(np.sum(per_client)),
         "delivered_hz_per_client": float(np.mean(per_client)),
+        # fairness: the client served least, against the mean above
+        "delivered_hz_worst_client": float(min(per_client, default=float("nan"))),
+        "statuses": statuses,
+        "relocalized_pct": 100.0 * statuses.get("RELOCALIZED", 0) / posed
+        if posed
+        else float("nan"),
         "dropped_pct": 100.0 * (sent - recv) / sent if sent else float("nan"),
         "dropped_pct_worst_client": float(worst),
         "latency_ms_p50": float(np.nanmedian([c["latency_ms_p50"] for c in clients])),

@@ -314,6 +314,7 @@ def bench_clients(
             server_lat: list[float] = []
             engine: list[float] = []
             last: dict[str, Any] = {"dropped": 0, "errors": 0, "received": 0}
+            statuses: dict[str, int] = {}  # of the poses without error
             lock = threading.Lock()
 
             def on_pose(p: Any) -> None:
@@ -322,6 +323,8 @@ def bench_clients(
                     last["received"] += 1
                     last["dropped"] = max(last["dropped"], p.dropped)
                     last["errors"] += p.error is not None
+                    if p.error is None:
+                        statuses[p.status] = statuses.get(p.status, 0) + 1
                     if p.seq in sent_at:
                         lat.append((now - sent_at[p.seq]) * 1e3)
                         server_lat.append(p.latency_ms)
@@ -339,6 +342,7 @@ def bench_clients(
                 poses.wait_for(0, 30)
                 with lock:
                     last.update(received=0, dropped=0)
+                    statuses.clear()
                 base_dropped = poses.last.dropped if poses.last else 0
                 barrier.wait()
                 t_start = time.perf_counter()
@@ -371,6 +375,7 @@ def bench_clients(
                     "engine_ms_p50": _pct(engine, 50),
                     "engine_ms_mean": float(np.mean(engine)) if engine else float("nan"),
                     "localized": sum(1 for _ in engine),
+                    "statuses": dict(statuses),
                 }
 
         threads = [threading.Thread(target=client, args=(i,)) for i in range(clients)]
