@@ -5,6 +5,7 @@ the refinement on them does to the pose."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from sfmloc.engine import EngineConf
 from sfmloc.engine.pose import RansacParams, estimate_pose, project
@@ -258,3 +259,28 @@ def test_projected_matches_are_those_of_the_box_filter_formulation():
             np.testing.assert_array_equal(got[0], want[0])
             np.testing.assert_array_equal(got[1], want[1])
             assert len(got[0]) > 0
+
+
+@pytest.mark.parametrize("n_kp", [100_000, 100_001])
+def test_projected_matches_at_the_one_grid_limit_and_past_it(n_kp):
+    """Up to ``_ONE_GRID_MAX_KEYPOINTS`` the count and the index sum share one float64 grid
+    (exact below 2^53: the largest index sums); past it they are two grids. Both give the box
+    filters' pairs, with 100,000 and 100,001 keypoints on a 4000 x 3000 image (crowded cells
+    and ambiguous projections too)."""
+    from sfmloc.engine import projected
+
+    assert projected._ONE_GRID_MAX_KEYPOINTS == 100_000
+    w, h = 4000, 3000
+    k = np.array([[2000.0, 0, 2000.0], [0, 2000.0, 1500.0], [0, 0, 1]])
+    rng = np.random.default_rng(5)
+    pose = Rigid3d(rotmat_from_rotvec([0.02, 0.03, -0.01]), [0.05, 0.0, 0.1])
+    kp = rng.uniform(-1.0, [w + 1.0, h + 1.0], (n_kp, 2))
+    uv = np.vstack([kp[::3] + rng.normal(0, 0.6, kp[::3].shape), rng.uniform(0, w, (5000, 2))])
+    z = rng.uniform(1.5, 6.0, len(uv))
+    X = pose.inverse().apply(np.hstack([(uv - k[:2, 2]) / k[0, 0] * z[:, None], z[:, None]]))
+    got = projected_matches(pose, k, w, h, kp, X, np.arange(len(X)), 1.5, 3.0)
+    want = _reference_projected_matches(pose, k, w, h, kp, X, 1.5, 3.0)
+    np.testing.assert_array_equal(got[0], want[0])
+    np.testing.assert_array_equal(got[1], want[1])
+    # the high keypoint indices are matched too (their index sums are the largest)
+    assert len(got[0]) > 10_000 and got[0].max() > n_kp - 10
