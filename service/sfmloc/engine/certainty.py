@@ -11,7 +11,7 @@ import numpy as np
 from ..map.bundle import MapBundle
 from .config import EngineConf
 from .point_uncertainty import PointUncertainty
-from .pose import PoseEstimate, pose_covariances
+from .pose import PoseEstimate, pose_covariances, pose_error_vector
 
 
 @dataclass(frozen=True)
@@ -101,3 +101,18 @@ def withheld(sd: float, inliers: int, conf: EngineConf) -> str | None:
         f"pose withheld: centre sd {sd * 100:.1f}% of the scene scale (upper bound "
         f"{bound * 100:.1f}%, limit {conf.max_position_sd * 100:.1f}%), {inliers} inliers"
     )
+
+
+def with_disagreement(
+    cert: Certainty, est: PoseEstimate, other: PoseEstimate, bundle: MapBundle, conf: EngineConf
+) -> Certainty:
+    """``cert`` of ``est`` widened by its difference from ``other``, a second pose of the same
+    frame from its own matches (the whole-frame re-match): covariance ``C + e e^T`` with ``e``
+    the difference in the covariance's parameterization (``pose_error_vector``). Each pose's
+    covariance assumes independent pixel noise; drifted tracks on one plane in a blurred frame
+    move a pose along the plane's translation-rotation ambiguity with small residuals, and the
+    other pose's distance is the evidence of how far (``EngineConf.rematch_disagreement``)."""
+    e = pose_error_vector(est.cam_from_world, other.cam_from_world)
+    cov = cert.covariance + np.outer(e, e)
+    sd = position_sd(cov) / bundle.scene_scale
+    return Certainty(cov, sd, is_verified(est, sd, conf), float(np.fmax(cert.position_sd_loo, sd)))

@@ -474,6 +474,17 @@ class EngineConf(StrictModel):
     # of the 31 wrong, a TRACKING pose 5.2% of the scene scale off with sd 0.6% -> 643
     # inliers, 0.02% off. Synthetic walk, flight, orbit at 10 and 3 Hz: 3 frames under 0.5.
     track_consensus: float = 0.5
+    # A re-match of such a pose (uncertain, or suspect as above) that is more certain than it
+    # but fails the strict test does not replace it; its difference from the tracked pose
+    # (``pose_error_vector``, 6-vector e) is then added to the tracked pose's covariance
+    # (C + e e^T) before the status rules judge it: two poses of one frame from its own
+    # matches that lie apart say how far either can be off, whatever each one's covariance
+    # claims (``certainty.with_disagreement``). Redkitchen frame 466 on the --extend map (motion
+    # blur; 27 tracked inliers on one wall at 2.3-2.9 m, 6 of them drifted tracks 3.5-10 px
+    # from their points at the true pose): TRACKING 8.6% of the scene scale off with sd 2.2%
+    # (centre NEES 40, expected 3); its re-match 4.0% off, sd 1.9%, 4.7% from it -> sd 4.9%,
+    # withheld. False: the tracked pose's own covariance.
+    rematch_disagreement: bool = True
     # ---- out-of-core maps (engine/submaps.py; issue 14)
     # Resident sub-maps of a sub-map set, in MB, per engine worker (``sfmloc serve
     # --map-memory``): the worker's sessions on the set share its parts within it. None: sub-map

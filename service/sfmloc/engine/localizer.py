@@ -47,7 +47,7 @@ from ..cameras import Camera, as_camera
 from ..features.daisy import DaisyExtractor
 from ..map.bundle import MapBundle
 from ..transforms import Rigid3d, rotation_angle_deg
-from .certainty import Certainty, certainty, withheld
+from .certainty import Certainty, certainty, with_disagreement, withheld
 from .config import EngineConf
 from .frame import to_gray, to_working
 from .matching import guided_matching, search_all, verify_hypotheses
@@ -352,6 +352,11 @@ class Localizer:
                 if dense is not None and (uncertain or dense[2].verified):
                     table, est, cert = dense
                     matching = Matching.GUIDED
+                elif dense is not None and c.rematch_disagreement:
+                    # Not replaced, but the frame's own matches also place it elsewhere: the
+                    # tracked pose is that uncertain at least (redkitchen --extend map, frame
+                    # 466: TRACKING 17 cm off with sd 4.4 cm; its re-match 9.4 cm from it).
+                    cert = with_disagreement(cert, est, dense[1], self.bundle, c)
                 timer.lap("match")
         message = lost_why if est is None else ""
         if est is not None and cert is not None and not relocalized and not cert.verified:
