@@ -150,8 +150,16 @@ def test_suite_summary_report_figures_and_readme_on_fabricated_records(tmp_path)
     }
     for r in recs["pycolmap-sift"]:
         r.latency_ms *= 20
+    # relocalization calls of 6, 12, ..., 60 ms wall (a third of that CPU): p95 57.3, over 40
+    for k, r in enumerate(recs["global-every-frame"]):
+        r.latency_ms, r.cpu_ms = 6.0 * (k + 1), 2.0 * (k + 1)
     idx = [r.index for r in recs["pycolmap-sift"]]
     suite = summarize_suite(recs, idx, 5, 2.0)
+    rl = suite["relocalization_ms"]
+    assert rl["calls"] == 10
+    assert rl["wall"]["mean"] == pytest.approx(33.0) and rl["wall"]["p50"] == pytest.approx(33.0)
+    assert rl["wall"]["p95"] == pytest.approx(57.3) and rl["wall"]["p99"] == pytest.approx(59.46)
+    assert rl["cpu"]["p95"] == pytest.approx(19.1) and rl["cpu"]["max"] == pytest.approx(20.0)
     assert suite["same_frames"][OURS]["F"] == len(idx)
     assert suite["ratios"]["pycolmap-sift"]["rate_ratio"] > 10
     files = write_suite_files(
@@ -208,6 +216,11 @@ def test_suite_summary_report_figures_and_readme_on_fabricated_records(tmp_path)
     }
     results["targets"] = targets(results)
     assert {t["target"].split(":")[0] for t in results["targets"]} == {"redkitchen"}
+    (reloc,) = [t for t in results["targets"] if "relocalization p95" in t["target"]]
+    assert reloc["target"] == "redkitchen: relocalization p95 <= 40 ms" and not reloc["met"]
+    assert reloc["measured"].startswith(
+        "p95 57.3 ms (CPU 19.1), mean 33.0, p50 33.0, p99 59.5 ms over 10 calls"
+    )
     text = report.summary_text(results)
     assert "redkitchen" in text and "pycolmap-sift" in text and "target" in text
     assert "Where our time goes, redkitchen" in text
@@ -216,6 +229,9 @@ def test_suite_summary_report_figures_and_readme_on_fabricated_records(tmp_path)
     # the per-stage table: detect 5 ms in every frame of 10, track 3 (50% and 30%)
     assert "| detect | 5.00 | 50% | 50 | 5.0 | 5.0 | 5.0 | 5.0 |" in md
     assert "| track | 3.00 | 30% | 50 |" in md
+    assert "| wall | 33.0 | 33.0 | 57.3 | 59.5 | 60.0 |" in md
+    assert "| cpu | 11.0 | 11.0 | 19.1 | 19.8 | 20.0 |" in md
+    assert "Relocalization, redkitchen (10 calls, ms): wall mean 33.0 p50 33.0 p95 57.3" in text
     block = readme.render_block(results)
     assert (
         block.startswith(readme.BEGIN) and block.endswith(readme.END) and "pycolmap-sift" in block

@@ -286,6 +286,16 @@ def summary_text(results: dict) -> str:
                     text_table(list(STAGE_COLUMNS), stage_rows(st)),
                     "",
                 ]
+            rl = results["suites"][name].get("relocalization_ms")
+            if rl and rl.get("calls"):
+                w, c = rl["wall"], rl["cpu"]
+                parts += [
+                    f"Relocalization, {name} ({rl['calls']} calls, ms): wall mean "
+                    f"{f1(w['mean'])} p50 {f1(w['p50'])} p95 {f1(w['p95'])} p99 {f1(w['p99'])}; "
+                    f"CPU mean {f1(c['mean'])} p50 {f1(c['p50'])} p95 {f1(c['p95'])} "
+                    f"p99 {f1(c['p99'])}",
+                    "",
+                ]
     from .robust_report import ROBUST_HEADER, robust_rows
 
     if robust_rows(results):
@@ -405,6 +415,7 @@ def _suite_section(name: str, s: dict) -> list[str]:
         + ".",
     ]
     lines += stage_lines(s.get("stages_ms", {}))
+    lines += relocalization_lines(s)
     for m, st in s.get("peer_stages_ms", {}).items():
         if st:
             lines.append(
@@ -426,6 +437,25 @@ def _suite_section(name: str, s: dict) -> list[str]:
             "`evo_ape tum GT EST -a`): " + ", ".join(f"`{p}`" for p in f["tum"]) + "."
         )
     return lines + [""]
+
+
+def relocalization_lines(s: dict) -> list[str]:
+    """The time distribution of the single-image relocalization calls (``global-every-frame``,
+    ``engine.relocalize`` on every peer frame); results before it did not keep one."""
+    rl = s.get("relocalization_ms")
+    if not rl or not rl.get("calls"):
+        return []
+    rows = [
+        [kind, *(f1(rl[kind][k]) for k in ("mean", "p50", "p95", "p99", "max"))]
+        for kind in ("wall", "cpu")
+    ]
+    return [
+        "",
+        f"Single-image relocalization (`engine.relocalize`, the {rl['calls']} calls of "
+        "global-every-frame; ms per call, wall clock and process CPU time):",
+        "",
+        markdown_table(["time", "mean", "p50", "p95", "p99", "max"], rows),
+    ]
 
 
 def stage_lines(st: dict) -> list[str]:

@@ -73,6 +73,30 @@ def stage_times(records: list[FrameRecord]) -> dict[str, dict[str, float]]:
     return stage_stats([r.timings_ms for r in records])
 
 
+def relocalization_times(records: list[FrameRecord]) -> dict:
+    """The time distribution of single-image relocalization calls (issue 10's target is on its
+    p95): mean, p50, p95, p99 and max of the wall clock and of the process's CPU time, ms."""
+
+    def dist(x: Sequence[float]) -> dict[str, float]:
+        if not len(x):
+            return {k: math.nan for k in ("mean", "p50", "p95", "p99", "max")}
+        a = np.asarray(x, dtype=float)
+        p50, p95, p99 = np.percentile(a, [50, 95, 99])
+        return {
+            "mean": float(a.mean()),
+            "p50": float(p50),
+            "p95": float(p95),
+            "p99": float(p99),
+            "max": float(a.max()),
+        }
+
+    return {
+        "calls": len(records),
+        "wall": dist([r.latency_ms for r in records]),
+        "cpu": dist([r.cpu_ms for r in records if r.cpu_ms is not None]),
+    }
+
+
 def ratios(ours: dict, peer: dict) -> dict:
     """Ours against a peer on the same frames: frame-rate ratio (peer mean time / ours), the
     same on CPU time, and the accuracy ratio (peer median position error / ours)."""
