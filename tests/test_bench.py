@@ -230,7 +230,7 @@ def test_suite_summary_report_figures_and_readme_on_fabricated_records(tmp_path)
     assert "| detect | 5.00 | 50% | 50 | 5.0 | 5.0 | 5.0 | 5.0 |" in md
     assert "| track | 3.00 | 30% | 50 |" in md
     assert "| wall | 33.0 | 33.0 | 57.3 | 59.5 | 60.0 |" in md
-    assert "| cpu | 11.0 | 11.0 | 19.1 | 19.8 | 20.0 |" in md
+    assert "| cpu | 11.0 | 11.0 | 19.1 | 19.8 | 20.0 |\n\n" in md  # the table ends
     assert "Relocalization, redkitchen (10 calls, ms): wall mean 33.0 p50 33.0 p95 57.3" in text
     block = readme.render_block(results)
     assert (

@@ -455,6 +455,7 @@ def relocalization_lines(s: dict) -> list[str]:
         "global-every-frame; ms per call, wall clock and process CPU time):",
         "",
         markdown_table(["time", "mean", "p50", "p95", "p99", "max"], rows),
+        "",
     ]
 
 
