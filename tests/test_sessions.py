@@ -444,6 +444,24 @@ def test_a_lost_or_stale_session_waits_as_one_that_relocalizes():
     assert _sent(pool, 0)[-1] == (c.sid, 2)  # and c is not left behind
 
 
+def test_a_session_waiting_for_its_turn_is_not_idle_and_a_closed_one_answers_its_frames():
+    """A session whose frame waits for a full worker is not ended as idle (its frame would
+    never be answered: client churn with a 1 s idle timeout lost first frames so); ending a
+    waiting session answers its frames with the in-flight ones, or counts them dropped."""
+    pool, sm, sinks, submit = _queued(1)
+    submit("a", 0)
+    b = submit("b", 0)
+    assert b.waiting
+    assert sm.expire_idle(now=b.last_seen + sm.idle_timeout_s + 5) == 0  # a busy, b waiting
+    assert not b.closed and b.pending
+    sm.close(b, "map_unloaded", answer_inflight=MapNotFoundError("map 'room' was unloaded"))
+    assert [(p.seq, p.error.code) for p in sinks["b"].poses] == [(0, "NOT_FOUND")]
+    c = submit("c", 0)
+    assert c.waiting
+    sm.close(c, "replaced")  # no answer to give: counted dropped, in its session_close
+    assert c.dropped == 1 and not c.pending and not sinks["c"].poses
+
+
 def test_a_frame_past_its_budget_frees_its_slot_once():
     """A stuck frame answered DEADLINE_EXCEEDED gives its worker's slot to the next session at
     once (as without a queue); its late result frees nothing more."""

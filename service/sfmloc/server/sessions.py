@@ -634,6 +634,14 @@ class SessionManager:
             inflight = list(s.inflight_t_recv) if answer_inflight is not None else []
             s.inflight_t_recv.clear()
             s.busy = False
+            # Frames waiting for their turn (a worker queue) are answered with the in-flight
+            # ones, else counted dropped: never silent.
+            if answer_inflight is not None:
+                inflight += [p.frame.seq for p in s.pending]
+            elif s.pending:
+                s.dropped += len(s.pending)
+                self.metrics.frames_dropped.inc(s.map, value=len(s.pending))
+            s.pending.clear()
             self._idle.notify_all()
         self.pool.close_session(s.worker, s.sid)
         for seq in inflight:
@@ -702,7 +710,10 @@ class SessionManager:
             idle = [
                 s
                 for s in self._by_sid.values()
-                if s.transport == "zenoh" and not s.busy and now - s.last_seen > self.idle_timeout_s
+                if s.transport == "zenoh"
+                and not s.busy
+                and not s.pending  # waiting for its turn: not idle (its frame is answered)
+                and now - s.last_seen > self.idle_timeout_s
             ]
         for s in idle:
             self.close(s, "idle")
