@@ -405,3 +405,22 @@ def test_throughput_rows_show_the_worst_client_and_the_relocalized_share():
     assert row["relocalized_pct"] == 30.0  # 60 of the 200 poses without error
     cells = report.throughput_rows({"suites": {"throughput": {"rows": [row]}}})[0]
     assert cells[-2:] == ["6.0", "30.0%"]
+
+
+def test_global_every_frame_prepares_the_bundle_untimed(world, bundle, cam):
+    """The peer computes the scope's per-bundle tables when it is made, as our engine's
+    Localizer does, not in its first verifying (timed) call; and it localizes a real frame."""
+    import cv2
+
+    from sfmloc.bench.peers import global_every_frame
+    from sfmloc.engine import EngineConf, scope
+
+    conf = EngineConf()
+    scope._cache.pop(bundle, None)
+    fn = global_every_frame(bundle, cam, conf)
+    assert (conf.scope_radius, conf.scope_min_duplicates) in scope._cache.get(bundle, {})
+    k = len(world.frames) // 2
+    out = fn(cv2.imread(str(world.frames[k]), cv2.IMREAD_GRAYSCALE))
+    assert out.cam_from_world is not None and out.inliers >= 20
+    pos_err, _ = pose_errors(out.cam_from_world, world.gt_cam_from_world[k])
+    assert pos_err < 0.05 * bundle.scene_scale

@@ -112,8 +112,13 @@ def run_peer(
 def global_every_frame(bundle, camera, conf=None) -> PeerFn:
     """Our single-image global matching (``relocalize``) as a per-frame localizer."""
     from ..engine import EngineConf, relocalize
+    from ..engine.localizer import prepare
 
     conf = conf or EngineConf()
+    # The per-bundle tables our engine computes when its Localizer is made (untimed there):
+    # else the first call that verifies a pose pays them (scipy.spatial's import and the
+    # scope's image weights, 0.2-0.8 s of one timed call on redkitchen).
+    prepare(bundle, conf)
 
     def fn(gray: np.ndarray) -> PeerOutput:
         res = relocalize(gray, camera, bundle, conf)
