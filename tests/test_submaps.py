@@ -228,7 +228,10 @@ def test_walk_across_submaps_as_a_whole_map_run(room, world, walk_set, whole_run
     sizes = sorted((walk_set.part_memory_bytes(k) for k in range(walk_set.n_parts)), reverse=True)
     budget = sum(sizes[:fit])
     assert budget < sum(sizes)  # the whole set never fits
-    loc = SubmapLocalizer(walk_set, world.camera_spec, memory_budget=budget)
+    # Patient: the first frame waits for its first part (nothing is resident; within the
+    # default 10 ms it may be left to load for the next frame); the switches never wait.
+    patient = EngineConf(submap_load_wait_ms=60_000)
+    loc = SubmapLocalizer(walk_set, world.camera_spec, patient, memory_budget=budget)
     n, err = _run(loc, world)
     loc.close()
     n_whole, err_whole = whole_run
@@ -400,10 +403,10 @@ def test_lost_session_relocalizes_part_by_part(world, walk_set):
     loc.close()
 
 
-def test_vote_finds_the_room_of_a_frame(tmp_path_factory):
-    """Two different synthetic rooms (own textures) 20 m apart in one map, four parts: the
-    place-recognition vote of a video frame ranks first a part of the room the frame was
-    taken in, before any part is loaded (the order a lost session searches the parts in)."""
+@pytest.fixture(scope="module")
+def two_rooms(tmp_path_factory):
+    """Two different synthetic rooms (own textures) 20 m apart in one map, in four parts, and
+    the room of each part."""
     from sfmloc.bench.submaps import build_rooms
 
     work = tmp_path_factory.mktemp("rooms")
@@ -417,6 +420,14 @@ def test_vote_finds_the_room_of_a_frame(tmp_path_factory):
         for k in range(s.n_parts)
     ]
     assert sorted(set(room_of_part)) == [0, 1]
+    return rooms, whole, s, room_of_part
+
+
+def test_vote_finds_the_room_of_a_frame(two_rooms):
+    """The place-recognition vote of a video frame ranks first a part of the room the frame
+    was taken in, before any part is loaded (the order a lost session searches the parts
+    in)."""
+    rooms, whole, s, room_of_part = two_rooms
     loc = SubmapLocalizer(s, rooms.camera, memory_budget=10 * whole.memory_bytes())
     import cv2
 
@@ -427,9 +438,12 @@ def test_vote_finds_the_room_of_a_frame(tmp_path_factory):
     assert hits >= 0.9 * len(rooms.frames), (hits, len(rooms.frames))
     assert loc.resident_parts() == []  # the vote needs no part in memory
     # The walk: room 0's frames, then room 1's (a teleport: relocalization without a prior),
-    # with room for one part only.
+    # with room for one part only: the frame that leaves room 0 can only load room 1's part
+    # in place of its own, and waits for it (patient: within the default wait of 10 ms it
+    # would be answered LOST and the next frame posed).
     budget = s.largest_part_bytes()
-    loc = SubmapLocalizer(s, rooms.camera, memory_budget=budget)
+    patient = EngineConf(submap_load_wait_ms=60_000)
+    loc = SubmapLocalizer(s, rooms.camera, patient, memory_budget=budget)
     posed = {0: 0, 1: 0}
     for i, (path, gt, room) in enumerate(zip(rooms.frames, rooms.gt, rooms.room)):
         r = loc.localize(cv2.imread(str(path), cv2.IMREAD_GRAYSCALE), i / 30.0)
@@ -444,6 +458,53 @@ def test_vote_finds_the_room_of_a_frame(tmp_path_factory):
     assert posed == {0: 6, 1: 6}, posed
     assert loc.stats.lost_tries <= 4
     assert loc.stats.max_resident_bytes <= budget
+
+
+def test_a_teleported_frame_s_part_loads_before_its_search_needs_it(two_rooms):
+    """Prefetch by the vote (issue 14: no frame stalls for a load): the camera is tracked
+    through room 0, then teleported into room 1. As that frame's tracking fails on room 0's
+    part, its vote is taken and the part of room 1 its search will try first starts loading
+    on the loader thread while the frame is matched globally against room 0's part; the
+    search then finds every part it meets resident or loading (none is first asked for by
+    the search itself), and the frame is posed in room 1. Room for two parts (the session's
+    own and one more); a patient wait, so that nothing depends on how fast the loads run."""
+    import cv2
+
+    rooms, _, s, room_of_part = two_rooms
+    sizes = sorted((s.part_memory_bytes(k) for k in range(s.n_parts)), reverse=True)
+    budget = sizes[0] + sizes[1]
+    conf = EngineConf(submap_load_wait_ms=60_000)
+    loc = SubmapLocalizer(s, rooms.camera, conf, memory_budget=budget)
+    frames = [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in rooms.frames]
+    first_1 = rooms.room.index(1)
+    for i in range(first_1):
+        r = loc.localize(frames[i], i / 30.0)
+    assert r.status is not Status.LOST and r.cam_from_world is not None, r.message
+    assert loc.part is not None and room_of_part[loc.part] == 0
+    # Room 0's other part fills the budget beside the session's (room for two parts, never
+    # three: checked), so nothing of room 1 is resident or loading before its first frame
+    # (the first frame's search and the look-ahead may have loaded one).
+    assert sum(sizes[-3:]) > budget
+    for k in loc.loading_parts():  # the test waits for the loader, not a frame
+        loc.cache.wait_for(k, 60.0)
+    for j in range(s.n_parts):
+        if room_of_part[j] == 0 and j != loc.part:
+            loc.cache.load_now(j)  # evicts the least recently used part (the bundle dropped)
+    assert all(room_of_part[k] == 0 for k in loc.resident_parts() + loc.loading_parts())
+    st = loc.stats
+    before = (st.early_loads, st.lost_tries, st.prefetched_tries, st.votes)
+    r = loc.localize(frames[first_1], first_1 / 30.0)
+    assert r.status is not Status.LOST and r.cam_from_world is not None, r.message
+    err = np.linalg.norm(r.cam_from_world.center - rooms.gt[first_1].center)
+    assert err < 0.02 * s.scene_scale
+    assert room_of_part[loc.part] == 1
+    assert st.early_loads == before[0] + 1  # started by the vote as tracking failed
+    tried = st.lost_tries - before[1]
+    assert tried >= 1
+    assert st.prefetched_tries - before[2] == tried  # each met part was resident or loading
+    assert st.votes == before[3] + 1  # one vote, taken early, used by the search
+    assert st.max_resident_bytes <= budget
+    loc.close()
 
 
 def test_scale_bench_takes_the_submap_options():
@@ -494,7 +555,8 @@ def test_a_lost_frame_tries_another_place_next_while_it_loads(world, places_set)
     other = [j for j in order[1:] if cover[0, j] < SAME_PLACE]
     assert same and other and same[0] < other[0]  # the set has both (checked, not assumed)
     sizes = sorted((s.part_memory_bytes(k) for k in range(s.n_parts)), reverse=True)
-    two = EngineConf(submap_lost_parts=2, submap_search_cpu_ms=0)  # no CPU budget: 2 parts
+    # no CPU budget: 2 parts; patient: the first part (nothing is resident) is waited for
+    two = EngineConf(submap_lost_parts=2, submap_search_cpu_ms=0, submap_load_wait_ms=60_000)
     loc = SubmapLocalizer(s, world.camera_spec, two, memory_budget=sizes[0] + sizes[1])
     r = loc.localize(np.zeros_like(world.gray[0]), 0.0)
     assert r.status is Status.LOST
@@ -518,10 +580,18 @@ def test_a_lost_frame_meets_more_parts_within_its_cpu_budget(world, places_set):
     budget = sizes[0] + sizes[1]
     blank = np.zeros_like(world.gray[0])
     tries = {}
+    # Patient (``submap_load_wait_ms``): the parts a frame meets must not depend on how fast
+    # the loader thread runs (within the default 10 ms, the first frame's first part, with
+    # nothing resident, is left to load for the next frame).
+    wait = 60_000
     for name, conf in {
-        "budget": EngineConf(submap_search_cpu_ms=60_000, submap_search_max_parts=16),
-        "none": EngineConf(submap_search_cpu_ms=0),
-        "spent": EngineConf(submap_lost_parts=1, submap_search_cpu_ms=1e-6),
+        "budget": EngineConf(
+            submap_search_cpu_ms=60_000, submap_search_max_parts=16, submap_load_wait_ms=wait
+        ),
+        "none": EngineConf(submap_search_cpu_ms=0, submap_load_wait_ms=wait),
+        "spent": EngineConf(
+            submap_lost_parts=1, submap_search_cpu_ms=1e-6, submap_load_wait_ms=wait
+        ),
     }.items():
         loc = SubmapLocalizer(s, world.camera_spec, conf, memory_budget=budget)
         assert loc.localize(blank, 0.0).status is Status.LOST

@@ -196,6 +196,12 @@ class Localizer:
         self.subpixel = map_subpixel(self.conf, bundle.manifest.params)
         self.extractor = DaisyExtractor()
         self._scope_points = ScopePoints(self.conf.projected_top_images)
+        # Called (no arguments) when a frame found no pose by tracking and is about to be
+        # matched globally against the whole bundle (its costliest step, ~200 ms CPU when the
+        # bundle does not hold the frame): a sub-map session starts loading the parts the
+        # frame's place-recognition vote prefers then, so they are resident by the time its
+        # search needs them (``engine/submaps.py``). None: nothing.
+        self.before_global_matching: Callable[[], None] | None = None
         prepare(bundle, self.conf)
         self.reset()
 
@@ -321,6 +327,8 @@ class Localizer:
             timer.lap("reloc")
         lost_why = ambiguous  # why the frame has no pose, when it has none
         if est is None:
+            if self.before_global_matching is not None:
+                self.before_global_matching()
             table, est, why = self._global_matching(kps, image)
             matching = Matching.GLOBAL
             relocalized = est is not None

@@ -22,14 +22,20 @@ Per frame, before the ``Localizer`` runs:
    while the budget allows.
 2. **Lost** (no pose on the last frame, or none on this frame after tracking on its part: a
    jump, a teleport between rooms): the frame's keypoints are described and the parts ranked
-   by their place-recognition vote (``SubmapSet.vote``); the frame is matched against the
-   resident parts in that order until one gives a pose, and a part of the order that is not
-   resident is loaded on the thread and awaited at most ``EngineConf.submap_load_wait_ms``
-   (then left to load for the next frames: the search spreads over frames, as the paper
-   spreads global matching; issue 14 asks that no load stall a frame by more than 15 ms,
-   but never waiting lost 64 more frames of 960 on the scale bench: the default waits).
-   Only when the budget cannot hold the part beside the session's own does the frame load
-   it in place of its own, as a tracked switch does then. Parts are tried until one poses:
+   by their place-recognition vote (``SubmapSet.vote``, plus the earlier lost frames' votes:
+   ``_lost_vote``); the frame is matched against the parts in that order until one gives a
+   pose. The parts load before the search needs them (issue 14: no load may stall a frame by
+   more than 15 ms): as a tracked frame's tracking fails, its vote is taken and the first
+   part of its search starts loading while the frame is matched globally against its own
+   part (``_early_vote``, through ``Localizer.before_global_matching``); while a part is
+   matched, the next that fits beside it loads; a frame left without a pose loads the part
+   the next frame starts with. A part of the order not resident even so is awaited at most
+   what the frame may still wait (``EngineConf.submap_load_wait_ms`` for all its loads,
+   10 ms), then left to load: the search goes on from it on the next frame (it spreads over
+   frames, as the paper spreads global matching). When the budget cannot hold the part
+   beside the session's own, the session lets go of its own for it. Scale bench (24 rooms,
+   72 parts, 10x the budget): stall p99 55 ms -> 9 ms, 956/960 -> 947/960 localized (numbers
+   in the README). Parts are tried until one poses:
    ``lost_parts_per_frame`` parts (``EngineConf.submap_lost_parts``, 2) at least, then more
    while the frame's search has used less than ``EngineConf.submap_search_cpu_ms`` of its
    thread's CPU (at most ``submap_search_max_parts``). The vote is discounted by
@@ -95,6 +101,7 @@ from .types import FrameResult, Status
 
 log = logging.getLogger(__name__)
 
+
 # ``_search``: a part of which at least this fraction of images belongs to parts a lost frame
 # has tried is the same place (tried after the other places).
 SAME_PLACE = 0.5
@@ -103,6 +110,16 @@ SAME_PLACE = 0.5
 PLACE_DISCOUNT = 0.5
 # ``_next_part``: and this much less for each lost frame of the session it failed on.
 RETRY_DISCOUNT = 0.5
+# ``_early_vote``: the parts of the search's order it considers loading (the first that fits).
+EARLY_CANDIDATES = 3
+# ``_lost_vote``: the weight of the earlier lost frames' votes (decayed) in a lost frame's.
+VOTE_MEMORY = 0.7
+
+
+def _call_weak(method: weakref.WeakMethod) -> None:
+    m = method()
+    if m is not None:
+        m()
 
 
 @dataclass
@@ -124,6 +141,8 @@ class SubmapStats:
     prefetched_tries: int = 0  # of those, parts already loaded or loading when tried
     search_cpu_ms: float = 0.0  # this thread's CPU time lost frames spent searching, in all
     unready_lost: int = 0  # frames answered LOST because no part of their order was resident
+    unready_parts: int = 0  # searches stopped at a part not resident in time (next frame on)
+    early_loads: int = 0  # parts a frame's vote started loading before its search (tracked frames)
 
 
 class PartCache:
@@ -217,6 +236,17 @@ class PartCache:
 
     def is_pending(self, k: int) -> bool:
         return k in self._resident or k in self._loading
+
+    def is_resident(self, k: int) -> bool:
+        """Part ``k`` resident (not made the most recently used, as ``get`` does)."""
+        return k in self._resident
+
+    def is_loading(self, k: int) -> bool:
+        """Part ``k`` being loaded on the loader thread (or loaded, not adopted yet)."""
+        return k in self._loading
+
+    def note_early(self, stats: tuple = ()) -> None:
+        self._note(*stats, early_loads=1)
 
     # ------------------------------------------------------------------ loading
     def _note(self, *stats: SubmapStats, **inc: float) -> None:
@@ -428,6 +458,15 @@ class SubmapLocalizer:
         self._fails: dict[int, int] = {}  # lost frames each part failed since the session was lost
         self._withheld_on: list[int] = []  # parts with poses withheld since the last published
         self._prev_stamp: float | None = None
+        # The frame being localized (for the vote ``_early_vote`` takes while the frame is
+        # matched against its own part), its vote once taken, and what it may still wait for
+        # loads (``EngineConf.submap_load_wait_ms``, for the whole frame).
+        self._frame: np.ndarray | None = None
+        self._stamp: float | None = None
+        self._vote_of: tuple[float, np.ndarray] | None = None
+        # The session's lost frames' votes since its last pose, decayed (``_lost_vote``).
+        self._votes: np.ndarray | None = None
+        self._wait_left = 0.0
         self._extractor = DaisyExtractor()
         self._pca: Pca | None = None
         cache.register(self)
@@ -442,14 +481,21 @@ class SubmapLocalizer:
     ) -> FrameResult:
         """``Localizer.localize`` over the parts; ``prior`` (an outside estimate of the pose,
         used when the session has no pose of its own) chooses the first part to search."""
+        self._frame, self._stamp = frame, stamp
+        self._wait_left = self.conf.submap_load_wait_ms / 1e3
+        try:
+            return self._localize(frame, stamp, prior)
+        finally:
+            self._frame = None  # not held beyond the frame
+
+    def _localize(self, frame: np.ndarray, stamp: float, prior: Rigid3d | None) -> FrameResult:
         self.cache.collect(self._st)
         known = self._known_pose(stamp)
         if known is None and prior is not None and prior.is_finite():
             # Lost or new, with an outside estimate (a failover, GPS): first the part that
             # covers it best, searched around it; then the parts by their vote.
             k = int(np.argmax(self.set.parts_near(prior)))
-            wait_s = self.conf.submap_load_wait_ms / 1e3
-            if k == self.part or self._ready(k, [], wait_s):
+            if k == self.part or self._start(k, []) or self._await([k]) is not None:
                 if k != self.part:
                     self._switch(k)
                 assert self.inner is not None
@@ -478,6 +524,7 @@ class SubmapLocalizer:
         self._prev_stamp = stamp
         if self.inner is not None and self.inner.last_posed_stamp == stamp:
             self._fails = {}  # a pose (published or withheld): the search is over
+            self._votes = None
         self.stats.max_resident_bytes = max(
             self.stats.max_resident_bytes, self.cache.resident_bytes()
         )
@@ -558,8 +605,25 @@ class SubmapLocalizer:
     # ------------------------------------------------------------------ lost
     def vote(self, frame: np.ndarray) -> np.ndarray:
         """The parts' place-recognition scores for ``frame`` (``SubmapSet.vote`` of its
-        keypoints' descriptors): the order a lost session tries them in."""
+        keypoints' descriptors)."""
         return self.set.vote(self._frame_descriptors(frame))
+
+    def _lost_vote(self, frame: np.ndarray, stamp: float) -> np.ndarray:
+        """The order a lost frame tries the parts in: its vote plus ``VOTE_MEMORY`` times
+        that of the session's lost frames before it (since its last pose; they are mostly of
+        the same place). One frame's vote alone put the parts of one place in a different
+        order from frame to frame (24 rooms, room 7: its first five parts changed on each of
+        five frames), so the part a frame had loaded for the next was seldom the one the
+        next frame wanted first, and that frame waited for a load or was answered LOST."""
+        if self._vote_of is not None and self._vote_of[0] == stamp:
+            return self._vote_of[1]
+        scores = self.vote(frame)
+        self.stats.votes += 1
+        if self._votes is not None and len(self._votes) == len(scores):
+            scores = scores + VOTE_MEMORY * self._votes
+        self._votes = scores
+        self._vote_of = (stamp, scores)
+        return scores
 
     def _search(self, frame: np.ndarray, stamp: float, res: FrameResult | None) -> FrameResult:
         """Parts in the order of the frame's vote until one gives a pose (``res``: the frame's
@@ -577,50 +641,40 @@ class SubmapLocalizer:
         cap = self.lost_parts_per_frame
         if budget_ms > 0:
             cap = max(cap, self.conf.submap_search_max_parts)
-        scores = self.vote(frame)
-        self.stats.votes += 1
+        scores = self._lost_vote(frame, stamp)  # (taken early when tracking failed)
         order = [int(k) for k in np.argsort(-scores, kind="stable")]
         here = [self.part] if res is not None and self.part is not None else []
-        waiting: list[int] = []  # parts of this frame's order left to load for later frames
-        wait_s = self.conf.submap_load_wait_ms / 1e3
-        if wait_s == 0:
-            # A frame that never waits tries the resident parts of its order: a load it
-            # schedules must not evict those not tried yet (24 rooms, ~2 parts in the budget:
-            # each frame's load evicted the part the last frame had loaded for the search
-            # before it was tried, and a room lost 31 frames in a row). Tried ones may go.
-            resident = set(self.cache.resident_parts())
-            waiting_keep = [
-                k for k in order[: 2 * cap] if k in resident and self._fails.get(k, 0) == 0
-            ]
-        else:
-            waiting_keep = []
         tries = 0
         for _ in range(cap):
-            k = self._next_part(order, here, scores, waiting)
-            if k is None:
+            ahead = self._upcoming(order, here, scores)
+            if not ahead:
                 break  # this frame has met every part
+            # The first of the next parts of the order that is resident (the one it loaded
+            # while the last part was matched: the next may not fit beside that one), else
+            # the next, loaded now.
+            k = next((j for j in ahead if self.cache.is_resident(j)), ahead[0])
             if tries >= self.lost_parts_per_frame and (
                 (time.thread_time() - t_cpu) * 1e3 >= budget_ms
             ):
                 break
+            self.cache.collect(self._st)
             pending = self.cache.is_pending(k)
-            if k != self.part and not self._ready(k, waiting + waiting_keep, wait_s):
-                # Not resident: it loads on the thread for the next frames (a frame never
-                # waits for a load longer than ``submap_load_wait_ms``); the search goes on
-                # with the next part of the order that is.
-                waiting.append(k)
-                continue
+            if k != self.part and not self._start(k, []) and self._await([k]) is None:
+                # Not resident within what the frame may still wait (usually it is: the
+                # frame's vote started it as its tracking failed, ``_early_vote``, or it loaded
+                # while the part before it was matched): it loads on the thread for the next
+                # frame, which goes on from it (the search spreads over frames, none stalls).
+                self.stats.unready_parts += 1
+                break
             here.append(k)
             self.stats.prefetched_tries += pending  # resident or loading when chosen
             if k != self.part:
                 self._switch(k)
-            nxt = self._next_part(order, here, scores, waiting)
-            if nxt is not None:
-                # The part to try if this one fails loads on the thread while this one is
-                # matched.
-                self.cache.request(
-                    nxt, keep=set(here) | set(waiting), optional=True, stats=self._st
-                )
+            # The part to try if this one fails loads on the thread while this one is matched
+            # (it may evict the parts this frame has met: they failed it): the first of the
+            # next ones that fits beside this one (~2 parts in the budget: the next often
+            # does not, and the frame stopped there for its load).
+            self._load_ahead(self._upcoming(order, here, scores), keep={k})
             assert self.inner is not None
             self.stats.lost_tries += 1
             tries += 1
@@ -628,6 +682,12 @@ class SubmapLocalizer:
             if self.inner.last_posed_stamp == stamp:
                 break
             self._fails[k] = self._fails.get(k, 0) + 1
+        if self.inner is None or self.inner.last_posed_stamp != stamp:
+            # No pose: the part the next frame's search starts with (the order with this
+            # frame's failures counted) loads now. Loading only the next part of this frame's
+            # order, the last try's load evicted the part the next frame wanted first, which
+            # then waited for it or was answered LOST (24 rooms: 13 frames "loading").
+            self._load_ahead(self._upcoming(order, [], scores), keep=set(), release=True)
         self.stats.search_cpu_ms += (time.thread_time() - t_cpu) * 1e3
         if res is None:
             self.stats.unready_lost += 1
@@ -639,21 +699,95 @@ class SubmapLocalizer:
             )
         return res
 
-    def _ready(self, k: int, keep: list[int], wait_s: float) -> bool:
-        """Part ``k`` resident now, or within ``wait_s`` of its background load (which is
-        started, within the budget, when it is not running)."""
+    def _upcoming(
+        self, order: list[int], here: list[int], scores: np.ndarray, n: int = 0
+    ) -> list[int]:
+        """The next ``n`` (default ``EARLY_CANDIDATES``) parts a lost frame would meet after
+        ``here``, in ``_next_part``'s order."""
+        out: list[int] = []
+        for _ in range(n or EARLY_CANDIDATES):
+            k = self._next_part(order, here, scores, out)
+            if k is None:
+                break
+            out.append(k)
+        return out
+
+    def _load_ahead(self, parts: list[int], keep: set[int], release: bool = False) -> None:
+        """Load the first of ``parts`` (in order) that fits the budget beside ``keep``,
+        unless one before it is resident or loading already."""
+        for j in parts:
+            if self.cache.is_pending(j):
+                return
+            if self.cache.request(
+                j, keep=keep, optional=True, stats=self._st, release=self if release else None
+            ):
+                return
+
+    def _start(self, k: int, keep: list[int]) -> bool:
+        """Part ``k`` resident now (True), else its load started on the thread within the
+        budget (``keep``: parts it must not evict). A lost frame's own part may go to make
+        room (it has just failed the frame): when the budget cannot hold ``k`` beside it, the
+        session lets go of it for ``k`` (it used to load ``k`` in the frame's thread then, a
+        stall of the whole load)."""
         if self.cache.get(k) is not None:
             return True
-        own = 0 if self.part is None else self.set.part_memory_bytes(self.part)
-        if own + self.set.part_memory_bytes(k) > self.memory_budget:
-            # The budget cannot hold this part beside the session's: nothing can load ahead,
-            # the frame loads it in place of its own (as a tracked switch does then).
-            self._load_and_switch(k)
-            return True
         if not self.cache.is_pending(k):
-            # A lost frame's part may go to make room (it has just failed the frame).
             self.cache.request(k, keep=set(keep), optional=True, stats=self._st, release=self)
-        return self.cache.wait_for(k, wait_s, self._st)
+        return self.cache.is_resident(k)
+
+    def _await(self, parts: Sequence[int]) -> int | None:
+        """The first of ``parts`` loading on the thread that is resident within what this
+        frame may still wait (``EngineConf.submap_load_wait_ms`` for the whole frame: the wait
+        counts as a stall), else None."""
+        for k in parts:
+            if self.cache.is_resident(k):
+                return k
+            if self._wait_left <= 0 or not self.cache.is_loading(k):
+                continue
+            t0 = time.perf_counter()
+            ok = self.cache.wait_for(k, self._wait_left, self._st)
+            self._wait_left -= time.perf_counter() - t0
+            if ok:
+                return k
+        return None
+
+    def _early_vote(self) -> None:
+        """The frame being localized found no pose by tracking on its part and is about to be
+        matched globally against it (``Localizer.before_global_matching``): its vote is taken
+        now, and the part its search would try first starts loading while that matching
+        runs (~200 ms CPU when the part does not hold the frame: a teleport, a room entry),
+        instead of when the search asks for it (the search then waited for the load:
+        issue 14's stalls). The vote is kept for the search (one per frame either way); a
+        frame posed by its own part paid for a vote it did not need (rare: a tracked
+        session meets global matching when its tracks are gone)."""
+        frame, stamp = self._frame, self._stamp
+        if (
+            frame is None
+            or stamp is None
+            or (self._vote_of is not None and self._vote_of[0] == stamp)
+        ):
+            return
+        scores = self._lost_vote(frame, stamp)
+        order = [int(k) for k in np.argsort(-scores, kind="stable")]
+        here = [self.part] if self.part is not None else []
+        fails = self._fails
+        self._fails = {**fails, **{p: fails.get(p, 0) + 1 for p in here}}  # as the search will
+        try:
+            # The first part of the search's order that fits beside the session's own (which
+            # the frame is using), among the first ``EARLY_CANDIDATES``: with ~2 parts in
+            # the budget the best-voted one often does not, and the next is mostly another
+            # part of the same place.
+            met = list(here)
+            for _ in range(EARLY_CANDIDATES):
+                k = self._next_part(order, met, scores)
+                if k is None or self.cache.is_pending(k) or scores[k] <= 0:
+                    return
+                if self.cache.request(k, keep=set(here), optional=True, stats=self._st):
+                    self.cache.note_early(self._st)
+                    return
+                met.append(k)
+        finally:
+            self._fails = fails
 
     def _next_part(
         self, order: list[int], here: list[int], scores: np.ndarray, skip: Sequence[int] = ()
@@ -741,6 +875,10 @@ class SubmapLocalizer:
         bundle, gpts = part
         if self.inner is None:
             self.inner = Localizer(bundle, self.camera_in, self.conf)
+            # Weakly: the localizer must not keep its session alive (a reference cycle would
+            # keep the session's part mapped until the garbage collector ran).
+            early = weakref.WeakMethod(self._early_vote)
+            self.inner.before_global_matching = lambda: _call_weak(early)
         else:
             old_pts = self._part_points  # set with ``inner``
             assert old_pts is not None
