@@ -85,21 +85,25 @@ class Corners:
 # instead of cv2.dilate (0.53 -> 0.64 ms); interleaved call by call, the response's seven
 # passes as cv2.multiply / subtract / add (x1.16) and cv2.sepFilter2D for the Gaussian (x0.99).
 # Compiled kernels measured and not taken (issue 10; numba 0.68.1, one thread, parallel=False,
-# fastmath=False, cache=True; 50 redkitchen frames x 5 rounds interleaved call by call, nice 19,
-# load 11-17): one fused pass (Sobel, products, 5-tap rows into a 5-row ring, 5-tap columns,
-# response; LLVM vectorizes it to AVX-512) took 2.62-2.74 ms per frame against 2.90-3.16 ms for
-# _Tensor + response_into here (x0.87-0.92); with a compiled 3x3 maximum test at the pixels over
-# the threshold (0.83 ms against cv2.dilate + compare 0.76 ms) the detector is x1.04-1.07 of
-# detect_corners (3.75 against 3.59 ms). At 1920x1440 it was x0.29-0.36, only because images over
-# _CACHE_MAX_PIXELS get fresh buffers here (page faults); the engine detects at 640x480. Same
-# corners: 200 frames, the same 60,361 pixels, every sub-pixel position within 0.01 px, 69% bit
-# for bit; the responses differ by 1-2 ulp (relative 1.6e-6 at most) because OpenCV's row
-# filter sums the symmetric taps with fused multiply-adds, which numba without fastmath never
-# emits (that order, emulated, matches 83% of the row pass). BRIEF's 256 tests compiled:
-# bit-identical, 0.57 against 0.73 ms (570 keypoints). So compiled Harris + BRIEF could save
-# about 1 ms of a 12 ms frame at best, for 208 MB installed (llvmlite 173 MB), 1.1-1.7 s to import
-# numba and 2.3-2.5 s to load its cache at each worker start (17-19 s compiling without one), and
-# an on-disk cache that numba pickles (we read no pickle from disk).
+# fastmath=False, cache=True; redkitchen, interleaved call by call, nice 19, load 10-17). One
+# fused pass (Sobel, products, 5-tap rows into a 5-row ring, 5-tap columns, response, and the 3x3
+# maximum test of the row above at the engine's threshold; LLVM vectorizes it to AVX-512):
+# 3.49 against 3.97 ms per detect_corners call (x0.88; 50 frames x 5). The response alone was
+# x0.87-0.92 of _Tensor + response_into; a separate compiled maximum test was slower than
+# cv2.dilate and the compare (0.83 against 0.76 ms). At 1920x1440 x0.29-0.36, only because images
+# over _CACHE_MAX_PIXELS get fresh buffers here (page faults); the engine detects at 640x480.
+# The same corners: the same pixels in every frame (200 frames, 60,361 corners), sub-pixel
+# positions within 2.9e-5 px, 47% of the response pixels bit for bit; the rest differ by 1-2 ulp
+# (relative 1.6e-6 at most) because OpenCV's symmetric row filter rounds through fused
+# multiply-adds, which numba without fastmath never emits (that order emulated in numpy matches
+# 83% of the row pass). BRIEF's 256 tests compiled: bit-identical, 0.57 against 0.73 ms (570
+# keypoints). Both in the engine (1000 frames, replays main / numba / numba / main, load 7-10):
+# CPU per frame after the first x0.954 and x0.899 (-0.5 and -1.3 ms; frame by frame median
+# x0.947, x0.905), poses within 2e-8 m of these kernels' (29% bit for bit), accuracy the same
+# (1000/1000, median 0.279 cm, 0 wrong). Less than the 2 ms asked of a new dependency that costs
+# 208 MB installed (llvmlite 173 MB), 0.6 s CPU at each worker start to import numba and load
+# its cache (the first frame 88-120 -> 389-577 ms; 4.7 s CPU compiling without a cache), and an
+# on-disk cache that numba pickles (we read no pickle from disk).
 _M_SCALE = 64.0  # (Sobel / 8)^2 -> Sobel^2
 _R_SCALE = _M_SCALE * _M_SCALE
 _INV_R_SCALE = np.float32(1.0 / _R_SCALE)
