@@ -20,10 +20,16 @@ demo: $(STAMP)
 # pinned to one thread) instead of before them. mypy's findings are printed after the suite and
 # fail the run; when it finds none, pytest's summary stays the last line. test-deps installs
 # the browser the viewer's test uses, where it can (never fails).
+#
+# The suite runs in TEST_JOBS processes (pytest-xdist; 2 = this machine's cores), each test file
+# whole on one process (--dist loadfile: a file's module fixtures, its servers and maps, are
+# built once, and its tests never run beside each other). `make test TEST_JOBS=0` runs it in
+# this one process, as plain pytest (pdb, -x, print debugging; PYTEST_ADDOPTS adds options).
+TEST_JOBS ?= 2
 test: test-deps lint $(STAMP)
 	@echo "$(BIN)/mypy --cache-dir $(VENV)/.mypy_cache (beside the suite; findings after it)"
 	@$(BIN)/mypy --cache-dir $(VENV)/.mypy_cache > $(VENV)/mypy.log 2>&1 & mypy=$$!; \
-	$(BIN)/python -m pytest -q; rc=$$?; \
+	$(BIN)/python -m pytest -q -n $(TEST_JOBS) --dist loadfile; rc=$$?; \
 	if ! wait $$mypy; then cat $(VENV)/mypy.log; echo "make test: mypy failed" >&2; rc=1; fi; \
 	exit $$rc
 
