@@ -8,6 +8,7 @@ import json
 import os
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -615,7 +616,17 @@ def test_a_frame_never_waits_for_a_part_load(world, walk_set):
     budget = sizes[0] + sizes[1]
     never = EngineConf(submap_load_wait_ms=0)
     loc = SubmapLocalizer(walk_set, world.camera_spec, never, memory_budget=budget)
-    r = loc.localize(world.gray[0], 0.0)
+    # The loader thread (one) is held while the first frame runs, so its parts' loads cannot
+    # finish before the frame looks for them: unheld, a load finished during the frame's vote
+    # under load (a clean-clone run at load 5-12 posed the frame, RELOCALIZED). A frame that
+    # waited for a load would wait here for the hold (60 s) and then be posed.
+    hold = threading.Event()
+    assert loc.cache._pool is not None
+    loc.cache._pool.submit(hold.wait, 60.0)
+    try:
+        r = loc.localize(world.gray[0], 0.0)
+    finally:
+        hold.set()
     assert r.status is Status.LOST and "loading" in r.message, r.message
     assert loc.stats.lost_tries == 0 and loc.stats.unready_lost == 1
     scheduled = loc.loading_parts() + loc.resident_parts()
