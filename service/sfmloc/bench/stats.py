@@ -9,7 +9,13 @@ from collections.abc import Sequence
 import numpy as np
 
 from ..engine.types import Matching
-from ..eval.metrics import FrameRecord, absolute_trajectory_error, is_pose, summarize
+from ..eval.metrics import (
+    FrameRecord,
+    absolute_trajectory_error,
+    distribution,
+    is_pose,
+    summarize,
+)
 from ..eval.stages import stage_stats
 
 
@@ -75,25 +81,11 @@ def stage_times(records: list[FrameRecord]) -> dict[str, dict[str, float]]:
 
 def relocalization_times(records: list[FrameRecord]) -> dict:
     """The time distribution of single-image relocalization calls (issue 10's target is on its
-    p95): mean, p50, p95, p99 and max of the wall clock and of the process's CPU time, ms."""
-
-    def dist(x: Sequence[float]) -> dict[str, float]:
-        if not len(x):
-            return {k: math.nan for k in ("mean", "p50", "p95", "p99", "max")}
-        a = np.asarray(x, dtype=float)
-        p50, p95, p99 = np.percentile(a, [50, 95, 99])
-        return {
-            "mean": float(a.mean()),
-            "p50": float(p50),
-            "p95": float(p95),
-            "p99": float(p99),
-            "max": float(a.max()),
-        }
-
+    p95): ``eval.metrics.distribution`` of the wall clock and of the process's CPU time, ms."""
     return {
         "calls": len(records),
-        "wall": dist([r.latency_ms for r in records]),
-        "cpu": dist([r.cpu_ms for r in records if r.cpu_ms is not None]),
+        "wall": distribution([r.latency_ms for r in records]),
+        "cpu": distribution([r.cpu_ms for r in records if r.cpu_ms is not None]),
     }
 
 

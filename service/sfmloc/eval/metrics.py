@@ -3,6 +3,7 @@ writes, and the paper's Table 2 columns)."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -104,7 +105,8 @@ def _counts(first: list[str], records: list[FrameRecord]) -> dict[str, int]:
     return {s: sum(1 for r in records if r.status == s) for s in keys}
 
 
-def _stats(x: np.ndarray) -> dict[str, float]:
+def distribution(x: Sequence[float] | np.ndarray) -> dict[str, float]:
+    """Mean, std, p50, p95, p99 and max of ``x`` (NaN each when empty)."""
     if len(x) == 0:
         return {k: float("nan") for k in ("mean", "std", "p50", "p95", "p99", "max")}
     return {
@@ -147,7 +149,7 @@ def summarize(records: list[FrameRecord], scene_scale: float) -> dict:
         "mean_position_error_m": nanstat(np.mean, pe),
         "mean_rotation_error_deg": nanstat(np.mean, re_),
         "confident_wrong": len(wrong),
-        "latency_ms": _stats(lat),
+        "latency_ms": distribution(lat),
         "guided_frames": len(guided),
         "global_frames": len(glob),
         # extras
