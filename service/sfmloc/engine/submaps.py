@@ -495,7 +495,7 @@ class SubmapLocalizer:
             # Lost or new, with an outside estimate (a failover, GPS): first the part that
             # covers it best, searched around it; then the parts by their vote.
             k = int(np.argmax(self.set.parts_near(prior)))
-            if k == self.part or self._start(k, []) or self._await([k]) is not None:
+            if k == self.part or self._ready(k):
                 if k != self.part:
                     self._switch(k)
                 assert self.inner is not None
@@ -659,7 +659,7 @@ class SubmapLocalizer:
                 break
             self.cache.collect(self._st)
             pending = self.cache.is_pending(k)
-            if k != self.part and not self._start(k, []) and self._await([k]) is None:
+            if k != self.part and not self._ready(k):
                 # Not resident within what the frame may still wait (usually it is: the
                 # frame's vote started it as its tracking failed, ``_early_vote``, or it loaded
                 # while the part before it was matched): it loads on the thread for the next
@@ -699,13 +699,11 @@ class SubmapLocalizer:
             )
         return res
 
-    def _upcoming(
-        self, order: list[int], here: list[int], scores: np.ndarray, n: int = 0
-    ) -> list[int]:
-        """The next ``n`` (default ``EARLY_CANDIDATES``) parts a lost frame would meet after
-        ``here``, in ``_next_part``'s order."""
+    def _upcoming(self, order: list[int], here: list[int], scores: np.ndarray) -> list[int]:
+        """The next ``EARLY_CANDIDATES`` parts a lost frame would meet after ``here``, in
+        ``_next_part``'s order."""
         out: list[int] = []
-        for _ in range(n or EARLY_CANDIDATES):
+        for _ in range(EARLY_CANDIDATES):
             k = self._next_part(order, here, scores, out)
             if k is None:
                 break
@@ -723,33 +721,25 @@ class SubmapLocalizer:
             ):
                 return
 
-    def _start(self, k: int, keep: list[int]) -> bool:
-        """Part ``k`` resident now (True), else its load started on the thread within the
-        budget (``keep``: parts it must not evict). A lost frame's own part may go to make
-        room (it has just failed the frame): when the budget cannot hold ``k`` beside it, the
-        session lets go of it for ``k`` (it used to load ``k`` in the frame's thread then, a
-        stall of the whole load)."""
+    def _ready(self, k: int) -> bool:
+        """Part ``k`` resident now, or within what this frame may still wait
+        (``EngineConf.submap_load_wait_ms`` for the whole frame: the wait counts as a stall)
+        of its load on the thread, started here within the budget when not running. A lost
+        frame's own part may go to make room (it has just failed the frame): when the budget
+        cannot hold ``k`` beside it, the session lets go of it for ``k`` (it used to load
+        ``k`` in the frame's thread then, a stall of the whole load)."""
         if self.cache.get(k) is not None:
             return True
         if not self.cache.is_pending(k):
-            self.cache.request(k, keep=set(keep), optional=True, stats=self._st, release=self)
-        return self.cache.is_resident(k)
-
-    def _await(self, parts: Sequence[int]) -> int | None:
-        """The first of ``parts`` loading on the thread that is resident within what this
-        frame may still wait (``EngineConf.submap_load_wait_ms`` for the whole frame: the wait
-        counts as a stall), else None."""
-        for k in parts:
-            if self.cache.is_resident(k):
-                return k
-            if self._wait_left <= 0 or not self.cache.is_loading(k):
-                continue
-            t0 = time.perf_counter()
-            ok = self.cache.wait_for(k, self._wait_left, self._st)
-            self._wait_left -= time.perf_counter() - t0
-            if ok:
-                return k
-        return None
+            self.cache.request(k, keep=set(), optional=True, stats=self._st, release=self)
+        if self.cache.is_resident(k):
+            return True
+        if self._wait_left <= 0 or not self.cache.is_loading(k):
+            return False
+        t0 = time.perf_counter()
+        ok = self.cache.wait_for(k, self._wait_left, self._st)
+        self._wait_left -= time.perf_counter() - t0
+        return ok
 
     def _early_vote(self) -> None:
         """The frame being localized found no pose by tracking on its part and is about to be
