@@ -3,10 +3,14 @@ truth and measures the normalized estimation error squared (NEES) of every non-L
 e^T C^-1 e over the 6 dof (expected 6), the centre alone (expected 3) and the rotation alone
 (expected 3), and the per-axis z-scores of the centre (expected sd 1).
 
-The replay publishes every pose (``max_position_sd`` = inf: withholding changes a frame's status
-only, never what the tracker does next), so the poses that the default limit would withhold are
-measured too, and the limit can be judged: how many correct poses it withholds, and whether every
-wrong pose (``metrics.wrong_poses``' rule) is among them. The ``sd_*`` keys are the centre sd
+The replay runs the engine as configured (the default: the engine every interface runs) and
+takes each frame's pose where the status rules judge it, before they withhold it, so the poses
+that the limit withholds are measured too, and the limit can be judged: how many correct poses it
+withholds, and whether every wrong pose (``metrics.wrong_poses``' rule) is among them. The limit
+is not lifted for the replay: it also decides what the tracker does (an uncertain pose is
+re-matched on the whole frame, ``densify_uncertain``; a prediction from a withheld pose rejects
+no relocalization, ``contradiction_published_only``), so at infinity the replay would measure
+another engine's poses. The ``sd_*`` keys are the centre sd
 as that rule judges it (in % of the scene scale, at the bound of its noise estimate).
 
     python -m sfmloc.eval.calibration MAP FRAMES POSES [--fps 30] [--frames 150]
@@ -16,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -68,19 +71,20 @@ def replay_samples(
     conf: EngineConf | None = None,
     max_frames: int | None = None,
 ) -> tuple[list[Sample], int]:
-    """Every non-LOST pose of the replay with its ground truth, and the number of frames."""
-    conf = (conf or EngineConf()).model_copy(update={"max_position_sd": math.inf})
-    loc = localizer_module.Localizer(bundle, camera, conf)
+    """Every pose the status rules judged in the replay (published or withheld; ``status`` the
+    one they gave it) with its ground truth, and the number of frames."""
+    loc = localizer_module.Localizer(bundle, camera, conf or EngineConf())
     out: list[Sample] = []
     n = 0
-    judged: list[PoseEstimate] = []
-    real = localizer_module.certainty
+    judged: list[tuple[PoseEstimate, np.ndarray]] = []
+    real = localizer_module._status
 
-    def recording(est, K, bundle, conf):  # the estimate the frame's covariance is made from
-        judged.append(est)
-        return real(est, K, bundle, conf)
+    def recording(est, cert, *args):  # the frame's final pose and covariance, as judged
+        if est is not None and cert is not None:
+            judged.append((est, cert.covariance))
+        return real(est, cert, *args)
 
-    localizer_module.certainty = recording  # type: ignore[assignment]
+    localizer_module._status = recording  # type: ignore[assignment]
     try:
         for frame in source:
             if max_frames is not None and n >= max_frames:
@@ -89,16 +93,16 @@ def replay_samples(
             judged.clear()
             r = loc.localize(frame.image, frame.stamp)
             gt = groundtruth[frame.index] if frame.index < len(groundtruth) else None
-            if r.cam_from_world is None or r.covariance is None or gt is None:
+            if not judged or gt is None:
                 continue
-            est = judged[-1] if judged else None
+            est, cov = judged[-1]
             out.append(
                 Sample(
-                    frame.index, str(r.status), r.cam_from_world, gt, r.covariance, r.inliers, est
+                    frame.index, str(r.status), est.cam_from_world, gt, cov, est.num_inliers, est
                 )
             )
     finally:
-        localizer_module.certainty = real
+        localizer_module._status = real
     return out, n
 
 
@@ -152,7 +156,7 @@ def main(argv: list[str] | None = None) -> int:
         prog="python -m sfmloc.eval.calibration",
         description="Replay a sequence and measure the calibration of the reported pose "
         "covariance against ground truth (NEES: 6 dof expected 6, centre and rotation 3). "
-        "Every pose is published during the replay; the withholding limit is applied after.",
+        "The engine runs as configured; the poses it withholds are measured too.",
     )
     ap.add_argument("map", type=Path, help="map bundle folder")
     ap.add_argument("frames", type=Path, help="folder of frames (with camera.json, or --camera)")
