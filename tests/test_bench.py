@@ -424,3 +424,46 @@ def test_global_every_frame_prepares_the_bundle_untimed(world, bundle, cam):
     assert out.cam_from_world is not None and out.inliers >= 20
     pos_err, _ = pose_errors(out.cam_from_world, world.gt_cam_from_world[k])
     assert pos_err < 0.05 * bundle.scene_scale
+
+
+def test_reuse_rebuilds_a_map_made_by_another_builder(tmp_path, caplog):
+    """--reuse takes a cached map only when its input and the builder that made it are today's:
+    a stamp from another builder (as every map cached before a builder change has) is rebuilt,
+    and the log says which happened."""
+    import logging
+    import shutil
+
+    from sfmloc.bench import suites
+    from sfmloc.bench.config import BenchConf
+    from sfmloc.bench.robust import RobustData
+
+    data = RobustData(BenchConf(reuse=True), tmp_path, lambda *a: None)
+    made: list[int] = []
+    folder = tmp_path / "row"
+
+    def make() -> None:
+        made.append(1)
+
+    caplog.set_level(logging.INFO, logger="sfmloc.bench.suites")
+    data._cached(folder, {"base": "x"}, make)
+    data._cached(folder, {"base": "x"}, make)
+    assert len(made) == 1 and "reusing robust's row" in caplog.text
+    stamp = folder / "robust-source.json"
+    old = json.loads(stamp.read_text())
+    assert old["builder"] == suites.builder_identity()
+    stamp.write_text(json.dumps({**old, "builder": {**old["builder"], "source": "0" * 16}}))
+    data._cached(folder, {"base": "x"}, make)
+    assert len(made) == 2 and "rebuilding robust's row: built by another builder" in caplog.text
+    data._cached(folder, {"base": "y"}, make)
+    assert len(made) == 3 and "rebuilding robust's row: another input" in caplog.text
+
+    # the identity covers the builder's code and not, e.g., the engine's
+    root = Path(suites.__file__).resolve().parent.parent
+    copy = tmp_path / "sfmloc"
+    shutil.copytree(root, copy, ignore=shutil.ignore_patterns("__pycache__"))
+    assert suites.source_hash(copy) == suites.builder_identity()["source"]
+    (copy / "engine" / "localizer.py").write_text("# another engine\n")
+    assert suites.source_hash(copy) == suites.builder_identity()["source"]
+    with open(copy / "builder" / "build.py", "a") as f:
+        f.write("# another builder\n")
+    assert suites.source_hash(copy) != suites.builder_identity()["source"]

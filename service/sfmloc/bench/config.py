@@ -120,7 +120,8 @@ class BenchConf(StrictModel):
     # the synthetic room sizes (mapping views) of its memory part.
     builder_parts: list[str] = Field(default_factory=lambda: ["memory", "extend"])
     builder_views: list[int] = Field(default_factory=lambda: [60, 240])
-    reuse: bool = False  # reuse maps and synthetic data already under OUT/work
+    # reuse maps and data under OUT/work made from the same input by the same builder
+    reuse: bool = False
     quick: bool = False
 
 

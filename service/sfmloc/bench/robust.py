@@ -25,7 +25,6 @@ on; a method over the row's time budget stops and the row says so.
 from __future__ import annotations
 
 import fnmatch
-import json
 import logging
 import math
 import time
@@ -46,8 +45,10 @@ from .suites import (
     Prepared,
     build_known_poses_maps,
     build_sift_map_of_model,
+    cached,
     prepare_redkitchen,
     prepare_synthetic,
+    stamp_cached,
     synth_conf,
 )
 
@@ -214,15 +215,15 @@ class RobustData:
         return value
 
     def _cached(self, folder: Path, key: dict, make: Callable[[], None]) -> Path:
-        """Run ``make`` (it fills ``folder``) unless --reuse and ``key`` made ``folder``."""
+        """Run ``make`` (it fills ``folder``) unless --reuse and ``key`` made ``folder`` with
+        today's builder (``suites.cached``)."""
         stamp = folder / "robust-source.json"
-        if self.conf.reuse and stamp.is_file() and json.loads(stamp.read_text()) == key:
-            log.info("robust: reusing %s", folder)
+        if cached(stamp, key, self.conf.reuse, f"robust's {folder.name}"):
             return folder
         folder.mkdir(parents=True, exist_ok=True)
         stamp.unlink(missing_ok=True)
         make()
-        stamp.write_text(json.dumps(key))
+        stamp_cached(stamp, key)
         return folder
 
     # ----------------------------------------------------------------- synthetic

@@ -14,6 +14,8 @@ Maps:
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import json
 import logging
 import re
@@ -85,6 +87,69 @@ def _kept_workdir(parent: Path) -> Path:
 
 def _reusable(bundle: Path, sift: Path, reuse: bool) -> bool:
     return reuse and (bundle / "manifest.json").is_file() and sift.is_file()
+
+
+# What a cached map depends on besides its input data: the code that renders, builds and writes
+# it (the peer's map too), relative to the sfmloc package. A change anywhere here rebuilds under
+# --reuse (a stale map once survived a builder change, keyed by its data path alone).
+BUILDER_SOURCES = (
+    "builder",
+    "features",
+    "map",
+    "io",
+    "synth",
+    "cameras.py",
+    "transforms.py",
+    "config.py",
+    "bench/sift_peer.py",
+    "bench/robust_data.py",
+    "bench/suites.py",
+)
+
+
+@functools.cache
+def builder_identity() -> dict:
+    """The bundle format version, the sfmloc version and a hash of ``BUILDER_SOURCES``: part of
+    every --reuse cache key of a built map or rendered data."""
+    from .. import __version__
+    from ..map.bundle import BUNDLE_VERSION
+
+    source = source_hash(Path(__file__).resolve().parent.parent)
+    return {"bundle": BUNDLE_VERSION, "sfmloc": __version__, "source": source}
+
+
+def source_hash(root: Path) -> str:
+    """A hash of the ``BUILDER_SOURCES`` under package folder ``root`` (names and bytes)."""
+    h = hashlib.sha256()
+    for rel in BUILDER_SOURCES:
+        p = root / rel
+        for f in sorted(p.rglob("*.py")) if p.is_dir() else [p]:
+            h.update(f.relative_to(root).as_posix().encode() + b"\0" + f.read_bytes() + b"\0")
+    return h.hexdigest()[:16]
+
+
+def cached(stamp: Path, key: dict, reuse: bool, what: str) -> bool:
+    """Whether ``what`` (built before, recorded in ``stamp`` with its ``key``) can be reused:
+    --reuse, and the same key with the same ``builder_identity``. Says which, and why not."""
+    key = {**key, "builder": builder_identity()}
+    old = json.loads(stamp.read_text()) if stamp.is_file() else None
+    if reuse and old == key:
+        log.info("reusing %s (same input, builder %s)", what, key["builder"]["source"])
+        return True
+    if not reuse:
+        log.info("building %s", what)
+    elif old is None:
+        log.info("building %s (nothing cached)", what)
+    elif old.get("builder") != key["builder"]:
+        log.info("rebuilding %s: built by another builder (%s)", what, old.get("builder"))
+    else:
+        log.info("rebuilding %s: another input", what)
+    return False
+
+
+def stamp_cached(stamp: Path, key: dict) -> None:
+    """Record that ``key`` (and today's builder) made what ``stamp`` sits beside."""
+    stamp.write_text(json.dumps({**key, "builder": builder_identity()}))
 
 
 def _limit(n: int, conf: BenchConf) -> int:
@@ -183,20 +248,15 @@ def prepare_redkitchen(conf: BenchConf, work: Path, split: bool, progress: Progr
         "stride": stride,
         "split": split,
     }
-    if (
-        _reusable(bundle_path, sift_path, conf.reuse)
-        and stamp.is_file()
-        and json.loads(stamp.read_text()) == source_id
-    ):
-        log.info("%s: reusing %s", name, bundle_path)
-    else:
+    reuse = _reusable(bundle_path, sift_path, conf.reuse)
+    if not cached(stamp, source_id, reuse, str(bundle_path)):
         if split:
             k = restrict_pose_file(poses, map_poses, 0, n // 2 - 1)
             log.info("%s: %d poses of frames 0-%d in %s", name, k, n // 2 - 1, map_poses)
         build_known_poses_maps(
             name, data, map_poses, camera, stride, work / "maps", suite_work, sift_path, progress
         )
-        stamp.write_text(json.dumps(source_id))
+        stamp_cached(stamp, source_id)
     gt = load_groundtruth(poses, source.names(), [source.stamp(i) for i in range(n)], source.fps)
     return Prepared(
         name, "real", data, camera, gt, start, _limit(count, conf), bundle_path, sift_path, info
@@ -227,17 +287,14 @@ def prepare_synthetic(conf: BenchConf, work: Path, kind: str, progress: Progress
     sift_path = suite_work / "sift-map.npz"
     sconf = synth_conf(conf, kind)
     stamp = suite_work / "synth-conf.json"
-    same_data = (
-        conf.reuse
-        and (data / "scene.json").is_file()
-        and stamp.is_file()
-        and json.loads(stamp.read_text()) == json.loads(json.dumps(sconf.model_dump()))
-    )
+    key = {"synth": json.loads(json.dumps(sconf.model_dump()))}
+    reuse = conf.reuse and (data / "scene.json").is_file()
+    same_data = cached(stamp, key, reuse, f"{name}'s rendered data {data}")
     if not same_data:
         progress(name, 0.0, "rendering the synthetic data set")
         t0 = time.perf_counter()
         res = synth_run(sconf, data, overwrite=True)
-        stamp.write_text(json.dumps(sconf.model_dump()))
+        stamp_cached(stamp, key)
         log.info(
             "%s: rendered %d mapping views and %d frames in %.1f s",
             name,
@@ -246,9 +303,9 @@ def prepare_synthetic(conf: BenchConf, work: Path, kind: str, progress: Progress
             time.perf_counter() - t0,
         )
     camera = Camera.from_json(data / "camera.json")
-    if same_data and _reusable(bundle_path, sift_path, True):
-        log.info("%s: reusing %s", name, bundle_path)
-    else:
+    map_stamp = suite_work / "map-source.json"
+    reuse = same_data and _reusable(bundle_path, sift_path, True)
+    if not cached(map_stamp, key, reuse, str(bundle_path)):
         build.main(
             build.preset("default"),
             name,
@@ -260,6 +317,7 @@ def prepare_synthetic(conf: BenchConf, work: Path, kind: str, progress: Progress
         build_sift_map_of_model(
             data / "sparse", data / "images", camera, suite_work, sift_path, progress
         )
+        stamp_cached(map_stamp, key)
     source = FrameSource(data / "video")
     n = len(source)
     gt = load_groundtruth(

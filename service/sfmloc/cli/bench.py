@@ -111,7 +111,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--no-tune", action="store_true", help="skip the SIFT peer's tuning (use its defaults)"
     )
     p.add_argument(
-        "--reuse", action="store_true", help="reuse maps and synthetic data already under OUT/work"
+        "--reuse",
+        action="store_true",
+        help="reuse maps and synthetic data already under OUT/work when the same input and the "
+        "same builder (bundle format, sfmloc version, builder source hash) made them; the log "
+        "says which are reused or rebuilt, and why",
     )
     p.add_argument(
         "--quick",
