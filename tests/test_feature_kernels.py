@@ -174,7 +174,7 @@ def test_harris_buffers_are_not_shared_between_results_shapes_or_threads():
     harris_response(a[::-1].copy())
     np.testing.assert_array_equal(ra, reference_response(a))
     np.testing.assert_array_equal(rb, reference_response(b))
-    # Shapes beyond the cache (more than it keeps, and one over its pixel limit) still agree.
+    # Several shapes in turn (the arena grows for the largest, over 1 MP) still agree.
     big = blocks_image(5, (1100, 1000))
     for img in (blocks_image(6, (50, 60)), blocks_image(7, (51, 60)), big, a):
         assert_same_corners(img, rel_threshold=0.001, border=4)
@@ -285,3 +285,36 @@ def test_harris_equals_the_plain_formula_on_consecutive_redkitchen_frames(redkit
         ]
         cs = tracker_sequence(grays, max_corners=1500, border=16)
         assert min(len(c) for c in cs) > 100
+
+
+def test_harris_buffers_come_from_one_arena_across_a_pyramid_and_large_images(monkeypatch):
+    """Every shape's buffers are views of one arena per thread, grown to the largest shape and
+    kept (the builder's pyramid cycles through 11 shapes per image; 1920x1440 images had fresh
+    buffers on every call): the same corners bit for bit at every level, in any order, with the
+    arena grown, reused and released, and over its bound (fresh buffers)."""
+    from sfmloc.features.pyramid import build_pyramid, level_scales
+
+    harris.release_buffers()
+    big = blocks_image(20, (1440, 1920))
+    pyramid = build_pyramid(blocks_image(21, (480, 640)), level_scales(2, 4, 2))
+    builder = SETTINGS[1]
+    for level in pyramid:  # 905x679 (off the vector width) down to 160x120
+        assert_same_corners(level.image, **builder)
+    arena = harris._local.arena
+    assert arena.size == harris._Workspace.nbytes(pyramid[0].image.shape)
+    for level in pyramid[::-1]:  # the other way round: the same arena, the same corners
+        assert_same_corners(level.image, **SETTINGS[0])
+    assert harris._local.arena is arena and len(harris._local.shapes) == len(pyramid)
+    assert_same_corners(big, **builder)  # grows it: 72 MB, under the bound
+    assert harris._local.arena.size == harris._Workspace.nbytes(big.shape) > arena.size
+    grown = harris._local.arena
+    for img in (pyramid[3].image, big, pyramid[0].image):
+        assert_same_corners(img, **builder)
+    assert harris._local.arena is grown
+    harris.release_buffers()
+    assert not hasattr(harris._local, "arena")
+    monkeypatch.setattr(harris, "_ARENA_MAX_BYTES", harris._Workspace.nbytes(big.shape) - 1)
+    assert_same_corners(big, **builder)  # over the bound: fresh buffers, not kept
+    assert not hasattr(harris._local, "arena")
+    assert_same_corners(pyramid[2].image, **builder)
+    assert harris._local.arena.size == harris._Workspace.nbytes(pyramid[2].image.shape)

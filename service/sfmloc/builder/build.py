@@ -38,6 +38,7 @@ from ..cameras import Camera
 from ..config import StrictModel, merge_presets
 from ..errors import BuildCancelled, BuildError, ImageDecodeError
 from ..features.daisy import RAW_DIM, DaisyExtractor, Pca
+from ..features.harris import release_buffers
 from ..features.pyramid import level_scales
 from ..io.colmap import Image, Reconstruction
 from ..map.bundle import MapData, validate_name, write_bundle
@@ -149,7 +150,8 @@ def build_errors(stages: StageProgress, out_dir: str | Path) -> Iterator[None]:
 def release_freed_memory() -> None:
     """Hand freed heap pages back to the system between stages: once glibc's mmap threshold
     has grown, large freed arrays stay in the heap and the resident set keeps an earlier
-    stage's peak. A no-op where there is no glibc."""
+    stage's peak (the Harris detector's buffers too). A no-op where there is no glibc."""
+    release_buffers()
     try:
         ctypes.CDLL("libc.so.6").malloc_trim(0)
     except (OSError, AttributeError):

@@ -14,7 +14,6 @@ corners are kept.
 from __future__ import annotations
 
 import threading
-from collections import OrderedDict
 from dataclasses import dataclass
 
 import cv2
@@ -91,7 +90,7 @@ class Corners:
 # 3.49 against 3.97 ms per detect_corners call (x0.88; 50 frames x 5). The response alone was
 # x0.87-0.92 of _Tensor + response_into; a separate compiled maximum test was slower than
 # cv2.dilate and the compare (0.83 against 0.76 ms). At 1920x1440 x0.29-0.36, only because images
-# over _CACHE_MAX_PIXELS get fresh buffers here (page faults); the engine detects at 640x480.
+# over 1 MP got fresh buffers here then (page faults; now an arena, below).
 # The same corners: the same pixels in every frame (200 frames, 60,361 corners), sub-pixel
 # positions within 2.9e-5 px, 47% of the response pixels bit for bit; the rest differ by 1-2 ulp
 # (relative 1.6e-6 at most) because OpenCV's symmetric row filter rounds through fused
@@ -117,42 +116,108 @@ class _Workspace:
     on this machine the response took 4-20 ms per frame with fresh arrays and about 1 ms in
     reused buffers (the same arithmetic, the same results)."""
 
-    def __init__(self, shape: tuple[int, int]) -> None:
+    dx: np.ndarray
+    dy: np.ndarray
+    a: np.ndarray
+    b: np.ndarray
+    c: np.ndarray
+    r: np.ndarray
+    s: np.ndarray
+    gt: np.ndarray
+    m: np.ndarray
+    # (dtype, trailing shape) of each buffer, in arena order; the interleaved (h, w, 3) one is
+    # needed only at widths off the vector width (``_Tensor``)
+    _LAYOUT = (
+        ("dx", np.int16, ()),
+        ("dy", np.int16, ()),
+        ("a", np.float32, ()),
+        ("b", np.float32, ()),
+        ("c", np.float32, ()),
+        ("r", np.float32, ()),
+        ("s", np.float32, ()),
+        ("gt", np.bool_, ()),
+        ("m", np.float32, (3,)),
+    )
+
+    def __init__(self, shape: tuple[int, int], arena: np.ndarray | None = None) -> None:
+        """Buffers for ``shape``: views into ``arena`` (uint8, at least ``nbytes(shape)``), or
+        fresh arrays."""
         self.shape = shape
-        self.dx, self.dy = (np.empty(shape, np.int16) for _ in range(2))
-        a, b, c, r, s = (np.empty(shape, np.float32) for _ in range(5))
-        self.a, self.b, self.c, self.r, self.s = a, b, c, r, s
-        self.gt = np.empty(shape, bool)
-        self._interleaved: np.ndarray | None = None
+        at = 0
+        for name, dtype, tail in self._buffers(shape):
+            full = shape + tail
+            if arena is None:
+                buf = np.empty(full, dtype)
+            else:
+                n = int(np.prod(full)) * np.dtype(dtype).itemsize
+                buf = arena[at : at + n].view(dtype).reshape(full)
+                at += _aligned(n)
+            setattr(self, name, buf)
+
+    @classmethod
+    def _buffers(cls, shape: tuple[int, int]) -> tuple:
+        return cls._LAYOUT if shape[1] % _SIMD_COLUMNS else cls._LAYOUT[:-1]
+
+    @classmethod
+    def nbytes(cls, shape: tuple[int, int]) -> int:
+        """The arena bytes ``shape``'s buffers take (26 per pixel, 38 off the vector width)."""
+        px = shape[0] * shape[1]
+        return sum(
+            _aligned(px * int(np.prod(t, dtype=np.int64)) * np.dtype(d).itemsize)
+            for _, d, t in cls._buffers(shape)
+        )
 
     def interleaved(self) -> np.ndarray:
-        """An (h, w, 3) float32 buffer, made on first use (widths off the vector width)."""
-        if self._interleaved is None:
-            self._interleaved = np.empty(self.shape + (3,), np.float32)
-        return self._interleaved
+        """The (h, w, 3) float32 buffer (widths off the vector width)."""
+        return self.m
 
 
-# One workspace per thread and image shape (the engine detects at one shape; the builder's
-# pyramid cycles through several). Images over the pixel limit get a workspace per call, so a
-# long-lived process does not hold the 26 bytes per pixel of a large image.
-_CACHE_SHAPES = 2
 # Widths at which one-channel and interleaved blurs round alike: a multiple of every vector
 # width (AVX-512: 16 floats), so neither has a scalar tail. 640, 320, 1280 are.
 _SIMD_COLUMNS = 16
-_CACHE_MAX_PIXELS = 1 << 20
+# One arena of bytes per thread that the workspace of every image shape is carved from, so its
+# pages are faulted in once whatever shapes follow: the builder's pyramid cycles through 11
+# shapes per image (with one workspace per shape and two shapes kept, every level's buffers
+# were fresh in every image), and images over 1 MP had none. It grows to the largest shape
+# seen up to _ARENA_MAX_BYTES (per thread, held until ``release_buffers``); larger shapes get
+# fresh buffers per call. 640x480's pyramid with its two levels up (905x679 the largest, off the
+# vector width: 38 bytes per pixel) takes 23 MB; 1920x1440's 210 MB (2715x2036). The builder's
+# detection on a 1920x1440 pyramid (11 levels, redkitchen frames upsampled x3, 19 images, one
+# process interleaving this and the two-shape cache image by image, nice 19, load 9): x0.59 CPU
+# with this bound (835 -> 493 ms per image), x0.96 with 96 MB (the two levels up fresh); one
+# 1920x1440 call x0.71; 640x480's pyramid x0.87. The same corners and responses, bit for bit.
+_ARENA_MAX_BYTES = 256 << 20
+_MAX_SHAPES = 64
+_ALIGN = 64  # bytes: each buffer starts on a cache line, as numpy's large allocations do
 _local = threading.local()
 
 
+def _aligned(n: int) -> int:
+    return -(-n // _ALIGN) * _ALIGN
+
+
+def release_buffers() -> None:
+    """Drop this thread's arena (the builder does between stages: its later stages peak)."""
+    _local.__dict__.pop("arena", None)
+    _local.__dict__.pop("shapes", None)
+
+
 def _workspace(shape: tuple[int, int]) -> _Workspace:
-    if shape[0] * shape[1] > _CACHE_MAX_PIXELS:
+    need = _Workspace.nbytes(shape)
+    if need > _ARENA_MAX_BYTES:
         return _Workspace(shape)
-    cache: OrderedDict[tuple[int, int], _Workspace] | None = getattr(_local, "cache", None)
-    if cache is None:
-        cache = _local.cache = OrderedDict()
-    ws = cache.pop(shape, None) or _Workspace(shape)
-    cache[shape] = ws
-    while len(cache) > _CACHE_SHAPES:
-        cache.popitem(last=False)
+    arena: np.ndarray | None = getattr(_local, "arena", None)
+    if arena is None or arena.size < need:
+        # over-allocated by one cache line: the arena's start is aligned by hand
+        raw = np.empty(need + _ALIGN, np.uint8)
+        arena = raw[-raw.ctypes.data % _ALIGN :][:need]
+        _local.arena, _local.shapes = arena, {}
+    shapes: dict[tuple[int, int], _Workspace] = _local.shapes
+    ws = shapes.get(shape)
+    if ws is None:
+        if len(shapes) >= _MAX_SHAPES:  # views only, but a server may see any query size
+            shapes.clear()
+        ws = shapes[shape] = _Workspace(shape, arena)
     return ws
 
 
