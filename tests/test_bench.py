@@ -382,7 +382,7 @@ def test_sift_peer_pose_is_right_on_synthetic_frames(sift_world, search):
         assert res.inliers >= 50 and set(res.timings_ms) >= {"extract", "match", "pose", "total"}
 
 
-def test_throughput_rows_show_the_worst_client_and_the_relocalized_share():
+def test_throughput_rows_show_the_worst_client_and_the_relocalized_share_of_poses():
     from sfmloc.bench.throughput import aggregate
 
     def client(received: int, statuses: dict[str, int]) -> dict:
@@ -400,11 +400,14 @@ def test_throughput_rows_show_the_worst_client_and_the_relocalized_share():
     row = aggregate(
         [client(150, {"TRACKING": 140, "RELOCALIZED": 10}), client(60, {"RELOCALIZED": 50})], 30.0
     )
-    assert row["delivered_hz_worst_client"] == 6.0  # 60 of 300 frames at 30 Hz
-    assert row["delivered_hz_per_client"] == 10.5
+    # 50 poses of 300 frames at 30 Hz: its 10 error answers (DEADLINE_EXCEEDED) are not poses
+    assert row["delivered_hz_worst_client"] == 5.0
+    assert row["delivered_hz_per_client"] == 10.0 and row["delivered_hz_total"] == 20.0
+    assert row["dropped_pct_worst_client"] == 250 / 3 and row["errors"] == 10
+    assert row["dropped_pct"] == 100.0 * 400 / 600  # 200 poses of 600 frames
     assert row["relocalized_pct"] == 30.0  # 60 of the 200 poses without error
     cells = report.throughput_rows({"suites": {"throughput": {"rows": [row]}}})[0]
-    assert cells[-2:] == ["6.0", "30.0%"]
+    assert cells[-2:] == ["5.0", "30.0%"]
 
 
 def test_global_every_frame_prepares_the_bundle_untimed(world, bundle, cam):

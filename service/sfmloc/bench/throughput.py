@@ -45,19 +45,24 @@ def serve_folder(work: Path, bundle: Path) -> Path:
 
 def aggregate(clients: list[dict[str, Any]], rate_hz: float) -> dict[str, Any]:
     """One row per client count: delivered pose rate per client and in total, dropped
-    fraction (frames without a pose), latency p50 (median over clients) and p99 (worst client)."""
+    fraction (frames without a pose: no answer, or an error answer such as DEADLINE_EXCEEDED),
+    latency p50 (median over clients) and p99 (worst client)."""
     sent = sum(c["sent"] for c in clients)
-    recv = sum(c["received"] for c in clients)
-    worst = max((c["drop_pct"] for c in clients), default=float("nan"))
+    # An answer with an error carries no pose: not delivered (they were counted as delivered).
+    posed = [c["received"] - c["errors"] for c in clients]
+    worst = max(
+        (100.0 * (c["sent"] - p) / c["sent"] for c, p in zip(clients, posed) if c["sent"]),
+        default=float("nan"),
+    )
     # A client sends `sent` frames in sent / rate seconds; poses delivered over that time.
-    per_client = [c["received"] * rate_hz / c["sent"] if c["sent"] else 0.0 for c in clients]
+    per_client = [p * rate_hz / c["sent"] if c["sent"] else 0.0 for c, p in zip(clients, posed)]
     # Poses by status over all clients: a share of RELOCALIZED far above the 1-client run's is
     # the collapse under overload (every frame after a gap relocalizes, at 5-20x the CPU).
     statuses: dict[str, int] = {}
     for c in clients:
         for k, v in c.get("statuses", {}).items():
             statuses[k] = statuses.get(k, 0) + v
-    posed = sum(statuses.values())
+    n_status = sum(statuses.values())
     return {
         "clients": len(clients),
         "offered_hz": rate_hz * len(clients),
@@ -66,10 +71,10 @@ def aggregate(clients: list[dict[str, Any]], rate_hz: float) -> dict[str, Any]:
         # fairness: the client served least, against the mean above
         "delivered_hz_worst_client": float(min(per_client, default=float("nan"))),
         "statuses": statuses,
-        "relocalized_pct": 100.0 * statuses.get("RELOCALIZED", 0) / posed
-        if posed
+        "relocalized_pct": 100.0 * statuses.get("RELOCALIZED", 0) / n_status
+        if n_status
         else float("nan"),
-        "dropped_pct": 100.0 * (sent - recv) / sent if sent else float("nan"),
+        "dropped_pct": 100.0 * (sent - sum(posed)) / sent if sent else float("nan"),
         "dropped_pct_worst_client": float(worst),
         "latency_ms_p50": float(np.nanmedian([c["latency_ms_p50"] for c in clients])),
         "latency_ms_p99": float(np.nanmax([c["latency_ms_p99"] for c in clients])),
