@@ -238,3 +238,21 @@ def test_drops_are_counted_in_their_window_from_the_answers_around_it():
     assert _dropped_within(lg, 3.0, 6.0) == 2  # frames 4 and 6 (7: after the window)
     assert _dropped_within(lg, 0.0, 9.0) == 4  # 1, 4, 6, 7
     assert _dropped_within(lg, 8.5, 9.5) == 0  # nothing answered there or after
+
+
+def test_a_restart_that_leaves_a_client_without_a_pose_is_counted_not_warned():
+    """After a restart the time until every client posed is the last client's, nan when one
+    never posed (whatever its place in the list: Python's max of [1.0, nan] is 1.0), and a run
+    where no restart posed every client summarizes to nan without numpy's All-NaN warning."""
+    import warnings
+
+    from sfmloc.bench.reliability import _nanmax, every_client_posed_s
+
+    assert every_client_posed_s([0.4, 1.2, 0.7]) == 1.2
+    nan = float("nan")
+    for rec in ([1.0, nan], [nan, 1.0], [nan, nan], []):
+        assert math.isnan(every_client_posed_s(rec)), rec
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert math.isnan(_nanmax([every_client_posed_s([nan])] * 2))
+        assert _nanmax([nan, 2.5, 1.0]) == 2.5

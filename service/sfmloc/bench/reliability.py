@@ -1671,11 +1671,17 @@ def run_restart(
                             rec[j] = after[0] - t_start
                 time.sleep(0.05)
             orphans.append(sum(_alive(p) for p in kids))
-            first_pose_s.append(max(rec))
-            after_serving_s.append(max(rec) - serving_s[-1])
+            first_pose_s.append(every_client_posed_s(rec))
+            after_serving_s.append(first_pose_s[-1] - serving_s[-1])
+            posed = (
+                f"poses after {first_pose_s[-1]:.2f} s"
+                if np.isfinite(first_pose_s[-1])
+                else f"NO POSE within {interval_s:g} s for {int(np.isnan(rec).sum())} of "
+                f"{clients} client(s)"
+            )
             _log(
-                f"restart {i + 1}/{restarts}: SERVING after {serving_s[-1]:.2f} s, poses after "
-                f"{first_pose_s[-1]:.2f} s, old workers alive {orphans[-1]} "
+                f"restart {i + 1}/{restarts}: SERVING after {serving_s[-1]:.2f} s, {posed}, "
+                f"old workers alive {orphans[-1]} "
                 f"(killed at +{t_start - t_kill:.2f} s before the start)"
             )
         t1 = time.monotonic()
@@ -1694,6 +1700,12 @@ def run_restart(
         with contextlib.suppress(ValueError, IndexError):
             longest = max(longest, int(ln.split("NO ANSWER for")[1].split()[0]))
     summary = out.strip().splitlines()[-1] if out.strip() else ""
+    without_pose = int(np.sum(~np.isfinite(first_pose_s)))
+    if without_pose:
+        _log(
+            f"restart: {without_pose} of {restarts} restart(s) left a client without a pose "
+            f"within {interval_s:g} s (first_pose_s nan there; first_pose_s_max over the others)"
+        )
     return {
         "restarts": restarts,
         "clients": clients,
@@ -1702,10 +1714,10 @@ def run_restart(
         "serving_s": serving_s,
         "serving_s_max": max(serving_s, default=float("nan")),
         "first_pose_s": first_pose_s,
-        "first_pose_s_max": float(np.nanmax(first_pose_s)) if first_pose_s else float("nan"),
+        "first_pose_s_max": _nanmax(first_pose_s),  # nan when no restart posed every client
         "after_serving_s": after_serving_s,
         "first_start_s": first_start_s,
-        "restarts_without_pose": int(np.sum(~np.isfinite(first_pose_s))),
+        "restarts_without_pose": without_pose,
         "old_workers_alive_max": max(orphans, default=0),
         "cli_exit": cli.returncode,
         "cli_outage_lines": len(outage_lines),
@@ -1714,6 +1726,14 @@ def run_restart(
         **_totals(per),
         "clients_detail": per,
     }
+
+
+def every_client_posed_s(first_pose: list[float]) -> float:
+    """Seconds after a restart until every client had a pose again (each client's first, nan
+    for none): the last of them, nan when a client had none (Python's max of a list holding
+    nan depends on the order)."""
+    a = np.asarray(first_pose, float)
+    return float(a.max()) if a.size and not np.isnan(a).any() else float("nan")
 
 
 def _totals(per: list[dict]) -> dict:
