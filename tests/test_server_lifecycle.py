@@ -507,3 +507,46 @@ def test_a_worker_that_cannot_start_fails_the_pool_loudly(tmp_path, monkeypatch)
         assert "Z" not in out.stdout.split()  # no zombie child
     finally:
         pool.stop()
+
+
+def test_free_ports_are_distinct_free_and_outside_the_kernels_and_other_workers_ranges():
+    """free_port() hands out ports below the ephemeral range (where a released bind(0) port
+    could be taken by any connect before the server binds it), each xdist worker from its own
+    block, never the same twice in a process, skipping ports someone listens on."""
+    import socket
+    import sys
+
+    from sfmloc import testing
+
+    block = testing.port_block()
+    ports = [testing.free_port() for _ in range(100)]
+    assert len(set(ports)) == 100 and all(p in block for p in ports)
+    assert max(ports) < testing.ephemeral_low()
+    # ports in use are skipped: hold the next three (the cursor goes in turn through the block)
+    held = []
+    for k in range(1, 4):
+        s = socket.socket()
+        s.bind(("127.0.0.1", block[(block.index(ports[-1]) + k) % len(block)]))
+        s.listen()
+        held.append(s)
+    try:
+        p = testing.free_port()
+        assert p not in [s.getsockname()[1] for s in held] and p in block
+        assert (block.index(p) - block.index(ports[-1])) % len(block) >= 4
+    finally:
+        for s in held:
+            s.close()
+    # two xdist workers' processes: disjoint blocks, whatever their random starts
+    code = "from sfmloc.testing import free_port; print(*[free_port() for _ in range(50)])"
+    got = []
+    for worker in ("gw0", "gw1"):
+        env = {**os.environ, "PYTEST_XDIST_WORKER": worker}
+        out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
+        assert out.returncode == 0, out.stderr
+        got.append({int(v) for v in out.stdout.split()})
+    assert len(got[0]) == len(got[1]) == 50 and not got[0] & got[1]
+    size = (testing.ephemeral_low() - testing.PORT_LOW) // testing.PORT_BLOCKS
+    for i, ports_i in enumerate(got):
+        assert all(
+            testing.PORT_LOW + i * size <= p < testing.PORT_LOW + (i + 1) * size for p in ports_i
+        )

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import os
+import random
 import signal
 import socket
 import subprocess
@@ -92,10 +93,62 @@ class ServerThread:
         self.stop()
 
 
-def free_port() -> int:
+# Ports for test servers come from below the kernel's ephemeral range: a port that bind(0)
+# picked and we released (the old way) could be handed to any connect() or another process's
+# bind(0) before the server bound it, a race when tests run in parallel (pytest-xdist). Each
+# xdist worker takes its own block (any other process the last one), from a random start, in
+# turn, skipping ports in use; the lowest port of the blocks:
+PORT_LOW = 16384
+PORT_BLOCKS = 16
+_port_lock = threading.Lock()
+_port_cursor: list[int] = []
+
+
+def ephemeral_low() -> int:
+    """The first port of the kernel's ephemeral range (ip_local_port_range; 32768 elsewhere)."""
+    try:
+        with open("/proc/sys/net/ipv4/ip_local_port_range") as f:
+            return int(f.read().split()[0])
+    except (OSError, ValueError, IndexError):
+        return 32768
+
+
+def port_block() -> range:
+    """This process's ports: block N of an xdist worker gwN, else the last block."""
+    size = (ephemeral_low() - PORT_LOW) // PORT_BLOCKS
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "")
+    digits = worker[2:] if worker.startswith("gw") else ""
+    i = int(digits) % PORT_BLOCKS if digits.isdigit() else PORT_BLOCKS - 1
+    return range(PORT_LOW + i * size, PORT_LOW + (i + 1) * size)
+
+
+def _bindable(port: int) -> bool:
     with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+        return True
+
+
+def free_port() -> int:
+    """A loopback TCP port nobody listens on, for a server about to bind it: the next free one
+    of this process's ``port_block`` (never one of another xdist worker's or the kernel's
+    ephemeral ones)."""
+    block = port_block()
+    if len(block) < 64:  # an ephemeral range reaching down here: the kernel picks
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            return s.getsockname()[1]
+    with _port_lock:
+        if not _port_cursor:
+            _port_cursor.append(random.randrange(len(block)))
+        for _ in range(len(block)):
+            port = block[_port_cursor[0] % len(block)]
+            _port_cursor[0] = (_port_cursor[0] + 1) % len(block)
+            if _bindable(port):
+                return port
+    raise OSError(f"no free port in {block.start}-{block.stop - 1}")
 
 
 def serve_command(
