@@ -207,6 +207,48 @@ def test_a_negative_keyframe_interval_is_refused_clearly(tmp_path):
     assert "Traceback" not in r.stderr and not out.exists()
 
 
+@pytest.mark.parametrize(
+    "field, flag, bad, bound",
+    [
+        ("min_rotation_deg", "--kf-rotation", -5.0, 0),
+        ("min_translation", "--kf-translation", -0.05, 0),
+        ("min_flow", "--kf-flow", -0.01, 0),
+        ("sharpness_window", "--kf-window", 0, 1),
+    ],
+)
+def test_keyframe_thresholds_below_their_bound_are_refused(field, flag, bad, bound):
+    """A negative motion threshold silently meant 0 (every frame moved enough) and a window
+    under 1 meant 1: the config refuses them, naming the field; at the bound they are taken."""
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError, match=rf"{field}\n.*greater than or equal to {bound}"):
+        VideoConf(**{field: bad})
+    assert getattr(VideoConf(**{field: bound}), field) == bound
+
+
+def test_keyframe_options_are_refused_by_the_cli_with_every_bad_flag_named(tmp_path):
+    """``sfmloc build --video`` with several out-of-range keyframe flags: exit 2, each flag and
+    value named, before any decoding, no traceback."""
+    out = tmp_path / "maps"
+    r = subprocess.run(
+        [sys.executable, "-m", "sfmloc", "build", "v", "--out", str(out)]
+        + ["--video", str(tmp_path / "none.avi"), "--kf-rotation", "-5", "--kf-translation"]
+        + ["-0.1", "--kf-flow", "-1", "--kf-window", "0"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode == 2, (r.returncode, r.stderr)
+    for msg in (
+        "--kf-rotation -5.0: Input should be greater than or equal to 0",
+        "--kf-translation -0.1: Input should be greater than or equal to 0",
+        "--kf-flow -1.0: Input should be greater than or equal to 0",
+        "--kf-window 0: Input should be greater than or equal to 1",
+    ):
+        assert msg in r.stderr, r.stderr
+    assert "Traceback" not in r.stderr and not out.exists()
+
+
 def test_a_map_built_from_an_encoded_video_localizes(walk, video, tmp_path):
     """sfmloc build --video --poses (the CLI, a subprocess): keyframes triangulated with their
     poses; the map localizes the video's own frames (decoded from the same lossy video)."""

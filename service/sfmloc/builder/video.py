@@ -58,11 +58,12 @@ log = logging.getLogger(__name__)
 class VideoConf(StrictModel):
     # Posed: a keyframe after this much rotation or translation (relative to the scene depth)
     # since the last one. On redkitchen (30 Hz, handheld) 5 deg / 5% of the depth keep about
-    # one frame in ten, the spacing of the every-10th folder map.
-    min_rotation_deg: float = 5.0
-    min_translation: float = 0.05
+    # one frame in ten, the spacing of the every-10th folder map. These three are refused below
+    # 0 (a negative threshold silently meant 0: every frame has enough motion).
+    min_rotation_deg: float = Field(5.0, ge=0)
+    min_translation: float = Field(0.05, ge=0)
     # Images only (or no depth estimate): accumulated median corner motion, of the diagonal.
-    min_flow: float = 0.05
+    min_flow: float = Field(0.05, ge=0)
     # Posed: ... or after this long without one (0: motion only). A camera that dwells (slow motion,
     # a look around one spot) gets keyframes there too: that is where most of the frames a
     # tracker will see are taken. Redkitchen, 1,000 frames as MJPG with their poses, replay of
@@ -73,7 +74,9 @@ class VideoConf(StrictModel):
     # relocalized). Not the decoding: every 10th frame decoded from the video, 0.275 cm; the
     # original JPEGs of the 73 motion keyframes, 0.317 cm.
     max_interval_s: float = Field(0.2, ge=0)  # refused below 0 (it would silently mean off)
-    sharpness_window: int = 5  # frames: the sharpest of a trigger frame and the next ones
+    # frames: the sharpest of a trigger frame and the next ones (refused below 1: 0 or less
+    # silently meant 1)
+    sharpness_window: int = Field(5, ge=1)
     max_pose_gap_s: float = 0.2  # interpolate only between poses at most this far apart
     max_time_diff_s: float = 0.02  # frames this close beyond the log's ends take its end pose
     analysis_width: int = 640  # px: motion and sharpness on a copy at most this wide
