@@ -152,6 +152,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "0: no limit)",
     )
     p.add_argument(
+        "--relocalize-share",
+        type=float,
+        metavar="F",
+        help="the most of a stream worker's time relocalizing frames take while tracked "
+        "sessions' frames wait (default 0.5; 1: no cap; with --worker-queue > 0)",
+    )
+    p.add_argument(
         "--frame-budget-ms",
         type=float,
         metavar="MS",
@@ -219,6 +226,7 @@ def overrides_from_args(args: argparse.Namespace) -> dict:
         "metrics_port": args.metrics_port,
         "max_pending": args.max_pending,
         "worker_queue": args.worker_queue,
+        "relocalize_share": args.relocalize_share,
         "frame_budget_ms": args.frame_budget_ms,
         "frame_hang_ms": args.frame_hang_ms,
         "server_id": args.server_id,

@@ -109,6 +109,7 @@ class Server:
             frame_budget_ms=conf.frame_budget_ms,
             frame_cpu_budget_ms=conf.frame_cpu_budget_ms,
             worker_queue=conf.worker_queue,
+            relocalize_share=conf.relocalize_share,
             frame_hang_ms=conf.frame_hang_ms,
             track_gap_s=conf.engine.max_frame_gap_s,
         )

@@ -93,6 +93,14 @@ class ServerConfig(StrictModel):
     # sfmloc bench --suites throughput, 2 and 0 alternating): 16 clients 28.4 / 65.8 Hz, then
     # 54.8 / 41.8 Hz: no gain beyond run-to-run variance; 16 clients collapse with either.
     worker_queue: int = Field(2, ge=0, le=64)
+    # The most of a stream worker's time that relocalizing frames (a session's first frame,
+    # after LOST or past the engine's frame gap: global matching, ~6x a tracked frame) take
+    # while tracked sessions of that worker have frames waiting (sessions.py): after a
+    # relocalization, the worker's tracked sessions get their turns first until they had as
+    # much again (0.5). 1: no cap, earliest deadline only (16 clients on 2 workers collapsed:
+    # every session relocalized, one round of relocalizations took past the frame gap, so each
+    # next frame relocalized again). Only with worker_queue > 0 (turns are chosen).
+    relocalize_share: float = Field(0.5, gt=0, le=1)
     max_sessions: int = Field(256, ge=1)
     # Zenoh frame envelopes larger than this are refused (RESOURCE_EXHAUSTED).
     max_frame_bytes: int = Field(16 * 1024 * 1024, ge=1024)
