@@ -385,7 +385,8 @@ def test_sift_peer_pose_is_right_on_synthetic_frames(sift_world, search):
 def test_throughput_rows_show_the_worst_client_and_the_relocalized_share_of_poses():
     from sfmloc.bench.throughput import aggregate
 
-    def client(received: int, statuses: dict[str, int]) -> dict:
+    def client(received: int, statuses: dict[str, int], after_1s: dict[str, int]) -> dict:
+        errors = received - sum(statuses.values())
         return {
             "sent": 300,
             "received": received,
@@ -393,12 +394,18 @@ def test_throughput_rows_show_the_worst_client_and_the_relocalized_share_of_pose
             "latency_ms_p50": 20.0,
             "latency_ms_p99": 40.0,
             "engine_ms_mean": 12.0,
-            "errors": received - sum(statuses.values()),
+            "errors": errors,
             "statuses": statuses,
+            "statuses_after_1s": after_1s,
+            "error_codes": {"DEADLINE_EXCEEDED": errors} if errors else {},
         }
 
     row = aggregate(
-        [client(150, {"TRACKING": 140, "RELOCALIZED": 10}), client(60, {"RELOCALIZED": 50})], 30.0
+        [
+            client(150, {"TRACKING": 140, "RELOCALIZED": 10}, {"TRACKING": 135, "RELOCALIZED": 5}),
+            client(60, {"RELOCALIZED": 50}, {"TRACKING": 15, "RELOCALIZED": 45}),
+        ],
+        30.0,
     )
     # 50 poses of 300 frames at 30 Hz: its 10 error answers (DEADLINE_EXCEEDED) are not poses
     assert row["delivered_hz_worst_client"] == 5.0
@@ -406,8 +413,11 @@ def test_throughput_rows_show_the_worst_client_and_the_relocalized_share_of_pose
     assert row["dropped_pct_worst_client"] == 250 / 3 and row["errors"] == 10
     assert row["dropped_pct"] == 100.0 * 400 / 600  # 200 poses of 600 frames
     assert row["relocalized_pct"] == 30.0  # 60 of the 200 poses without error
+    # after the start's burst: 50 of the 200 poses of frames sent after the first second
+    assert row["relocalized_pct_after_1s"] == 25.0
+    assert row["error_codes"] == {"DEADLINE_EXCEEDED": 10}
     cells = report.throughput_rows({"suites": {"throughput": {"rows": [row]}}})[0]
-    assert cells[-2:] == ["5.0", "30.0%"]
+    assert cells[-4:] == ["5.0", "30.0%", "25.0%", "10"]
 
 
 def test_global_every_frame_prepares_the_bundle_untimed(world, bundle, cam):

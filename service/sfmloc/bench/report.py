@@ -181,6 +181,11 @@ def throughput_rows(results: dict) -> list[list[str]]:
             f1(r.get("capacity_hz"), 0),
             f1(r.get("delivered_hz_worst_client")),
             f1(r.get("relocalized_pct")) + ("%" if "relocalized_pct" in r else ""),
+            # After the start's burst of relocalizations (every session's first frame).
+            f1(r.get("relocalized_pct_after_1s"))
+            + ("%" if "relocalized_pct_after_1s" in r else ""),
+            # Answers without a pose (DEADLINE_EXCEEDED under overload), in "dropped" too.
+            str(r["errors"]) if "error_codes" in r else "n/a",
         ]
         for r in t["rows"]
     ]
@@ -231,6 +236,8 @@ THROUGHPUT_HEADER = [
     "capacity (Hz)",
     "worst client (Hz)",
     "poses relocalized",
+    "relocalized after 1 s",
+    "error answers",
 ]
 
 

@@ -45,8 +45,10 @@ def serve_folder(work: Path, bundle: Path) -> Path:
 
 def aggregate(clients: list[dict[str, Any]], rate_hz: float) -> dict[str, Any]:
     """One row per client count: delivered pose rate per client and in total, dropped
-    fraction (frames without a pose: no answer, or an error answer such as DEADLINE_EXCEEDED),
-    latency p50 (median over clients) and p99 (worst client)."""
+    fraction (frames without a pose: no answer, or an error answer such as DEADLINE_EXCEEDED,
+    counted by code in ``error_codes``), latency p50 (median over clients) and p99 (worst
+    client), and the share of poses that relocalized, of all and of the frames sent after the
+    stream's first second (the start is a burst: every session relocalizes at once)."""
     sent = sum(c["sent"] for c in clients)
     # An answer with an error carries no pose: not delivered (they were counted as delivered).
     posed = [c["received"] - c["errors"] for c in clients]
@@ -58,10 +60,7 @@ def aggregate(clients: list[dict[str, Any]], rate_hz: float) -> dict[str, Any]:
     per_client = [p * rate_hz / c["sent"] if c["sent"] else 0.0 for c, p in zip(clients, posed)]
     # Poses by status over all clients: a share of RELOCALIZED far above the 1-client run's is
     # the collapse under overload (every frame after a gap relocalizes, at 5-20x the CPU).
-    statuses: dict[str, int] = {}
-    for c in clients:
-        for k, v in c.get("statuses", {}).items():
-            statuses[k] = statuses.get(k, 0) + v
+    statuses, settled = _sum(clients, "statuses"), _sum(clients, "statuses_after_1s")
     n_status = sum(statuses.values())
     return {
         "clients": len(clients),
@@ -74,13 +73,26 @@ def aggregate(clients: list[dict[str, Any]], rate_hz: float) -> dict[str, Any]:
         "relocalized_pct": 100.0 * statuses.get("RELOCALIZED", 0) / n_status
         if n_status
         else float("nan"),
+        "relocalized_pct_after_1s": 100.0 * settled.get("RELOCALIZED", 0) / sum(settled.values())
+        if settled
+        else float("nan"),
         "dropped_pct": 100.0 * (sent - sum(posed)) / sent if sent else float("nan"),
         "dropped_pct_worst_client": float(worst),
         "latency_ms_p50": float(np.nanmedian([c["latency_ms_p50"] for c in clients])),
         "latency_ms_p99": float(np.nanmax([c["latency_ms_p99"] for c in clients])),
         "engine_ms_mean": float(np.nanmean([c["engine_ms_mean"] for c in clients])),
         "errors": int(sum(c["errors"] for c in clients)),
+        "error_codes": _sum(clients, "error_codes"),
     }
+
+
+def _sum(clients: list[dict[str, Any]], key: str) -> dict[str, int]:
+    """The counts under ``key`` of every client, summed."""
+    out: dict[str, int] = {}
+    for c in clients:
+        for k, v in c.get(key, {}).items():
+            out[k] = out.get(k, 0) + v
+    return out
 
 
 def run_throughput(
