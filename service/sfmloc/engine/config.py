@@ -308,6 +308,16 @@ class EngineConf(StrictModel):
     # (1/4 of the frames); RANSAC 14.5 -> 7.0 ms CPU mean per relocalization, p95 26 -> 9 ms.
     global_pool_stop: bool = True
     relocalize_max_keypoints: int = 0
+    # Single-image relocalization in two stages (issue 10: the time goes to DAISY, the
+    # search, matching and RANSAC, all per keypoint): first the ``relocalize_first_keypoints``
+    # strongest corners spread over the image (``relocalize.spread_order``), RANSAC at most
+    # ``relocalize_first_iterations`` iterations; a pose far above chance from them
+    # (``global_verify_min_inliers`` inliers and ``global_verify_min_ratio`` of the
+    # ratio-test matches), distinct, is the answer. Otherwise the other corners are described
+    # and searched too, and global matching runs on all of them: the same result as in one
+    # stage. 0: one stage.
+    relocalize_first_keypoints: int = 300
+    relocalize_first_iterations: int = 100
     max_hypotheses: int = 8  # one-to-many 3D hypotheses kept per keypoint
     ransac_threshold_px: float = 4.0  # inlier reprojection error in RANSAC
     ransac_confidence: float = 0.999

@@ -71,6 +71,22 @@ def describe(
     return bundle.pca.project(extractor.describe(gray_prepared, xy, theta))
 
 
+def spread_order(
+    xy: np.ndarray, response: np.ndarray, width: int, height: int, grid: tuple[int, int] = (8, 6)
+) -> np.ndarray:
+    """Keypoint indices, strongest per cell of a ``grid`` over the image first: every cell's
+    strongest (by decreasing response), then every cell's second, ... A prefix of it is the
+    strongest corners spread over the image (a textured corner does not take them all)."""
+    gx, gy = grid
+    cx = np.clip((xy[:, 0] * gx / max(width, 1)).astype(np.int64), 0, gx - 1)
+    cy = np.clip((xy[:, 1] * gy / max(height, 1)).astype(np.int64), 0, gy - 1)
+    cell = cy * gx + cx
+    by_cell = np.lexsort((-response, cell))
+    cs = cell[by_cell]
+    rank = np.arange(len(cs)) - np.searchsorted(cs, cs)  # rank within its cell
+    return by_cell[np.lexsort((-response[by_cell], rank))]
+
+
 def visible_points(camera: Camera, cam_from_world: Rigid3d, points_xyz: np.ndarray) -> np.ndarray:
     """Rows of the map points in front of the camera whose (undistorted) projection falls
     inside its ``width`` x ``height`` image."""
@@ -106,8 +122,12 @@ def global_pose(
     neighbours: tuple[np.ndarray, np.ndarray] | None = None,
     deadline: float | None = None,
     cpu_deadline: float | None = None,
+    strong_only: bool = False,
 ) -> tuple[tuple[PoseEstimate, np.ndarray, np.ndarray, np.ndarray] | None, str]:
-    """``pose_from_global``'s answer and, when it is None, why."""
+    """``pose_from_global``'s answer and, when it is None, why. ``strong_only``: a pose only
+    when RANSAC's is far above chance (``_needs_no_verification``, whatever
+    ``global_verify``), with ``relocalize_first_iterations`` RANSAC iterations at most; no
+    verification by guided matching (``relocalize``'s first stage)."""
     if neighbours is None and conf.global_nprobe:
         neighbours = bundle.index.search(desc, conf.k, nprobe=conf.global_nprobe)
     gm = global_matching(desc, bundle, conf, neighbours)
@@ -115,6 +135,9 @@ def global_pose(
     none = "no pose: too few consistent 2D-3D matches"
     if len(gm.set1_q) < 3:
         return None, none
+    params = conf.ransac()
+    if strong_only:
+        params = replace(params, max_iterations=conf.relocalize_first_iterations)
     K = camera.K
     hyp = np.full((len(desc), conf.max_hypotheses), -1, np.int64)
     if len(gm.set2_q):
@@ -128,7 +151,7 @@ def global_pose(
         xy_u[gm.set2_q],
         X[gm.set2_p],
         K,
-        conf.ransac(),
+        params,
         pool_stop=conf.global_pool_stop,
     )
     if res is None:
@@ -136,7 +159,11 @@ def global_pose(
     est, chosen = res
     check_deadline(deadline, "RANSAC", cpu_deadline)
     out: tuple[PoseEstimate, np.ndarray, np.ndarray, np.ndarray] | None = None
-    strong = conf.global_verify and _needs_no_verification(est.num_inliers, len(gm.set1_q), conf)
+    strong = (conf.global_verify or strong_only) and _needs_no_verification(
+        est.num_inliers, len(gm.set1_q), conf
+    )
+    if strong_only and not strong:
+        return None, "no strong pose from the first keypoints"
     if conf.global_verify and not strong:
         # Guided matching of the whole frame around the RANSAC pose (scope: the map points it
         # makes visible). A right pose gathers the matches the ratio test dropped; a chance one
@@ -341,9 +368,40 @@ def _relocalize(
     extractor = DaisyExtractor()
     prepared = extractor.prepare(gray)
     xy_u = camera.undistort_points(corners.xy) if camera.is_distorted else corners.xy
-    desc = describe(extractor, bundle, prepared, corners.xy)
-    check_deadline(deadline, "description", cpu_deadline)
     est = None
+    neighbours: tuple[np.ndarray, np.ndarray] | None = None  # the search of desc, when made
+    first = conf.relocalize_first_keypoints
+    staged = prior is None and conf.global_nprobe > 0 and 0 < 2 * first <= len(corners)
+    if staged:
+        # First stage: the strongest corners spread over the image. A pose far above chance
+        # from them is the answer; else the rest are described and searched, and global
+        # matching runs on all of them as without the stage (``relocalize_first_keypoints``).
+        sub = np.sort(
+            spread_order(corners.xy, corners.response, camera.width, camera.height)[:first]
+        )
+        desc_1 = describe(extractor, bundle, prepared, corners.xy[sub])
+        nb_1 = bundle.index.search(desc_1, conf.k, nprobe=conf.global_nprobe)
+        check_deadline(deadline, "the first keypoints' search", cpu_deadline)
+        res, _ = global_pose(
+            desc_1, xy_u[sub], bundle, camera, conf, nb_1, deadline, cpu_deadline, True
+        )
+        est = None if res is None else res[0]
+        desc = desc_1  # (not used again when est is the answer)
+        if est is None:
+            rest = np.ones(len(corners), bool)
+            rest[sub] = False
+            desc_r = describe(extractor, bundle, prepared, corners.xy[rest])
+            nb_r = bundle.index.search(desc_r, conf.k, nprobe=conf.global_nprobe)
+            desc = np.empty((len(corners), desc_1.shape[1]), desc_1.dtype)
+            desc[sub], desc[rest] = desc_1, desc_r
+            D = np.empty((len(corners), nb_1[0].shape[1]), nb_1[0].dtype)
+            ids = np.empty((len(corners), nb_1[1].shape[1]), nb_1[1].dtype)
+            D[sub], D[rest] = nb_1[0], nb_r[0]
+            ids[sub], ids[rest] = nb_1[1], nb_r[1]
+            neighbours = (D, ids)
+    else:
+        desc = describe(extractor, bundle, prepared, corners.xy)
+    check_deadline(deadline, "description", cpu_deadline)
     if prior is not None:
         near = match_near_prior(desc, xy_u, bundle, camera, conf, prior)
         est = None if near is None else near[0]
@@ -351,7 +409,14 @@ def _relocalize(
     why = "no pose: too few consistent 2D-3D matches"
     if est is None:
         res, why = global_pose(
-            desc, xy_u, bundle, camera, conf, deadline=deadline, cpu_deadline=cpu_deadline
+            desc,
+            xy_u,
+            bundle,
+            camera,
+            conf,
+            neighbours,
+            deadline=deadline,
+            cpu_deadline=cpu_deadline,
         )
         est = None if res is None else res[0]
     timer.lap("reloc")
