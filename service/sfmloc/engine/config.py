@@ -476,6 +476,15 @@ class EngineConf(StrictModel):
     # pose there is withheld for its sd). Cost: one whole-frame search (~35-50 ms at load 20)
     # per frame it runs on. False: off.
     densify_uncertain: bool = True
+    # ... with the corners from this many pixels from the image edge on (the tracker keeps
+    # mu // 2 = 16 clear for BRIEF; DAISY, which guided matching compares, needs less), and
+    # also from the motion prediction when the last posed frame was published (its pose may
+    # be the one that drifted). Robust density-6x frame 217: the points that fix the pose
+    # lie 12-14 px from the right edge, the tracked pose is withheld (sd 7%); with both, a
+    # re-match from the prediction gives TRACKING 0.3% off (sd 1.5%); either alone changed no
+    # frame. 0 (or >= mu // 2) / False: off.
+    densify_edge_px: int = Field(8, ge=0)
+    densify_from_prediction: bool = True
     # ... and so is (replaced only by a verified re-match) a tracked pose whose inliers are
     # fewer than this fraction of the frame's tracked 2D-3D matches (0: never): most tracking
     # windows then held the wrong corner (a prediction far off: the first frame after a

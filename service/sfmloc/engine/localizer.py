@@ -65,7 +65,15 @@ from .relocalize import (
 from .scope import image_weights
 from .timing import StageTimer
 from .track_table import TrackTable
-from .tracker import Keypoints, extract_keypoints, free_candidates, map_subpixel, track_2d
+from .tracker import (
+    Keypoints,
+    edge_keypoints,
+    extract_keypoints,
+    free_candidates,
+    map_subpixel,
+    track_2d,
+    with_keypoints,
+)
 from .types import FrameResult, Matching, Status
 
 log = logging.getLogger(__name__)
@@ -277,7 +285,8 @@ class Localizer:
         timer.lap("filter")
 
         image = _FrameImage(to_working(gray, self.scale), self.extractor)
-        kps = self._extract_keypoints(image.gray, self.prev_max_response)
+        kp_threshold = self.prev_max_response  # this frame's detection threshold's basis
+        kps = self._extract_keypoints(image.gray, kp_threshold)
         if kps.max_response > 0:
             self.prev_max_response = kps.max_response
         timer.lap("detect")
@@ -356,7 +365,12 @@ class Localizer:
             # and frame 468 came out 6.0% off (main: 2.0%).
             suspect = weak or withheld(cert.position_sd_loo, est.num_inliers, c) is not None
             if uncertain or suspect:
-                dense = self._densify(kps, image, est, cert)
+                # Only a pose about to be withheld is re-matched also from the prediction and
+                # with the corners near the edge (it is lost otherwise): a suspect one's extra
+                # re-match, more certain but not verified, only widens its covariance
+                # (rematch_disagreement): redkitchen frame 466, a right pose 3.5% off, withheld.
+                wider = (pred.cam_from_world, kp_threshold) if uncertain else None
+                dense = self._densify(kps, image, est, cert, wider)
                 if dense is not None and (uncertain or dense[2].verified):
                     table, est, cert = dense
                     matching = Matching.GUIDED
@@ -736,25 +750,47 @@ class Localizer:
         return self._reverify(table, est.cam_from_world), est
 
     def _densify(
-        self, kps: Keypoints, image: _FrameImage, est: PoseEstimate, cert: Certainty
+        self,
+        kps: Keypoints,
+        image: _FrameImage,
+        est: PoseEstimate,
+        cert: Certainty,
+        wider: tuple[Rigid3d | None, float | None] | None = None,
     ) -> tuple[TrackTable, PoseEstimate, Certainty] | None:
         """A pose about to be withheld as too uncertain, re-matched on the whole frame: guided
         matching of all the frame's keypoints around it, scoped by the map points it makes
         visible, as in ``_recover`` (``densify_uncertain``). The tracks that survive on a thin
         map are often bunched on one far plane; the frame sees more map points than they do.
-        Returns the restarted table, the pose and its certainty when that pose is more certain
-        (smaller centre sd), else None."""
-        visible = visible_points(self.camera, est.cam_from_world, self.bundle.points_xyz)
-        if len(visible) < self.conf.min_inliers:
-            return None
-        dense = self._recover(kps, image, est.cam_from_world, visible)
-        if dense is None:
-            return None
-        table, est_d = dense
-        cert_d = certainty(est_d, self.K, self.bundle, self.conf)
-        if not cert_d.position_sd < cert.position_sd:
-            return None
-        return table, est_d, cert_d
+        With ``wider`` (the motion prediction and the frame's detection threshold's basis, the
+        previous maximum response), the keypoints include the corners from
+        ``densify_edge_px`` from the image edge on (inside the tracker's border), and with
+        ``densify_from_prediction`` the re-match also starts from the prediction when the
+        last posed frame was published. Returns the
+        restarted table, the pose and its certainty of the most certain re-match when it is
+        more certain (smaller centre sd) than ``cert``, else None."""
+        c = self.conf
+        starts = [est.cam_from_world]
+        if wider is not None:
+            pred, kp_threshold = wider
+            if 0 < c.densify_edge_px < c.mu // 2:
+                thr = c.gamma * kp_threshold if kp_threshold else None
+                edge = edge_keypoints(image.gray, thr, c, c.densify_edge_px, self.subpixel)
+                kps = with_keypoints(kps, edge)
+            if c.densify_from_prediction and pred is not None and self.motion_published:
+                starts.append(pred)
+        best: tuple[TrackTable, PoseEstimate, Certainty] | None = None
+        for start in starts:
+            visible = visible_points(self.camera, start, self.bundle.points_xyz)
+            if len(visible) < c.min_inliers:
+                continue
+            dense = self._recover(kps, image, start, visible)
+            if dense is None:
+                continue
+            table, est_d = dense
+            cert_d = certainty(est_d, self.K, self.bundle, c)
+            if cert_d.position_sd < (cert if best is None else best[2]).position_sd:
+                best = (table, est_d, cert_d)
+        return best
 
     def _global_matching(
         self, kps: Keypoints, image: _FrameImage

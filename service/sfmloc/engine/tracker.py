@@ -64,6 +64,47 @@ def extract_keypoints(
     return Keypoints(corners.xy, corners.response, brief, corners.max_response)
 
 
+def edge_keypoints(
+    gray: np.ndarray,
+    threshold: float | None,
+    conf: EngineConf,
+    border: int,
+    subpixel: str | None = None,
+) -> Keypoints:
+    """The corners ``extract_keypoints`` leaves out for its border: those between ``border``
+    and ``conf.mu // 2`` pixels from the image edge (detected with the same threshold, among
+    the ``max_keypoints`` strongest of the frame with the smaller border), with BRIEF (its test
+    window there reads clamped pixels: still the same descriptor frame to frame) for the
+    track table."""
+    inner = conf.mu // 2
+    corners = detect_corners(
+        gray,
+        threshold=threshold,
+        rel_threshold=conf.gamma,
+        max_corners=conf.max_keypoints,
+        border=border,
+        subpixel=subpixel or (SUBPIXEL_DEFAULT if conf.subpixel == "map" else conf.subpixel),
+    )
+    h, w = gray.shape
+    x, y = corners.xy[:, 0], corners.xy[:, 1]
+    band = (x < inner) | (y < inner) | (x >= w - inner) | (y >= h - inner)
+    xy = corners.xy[band]
+    brief = compute_brief(smooth_for_brief(gray), xy, conf.mu)
+    return Keypoints(xy, corners.response[band], brief, corners.max_response)
+
+
+def with_keypoints(kps: Keypoints, more: Keypoints) -> Keypoints:
+    """``kps`` followed by ``more`` (``kps``'s maximum response: the next frame's threshold)."""
+    if len(more) == 0:
+        return kps
+    return Keypoints(
+        np.concatenate([kps.xy, more.xy]),
+        np.concatenate([kps.response, more.response]),
+        np.concatenate([kps.brief, more.brief]),
+        kps.max_response,
+    )
+
+
 def window_pairs(pred: np.ndarray, cand: np.ndarray, half: float) -> tuple[np.ndarray, np.ndarray]:
     """All (i, j) with candidate j inside the square window of half-size ``half`` around
     ``pred[i]``, grouped by i (ascending). Candidates are bucketed in cells of size ``half``,
