@@ -509,3 +509,109 @@ def test_npy_loads_on_two_threads_at_once_both_succeed(tmp_path):
         gc.callbacks.remove(on_gc)
     assert not errors, errors
     assert len(loaded) >= 2 and all(np.array_equal(x, loaded[0]) for x in loaded)
+
+
+# ----------------------------------------------------------------------------- packed bundles
+def _posed_map() -> MapData:
+    """``small_map`` with distinct, non-unit camera quaternions (rotations to compare)."""
+    import dataclasses
+
+    data = small_map()
+    rng = np.random.default_rng(3)
+    q = rng.standard_normal((6, 4)) * 2.0
+    t = rng.standard_normal((6, 3))
+    t[:, 2] += 10.0
+    return dataclasses.replace(data, image_cam_from_world=np.hstack([q, t]))
+
+
+def test_packed_bundle_loads_exactly_as_the_npy_one(tmp_path):
+    """A packed bundle (format 2: every array in one mapped file, the rotations and scene
+    scale written by the writer) loads the same arrays, poses, scene scale, cameras and index
+    as the .npy bundle of the same data, from one file mapping."""
+    from sfmloc.map.bundle import ARRAY_SPECS, PACKED_FILE
+
+    data = _posed_map()
+    a = MapBundle(write_bundle(data, tmp_path, "npy"))
+    path = write_bundle(data, tmp_path, "packed", packed=True)
+    assert verify_bundle(path) == []
+    assert sorted(p.name for p in path.iterdir()) == [
+        PACKED_FILE,
+        "manifest.json",
+        "manifest.sha256",
+    ]
+    b = MapBundle(path)
+    assert a.manifest.version == 1 and b.manifest.version == 2
+    for name in ARRAY_SPECS:
+        assert np.array_equal(np.asarray(b.array(name)), np.asarray(a.array(name))), name
+        assert b.array(name).dtype == a.array(name).dtype
+    assert b.scene_scale == a.scene_scale  # stored by the writer, the same function's value
+    for ta, tb in zip(a.image_cam_from_world, b.image_cam_from_world):
+        assert np.array_equal(ta.rotation, tb.rotation)
+        assert np.array_equal(ta.translation, tb.translation)
+    assert b.cameras == a.cameras == data.cameras and b.image_names == a.image_names
+    assert b.keypoint_scales == a.keypoint_scales
+    assert np.array_equal(b.point_images()[0], a.point_images()[0])
+    assert np.array_equal(b.point_images()[1], a.point_images()[1])
+    # one mapping holds every array, the index read in place from it
+    (m,) = b.mappings()
+    blob = b.array("index_faiss")
+    assert b.index.shared_buffer is not None
+    lo, hi = blob.ctypes.data, blob.ctypes.data + blob.nbytes
+    assert all(lo <= p < hi for p in _storage_addresses(b.index))
+    q = data.descriptors[:7].astype(np.float32)
+    assert np.array_equal(b.index.search(q, 3)[1], a.index.search(q, 3)[1])
+    # the derived rotations (72 B an image) are all the memory it adds
+    assert b.memory_bytes() == a.memory_bytes() + 72 * a.n_images
+    # every array starts on its own page, read-only
+    for e in b.manifest.arrays.values():
+        assert e.file == PACKED_FILE and e.offset is not None and e.offset % 4096 == 0
+    assert not b.points_xyz.flags.writeable
+    # a version-1 manifest carries no offsets: readers before version 2 still accept it
+    assert '"offset"' not in (tmp_path / "npy" / "manifest.json").read_text()
+    del b, blob
+    import gc
+    import weakref
+
+    ref = weakref.ref(m)
+    del m
+    gc.collect()
+    assert ref() is None  # nothing else keeps the file mapped once the bundle is gone
+
+
+def test_packed_bundle_refuses_corruption_truncation_and_bad_offsets(tmp_path):
+    """Any changed byte of an array is named by verify (its own checksum) and refused by a
+    verified load; a truncated file or an edited offset is refused by any load."""
+    from sfmloc.map.bundle import PACKED_FILE
+
+    base = write_bundle(_posed_map(), tmp_path, "base", packed=True)
+    m = read_manifest(base)
+    for k, (name, e) in enumerate(m.arrays.items()):
+        path = write_bundle(_posed_map(), tmp_path, f"edit{k}", packed=True)
+        raw = bytearray((path / PACKED_FILE).read_bytes())
+        raw[e.offset + e.bytes // 2] ^= 0x01
+        (path / PACKED_FILE).write_bytes(bytes(raw))
+        assert verify_bundle(path) == [f"{PACKED_FILE}: {name} checksum mismatch (corrupt)"]
+        with pytest.raises(BundleError, match="checksum mismatch"):
+            MapBundle(path)
+    path = write_bundle(_posed_map(), tmp_path, "short", packed=True)
+    f = path / PACKED_FILE
+    f.write_bytes(f.read_bytes()[:-10])
+    assert any("ends at" in p for p in verify_bundle(path, checksums=False))
+    with pytest.raises(BundleError, match="does not fit"):
+        MapBundle(path, verify=False)
+    # an offset moved (manifest resealed): off its page, or past the file
+    for bad in (4, 1 << 30):
+        path = write_bundle(_posed_map(), tmp_path, f"off{bad}", packed=True)
+        raw = json.loads((path / "manifest.json").read_text())
+        raw["arrays"]["points_xyz"]["offset"] = bad
+        _reseal(path, json.dumps(raw))
+        assert verify_bundle(path, checksums=False), bad
+        with pytest.raises(BundleError):
+            MapBundle(path, verify=False)
+    # offsets in a version-1 bundle, or none in a version-2 one: refused as a bad layout
+    path = write_bundle(_posed_map(), tmp_path, "mixed", packed=True)
+    raw = json.loads((path / "manifest.json").read_text())
+    raw["version"] = 1
+    _reseal(path, json.dumps(raw))
+    with pytest.raises(BundleError, match="not where a version-1 bundle keeps it"):
+        MapBundle(path, verify=False)

@@ -19,7 +19,7 @@ from sfmloc.engine.localizer import Localizer
 from sfmloc.engine.submaps import SubmapLocalizer
 from sfmloc.engine.types import Status
 from sfmloc.errors import BundleError, InputError
-from sfmloc.map.bundle import MapBundle
+from sfmloc.map.bundle import PACKED_FILE, MapBundle, read_manifest
 from sfmloc.map.submaps import (
     SET_MANIFEST,
     SubmapSet,
@@ -92,6 +92,39 @@ def test_split_by_max_points_and_overlap(room, tmp_path):
     for k in range(3):  # overlap only adds cameras
         assert set(s.part_images(0)) <= set(range(room.n_images))
         assert len(wide.part_images(k)) >= 1
+
+
+def test_parts_are_packed_and_sets_of_npy_parts_still_load(room, room_set, tmp_path):
+    """``map split`` writes packed parts (one mapped file each: a part load is one manifest and
+    one ``mmap``, not 20 .npy files); a set whose parts are .npy bundles (written before, or
+    ``packed=False``) loads the same parts, and a part's global ids are read in one read."""
+    from sfmloc.map.bundle import load_npy
+    from sfmloc.map.submaps import points_array
+
+    new = SubmapSet(room_set)
+    old = _check_parts(room, split_bundle(room, tmp_path, "npyset", parts=3, overlap=0.0,
+                                          packed=False))  # fmt: skip
+    assert new.n_parts == old.n_parts == 3
+    for k in range(3):
+        a, ga = old.load_part(k)
+        b, gb = new.load_part(k)
+        assert a.manifest.version == 1 and b.manifest.version == 2
+        assert len(b.mappings()) == 1 and len(a.mappings()) > 1
+        assert np.array_equal(ga, gb)
+        assert np.array_equal(gb, load_npy(room_set / f"{points_array(k)}.npy"))
+        for name in ("points_xyz", "descriptors", "desc_point", "image_points_idx"):
+            assert np.array_equal(np.asarray(a.array(name)), np.asarray(b.array(name)))
+        assert a.scene_scale == b.scene_scale
+        for ta, tb in zip(a.image_cam_from_world, b.image_cam_from_world):
+            assert np.array_equal(ta.rotation, tb.rotation)
+        assert b.memory_bytes() == a.memory_bytes() + 72 * a.n_images  # + the rotations
+        assert new.part_memory_bytes(k) == b.memory_bytes() + 4096 * 21  # a page an array
+    # a part's global ids cut short are refused at load, not read as garbage
+    f = old.path / f"{points_array(1)}.npy"
+    f.write_bytes(f.read_bytes()[:-8])
+    with pytest.raises(BundleError, match="wrong dtype/shape"):
+        SubmapSet(old.path, verify=False).load_part(1)
+    assert any("size" in p for p in verify_submap_set(old.path))
 
 
 def test_a_bundle_is_not_a_set(room, tmp_path):
@@ -168,9 +201,11 @@ def test_cli_split_and_verify_detects_corruption(world, tmp_path):
     r = subprocess.run([*env_cmd, "map", "verify", str(path)], capture_output=True, text=True)
     assert r.returncode == 0 and "ok" in r.stdout, r.stdout + r.stderr
     # A flipped byte inside a part, and an edited set manifest, are both found.
-    target = path / "part-001" / "points_xyz.npy"
-    with open(target, "r+b") as f:
-        f.seek(200)
+    # (parts are packed bundles: the points' bytes are a region of the part's one file)
+    entry = read_manifest(path / "part-001").arrays["points_xyz"]
+    assert entry.file == PACKED_FILE and entry.offset is not None and entry.bytes > 216
+    with open(path / "part-001" / PACKED_FILE, "r+b") as f:
+        f.seek(entry.offset + 200)
         f.write(b"\x00\xff" * 8)
     r = subprocess.run([*env_cmd, "map", "verify", str(path)], capture_output=True, text=True)
     assert r.returncode == 1 and "part-001" in r.stdout and "checksum" in r.stdout

@@ -11,6 +11,11 @@ Layout of ``maps/NAME/``::
                          edited unnoticed (the manifest holds every array's SHA-256)
     <array>.npy          plain .npy arrays (no pickle), loadable with memory mapping; their
                          names in the manifest are plain file names inside the bundle folder
+    arrays.bin           instead of the .npy files, in a *packed* bundle (format version 2,
+                         ``write_bundle(packed=True)``, what ``map split`` writes for sub-maps):
+                         every array's raw bytes in one file, each at a page boundary (its
+                         offset, dtype, shape and SHA-256 in the manifest), plus the derived
+                         ``image_rotations`` (I,3,3) f8, and the scene scale in the manifest
 
 Arrays (P points, D descriptors, I images, L clusters, C cameras):
 
@@ -36,6 +41,18 @@ pca_basis                (104,32) f4   PCA basis: desc = (raw - mean) @ basis
 index_faiss              (B,) u1       the faiss index over ``descriptors`` (ids = rows)
 =======================  ============  =====================================================
 
+Why packed: a sub-map set loads parts while the camera moves (``engine/submaps.py``), on a
+loader thread beside the frames, and a part's load was mostly Python work around its 20 .npy
+files: of the CPU of 144 loads of the 24-room scale bench's parts (cProfile), opening,
+parsing and mapping the .npy files took 48%, parsing the whole map's 24 cameras each part
+holds 16%, the median depth and the per-image poses 15%; and each file's syscalls are points
+where the loader gives the GIL to the frame thread and waits for it back. A packed part is
+one manifest and one ``mmap``, the per-image tables written by the builder, the cameras
+parsed on first use: a part load's CPU p50 6.3-6.8 ms -> 1.4-1.8 ms, wall 21-25 -> 6.1-6.4 ms
+(the same 72 parts three times, alternating runs, nice 19, load 11-12). Version-1 bundles
+(one .npy per array) are still read, and still what ``sfmloc build`` writes (a whole map
+loads once).
+
 Writing is atomic: everything goes to a hidden temporary folder next to the target, is
 flushed to disk, and is then swapped into place (an atomic directory exchange where the OS has
 one), so a failed or cancelled build leaves nothing behind and an existing bundle of the same
@@ -47,6 +64,7 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import errno
+import functools
 import hashlib
 import json
 import mmap
@@ -75,11 +93,15 @@ from .index import DescriptorIndex
 from .keypoint_scales import coarsest_focal_px, keypoint_scales, pyramid_level_scales
 
 BUNDLE_FORMAT = "sfmloc-map-bundle"
-BUNDLE_VERSION = 1
+BUNDLE_VERSION = 1  # one .npy file per array
+PACKED_VERSION = 2  # every array in one file (PACKED_FILE), each at a page boundary
+SUPPORTED_VERSIONS = (BUNDLE_VERSION, PACKED_VERSION)
+PACKED_FILE = "arrays.bin"
+PACKED_ALIGN = 4096  # mapped arrays start on their own page (resident pages are per array)
 MANIFEST = "manifest.json"
 MANIFEST_SHA256 = "manifest.sha256"
 MAX_MANIFEST_BYTES = 64 << 20  # image names and cameras of a very large map fit many times over
-_ARRAY_FILE_RE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,127}\.npy")
+_ARRAY_FILE_RE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,127}\.(npy|bin)")
 
 # name -> (dtype, number of dimensions); shapes are checked against the counts on load.
 ARRAY_SPECS: dict[str, tuple[str, int]] = {
@@ -104,6 +126,9 @@ ARRAY_SPECS: dict[str, tuple[str, int]] = {
     "pca_basis": ("<f4", 2),
     "index_faiss": ("|u1", 1),
 }
+# A packed bundle (PACKED_VERSION) also holds what loading derived per image in Python:
+# ``image_rotations`` (I,3,3), the rotation of each ``image_cam_from_world`` quaternion.
+PACKED_SPECS: dict[str, tuple[str, int]] = {**ARRAY_SPECS, "image_rotations": ("<f8", 3)}
 
 
 def _level_scales_of(params: dict[str, Any]) -> list[float] | None:
@@ -131,6 +156,7 @@ class ArrayEntry(BaseModel):
     shape: list[int]
     sha256: str
     bytes: int
+    offset: int | None = None  # packed bundles: where the array starts in PACKED_FILE
 
     @field_validator("file")
     @classmethod
@@ -173,6 +199,9 @@ class Manifest(BaseModel):
     # Focal lengths (px) the descriptors were computed at (``keypoint_scales``); absent in
     # bundles written before it, which get it computed at load.
     keypoint_scales: dict[str, Any] = {}
+    # Packed bundles: ``MapBundle.scene_scale`` (the median depth of every observation),
+    # computed by the writer with the loader's own function (``median_depth``).
+    scene_scale: float | None = None
 
 
 @dataclass
@@ -264,11 +293,13 @@ def write_bundle(
     timings_s: dict[str, float] | None = None,
     index_info: dict[str, Any] | None = None,
     report: dict[str, Any] | None = None,
+    packed: bool = False,
 ) -> Path:
     """Write ``data`` as ``out_dir/name`` atomically and return the bundle's path.
 
     ``timings_s`` (seconds per build stage) is recorded in the manifest with the write stage
-    added here, once the arrays are on disk: "write" (and "total", when given, grows by it)."""
+    added here, once the arrays are on disk: "write" (and "total", when given, grows by it).
+    ``packed``: one file of arrays and the derived tables (format version 2, module doc)."""
     t_write = time.perf_counter()
     validate_name(name)
     out_dir = Path(out_dir)
@@ -288,7 +319,10 @@ def write_bundle(
     tmp.mkdir()
     try:
         entries: dict[str, ArrayEntry] = {}
-        for aname, (dtype, ndim) in ARRAY_SPECS.items():
+        scene_scale: float | None = None
+        if packed:
+            entries, scene_scale = _write_packed(tmp / PACKED_FILE, data)
+        for aname, (dtype, ndim) in ({} if packed else ARRAY_SPECS).items():
             arr = np.ascontiguousarray(getattr(data, aname), dtype=np.dtype(dtype))
             if arr.ndim != ndim:
                 raise BundleError(
@@ -335,12 +369,85 @@ def write_bundle(
             image_names=list(data.image_names),
             arrays=entries,
             keypoint_scales=data.keypoint_scales or _computed_keypoint_scales(data, params or {}),
+            version=PACKED_VERSION if packed else BUNDLE_VERSION,
+            scene_scale=scene_scale,
         )
         publish(tmp, final, manifest, MANIFEST, MANIFEST_SHA256)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return final
+
+
+def _poses(quat_t: np.ndarray) -> list[Rigid3d]:
+    """``image_cam_from_world`` rows (qw qx qy qz tx ty tz) as poses."""
+    return [Rigid3d.from_quat_wxyz(r[:4], r[4:]) for r in quat_t]
+
+
+def median_depth(
+    points_xyz: np.ndarray,
+    image_points_ptr: np.ndarray,
+    image_points_idx: np.ndarray,
+    cam_from_world: list[Rigid3d],
+) -> float:
+    """The scene's scale: median depth of every observed point in the camera that sees it
+    (map units; 1 when nothing is in front of a camera). Thresholds that must mean the same
+    in a 0.2-unit object scan and a 500-unit street (wrong-pose limits, motion tolerances)
+    are fractions of it. The writer of a packed bundle stores it (the same function on the
+    same arrays: the same number), so that loading one runs no loop over its images."""
+    depths = []
+    for i, cfw in enumerate(cam_from_world):
+        idx = image_points_idx[image_points_ptr[i] : image_points_ptr[i + 1]]
+        if len(idx):
+            X = points_xyz[idx]
+            depths.append(X @ cfw.rotation[2] + cfw.translation[2])
+    d = np.concatenate(depths) if depths else np.zeros(0)
+    d = d[np.isfinite(d) & (d > 0)]
+    return float(np.median(d)) if len(d) else 1.0
+
+
+def _write_packed(path: Path, data: MapData) -> tuple[dict[str, ArrayEntry], float]:
+    """Every array of ``data`` (and the derived ``image_rotations``) into the one file of a
+    packed bundle, each at a ``PACKED_ALIGN`` boundary; their manifest entries and the scene
+    scale."""
+    q = np.asarray(data.image_cam_from_world, np.float64)
+    poses = _poses(q)
+    arrays = data.arrays()
+    arrays["image_rotations"] = (
+        np.stack([T.rotation for T in poses]) if poses else np.zeros((0, 3, 3))
+    )
+    scale = median_depth(
+        np.asarray(data.points_xyz, np.float64),
+        np.asarray(data.image_points_ptr),
+        np.asarray(data.image_points_idx),
+        poses,
+    )
+    entries: dict[str, ArrayEntry] = {}
+    off = 0
+    with open(path, "wb") as f:
+        for aname, (dtype, ndim) in PACKED_SPECS.items():
+            arr = np.ascontiguousarray(arrays[aname], dtype=np.dtype(dtype))
+            if arr.ndim != ndim:
+                raise BundleError(
+                    f"array {aname} must have {ndim} dimensions, has shape {arr.shape}"
+                )
+            pad = -off % PACKED_ALIGN
+            f.write(b"\0" * pad)
+            off += pad
+            raw = arr.tobytes()
+            f.write(raw)
+            entries[aname] = ArrayEntry(
+                file=PACKED_FILE,
+                dtype=arr.dtype.str,
+                shape=list(arr.shape),
+                sha256=hashlib.sha256(raw).hexdigest(),
+                bytes=len(raw),
+                offset=off,
+            )
+            off += len(raw)
+        f.flush()
+        os.fsync(f.fileno())
+    return entries, scale
 
 
 _RENAME_EXCHANGE = 2
@@ -350,7 +457,9 @@ def publish(tmp: Path, final: Path, manifest: BaseModel, name: str, sha_name: st
     """Finish a folder written in ``tmp``: its manifest as ``name`` and the manifest's checksum
     as ``sha_name`` (``sha256sum -c`` format), everything on disk, then ``tmp`` swapped into
     ``final`` (bundles and sub-map sets)."""
-    text = manifest.model_dump_json(indent=2).encode()
+    # exclude_none: fields that are None (an array's ``offset`` outside packed bundles) are
+    # left out, so that a version-1 bundle's manifest is what readers before them accept.
+    text = manifest.model_dump_json(indent=2, exclude_none=True).encode()
     for fname, content in (
         (name, text),
         (sha_name, f"{hashlib.sha256(text).hexdigest()}  {name}\n".encode()),
@@ -439,16 +548,115 @@ def read_manifest(path: str | Path) -> Manifest:
         raise BundleError(f"{mpath}: unreadable manifest (not a JSON object)")
     if raw.get("format") != BUNDLE_FORMAT:
         raise BundleError(f"{mpath}: not an sfmloc map bundle (format {raw.get('format')!r})")
-    if raw.get("version") != BUNDLE_VERSION:
+    if raw.get("version") not in SUPPORTED_VERSIONS:
         raise BundleError(
             f"{mpath}: bundle version {raw.get('version')} is not supported by sfmloc "
             f"{__version__} "
-            f"(expects version {BUNDLE_VERSION}); rebuild the map"
+            f"(expects version {' or '.join(map(str, SUPPORTED_VERSIONS))}); rebuild the map"
         )
     try:
-        return Manifest.model_validate(raw)
+        m = Manifest.model_validate(raw)
     except ValidationError as exc:
         raise BundleError(f"{mpath}: invalid manifest:\n{exc}") from None
+    packed = m.version == PACKED_VERSION
+    for aname, e in m.arrays.items():
+        if packed != (e.offset is not None) or (packed and e.file != PACKED_FILE):
+            raise BundleError(
+                f"{mpath}: array {aname} is not where a version-{m.version} bundle keeps it "
+                f"({e.file}, offset {e.offset})"
+            )
+    return m
+
+
+def _packed_problems(path: Path, manifest: Manifest, checksums: bool) -> list[str]:
+    """``verify_bundle`` of a packed bundle: every array's entry against its spec and the
+    file, and its bytes against their SHA-256 (``checksums``)."""
+    bpath = path / PACKED_FILE
+    try:
+        st = bpath.lstat()
+    except OSError:
+        return [f"{PACKED_FILE}: missing"]
+    if not stat.S_ISREG(st.st_mode):
+        return [f"{PACKED_FILE}: not a regular file (symlinks and devices are refused)"]
+    problems = []
+    with open(bpath, "rb") as f:
+        for aname, (dtype, ndim) in PACKED_SPECS.items():
+            e = manifest.arrays.get(aname)
+            if e is None:
+                problems.append(f"array {aname} is not in the manifest")
+                continue
+            dt = np.dtype(dtype)
+            n = int(np.prod(e.shape)) if e.shape else 1
+            off = e.offset if e.offset is not None else -1
+            if e.dtype != dt.str or len(e.shape) != ndim or min(e.shape, default=0) < 0:
+                problems.append(f"{aname}: dtype/shape {e.dtype}{e.shape} do not match")
+            elif e.bytes != n * dt.itemsize or off < 0 or off % PACKED_ALIGN:
+                problems.append(f"{aname}: {e.bytes} B at offset {off} do not match its shape")
+            elif off + e.bytes > st.st_size:
+                problems.append(
+                    f"{PACKED_FILE}: {aname} ends at {off + e.bytes} B, the file has {st.st_size} B"
+                )
+            elif checksums:
+                f.seek(off)
+                if hashlib.sha256(f.read(e.bytes)).hexdigest() != e.sha256:
+                    problems.append(f"{PACKED_FILE}: {aname} checksum mismatch (corrupt)")
+    return problems
+
+
+def _map_packed(path: Path, manifest: Manifest) -> tuple[dict[str, np.ndarray], mmap.mmap]:
+    """The arrays of a packed bundle: views into one read-only map of its file (one open and
+    one ``mmap``: what a sub-map's load costs in syscalls, each a point where a loader thread
+    hands the GIL to the frame thread). Shapes and offsets are checked against the file."""
+    bpath = path / PACKED_FILE
+    try:
+        if not stat.S_ISREG(bpath.lstat().st_mode):
+            raise BundleError(f"map bundle {path}: {PACKED_FILE} is not a regular file")
+        with open(bpath, "rb") as f:
+            mm = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
+    except (OSError, ValueError) as exc:
+        raise BundleError(f"map bundle {path}: cannot map {PACKED_FILE} ({exc})") from None
+    a: dict[str, np.ndarray] = {}
+    for aname, (dtype, ndim) in PACKED_SPECS.items():
+        e = manifest.arrays.get(aname)
+        if e is None:
+            raise BundleError(f"map bundle {path}: array {aname} missing from the manifest")
+        dt = np.dtype(dtype)
+        n = int(np.prod(e.shape)) if e.shape else 1
+        off = e.offset if e.offset is not None else -1
+        if (
+            e.dtype != dt.str
+            or len(e.shape) != ndim
+            or min(e.shape, default=0) < 0
+            or e.bytes != n * dt.itemsize
+            or off < 0
+            or off % PACKED_ALIGN
+            or off + e.bytes > len(mm)
+        ):
+            raise BundleError(
+                f"map bundle {path}: {aname} ({e.dtype}{e.shape}, {e.bytes} B at {off}) does "
+                f"not fit its spec or {PACKED_FILE} ({len(mm)} B)"
+            )
+        if n:
+            a[aname] = np.frombuffer(mm, dt, count=n, offset=off).reshape(e.shape)
+        else:
+            a[aname] = np.zeros(e.shape, dt)
+    return a, mm
+
+
+def load_array(path: str | Path, manifest: Manifest, name: str) -> np.ndarray:
+    """One array of the bundle at ``path`` (either layout), read into memory."""
+    path = Path(path)
+    e = manifest.arrays[name]
+    if e.offset is None:
+        return load_npy(path / e.file)
+    dt = np.dtype(e.dtype)
+    n = e.bytes // dt.itemsize
+    with open(path / e.file, "rb") as f:
+        f.seek(e.offset)
+        raw = f.read(e.bytes)
+    if len(raw) != e.bytes or n != (int(np.prod(e.shape)) if e.shape else 1):
+        raise BundleError(f"map bundle {path}: {name} is shorter than its manifest says")
+    return np.frombuffer(raw, dt).reshape(e.shape).copy()
 
 
 def verify_bundle(path: str | Path, checksums: bool = True) -> list[str]:
@@ -458,6 +666,8 @@ def verify_bundle(path: str | Path, checksums: bool = True) -> list[str]:
         manifest = read_manifest(path)
     except BundleError as exc:
         return [str(exc)]
+    if manifest.version == PACKED_VERSION:
+        return _packed_problems(path, manifest, checksums)
     problems = []
     for aname, (dtype, ndim) in ARRAY_SPECS.items():
         entry = manifest.arrays.get(aname)
@@ -509,7 +719,10 @@ class MapBundle:
             if problems:
                 raise BundleError(f"map bundle {self.path} is corrupt: " + "; ".join(problems))
         a: dict[str, np.ndarray] = {}
-        for aname in ARRAY_SPECS:
+        self._packed: mmap.mmap | None = None
+        if self.manifest.version == PACKED_VERSION:
+            a, self._packed = _map_packed(self.path, self.manifest)
+        for aname in () if self._packed is not None else ARRAY_SPECS:
             entry = self.manifest.arrays.get(aname)
             if entry is None:
                 raise BundleError(
@@ -529,7 +742,6 @@ class MapBundle:
         self._a = a
         self.name = self.manifest.name
         self.build_id = self.manifest.build_id
-        self.cameras = [Camera.from_dict(c) for c in self.manifest.cameras]
         self.image_names = list(self.manifest.image_names)
         self._check_consistency()
         self.points_xyz = np.asarray(a["points_xyz"])
@@ -568,8 +780,15 @@ class MapBundle:
         np.add.at(ptr, np.asarray(self.image_points_idx, np.int64) + 1, 1)
         self._point_images = (np.cumsum(ptr), owner[order])
         q = np.asarray(a["image_cam_from_world"])
-        self.image_cam_from_world = [Rigid3d.from_quat_wxyz(r[:4], r[4:]) for r in q]
-        self.scene_scale = self._median_depth()
+        if "image_rotations" in a:  # packed: the writer's rotations of the same quaternions
+            R, t = np.array(a["image_rotations"]), np.array(q[:, 4:])
+            self.image_cam_from_world = [Rigid3d(R[i], t[i]) for i in range(len(R))]
+        else:
+            self.image_cam_from_world = _poses(q)
+        if self.manifest.scene_scale is not None:
+            self.scene_scale = float(self.manifest.scene_scale)
+        else:
+            self.scene_scale = self._median_depth()
         self.keypoint_scales = dict(self.manifest.keypoint_scales) or keypoint_scales(
             np.asarray(a["desc_image"]),
             np.asarray(a["desc_level"]),
@@ -590,18 +809,20 @@ class MapBundle:
         self.coarsest_focal_px = coarsest_focal_px(self.keypoint_scales)
 
     def _median_depth(self) -> float:
-        """The scene's scale: median depth of every observed point in the camera that sees it
-        (map units). Thresholds that must mean the same in a 0.2-unit object scan and a
-        500-unit street (wrong-pose limits, motion tolerances) are fractions of it."""
-        depths = []
-        for i, cfw in enumerate(self.image_cam_from_world):
-            idx = self.image_points(i)
-            if len(idx):
-                X = self.points_xyz[idx]
-                depths.append(X @ cfw.rotation[2] + cfw.translation[2])
-        d = np.concatenate(depths) if depths else np.zeros(0)
-        d = d[np.isfinite(d) & (d > 0)]
-        return float(np.median(d)) if len(d) else 1.0
+        """The scene's scale (``median_depth``; stored in a packed bundle's manifest)."""
+        return median_depth(
+            self.points_xyz,
+            self.image_points_ptr,
+            self.image_points_idx,
+            self.image_cam_from_world,
+        )
+
+    @functools.cached_property
+    def cameras(self) -> list[Camera]:
+        """The manifest's cameras, parsed on first use: not at load (a sub-map part holds the
+        whole map's cameras, and checking 24 of them was 16% of a part load's CPU), and the
+        engine reads them only from the keypoint scales of bundles that lack them."""
+        return [Camera.from_dict(c) for c in self.manifest.cameras]
 
     # ------------------------------------------------------------------ accessors
     def array(self, name: str) -> np.ndarray:
@@ -612,6 +833,8 @@ class MapBundle:
         touched pages resident, while anything holds a view of it, the bundle or not: a
         weak reference to each tells when the kernel has let the bundle's pages go
         (``engine.submaps.PartCache`` counts a part until then)."""
+        if self._packed is not None:
+            return [self._packed]  # every array is a view of it
         out: list[Any] = []
         for arr in self._a.values():
             m = getattr(arr, "_mmap", None)  # np.load(mmap_mode=...) gives an np.memmap
@@ -719,6 +942,8 @@ class MapBundle:
             "pca_mean": (RAW_DIM,),
             "pca_basis": (RAW_DIM, None),
         }
+        if "image_rotations" in a:
+            expect["image_rotations"] = (I, 3, 3)
         for aname, shape in expect.items():
             got = a[aname].shape
             if len(got) != len(shape) or any(s is not None and s != g for s, g in zip(shape, got)):

@@ -13,7 +13,7 @@ import numpy as np
 
 from ..cameras import Camera
 from ..errors import BundleError, MapNotFoundError
-from ..map.bundle import MANIFEST, load_npy, read_manifest, verify_bundle
+from ..map.bundle import MANIFEST, load_array, read_manifest, verify_bundle
 from ..transforms import rotmat_from_quat_wxyz
 
 # A browser draws a few hundred thousand points smoothly in software GL; larger maps are shown
@@ -88,7 +88,7 @@ def load_map_view(path: str | Path, max_points: int = DEFAULT_MAX_POINTS) -> Map
     manifest = read_manifest(path)
 
     def load(name: str) -> np.ndarray:
-        return load_npy(path / manifest.arrays[name].file)
+        return load_array(path, manifest, name)
 
     xyz = load("points_xyz")
     rgb = load("point_rgb")
