@@ -117,6 +117,9 @@ RETRY_DISCOUNT = 0.5
 EARLY_CANDIDATES = 3
 # ``_lost_vote``: the weight of the earlier lost frames' votes (decayed) in a lost frame's.
 VOTE_MEMORY = 0.7
+# ``_search``: the weight of a failure on the previous lost frame against one on this frame
+# (decayed like the votes: the search's retry discount follows recent failures).
+FAIL_MEMORY = VOTE_MEMORY
 
 
 def _call_weak(method: weakref.WeakMethod) -> None:
@@ -458,7 +461,8 @@ class SubmapLocalizer:
         self.part: int | None = None
         self._left: int | None = None  # the part it let go of in a search (``_let_go``)
         self._part_points: np.ndarray | None = None  # global point rows of ``part``
-        self._fails: dict[int, int] = {}  # lost frames each part failed since the session was lost
+        # lost frames each part failed since the session was lost (decayed, ``FAIL_MEMORY``)
+        self._fails: dict[int, float] = {}
         self._withheld_on: list[int] = []  # parts with poses withheld since the last published
         self._prev_stamp: float | None = None
         # The frame being localized (for the vote ``_early_vote`` takes while the frame is
@@ -686,6 +690,13 @@ class SubmapLocalizer:
                 break
             self._fails[k] = self._fails.get(k, 0) + 1
         if self.inner is None or self.inner.last_posed_stamp != stamp:
+            # An earlier frame's failure counts less with each lost frame, as its vote does
+            # (``FAIL_MEMORY``): counted in full, a place the vote preferred by far but whose
+            # parts pose only some of its frames (24 rooms, room 13: its three parts voted
+            # ~10x any other, each failing frames 1-5 on the ambiguity test) sank below
+            # places the vote hardly saw after four failures, and the frames' CPU went to
+            # those: room 13 lost 30 frames in a row in one run of three.
+            self._fails = {j: n * FAIL_MEMORY for j, n in self._fails.items()}
             # No pose: the part the next frame's search starts with (the order with this
             # frame's failures counted) loads now. Loading only the next part of this frame's
             # order, the last try's load evicted the part the next frame wanted first, which
