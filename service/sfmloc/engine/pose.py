@@ -612,18 +612,29 @@ def estimate_pose_one_to_many(
     it = 0
     pools: list[tuple[int, int]] = []  # (pool size, iterations drawn from it) per batch
     in_best = np.zeros(n1, np.int64)  # the best pose's set-1 inliers, counted by rank
+    # The pool stop's log miss probability, summed over ``pools[:miss_n]`` in order (the same
+    # additions as summing them all at each check: bit-identical, without the quadratic cost
+    # over up to 63 batches); reset when the best pose changes.
+    miss_log, miss_n = 0.0, 0
+    log_fail = math.log(1.0 - confidence)
+    p3p = cv2.solveP3P
     while it < min(needed, max_iterations):
         if pool_stop and best_pose is not None and pools:
-            if _pool_miss_log(pools, in_best) < math.log(1.0 - confidence):
+            miss_log, miss_n = _pool_miss_log(pools, in_best, miss_log, miss_n)
+            if miss_log < log_fail:
                 break
         Rs: list[np.ndarray] = []  # rotation vectors of this batch's P3P solutions
         ts: list[np.ndarray] = []
         pool = min(n1, max(8, n1 // 5) + (n1 * it) // growth)
         pools.append((pool, batch))
-        for s in _minimal_samples(rng, pool, batch):
-            it += 1
+        S = _minimal_samples(rng, pool, batch)
+        # The batch's sample points gathered at once: a view per sample instead of two fancy
+        # indexings (the same contiguous (3, 3) and (3, 2) arrays for the solver).
+        objS, imgS = obj[S], img[S]
+        it += len(S)
+        for j in range(len(S)):
             try:
-                n_sol, rvecs, tvecs = cv2.solveP3P(obj[s], img[s], K, None, flags=cv2.SOLVEPNP_P3P)
+                n_sol, rvecs, tvecs = p3p(objS[j], imgS[j], K, None, flags=cv2.SOLVEPNP_P3P)
             except cv2.error:
                 continue
             Rs += rvecs[:n_sol]
@@ -636,8 +647,9 @@ def estimate_pose_one_to_many(
         # One GEMM for all hypotheses: (3M, 12) @ (12, B) -> z*du, z*dv, z, each (M, B)
         P = np.concatenate([R, T[:, :, None]], 2).reshape(B, 12)
         E = F @ P.T
-        eu, ev, z = E[:n_ver], E[n_ver : 2 * n_ver], E[2 * n_ver :]
-        inl = (eu * eu + ev * ev < thr2 * (z * z)) & (z > 1e-6)  # (M, B)
+        E2 = E * E  # the three squares in one pass (the same products as squaring each)
+        z = E[2 * n_ver :]
+        inl = (E2[:n_ver] + E2[n_ver : 2 * n_ver] < thr2 * E2[2 * n_ver :]) & (z > 1e-6)  # (M, B)
         # distinct keypoints with at least one inlier hypothesis
         per_kp = np.cumsum(inl, axis=0, dtype=np.int32)[kp_last]  # (keypoints, B)
         per_kp[1:] -= per_kp[:-1].copy()
@@ -662,6 +674,7 @@ def estimate_pose_one_to_many(
                 # of the ranking. Sampling the best-ranked first still stops sooner.
                 e1 = reprojection_errors(best_pose, K, hyp_xy, hyp_X)
                 in_best = np.cumsum(e1 < threshold)
+                miss_log, miss_n = 0.0, 0
                 w = float(in_best[-1]) / n1
                 if w >= 1.0:
                     needed = it
@@ -698,17 +711,22 @@ def _minimal_samples(rng: np.random.Generator, pool: int, n: int) -> np.ndarray:
         s[dup] = rng.integers(0, pool, (int(dup.sum()), 3))
 
 
-def _pool_miss_log(pools: list[tuple[int, int]], in_best: np.ndarray) -> float:
+def _pool_miss_log(
+    pools: list[tuple[int, int]], in_best: np.ndarray, out: float = 0.0, done: int = 0
+) -> tuple[float, int]:
     """log of the probability that no minimal sample drawn from ``pools`` ((pool size,
     iterations) per batch) was all inliers of the best pose (``in_best``: its set-1 inliers
-    among the first i + 1 ranked matches)."""
-    out = 0.0
-    for pool, n in pools:
+    among the first i + 1 ranked matches), and how many pools it covers. ``out``: the value
+    for ``pools[:done]`` at the same ``in_best`` (0.0 and 0 to sum them all); the rest are
+    added to it in order."""
+    if out == -math.inf:
+        return out, len(pools)
+    for pool, n in pools[done:]:
         w = float(in_best[pool - 1]) / pool
         if w >= 1.0:
-            return -math.inf
+            return -math.inf, len(pools)
         out += n * math.log(1.0 - w**3)
-    return out
+    return out, len(pools)
 
 
 def _rotations_from_rotvecs(r: np.ndarray) -> np.ndarray:
