@@ -99,7 +99,15 @@ def second_place(
             budget = min(budget, math.ceil(lg))
         params = replace(conf.ransac(need), max_iterations=max(16, budget))
         res = estimate_pose_one_to_many(
-            xy1[k1], X1[k1], q2[k2], xy2[k2], X2[k2], K, params, pool_stop=conf.global_pool_stop
+            xy1[k1],
+            X1[k1],
+            q2[k2],
+            xy2[k2],
+            X2[k2],
+            K,
+            params,
+            pool_stop=conf.global_pool_stop,
+            presolve=True,  # no good hypothesis: the run uses its whole budget
         )
         if res is None:
             return None
