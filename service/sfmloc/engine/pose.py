@@ -18,6 +18,7 @@ Two estimators, both returning None or a ``PoseEstimate`` with inlier statistics
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -341,59 +342,86 @@ def robust_refine(
 ) -> Rigid3d:
     """Gauss-Newton on the reprojection error with a Cauchy loss of ``scale`` pixels
     (iteratively reweighted): a match ``scale`` off counts half, one 3 ``scale`` off a tenth.
-    The pose is perturbed on the left: ``x_cam = exp(w) (R X + t) + v``."""
-    R, t = cam_from_world.rotation, cam_from_world.translation
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    The pose is perturbed on the left: ``x_cam = exp(w) (R X + t) + v``.
+
+    Each step is a dozen array operations (issue 10: on the ~120 matches of a redkitchen
+    refinement a step's cost is numpy's per-call overhead, not arithmetic). With x, y the
+    normalized coordinates and iz the inverse depth, every Jacobian entry is a constant (+-fx,
+    +-fy) times one of the per-match terms b = [1, x, y, iz, x^2, xy, x iz, y^2, y iz] or a sum
+    of two (fx (1 + x^2), -fy (1 + y^2)). So the normal equations H = J' W J, g = J' W r are
+    linear in the weighted second moments of the rows [b; r_u; r_v]: one symmetric product of
+    those (11, n) rows scaled by sqrt(w), then one product with the constant map of
+    ``_gn_map`` gives H (damped) and g. The same steps as the Jacobian written out per match
+    up to rounding (poses within 1e-12 relative, ``tests/test_pose_kernels.py``).
+    """
     n = len(xy)
     if n < 4:
         return cam_from_world
-    inv_s2 = 1.0 / (scale * scale)
-    J = np.zeros((2, n, 6))  # rows d(u)/d(w, v), d(v)/d(w, v)
-    Jf = J.reshape(2 * n, 6)
-    Jw = np.empty((2 * n, 6))
-    r = np.empty((2, n))
-    rf = r.reshape(-1)
-    w2 = np.empty((2 * n, 1))
-    # The observations' columns contiguous once, the weighted Jacobian written in place, the
-    # damping's identity a constant: the same operations on the same values (x0.7 CPU).
-    obs_u, obs_v = np.ascontiguousarray(xy[:, 0]), np.ascontiguousarray(xy[:, 1])
+    P = np.empty((3, 4))  # [R | t]
+    P[:, :3] = cam_from_world.rotation
+    P[:, 3] = cam_from_world.translation
+    Xh = np.empty((4, n))
+    Xh[:3] = X.T
+    Xh[3] = 1.0
+    f = K.diagonal()[:2, None]  # (fx, fy)
+    obs = xy.T - K[:2, 2:3]  # the observations relative to the principal point
+    A = np.empty((11, n))  # rows: b (9), then the residuals u, v
+    A[0] = 1.0
+    r = A[9:]
+    As = np.empty((11, n))
+    r2 = np.empty((2, n))
+    w = np.empty(n)
+    s2 = scale * scale
+    Q = _gn_map(float(K[0, 0]), float(K[1, 1]))
     for _ in range(iterations):
-        pc = X @ R.T + t
-        px, py, pz = pc[:, 0], pc[:, 1], pc[:, 2]
-        if (pz <= 1e-9).any():
+        pc = P @ Xh
+        if pc[2].min() <= 1e-9:
             break
-        iz = 1.0 / pz
-        x, y = px * iz, py * iz
-        r[0] = fx * x + cx - obs_u
-        r[1] = fy * y + cy - obs_v
-        w = 1.0 / (1.0 + (r[0] * r[0] + r[1] * r[1]) * inv_s2)
-        # With a = d(u)/d(pc): a . (dw x pc) = dw . (pc x a); d(pc)/d(v) = I. Written into J
-        # (and the weights into one (2n,) vector) without temporaries; the same operations.
-        fu, fv = fx * iz, fy * iz
-        nfu, nfv = -fu, -fv
-        np.multiply(nfu * x, py, out=J[0, :, 0])
-        np.multiply(fu, pz + x * px, out=J[0, :, 1])
-        np.multiply(nfu, py, out=J[0, :, 2])
-        J[0, :, 3] = fu
-        np.multiply(nfu, x, out=J[0, :, 5])
-        np.multiply(nfv, pz + y * py, out=J[1, :, 0])
-        np.multiply(fv * y, px, out=J[1, :, 1])
-        np.multiply(fv, px, out=J[1, :, 2])
-        J[1, :, 4] = fv
-        np.multiply(nfv, y, out=J[1, :, 5])
-        w2[:n, 0] = w
-        w2[n:, 0] = w
-        np.multiply(Jf, w2, out=Jw)
-        H = Jw.T @ Jf
-        g = Jw.T @ rf
-        try:
-            delta = -np.linalg.solve(H + 1e-9 * np.trace(H) * _EYE6, g)
-        except np.linalg.LinAlgError:
+        np.divide(1.0, pc[2], out=A[3])  # iz
+        np.multiply(pc[:2], A[3], out=A[1:3])  # x, y
+        np.multiply(A[1:4], A[1], out=A[4:7])  # x^2, xy, x iz
+        np.multiply(A[2:4], A[2], out=A[7:9])  # y^2, y iz
+        np.multiply(f, A[1:3], out=r)
+        r -= obs
+        # square roots of the Cauchy weights s^2 / (s^2 + |r|^2), applied to both sides
+        np.multiply(r, r, out=r2)
+        np.add(r2[0], r2[1], out=w)
+        w += s2
+        np.divide(s2, w, out=w)
+        np.sqrt(w, out=w)
+        np.multiply(A, w, out=As)
+        Hg = (As @ As.T).reshape(121) @ Q  # H (6x6, damped) and g
+        ok, delta = cv2.solve(
+            Hg[:36].reshape(6, 6), Hg[36:].reshape(6, 1), flags=cv2.DECOMP_CHOLESKY
+        )
+        if not ok:
             break
-        dR, _ = cv2.Rodrigues(delta[:3].reshape(3, 1))
-        R, t = dR @ R, dR @ t + delta[3:]
-    out = Rigid3d(R, t)
+        dR, _ = cv2.Rodrigues(-delta[:3])
+        P = dR @ P
+        P[:, 3] -= delta[3:, 0]
+    out = Rigid3d(P[:, :3].copy(), P[:, 3].copy())
     return out if out.is_finite() else cam_from_world
+
+
+@functools.lru_cache(maxsize=8)
+def _gn_map(fx: float, fy: float) -> np.ndarray:
+    """``robust_refine``'s constant (121, 42) map from the second moments S (11x11) of the rows
+    [b; r_u; r_v], b = [1, x, y, iz, x^2, xy, x iz, y^2, y iz], to the damped normal matrix
+    H + 1e-9 trace(H) I (36 entries) and the gradient g (6): with J_u = b Cu, J_v = b Cv,
+    H = Cu' S Cu + Cv' S Cv and g = Cu' S e_u + Cv' S e_v, each entry linear in S. Read-only
+    (shared)."""
+    Cu, Cv = np.zeros((11, 6)), np.zeros((11, 6))
+    # J_u = fx (-xy, 1 + x^2, -y, iz, 0, -x iz)
+    Cu[[5, 0, 4, 2, 3, 6], [0, 1, 1, 2, 3, 5]] = [-fx, fx, fx, -fx, fx, -fx]
+    # J_v = fy (-(1 + y^2), xy, x, 0, iz, -y iz)
+    Cv[[0, 7, 5, 1, 3, 8], [0, 0, 1, 2, 4, 5]] = [-fy, -fy, fy, fy, fy, -fy]
+    QH = np.einsum("ia,jb->ijab", Cu, Cu) + np.einsum("ia,jb->ijab", Cv, Cv)
+    QH += 1e-9 * np.einsum("ijaa->ij", QH)[:, :, None, None] * np.eye(6)
+    Qg = np.zeros((11, 11, 6))
+    Qg[:, 9], Qg[:, 10] = Cu, Cv
+    Q = np.concatenate([QH.reshape(121, 36), Qg.reshape(121, 6)], axis=1)
+    Q.flags.writeable = False
+    return Q
 
 
 def estimate_pose(
