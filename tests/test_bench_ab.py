@@ -71,6 +71,12 @@ def test_ab_finds_identical_and_different_variants(world, tmp_path, capsys):
     text = capsys.readouterr().out
     assert "vs base (cpu)" in text and "identical poses 100.0%" in text
     assert "map room-copy, CPU" in text
+    # the stages in CPU time too: each at most its wall time, and they add up to the frame's
+    cpu, wall = doc["base"]["stages_cpu_ms"], doc["base"]["stages_ms"]
+    assert set(cpu) == set(wall) and cpu["total"] > 0
+    assert all(cpu[k] <= wall[k] + 0.05 for k in cpu)
+    assert sum(v for k, v in cpu.items() if k != "total") == pytest.approx(cpu["total"], rel=0.03)
+    assert "stages (CPU ms/frame): detect" in text
 
 
 def test_ab_replays_a_variant_s_own_map(world, tmp_path, capsys):

@@ -402,6 +402,14 @@ def test_localizer_end_to_end_on_a_synthetic_video(world, bundle, cam):
     # of one frame does not decide it)
     laps = sum(v for r in res for k, v in r.timings_ms.items() if k != "total")
     assert 0.97 * sum(r.latency_ms for r in res) <= laps <= sum(r.latency_ms for r in res)
+    # the same laps in the engine thread's CPU time: the same stages, each within its wall time
+    # (one thread), adding up to the frames' CPU
+    for r in res:
+        assert set(r.cpu_timings_ms) == set(r.timings_ms) and r.cpu_timings_ms["total"] > 0
+        assert all(r.cpu_timings_ms[k] <= r.timings_ms[k] + 0.05 for k in r.timings_ms)
+    cpu_laps = sum(v for r in res for k, v in r.cpu_timings_ms.items() if k != "total")
+    cpu_total = sum(r.cpu_timings_ms["total"] for r in res)
+    assert 0.97 * cpu_total <= cpu_laps <= cpu_total + 1e-6
     assert all("reloc" in r.timings_ms for r in res if r.matching == "global")
     assert all({"match", "reloc"} & set(r.timings_ms) for r in res if r.matching == "guided")
 

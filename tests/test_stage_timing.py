@@ -45,3 +45,19 @@ def test_stage_timer_charges_each_lap_to_its_stage():
     ms = t.total()
     assert ms["detect"] >= 14.0 and ms["pose"] < 5.0
     assert ms["detect"] + ms["pose"] == pytest.approx(ms["total"], abs=0.5)
+
+
+def test_stage_timer_charges_cpu_time_to_the_stage_that_spent_it():
+    """A stage that waits costs wall time, not CPU; one that computes costs both."""
+    t = StageTimer()
+    time.sleep(0.05)
+    t.lap("filter")
+    end = time.thread_time() + 0.02
+    while time.thread_time() < end:  # 20 ms of this thread's CPU
+        pass
+    t.lap("detect")
+    ms, cpu = t.total(), t.cpu()
+    assert set(cpu) == set(ms) == {"filter", "detect", "total"}
+    assert ms["filter"] >= 49.0 and cpu["filter"] < 5.0
+    assert 20.0 <= cpu["detect"] <= ms["detect"] + 0.05
+    assert cpu["filter"] + cpu["detect"] == pytest.approx(cpu["total"], abs=0.5)

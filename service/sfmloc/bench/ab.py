@@ -168,9 +168,12 @@ def compare(variants: list[Variant]) -> dict:
         ms = [r["ms"] for r in v.runs]
         lat = [r["latency"] for r in v.runs]
         stages: dict[str, float] = {}
+        stages_cpu: dict[str, float] = {}
         for r in v.runs:
             for k, st in r["summary"].get("stages_ms", {}).items():
                 stages[k] = stages.get(k, 0.0) + st["mean"] / len(v.runs)
+            for k, st in r["summary"].get("stages_cpu_ms", {}).items():
+                stages_cpu[k] = stages_cpu.get(k, 0.0) + st["mean"] / len(v.runs)
         row = {
             "tree": str(v.tree),
             "config": str(v.config) if v.config else None,
@@ -181,6 +184,10 @@ def compare(variants: list[Variant]) -> dict:
             "latency_mean": float(np.mean([x.mean() for x in lat])),
             "latency_p99": float(np.mean([np.percentile(x, 99) for x in lat])),
             "stages_ms": stages,
+            # (trees from before the engine timed its stages on CPU have none)
+            "stages_cpu_ms": stages_cpu
+            if all("stages_cpu_ms" in r["summary"] for r in v.runs)
+            else {},
             "accuracy": _accuracy(v.runs[0]["summary"]),
         }
         if v is not base:
@@ -220,6 +227,11 @@ def format_report(result: dict, load_before: str, load_after: str, reps: int) ->
             f"{'':12s} stages (wall ms/frame): "
             + ", ".join(f"{k} {v:.2f}" for k, v in r["stages_ms"].items())
         )
+        if r.get("stages_cpu_ms"):
+            lines.append(
+                f"{'':12s} stages (CPU ms/frame): "
+                + ", ".join(f"{k} {v:.2f}" for k, v in r["stages_cpu_ms"].items())
+            )
         lines.append(f"{'':12s} {r['accuracy']}")
         vb = r.get("vs_base")
         if vb:

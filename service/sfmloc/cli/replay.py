@@ -190,6 +190,8 @@ def run(args: argparse.Namespace) -> int:
     summary["stages_ms"] = stages
     print("time per stage (ms; mean/frame over all frames, the others over the frames it ran in)")
     print(format_stage_table(stages))
+    if all(r.cpu_timings_ms for r in records) and records:
+        summary["stages_cpu_ms"] = stage_stats([r.cpu_timings_ms for r in records])
     summary["clock"] = source.clock
     summary["clock_fps"] = source.nominal_fps
     gaps = source.gaps_over(conf.max_frame_gap_s)

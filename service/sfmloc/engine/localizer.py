@@ -440,6 +440,7 @@ class Localizer:
             tracked_3d=table.n_3d(),
             matching=matching,
             timings_ms=timer.total(),
+            cpu_timings_ms=timer.cpu(),
             message=message,
             covariance=cert.covariance if pose is not None and cert is not None else None,
         )

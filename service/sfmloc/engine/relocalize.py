@@ -329,7 +329,7 @@ def relocalize(
     except _OutOfTime as exc:
         result = FrameResult(Status.LOST, 0.0, matching=Matching.GLOBAL)
         result.message = f"time budget exceeded after {exc.stage}"
-        result.timings_ms = timer.total()
+        result.timings_ms, result.cpu_timings_ms = timer.total(), timer.cpu()
         return result
 
 
@@ -362,7 +362,7 @@ def _relocalize(
     check_deadline(deadline, "detection", cpu_deadline)
     result = FrameResult(Status.LOST, 0.0, detected=len(corners), matching=Matching.GLOBAL)
     if len(corners) < conf.min_inliers:
-        result.timings_ms = timer.total()
+        result.timings_ms, result.cpu_timings_ms = timer.total(), timer.cpu()
         result.message = f"only {len(corners)} keypoints in the image"
         return result
     extractor = DaisyExtractor()
@@ -434,5 +434,5 @@ def _relocalize(
             result.covariance = cert.covariance
     else:
         result.message = why
-    result.timings_ms = timer.total()
+    result.timings_ms, result.cpu_timings_ms = timer.total(), timer.cpu()
     return result

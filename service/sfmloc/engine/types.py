@@ -25,6 +25,8 @@ class FrameResult:
     tracked_3d: int = 0  # tracked keypoints with a verified 2D-3D match
     matching: Matching = Matching.NONE
     timings_ms: dict[str, float] = field(default_factory=dict)
+    # the same stages in the engine thread's CPU time (``StageTimer.cpu``)
+    cpu_timings_ms: dict[str, float] = field(default_factory=dict)
     message: str = ""  # why a frame is LOST, when known
     # 6x6 covariance of ``cam_from_world`` (None when LOST), order [rotation (rad, a small
     # rotation on the world side of world_from_cam), camera centre in world (map units)]:

@@ -45,6 +45,7 @@ class FrameRecord:
     cam_from_world: Rigid3d | None = None
     gt_cam_from_world: Rigid3d | None = None
     timings_ms: dict[str, float] = field(default_factory=dict)
+    cpu_timings_ms: dict[str, float] = field(default_factory=dict)  # the stages' CPU time
     # CPU time of the process for the frame (ms): unlike latency_ms, it does not grow when
     # other processes load the machine (the engine runs on one thread).
     cpu_ms: float | None = None

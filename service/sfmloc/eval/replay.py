@@ -55,6 +55,7 @@ def replay(
             tracked=res.tracked,
             tracked_3d=res.tracked_3d,
             timings_ms=dict(res.timings_ms),
+            cpu_timings_ms=dict(res.cpu_timings_ms),
             cpu_ms=cpu_ms,
             covariance=res.covariance,
             message=res.message,
