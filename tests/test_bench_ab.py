@@ -74,7 +74,7 @@ def test_ab_finds_identical_and_different_variants(world, tmp_path, capsys):
     # the stages in CPU time too: each at most its wall time, and they add up to the frame's
     cpu, wall = doc["base"]["stages_cpu_ms"], doc["base"]["stages_ms"]
     assert set(cpu) == set(wall) and cpu["total"] > 0
-    assert all(cpu[k] <= wall[k] + 0.05 for k in cpu)
+    assert all(cpu[k] <= 1.01 * wall[k] + 0.05 for k in cpu)  # (means over the frames)
     assert sum(v for k, v in cpu.items() if k != "total") == pytest.approx(cpu["total"], rel=0.03)
     assert "stages (CPU ms/frame): detect" in text
 

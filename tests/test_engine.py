@@ -403,10 +403,14 @@ def test_localizer_end_to_end_on_a_synthetic_video(world, bundle, cam):
     laps = sum(v for r in res for k, v in r.timings_ms.items() if k != "total")
     assert 0.97 * sum(r.latency_ms for r in res) <= laps <= sum(r.latency_ms for r in res)
     # the same laps in the engine thread's CPU time: the same stages, each within its wall time
-    # (one thread), adding up to the frames' CPU
+    # over the frames (one thread; summed: on this VM the thread's CPU clock and the monotonic
+    # clock disagree by up to ~0.06 ms on a single interval), adding up to the frames' CPU
     for r in res:
         assert set(r.cpu_timings_ms) == set(r.timings_ms) and r.cpu_timings_ms["total"] > 0
-        assert all(r.cpu_timings_ms[k] <= r.timings_ms[k] + 0.05 for k in r.timings_ms)
+    for k in STAGES:
+        cpu_k = sum(r.cpu_timings_ms.get(k, 0.0) for r in res)
+        wall_k = sum(r.timings_ms.get(k, 0.0) for r in res)
+        assert cpu_k <= 1.01 * wall_k + 0.1
     cpu_laps = sum(v for r in res for k, v in r.cpu_timings_ms.items() if k != "total")
     cpu_total = sum(r.cpu_timings_ms["total"] for r in res)
     assert 0.97 * cpu_total <= cpu_laps <= cpu_total + 1e-6

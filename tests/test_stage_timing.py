@@ -59,5 +59,6 @@ def test_stage_timer_charges_cpu_time_to_the_stage_that_spent_it():
     ms, cpu = t.total(), t.cpu()
     assert set(cpu) == set(ms) == {"filter", "detect", "total"}
     assert ms["filter"] >= 49.0 and cpu["filter"] < 5.0
-    assert 20.0 <= cpu["detect"] <= ms["detect"] + 0.05
+    # (the thread's CPU clock and the monotonic clock disagree by up to ~0.06 ms here)
+    assert 20.0 <= cpu["detect"] <= ms["detect"] + 0.5
     assert cpu["filter"] + cpu["detect"] == pytest.approx(cpu["total"], abs=0.5)
