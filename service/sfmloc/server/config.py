@@ -100,6 +100,12 @@ class ServerConfig(StrictModel):
     # much again (0.5). 1: no cap, earliest deadline only (16 clients on 2 workers collapsed:
     # every session relocalized, one round of relocalizations took past the frame gap, so each
     # next frame relocalized again). Only with worker_queue > 0 (turns are chosen).
+    # Lead's A/B at 9cf2735, nice 0, quiet (load 1.6-2.7; `SFMLOC_RELOCALIZE_SHARE=S sfmloc
+    # bench --suites throughput --clients 8,16 --duration 10`), 16 clients, poses/s for 1 / 0.5:
+    # 100.9 / 83.5, 109.1 / 87.4, then (order swapped) 95.6 / 104.2; relocalized 5-8% with
+    # either: the one run first in a pair did better, no difference beyond that. With
+    # relocalization at ~35 ms (12eb289) the collapse no longer shows with either value; 0.5
+    # kept for the simulated slow-relocalization case (tests/test_overload_turns.py).
     relocalize_share: float = Field(0.5, gt=0, le=1)
     max_sessions: int = Field(256, ge=1)
     # Zenoh frame envelopes larger than this are refused (RESOURCE_EXHAUSTED).
