@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..features.brief import compute_brief, smooth_for_brief
-from ..features.harris import SUBPIXEL_DEFAULT, detect_corners
+from ..features.harris import SUBPIXEL_DEFAULT, Corners, detect_corners
 from .config import EngineConf
 from .track_table import TrackTable
 
@@ -44,14 +44,11 @@ def map_subpixel(conf: EngineConf, map_params: dict) -> str:
     return map_params["descriptors"].get("subpixel", "quadratic")
 
 
-def extract_keypoints(
-    gray: np.ndarray, threshold: float | None, conf: EngineConf, subpixel: str | None = None
-) -> Keypoints:
-    """Harris corners above ``threshold`` (gamma times the previous frame's maximum; None on
-    the first frame: gamma times this frame's) with BRIEF descriptors; ``subpixel``: the
-    sub-pixel method (see ``map_subpixel``)."""
-    border = conf.mu // 2
-    corners = detect_corners(
+def _corners(
+    gray: np.ndarray, threshold: float | None, conf: EngineConf, border: int, subpixel: str | None
+) -> Corners:
+    """The engine's Harris corners of ``gray`` at least ``border`` px from its edge."""
+    return detect_corners(
         gray,
         threshold=threshold,
         rel_threshold=conf.gamma,
@@ -59,6 +56,15 @@ def extract_keypoints(
         border=border,
         subpixel=subpixel or (SUBPIXEL_DEFAULT if conf.subpixel == "map" else conf.subpixel),
     )
+
+
+def extract_keypoints(
+    gray: np.ndarray, threshold: float | None, conf: EngineConf, subpixel: str | None = None
+) -> Keypoints:
+    """Harris corners above ``threshold`` (gamma times the previous frame's maximum; None on
+    the first frame: gamma times this frame's) with BRIEF descriptors; ``subpixel``: the
+    sub-pixel method (see ``map_subpixel``)."""
+    corners = _corners(gray, threshold, conf, conf.mu // 2, subpixel)
     smoothed = smooth_for_brief(gray)
     brief = compute_brief(smoothed, corners.xy, conf.mu)
     return Keypoints(corners.xy, corners.response, brief, corners.max_response)
@@ -77,14 +83,7 @@ def edge_keypoints(
     window there reads clamped pixels: still the same descriptor frame to frame) for the
     track table."""
     inner = conf.mu // 2
-    corners = detect_corners(
-        gray,
-        threshold=threshold,
-        rel_threshold=conf.gamma,
-        max_corners=conf.max_keypoints,
-        border=border,
-        subpixel=subpixel or (SUBPIXEL_DEFAULT if conf.subpixel == "map" else conf.subpixel),
-    )
+    corners = _corners(gray, threshold, conf, border, subpixel)
     h, w = gray.shape
     x, y = corners.xy[:, 0], corners.xy[:, 1]
     band = (x < inner) | (y < inner) | (x >= w - inner) | (y >= h - inner)
