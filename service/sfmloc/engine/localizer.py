@@ -464,9 +464,12 @@ class Localizer:
     def _extract_keypoints(self, gray: np.ndarray, prev_max_response: float | None) -> Keypoints:
         """EXTRACT-KEYPOINTS: Harris above gamma times the previous frame's maximum response,
         with BRIEF."""
-        c = self.conf
-        thr = c.gamma * prev_max_response if prev_max_response else None
-        return extract_keypoints(gray, thr, c, self.subpixel)
+        return extract_keypoints(gray, self._threshold(prev_max_response), self.conf, self.subpixel)
+
+    def _threshold(self, prev_max_response: float | None) -> float | None:
+        """The Harris threshold of a frame: gamma times the previous frame's maximum response
+        (None on the first frame: gamma times the frame's own)."""
+        return self.conf.gamma * prev_max_response if prev_max_response else None
 
     def _track_2d(
         self, prev: TrackTable, kps: Keypoints, pred: Rigid3d | None
@@ -774,7 +777,7 @@ class Localizer:
         if wider is not None:
             pred, kp_threshold = wider
             if 0 < c.densify_edge_px < c.mu // 2:
-                thr = c.gamma * kp_threshold if kp_threshold else None
+                thr = self._threshold(kp_threshold)
                 edge = edge_keypoints(image.gray, thr, c, c.densify_edge_px, self.subpixel)
                 kps = with_keypoints(kps, edge)
             if c.densify_from_prediction and pred is not None and self.motion_published:

@@ -653,16 +653,18 @@ def estimate_pose_one_to_many(
     miss_log, miss_n = 0.0, 0
     log_fail = math.log(1.0 - confidence)
     p3p = cv2.solveP3P
+
+    def pool_size(drawn: int) -> int:
+        # the best-ranked matches a batch samples from, after ``drawn`` iterations
+        return min(n1, max(8, n1 // 5) + (n1 * drawn) // growth)
+
     pre = None
     if presolve:
         # Every batch's samples drawn up front (the same draws from the same stream: a batch's
         # pool depends on its index only) and solved in one vectorized call.
         n_b = -(-max_iterations // batch)
         S_all = np.concatenate(
-            [
-                _minimal_samples(rng, min(n1, max(8, n1 // 5) + (n1 * b * batch) // growth), batch)
-                for b in range(n_b)
-            ]
+            [_minimal_samples(rng, pool_size(b * batch), batch) for b in range(n_b)]
         )
         R_all, T_all, s_all = p3p_batch(obj[S_all], img[S_all], K)
         pre = (R_all, T_all, np.searchsorted(s_all, np.arange(n_b + 1) * batch))
@@ -672,7 +674,7 @@ def estimate_pose_one_to_many(
             miss_log, miss_n = _pool_miss_log(pools, in_best, miss_log, miss_n)
             if miss_log < log_fail:
                 break
-        pool = min(n1, max(8, n1 // 5) + (n1 * it) // growth)
+        pool = pool_size(it)
         pools.append((pool, batch))
         if pre is not None:
             lo, hi = pre[2][n_batch], pre[2][n_batch + 1]

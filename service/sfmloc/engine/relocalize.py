@@ -392,13 +392,15 @@ def _relocalize(
             rest[sub] = False
             desc_r = describe(extractor, bundle, prepared, corners.xy[rest])
             nb_r = bundle.index.search(desc_r, conf.k, nprobe=conf.global_nprobe)
-            desc = np.empty((len(corners), desc_1.shape[1]), desc_1.dtype)
-            desc[sub], desc[rest] = desc_1, desc_r
-            D = np.empty((len(corners), nb_1[0].shape[1]), nb_1[0].dtype)
-            ids = np.empty((len(corners), nb_1[1].shape[1]), nb_1[1].dtype)
-            D[sub], D[rest] = nb_1[0], nb_r[0]
-            ids[sub], ids[rest] = nb_1[1], nb_r[1]
-            neighbours = (D, ids)
+
+            def joined(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+                # rows of the first keypoints' ``a`` and the rest's ``b`` in corner order
+                out = np.empty((len(corners), a.shape[1]), a.dtype)
+                out[sub], out[rest] = a, b
+                return out
+
+            desc = joined(desc_1, desc_r)
+            neighbours = (joined(nb_1[0], nb_r[0]), joined(nb_1[1], nb_r[1]))
     else:
         desc = describe(extractor, bundle, prepared, corners.xy)
     check_deadline(deadline, "description", cpu_deadline)
