@@ -580,27 +580,36 @@ def _packed_problems(path: Path, manifest: Manifest, checksums: bool) -> list[st
         return [f"{PACKED_FILE}: not a regular file (symlinks and devices are refused)"]
     problems = []
     with open(bpath, "rb") as f:
-        for aname, (dtype, ndim) in PACKED_SPECS.items():
+        for aname in PACKED_SPECS:
             e = manifest.arrays.get(aname)
             if e is None:
                 problems.append(f"array {aname} is not in the manifest")
                 continue
-            dt = np.dtype(dtype)
-            n = int(np.prod(e.shape)) if e.shape else 1
-            off = e.offset if e.offset is not None else -1
-            if e.dtype != dt.str or len(e.shape) != ndim or min(e.shape, default=0) < 0:
-                problems.append(f"{aname}: dtype/shape {e.dtype}{e.shape} do not match")
-            elif e.bytes != n * dt.itemsize or off < 0 or off % PACKED_ALIGN:
-                problems.append(f"{aname}: {e.bytes} B at offset {off} do not match its shape")
-            elif off + e.bytes > st.st_size:
-                problems.append(
-                    f"{PACKED_FILE}: {aname} ends at {off + e.bytes} B, the file has {st.st_size} B"
-                )
+            problem = _packed_entry_problem(aname, e, st.st_size)
+            if problem is not None:
+                problems.append(problem)
             elif checksums:
-                f.seek(off)
+                assert e.offset is not None  # checked by _packed_entry_problem
+                f.seek(e.offset)
                 if hashlib.sha256(f.read(e.bytes)).hexdigest() != e.sha256:
                     problems.append(f"{PACKED_FILE}: {aname} checksum mismatch (corrupt)")
     return problems
+
+
+def _packed_entry_problem(aname: str, e: ArrayEntry, file_size: int) -> str | None:
+    """What is wrong with packed array ``aname``'s manifest entry ``e`` against its spec and a
+    file of ``file_size`` bytes (None: it fits)."""
+    dtype, ndim = PACKED_SPECS[aname]
+    dt = np.dtype(dtype)
+    n = int(np.prod(e.shape)) if e.shape else 1
+    off = e.offset if e.offset is not None else -1
+    if e.dtype != dt.str or len(e.shape) != ndim or min(e.shape, default=0) < 0:
+        return f"{aname}: dtype/shape {e.dtype}{e.shape} do not match"
+    if e.bytes != n * dt.itemsize or off < 0 or off % PACKED_ALIGN:
+        return f"{aname}: {e.bytes} B at offset {off} do not match its shape"
+    if off + e.bytes > file_size:
+        return f"{PACKED_FILE}: {aname} ends at {off + e.bytes} B, the file has {file_size} B"
+    return None
 
 
 def _map_packed(path: Path, manifest: Manifest) -> tuple[dict[str, np.ndarray], mmap.mmap]:
@@ -616,26 +625,19 @@ def _map_packed(path: Path, manifest: Manifest) -> tuple[dict[str, np.ndarray], 
     except (OSError, ValueError) as exc:
         raise BundleError(f"map bundle {path}: cannot map {PACKED_FILE} ({exc})") from None
     a: dict[str, np.ndarray] = {}
-    for aname, (dtype, ndim) in PACKED_SPECS.items():
+    for aname, (dtype, _) in PACKED_SPECS.items():
         e = manifest.arrays.get(aname)
         if e is None:
             raise BundleError(f"map bundle {path}: array {aname} missing from the manifest")
+        problem = _packed_entry_problem(aname, e, len(mm))
+        if problem is not None:
+            raise BundleError(
+                f"map bundle {path}: {aname} does not fit its spec or {PACKED_FILE} ({problem})"
+            )
         dt = np.dtype(dtype)
         n = int(np.prod(e.shape)) if e.shape else 1
-        off = e.offset if e.offset is not None else -1
-        if (
-            e.dtype != dt.str
-            or len(e.shape) != ndim
-            or min(e.shape, default=0) < 0
-            or e.bytes != n * dt.itemsize
-            or off < 0
-            or off % PACKED_ALIGN
-            or off + e.bytes > len(mm)
-        ):
-            raise BundleError(
-                f"map bundle {path}: {aname} ({e.dtype}{e.shape}, {e.bytes} B at {off}) does "
-                f"not fit its spec or {PACKED_FILE} ({len(mm)} B)"
-            )
+        off = e.offset
+        assert off is not None  # checked by _packed_entry_problem
         if n:
             a[aname] = np.frombuffer(mm, dt, count=n, offset=off).reshape(e.shape)
         else:
