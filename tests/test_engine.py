@@ -1100,8 +1100,7 @@ def test_engine_config_has_the_paper_defaults_and_env_overrides():
         25,
         10,
     )
-    assert (c.batch_min, c.batch_max, c.top_images, c.min_inliers, c.ratio, c.gamma) == (
-        100,
+    assert (c.batch_max, c.top_images, c.min_inliers, c.ratio, c.gamma) == (
         100,
         30,
         10,
@@ -1114,6 +1113,24 @@ def test_engine_config_has_the_paper_defaults_and_env_overrides():
         prefix="SFMLOC_ENGINE__",
     )
     assert c.k == 64 and c.vote == "sum"
+
+
+def test_a_removed_engine_setting_is_dropped_with_a_warning_that_says_why(tmp_path):
+    """``batch_min`` was never read: an old config file or a saved bench conf naming it still
+    loads (the batch's minimum is ``guided_min_pending``), with a warning saying so."""
+    import json
+
+    from sfmloc.config import load_config
+
+    assert "batch_min" not in EngineConf.model_fields
+    with pytest.warns(UserWarning, match="batch_min is ignored: it was never read; guided_min"):
+        c = EngineConf.model_validate({**EngineConf().model_dump(), "batch_min": 150})
+    assert c == EngineConf()
+    old = tmp_path / "engine.json"
+    old.write_text(json.dumps({"batch_min": 150, "batch_max": 120}))
+    with pytest.warns(UserWarning, match="batch_min is ignored"):
+        c = load_config(EngineConf, old, environ={}, prefix="SFMLOC_ENGINE__")
+    assert c.batch_max == 120 and "batch_min" not in c.model_dump()
 
 
 def test_frames_localize_keypoints_as_the_map_did(bundle, cam):
