@@ -550,3 +550,54 @@ def test_free_ports_are_distinct_free_and_outside_the_kernels_and_other_workers_
         assert all(
             testing.PORT_LOW + i * size <= p < testing.PORT_LOW + (i + 1) * size for p in ports_i
         )
+
+
+def test_two_test_runs_side_by_side_never_get_the_same_port():
+    """Two pytest runs at once on one machine both have a gw0 (the same block): a port one
+    process handed out (and holds, its server not bound yet) is not handed to the other, even
+    from the same random start; once the first process exits its ports are free again."""
+    import sys
+
+    from sfmloc import testing
+
+    code = (
+        "import random, sys; random.seed(7); from sfmloc.testing import free_port; "
+        "print(*[free_port() for _ in range(50)], flush=True); sys.stdin.readline()"
+    )
+    env = {**os.environ, "PYTEST_XDIST_WORKER": "gw0"}
+
+    def run() -> subprocess.Popen:
+        return subprocess.Popen(
+            [sys.executable, "-c", code],
+            env=env,
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+
+    first = run()
+    try:
+        a = {int(v) for v in first.stdout.readline().split()}  # held: first waits on stdin
+        second = run()
+        b_out, _ = second.communicate("\n", timeout=60)
+        b = {int(v) for v in b_out.split()}
+        assert second.returncode == 0
+    finally:
+        first.communicate("\n", timeout=60)
+    block = range(testing.PORT_LOW, testing.PORT_LOW + len(testing.port_block()))
+    assert len(a) == len(b) == 50 and all(p in block for p in a | b)
+    assert not a & b
+    # the first process's reservations ended with it (another run may have taken a few since)
+    import fcntl
+
+    lockable = 0
+    for p in a:
+        fd = os.open(os.path.join(testing.PORT_LOCK_DIR, f"{p}.lock"), os.O_RDWR)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            lockable += 1
+        except OSError:
+            pass
+        finally:
+            os.close(fd)  # closing drops the lock
+    assert lockable >= 45

@@ -8,12 +8,14 @@
 from __future__ import annotations
 
 import asyncio
+import fcntl
 import os
 import random
 import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 from typing import Any
 
@@ -100,8 +102,14 @@ class ServerThread:
 # turn, skipping ports in use; the lowest port of the blocks:
 PORT_LOW = 16384
 PORT_BLOCKS = 16
+# Two test runs side by side (helpers run suites at once) both have a gw0 with the same block,
+# and a port free when handed out is bound only later: each port handed out is also reserved,
+# machine-wide, by an exclusive lock on a file named by it, held until this process exits (the
+# kernel drops it then, even on a crash). Another process skips a port it cannot lock.
+PORT_LOCK_DIR = os.path.join(tempfile.gettempdir(), "sfmloc-test-ports")
 _port_lock = threading.Lock()
 _port_cursor: list[int] = []
+_port_reserved: dict[int, int] = {}  # port -> the open lock file holding it for this process
 
 
 def ephemeral_low() -> int:
@@ -131,10 +139,33 @@ def _bindable(port: int) -> bool:
         return True
 
 
+def _reserve(port: int) -> bool:
+    """Whether this process holds ``port``'s lock (taken now, or before)."""
+    if port in _port_reserved:
+        return True
+    path = os.path.join(PORT_LOCK_DIR, f"{port}.lock")
+    try:
+        if not os.path.isdir(PORT_LOCK_DIR):
+            os.makedirs(PORT_LOCK_DIR, exist_ok=True)
+            os.chmod(PORT_LOCK_DIR, 0o1777)  # every user's test runs reserve here
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+    except OSError:
+        # Another user's lock file is theirs; with no lock directory at all, nothing to share:
+        # the bind test alone decides, as before.
+        return not os.path.exists(path)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:  # another process (another test run) holds it
+        os.close(fd)
+        return False
+    _port_reserved[port] = fd
+    return True
+
+
 def free_port() -> int:
     """A loopback TCP port nobody listens on, for a server about to bind it: the next free one
     of this process's ``port_block`` (never one of another xdist worker's or the kernel's
-    ephemeral ones)."""
+    ephemeral ones) that no other process has reserved (``PORT_LOCK_DIR``)."""
     block = port_block()
     if len(block) < 64:  # an ephemeral range reaching down here: the kernel picks
         with socket.socket() as s:
@@ -146,7 +177,7 @@ def free_port() -> int:
         for _ in range(len(block)):
             port = block[_port_cursor[0] % len(block)]
             _port_cursor[0] = (_port_cursor[0] + 1) % len(block)
-            if _bindable(port):
+            if _bindable(port) and _reserve(port):
                 return port
     raise OSError(f"no free port in {block.start}-{block.stop - 1}")
 
