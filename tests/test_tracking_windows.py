@@ -4,10 +4,20 @@ predictions far off the image or not finite look at no candidate (and cost no me
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
-from sfmloc.engine.tracker import window_pairs
+from sfmloc.engine.config import EngineConf
+from sfmloc.engine.track_table import TrackTable
+from sfmloc.engine.tracker import (
+    Keypoints,
+    extract_keypoints,
+    pair_distances,
+    track_2d,
+    window_pairs,
+)
+from sfmloc.features.brief import hamming
 
 
 def _brute(pred, cand, half):
@@ -36,3 +46,89 @@ def test_predictions_off_the_image_or_not_finite_find_nothing():
     ti, cj = window_pairs(pred, cand, 24.0)
     assert ti.tolist() == [3] and cj.tolist() == [0]
     assert [len(a) for a in window_pairs(pred[:0], cand, 24.0)] == [0, 0]
+
+
+def _plain_track_2d(brief_t, pred, brief_k, xy, conf):
+    """TRACK-2D written per track: the best candidate in the window if it passes the distance
+    cap and the ratio test (a tie for the best does not), then each candidate to its closest
+    claiming track (the lower row on a tie)."""
+    claims = {}
+    for i in range(len(pred)):
+        d = np.abs(xy - pred[i])
+        js = np.nonzero((d[:, 0] <= conf.rho / 2) & (d[:, 1] <= conf.rho / 2))[0]
+        if len(js) == 0:
+            continue
+        dist = np.array([hamming(brief_t[i], brief_k[j]) for j in js])
+        o = np.argsort(dist, kind="stable")
+        best = dist[o[0]]
+        if best > conf.max_hamming or (len(js) > 1 and not best < conf.psi * dist[o[1]]):
+            continue
+        j = int(js[o[0]])
+        if j not in claims or best < claims[j][1]:
+            claims[j] = (i, best)
+    match = np.full(len(pred), -1, np.int64)
+    for j, (i, _) in claims.items():
+        match[i] = j
+    return match
+
+
+def _table(brief):
+    table = TrackTable.empty(1)
+    table.brief = brief
+    table.track_id = np.arange(len(brief), dtype=np.int64)
+    return table
+
+
+def test_track_2d_equals_the_per_track_rule_with_ties_and_shared_candidates():
+    conf = EngineConf()
+    rng = np.random.default_rng(7)
+    for trial in range(60):
+        m, n = int(rng.integers(1, 300)), int(rng.integers(1, 200))
+        xy = rng.uniform(0, 200, (m, 2))
+        # few distinct descriptors and bits: equal distances, ties for the best and candidates
+        # claimed by several tracks are common
+        words = rng.integers(0, 2**63, (5, 4), dtype=np.uint64)
+        flips = rng.integers(0, 2**63, (m, 4), dtype=np.uint64) & rng.integers(
+            0, 2**63, (m, 4), dtype=np.uint64
+        )
+        brief_k = words[rng.integers(0, 5, m)] ^ (flips if trial % 2 else 0)
+        brief_t = words[rng.integers(0, 5, n)]
+        pred = xy[rng.integers(0, m, n)] + rng.normal(0, 10, (n, 2))
+        pred[: n // 10] = np.nan
+        kps = Keypoints(xy, np.ones(m), brief_k, 1.0)
+        got = track_2d(_table(brief_t), pred, kps, conf)
+        np.testing.assert_array_equal(got, _plain_track_2d(brief_t, pred, brief_k, xy, conf))
+        assert (got >= 0).any() or trial % 2  # not vacuous on the tie-heavy trials
+
+
+def test_pair_distances_equal_hamming_up_to_all_256_bits():
+    rng = np.random.default_rng(3)
+    a = rng.integers(0, 2**64, (50, 4), dtype=np.uint64, endpoint=False)
+    a[0] = np.uint64(2**64 - 1)
+    b = np.concatenate([~a[:1], a[:1], rng.integers(0, 2**63, (40, 4), dtype=np.uint64)])
+    i, j = (g.ravel() for g in np.meshgrid(np.arange(50), np.arange(len(b)), indexing="ij"))
+    d = pair_distances(a, i, b, j)
+    np.testing.assert_array_equal(d, hamming(a[i], b[j]))
+    assert d.max() == 256 and d.min() == 0
+
+
+def test_track_2d_and_window_pairs_on_consecutive_redkitchen_frames(redkitchen):
+    conf = EngineConf()
+    rng = np.random.default_rng(11)
+    threshold = None
+    prev = None
+    matched = 0
+    for i in range(0, 40, 4):
+        gray = cv2.imread(str(redkitchen / f"frame-{i:06d}.color.jpg"), cv2.IMREAD_GRAYSCALE)
+        kps = extract_keypoints(gray, threshold, conf)
+        threshold = conf.gamma * kps.max_response
+        if prev is not None:
+            pred = prev.xy + rng.normal(0, 3, prev.xy.shape)
+            ti, cj = window_pairs(pred, kps.xy, conf.rho / 2)
+            assert sorted(zip(ti.tolist(), cj.tolist())) == _brute(pred, kps.xy, conf.rho / 2)
+            got = track_2d(_table(prev.brief), pred, kps, conf)
+            want = _plain_track_2d(prev.brief, pred, kps.brief, kps.xy, conf)
+            np.testing.assert_array_equal(got, want)
+            matched += int((got >= 0).sum())
+        prev = kps
+    assert matched > 1000
