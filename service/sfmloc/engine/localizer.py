@@ -237,6 +237,8 @@ class Localizer:
         self.interval = 0.0  # seconds from the frame before the last to the last
         self.last_interval = 0.0  # the same one frame earlier
         self.motion_published = False  # the last posed frame's pose was published (not withheld)
+        # this frame's pose and covariance as judged (published or withheld), None without one
+        self.judged: tuple[PoseEstimate, np.ndarray] | None = None
 
     def swap_bundle(
         self, bundle: MapBundle, point_rows: Callable[[np.ndarray], np.ndarray]
@@ -423,6 +425,9 @@ class Localizer:
         timer.lap("filter")
         self.table = table  # the one place the track table is stored for the next frame
 
+        # The pose and covariance the status rules judge, published or withheld (LOST): what
+        # eval.calibration measures, withheld poses included.
+        self.judged = (est, cert.covariance) if est is not None and cert is not None else None
         status, message, self.unverified = _status(
             est, cert, relocalized, message, self.unverified, c
         )

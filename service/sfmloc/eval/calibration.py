@@ -27,8 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from ..cameras import Camera
-from ..engine import EngineConf
-from ..engine import localizer as localizer_module
+from ..engine import EngineConf, Localizer
 from ..engine.certainty import position_sd, small_sample_factor
 from ..engine.pose import PoseEstimate, pose_error_vector
 from ..io.frames import FrameSource
@@ -73,36 +72,21 @@ def replay_samples(
 ) -> tuple[list[Sample], int]:
     """Every pose the status rules judged in the replay (published or withheld; ``status`` the
     one they gave it) with its ground truth, and the number of frames."""
-    loc = localizer_module.Localizer(bundle, camera, conf or EngineConf())
+    loc = Localizer(bundle, camera, conf or EngineConf())
     out: list[Sample] = []
     n = 0
-    judged: list[tuple[PoseEstimate, np.ndarray]] = []
-    real = localizer_module._status
-
-    def recording(est, cert, *args):  # the frame's final pose and covariance, as judged
-        if est is not None and cert is not None:
-            judged.append((est, cert.covariance))
-        return real(est, cert, *args)
-
-    localizer_module._status = recording  # type: ignore[assignment]
-    try:
-        for frame in source:
-            if max_frames is not None and n >= max_frames:
-                break
-            n += 1
-            judged.clear()
-            r = loc.localize(frame.image, frame.stamp)
-            gt = groundtruth[frame.index] if frame.index < len(groundtruth) else None
-            if not judged or gt is None:
-                continue
-            est, cov = judged[-1]
-            out.append(
-                Sample(
-                    frame.index, str(r.status), est.cam_from_world, gt, cov, est.num_inliers, est
-                )
-            )
-    finally:
-        localizer_module._status = real
+    for frame in source:
+        if max_frames is not None and n >= max_frames:
+            break
+        n += 1
+        r = loc.localize(frame.image, frame.stamp)
+        gt = groundtruth[frame.index] if frame.index < len(groundtruth) else None
+        if loc.judged is None or gt is None:
+            continue
+        est, cov = loc.judged  # the frame's final pose and covariance, as judged
+        out.append(
+            Sample(frame.index, str(r.status), est.cam_from_world, gt, cov, est.num_inliers, est)
+        )
     return out, n
 
 
