@@ -102,6 +102,44 @@ def test_p3p_batch_finds_opencvs_solutions():
     assert np.median(err) < 1e-9 and np.percentile(err, 99) < 1e-6 and err.max() < 1e-4
 
 
+def test_degenerate_samples_give_no_pose_to_score():
+    """A sample naming one map point twice (two set-1 keypoints matched to one point) makes
+    ``cv2.solveP3P`` return NaN translations: both kernels of the RANSAC drop them before
+    scoring, and keep OpenCV's finite solutions of the other samples unchanged."""
+    from sfmloc.engine.pose import p3p_opencv
+
+    rng = np.random.default_rng(4)
+    gt = Rigid3d(rotmat_from_rotvec([0.1, 0.2, -0.1]), [0.2, 0.1, 1.0])
+    X, uv = _scene(rng, 50, gt)
+    S = np.array([[0, 0, 2], [2, 3, 4], [5, 6, 6], [7, 8, 9]])
+    n, _, tv = cv2.solveP3P(X[S[0]], uv[S[0]], K, None, flags=cv2.SOLVEPNP_P3P)
+    assert n > 0 and not np.isfinite(np.asarray(tv[:n])).all()  # the NaN pose it returns
+    R, t = p3p_opencv(X[S], uv[S], K)
+    assert np.isfinite(R).all() and np.isfinite(t).all()
+    want = []
+    for s in (1, 3):
+        n, rv, tv = cv2.solveP3P(X[S[s]], uv[S[s]], K, None, flags=cv2.SOLVEPNP_P3P)
+        want += [(cv2.Rodrigues(rv[i])[0], tv[i].ravel()) for i in range(n)]
+    assert len(R) == len(want) > 0
+    for (Rc, tc), Rm, tm in zip(want, R, t):
+        assert np.abs(Rm - Rc).max() < 1e-12 and np.abs(tm - tc).max() < 1e-12
+    Rb, tb, idx = p3p_batch(X[S], uv[S], K)
+    assert 0 not in idx and np.isfinite(Rb).all() and np.isfinite(tb).all()
+    # a RANSAC whose best-ranked keypoints share map points: samples from them are degenerate
+    n1 = 40
+    s1 = np.r_[np.zeros(8, int), np.arange(1, n1 - 7)]
+    ver = np.arange(n1)
+    for presolve in (False, True):
+        res = estimate_pose_one_to_many(
+            uv[s1], X[s1], ver, uv[s1], X[s1], K, RansacParams(min_inliers=20),
+            presolve=presolve,
+        )  # fmt: skip
+        assert res is not None
+        Tm = res[0].cam_from_world
+        assert np.abs(Tm.rotation - gt.rotation).max() < 1e-6
+        assert np.abs(Tm.translation - gt.translation).max() < 1e-6
+
+
 def test_presolved_ransac_equals_opencvs():
     """The same samples (one stream), OpenCV's solver against the vectorized one: the same
     iterations, inliers and chosen matches, the pose within 1e-7; on a scene whose best pose

@@ -605,7 +605,8 @@ def estimate_pose_one_to_many(
     vectorized ``p3p_batch`` instead of one OpenCV call each (~20 us a call, most of an
     iteration): for a run expected to use its whole budget (the second-place test's), where
     the samples an early stop leaves unused cost less than the calls saved. The same samples;
-    the solutions equal OpenCV's within 1e-8 (it also returns NaN poses, which score nothing).
+    the solutions equal OpenCV's within 1e-8. Neither kernel hands a non-finite pose to the
+    scoring (``p3p_opencv``, ``p3p_batch``).
 
     Returns the pose and, per set-2 pair, whether it is the inlier chosen for its keypoint
     (at most one per keypoint: the closest reprojection)."""
@@ -652,7 +653,6 @@ def estimate_pose_one_to_many(
     # over up to 63 batches); reset when the best pose changes.
     miss_log, miss_n = 0.0, 0
     log_fail = math.log(1.0 - confidence)
-    p3p = cv2.solveP3P
 
     def pool_size(drawn: int) -> int:
         # the best-ranked matches a batch samples from, after ``drawn`` iterations
@@ -685,25 +685,14 @@ def estimate_pose_one_to_many(
             R, T = pre[0][lo:hi], pre[1][lo:hi]
             B = len(R)
         else:
-            Rs: list[np.ndarray] = []  # rotation vectors of this batch's P3P solutions
-            ts: list[np.ndarray] = []
             S = _minimal_samples(rng, pool, batch)
+            it += len(S)
             # The batch's sample points gathered at once: a view per sample instead of two
             # fancy indexings (the same contiguous (3, 3) and (3, 2) arrays for the solver).
-            objS, imgS = obj[S], img[S]
-            it += len(S)
-            for j in range(len(S)):
-                try:
-                    n_sol, rvecs, tvecs = p3p(objS[j], imgS[j], K, None, flags=cv2.SOLVEPNP_P3P)
-                except cv2.error:
-                    continue
-                Rs += rvecs[:n_sol]
-                ts += tvecs[:n_sol]
-            if not Rs:
+            R, T = p3p_opencv(obj[S], img[S], K)
+            B = len(R)
+            if B == 0:
                 continue
-            B = len(Rs)
-            R = _rotations_from_rotvecs(np.asarray(Rs, np.float64).reshape(B, 3))  # (B, 3, 3)
-            T = np.asarray(ts, np.float64).reshape(B, 3)
         # One GEMM for all hypotheses: (3M, 12) @ (12, B) -> z*du, z*dv, z, each (M, B)
         P = np.concatenate([R, T[:, :, None]], 2).reshape(B, 12)
         E = F @ P.T
@@ -758,6 +747,31 @@ def estimate_pose_one_to_many(
         return None
     est.inlier_mask = chosen
     return est, chosen
+
+
+def p3p_opencv(objS: np.ndarray, imgS: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, ...]:
+    """OpenCV's P3P solutions of samples ``objS`` (S, 3, 3) world points, ``imgS`` (S, 3, 2)
+    pixels: rotations (B, 3, 3) and translations (B, 3). A degenerate sample (two coincident
+    points or pixels: two set-1 keypoints matched to one map point) gives solutions with NaN
+    translations from ``cv2.solveP3P``: dropped here, before scoring, as ``p3p_batch`` drops
+    them (a NaN pose scored 0 inliers, but by accident of NaN comparisons)."""
+    p3p = cv2.solveP3P
+    Rs: list[np.ndarray] = []  # rotation vectors of the solutions
+    ts: list[np.ndarray] = []
+    for j in range(len(objS)):
+        try:
+            n_sol, rvecs, tvecs = p3p(objS[j], imgS[j], K, None, flags=cv2.SOLVEPNP_P3P)
+        except cv2.error:
+            continue
+        Rs += rvecs[:n_sol]
+        ts += tvecs[:n_sol]
+    B = len(Rs)
+    r = np.asarray(Rs, np.float64).reshape(B, 3)
+    T = np.asarray(ts, np.float64).reshape(B, 3)
+    fin = np.isfinite(r).all(1) & np.isfinite(T).all(1)
+    if not fin.all():
+        r, T = r[fin], T[fin]
+    return _rotations_from_rotvecs(r), T
 
 
 def p3p_batch(X: np.ndarray, x: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, ...]:
