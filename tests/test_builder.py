@@ -544,3 +544,49 @@ def test_points_are_refined_to_their_keypoints_exactly_and_only_when_consistent(
     assert np.abs(new[2:] - truth[2:]).max() < 1e-6
     off, _ = refine_points(start, dp, di, dl, dxy, [cam] * 4, poses, RefineConf(enabled=False))
     assert np.array_equal(off, start)
+
+
+def test_a_long_track_refines_on_its_most_spread_views():
+    """A point seen in more than ``max_observations`` images (a camera sliding past it, in
+    image order) is refined on the views whose rays spread widest, not on the first ones (the
+    start of its track, a narrow baseline): both ends of the track are among them, and with
+    noisy keypoints the points come out closer to the truth than from the first views."""
+    from sfmloc.builder.refine import RefineConf, refine_points, spread_observations
+    from sfmloc.transforms import Rigid3d
+
+    rng = np.random.default_rng(1)
+    cam = Camera("PINHOLE", 640, 480, [500, 500, 320, 240])
+    n_img, n_pts = 40, 200
+    poses = [Rigid3d(np.eye(3), [-x, 0.0, 0.0]) for x in np.linspace(-1.0, 1.0, n_img)]
+    truth = np.column_stack(
+        [rng.uniform(-0.5, 0.5, n_pts), rng.uniform(-0.4, 0.4, n_pts), rng.uniform(4, 5, n_pts)]
+    )
+    dp, di, dxy = [], [], []
+    for i, T in enumerate(poses):
+        uv, _ = cam.project(T, truth)
+        dp.append(np.arange(n_pts)), di.append(np.full(n_pts, i)), dxy.append(uv)
+    dp, di, dxy = (np.concatenate(a) for a in (dp, di, dxy))
+    dl = np.zeros(len(dp), np.uint8)
+    dxy = dxy + rng.normal(0, 0.3, dxy.shape)  # keypoint noise
+    start = truth + rng.normal(0, 0.003, truth.shape)
+    # the choice itself: 16 of 40 per point, both ends of the track among them
+    order = np.lexsort((di, dp))
+    centers = np.stack([T.center for T in poses])
+    keep = spread_observations(dp[order], di[order], np.full(n_pts, n_img), start, centers, 16)
+    chosen = di[order][keep].reshape(n_pts, 16)
+    assert keep.sum() == 16 * n_pts
+    assert (chosen.min(1) == 0).all() and (chosen.max(1) == n_img - 1).all()
+    sub = di[order] < 16  # every point in 16 images: every one kept
+    few = spread_observations(
+        dp[order][sub], di[order][sub], np.full(n_pts, 16), start, centers, 16
+    )
+    assert few.all()
+    err = {}
+    for select in ("first", "spread"):
+        new, moved = refine_points(
+            start, dp, di, dl, dxy, [cam] * n_img, poses, RefineConf(select=select)
+        )
+        assert moved.all()
+        err[select] = np.linalg.norm(new - truth, axis=1)
+    # the error falls with the baseline: x0.40-0.43 (mean) over seeds 0-3 here
+    assert np.mean(err["spread"]) < 0.6 * np.mean(err["first"])
