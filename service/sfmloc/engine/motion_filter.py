@@ -26,36 +26,89 @@ matching for the next frame.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from ..transforms import Rigid3d, rotmat_from_rotvec, rotvec_from_rotmat
 from .kalman import KalmanFilter, white_noise_cv
 
 
-def _hat(w: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+def _exp(xi: list[float]) -> tuple[list[list[float]], list[float]]:
+    """``exp([rho, phi])`` in Python floats: the rotation ``I + A W + B W^2`` (``W`` the
+    cross-product matrix of ``phi``) and the translation ``V rho``, ``V = I + B W + C W^2``.
+    (The filter's per-frame poses: three numpy calls per 3x3 matrix cost more than these
+    few dozen multiplications.)"""
+    r0, r1, r2, x, y, z = xi
+    th2 = x * x + y * y + z * z
+    if th2 < 1e-6:  # theta < 1e-3: the series, to theta^4 (the next terms are below 1e-18)
+        A = 1.0 - th2 / 6.0 * (1.0 - th2 / 20.0)
+        B = 0.5 - th2 / 24.0 * (1.0 - th2 / 30.0)
+        C = 1.0 / 6.0 - th2 / 120.0 * (1.0 - th2 / 42.0)
+    else:
+        th = math.sqrt(th2)
+        s = math.sin(th)
+        h = math.sin(0.5 * th)
+        A = s / th
+        B = 2.0 * h * h / th2  # (1 - cos) / theta^2 without the cancellation
+        C = (th - s) / (th2 * th)
+    xx, yy, zz, xy, xz, yz = x * x, y * y, z * z, x * y, x * z, y * z
+    R = [
+        [1.0 - B * (yy + zz), B * xy - A * z, B * xz + A * y],
+        [B * xy + A * z, 1.0 - B * (xx + zz), B * yz - A * x],
+        [B * xz - A * y, B * yz + A * x, 1.0 - B * (xx + yy)],
+    ]
+    c0, c1, c2 = y * r2 - z * r1, z * r0 - x * r2, x * r1 - y * r0  # phi x rho
+    d0, d1, d2 = y * c2 - z * c1, z * c0 - x * c2, x * c1 - y * c0  # phi x (phi x rho)
+    return R, [r0 + B * c0 + C * d0, r1 + B * c1 + C * d1, r2 + B * c2 + C * d2]
 
 
-def _left_jacobian(phi: np.ndarray) -> np.ndarray:
-    """SO(3)'s left Jacobian V: ``exp([rho, phi])`` translates by ``V(phi) rho``."""
-    th = float(np.linalg.norm(phi))
-    W = _hat(phi)
-    if th < 1e-6:
-        return np.eye(3) + 0.5 * W + W @ W / 6.0
-    return np.eye(3) + (1 - np.cos(th)) / th**2 * W + (th - np.sin(th)) / th**3 * (W @ W)
+def _log(R: list[list[float]], t: list[float]) -> list[float]:
+    """``log`` of the rigid motion ``(R, t)`` in Python floats, ``[rho, phi]``: ``phi`` the
+    rotation vector (``rotvec_from_rotmat``'s quaternion, Shepperd's branches) and
+    ``rho = V^-1 t = t - W t / 2 + D W^2 t``."""
+    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = R
+    tr = m00 + m11 + m22
+    if tr > 0:
+        s = 2.0 * math.sqrt(tr + 1.0)
+        q = (0.25 * s, (m21 - m12) / s, (m02 - m20) / s, (m10 - m01) / s)
+    elif m00 > m11 and m00 > m22:
+        s = 2.0 * math.sqrt(1.0 + m00 - m11 - m22)
+        q = ((m21 - m12) / s, 0.25 * s, (m01 + m10) / s, (m02 + m20) / s)
+    elif m11 > m22:
+        s = 2.0 * math.sqrt(1.0 + m11 - m00 - m22)
+        q = ((m02 - m20) / s, (m01 + m10) / s, 0.25 * s, (m12 + m21) / s)
+    else:
+        s = 2.0 * math.sqrt(1.0 + m22 - m00 - m11)
+        q = ((m10 - m01) / s, (m02 + m20) / s, (m12 + m21) / s, 0.25 * s)
+    n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    if not (math.isfinite(n) and n >= 1e-12):
+        raise ValueError(f"not a rotation: {R!r}")
+    w, x, y, z = (v / n for v in q) if q[0] >= 0 else (-v / n for v in q)
+    sv = math.sqrt(x * x + y * y + z * z)
+    k = 2.0 if sv < 1e-12 else 2.0 * math.atan2(sv, w) / sv
+    x, y, z = x * k, y * k, z * k
+    th2 = x * x + y * y + z * z
+    if th2 < 1e-6:  # the series of (1 - (theta/2) cot(theta/2)) / theta^2, to theta^4
+        D = 1.0 / 12.0 + th2 / 720.0 * (1.0 + th2 / 42.0)
+    else:
+        half = 0.5 * math.sqrt(th2)
+        D = (1.0 - half * math.cos(half) / math.sin(half)) / th2
+    t0, t1, t2 = t
+    c0, c1, c2 = y * t2 - z * t1, z * t0 - x * t2, x * t1 - y * t0  # phi x t
+    d0, d1, d2 = y * c2 - z * c1, z * c0 - x * c2, x * c1 - y * c0  # phi x (phi x t)
+    return [t0 - 0.5 * c0 + D * d0, t1 - 0.5 * c1 + D * d1, t2 - 0.5 * c2 + D * d2, x, y, z]
 
 
 def se3_exp(xi: np.ndarray) -> Rigid3d:
     """The rigid motion of twist ``xi = [rho, phi]`` (translation part first)."""
-    xi = np.asarray(xi, dtype=np.float64)
-    return Rigid3d(rotmat_from_rotvec(xi[3:]), _left_jacobian(xi[3:]) @ xi[:3])
+    R, t = _exp(np.asarray(xi, dtype=np.float64).reshape(6).tolist())
+    return Rigid3d(np.array(R), np.array(t))
 
 
 def se3_log(T: Rigid3d) -> np.ndarray:
     """The twist ``[rho, phi]`` of a rigid motion (inverse of ``se3_exp``)."""
-    phi = rotvec_from_rotmat(T.rotation)
-    rho = np.linalg.solve(_left_jacobian(phi), T.translation)
-    return np.concatenate([rho, phi])
+    return np.array(_log(T.rotation.tolist(), T.translation.tolist()))
 
 
 def _scene_scale(scale: float) -> float:
@@ -65,17 +118,21 @@ def _scene_scale(scale: float) -> float:
     return float(scale)
 
 
+# Flat indices into the 12x12 covariance of the entries the process noise fills, per twist
+# component i: (i, i), (i, i+6), (i+6, i), (i+6, i+6).
+_I6 = np.arange(6)
+_Q_FLAT = np.concatenate([_I6 * 13, _I6 * 13 + 6, _I6 * 13 + 72, _I6 * 13 + 78])
+_EYE12 = np.eye(12)
+
+
 def _process_noise(dt: float, accel_var: np.ndarray) -> np.ndarray:
     """Continuous white-noise acceleration, per twist component. (The piecewise-constant
     model's velocity gain tends to 2/dt when frames are far apart: at 3 Hz its velocity
-    overshoots every frame and the prediction misses by 12 px on an orbit, 5 px with this.)"""
+    overshoots every frame and the prediction misses by 12 px on an orbit, 5 px with this.)
+    The 24 entries ``_Q_FLAT`` of the 12x12 matrix (the rest is zero)."""
     dt = max(dt, 1e-4)
-    Q = np.zeros((12, 12))
-    i = np.arange(6)
-    Q[i, i] = dt**3 / 3 * accel_var
-    Q[i, i + 6] = Q[i + 6, i] = dt**2 / 2 * accel_var
-    Q[i + 6, i + 6] = dt * accel_var
-    return Q
+    q2 = dt**2 / 2
+    return np.outer([dt**3 / 3, q2, q2, dt], accel_var).ravel()
 
 
 class Se3PoseFilter:
@@ -84,6 +141,14 @@ class Se3PoseFilter:
     ``accel_noise`` (scene scales / s^2) and ``angular_accel_noise`` (rad / s^2) are the white
     accelerations the model allows; ``position_noise`` (scene scales) and ``orientation_noise``
     (rad) the measurement noise of a pose; ``scale`` the scene scale in map units.
+
+    The linear filter is a Kalman filter on ``x = [delta, xi]`` (covariance ``P``) with
+    ``F = [[I, dt I], [0, I]]``, ``H = [I, 0]``, a diagonal ``R`` and the process noise of
+    ``_process_noise``; ``delta`` is folded into ``T`` after every step, so it is 0 when a
+    step starts. The steps are written for that structure (``tests/test_kalman.py``: the
+    same states and covariances as the generic ``kalman.KalmanFilter`` to 1e-12): ``F P F'``
+    as two row/column updates, ``S = P[:6, :6] + R`` is diagonal (F, Q, R and the initial
+    ``P`` couple component i only with i + 6), so ``K = P[:, :6] / diag(S)`` needs no inverse.
     """
 
     def __init__(
@@ -96,9 +161,9 @@ class Se3PoseFilter:
     ) -> None:
         self.scale = _scene_scale(scale)
         self.accel_var = np.array([(accel_noise * scale) ** 2] * 3 + [angular_accel_noise**2] * 3)
-        self.kf = KalmanFilter(12, 6)
-        self.kf.H = np.hstack([np.eye(6), np.zeros((6, 6))])
-        self.kf.R = np.diag([(position_noise * scale) ** 2] * 3 + [orientation_noise**2] * 3)
+        self.meas_var = np.array([(position_noise * scale) ** 2] * 3 + [orientation_noise**2] * 3)
+        self.P = np.eye(12)  # covariance of [delta, xi]
+        self.xi = np.zeros(6)  # the body-frame twist [v, w]
         self.T = Rigid3d(np.eye(3), np.zeros(3))  # cam_from_world
         self.stamp: float | None = None
         self.last: tuple[Rigid3d, float] | None = None  # the last fused pose and its stamp
@@ -123,8 +188,8 @@ class Se3PoseFilter:
             if speed > max_speed or np.linalg.norm(xi[3:]) > max_rate:
                 xi = np.zeros(6)
         self.T = Rigid3d(cam_from_world.rotation.copy(), cam_from_world.translation.copy())
-        self.kf.x = np.concatenate([np.zeros(6), xi]).reshape(12, 1)
-        self.kf.P = np.diag(np.concatenate([np.diag(self.kf.R), [self.scale**2] * 3 + [1.0] * 3]))
+        self.xi = xi
+        self.P = np.diag(np.concatenate([self.meas_var, [self.scale**2] * 3 + [1.0] * 3]))
         self.stamp = stamp
         self.last = (self.current(), stamp)
         self.initialized = True
@@ -136,28 +201,38 @@ class Se3PoseFilter:
             return None
         dt = max(0.0, stamp - self.stamp)
         if dt > 0:
-            F = np.eye(12)
-            F[:6, 6:] = np.eye(6) * dt
-            self.kf.predict(F=F, Q=_process_noise(dt, self.accel_var))
-            self._fold()
+            P = self.P
+            P[:6] += dt * P[6:]  # F P
+            P[:, :6] += dt * P[:, 6:]  # (F P) F'
+            P.reshape(144)[_Q_FLAT] += _process_noise(dt, self.accel_var)
+            self._fold((dt * self.xi).tolist())  # delta = dt xi (delta was 0)
             self.stamp = stamp
         return self.current()
 
     def update(self, cam_from_world: Rigid3d) -> Rigid3d:
         """Fuse a measured pose; return the filtered ``cam_from_world``."""
         assert self.stamp is not None, "update() before reset()"
-        z = se3_log(cam_from_world * self.T.inverse())
-        self.kf.update(z.reshape(6, 1))
-        self._fold()
+        Rt = self.T.rotation.T  # z = log(cam_from_world T^-1)
+        Rz = cam_from_world.rotation @ Rt
+        tz = cam_from_world.rotation @ -(Rt @ self.T.translation) + cam_from_world.translation
+        z = np.array(_log(Rz.tolist(), tz.tolist()))
+        P = self.P
+        K = P[:, :6] * (1.0 / (P.diagonal()[:6] + self.meas_var))
+        self.xi = self.xi + K[6:] @ z  # y = z - H x = z (delta is 0)
+        I_KH = _EYE12.copy()
+        I_KH[:, :6] -= K
+        # Joseph form, as filterpy: (I-KH) P (I-KH)' + K R K'
+        self.P = I_KH @ P @ I_KH.T + (K * self.meas_var) @ K.T
+        self._fold((K[:6] @ z).tolist())
         self.last = (self.current(), self.stamp)
         return self.current()
 
-    def _fold(self) -> None:
+    def _fold(self, delta: list[float]) -> None:
         # Move the error into the pose: the linear state stays near zero, the pose on SE(3).
-        delta = self.kf.x[:6, 0].copy()
-        if np.any(delta):
-            self.T = se3_exp(delta) * self.T
-            self.kf.x[:6, 0] = 0.0
+        if any(delta):
+            Re, te = _exp(delta)
+            E = np.array(Re)
+            self.T = Rigid3d(E @ self.T.rotation, E @ self.T.translation + te)
 
     def current(self) -> Rigid3d:
         """The filter's present ``cam_from_world`` (predicted or filtered)."""
@@ -166,17 +241,17 @@ class Se3PoseFilter:
     @property
     def twist(self) -> np.ndarray:
         """Body-frame velocity ``[v, w]`` of ``cam_from_world`` (map units / s, rad / s)."""
-        return self.kf.x[6:, 0].copy()
+        return self.xi.copy()
 
     @property
     def velocity(self) -> np.ndarray:
         """The camera centre's velocity in the world frame (map units / s)."""
-        return -self.T.rotation.T @ self.kf.x[6:9, 0]
+        return -self.T.rotation.T @ self.xi[:3]
 
     @property
     def angular_velocity(self) -> np.ndarray:
         """The angular velocity of ``world_from_cam`` in the world frame (rad / s)."""
-        return -self.T.rotation.T @ self.kf.x[9:, 0]
+        return -self.T.rotation.T @ self.xi[3:]
 
 
 def _cv_filter(meas_sigma: float) -> KalmanFilter:
