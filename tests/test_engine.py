@@ -239,6 +239,39 @@ def test_kalman_filter_follows_constant_velocity_and_angular_velocity():
 
 
 # ----------------------------------------------------------------------------- tracking
+def test_per_frame_shortcuts_give_numpy_s_numbers_bit_for_bit():
+    """The localizer's cheaper spellings of numpy calls (issue 10, per-frame glue): the
+    median image motion by one partition (np.median), a table's rows taken by a mask's
+    indices, the rotation angle with min/max for np.clip."""
+    from sfmloc.engine.localizer import _median_rows
+    from sfmloc.transforms import rotation_angle_deg
+
+    rng = np.random.default_rng(7)
+    for n in (1, 2, 3, 4, 9, 10, 251, 252):
+        a = rng.normal(0, 30, (n, 2))
+        a[rng.random((n, 2)) < 0.2] = 1.5  # ties
+        assert np.array_equal(_median_rows(a), np.median(a, axis=0)), n
+    n = 300
+    table = TrackTable.empty(3)
+    table.append(
+        np.arange(n), rng.normal(size=(n, 2)), rng.integers(0, 9, (n, 4)).astype(np.uint64)
+    )
+    table.point[::3] = rng.integers(0, 100, 100)
+    mask = rng.random(n) < 0.7
+    for name in ("track_id", "xy", "brief", "age", "point", "hyp", "pending"):
+        assert np.array_equal(getattr(table.take(mask), name), getattr(table, name)[mask])
+    R0 = rotmat_from_rotvec([0.3, -0.2, 0.1])
+    for R in (
+        R0,
+        np.eye(3),
+        rotmat_from_rotvec([0.0, 0.0, np.pi]),
+        rotmat_from_rotvec([1e-9, 0, 0]),
+    ):
+        for S in (R, R0, -R0 @ np.diag([1.0, 1.0, -1.0])):
+            c = (np.trace(R @ S.T) - 1.0) / 2.0
+            assert rotation_angle_deg(R, S) == float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
 def test_tracking_keeps_identities():
     """Keypoints tracked from one rendered frame to the next are the same scene points: back-
     project each through the exact depth map and the ground-truth poses."""

@@ -46,6 +46,8 @@ class TrackTable:
     def take(self, mask_or_index: np.ndarray) -> TrackTable:
         """A new table of the given rows (boolean mask or indices), in that order; this one is
         left as it is."""
+        if mask_or_index.dtype == bool:  # one nonzero, not one per column (7 of them)
+            mask_or_index = np.flatnonzero(mask_or_index)
         return TrackTable(
             self.track_id[mask_or_index],
             self.xy[mask_or_index],
