@@ -118,21 +118,23 @@ def _scene_scale(scale: float) -> float:
     return float(scale)
 
 
-# Flat indices into the 12x12 covariance of the entries the process noise fills, per twist
-# component i: (i, i), (i, i+6), (i+6, i), (i+6, i+6).
-_I6 = np.arange(6)
-_Q_FLAT = np.concatenate([_I6 * 13, _I6 * 13 + 6, _I6 * 13 + 72, _I6 * 13 + 78])
-_EYE12 = np.eye(12)
-
-
-def _process_noise(dt: float, accel_var: np.ndarray) -> np.ndarray:
+def _process_noise(dt: float, accel_var: list[float]) -> tuple[list[float], ...]:
     """Continuous white-noise acceleration, per twist component. (The piecewise-constant
     model's velocity gain tends to 2/dt when frames are far apart: at 3 Hz its velocity
     overshoots every frame and the prediction misses by 12 px on an orbit, 5 px with this.)
-    The 24 entries ``_Q_FLAT`` of the 12x12 matrix (the rest is zero)."""
+    Per component i, Q's entries (i, i), (i, i+6) = (i+6, i) and (i+6, i+6); the rest of the
+    12x12 matrix is zero."""
     dt = max(dt, 1e-4)
-    q2 = dt**2 / 2
-    return np.outer([dt**3 / 3, q2, q2, dt], accel_var).ravel()
+    q3, q2 = dt**3 / 3, dt**2 / 2
+    return [q3 * a for a in accel_var], [q2 * a for a in accel_var], [dt * a for a in accel_var]
+
+
+def _matmul3(A: list[list[float]], B: list[list[float]]) -> list[list[float]]:
+    return [[a[0] * b0 + a[1] * b1 + a[2] * b2 for b0, b1, b2 in zip(*B)] for a in A]
+
+
+def _matvec3(A: list[list[float]], v: list[float]) -> list[float]:
+    return [a[0] * v[0] + a[1] * v[1] + a[2] * v[2] for a in A]
 
 
 class Se3PoseFilter:
@@ -142,13 +144,16 @@ class Se3PoseFilter:
     accelerations the model allows; ``position_noise`` (scene scales) and ``orientation_noise``
     (rad) the measurement noise of a pose; ``scale`` the scene scale in map units.
 
-    The linear filter is a Kalman filter on ``x = [delta, xi]`` (covariance ``P``) with
-    ``F = [[I, dt I], [0, I]]``, ``H = [I, 0]``, a diagonal ``R`` and the process noise of
-    ``_process_noise``; ``delta`` is folded into ``T`` after every step, so it is 0 when a
-    step starts. The steps are written for that structure (``tests/test_kalman.py``: the
-    same states and covariances as the generic ``kalman.KalmanFilter`` to 1e-12): ``F P F'``
-    as two row/column updates, ``S = P[:6, :6] + R`` is diagonal (F, Q, R and the initial
-    ``P`` couple component i only with i + 6), so ``K = P[:, :6] / diag(S)`` needs no inverse.
+    The linear filter is a Kalman filter on ``x = [delta, xi]`` with ``F = [[I, dt I],
+    [0, I]]``, ``H = [I, 0]``, a diagonal ``R`` and the process noise of ``_process_noise``;
+    ``delta`` is folded into the pose after every step, so it is 0 when a step starts. F, Q, R
+    and the initial covariance couple twist component i only with i + 6: the 12x12 covariance
+    is six independent 2x2 blocks ``[[a, b], [bl, c]]`` (``P[i, i]``, ``P[i, i+6]``,
+    ``P[i+6, i]``, ``P[i+6, i+6]``), and the filter is six scalar filters, written here in
+    Python floats with the generic filter's arithmetic per entry (filterpy's operations,
+    Joseph-form update; ``tests/test_motion.py``: the same covariances, twists and poses as
+    the generic ``kalman.KalmanFilter`` to 1e-12). The 12x12 numpy filter spent its time in
+    the dozens of small numpy calls a frame, not in arithmetic (x0.2 CPU).
     """
 
     def __init__(
@@ -160,11 +165,13 @@ class Se3PoseFilter:
         scale: float = 1.0,
     ) -> None:
         self.scale = _scene_scale(scale)
-        self.accel_var = np.array([(accel_noise * scale) ** 2] * 3 + [angular_accel_noise**2] * 3)
-        self.meas_var = np.array([(position_noise * scale) ** 2] * 3 + [orientation_noise**2] * 3)
-        self.P = np.eye(12)  # covariance of [delta, xi]
-        self.xi = np.zeros(6)  # the body-frame twist [v, w]
-        self.T = Rigid3d(np.eye(3), np.zeros(3))  # cam_from_world
+        self.accel_var = [(accel_noise * scale) ** 2] * 3 + [angular_accel_noise**2] * 3
+        self.meas_var = [(position_noise * scale) ** 2] * 3 + [orientation_noise**2] * 3
+        # the covariance's 2x2 blocks, per twist component (see the class docstring)
+        self._a, self._b, self._bl, self._c = [1.0] * 6, [0.0] * 6, [0.0] * 6, [1.0] * 6
+        self._xi = [0.0] * 6  # the body-frame twist [v, w]
+        self._R = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]  # cam_from_world
+        self._t = [0.0, 0.0, 0.0]
         self.stamp: float | None = None
         self.last: tuple[Rigid3d, float] | None = None  # the last fused pose and its stamp
         self.initialized = False
@@ -187,9 +194,12 @@ class Se3PoseFilter:
             speed = moved / (stamp - self.last[1])
             if speed > max_speed or np.linalg.norm(xi[3:]) > max_rate:
                 xi = np.zeros(6)
-        self.T = Rigid3d(cam_from_world.rotation.copy(), cam_from_world.translation.copy())
-        self.xi = xi
-        self.P = np.diag(np.concatenate([self.meas_var, [self.scale**2] * 3 + [1.0] * 3]))
+        self._R = cam_from_world.rotation.tolist()
+        self._t = cam_from_world.translation.tolist()
+        self._xi = xi.tolist()
+        self._a = list(self.meas_var)
+        self._b, self._bl = [0.0] * 6, [0.0] * 6
+        self._c = [self.scale**2] * 3 + [1.0] * 3
         self.stamp = stamp
         self.last = (self.current(), stamp)
         self.initialized = True
@@ -201,57 +211,88 @@ class Se3PoseFilter:
             return None
         dt = max(0.0, stamp - self.stamp)
         if dt > 0:
-            P = self.P
-            P[:6] += dt * P[6:]  # F P
-            P[:, :6] += dt * P[:, 6:]  # (F P) F'
-            P.reshape(144)[_Q_FLAT] += _process_noise(dt, self.accel_var)
-            self._fold((dt * self.xi).tolist())  # delta = dt xi (delta was 0)
+            q3, q2, q1 = _process_noise(dt, self.accel_var)
+            a, b, bl, c = self._a, self._b, self._bl, self._c
+            for i in range(6):
+                # F P F' + Q of the block: F P = [[a + dt bl, b + dt c], [bl, c]]
+                top = b[i] + dt * c[i]
+                a[i] = a[i] + dt * bl[i] + dt * top + q3[i]
+                b[i] = top + q2[i]
+                bl[i] = bl[i] + dt * c[i] + q2[i]
+                c[i] = c[i] + q1[i]
+            self._fold([dt * v for v in self._xi])  # delta = dt xi (delta was 0)
             self.stamp = stamp
         return self.current()
 
     def update(self, cam_from_world: Rigid3d) -> Rigid3d:
         """Fuse a measured pose; return the filtered ``cam_from_world``."""
         assert self.stamp is not None, "update() before reset()"
-        Rt = self.T.rotation.T  # z = log(cam_from_world T^-1)
-        Rz = cam_from_world.rotation @ Rt
-        tz = cam_from_world.rotation @ -(Rt @ self.T.translation) + cam_from_world.translation
-        z = np.array(_log(Rz.tolist(), tz.tolist()))
-        P = self.P
-        K = P[:, :6] * (1.0 / (P.diagonal()[:6] + self.meas_var))
-        self.xi = self.xi + K[6:] @ z  # y = z - H x = z (delta is 0)
-        I_KH = _EYE12.copy()
-        I_KH[:, :6] -= K
-        # Joseph form, as filterpy: (I-KH) P (I-KH)' + K R K'
-        self.P = I_KH @ P @ I_KH.T + (K * self.meas_var) @ K.T
-        self._fold((K[:6] @ z).tolist())
+        # z = log(cam_from_world T^-1), T^-1 = (R', -R' t); y = z - H x = z (delta is 0)
+        Rm = cam_from_world.rotation.tolist()
+        Rt = [list(col) for col in zip(*self._R)]
+        Rz = _matmul3(Rm, Rt)
+        u = _matvec3(Rm, [-v for v in _matvec3(Rt, self._t)])
+        tm = cam_from_world.translation.tolist()
+        z = _log(Rz, [u[0] + tm[0], u[1] + tm[1], u[2] + tm[2]])
+        a, b, bl, c, r, xi = self._a, self._b, self._bl, self._c, self.meas_var, self._xi
+        delta = [0.0] * 6
+        for i in range(6):
+            s_inv = 1.0 / (a[i] + r[i])  # S = H P H' + R is diagonal
+            k1, k2 = a[i] * s_inv, bl[i] * s_inv  # K = P H' S^-1: K[i, i], K[i+6, i]
+            delta[i] = k1 * z[i]
+            xi[i] = xi[i] + k2 * z[i]
+            # Joseph form: (I - K H) P (I - K H)' + K R K', I - K H = [[1 - k1, 0], [-k2, 1]]
+            m = 1.0 - k1
+            p00, p01 = m * a[i], m * b[i]
+            p10, p11 = -k2 * a[i] + bl[i], -k2 * b[i] + c[i]
+            k1r, k2r = k1 * r[i], k2 * r[i]
+            a[i] = p00 * m + k1r * k1
+            b[i] = p00 * -k2 + p01 + k1r * k2
+            bl[i] = p10 * m + k2r * k1
+            c[i] = p10 * -k2 + p11 + k2r * k2
+        self._fold(delta)
         self.last = (self.current(), self.stamp)
         return self.current()
 
     def _fold(self, delta: list[float]) -> None:
         # Move the error into the pose: the linear state stays near zero, the pose on SE(3).
         if any(delta):
-            Re, te = _exp(delta)
-            E = np.array(Re)
-            self.T = Rigid3d(E @ self.T.rotation, E @ self.T.translation + te)
+            E, te = _exp(delta)
+            t = _matvec3(E, self._t)
+            self._R = _matmul3(E, self._R)
+            self._t = [t[0] + te[0], t[1] + te[1], t[2] + te[2]]
 
     def current(self) -> Rigid3d:
         """The filter's present ``cam_from_world`` (predicted or filtered)."""
-        return Rigid3d(self.T.rotation.copy(), self.T.translation.copy())
+        return Rigid3d(np.array(self._R), np.array(self._t))
+
+    @property
+    def T(self) -> Rigid3d:
+        """The present ``cam_from_world`` (``current``)."""
+        return self.current()
+
+    @property
+    def P(self) -> np.ndarray:
+        """The 12x12 covariance of ``[delta, xi]`` (built from its blocks)."""
+        P = np.zeros((12, 12))
+        i = np.arange(6)
+        P[i, i], P[i, i + 6], P[i + 6, i], P[i + 6, i + 6] = self._a, self._b, self._bl, self._c
+        return P
 
     @property
     def twist(self) -> np.ndarray:
         """Body-frame velocity ``[v, w]`` of ``cam_from_world`` (map units / s, rad / s)."""
-        return self.xi.copy()
+        return np.array(self._xi)
 
     @property
     def velocity(self) -> np.ndarray:
         """The camera centre's velocity in the world frame (map units / s)."""
-        return -self.T.rotation.T @ self.xi[:3]
+        return -np.array(self._R).T @ self._xi[:3]
 
     @property
     def angular_velocity(self) -> np.ndarray:
         """The angular velocity of ``world_from_cam`` in the world frame (rad / s)."""
-        return -self.T.rotation.T @ self.xi[3:]
+        return -np.array(self._R).T @ self._xi[3:]
 
 
 def _cv_filter(meas_sigma: float) -> KalmanFilter:
