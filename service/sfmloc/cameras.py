@@ -138,7 +138,10 @@ class Camera:
 
     @property
     def is_distorted(self) -> bool:
-        return bool(np.any(self.dist_coeffs != 0))
+        # (a pinhole model has no coefficients: no array built; several calls a frame)
+        return self.model not in ("SIMPLE_PINHOLE", "PINHOLE") and bool(
+            np.any(self.dist_coeffs != 0)
+        )
 
     @property
     def size(self) -> tuple[int, int]:
