@@ -420,6 +420,42 @@ def test_throughput_rows_show_the_worst_client_and_the_relocalized_share_of_pose
     assert cells[-4:] == ["5.0", "30.0%", "25.0%", "10"]
 
 
+def test_throughput_rows_show_the_servers_cpu_beyond_the_engines():
+    """The engine's CPU per pose is the mean over every pose delivered (weighted by the
+    clients' poses, not a mean of the clients' means), and the server's CPU beyond it is its
+    CPU per pose (process + workers) minus that; a server that does not report the engine's
+    CPU gives n/a, not a number."""
+    from sfmloc.bench.throughput import aggregate, cpu_per_pose, outside_engine_ms
+
+    def client(poses: int, engine_cpu_ms_sum: float) -> dict:
+        return {
+            "sent": 300,
+            "received": poses,
+            "latency_ms_p50": 20.0,
+            "latency_ms_p99": 40.0,
+            "engine_ms_mean": 12.0,
+            "errors": 0,
+            "statuses": {"TRACKING": poses},
+            "engine_cpu_ms_sum": engine_cpu_ms_sum,
+            "engine_cpu_poses": poses,
+        }
+
+    row = aggregate([client(300, 300 * 10.0), client(100, 100 * 14.0)], 30.0)
+    assert row["engine_cpu_ms_mean"] == 11.0  # (3000 + 1400) / 400
+    # 40 poses/s; the server process 0.04 cores (1 ms per pose), its workers 0.5 (12.5 ms)
+    row.update(cpu_per_pose({"server": 0.04, "workers": 0.5, "clients": 0.1}, 40.0))
+    row["outside_engine_ms"] = outside_engine_ms(row)
+    assert row["outside_engine_ms"] == pytest.approx(1.0 + 12.5 - 11.0)
+    cells = report.throughput_rows({"suites": {"throughput": {"rows": [row]}}})[0]
+    i = report.THROUGHPUT_HEADER.index("engine CPU per pose (ms)")
+    assert cells[i - 1 : i + 2] == ["13.50", "11.00", "2.50"]
+    old = aggregate([{k: v for k, v in client(300, 0.0).items() if "engine_cpu" not in k}], 30.0)
+    old.update(cpu_per_pose({"server": 0.04, "workers": 0.5}, 30.0))
+    assert outside_engine_ms(old) != outside_engine_ms(old)  # NaN: not reported
+    cells = report.throughput_rows({"suites": {"throughput": {"rows": [old]}}})[0]
+    assert cells[i : i + 2] == ["n/a", "n/a"]
+
+
 def test_global_every_frame_prepares_the_bundle_untimed(world, bundle, cam):
     """The peer computes the scope's per-bundle tables when it is made, as our engine's
     Localizer does, not in its first verifying (timed) call; and it localizes a real frame."""

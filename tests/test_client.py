@@ -171,6 +171,7 @@ def test_pose_round_trip_with_filtered_and_error():
         inliers=42,
         latency_ms=9.5,
         engine_ms=8.0,
+        engine_cpu_ms=7.25,
         counts={"detected": 500, "tracked": 300, "tracked_3d": 120},
         matching="guided",
         dropped=3,
@@ -202,6 +203,10 @@ def test_pose_round_trip_with_filtered_and_error():
     assert back == e and not back.localized and back.error.code == "NOT_FOUND"
     with pytest.raises(WireError):
         decode_pose(msgpack.packb({"status": "HAPPY"}))
+    # the engine's CPU: 0 from a server older than the field, a finite number else
+    assert decode_pose(msgpack.packb({"status": "LOST"})).engine_cpu_ms == 0.0
+    with pytest.raises(WireError, match="engine_cpu_ms"):
+        decode_pose(msgpack.packb({"status": "LOST", "engine_cpu_ms": float("inf")}))
 
 
 def test_transform_inverse_matches_the_server_convention():

@@ -94,6 +94,8 @@ def test_stream_receives_a_pose_for_every_frame_with_its_seq(world, z):
     )  # a new session starts from scratch
     assert any(p.status == "TRACKING" for p in poses)
     assert all(p.latency_ms >= p.engine_ms > 0 for p in localized)
+    # the engine's CPU for the frame (its thread's), about its wall time on a free core
+    assert all(0 < p.engine_cpu_ms <= p.engine_ms * 1.05 + 1.0 for p in localized)
     # every pose carries its 6x6 covariance (positive definite); LOST ones none
     for p in poses:
         C = p.covariance_matrix

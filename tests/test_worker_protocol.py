@@ -4,10 +4,12 @@ result becomes the ``PoseMessage`` clients get."""
 
 from __future__ import annotations
 
+import os
 import socket
 from multiprocessing.connection import Connection
 
 import msgpack
+import numpy as np
 import pytest
 
 from sfmloc.childproc import ProtocolError
@@ -138,3 +140,127 @@ def test_a_worker_error_becomes_the_same_error_code_as_the_exception():
     err = P.WorkerError.of(ZeroDivisionError("oops"))
     assert err.type == "InternalError" and "ZeroDivisionError" in err.message
     assert P.pose_message(None, err, seq=1, stamp_ns=0, map_name="x").error.code == "INTERNAL"
+
+
+def test_pose_result_of_an_engine_result():
+    """``PoseResult.of`` (every frame, on the worker) gives the four transforms as the engine's
+    own ``Rigid3d`` conversions do: the quaternion of the inverse is the conjugate, bit for
+    bit, on rotations from every branch of the matrix-to-quaternion conversion (trace > 0 and
+    each diagonal element largest), and the covariance's 36 values in row-major order."""
+    import numpy as np
+
+    from sfmloc.engine.types import FrameResult, Matching, Status
+    from sfmloc.transforms import Rigid3d
+
+    rng = np.random.default_rng(3)
+    rotations = [np.eye(3), np.diag([1.0, -1.0, -1.0]) @ _rot([0.0, 0.01, 0.02])]
+    for axis in np.eye(3):  # near half turns about each axis: the other three branches
+        rotations.append(_rot(axis * 3.0 + rng.normal(0, 0.05, 3)))
+    rotations += [_rot(rng.normal(0, 1.5, 3)) for _ in range(200)]
+    for R in rotations:
+        T = Rigid3d(R, rng.normal(0, 10, 3))
+        F = Rigid3d(_rot(rng.normal(0, 1.5, 3)) @ R, rng.normal(0, 10, 3))
+        cov = rng.normal(size=(6, 6))
+        r = FrameResult(
+            Status.TRACKING,
+            1.0,
+            cam_from_world=T,
+            filtered_cam_from_world=F,
+            inliers=40,
+            matching=Matching.GUIDED,
+            covariance=cov,
+        )
+        p = P.PoseResult.of(r)
+        for got, want in (
+            (p.cam_from_world, T),
+            (p.world_from_cam, T.inverse()),
+            (p.filtered_cam_from_world, F),
+            (p.filtered_world_from_cam, F.inverse()),
+        ):
+            assert got is not None
+            q = tuple(float(v) for v in want.quat_xyzw)
+            if q[3] == 0.0:  # a half turn: q and -q, the same rotation, either may come out
+                assert got.quat_xyzw in (q, tuple(-v for v in q))
+            else:
+                assert got.quat_xyzw == q
+            assert got.t == tuple(float(v) for v in want.translation)
+        assert p.covariance == tuple(float(v) for v in cov.ravel())
+        assert p.status == "TRACKING" and p.inliers == 40 and p.matching == Matching.GUIDED.value
+    lost = P.PoseResult.of(FrameResult(Status.LOST, 1.0, message="no corners"))
+    assert lost.cam_from_world is None and lost.world_from_cam is None
+    assert lost.filtered_world_from_cam is None and lost.covariance is None
+    assert lost.message == "no corners"
+
+
+def _rot(rotvec):
+    from sfmloc.transforms import Rigid3d
+
+    return Rigid3d.from_rotvec(rotvec, [0.0, 0.0, 0.0]).rotation
+
+
+@pytest.mark.parametrize("sizes", [(90, None), (90, 0), (90, 16385), (20000, 3_000_000)])
+def test_write_frames_sends_the_bytes_of_two_send_bytes_in_one_call(sizes):
+    """``write_frames`` (the pool's sender: a frame's header and its image in one ``writev``)
+    writes exactly what ``send_bytes(header); send_bytes(data)`` writes, so the other side
+    reads it with ``recv_bytes``; past the socket's buffer (3 MB through a 64 kB one) the
+    partial writes go on where they stopped."""
+    import threading
+
+    from sfmloc.childproc import write_frames
+
+    rng = np.random.default_rng(sizes[0])
+    header = rng.integers(0, 256, sizes[0], dtype=np.uint8).tobytes()
+    data = None if sizes[1] is None else rng.integers(0, 256, sizes[1], dtype=np.uint8).tobytes()
+    streams = []
+    for use_writev in (False, True):
+        a, b = socket.socketpair()
+        a.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 65536)
+        got: list[bytes] = []
+        with Connection(a.detach()) as ours, Connection(b.detach()) as theirs:
+            raw = socket.socket(fileno=os.dup(theirs.fileno()))  # the bytes as they are
+            reader = threading.Thread(target=_read_all, args=(raw, got))
+            reader.start()
+            if use_writev:
+                write_frames(ours, header, data)
+            else:
+                ours.send_bytes(header)
+                if data is not None:
+                    ours.send_bytes(data)
+            ours.close()
+            reader.join(30)
+            raw.close()
+        streams.append(got[0])
+    assert streams[0] == streams[1]
+    assert len(streams[1]) == 4 + len(header) + (0 if data is None else 4 + len(data))
+    # ... and read back as two messages
+    a, b = socket.socketpair()
+    with Connection(a.detach()) as ours, Connection(b.detach()) as theirs:
+        t = threading.Thread(target=write_frames, args=(ours, header, data))
+        t.start()
+        assert theirs.recv_bytes() == header
+        if data is not None:
+            assert theirs.recv_bytes() == data
+        t.join(30)
+
+
+def test_write_frames_to_a_closed_peer_raises_oserror():
+    from sfmloc.childproc import write_frames
+
+    a, b = socket.socketpair()
+    b.close()
+    with Connection(a.detach()) as ours:
+        with pytest.raises(OSError):
+            write_frames(ours, b"header", b"x" * 100_000)
+        ours.close()
+        with pytest.raises(OSError):
+            write_frames(ours, b"header", None)
+
+
+def _read_all(sock: socket.socket, out: list[bytes]) -> None:
+    chunks = []
+    while True:
+        c = sock.recv(1 << 20)
+        if not c:
+            out.append(b"".join(chunks))
+            return
+        chunks.append(c)

@@ -58,7 +58,7 @@ Pose message (msgpack map), one per processed frame, and one per rejected frame:
      "covariance": [36 floats] | nil,
      "world_from_cam": {...} | nil,
      "filtered": {"cam_from_world": {...}, "world_from_cam": {...}} | nil,
-     "inliers": uint, "latency_ms": float, "engine_ms": float,
+     "inliers": uint, "latency_ms": float, "engine_ms": float, "engine_cpu_ms": float,
      "counts": {"detected": uint, "tracked": uint, "tracked_3d": uint},
      "matching": "none" | "guided" | "global", "dropped": uint,
      "map": str, "client_id": str, "build_id": str, "server_id": str,
@@ -67,7 +67,8 @@ Pose message (msgpack map), one per processed frame, and one per rejected frame:
                      "message": str}}
 
 ``latency_ms`` is the server's time from receiving the frame to publishing its pose (decode,
-queueing, engine); ``engine_ms`` the engine's share. ``dropped`` counts this client's frames the
+queueing, engine); ``engine_ms`` the engine's share, ``engine_cpu_ms`` the engine's CPU time
+for the frame (0 from servers older than the field). ``dropped`` counts this client's frames the
 server skipped so far because newer ones arrived while it was busy (latest-frame-only intake).
 A frame the server cannot process gets a message with ``status: "LOST"`` and ``error`` set
 (``seq`` is nil when the envelope was too broken to read it); ``error.code`` is a gRPC status
@@ -503,6 +504,7 @@ class PoseMessage:
     error: ErrorInfo | None = None
     # 36 values, row-major 6x6 (order COVARIANCE_ORDER); None when LOST
     covariance: tuple[float, ...] | None = None
+    engine_cpu_ms: float = 0.0  # the engine's CPU time for this frame (engine_ms is wall)
 
     @property
     def localized(self) -> bool:
@@ -537,6 +539,7 @@ def encode_pose(p: PoseMessage) -> bytes:
             "inliers": p.inliers,
             "latency_ms": p.latency_ms,
             "engine_ms": p.engine_ms,
+            "engine_cpu_ms": p.engine_cpu_ms,
             "counts": dict(p.counts),
             "matching": p.matching,
             "dropped": p.dropped,
@@ -590,6 +593,7 @@ def decode_pose(payload: bytes | bytearray | memoryview, max_bytes: int = 1 << 2
         inliers=_uint(d.get("inliers", 0), "inliers"),
         latency_ms=_float(d.get("latency_ms", 0.0), "latency_ms"),
         engine_ms=_float(d.get("engine_ms", 0.0), "engine_ms"),
+        engine_cpu_ms=_float(d.get("engine_cpu_ms", 0.0), "engine_cpu_ms"),
         counts={str(k): _uint(v, f"counts.{k}") for k, v in counts.items()},
         matching=_str(d.get("matching", "none"), "matching"),
         dropped=_uint(d.get("dropped", 0), "dropped"),

@@ -178,6 +178,8 @@ def throughput_rows(results: dict) -> list[list[str]]:
             f1(r.get("dropped_pct_worst_client"))
             + ("%" if "dropped_pct_worst_client" in r else ""),
             f1(_server_cpu_ms(r), 2),
+            f1(r.get("engine_cpu_ms_mean"), 2),
+            f1(r.get("outside_engine_ms"), 2),
             f1(r.get("capacity_hz"), 0),
             f1(r.get("delivered_hz_worst_client")),
             f1(r.get("relocalized_pct")) + ("%" if "relocalized_pct" in r else ""),
@@ -233,6 +235,8 @@ THROUGHPUT_HEADER = [
     "latency p99 (ms)",
     "worst client dropped",
     "server CPU per pose (ms)",
+    "engine CPU per pose (ms)",
+    "server CPU beyond the engine (ms)",
     "capacity (Hz)",
     "worst client (Hz)",
     "poses relocalized",
@@ -559,7 +563,11 @@ def write_report(results: dict, out: Path) -> Path:
             markdown_table(THROUGHPUT_HEADER, throughput_rows(results)),
             "",
             "Server CPU per pose: the server process and its workers together, CPU time (not "
-            "wall) per pose delivered; capacity: the pose rate that CPU per pose would sustain "
+            "wall) per pose delivered; engine CPU: the engine's own (its thread's CPU for the "
+            "frame, reported by the worker), and the server's CPU per pose beyond it (JPEG "
+            "decoding, Zenoh, the hand-off to and from the workers, scheduling; and the "
+            "engine's CPU on frames answered without a pose); capacity: the pose rate that "
+            "CPU per pose would sustain "
             "on all of this machine's cores with nothing else running (a bound from the "
             "measured CPU, not a measured rate: the benchmark's clients and other jobs share "
             "the cores). Worst client: the delivered rate of the client served least (fairness, "

@@ -81,9 +81,18 @@ def aggregate(clients: list[dict[str, Any]], rate_hz: float) -> dict[str, Any]:
         "latency_ms_p50": float(np.nanmedian([c["latency_ms_p50"] for c in clients])),
         "latency_ms_p99": float(np.nanmax([c["latency_ms_p99"] for c in clients])),
         "engine_ms_mean": float(np.nanmean([c["engine_ms_mean"] for c in clients])),
+        # The engine's CPU per pose delivered (0 from a server without engine_cpu_ms)
+        "engine_cpu_ms_mean": _ratio(
+            sum(c.get("engine_cpu_ms_sum", 0.0) for c in clients),
+            sum(c.get("engine_cpu_poses", 0) for c in clients),
+        ),
         "errors": int(sum(c["errors"] for c in clients)),
         "error_codes": _sum(clients, "error_codes"),
     }
+
+
+def _ratio(a: float, b: float) -> float:
+    return a / b if b else float("nan")
 
 
 def _sum(clients: list[dict[str, Any]], key: str) -> dict[str, int]:
@@ -134,6 +143,7 @@ def run_throughput(
         res = bench_clients(inp, n, rate_hz, duration_s, n_workers, "process")
         row = aggregate(res["clients"], rate_hz)
         row.update(cpu_per_pose(res["cores_used"], row["delivered_hz_total"]))
+        row["outside_engine_ms"] = outside_engine_ms(row)
         row["load_before"], row["load_after"] = res["load_before"], res["load_after"]
         rows.append(row)
         raw.append(res)
@@ -172,6 +182,18 @@ def cpu_per_pose(cores: dict[str, float], delivered_hz: float) -> dict[str, Any]
         "cpu_ms_per_pose": per,
         "capacity_hz": 1e3 * ncpu / server_ms if server_ms > 0 else float("nan"),
     }
+
+
+def outside_engine_ms(row: dict[str, Any]) -> float:
+    """The server's CPU per pose (process + workers) beyond the engine's CPU per pose: what
+    the server spends around the engine (JPEG decoding, Zenoh, the hand-off to and from its
+    workers, scheduling) plus the engine's CPU on frames that delivered no pose (answered
+    DEADLINE_EXCEEDED). NaN when the server did not report the engine's CPU."""
+    per = row.get("cpu_ms_per_pose") or {}
+    engine = row.get("engine_cpu_ms_mean", float("nan"))
+    if not engine or engine != engine:  # 0 or NaN: not reported (an older server)
+        return float("nan")
+    return per.get("server", float("nan")) + per.get("workers", float("nan")) - engine
 
 
 def memory_rows(mem: dict[str, Any]) -> dict[str, Any]:

@@ -313,6 +313,7 @@ def bench_clients(
             lat: list[float] = []
             server_lat: list[float] = []
             engine: list[float] = []
+            engine_cpu: list[float] = []  # the engine's CPU per pose (engine_cpu_ms)
             last: dict[str, Any] = {"dropped": 0, "errors": 0, "received": 0}
             statuses: dict[str, int] = {}  # of the poses without error
             # ... of the frames sent after the stream's first second: the start is a burst
@@ -338,6 +339,8 @@ def bench_clients(
                         lat.append((now - sent_at[p.seq]) * 1e3)
                         server_lat.append(p.latency_ms)
                         engine.append(p.engine_ms)
+                        if p.error is None:
+                            engine_cpu.append(p.engine_cpu_ms)
 
             offset = (i * len(inp.jpeg)) // clients
             with (
@@ -385,6 +388,8 @@ def bench_clients(
                     "server_latency_ms_p99": _pct(server_lat, 99),
                     "engine_ms_p50": _pct(engine, 50),
                     "engine_ms_mean": float(np.mean(engine)) if engine else float("nan"),
+                    "engine_cpu_ms_sum": float(np.sum(engine_cpu)),
+                    "engine_cpu_poses": len(engine_cpu),
                     "localized": sum(1 for _ in engine),
                     "statuses": dict(statuses),
                     "statuses_after_1s": dict(settled),

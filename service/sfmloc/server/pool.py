@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from typing import Any
 
+from ..childproc import write_frames
 from ..errors import OverloadError, UnavailableError
 from ..threads import pin_threads_env
 from . import protocol as P
@@ -280,9 +281,7 @@ class WorkerPool:
                 return
             header, data = item
             try:
-                h.conn.send_bytes(header)
-                if data is not None:
-                    h.conn.send_bytes(data)
+                write_frames(h.conn, header, data)  # one syscall: the worker wakes once
             except (OSError, ValueError):
                 return  # the reader notices the dead worker
 

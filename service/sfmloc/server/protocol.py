@@ -15,6 +15,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
 from sfmloc_client.wire import CameraSpec, PoseMessage, Transform
 
 from ..childproc import Message, Part, Protocol, ProtocolError, payload
@@ -56,6 +58,22 @@ def transform_of(T: Any) -> Transform | None:
         (float(q[0]), float(q[1]), float(q[2]), float(q[3])),
         (float(t[0]), float(t[1]), float(t[2])),
     )
+
+
+def transforms_of(T: Any) -> tuple[Transform | None, Transform | None]:
+    """An engine ``Rigid3d`` ``tgt_from_src`` (or None) and its inverse as wire
+    ``Transform``s, from one quaternion: the inverse's is the conjugate (x, y, z negated, the
+    same w >= 0), which is what ``quat_xyzw_from_rotmat`` of the transposed matrix computes,
+    bit for bit (Shepperd's branches see the same diagonal; only a rotation of exactly 180
+    degrees, w = 0, may come out as the other of its two equal quaternions). Per frame on the
+    worker: ``transform_of`` twice plus ``Rigid3d.inverse`` cost 4 quaternion conversions of
+    numpy scalars, ~0.15 ms of the worker's CPU per pose (load ~13)."""
+    if T is None:
+        return None, None
+    x, y, z, w = T.quat_xyzw.tolist()
+    R, t = T.rotation, T.translation
+    inv_t = (-(R.T @ t)).tolist()  # Rigid3d.inverse's translation, the same arithmetic
+    return Transform((x, y, z, w), tuple(t.tolist())), Transform((-x, -y, -z, w), tuple(inv_t))
 
 
 # ============================================================================ parts
@@ -105,16 +123,21 @@ class PoseResult(Part):
     engine_ms: float
     message: str
     covariance: tuple[float, ...] | None  # 36 values, row-major 6x6; None when LOST
+    # The engine's CPU time for the frame (its thread's, not wall): the server's CPU per pose
+    # beyond it is the server's own cost (decoding, transport, scheduling).
+    engine_cpu_ms: float = 0.0
 
     @classmethod
     def of(cls, r: Any) -> PoseResult:
         """From an engine ``FrameResult``."""
+        cfw, wfc = transforms_of(r.cam_from_world)
+        fcfw, fwfc = transforms_of(r.filtered_cam_from_world)
         return cls(
             status=r.status.value,
-            cam_from_world=transform_of(r.cam_from_world),
-            world_from_cam=transform_of(r.world_from_cam),
-            filtered_cam_from_world=transform_of(r.filtered_cam_from_world),
-            filtered_world_from_cam=transform_of(r.filtered_world_from_cam),
+            cam_from_world=cfw,
+            world_from_cam=wfc,
+            filtered_cam_from_world=fcfw,
+            filtered_world_from_cam=fwfc,
             inliers=int(r.inliers),
             detected=int(r.detected),
             tracked=int(r.tracked),
@@ -124,7 +147,8 @@ class PoseResult(Part):
             message=r.message,
             covariance=None
             if r.covariance is None
-            else tuple(float(v) for v in r.covariance.ravel()),
+            else tuple(np.asarray(r.covariance, dtype=np.float64).ravel().tolist()),
+            engine_cpu_ms=float(r.cpu_timings_ms.get("total", 0.0)),
         )
 
     def to_wire(self) -> list[Any]:
@@ -367,6 +391,7 @@ def pose_message(
     p.filtered_world_from_cam = pose.filtered_world_from_cam
     p.inliers = pose.inliers
     p.engine_ms = pose.engine_ms
+    p.engine_cpu_ms = pose.engine_cpu_ms
     p.counts = pose.counts
     p.matching = pose.matching
     p.message = pose.message
