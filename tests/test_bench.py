@@ -5,6 +5,7 @@ the SIFT peer against exact ground truth, and its ratio test."""
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -454,6 +455,13 @@ def test_throughput_rows_show_the_servers_cpu_beyond_the_engines():
     assert outside_engine_ms(old) != outside_engine_ms(old)  # NaN: not reported
     cells = report.throughput_rows({"suites": {"throughput": {"rows": [old]}}})[0]
     assert cells[i : i + 2] == ["n/a", "n/a"]
+    # CPU seconds over the poses counted meanwhile, not CPU per second of the whole run over
+    # the rate in the send time: 13 s of CPU for 1000 poses are 13 ms per pose
+    got = cpu_per_pose(
+        {"server": 0.05, "workers": 0.6}, 0.0, {"server": 1.0, "workers": 12.0}, 1000
+    )
+    assert got["cpu_ms_per_pose"] == {"server": 1.0, "workers": 12.0}
+    assert got["capacity_hz"] == pytest.approx(1e3 * (os.cpu_count() or 1) / 13.0)
 
 
 def test_global_every_frame_prepares_the_bundle_untimed(world, bundle, cam):

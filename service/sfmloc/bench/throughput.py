@@ -142,7 +142,10 @@ def run_throughput(
         )
         res = bench_clients(inp, n, rate_hz, duration_s, n_workers, "process")
         row = aggregate(res["clients"], rate_hz)
+        posed = sum(c["received"] - c["errors"] for c in res["clients"])
         row.update(cpu_per_pose(res["cores_used"], row["delivered_hz_total"]))
+        if "cpu_seconds" in res:  # the CPU of the streams over the poses they got
+            row.update(cpu_per_pose(res["cores_used"], 0.0, res["cpu_seconds"], posed))
         row["outside_engine_ms"] = outside_engine_ms(row)
         row["load_before"], row["load_after"] = res["load_before"], res["load_after"]
         rows.append(row)
@@ -168,13 +171,23 @@ def run_throughput(
     }
 
 
-def cpu_per_pose(cores: dict[str, float], delivered_hz: float) -> dict[str, Any]:
-    """CPU ms per delivered pose of each part (``cores``: CPU seconds per second of each, from
-    ``bench_clients``), and the pose rate the server's (process + workers) CPU per pose allows
-    on all of this machine's cores."""
-    per = {
-        k: 1e3 * v / delivered_hz if delivered_hz > 0 else float("nan") for k, v in cores.items()
-    }
+def cpu_per_pose(
+    cores: dict[str, float],
+    delivered_hz: float,
+    cpu_seconds: dict[str, float] | None = None,
+    poses: int = 0,
+) -> dict[str, Any]:
+    """CPU ms per delivered pose of each part, and the pose rate the server's (process +
+    workers) CPU per pose allows on all of this machine's cores: ``cpu_seconds`` of each part
+    over the ``poses`` delivered meanwhile, or (without them) ``cores`` (CPU seconds per
+    second of each) over ``delivered_hz``."""
+    if cpu_seconds is not None:
+        per = {k: 1e3 * v / poses if poses else float("nan") for k, v in cpu_seconds.items()}
+    else:
+        per = {
+            k: 1e3 * v / delivered_hz if delivered_hz > 0 else float("nan")
+            for k, v in cores.items()
+        }
     server_ms = per.get("server", 0.0) + per.get("workers", 0.0)
     ncpu = os.cpu_count() or 1
     return {
