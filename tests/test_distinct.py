@@ -8,6 +8,7 @@ import numpy as np
 from sfmloc.engine import EngineConf
 from sfmloc.engine.distinct import inlier_spread, occupied_cells, second_place
 from sfmloc.engine.pose import estimate_pose_one_to_many
+from sfmloc.testing import scene_points
 from sfmloc.transforms import Rigid3d, pose_errors, rotmat_from_rotvec
 
 K = np.array([[525.0, 0, 320.0], [0, 525.0, 240.0], [0, 0, 1]])
@@ -52,10 +53,7 @@ def _twin_scene(n_twin: int, seed: int = 3):
     its twin; set 1 holds one of them per keypoint (the twin for half the twinned ones)."""
     rng = np.random.default_rng(seed)
     gt = Rigid3d(rotmat_from_rotvec([0.05, 0.3, 0.0]), [0.2, -0.1, 0.5])
-    uv = rng.uniform([20, 20], [620, 460], (150, 2))
-    z = rng.uniform(1.5, 6.0, 150)
-    xc = np.hstack([(uv - K[:2, 2]) / K[0, 0] * z[:, None], z[:, None]])
-    X = gt.inverse().apply(xc)
+    X, uv = scene_points(rng, 150, gt, K)
     turn = Rigid3d(rotmat_from_rotvec([0.0, np.pi / 2, 0.0]), [3.0, 0.0, 1.0])  # world -> twin
     points = np.vstack([X, turn.apply(X[:n_twin])])
     twin_cam = Rigid3d(
@@ -115,9 +113,7 @@ def _ranked_scene(seed: int, ranked: bool, n: int = 300, right: int = 110):
     ratio ranking puts most of them (else in random order)."""
     rng = np.random.default_rng(seed)
     gt = Rigid3d(rotmat_from_rotvec([0.1, -0.2, 0.05]), [0.3, 0.1, 0.4])
-    uv = rng.uniform([20, 20], [620, 460], (n, 2))
-    z = rng.uniform(1.5, 6.0, n)
-    X = gt.inverse().apply(np.hstack([(uv - K[:2, 2]) / K[0, 0] * z[:, None], z[:, None]]))
+    X, uv = scene_points(rng, n, gt, K)
     points = np.vstack([X, rng.uniform(-3, 3, (2 * n, 3))])
     uv = uv + rng.normal(0, 0.3, uv.shape)
     good = np.arange(n) < right if ranked else rng.permutation(n) < right

@@ -32,24 +32,17 @@ from sfmloc.features.daisy import DaisyExtractor
 from sfmloc.features.harris import detect_corners
 from sfmloc.map.bundle import MapBundle
 from sfmloc.synth.config import SceneConf as SynthSceneConf
+from sfmloc.testing import scene_points
 from sfmloc.transforms import Rigid3d, pose_errors, rotmat_from_rotvec
 
 K = np.array([[525.0, 0, 320.0], [0, 525.0, 240.0], [0, 0, 1]])
 
 
 # ----------------------------------------------------------------------------- pose
-def scene_points(rng, n, cam_from_world):
-    """World points in front of the camera, projecting inside a 640x480 image."""
-    uv = rng.uniform([20, 20], [620, 460], (n, 2))
-    z = rng.uniform(1.5, 6.0, n)
-    xc = np.hstack([(uv - K[:2, 2]) / K[0, 0] * z[:, None], z[:, None]])
-    return cam_from_world.inverse().apply(xc), uv
-
-
 def test_p3p_ransac_recovers_a_known_pose_with_outliers():
     rng = np.random.default_rng(0)
     gt = Rigid3d(rotmat_from_rotvec([0.1, -0.3, 0.05]), [0.3, -0.2, 1.0])
-    X, uv = scene_points(rng, 200, gt)
+    X, uv = scene_points(rng, 200, gt, K)
     uv_noisy = uv + rng.normal(0, 0.5, uv.shape)
     bad = rng.random(200) < 0.4
     uv_noisy[bad] = rng.uniform([0, 0], [640, 480], (bad.sum(), 2))
@@ -69,7 +62,7 @@ def test_robust_refine_converges_to_the_exact_pose():
 
     rng = np.random.default_rng(3)
     gt = Rigid3d(rotmat_from_rotvec([0.2, -0.1, 0.3]), [0.5, 0.1, -0.4])
-    X, uv = scene_points(rng, 60, gt)
+    X, uv = scene_points(rng, 60, gt, K)
     start = Rigid3d(rotmat_from_rotvec([0.21, -0.11, 0.29]), [0.52, 0.09, -0.38])
     est = robust_refine(start, K, uv, X, 1.0, iterations=8)
     dp, dr = pose_errors(est, gt)
@@ -85,7 +78,7 @@ def test_final_refinement_lowers_the_error_of_noisy_matches_with_outliers():
     for seed in range(8):
         rng = np.random.default_rng(100 + seed)
         gt = Rigid3d(rotmat_from_rotvec(rng.normal(0, 0.2, 3)), rng.normal(0, 0.5, 3))
-        X, uv = scene_points(rng, 80, gt)
+        X, uv = scene_points(rng, 80, gt, K)
         uv = uv + rng.normal(0, 0.3, uv.shape)
         kind = rng.random(80)
         near = kind < 0.25
@@ -116,7 +109,7 @@ def test_a_prior_that_is_this_frames_estimate_is_refined_without_ransac(monkeypa
     params = RansacParams(loss_scale=1.0)
     rng = np.random.default_rng(7)
     gt = Rigid3d(rotmat_from_rotvec([0.05, 0.2, -0.1]), [0.2, 0.1, 0.8])
-    X, uv = scene_points(rng, 120, gt)
+    X, uv = scene_points(rng, 120, gt, K)
     uv = uv + rng.normal(0, 0.3, uv.shape)
     # a third of the matches 3-6 px off (verified within 6 px, like guided matches), a few
     # gross outliers
@@ -153,7 +146,7 @@ def test_a_prior_that_is_this_frames_estimate_is_refined_without_ransac(monkeypa
 def test_one_to_many_ransac_uses_ambiguous_hypotheses():
     rng = np.random.default_rng(1)
     gt = Rigid3d(rotmat_from_rotvec([-0.2, 0.4, 0.0]), [1.0, 0.5, 2.0])
-    X, uv = scene_points(rng, 150, gt)
+    X, uv = scene_points(rng, 150, gt, K)
     uv = uv + rng.normal(0, 0.5, uv.shape)
     # set 1: 60 keypoints with their best point (25% wrong); set 2: every keypoint with its
     # true point among 3 hypotheses (the others: other keypoints' points)
@@ -501,7 +494,7 @@ def test_pose_covariance_jacobian_and_calibration_with_known_pixel_noise():
     averages 6 (6 dof): the standard error of that mean is sqrt(12/300) = 0.2."""
     rng = np.random.default_rng(3)
     gt = Rigid3d(rotmat_from_rotvec([0.2, -0.1, 0.3]), [0.5, 0.2, 1.0])
-    X, uv = scene_points(rng, 6, gt)
+    X, uv = scene_points(rng, 6, gt, K)
     world_from_cam = gt.inverse()
 
     def uv_at(p):  # perturbation [world-side rotation vector, centre shift]
@@ -517,7 +510,7 @@ def test_pose_covariance_jacobian_and_calibration_with_known_pixel_noise():
     values = []
     for _ in range(300):
         gt = Rigid3d(rotmat_from_rotvec(rng.normal(0, 0.3, 3)), rng.normal(0, 1, 3))
-        X, uv = scene_points(rng, int(rng.integers(12, 200)), gt)
+        X, uv = scene_points(rng, int(rng.integers(12, 200)), gt, K)
         est = estimate_pose(uv + rng.normal(0, rng.uniform(0.3, 1.0), uv.shape), X, K)
         cov = pose_covariance(est.cam_from_world, K, est.inlier_xy, est.inlier_X, min_noise_px=0.0)
         values.append(nees(cov, est.cam_from_world, gt))

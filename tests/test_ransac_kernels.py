@@ -12,6 +12,7 @@ import numpy as np
 
 from sfmloc.engine import pose
 from sfmloc.engine.pose import RansacParams, estimate_pose_one_to_many, p3p_batch
+from sfmloc.testing import scene_points
 from sfmloc.transforms import Rigid3d, rotmat_from_rotvec
 
 K = np.array([[525.505, 0, 320.0], [0, 525.505, 240.0], [0, 0, 1]])
@@ -57,12 +58,9 @@ def test_incremental_pool_miss_log_equals_the_full_sum():
 
 
 def _scene(rng, n, gt):
-    """``n`` points in front of ``gt``'s camera within the image, and their pixels."""
-    z = rng.uniform(1.0, 6.0, n)
-    uv = rng.uniform([0, 0], [640, 480], (n, 2))
-    pc = np.concatenate([(uv - K[:2, 2]) / K[[0, 1], [0, 1]] * z[:, None], z[:, None]], 1)
-    X = (pc - gt.translation) @ gt.rotation
-    return X, uv
+    """``n`` points 1-6 units in front of ``gt``'s camera anywhere in the image, and their
+    pixels."""
+    return scene_points(rng, n, gt, K, depth=(1.0, 6.0), margin=0.0)
 
 
 def test_p3p_batch_finds_opencvs_solutions():

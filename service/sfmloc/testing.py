@@ -3,6 +3,7 @@
 - ``ServerThread``: a ``Server`` on a background thread with its own event loop, in this
   process (tests reach into ``srv.server``).
 - ``ServerProcess``: ``sfmloc serve`` in a subprocess on free loopback ports.
+- ``scene_points``: a synthetic scene in front of a camera, for the pose kernels' tests.
 """
 
 from __future__ import annotations
@@ -17,10 +18,15 @@ import subprocess
 import sys
 import tempfile
 import threading
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from .server.app import Server
+import numpy as np
+
 from .server.config import ServerConfig
+from .transforms import Rigid3d
+
+if TYPE_CHECKING:  # the server (grpc, the map index) only where a test starts one
+    from .server.app import Server
 
 
 class ServerThread:
@@ -44,6 +50,8 @@ class ServerThread:
         self.loop = asyncio.new_event_loop()
         asyncio.set_event_loop(self.loop)
         try:
+            from .server.app import Server
+
             self.server = Server(self.conf)
             self.loop.run_until_complete(self.server.start(load_maps=self.load_maps))
         except BaseException as exc:  # noqa: BLE001 - handed to start()
@@ -268,3 +276,21 @@ class ServerProcess:
 
     def __exit__(self, *exc: Any) -> None:
         self.stop()
+
+
+def scene_points(
+    rng: np.random.Generator,
+    n: int,
+    cam_from_world: Rigid3d,
+    K: np.ndarray,
+    depth: tuple[float, float] = (1.5, 6.0),
+    margin: float = 20.0,
+    size: tuple[int, int] = (640, 480),
+) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` world points (N, 3) in front of the camera ``cam_from_world`` (intrinsics ``K``)
+    at depths uniform in ``depth``, and their exact pixels (N, 2), uniform over the image of
+    ``size`` at least ``margin`` px inside its border."""
+    uv = rng.uniform([margin, margin], [size[0] - margin, size[1] - margin], (n, 2))
+    z = rng.uniform(depth[0], depth[1], n)
+    xc = np.hstack([(uv - K[:2, 2]) / K[[0, 1], [0, 1]] * z[:, None], z[:, None]])
+    return cam_from_world.inverse().apply(xc), uv
