@@ -130,7 +130,20 @@ def _process_noise(dt: float, accel_var: list[float]) -> tuple[list[float], ...]
 
 
 def _matmul3(A: list[list[float]], B: list[list[float]]) -> list[list[float]]:
-    return [[a[0] * b0 + a[1] * b1 + a[2] * b2 for b0, b1, b2 in zip(*B)] for a in A]
+    (b00, b01, b02), (b10, b11, b12), (b20, b21, b22) = B
+    return [
+        [
+            a0 * b00 + a1 * b10 + a2 * b20,
+            a0 * b01 + a1 * b11 + a2 * b21,
+            a0 * b02 + a1 * b12 + a2 * b22,
+        ]
+        for a0, a1, a2 in A
+    ]
+
+
+def _matmul3_t(A: list[list[float]], B: list[list[float]]) -> list[list[float]]:
+    """``A @ B.T``: the products of A's rows with B's rows."""
+    return [[a0 * b0 + a1 * b1 + a2 * b2 for b0, b1, b2 in B] for a0, a1, a2 in A]
 
 
 def _matvec3(A: list[list[float]], v: list[float]) -> list[float]:
@@ -228,10 +241,10 @@ class Se3PoseFilter:
         """Fuse a measured pose; return the filtered ``cam_from_world``."""
         assert self.stamp is not None, "update() before reset()"
         # z = log(cam_from_world T^-1), T^-1 = (R', -R' t); y = z - H x = z (delta is 0)
-        Rm = cam_from_world.rotation.tolist()
-        Rt = [list(col) for col in zip(*self._R)]
-        Rz = _matmul3(Rm, Rt)
-        u = _matvec3(Rm, [-v for v in _matvec3(Rt, self._t)])
+        Rm, R, t = cam_from_world.rotation.tolist(), self._R, self._t
+        Rz = _matmul3_t(Rm, R)
+        Rt_t = [R[0][j] * t[0] + R[1][j] * t[1] + R[2][j] * t[2] for j in range(3)]  # R' t
+        u = _matvec3(Rm, [-v for v in Rt_t])
         tm = cam_from_world.translation.tolist()
         z = _log(Rz, [u[0] + tm[0], u[1] + tm[1], u[2] + tm[2]])
         a, b, bl, c, r, xi = self._a, self._b, self._bl, self._c, self.meas_var, self._xi
