@@ -111,24 +111,26 @@ def pose_covariances(
     if n < 4:
         return inf, inf
     R_cw = cam_from_world.rotation
-    c = cam_from_world.center
-    d = np.asarray(X, np.float64) - c  # (N, 3) world-frame rays from the centre
-    pc = d @ R_cw.T
-    x, y, z = pc[:, 0], pc[:, 1], np.maximum(pc[:, 2], 1e-9)
+    pc = np.asarray(X, np.float64) @ R_cw.T + cam_from_world.translation
     fx, fy = K[0, 0], K[1, 1]
-    # pc = R_cw (X - c); with R_wc' = exp([w]x) R_wc: d pc / d w = R_cw [X - c]x, d pc / d c =
-    # -R_cw. With a = d(u)/d(pc) R_cw (a world-frame row): d u / d w = a [d]x = a x d and
-    # d u / d c = -a; likewise for v. Written out (the (N, 3, 3) products cost x2).
-    J = np.empty((2 * n, 6))
-    a_u = (fx / z)[:, None] * (R_cw[0] - (x / z)[:, None] * R_cw[2])
-    a_v = (fy / z)[:, None] * (R_cw[1] - (y / z)[:, None] * R_cw[2])
-    for a, rows in ((a_u, slice(0, 2 * n, 2)), (a_v, slice(1, 2 * n, 2))):
-        J[rows, 0] = a[:, 1] * d[:, 2] - a[:, 2] * d[:, 1]
-        J[rows, 1] = a[:, 2] * d[:, 0] - a[:, 0] * d[:, 2]
-        J[rows, 2] = a[:, 0] * d[:, 1] - a[:, 1] * d[:, 0]
-        J[rows, 3:] = -a
-    uv = np.stack([fx * x / z + K[0, 2], fy * y / z + K[1, 2]], 1)
-    r2 = np.sum((uv - xy) ** 2, axis=1)
+    # The normal matrix from the weighted moments of the nine per-match terms b = [1, x, y,
+    # iz, x^2, xy, x iz, y^2, y iz] (as ``robust_refine``; every Jacobian entry is +-fx or
+    # +-fy times one of them or a sum of two), in robust_refine's parameters (a rotation w
+    # and a shift v on the camera side: x_cam = exp(w) (R X + t) + v), then turned into
+    # this covariance's: with R_wc' = exp([d]x) R_wc and the centre c' = c + e, to first
+    # order w = -R_cw d and v = -R_cw e, so cov = G' cov_cam G with G = diag(-R_cw, -R_cw)
+    # (orthogonal: the same eigenvalues, the same centre-block spectrum). Issue 10: the
+    # (2N, 6) Jacobian written out per entry cost x2 the CPU (the same matrix to rounding,
+    # ``tests/test_pose_kernels.py``).
+    B = np.empty((9, n))
+    B[0] = 1.0
+    np.divide(1.0, np.maximum(pc[:, 2], 1e-9), out=B[3])  # iz
+    np.multiply(pc[:, :2].T, B[3], out=B[1:3])  # x, y
+    np.multiply(B[1:4], B[1], out=B[4:7])  # x^2, xy, x iz
+    np.multiply(B[2:4], B[2], out=B[7:9])  # y^2, y iz
+    du = fx * B[1] + K[0, 2] - xy[:, 0]
+    dv = fy * B[2] + K[1, 2] - xy[:, 1]
+    r2 = du * du + dv * dv
     if loss_scale > 0:
         # The robust refinement's Cauchy weights: the noise is what its weighted residuals say,
         # not inflated by the near-outliers (2-3 px) it down-weights.
@@ -138,10 +140,12 @@ def pose_covariances(
     dof = max(2 * float(rw.sum()) - 6, 1.0)
     var = max(float(np.sum(rw * r2)) / dof, min_noise_px**2)
     if point_sigma_px is None:
-        w = np.repeat(rw / var, 2)
+        w = rw / var
     else:
-        w = np.repeat(rw / (var + np.asarray(point_sigma_px, np.float64) ** 2), 2)
-    H = (J * w[:, None]).T @ J
+        w = rw / (var + np.asarray(point_sigma_px, np.float64) ** 2)
+    QH, Cu, Cv = _cov_map(float(fx), float(fy))
+    Bs = B * np.sqrt(w)
+    H = ((Bs @ Bs.T).reshape(81) @ QH).reshape(6, 6)
     if not np.all(np.isfinite(H)):
         return inf, inf
     # H is symmetric: one eigendecomposition gives its condition number and its inverse
@@ -151,39 +155,66 @@ def pose_covariances(
         return inf, inf
     cov = (V / ev) @ V.T
     cov = 0.5 * (cov + cov.T)
-    return cov, (_without_most_influential(cov, J, w) if leave_one_out else cov)
+    G = np.zeros((6, 6))
+    G[:3, :3] = G[3:, 3:] = -R_cw
+
+    def to_world(C: np.ndarray) -> np.ndarray:
+        C = G.T @ C @ G
+        return 0.5 * (C + C.T)
+
+    if not leave_one_out:
+        cov = to_world(cov)
+        return cov, cov
+    loo = _without_most_influential(cov, B.T @ Cu, B.T @ Cv, w)
+    return to_world(cov), (to_world(loo) if np.all(np.isfinite(loo)) else loo)
 
 
-def _without_most_influential(cov: np.ndarray, J: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """The covariance ``cov`` (of the information sum of ``J``'s rows weighted by ``w``, two
-    rows per correspondence) without the correspondence whose removal widens the camera
-    centre's standard deviation most (its worst direction). Each removal is a rank-2 downdate
-    (Woodbury): cov_-i = cov + A_i^T (W_i^-1 - J_i cov J_i^T)^-1 A_i, A_i = J_i cov. A
-    correspondence the pose cannot do without (leverage 1: the downdated information is
-    singular) gives an all-infinite covariance."""
-    n = len(J) // 2
+@functools.lru_cache(maxsize=8)
+def _cov_map(fx: float, fy: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``pose_covariances``' constant maps: from the second moments S (9x9) of the per-match
+    terms b to the normal matrix H = Cu' S Cu + Cv' S Cv (81 -> 36, undamped), and ``Cu``,
+    ``Cv`` (9, 6): a match's Jacobian rows J_u = b Cu, J_v = b Cv (``_gn_map``'s, without the
+    residual rows). Read-only (shared)."""
+    Cu, Cv = _jacobian_maps(fx, fy)
+    QH = (np.einsum("ia,jb->ijab", Cu, Cu) + np.einsum("ia,jb->ijab", Cv, Cv)).reshape(81, 36)
+    for a in (QH, Cu, Cv):
+        a.flags.writeable = False
+    return QH, Cu, Cv
+
+
+def _without_most_influential(
+    cov: np.ndarray, Ju: np.ndarray, Jv: np.ndarray, w: np.ndarray
+) -> np.ndarray:
+    """The covariance ``cov`` (of the information sum of the Jacobian rows ``Ju``, ``Jv``
+    (n, 6), a correspondence's u and v rows, weighted by its ``w``) without the correspondence
+    whose removal widens the camera centre's standard deviation most (its worst direction).
+    Each removal is a rank-2 downdate (Woodbury): cov_-i = cov + A_i^T (W_i^-1 - J_i cov
+    J_i^T)^-1 A_i, A_i = J_i cov. A correspondence the pose cannot do without (leverage 1: the
+    downdated information is singular) gives an all-infinite covariance."""
+    n = len(Ju)
     if n <= 4:
         return np.full((6, 6), np.inf)
     # Each correspondence's two rows (u, v) as separate (n, 6) blocks: A_i's rows are two
     # GEMMs, and the 2x2 and 3x3 algebra below is written out per entry over all n at once
     # (the batched (n, 2, 6) products, three-operand einsum and n LAPACK 3x3 eigensolves cost
     # x4 the CPU on ~150 matches; the same quantities up to rounding).
-    Ju, Jv = J[0::2], J[1::2]
     Au, Av = Ju @ cov, Jv @ cov  # (n, 6) each: the rows of A_i
     # S_i = W_i^-1 - J_i cov J_i^T (symmetric: its off-diagonal from one side)
-    s00 = 1.0 / w[0::2] - np.einsum("ij,ij->i", Au, Ju)
-    s11 = 1.0 / w[1::2] - np.einsum("ij,ij->i", Av, Jv)
+    iw = 1.0 / w
+    s00 = iw - np.einsum("ij,ij->i", Au, Ju)
+    s11 = iw - np.einsum("ij,ij->i", Av, Jv)
     s01 = -np.einsum("ij,ij->i", Au, Jv)
     det = s00 * s11 - s01 * s01
     # W_i^-1 - J_i cov J_i^T is positive definite exactly when the downdate leaves the
     # information positive definite; relative tolerance: leverage within 1e-9 of 1 is 1
-    scale = (1.0 / w[0::2]) * (1.0 / w[1::2])
+    scale = iw * iw
     ok = (det > 1e-9 * scale) & (s00 > 0)
     if not ok.all():
         return np.full((6, 6), np.inf)
     i00, i11, i01 = s11 / det, s00 / det, -s01 / det  # S_i^-1
     # centre block of cov_-i: cov_c + sum_kl Sinv_kl a_k a_l^T, a_0 / a_1 = A_i's rows' centre
-    # parts (the centre block alone decides which removal is worst)
+    # parts (the centre block alone decides which removal is worst; in ``robust_refine``'s
+    # parameters the shift's block, the centre's turned by R_cw: the same spectrum)
     u, v = Au[:, 3:], Av[:, 3:]
     pu = i00[:, None] * u + i01[:, None] * v
     pv = i01[:, None] * u + i11[:, None] * v
@@ -403,6 +434,17 @@ def robust_refine(
     return out if out.is_finite() else cam_from_world
 
 
+def _jacobian_maps(fx: float, fy: float) -> tuple[np.ndarray, np.ndarray]:
+    """(9, 6) each: a match's Jacobian rows J_u = b Cu, J_v = b Cv in ``robust_refine``'s
+    parameters, b = [1, x, y, iz, x^2, xy, x iz, y^2, y iz]."""
+    Cu, Cv = np.zeros((9, 6)), np.zeros((9, 6))
+    # J_u = fx (-xy, 1 + x^2, -y, iz, 0, -x iz)
+    Cu[[5, 0, 4, 2, 3, 6], [0, 1, 1, 2, 3, 5]] = [-fx, fx, fx, -fx, fx, -fx]
+    # J_v = fy (-(1 + y^2), xy, x, 0, iz, -y iz)
+    Cv[[0, 7, 5, 1, 3, 8], [0, 0, 1, 2, 4, 5]] = [-fy, -fy, fy, fy, fy, -fy]
+    return Cu, Cv
+
+
 @functools.lru_cache(maxsize=8)
 def _gn_map(fx: float, fy: float) -> np.ndarray:
     """``robust_refine``'s constant (121, 42) map from the second moments S (11x11) of the rows
@@ -411,10 +453,7 @@ def _gn_map(fx: float, fy: float) -> np.ndarray:
     H = Cu' S Cu + Cv' S Cv and g = Cu' S e_u + Cv' S e_v, each entry linear in S. Read-only
     (shared)."""
     Cu, Cv = np.zeros((11, 6)), np.zeros((11, 6))
-    # J_u = fx (-xy, 1 + x^2, -y, iz, 0, -x iz)
-    Cu[[5, 0, 4, 2, 3, 6], [0, 1, 1, 2, 3, 5]] = [-fx, fx, fx, -fx, fx, -fx]
-    # J_v = fy (-(1 + y^2), xy, x, 0, iz, -y iz)
-    Cv[[0, 7, 5, 1, 3, 8], [0, 0, 1, 2, 4, 5]] = [-fy, -fy, fy, fy, fy, -fy]
+    Cu[:9], Cv[:9] = _jacobian_maps(fx, fy)
     QH = np.einsum("ia,jb->ijab", Cu, Cu) + np.einsum("ia,jb->ijab", Cv, Cv)
     QH += 1e-9 * np.einsum("ijaa->ij", QH)[:, :, None, None] * np.eye(6)
     Qg = np.zeros((11, 11, 6))
