@@ -21,7 +21,9 @@ class Certainty:
     verified: bool  # passes the strict test (``EngineConf.verified_position_sd``)
     # ``position_sd`` without the pose's most influential match
     # (``EngineConf.covariance_leave_one_out``; else the same): what it would be if that match
-    # were wrong. The tracker re-matches a frame whose pose would be withheld by it.
+    # were wrong. The tracker re-matches a frame whose pose would be withheld by it. Where an
+    # upper bound of it would not withhold the pose, that bound (the same decision; issue 10:
+    # the exact one's per-match algebra was a fifth of the covariance's CPU).
     position_sd_loo: float = float("nan")
 
 
@@ -57,6 +59,8 @@ def covariances(
             extra = pu.sigma_px(est.inlier_X, z, conf.map_noise_px)
     # The pixel noise is measured with the final refinement's own Cauchy weights
     # (``refine_loss_scale_px``), as the pose was estimated.
+    # the leave-one-out is only asked whether it would withhold the pose (``withheld``)
+    limit = conf.max_position_sd / small_sample_factor(est.num_inliers, conf.withhold_noise_z)
     return pose_covariances(
         est.cam_from_world,
         K,
@@ -65,6 +69,7 @@ def covariances(
         point_sigma_px=extra,
         loss_scale=conf.refine_loss_scale_px,
         leave_one_out=conf.covariance_leave_one_out,
+        loo_sd_over=limit * bundle.scene_scale,
     )
 
 

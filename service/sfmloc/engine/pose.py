@@ -89,6 +89,7 @@ def pose_covariances(
     point_sigma_px: np.ndarray | None = None,
     loss_scale: float = 0.0,
     leave_one_out: bool = True,
+    loo_sd_over: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """6x6 covariance of a refined pose (order ``COVARIANCE_ORDER``) from its inlier
     correspondences (undistorted pixels ``xy`` (N,2), world points ``X`` (N,3)): the
@@ -105,7 +106,9 @@ def pose_covariances(
     match cannot check that match (its residual is small whatever the pose: the pose is fitted
     to it), and a wrong one moves the pose unseen. Synthetic room after a 0.8 s gap: 20 right
     matches on a far wall (centre sd 8.6% of the scene scale) and one wrong on a near point:
-    sd 0.6% with it, the pose 5.1% off."""
+    sd 0.6% with it, the pose 5.1% off. ``loo_sd_over`` > 0 (map units): a caller that only
+    asks whether that covariance's centre sd is over it may get an upper bound instead, when
+    the bound is not over it (``_without_most_influential``'s ``sd_over``)."""
     n = len(xy)
     inf = np.full((6, 6), np.inf)
     if n < 4:
@@ -165,7 +168,7 @@ def pose_covariances(
     if not leave_one_out:
         cov = to_world(cov)
         return cov, cov
-    loo = _without_most_influential(cov, B.T @ Cu, B.T @ Cv, w)
+    loo = _without_most_influential(cov, B.T @ Cu, B.T @ Cv, w, loo_sd_over)
     return to_world(cov), (to_world(loo) if np.all(np.isfinite(loo)) else loo)
 
 
@@ -183,14 +186,20 @@ def _cov_map(fx: float, fy: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def _without_most_influential(
-    cov: np.ndarray, Ju: np.ndarray, Jv: np.ndarray, w: np.ndarray
+    cov: np.ndarray, Ju: np.ndarray, Jv: np.ndarray, w: np.ndarray, sd_over: float = 0.0
 ) -> np.ndarray:
     """The covariance ``cov`` (of the information sum of the Jacobian rows ``Ju``, ``Jv``
     (n, 6), a correspondence's u and v rows, weighted by its ``w``) without the correspondence
     whose removal widens the camera centre's standard deviation most (its worst direction).
     Each removal is a rank-2 downdate (Woodbury): cov_-i = cov + A_i^T (W_i^-1 - J_i cov
     J_i^T)^-1 A_i, A_i = J_i cov. A correspondence the pose cannot do without (leverage 1: the
-    downdated information is singular) gives an all-infinite covariance."""
+    downdated information is singular) gives an all-infinite covariance.
+
+    ``sd_over`` > 0: where the bound cov / (1 - h), h the largest leverage (the largest
+    eigenvalue of W_i^1/2 J_i cov J_i^T W_i^1/2 over all i; every downdate is within it:
+    H_-i >= (1 - h_i) H), puts the centre's standard deviation at most ``sd_over``, that
+    bound instead (the caller only asks whether the exact one is over ``sd_over``: the same
+    answer, without the per-match 3x3 algebra)."""
     n = len(Ju)
     if n <= 4:
         return np.full((6, 6), np.inf)
@@ -201,9 +210,10 @@ def _without_most_influential(
     Au, Av = Ju @ cov, Jv @ cov  # (n, 6) each: the rows of A_i
     # S_i = W_i^-1 - J_i cov J_i^T (symmetric: its off-diagonal from one side)
     iw = 1.0 / w
-    s00 = iw - np.einsum("ij,ij->i", Au, Ju)
-    s11 = iw - np.einsum("ij,ij->i", Av, Jv)
-    s01 = -np.einsum("ij,ij->i", Au, Jv)
+    l00 = np.einsum("ij,ij->i", Au, Ju)  # J_i cov J_i^T
+    l11 = np.einsum("ij,ij->i", Av, Jv)
+    l01 = np.einsum("ij,ij->i", Au, Jv)
+    s00, s11, s01 = iw - l00, iw - l11, -l01
     det = s00 * s11 - s01 * s01
     # W_i^-1 - J_i cov J_i^T is positive definite exactly when the downdate leaves the
     # information positive definite; relative tolerance: leverage within 1e-9 of 1 is 1
@@ -211,6 +221,15 @@ def _without_most_influential(
     ok = (det > 1e-9 * scale) & (s00 > 0)
     if not ok.all():
         return np.full((6, 6), np.inf)
+    if sd_over > 0:
+        half = 0.5 * (l00 + l11)
+        h = float(
+            (w * (half + np.sqrt(np.maximum(half * half - (l00 * l11 - l01 * l01), 0.0)))).max()
+        )
+        if h < 1.0:
+            bound = cov / (1.0 - h)
+            if np.linalg.eigvalsh(bound[3:, 3:])[-1] <= sd_over * sd_over:
+                return bound
     i00, i11, i01 = s11 / det, s00 / det, -s01 / det  # S_i^-1
     # centre block of cov_-i: cov_c + sum_kl Sinv_kl a_k a_l^T, a_0 / a_1 = A_i's rows' centre
     # parts (the centre block alone decides which removal is worst; in ``robust_refine``'s
@@ -324,15 +343,29 @@ def _refine(
     X: np.ndarray,
     threshold: float,
     rounds: int = 2,
+    gauss_newton: bool = False,
 ) -> tuple[Rigid3d, np.ndarray, np.ndarray]:
     """``refine``, and the reprojection errors of every match at the returned pose (callers
-    select other inlier sets from them instead of projecting again)."""
+    select other inlier sets from them instead of projecting again). ``gauss_newton``: each
+    round by ``least_squares`` (falling back to OpenCV's Levenberg-Marquardt where it does
+    not lower the squared error) instead."""
     pose = cam_from_world
     err = reprojection_errors(pose, K, xy, X)
     mask = err < threshold
     for _ in range(rounds):
         if mask.sum() < 4:
             break
+        if gauss_newton:
+            gn = least_squares(pose, K, xy[mask], X[mask])
+            gn_err = reprojection_errors(gn, K, xy, X)
+            e0, e1 = err[mask], gn_err[mask]
+            if float(e1 @ e1) < float(e0 @ e0):
+                pose, err = gn, gn_err
+                new_mask = err < threshold
+                if np.array_equal(new_mask, mask):
+                    break
+                mask = new_mask
+                continue
         rvec, _ = cv2.Rodrigues(pose.rotation)
         rvec, tvec = cv2.solvePnPRefineLM(
             X[mask].astype(np.float64),
@@ -353,6 +386,26 @@ def _refine(
 
 _EYE6 = np.eye(6)
 _EYE6.flags.writeable = False
+
+
+def least_squares(
+    cam_from_world: Rigid3d,
+    K: np.ndarray,
+    xy: np.ndarray,
+    X: np.ndarray,
+    iterations: int = 5,
+    tol: float = 1e-8,
+) -> Rigid3d:
+    """Gauss-Newton on the squared reprojection error (``robust_refine``'s steps without the
+    loss), stopped once a step moves the rotation and the translation by less than ``tol``
+    (radians; relative to the translation's length): the minimum OpenCV's
+    ``solvePnPRefineLM`` reaches (within 1e-5, its own stopping tolerance, and lower, on
+    synthetic scenes started 3-17 px off, ``tests/test_pose_kernels.py``) at ~x0.5 its CPU on ~120
+    matches (issue 10: its setup dominates whatever its iteration cap). No damping beyond
+    ``robust_refine``'s 1e-9: a caller checks that the squared error went down
+    (``_refine``)."""
+    return _gauss_newton(cam_from_world, K, xy, X, 0.0, iterations, tol)
+
 
 # Measured for issue 10 and left as they are (redkitchen, map every 10th frame): a tracked frame
 # runs no RANSAC (the prediction's refinement explains 80% of the matches: 25 solvePnPRansac
@@ -385,6 +438,20 @@ def robust_refine(
     ``_gn_map`` gives H (damped) and g. The same steps as the Jacobian written out per match
     up to rounding (poses within 1e-12 relative, ``tests/test_pose_kernels.py``).
     """
+    return _gauss_newton(cam_from_world, K, xy, X, scale, iterations)
+
+
+def _gauss_newton(
+    cam_from_world: Rigid3d,
+    K: np.ndarray,
+    xy: np.ndarray,
+    X: np.ndarray,
+    scale: float,
+    iterations: int,
+    tol: float = 0.0,
+) -> Rigid3d:
+    """``robust_refine``'s steps; ``scale`` 0: without the loss (``least_squares``). ``tol``
+    > 0: stop after a step below it (radians, and relative to the translation's length)."""
     n = len(xy)
     if n < 4:
         return cam_from_world
@@ -414,13 +481,16 @@ def robust_refine(
         np.multiply(A[2:4], A[2], out=A[7:9])  # y^2, y iz
         np.multiply(f, A[1:3], out=r)
         r -= obs
-        # square roots of the Cauchy weights s^2 / (s^2 + |r|^2), applied to both sides
-        np.multiply(r, r, out=r2)
-        np.add(r2[0], r2[1], out=w)
-        w += s2
-        np.divide(s2, w, out=w)
-        np.sqrt(w, out=w)
-        np.multiply(A, w, out=As)
+        if s2 > 0:
+            # square roots of the Cauchy weights s^2 / (s^2 + |r|^2), applied to both sides
+            np.multiply(r, r, out=r2)
+            np.add(r2[0], r2[1], out=w)
+            w += s2
+            np.divide(s2, w, out=w)
+            np.sqrt(w, out=w)
+            np.multiply(A, w, out=As)
+        else:
+            As = A
         Hg = (As @ As.T).reshape(121) @ Q  # H (6x6, damped) and g
         ok, delta = cv2.solve(
             Hg[:36].reshape(6, 6), Hg[36:].reshape(6, 1), flags=cv2.DECOMP_CHOLESKY
@@ -430,6 +500,9 @@ def robust_refine(
         dR, _ = cv2.Rodrigues(-delta[:3])
         P = dR @ P
         P[:, 3] -= delta[3:, 0]
+        if tol > 0 and np.abs(delta[:3]).max() < tol:
+            if np.abs(delta[3:]).max() < tol * max(float(np.linalg.norm(P[:, 3])), 1e-12):
+                break
     out = Rigid3d(P[:, :3].copy(), P[:, 3].copy())
     return out if out.is_finite() else cam_from_world
 
@@ -513,7 +586,7 @@ def estimate_pose(
             return _refine_own_estimate(prior, K, xy, X, params, prior_threshold)
         err = None  # the errors of every match at ``pose`` once known (not projected twice)
         if loose and prior_threshold is not None:  # (`loose` implies it; mypy needs it said)
-            pose, _, err = _refine(pose, K, xy, X, prior_threshold, rounds=1)
+            pose, _, err = _refine(pose, K, xy, X, prior_threshold, rounds=1, gauss_newton=True)
         if params.loss_scale > 0 and loose:
             # The robust final refinement follows: a least-squares round at the tighter
             # thresholds first only changes where it starts, and for the worse (redkitchen,
