@@ -170,6 +170,10 @@ def bench_overhead(inp: BenchInput, n: int) -> dict[str, Any]:
 
     spec = CameraSpec.parse(inp.camera)
     with ServerProcess(inp.maps, workers=1) as srv, _zenoh(srv.endpoint) as z:
+        # The server's CPU (its process and its workers, /proc) beyond the engine's own
+        # (each pose's engine_cpu_ms), per frame, from the 6th frame on: nothing is dropped
+        # in lockstep, so this is the server's cost around the engine per pose.
+        pids = [srv.proc.pid, *_child_pids(srv.proc.pid)]
         for enc in ("gray8", "jpeg"):
             payloads = (
                 [encode_image(g, "gray8") for g in inp.gray[:n]] if enc == "gray8" else inp.jpeg[:n]
@@ -185,13 +189,16 @@ def bench_overhead(inp: BenchInput, n: int) -> dict[str, Any]:
                     recv[p.seq] = (time.perf_counter(), p)
                     cond.notify_all()
 
-            rtt, per_frame, server_lat, engine = [], [], [], []
+            rtt, per_frame, server_lat, engine, engine_cpu = [], [], [], [], []
+            cpu0 = 0.0
             with (
                 PoseSubscriber(z, inp.map_name, cid, callback=on_pose),
                 FrameStreamer(z, inp.map_name, cid, spec) as fs,
             ):
                 fs.wait_for_server(30)
                 for k, data in enumerate(payloads):
+                    if k == 5:
+                        cpu0 = sum(_cpu_seconds(p) for p in pids)
                     t0 = time.perf_counter()
                     fs.publish(data=data, encoding=enc, seq=k, stamp_ns=int(k * 1e9 / 30))
                     with cond:
@@ -203,6 +210,13 @@ def bench_overhead(inp: BenchInput, n: int) -> dict[str, Any]:
                     per_frame.append((t1 - t0) * 1e3 - p.engine_ms)
                     server_lat.append(p.latency_ms)
                     engine.append(p.engine_ms)
+                    engine_cpu.append(p.engine_cpu_ms)
+                cpu1 = sum(_cpu_seconds(p) for p in pids)
+            frames = len(payloads) - 5
+            server_cpu = 1e3 * (cpu1 - cpu0) / frames if frames > 0 else float("nan")
+            out[f"{enc}_server_cpu_ms_per_frame"] = server_cpu
+            out[f"{enc}_engine_cpu_ms_mean"] = float(np.mean(engine_cpu)) if engine_cpu else 0.0
+            out[f"{enc}_cpu_beyond_engine_ms"] = server_cpu - out[f"{enc}_engine_cpu_ms_mean"]
             out[f"{enc}_e2e_ms_p50"] = _pct(rtt, 50)
             out[f"{enc}_e2e_ms_p99"] = _pct(rtt, 99)
             out[f"{enc}_server_engine_ms_p50"] = _pct(engine, 50)
@@ -681,6 +695,12 @@ def run(args: Any) -> int:
                 (
                     f"{enc} e2e p50 - in-process p50",
                     f"{o[f'{enc}_e2e_minus_inprocess_p50_ms']:.2f} ms",
+                ),
+                (
+                    f"{enc} server CPU per frame (process + workers)",
+                    f"{o[f'{enc}_server_cpu_ms_per_frame']:.2f} ms, engine "
+                    f"{o[f'{enc}_engine_cpu_ms_mean']:.2f}, beyond the engine "
+                    f"{o[f'{enc}_cpu_beyond_engine_ms']:.2f}",
                 ),
             ]
         _print_table(
