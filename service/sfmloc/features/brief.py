@@ -32,6 +32,16 @@ def brief_pattern(patch_size: int = 32, seed: int = 2012) -> np.ndarray:
 def smooth_for_brief(gray: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """The smoothing BRIEF needs before its pixel tests (Calonder: a 9x9 Gaussian, sigma 2);
     into ``out`` when given (a buffer of ``gray``'s shape and dtype)."""
+    # Measured and not taken (issue 10, nice 19, load 11-17): the same Gaussian as
+    # cv2.sepFilter2D of its float kernel, x0.62 CPU (0.45 -> 0.28 ms per frame); 0.8% of the
+    # pixels 1 grey level off, descriptors 0.14 of 256 bits on average. The bench's accuracy
+    # was the same (python -m sfmloc.bench.ab, GaussianBlur / it: redkitchen 1000/1000 both,
+    # median 0.279 / 0.282 cm; every-30th and every-60th maps 999 / 999 and 993 / 993;
+    # density-6x 237 / 237; synthetic walk 300 / 300; 0 wrong everywhere), but the issue-9
+    # gap frames of test_engine (test_no_wrong_tracked_pose_after_a_gap...) tracked other
+    # corners and 4 of 12 poses came out wrong. Two 5x5 box passes (x0.37): density-6x lost
+    # 14 of 237 frames and gave a wrong pose. BRIEF is frame-to-frame only, but tracking is
+    # that sensitive: keep this filter unless the gap case is re-judged with it.
     return cv2.GaussianBlur(gray, (9, 9), 2.0, dst=out)
 
 
