@@ -258,3 +258,78 @@ def test_two_stage_relocalization_is_one_stage_unless_the_first_is_strong(world,
         # is 100 inliers (redkitchen, 500 frames: median 0.218 -> 0.237 cm, 0 wrong).
         assert pose_errors(rl.cam_from_world, gt)[0] < 0.05 * scale
     assert accepted >= 1
+
+
+def test_max_votes_from_cluster_bits_equal_the_entry_per_cluster_votes(
+    world, bundle, cam, monkeypatch
+):
+    """``vote == "max"`` scored from each point's cluster bits (the clusters a neighbour
+    reaches first in its query's row) gives the same matches as one entry per (neighbour,
+    cluster) deduplicated per query: the same clusters, images and sets, on whole frames and
+    on the first stage's 300 corners."""
+    from sfmloc.engine import matching
+
+    conf = EngineConf()
+    assert conf.vote == "max"
+    bits = matching._point_cluster_bits(bundle)
+    assert bits is not None and bundle.n_clusters > 1
+    # every point's bits are its clusters
+    for p in range(0, bundle.n_points, max(1, bundle.n_points // 50)):
+        want = sum(1 << int(c) for c in bundle.point_clusters(p))
+        assert int(bits[p]) == want
+    compared = 0
+    for i in (3, 20, 37, 55):
+        xy, desc = _features(world.gray[i], bundle, conf)
+        for rows in (slice(None), slice(0, 300)):
+            d = np.ascontiguousarray(desc[rows])
+            nb = bundle.index.search(d, conf.k, nprobe=conf.global_nprobe)
+            new = global_matching(d, bundle, conf, nb)
+            with monkeypatch.context() as m:
+                m.setattr(matching, "_MAX_BIT_CLUSTERS", -1)  # the entry-per-cluster votes
+                assert matching._point_cluster_bits(bundle) is None
+                old = global_matching(d, bundle, conf, nb)
+            for f in ("set1_q", "set1_p", "set2_q", "set2_p", "clusters"):
+                np.testing.assert_array_equal(getattr(new, f), getattr(old, f), err_msg=f)
+            assert new.n_images == old.n_images and len(new.set1_q) > 0
+            compared += 1
+    assert compared == 8
+
+
+def test_first_stage_gives_up_only_where_no_pose_could_be_strong(world, bundle, cam):
+    """The first stage skips its RANSAC when the matches' distinct keypoints (the most inliers
+    any pose can have) are below the strong bar: no RANSAC pose ever has more inliers than
+    that bound. ``relocalize_staged_from``: frames with fewer corners run one stage (the
+    one-stage answer)."""
+    from sfmloc.engine.relocalize import _at_most_inliers, spread_order
+
+    conf = EngineConf()
+    for i in (5, 25, 50):
+        c = detect_corners(
+            world.gray[i], rel_threshold=conf.gamma, max_corners=1000, border=conf.mu // 2
+        )
+        sub = np.sort(spread_order(c.xy, c.response, cam.width, cam.height)[:300])
+        ex = DaisyExtractor()
+        desc = describe(ex, bundle, ex.prepare(world.gray[i]), c.xy[sub])
+        # the first stage's search (``global_nprobe`` lists)
+        nb = bundle.index.search(desc, conf.k, nprobe=conf.global_nprobe)
+        gm = global_matching(desc, bundle, conf, nb)
+        bound = _at_most_inliers(gm.set2_q)
+        assert bound == len(np.unique(gm.set2_q))
+        X = bundle.points_xyz
+        res = estimate_pose_one_to_many(
+            c.xy[sub][gm.set1_q],
+            X[gm.set1_p],
+            gm.set2_q,
+            c.xy[sub][gm.set2_q],
+            X[gm.set2_p],
+            cam.K,
+            conf.ransac(),
+        )
+        assert res is not None and 0 < res[0].num_inliers <= bound
+        # a frame below ``relocalize_staged_from`` corners: the one-stage answer
+        above = EngineConf(relocalize_staged_from=len(c.xy) + 1)
+        one = EngineConf(relocalize_first_keypoints=0)
+        ra = relocalize(world.gray[i], cam, bundle, above)
+        r1 = relocalize(world.gray[i], cam, bundle, one)
+        assert ra.status is r1.status and ra.inliers == r1.inliers
+        np.testing.assert_allclose(ra.cam_from_world.matrix(), r1.cam_from_world.matrix(), atol=0)

@@ -332,6 +332,14 @@ class EngineConf(StrictModel):
     # stage. 0: one stage.
     relocalize_first_keypoints: int = 300
     relocalize_first_iterations: int = 100
+    # Frames with at least this many corners run the two stages (fewer: one stage). Issue 10,
+    # redkitchen (map every 10th frame), 500 frames: from 600 the 500-600-corner frames (a
+    # fifth, most of the p95 tail) ran one stage at ~47 ms; from 500 they take ~30 where the
+    # first stage holds (99) and 63 -> 74 where it fails (17); with the cluster-bit votes,
+    # CPU per call against 600 (nice 19, load ~13) mean x0.89, p95 x0.84-0.89, p99 x0.96,
+    # 0 wrong, median 0.237 -> 0.245 cm. On the thin maps (every 30th / 60th frame) more
+    # first stages fail: p95 x1.07 / x1.10, mean x0.96 / x0.99 (README, issue 10).
+    relocalize_staged_from: int = 500
     max_hypotheses: int = 8  # one-to-many 3D hypotheses kept per keypoint
     ransac_threshold_px: float = 4.0  # inlier reprojection error in RANSAC
     ransac_confidence: float = 0.999

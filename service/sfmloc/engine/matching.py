@@ -18,6 +18,7 @@ are verified geometrically against the pose from the known matches.
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -147,6 +148,13 @@ def global_matching(
     already made (``search_all``), else it is made here."""
     D, I = neighbours if neighbours is not None else search_all(desc, bundle, conf)
     w = neighbour_strengths(D, I, conf.sigma)
+    bits = _point_cluster_bits(bundle) if conf.vote == "max" else None
+    if bits is not None:
+        scores = _max_votes(w, I, bundle, bits)
+        if not scores.any():
+            empty = np.zeros(0, np.int64)
+            return GlobalMatches(empty, empty, empty, empty, empty, 0, (D, I))
+        return _select_and_match(scores, w, I, bundle, conf, (D, I))
     qi, ji = np.nonzero(w > 0)
     pts = bundle.desc_point[I[qi, ji]]
     ws = w[qi, ji]
@@ -170,6 +178,56 @@ def global_matching(
         first = first[first < len(key)]
         clus, votes = clus[first], votes[first]
     scores = np.bincount(clus, weights=votes, minlength=bundle.n_clusters)
+    return _select_and_match(scores, w, I, bundle, conf, (D, I))
+
+
+# Clusters a point's bits can hold (more: the entry-per-cluster votes above).
+_MAX_BIT_CLUSTERS = 64
+_bits_cache: weakref.WeakKeyDictionary[MapBundle, np.ndarray] = weakref.WeakKeyDictionary()
+
+
+def _point_cluster_bits(bundle: MapBundle) -> np.ndarray | None:
+    """Per map point, the clusters it belongs to as bits (uint64; cached per bundle), or None
+    when the map has more than ``_MAX_BIT_CLUSTERS`` clusters."""
+    if bundle.n_clusters > _MAX_BIT_CLUSTERS:
+        return None
+    bits = _bits_cache.get(bundle)
+    if bits is None:
+        ptr, idx = bundle.point_clusters_ptr, bundle.point_clusters_idx
+        owner = np.repeat(np.arange(len(ptr) - 1), np.diff(ptr))
+        bits = np.zeros(len(ptr) - 1, np.uint64)
+        np.bitwise_or.at(bits, owner, np.left_shift(np.uint64(1), idx.astype(np.uint64)))
+        _bits_cache[bundle] = bits
+    return bits
+
+
+def _max_votes(w: np.ndarray, I: np.ndarray, bundle: MapBundle, bits: np.ndarray) -> np.ndarray:
+    """Cluster scores of ``vote == "max"``: per query and cluster the strength of its first
+    neighbour there (strengths fall with the rank: its strongest), summed over the queries.
+    A neighbour votes for the clusters of its point that no better-ranked neighbour of its
+    query reached (its bits less the running OR of the row); the votes in query order, as
+    the entry-per-cluster bincount adds them: the same sums (issue 10: without expanding
+    every neighbour over its clusters)."""
+    b = np.where(w > 0, bits[bundle.desc_point[np.maximum(I, 0)]], np.uint64(0))  # (Q, k)
+    seen = np.bitwise_or.accumulate(b, axis=1)
+    fresh = b.copy()
+    fresh[:, 1:] &= ~seen[:, :-1]
+    q, j = np.nonzero(fresh)  # row-major: query order
+    masks = np.uint64(1) << np.arange(bundle.n_clusters, dtype=np.uint64)
+    e, c = np.nonzero((fresh[q, j][:, None] & masks) != 0)
+    return np.bincount(c, weights=w[q, j][e], minlength=bundle.n_clusters)
+
+
+def _select_and_match(
+    scores: np.ndarray,
+    w: np.ndarray,
+    I: np.ndarray,
+    bundle: MapBundle,
+    conf: EngineConf,
+    neighbours: tuple[np.ndarray, np.ndarray],
+) -> GlobalMatches:
+    """The clusters scoring at least ``beta`` x the best select the images S; the matches
+    from the neighbours in S."""
     selected = np.nonzero(scores >= conf.beta * scores.max())[0]
     in_s = np.zeros(bundle.n_images, bool)
     for c in selected:
@@ -178,7 +236,7 @@ def global_matching(
     w = np.where(in_s[bundle.desc_image[np.maximum(I, 0)]] & (I >= 0), w, 0.0)
     cands = point_candidates(I, w, bundle.desc_point)
     s1q, s1p, s2q, s2p = match_sets(cands, conf.ratio, conf.max_hypotheses)
-    return GlobalMatches(s1q, s1p, s2q, s2p, selected, int(in_s.sum()), (D, I))
+    return GlobalMatches(s1q, s1p, s2q, s2p, selected, int(in_s.sum()), neighbours)
 
 
 def scope_images(

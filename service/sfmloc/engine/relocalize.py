@@ -135,6 +135,12 @@ def global_pose(
     none = "no pose: too few consistent 2D-3D matches"
     if len(gm.set1_q) < 3:
         return None, none
+    if strong_only and not _needs_no_verification(
+        _at_most_inliers(gm.set2_q), len(gm.set1_q), conf
+    ):
+        # a RANSAC pose's inliers are distinct keypoints with a hypothesis: too few to be
+        # strong whatever RANSAC finds (the same answer, without the RANSAC)
+        return None, "no strong pose from the first keypoints"
     params = conf.ransac()
     if strong_only:
         params = replace(params, max_iterations=conf.relocalize_first_iterations)
@@ -232,6 +238,12 @@ def robust_final(est: PoseEstimate, K: np.ndarray, conf: EngineConf) -> PoseEsti
     pose = robust_refine(est.cam_from_world, K, xy, X, conf.refine_loss_scale_px)
     err = reprojection_errors(pose, K, xy, X)
     return replace(est, cam_from_world=pose, mean_error_px=float(err.mean()))
+
+
+def _at_most_inliers(set2_q: np.ndarray) -> int:
+    """The most inliers a pose from these one-to-many matches can have: their distinct
+    keypoints (``set2_q`` is grouped by keypoint)."""
+    return int(np.count_nonzero(np.diff(set2_q))) + 1 if len(set2_q) else 0
 
 
 def _needs_no_verification(inliers: int, candidates: int, conf: EngineConf) -> bool:
@@ -371,7 +383,12 @@ def _relocalize(
     est = None
     neighbours: tuple[np.ndarray, np.ndarray] | None = None  # the search of desc, when made
     first = conf.relocalize_first_keypoints
-    staged = prior is None and conf.global_nprobe > 0 and 0 < 2 * first <= len(corners)
+    staged = (
+        prior is None
+        and conf.global_nprobe > 0
+        and 0 < first < len(corners)
+        and len(corners) >= conf.relocalize_staged_from
+    )
     if staged:
         # First stage: the strongest corners spread over the image. A pose far above chance
         # from them is the answer; else the rest are described and searched, and global
