@@ -17,7 +17,7 @@ from sfmloc.engine.tracker import (
     track_2d,
     window_pairs,
 )
-from sfmloc.features.brief import compute_brief, hamming, smooth_for_brief
+from sfmloc.features.brief import hamming
 
 
 def _brute(pred, cand, half):
@@ -132,20 +132,3 @@ def test_track_2d_and_window_pairs_on_consecutive_redkitchen_frames(redkitchen):
             matched += int((got >= 0).sum())
         prev = kps
     assert matched > 1000
-
-
-def test_lazy_keypoints_describe_bit_for_bit_what_compute_brief_gives(redkitchen):
-    conf = EngineConf()
-    gray = cv2.imread(str(redkitchen / "frame-000120.color.jpg"), cv2.IMREAD_GRAYSCALE)
-    eager = compute_brief(smooth_for_brief(gray), extract_keypoints(gray, None, conf).xy, conf.mu)
-    kps = extract_keypoints(gray, None, conf)
-    assert len(kps) > 300
-    rows = np.random.default_rng(5).integers(0, len(kps), 80)  # with repeats
-    np.testing.assert_array_equal(kps.described(rows)[rows], eager[rows])
-    assert kps._todo is not None and kps._todo.sum() == len(kps) - len(np.unique(rows))
-    more = np.arange(0, len(kps), 7)
-    np.testing.assert_array_equal(kps.described(more)[more], eager[more])
-    np.testing.assert_array_equal(kps.brief, eager)  # the rest, made on reading brief
-    assert kps._todo is None
-    with pytest.raises(ValueError):
-        Keypoints(kps.xy, kps.response, None, 1.0)

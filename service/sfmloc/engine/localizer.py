@@ -505,7 +505,7 @@ class Localizer:
         table = prev.take(tracked)
         used = m[tracked]
         table.xy = kps.xy[used]
-        table.brief = kps.described(used)[used]
+        table.brief = kps.brief[used]
         table.age += 1
         return table, used
 
@@ -533,7 +533,7 @@ class Localizer:
         if len(free) > room:
             free = free[np.argsort(-kps.response[free], kind="stable")[:room]]
             free.sort()
-        table.append(self._new_ids(len(free)), kps.xy[free], kps.described(free)[free])
+        table.append(self._new_ids(len(free)), kps.xy[free], kps.brief[free])
         return table
 
     def _estimate_pose(
@@ -967,6 +967,6 @@ class Localizer:
         if len(sel) > c.global_max_keypoints:
             sel = np.sort(np.argsort(-kps.response, kind="stable")[: c.global_max_keypoints])
         table = TrackTable.empty(c.max_hypotheses)
-        table.append(self._new_ids(len(sel)), kps.xy[sel], kps.described(sel)[sel])
+        table.append(self._new_ids(len(sel)), kps.xy[sel], kps.brief[sel])
         table.pending[:] = False
         return table

@@ -12,75 +12,25 @@ the 2x2 cells its window overlaps, all vectorized.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
-from ..features.brief import N_WORDS, compute_brief, smooth_for_brief
+from ..features.brief import compute_brief, smooth_for_brief
 from ..features.harris import SUBPIXEL_DEFAULT, Corners, detect_corners
 from .config import EngineConf
 from .track_table import TrackTable
 
 
+@dataclass
 class Keypoints:
-    """A frame's keypoints: ``xy`` (M, 2) in the COLMAP convention, Harris ``response`` (M,),
-    BRIEF descriptors (M, 4) uint64 and the frame's maximum response (the next threshold).
-
-    The descriptors are given, or made lazily from the frame smoothed for BRIEF
-    (``extract_keypoints``): ``described(rows)`` makes only the rows asked for, reading
-    ``brief`` makes every row. TRACK-2D describes the corners inside some track's search
-    window, 85% of a redkitchen frame's; the rest are described only when the frame adds
-    tracks or restarts them. Each row is the descriptor ``compute_brief`` gives at once."""
-
-    def __init__(
-        self,
-        xy: np.ndarray,
-        response: np.ndarray,
-        brief: np.ndarray | None,
-        max_response: float,
-        *,
-        smoothed: np.ndarray | None = None,
-        patch_size: int = 32,
-    ) -> None:
-        self.xy = xy
-        self.response = response
-        self.max_response = max_response
-        self._smoothed = smoothed
-        self._patch_size = patch_size
-        self._todo: np.ndarray | None = None  # rows not described yet (lazy)
-        if brief is None:
-            if smoothed is None:
-                raise ValueError("lazy keypoints need the smoothed image")
-            self._brief = np.empty((len(xy), N_WORDS), np.uint64)
-            self._todo = np.ones(len(xy), bool)
-        else:
-            self._brief = brief
+    xy: np.ndarray  # (M, 2) COLMAP convention
+    response: np.ndarray  # (M,)
+    brief: np.ndarray  # (M, 4) uint64
+    max_response: float
 
     def __len__(self) -> int:
         return len(self.xy)
-
-    @property
-    def brief(self) -> np.ndarray:
-        """(M, 4) uint64: every keypoint's descriptor."""
-        if self._todo is not None:
-            self._describe(np.flatnonzero(self._todo))
-        return self._brief
-
-    def described(self, rows: np.ndarray) -> np.ndarray:
-        """The (M, 4) descriptor array with (at least) ``rows`` made: index it with ``rows``
-        only (repeats allowed)."""
-        if self._todo is not None:
-            need = np.zeros(len(self._todo), bool)
-            need[rows] = True
-            need &= self._todo
-            self._describe(np.flatnonzero(need))
-        return self._brief
-
-    def _describe(self, idx: np.ndarray) -> None:
-        assert self._todo is not None and self._smoothed is not None
-        if len(idx):
-            self._brief[idx] = compute_brief(self._smoothed, self.xy[idx], self._patch_size)
-            self._todo[idx] = False
-        if not self._todo.any():  # all made: the smoothed image is not needed any more
-            self._todo = self._smoothed = None
 
 
 def map_subpixel(conf: EngineConf, map_params: dict) -> str:
@@ -116,14 +66,8 @@ def extract_keypoints(
     sub-pixel method (see ``map_subpixel``)."""
     corners = _corners(gray, threshold, conf, conf.mu // 2, subpixel)
     smoothed = smooth_for_brief(gray)
-    return Keypoints(
-        corners.xy,
-        corners.response,
-        None,
-        corners.max_response,
-        smoothed=smoothed,
-        patch_size=conf.mu,
-    )
+    brief = compute_brief(smoothed, corners.xy, conf.mu)
+    return Keypoints(corners.xy, corners.response, brief, corners.max_response)
 
 
 def edge_keypoints(
@@ -222,7 +166,7 @@ def track_2d(
     ti, cj = window_pairs(pred_xy, kps.xy, conf.rho / 2.0)
     if len(ti) == 0:
         return match
-    dist = pair_distances(table.brief, ti, kps.described(cj), cj)
+    dist = pair_distances(table.brief, ti, kps.brief, cj)
     # per track (pairs come grouped by track): the best distance, how many candidates have
     # it, and the best of the others. A tie for the best fails the ratio test (best < psi best
     # is false), so the accepted best is always one pair, whatever the order within a track.
