@@ -328,6 +328,22 @@ def reference_pose_covariances(
     return cov, (reference_without_most_influential(cov, J, w) if leave_one_out else cov)
 
 
+def _covariance_case(base: int, seed: int, n: int):
+    """A covariance test case: ``n`` matches in front of the camera of ``noisy_scene(base +
+    seed)``; odd seeds put the points bunched on a far plane (depth 9, pixels 0.5 px noisy),
+    seeds not divisible by 3 give per-point uncertainties (px). (gt, xy, X, sigma or None)"""
+    gt, _, xy, X = noisy_scene(base + seed, n + n // 10 + 2)
+    front = (X @ gt.rotation.T + gt.translation)[:, 2] > 0
+    xy, X = xy[front][:n], X[front][:n]
+    rng = np.random.default_rng(seed)
+    if seed % 2:
+        depth = np.full((len(xy), 1), 9.0)
+        X = gt.inverse().apply(np.hstack([(xy - K[:2, 2]) / K[0, 0] * depth, depth]))
+        xy = xy + rng.normal(0, 0.5, xy.shape)
+    sig = rng.uniform(0, 1.5, len(xy)) if seed % 3 else None
+    return gt, xy, X, sig
+
+
 @pytest.mark.parametrize("n", [4, 5, 6, 30, 150, 600])
 def test_covariances_equal_the_jacobian_written_out(n):
     """The covariance from the weighted moments in ``robust_refine``'s parameters, turned into
@@ -336,15 +352,7 @@ def test_covariances_equal_the_jacobian_written_out(n):
     infinite together, with and without point uncertainties, the Cauchy weights, the
     leave-one-out, and on points bunched on a far plane."""
     for seed in range(6):
-        gt, _, xy, X = noisy_scene(40 + seed, n + n // 10 + 2)
-        front = (X @ gt.rotation.T + gt.translation)[:, 2] > 0
-        xy, X = xy[front][:n], X[front][:n]
-        rng = np.random.default_rng(seed)
-        if seed % 2:
-            depth = np.full((len(xy), 1), 9.0)
-            X = gt.inverse().apply(np.hstack([(xy - K[:2, 2]) / K[0, 0] * depth, depth]))
-            xy = xy + rng.normal(0, 0.5, xy.shape)
-        sig = rng.uniform(0, 1.5, len(xy)) if seed % 3 else None
+        gt, xy, X, sig = _covariance_case(40, seed, n)
         for loss, loo_on in ((1.0, True), (0.0, True), (1.0, False)):
             kw = dict(point_sigma_px=sig, loss_scale=loss, leave_one_out=loo_on)
             got = pose.pose_covariances(gt, K, xy, X, **kw)
@@ -447,15 +455,7 @@ def test_leave_one_out_bound_gives_the_same_answer():
     took_bound = took_exact = 0
     for n in (6, 30, 150, 600):
         for seed in range(6):
-            gt, _, xy, X = noisy_scene(70 + seed, n + n // 10 + 2)
-            front = (X @ gt.rotation.T + gt.translation)[:, 2] > 0
-            xy, X = xy[front][:n], X[front][:n]
-            rng = np.random.default_rng(seed)
-            if seed % 2:
-                depth = np.full((len(xy), 1), 9.0)
-                X = gt.inverse().apply(np.hstack([(xy - K[:2, 2]) / K[0, 0] * depth, depth]))
-                xy = xy + rng.normal(0, 0.5, xy.shape)
-            sig = rng.uniform(0, 1.5, len(xy)) if seed % 3 else None
+            gt, xy, X, sig = _covariance_case(70, seed, n)
             kw = dict(point_sigma_px=sig, loss_scale=1.0)
             cov, exact = pose.pose_covariances(gt, K, xy, X, **kw)
             if not np.isfinite(exact).all():
