@@ -357,6 +357,56 @@ def test_guided_matching_with_the_pose_gives_correct_matches(world, bundle, cam)
     assert gm.n_images <= conf.top_images
 
 
+def test_guided_matching_on_few_matches_keeps_more_hypotheses_still_verified(
+    world, bundle, cam, monkeypatch
+):
+    """On a frame holding fewer than ``few_matches_below`` 3D matches, guided matching keeps
+    the weaker candidates too (``few_matches_ratio``): every keypoint's hypotheses include
+    those of the default ratio, more keypoints hold one, and what is verified against the
+    pose still reprojects within ``guided_threshold_px`` at the true pose. The localizer
+    applies the loose ratio only below ``few_matches_below`` matches."""
+    conf = EngineConf()
+    assert 0 < conf.few_matches_ratio < conf.ratio and conf.few_matches_below > conf.kappa2
+    ex = DaisyExtractor()
+    gray, gt = world.gray[30], world.gt_cam_from_world[30]
+    c = detect_corners(gray, rel_threshold=conf.gamma, max_corners=150, border=16)
+    desc = describe(ex, bundle, ex.prepare(gray), c.xy)
+    uv, z = cam.project(gt, bundle.points_xyz)
+    seen = np.nonzero((z > 0) & cam.in_image(uv))[0]
+    strict = guided_matching(desc, c.xy, bundle, seen, gt, cam.K, conf)
+    loose = guided_matching(desc, c.xy, bundle, seen, gt, cam.K, conf, ratio=conf.few_matches_ratio)
+    for hs, hl in zip(strict.hyp, loose.hyp):
+        assert set(hs[hs >= 0]) <= set(hl[hl >= 0])
+    n_strict = int((strict.hyp >= 0).sum())
+    n_loose = int((loose.hyp >= 0).sum())
+    assert n_loose > n_strict, (n_loose, n_strict)
+    found = loose.point >= 0
+    assert found.sum() >= (strict.point >= 0).sum()
+    e = reprojection_errors(gt, cam.K, c.xy[found], bundle.points_xyz[loose.point[found]])
+    assert np.all(e < conf.guided_threshold_px)
+
+    import sfmloc.engine.localizer as localizer_mod
+
+    used: list[float | None] = []
+    real = localizer_mod.guided_matching
+
+    def spy(*args, **kwargs):
+        used.append(kwargs.get("ratio"))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(localizer_mod, "guided_matching", spy)
+    loc = Localizer(bundle, cam, conf)
+    image = localizer_mod._FrameImage(gray, loc.extractor)
+    n = len(c.xy)
+    for matched in (conf.few_matches_below - 1, conf.few_matches_below):
+        t = TrackTable.empty(conf.max_hypotheses)
+        t.append(np.arange(n), c.xy.copy(), np.zeros((n, 4), np.uint64))
+        t.point[:matched] = seen[:matched]
+        rows = np.arange(matched, n)
+        loc._guided_matching(t, rows, image, gt)
+    assert used == [conf.few_matches_ratio, None]
+
+
 def test_relocalize_with_a_prior(world, bundle, cam):
     gt = world.gt_cam_from_world[45]
     prior = Rigid3d(

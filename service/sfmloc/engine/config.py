@@ -101,6 +101,23 @@ class EngineConf(StrictModel):
     # map already runs at x1.080-1.096 the every-10th's (target x1.10).
     scope_dense_nprobe: bool = False
     ratio: float = 0.75  # ratio test on 3D point strengths
+    # Guided matching on a frame holding fewer than few_matches_below 3D matches keeps as
+    # hypotheses the points with at least few_matches_ratio of a keypoint's strongest point's
+    # strength (``ratio`` otherwise; each still verified against the frame's pose, 6 px). On a
+    # thin map the tracks run short where the view is poorly covered: redkitchen from every
+    # 60th frame, frames 383-396 (tracking, guided matching every frame, 0-3 matches gained a
+    # frame): 355-436 map points project into the frame at its true pose, a frame keypoint
+    # lies within 3 px of 68-104 of them, 41-88 of those are tracked rows, 7-14 matched and
+    # 22-38 guided-matched without that point among their hypotheses (in 14 frames, never);
+    # the 3D matches fell to 11 by frame 392 and 393-396 were LOST. `python -m sfmloc.bench.ab`,
+    # 1000 frames, nice 19, load 2-4, against main: every 60th 993 -> 997 posed, within 5 cm /
+    # 5 deg 98.3 -> 98.9%, 0 wrong, p99 x0.74 (fewer relocalizations); 0.45 / 0.55 and below
+    # 15 / 25 the same 997 and 98.9%; every 30th 999 -> 999, 99.9%; every 10th poses
+    # identical (never fewer than 20 matches). Below 40 at 0.3: every 60th 998, but every 30th
+    # 997 (99.4%) and one wrong pose on every 10th; below 40 at 0.5: every 10th 0.279 ->
+    # 0.285 cm, every 30th 998; below 20 at 0.3: every 60th 989.
+    few_matches_ratio: float = 0.5
+    few_matches_below: int = 20  # (see few_matches_ratio; 0: never)
     min_inliers: int = 10  # a pose with fewer inliers is rejected
     # Global matching also needs this fraction of its ratio-test matches as inliers: 10 inliers
     # out of ~500 candidates is chance (a relocalization 3.7 m / 140 deg off had 1.9%; correct

@@ -733,7 +733,10 @@ class Localizer:
     def _guided_matching(
         self, table: TrackTable, rows: np.ndarray, image: _FrameImage, pose: Rigid3d
     ) -> TrackTable:
-        """GUIDED-MATCHING of the table's ``rows`` around this frame's pose."""
+        """GUIDED-MATCHING of the table's ``rows`` around this frame's pose; on a frame holding
+        fewer than ``few_matches_below`` matches, with the looser ``few_matches_ratio``
+        hypotheses."""
+        c = self.conf
         desc = describe(self.extractor, self.bundle, image.prepared, table.xy[rows])
         gm = guided_matching(
             desc,
@@ -742,7 +745,8 @@ class Localizer:
             table.point[table.point >= 0],
             pose,
             self.K,
-            self.conf,
+            c,
+            ratio=c.few_matches_ratio if table.n_3d() < c.few_matches_below else None,
         )
         table.point[rows] = gm.point
         table.hyp[rows] = gm.hyp

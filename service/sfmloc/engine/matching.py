@@ -278,12 +278,14 @@ def guided_matching(
     K: np.ndarray,
     conf: EngineConf,
     neighbours: tuple[np.ndarray, np.ndarray] | None = None,
+    ratio: float | None = None,
 ) -> GuidedMatches:
     """Match a batch of keypoints (descriptors ``desc``, undistorted positions ``xy_u``) within
     the scope of the already-matched points, verify against ``cam_from_world``.
 
     ``neighbours``: an unscoped k-ANN search of these same descriptors (global matching's),
-    restricted to the scope instead of a second search (``restrict_neighbours``)."""
+    restricted to the scope instead of a second search (``restrict_neighbours``).
+    ``ratio``: the hypotheses' strength ratio instead of ``conf.ratio``."""
     nq = len(desc)
     H = conf.max_hypotheses
     out = GuidedMatches(np.full(nq, -1, np.int64), np.full((nq, H), -1, np.int64), 0)
@@ -307,7 +309,7 @@ def guided_matching(
         D, I = bundle.index.search(desc, conf.k, allowed=allowed, nprobe=npr)
     w = neighbour_strengths(D, I, conf.sigma)
     cands = point_candidates(I, w, bundle.desc_point)
-    _, _, q2, p2 = match_sets(cands, conf.ratio, H)
+    _, _, q2, p2 = match_sets(cands, conf.ratio if ratio is None else ratio, H)
     if len(q2) == 0:
         return out
     # hypotheses table
