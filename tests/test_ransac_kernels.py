@@ -63,78 +63,6 @@ def _scene(rng, n, gt):
     return scene_points(rng, n, gt, K, depth=(1.0, 6.0), margin=0.0)
 
 
-def _roots_by_row(n_idx, v, N):
-    return [np.sort(v[n_idx == i]) for i in range(N)]
-
-
-def test_closed_form_quartic_finds_eigvals_real_roots():
-    """Ferrari's closed form finds the real roots the companion matrices' eigenvalues find,
-    to 1e-8 of max(1, |root|) before polishing, on random quartics with coefficients over six
-    orders of magnitude, exactly repeated roots, biquadratics and a vanishing leading
-    coefficient (the last three among the rows it leaves to the eigenvalues); on nearly
-    repeated roots, where both are approximate, it is no further from the true roots."""
-    rng = np.random.default_rng(7)
-    N = 4000
-    # repeated roots (small integers): compared with the truth below, where a double root's
-    # eigenvalues are off by ~sqrt(machine epsilon)
-    rep = rng.integers(-3, 4, (200, 4)).astype(float)
-    A = np.concatenate(
-        [
-            np.array([np.poly(t) for t in rep]),
-            rng.normal(size=(N, 5)),
-            rng.normal(size=(N, 5)) * 10 ** rng.uniform(-3, 3, (N, 5)),
-            rng.normal(size=(N, 5)) * [1, 0, 1, 0, 1],  # biquadratic
-            rng.normal(size=(200, 5)) * [1e-10, 1, 1, 1, 1],
-        ]
-    )
-    n_idx, v = pose.quartic_real_roots(A)
-    assert np.all(np.diff(n_idx) >= 0)
-    r, real = pose._eigvals_real_roots(A)
-    mine = _roots_by_row(n_idx, v, len(A))
-    count = 0
-    for i in range(len(A)):
-        want = np.sort(r[i][real[i]])
-        if i < len(rep):  # all four found (eigvals misses a triple root's: imaginary 6e-6)
-            assert len(mine[i]) == 4 and np.abs(mine[i] - np.sort(rep[i])).max() < 1e-6, i
-            if len(want) == 4:
-                e_eig = np.abs(want - np.sort(rep[i])).max()
-                assert np.abs(mine[i] - np.sort(rep[i])).max() <= max(e_eig, 1e-12), i
-            continue
-        assert len(mine[i]) == len(want), (i, mine[i], want)
-        if len(want):
-            assert np.abs(mine[i] - want).max() <= 1e-8 * max(1, np.abs(want).max()), i
-        count += len(want)
-    assert count > 15000
-    calls = []
-    eig = pose._eigvals_real_roots
-    try:
-        pose._eigvals_real_roots = lambda B: (calls.append(len(B)), eig(B))[1]  # type: ignore
-        pose.quartic_real_roots(A)
-    finally:
-        pose._eigvals_real_roots = eig
-    # the fallback taken for some rows only: the vanishing leading coefficients, half the
-    # biquadratics (resolvent root 0), a sixth of the widely scaled (1 in 4000 of the normal)
-    assert 200 <= calls[0] < len(A) // 3
-    # nearly repeated roots (1e-4 and 1e-6 apart): against the truth, not the eigenvalues
-    for sep in (1e-4, 1e-6):
-        roots = rng.normal(size=(N, 4)) * 3
-        roots[:, 1] = roots[:, 0] + rng.normal(size=N) * sep
-        A = np.array([np.poly(t) for t in roots]) * rng.normal(size=(N, 1))
-        n_idx, v = pose.quartic_real_roots(A)
-        mine = _roots_by_row(n_idx, v, N)
-        r, real = pose._eigvals_real_roots(A)
-        e_mine, e_eig = [], []
-        for i in range(N):
-            t = np.sort(roots[i])
-            if len(mine[i]) == 4:
-                e_mine.append(np.abs(mine[i] - t).max())
-            if real[i].all():
-                e_eig.append(np.abs(np.sort(r[i]) - t).max())
-        assert len(e_mine) >= len(e_eig) - 2 and len(e_mine) > 0.99 * N
-        assert np.percentile(e_mine, 99) <= np.percentile(e_eig, 99)
-        assert max(e_mine) <= max(e_eig) * 1.01
-
-
 def test_p3p_batch_finds_opencvs_solutions():
     rng = np.random.default_rng(0)
     gt = Rigid3d(rotmat_from_rotvec([0.3, -0.5, 0.2]), [0.4, -0.2, 1.5])
@@ -143,13 +71,11 @@ def test_p3p_batch_finds_opencvs_solutions():
     S = rng.integers(0, 400, (2000, 3))
     S = S[(S[:, 0] != S[:, 1]) & (S[:, 0] != S[:, 2]) & (S[:, 1] != S[:, 2])]
     S[:5, 1] = S[:5, 0]  # degenerate: a point twice
-    S[5:10, 2] = S[5:10, 1]
-    S[10:15, 2] = S[10:15, 0]
     R, t, idx = p3p_batch(X[S], uv[S], K)
-    assert np.all(np.diff(idx) >= 0) and not np.isin(np.arange(15), idx).any()
+    assert np.all(np.diff(idx) >= 0) and not np.isin(np.arange(5), idx).any()
     found = total = 0
     cv_px = []  # OpenCV's reprojection errors of the samples' own points
-    for s in range(15, len(S)):
+    for s in range(5, len(S)):
         n, rv, tv = cv2.solveP3P(X[S[s]], uv[S[s]], K, None, flags=cv2.SOLVEPNP_P3P)
         mine = np.nonzero(idx == s)[0]
         for i in range(n):

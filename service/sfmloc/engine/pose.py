@@ -886,107 +886,9 @@ def p3p_opencv(objS: np.ndarray, imgS: np.ndarray, K: np.ndarray) -> tuple[np.nd
     return _rotations_from_rotvecs(r), T
 
 
-def _eigvals_real_roots(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The real roots of quartics ``A`` (N, 5) (highest degree first) as the eigenvalues of
-    their companion matrices: (N, 4) values and a mask of the real ones (imaginary part at
-    most 1e-6 of max(1, |real part|)); rows with non-finite normalized coefficients none."""
-    N = len(A)
-    with np.errstate(all="ignore"):
-        C = np.zeros((N, 4, 4))
-        C[:, 1, 0] = C[:, 2, 1] = C[:, 3, 2] = 1
-        C[:, :, 3] = -A[:, :0:-1] / A[:, :1]
-        ok = np.asarray(np.isfinite(C).all((1, 2)))
-        C[~ok] = 0
-        r = np.linalg.eigvals(C)
-    real = (np.abs(r.imag) <= 1e-6 * np.maximum(1, np.abs(r.real))) & ok[:, None]
-    return r.real, real
-
-
-def quartic_real_roots(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The real roots of N quartics ``A`` (N, 5) (highest degree first) in closed form
-    (Ferrari: the depressed quartic split into two quadratics by the largest root of its
-    resolvent cubic, that root polished by two Newton steps), the same roots as the
-    companion matrices' eigenvalues (``_eigvals_real_roots``: within 1e-8 of max(1, |root|)
-    before the caller's polishing, as close to the truth on nearly repeated roots) at half
-    the cost of ``p3p_batch`` (RANSAC's 1008 samples). A root pair whose imaginary part is
-    within eigvals' tolerance counts as a real double root, as there. Rows where the closed
-    form is ill-conditioned (leading coefficient under 1e-8 of the largest, resolvent root
-    near zero: a nearly biquadratic quartic, non-finite intermediate values) fall back to
-    the eigenvalues, and so do batches under 64 rows (the closed form's fixed cost of some
-    80 array operations: x1.45 the eigenvalues' time at 16 rows, even at 64, x0.85 at 128,
-    x0.54 at 1008; same-run timeit, load 2-3). Returns each root's row (ascending) and the
-    roots."""
-    if len(A) < 64:
-        r, real = _eigvals_real_roots(A)
-        n_idx, k_idx = np.nonzero(real)
-        return n_idx, r[n_idx, k_idx]
-    with np.errstate(all="ignore"):
-        ok = np.isfinite(A[:, 1:] / A[:, :1]).all(1) & (A[:, 0] != 0)
-        a, b, c, d = (A[:, 1:] / A[:, :1]).T
-        a4 = a / 4
-        # depressed quartic y^4 + p y^2 + q y + r, x = y - a / 4
-        p = b - 6 * a4**2
-        q = c - 2 * b * a4 + 8 * a4**3
-        r = d - c * a4 + b * a4**2 - 3 * a4**4
-        # resolvent cubic m^3 + p m^2 + e m - q^2 / 8 (e = p^2 / 4 - r): its largest root
-        e = p * p / 4 - r
-        P3 = p / 3
-        pp = e - p * P3
-        qq = 2 * P3**3 - P3 * e - q * q / 8
-        disc = (qq / 2) ** 2 + (pp / 3) ** 3
-        sq = np.sqrt(np.maximum(disc, 0))
-        u = np.cbrt(-qq / 2 - np.where(qq >= 0, sq, -sq))  # the larger cube root, no cancel
-        one = u - np.where(u != 0, pp / (3 * np.where(u != 0, u, 1)), 0)
-        rad = np.sqrt(np.maximum(-pp / 3, 0))
-        cosarg = np.clip(-qq / 2 / np.where(rad != 0, rad**3, 1), -1, 1)
-        three = 2 * rad * np.cos(np.arccos(cosarg) / 3)
-        m = np.where(disc > 0, one, three) - P3
-        for _ in range(2):
-            f = ((m + p) * m + e) * m - q * q / 8
-            df = (3 * m + 2 * p) * m + e
-            m = m - np.where(df != 0, f / np.where(df != 0, df, 1), 0)
-        scale = np.abs(p) + np.sqrt(np.abs(r))
-        s = np.sqrt(2 * m)
-        h = q / (2 * s)
-        # y^2 -+ s y + (p / 2 + m +- h) = 0
-        B = np.stack([-s, s], 1)
-        Cq = np.stack([p / 2 + m + h, p / 2 + m - h], 1)
-        dq = B * B - 4 * Cq
-        t = -(B + np.where(B >= 0, 1, -1) * np.sqrt(np.maximum(dq, 0))) / 2
-        y1 = t
-        y2 = np.where(t != 0, Cq / np.where(t != 0, t, 1), t)
-        re = -B / 2 - a4[:, None]
-        pair = (dq < 0) & (np.sqrt(np.maximum(-dq, 0)) / 2 <= 1e-6 * np.maximum(1, np.abs(re)))
-        roots = np.concatenate(
-            [np.where(pair, re, y1 - a4[:, None]), np.where(pair, re, y2 - a4[:, None])], 1
-        )[:, [0, 2, 1, 3]]
-        real = np.repeat((dq >= 0) | pair, 2, axis=1)
-        # every root, complex pairs too, checked on the original quartic: a Newton step
-        # above 1e-8 of max(1, |x|) (cancellation in the shift when the roots' magnitudes
-        # differ by orders, a nearly repeated root) sends the row to the eigenvalues
-        im = np.repeat(np.sqrt(np.maximum(-dq, 0)) / 2, 2, axis=1) * [1, -1, 1, -1]
-        z = np.where(np.repeat(dq < 0, 2, axis=1), np.repeat(re, 2, axis=1) + 1j * im, roots)
-        f = (((z + a[:, None]) * z + b[:, None]) * z + c[:, None]) * z + d[:, None]
-        df = ((4 * z + 3 * a[:, None]) * z + 2 * b[:, None]) * z + c[:, None]
-        step_ok = np.abs(f) <= 1e-8 * np.maximum(1, np.abs(z)) * np.abs(df)
-        closed = (
-            ok
-            & (np.abs(A[:, 0]) >= 1e-8 * np.abs(A).max(1))
-            & (m > 1e-7 * scale)
-            & np.isfinite(roots).all(1)
-            & step_ok.all(1)
-        )
-    back = np.nonzero(~closed & ok)[0]
-    real &= closed[:, None]
-    if len(back):
-        roots[back], real[back] = _eigvals_real_roots(A[back])
-    n_idx, k_idx = np.nonzero(real)
-    return n_idx, roots[n_idx, k_idx]
-
-
 def p3p_batch(X: np.ndarray, x: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, ...]:
     """Every P3P solution of N samples at once (Grunert's quartic as in Haralick et al. 1994,
-    its real roots from ``quartic_real_roots``, polished by two Newton steps; the pose
+    its roots from the companion matrices' eigenvalues, polished by two Newton steps; the pose
     from the two triangles' orthonormal frames). ``X`` (N, 3, 3) world points, ``x`` (N, 3, 2)
     pixels. Returns rotations (M, 3, 3), translations (M, 3) and each solution's sample index
     (M,), ascending. Degenerate samples (coincident points) give no solution."""
@@ -1013,12 +915,22 @@ def p3p_batch(X: np.ndarray, x: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, 
         )
         A1 = 4 * (-q * (1 + q) * cb + 2 * a2 / b2 * cg**2 * cb - (1 - p) * ca * cg)
         A0 = (1 + q) ** 2 - 4 * a2 / b2 * cg**2
-        A = np.stack([A4, A3, A2, A1, A0], 1)
-        # a point named twice: no quartic (the eigenvalues' roots of such a sample happened
-        # to be dropped further on, the closed form's are not)
-        A[(a2 == 0) | (b2 == 0) | (c2 == 0)] = np.nan
-        n_idx, v = quartic_real_roots(A)  # v = s3 / s1
-        A = A[n_idx]
+        C = np.zeros((N, 4, 4))
+        C[:, 1, 0] = C[:, 2, 1] = C[:, 3, 2] = 1
+        C[:, 0, 3], C[:, 1, 3], C[:, 2, 3], C[:, 3, 3] = -A0 / A4, -A1 / A4, -A2 / A4, -A3 / A4
+        ok = np.asarray(np.isfinite(C).all((1, 2)))
+        C[~ok] = 0
+        # The quartic's roots v = s3 / s1 by companion eigenvalues. A closed-form (Ferrari)
+        # solver with eigvals as fallback was measured and reverted (1c71011, issue 10):
+        # x0.51 at 1008 samples, x0.80 on 171 recorded real calls (median 64 samples; under
+        # 64 rows its ~80 array operations are slower), but relocalization CPU per call
+        # mean x0.993, p95 x0.996 on the bench's 500 frames (this runs 0.34 times a frame,
+        # in the second-place test): ~0.13 ms of ~29, not worth 100 lines of numerics.
+        r = np.linalg.eigvals(C)
+        real = (np.abs(r.imag) <= 1e-6 * np.maximum(1, np.abs(r.real))) & ok[:, None]
+        n_idx, k_idx = np.nonzero(real)
+        v = r.real[n_idx, k_idx]
+        A = np.stack([A4, A3, A2, A1, A0], 1)[n_idx]
         for _ in range(2):
             f = (((A[:, 0] * v + A[:, 1]) * v + A[:, 2]) * v + A[:, 3]) * v + A[:, 4]
             df = ((4 * A[:, 0] * v + 3 * A[:, 1]) * v + 2 * A[:, 2]) * v + A[:, 3]
