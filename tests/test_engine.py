@@ -336,14 +336,21 @@ def test_global_matching_finds_the_right_place_and_correct_matches(world, bundle
     assert good == 4
 
 
-def test_guided_matching_with_the_pose_gives_correct_matches(world, bundle, cam):
-    conf = EngineConf()
+def _guided_inputs(world, bundle, cam, conf):
+    """Frame 30 of the synthetic world as guided matching sees it: (gray, true pose, its
+    corners, their descriptors, every map point's projection, the points in view)."""
     ex = DaisyExtractor()
     gray, gt = world.gray[30], world.gt_cam_from_world[30]
     c = detect_corners(gray, rel_threshold=conf.gamma, max_corners=150, border=16)
     desc = describe(ex, bundle, ex.prepare(gray), c.xy)
     uv, z = cam.project(gt, bundle.points_xyz)
     seen = np.nonzero((z > 0) & cam.in_image(uv))[0]
+    return gray, gt, c, desc, uv, seen
+
+
+def test_guided_matching_with_the_pose_gives_correct_matches(world, bundle, cam):
+    conf = EngineConf()
+    gray, gt, c, desc, uv, seen = _guided_inputs(world, bundle, cam, conf)
     gm = guided_matching(desc, c.xy, bundle, seen, gt, cam.K, conf)
     found = gm.point >= 0
     # the most it could find: keypoints within tau of a visible map point's projection
@@ -367,12 +374,7 @@ def test_guided_matching_on_few_matches_keeps_more_hypotheses_still_verified(
     applies the loose ratio only below ``few_matches_below`` matches."""
     conf = EngineConf()
     assert 0 < conf.few_matches_ratio < conf.ratio and conf.few_matches_below > conf.kappa2
-    ex = DaisyExtractor()
-    gray, gt = world.gray[30], world.gt_cam_from_world[30]
-    c = detect_corners(gray, rel_threshold=conf.gamma, max_corners=150, border=16)
-    desc = describe(ex, bundle, ex.prepare(gray), c.xy)
-    uv, z = cam.project(gt, bundle.points_xyz)
-    seen = np.nonzero((z > 0) & cam.in_image(uv))[0]
+    gray, gt, c, desc, uv, seen = _guided_inputs(world, bundle, cam, conf)
     strict = guided_matching(desc, c.xy, bundle, seen, gt, cam.K, conf)
     loose = guided_matching(desc, c.xy, bundle, seen, gt, cam.K, conf, ratio=conf.few_matches_ratio)
     for hs, hl in zip(strict.hyp, loose.hyp):
