@@ -32,7 +32,7 @@ from sfmloc.features.daisy import DaisyExtractor
 from sfmloc.features.harris import detect_corners
 from sfmloc.map.bundle import MapBundle
 from sfmloc.synth.config import SceneConf as SynthSceneConf
-from sfmloc.testing import scene_points
+from sfmloc.testing import one_to_many_matches, scene_points
 from sfmloc.transforms import Rigid3d, pose_errors, rotmat_from_rotvec
 
 K = np.array([[525.0, 0, 320.0], [0, 525.0, 240.0], [0, 0, 1]])
@@ -151,11 +151,7 @@ def test_one_to_many_ransac_uses_ambiguous_hypotheses():
     # set 1: 60 keypoints with their best point (25% wrong); set 2: every keypoint with its
     # true point among 3 hypotheses (the others: other keypoints' points)
     n1 = 60
-    p1 = np.arange(n1)
-    wrong = rng.random(n1) < 0.25
-    p1[wrong] = rng.integers(0, 150, wrong.sum())
-    q2 = np.repeat(np.arange(150), 3)
-    p2 = np.stack([np.arange(150), rng.integers(0, 150, 150), rng.integers(0, 150, 150)], 1).ravel()
+    p1, q2, p2 = one_to_many_matches(rng, 150, n1, 0.25)
     res = estimate_pose_one_to_many(uv[:n1], X[p1], q2, uv[q2], X[p2], K)
     assert res is not None
     est, chosen = res

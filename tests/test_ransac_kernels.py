@@ -12,7 +12,7 @@ import numpy as np
 
 from sfmloc.engine import pose
 from sfmloc.engine.pose import RansacParams, estimate_pose_one_to_many, p3p_batch
-from sfmloc.testing import scene_points
+from sfmloc.testing import one_to_many_matches, scene_points
 from sfmloc.transforms import Rigid3d, rotmat_from_rotvec
 
 K = np.array([[525.505, 0, 320.0], [0, 525.505, 240.0], [0, 0, 1]])
@@ -147,12 +147,7 @@ def test_presolved_ransac_equals_opencvs():
     X, uv = _scene(rng, 300, gt)
     uv = uv + rng.normal(0, 0.5, uv.shape)
     n1 = 120
-    p1 = np.arange(n1)
-    wrong = rng.random(n1) < 0.6
-    p1[wrong] = rng.integers(0, 300, wrong.sum())
-    q2 = np.repeat(np.arange(300), 3)
-    p2 = np.stack([np.arange(300), rng.integers(0, 300, 300), rng.integers(0, 300, 300)], 1)
-    p2 = p2.ravel()
+    p1, q2, p2 = one_to_many_matches(rng, 300, n1, 0.6)
     p1_none = rng.integers(0, 300, n1)  # set 1 all wrong
     for s1, max_iterations, posed in ((p1, 1000, True), (p1_none, 300, False)):
         params = RansacParams(min_inliers=30, max_iterations=max_iterations)

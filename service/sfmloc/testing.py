@@ -294,3 +294,19 @@ def scene_points(
     z = rng.uniform(depth[0], depth[1], n)
     xc = np.hstack([(uv - K[:2, 2]) / K[[0, 1], [0, 1]] * z[:, None], z[:, None]])
     return cam_from_world.inverse().apply(xc), uv
+
+
+def one_to_many_matches(
+    rng: np.random.Generator, n: int, n1: int, wrong_share: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Matches of ``n`` keypoints to the ``n`` points of a scene (keypoint i's point is i) as
+    global matching hands them to the one-to-many RANSAC: set 1, the first ``n1`` keypoints'
+    best points with about ``wrong_share`` of them another random point (``p1``, (n1,)); set
+    2, every keypoint with three hypotheses, its true point and two random ones (keypoints
+    ``q2`` and points ``p2``, (3n,) each)."""
+    p1 = np.arange(n1)
+    wrong = rng.random(n1) < wrong_share
+    p1[wrong] = rng.integers(0, n, wrong.sum())
+    q2 = np.repeat(np.arange(n), 3)
+    p2 = np.stack([np.arange(n), rng.integers(0, n, n), rng.integers(0, n, n)], 1).ravel()
+    return p1, q2, p2
