@@ -75,6 +75,9 @@ class DaisyExtractor:
         gx, gy = np.meshgrid(c, c)
         self._grid_xy = np.stack([gx.ravel(), gy.ravel()], axis=1).astype(np.float32)  # (g*g, 2)
         self._pool = _pooling_matrix(p).astype(np.float32)  # (13, grid*grid)
+        # The central differences' 1/2 moved into the pooling weights: halving is exact in
+        # float32, so (w / 2) @ rect(2 g) adds the very products w @ rect(g) adds.
+        self._half_pool = self._pool * np.float32(0.5)
         # Orientation window.
         go = p.ori_grid + 2
         co = (np.arange(go) - (go - 1) / 2.0) * p.ori_spacing
@@ -104,22 +107,27 @@ class DaisyExtractor:
             return np.zeros(0, np.float32)
         p = self.params
         go = p.ori_grid + 2
-        patches = self._sample(prepared, xy, np.zeros(n, np.float32), self._ori_xy, go)
+        patches = self._sample(prepared, xy, None, self._ori_xy, go)
         dx = 0.5 * (patches[:, 1:-1, 2:] - patches[:, 1:-1, :-2])
         dy = 0.5 * (patches[:, 2:, 1:-1] - patches[:, :-2, 1:-1])
         mag = np.sqrt(dx * dx + dy * dy).reshape(n, -1) * self._ori_weight
         ang = np.arctan2(dy, dx).reshape(n, -1)
         nb = p.ori_bins
-        b = np.floor((ang + np.pi) / (2 * np.pi) * nb).astype(np.int64) % nb
-        hist = np.bincount(
-            (b + nb * np.arange(n)[:, None]).ravel(), weights=mag.ravel(), minlength=n * nb
-        )
+        # The bin in [0, nb] (arctan2 lies in [-pi, pi]); nb wraps to 0, as ``% nb`` did, on
+        # the float (an int64 modulo per sample cost more than the rest of the binning).
+        f = np.floor((ang + np.pi) / (2 * np.pi) * nb)
+        f[f >= nb] -= nb
+        key = f.astype(np.int64)
+        key += nb * np.arange(n)[:, None]
+        hist = np.bincount(key.ravel(), weights=mag.ravel(), minlength=n * nb)
         hist = hist.reshape(n, nb)
-        # Circular smoothing [1 4 6 4 1] / 16.
+        # Circular smoothing [1 4 6 4 1] / 16, the neighbours as slices of the histogram
+        # padded by two bins on each side (np.roll's values without its four copies).
+        hp = np.concatenate([hist[:, -2:], hist, hist[:, :2]], axis=1)
         hist = (
             6 * hist
-            + 4 * (np.roll(hist, 1, axis=1) + np.roll(hist, -1, axis=1))
-            + (np.roll(hist, 2, axis=1) + np.roll(hist, -2, axis=1))
+            + 4 * (hp[:, 1 : nb + 1] + hp[:, 3 : nb + 3])
+            + (hp[:, 0:nb] + hp[:, 4 : nb + 4])
         ) / 16.0
         k = np.argmax(hist, axis=1)
         rows = np.arange(n)
@@ -137,19 +145,25 @@ class DaisyExtractor:
         p = self.params
         g = p.grid + 2
         patches = self._sample(prepared, xy, theta, self._grid_xy, g)
-        gx = 0.5 * (patches[:, 1:-1, 2:] - patches[:, 1:-1, :-2])
-        gy = 0.5 * (patches[:, 2:, 1:-1] - patches[:, :-2, 1:-1])
+        # Twice the gradients (the 1/2 is in ``_half_pool``; every value below is exactly
+        # twice the one of 0.5 * (...), so the pooled sums are the same bit for bit).
+        gx = patches[:, 1:-1, 2:] - patches[:, 1:-1, :-2]
+        gy = patches[:, 2:, 1:-1] - patches[:, :-2, 1:-1]
         s = np.float32(np.sqrt(0.5))
-        d1 = (gx + gy) * s
-        d2 = (gy - gx) * s
+        d1 = gx + gy
+        d1 *= s
+        d2 = gy - gx
+        d2 *= s
         m = p.grid * p.grid
         feats = np.empty((8, n, m), np.float32)
         for i, comp in enumerate((gx, gy, d1, d2)):
             comp = comp.reshape(n, m)
             np.maximum(comp, 0, out=feats[2 * i])
-            np.maximum(-comp, 0, out=feats[2 * i + 1])
-        # Pool: (13, m) @ (m, 8n) -> (13, 8, n) -> (n, 13, 8)
-        pooled = self._pool @ feats.transpose(2, 0, 1).reshape(m, 8 * n)
+            # max(-c, 0) as max(c, 0) - c: exact (c - c = 0 where c > 0, 0 - c elsewhere)
+            np.subtract(feats[2 * i], comp, out=feats[2 * i + 1])
+        # Pool: (13, m) @ (m, 8n) -> (13, 8, n) -> (n, 13, 8). The (m, 8n) operand is the
+        # transposed view of feats (no copy), as BLAS has always been given it.
+        pooled = self._half_pool @ feats.transpose(2, 0, 1).reshape(m, 8 * n)
         desc = pooled.reshape(13, 8, n).transpose(2, 0, 1).reshape(n, RAW_DIM)
         return _normalize_clip(desc, p.clip)
 
@@ -161,18 +175,40 @@ class DaisyExtractor:
 
     # ------------------------------------------------------------------ internals
     def _sample(
-        self, img: np.ndarray, xy: np.ndarray, theta: np.ndarray, offsets: np.ndarray, side: int
+        self,
+        img: np.ndarray,
+        xy: np.ndarray,
+        theta: np.ndarray | None,
+        offsets: np.ndarray,
+        side: int,
     ) -> np.ndarray:
-        """Bilinear samples (N, side, side) of ``img`` on ``offsets`` rotated by ``theta`` around
-        each keypoint, in as few remaps as OpenCV's map-size limit allows."""
+        """Bilinear samples (N, side, side) of ``img`` on ``offsets`` rotated by ``theta``
+        (None: not rotated) around each keypoint, in as few remaps as OpenCV's map-size limit
+        allows.
+
+        The sample positions are the float32 numbers ``kx + c * ox - s * oy`` and
+        ``ky + s * ox + c * oy``, computed in place (two temporaries fewer); unrotated
+        (c = 1, s = 0) they are exactly ``kx + ox`` and ``ky + oy`` (issue 10)."""
         n = len(xy)
-        c, s = np.cos(theta).astype(np.float32), np.sin(theta).astype(np.float32)
         ox, oy = offsets[:, 0], offsets[:, 1]
         # Keypoint in array-index coordinates.
         kx = (xy[:, 0] - PIXEL_CENTER_OFFSET).astype(np.float32)[:, None]
         ky = (xy[:, 1] - PIXEL_CENTER_OFFSET).astype(np.float32)[:, None]
-        mx = (kx + c[:, None] * ox - s[:, None] * oy).reshape(n * side, side)
-        my = (ky + s[:, None] * ox + c[:, None] * oy).reshape(n * side, side)
+        if theta is None:
+            mx = kx + ox
+            my = ky + oy
+        else:
+            c = np.cos(theta).astype(np.float32)[:, None]
+            s = np.sin(theta).astype(np.float32)[:, None]
+            tmp = np.empty((n, len(offsets)), np.float32)
+            mx = np.multiply(c, ox)
+            mx += kx
+            mx -= np.multiply(s, oy, out=tmp)
+            my = np.multiply(s, ox)
+            my += ky
+            my += np.multiply(c, oy, out=tmp)
+        mx = mx.reshape(n * side, side)
+        my = my.reshape(n * side, side)
         h, w = img.shape[:2]
         if h <= REMAP_MAX and w <= REMAP_MAX:
             return _remap_patches(img, mx, my, side).reshape(n, side, side)
