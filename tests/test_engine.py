@@ -143,6 +143,36 @@ def test_a_prior_that_is_this_frames_estimate_is_refined_without_ransac(monkeypa
     assert estimate_pose(uv, X, K, params, prior=None, prior_is_estimate=True) is None
 
 
+def test_an_estimate_without_its_final_refinement_is_the_one_the_refinement_starts_from():
+    """``final=False`` (the tracker's first estimate on a frame with many matches) returns the
+    least-squares estimate that ``final_refinement`` turns into the full one: the same pose and
+    inliers, from the prior and from RANSAC; its own inliers are the matches within 3 px of it."""
+    from sfmloc.engine.pose import RansacParams, final_refinement
+
+    params = RansacParams(loss_scale=1.0)
+    rng = np.random.default_rng(11)
+    gt = Rigid3d(rotmat_from_rotvec([0.1, -0.15, 0.05]), [0.1, -0.2, 0.9])
+    X, uv = scene_points(rng, 100, gt, K)
+    uv = uv + rng.normal(0, 0.3, uv.shape)
+    near = rng.random(100) < 0.2  # wrong corners next to the right ones, inside 3 px
+    uv[near] += rng.uniform(1.5, 2.5, (near.sum(), 2)) * rng.choice([-1, 1], (near.sum(), 2))
+    uv[:8] = rng.uniform([0, 0], [640, 480], (8, 2))
+    prior = Rigid3d(rotmat_from_rotvec([0.102, -0.149, 0.05]), [0.103, -0.198, 0.902])
+    for kw in ({"prior": prior, "prior_threshold": 20.0}, {}):
+        full = estimate_pose(uv, X, K, params, **kw)
+        first = estimate_pose(uv, X, K, params, final=False, **kw)
+        assert full is not None and first is not None
+        err = reprojection_errors(first.cam_from_world, K, uv, X)
+        assert np.array_equal(first.inlier_mask, err < params.refine_threshold)
+        # not refined: the robust refinement moves it (the near corners pull least squares)
+        assert not np.allclose(first.cam_from_world.translation, full.cam_from_world.translation)
+        again = final_refinement(first, K, uv, X, params)
+        assert again is not None
+        assert np.array_equal(again.cam_from_world.rotation, full.cam_from_world.rotation)
+        assert np.array_equal(again.cam_from_world.translation, full.cam_from_world.translation)
+        assert np.array_equal(again.inlier_mask, full.inlier_mask)
+
+
 def test_one_to_many_ransac_uses_ambiguous_hypotheses():
     rng = np.random.default_rng(1)
     gt = Rigid3d(rotmat_from_rotvec([-0.2, 0.4, 0.0]), [1.0, 0.5, 2.0])
@@ -565,6 +595,49 @@ def test_pose_covariance_jacobian_and_calibration_with_known_pixel_noise():
     assert 5.4 < np.mean(values) < 6.6, np.mean(values)
     # too few points to constrain a pose: infinite, never a made-up certainty
     assert np.all(np.isinf(pose_covariance(gt, K, uv[:3], X[:3])))
+
+
+def test_the_first_estimate_of_a_frame_with_many_matches_is_refined_once(
+    world, bundle, cam, monkeypatch
+):
+    """A frame holding ``first_unrefined_from`` matches or more skips its first estimate's
+    robust final refinement (the second estimate refines it): one refinement a tracked frame
+    fewer, the same frames posed, as accurate, no wrong pose (0: every first estimate refined)."""
+    import sfmloc.engine.pose as pose_mod
+
+    real = pose_mod.final_refinement
+    calls = [0]
+
+    def counted(*a, **k):
+        calls[0] += 1
+        return real(*a, **k)
+
+    monkeypatch.setattr(pose_mod, "final_refinement", counted)
+    stamps = [i / 30 for i in range(len(world.gray))]
+    runs = {}
+    for name, conf in (("always", EngineConf(first_unrefined_from=0)), ("many", EngineConf())):
+        calls[0] = 0
+        res = run_sequence(Localizer(bundle, cam, conf), world.gray, stamps)
+        runs[name] = (res, calls[0])
+    (always, n_always), (many, n_many) = runs["always"], runs["many"]
+    tracked = sum(r.status is Status.TRACKING for r in many)
+    assert tracked > 0.8 * len(many)
+    assert n_many <= n_always - 0.8 * tracked, (n_many, n_always, tracked)
+    assert [r.status is Status.LOST for r in many] == [r.status is Status.LOST for r in always]
+
+    def errors(res):
+        return np.array(
+            [
+                pose_errors(r.cam_from_world, g)
+                for r, g in zip(res, world.gt_cam_from_world)
+                if r.cam_from_world is not None
+            ]
+        )
+
+    e_many, e_always = errors(many), errors(always)
+    assert np.median(e_many[:, 0]) < 1.2 * np.median(e_always[:, 0]) + 1e-3
+    assert np.median(e_many[:, 1]) < 1.2 * np.median(e_always[:, 1]) + 0.02
+    assert e_many[:, 0].max() < 0.5 and e_many[:, 1].max() < 10
 
 
 def test_reported_covariance_is_calibrated_on_a_synthetic_video(world, bundle, cam):

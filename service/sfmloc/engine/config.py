@@ -371,6 +371,20 @@ class EngineConf(StrictModel):
     # refine_threshold_px 2 instead: similar accuracy but tracks lost to the tighter threshold
     # (3x the global-matching frames, CPU x1.18).
     refine_loss_scale_px: float = 1.0
+    # The tracker's first estimate of a frame holding at least first_unrefined_from tracked 3D
+    # matches stops before its robust final refinement (0: never): the second estimate, which
+    # refines it robustly on the matches the re-verification and guided matching add, is that
+    # refinement (issue 10: one Cauchy refinement a frame fewer). `python -m sfmloc.bench.ab`
+    # against main 0617ea5, 1000 frames interleaved, nice 19, load 6-10: redkitchen pose stage
+    # CPU 2.52 -> 2.34 ms/frame (x0.93; x 4 runs; x0.94 in another x 2), engine mean 9.62 ->
+    # 9.60 ms (inside the load's noise), 1000/1000, 99.8% within 5 cm / 5 deg, 0 wrong, median
+    # 0.279 -> 0.282 cm; map every 60th: pose 2.44 -> 2.25 ms, 997/997 posed, 98.9% both; every
+    # 30th: 2.89 -> 2.68 ms, 999/999, 99.9%; density-6x 237/237, walk 300/300 (README).
+    # On every frame (0 matches up): every 60th 997 -> 992 posed (frames 393-396 and 465-466
+    # lost), every 30th 999 -> 998; a hair's change of refine_loss_scale_px moved neither.
+    # With few matches a near-outlier pulls the least-squares pose that then decides which
+    # matches the frame keeps and verifies: those frames keep the refinement.
+    first_unrefined_from: int = 40
     # A verified tracked pose is refined once more (projected_iterations Cauchy Gauss-Newton
     # steps) on its inliers and the map points projecting within projected_radius_px of one of
     # the frame's unmatched keypoints, with no other keypoint within projected_clear_px (the

@@ -39,7 +39,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -54,7 +54,7 @@ from .frame import to_gray, to_working
 from .matching import guided_matching, search_all, verify_hypotheses
 from .motion_filter import make_pose_filter
 from .point_uncertainty import PointUncertainty
-from .pose import PoseEstimate, RansacParams, estimate_pose
+from .pose import PoseEstimate, RansacParams, estimate_pose, final_refinement
 from .projected import ScopePoints, projected_matches, refine_with_projections, unmatched_only
 from .relocalize import (
     describe,
@@ -321,16 +321,24 @@ class Localizer:
         c1 = _match_ids(table)
         matching = Matching.NONE
         est: PoseEstimate | None = None
+        unrefined = False  # est is the first estimate, before its robust final refinement
         relocalized = False
         ambiguous = ""  # why the frame's tracked poses were not trusted
         weak = False  # the tracked pose explains too few of its tracked matches
         if len(c1) > c.kappa2:
-            table, est = self._estimate_pose(table, pred.cam_from_world, pred.dt)
+            # Without the robust final refinement where the frame holds many matches: the
+            # second estimate below is that refinement, on the matches this pose then
+            # verifies as well (``first_unrefined_from``).
+            final = c.first_unrefined_from <= 0 or len(c1) < c.first_unrefined_from
+            table, est = self._estimate_pose(table, pred.cam_from_world, pred.dt, final=final)
             timer.lap("pose")
             if self._doubtful(pred, est):
-                table, est, eta, ambiguous = self._second_start(prev, kps, table, est, eta, pred.dt)
+                table, est, eta, ambiguous = self._second_start(
+                    prev, kps, table, est, eta, pred.dt, final
+                )
                 c1 = _match_ids(table)
                 timer.lap("pose")
+            unrefined = est is not None and not final and c.refine_loss_scale_px > 0
             weak = est is not None and est.num_inliers < c.track_consensus * len(c1)
             if est is not None:
                 table = self._reverify(table, est.cam_from_world)
@@ -365,13 +373,18 @@ class Localizer:
             lost_why = lost_why or why
             timer.lap("reloc")
         c2 = _match_ids(table)
-        if len(c2) > c.kappa2 and not np.array_equal(c2, c1) and not relocalized:
+        if (len(c2) > c.kappa2 and not np.array_equal(c2, c1) and not relocalized) or unrefined:
             # The new matches were verified against this frame's pose: it is the better prior.
+            # The first estimate stopped before its robust final refinement: this is it, on
+            # C2 (issue 10: one Cauchy refinement per frame fewer; on redkitchen C2 differs
+            # from C1 on 995 of 999 tracked frames, so the second estimate ran anyway).
             own = est is not None
             prior = est.cam_from_world if est is not None else pred.cam_from_world
             table, est2 = self._estimate_pose(table, prior, pred.dt, prior_is_estimate=own)
             if est2 is not None:
                 est = est2
+            elif unrefined and est is not None:
+                est = self._refined(est)
             timer.lap("pose")
 
         # A pose is a promise: judge it by its covariance before anyone relies on it.
@@ -537,11 +550,17 @@ class Localizer:
         return table
 
     def _estimate_pose(
-        self, table: TrackTable, prior: Rigid3d | None, dt: float, prior_is_estimate: bool = False
+        self,
+        table: TrackTable,
+        prior: Rigid3d | None,
+        dt: float,
+        prior_is_estimate: bool = False,
+        final: bool = True,
     ) -> tuple[TrackTable, PoseEstimate | None]:
         """ESTIMATE-POSE from the table's verified matches (None with at most kappa2 of
         them). Outliers to the pose lose their match; with no (plausible) pose, all do.
-        ``prior_is_estimate``: the prior is this frame's own pose (see ``estimate_pose``)."""
+        ``prior_is_estimate``: the prior is this frame's own pose; ``final`` False: without
+        the robust final refinement (see ``estimate_pose``)."""
         rows, pts = table.matches()
         if len(rows) <= self.conf.kappa2:
             return table, None
@@ -554,6 +573,7 @@ class Localizer:
             prior=prior,
             prior_threshold=c.prior_threshold_px,
             prior_is_estimate=prior_is_estimate,
+            final=final,
         )
         pose = None if est is None else est.cam_from_world
         if pose is not None and prior is not None and not self._plausible(pose, prior, dt):
@@ -570,6 +590,18 @@ class Localizer:
         _unmatch(table, rows[~est.inlier_mask])
         est.inlier_points = pts[est.inlier_mask]
         return table, est
+
+    def _refined(self, est: PoseEstimate) -> PoseEstimate:
+        """The robust final refinement of an estimate made without it, on its own inliers
+        (when the second estimate that would have been it found no pose)."""
+        assert est.inlier_xy is not None and est.inlier_X is not None
+        own = replace(est, inlier_mask=np.ones(est.num_inliers, bool))
+        out = final_refinement(own, self.K, est.inlier_xy, est.inlier_X, self._ransac())
+        if out is None or out is own:
+            return est
+        if est.inlier_points is not None:
+            out.inlier_points = est.inlier_points[out.inlier_mask]
+        return out
 
     def _doubtful(self, pred: Prediction, est: PoseEstimate | None) -> bool:
         """Whether the frame's tracked pose may rest on a wrong motion prediction: the
@@ -590,6 +622,7 @@ class Localizer:
         est: PoseEstimate | None,
         eta: int,
         dt: float,
+        final: bool = True,
     ) -> tuple[TrackTable, PoseEstimate | None, int, str]:
         """TRACK-2D and ESTIMATE-POSE once more, started from the last posed frame's pose
         instead of the prediction (no motion). A prediction that overshoots puts the tracking
@@ -598,6 +631,7 @@ class Localizer:
         has more inliers wins (the prediction's on a tie). Two poses farther apart than a
         wrong pose (``contradiction_position``, ``contradiction_deg``) on similar support
         (``second_start_tie``) are no pose: the frame cannot tell which is right.
+        ``final``: as the first estimate (with its robust final refinement or without).
         Returns the table, pose and tracked count chosen, and why there is no pose."""
         assert self.last_pose is not None
         c = self.conf
@@ -607,7 +641,7 @@ class Localizer:
             table_b = self._add_good_features(table_b, kps, used)
         if table_b.n_3d() <= c.kappa2:
             return table, est, eta, ""
-        table_b, est_b = self._estimate_pose(table_b, self.last_pose, dt)
+        table_b, est_b = self._estimate_pose(table_b, self.last_pose, dt, final=final)
         if est_b is None:
             return table, est, eta, ""
         if est is None:

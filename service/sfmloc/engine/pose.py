@@ -547,6 +547,7 @@ def estimate_pose(
     prior_accept: float = 0.8,
     prior_threshold: float | None = None,
     prior_is_estimate: bool = False,
+    final: bool = True,
 ) -> PoseEstimate | None:
     """Pose from one-to-one matches (undistorted pixels ``xy`` (N,2), world points ``X`` (N,3)).
 
@@ -562,6 +563,11 @@ def estimate_pose(
     against it (the tracker's second estimate, after guided matching): it is refined alone,
     without RANSAC (None under ``min_inliers``), which could only propose a pose its own
     matches contradict.
+
+    ``final`` False: the estimate before the robust final refinement (``final_refinement``),
+    for a caller that refines it robustly itself afterwards (the tracker's first estimate:
+    its second one, on the matches guided matching and the re-verification added, starts
+    from it).
     """
     threshold, refine_threshold, min_inliers = (
         params.threshold,
@@ -605,7 +611,7 @@ def estimate_pose(
         from_prior = _finish(pose, mask, K, xy, X, min_inliers, err)
         accepted = from_prior is not None and from_prior.num_inliers >= prior_accept * n
         if accepted or prior_is_estimate:
-            return final_refinement(from_prior, K, xy, X, params)
+            return final_refinement(from_prior, K, xy, X, params) if final else from_prior
     ok, rvec, tvec, inl = cv2.solvePnPRansac(
         X.astype(np.float64),
         xy.astype(np.float64),
@@ -624,7 +630,7 @@ def estimate_pose(
         best = ransac if ransac is not None else from_prior
     else:
         best = from_prior if from_prior.num_inliers >= prior_tie * ransac.num_inliers else ransac
-    return final_refinement(best, K, xy, X, params)
+    return final_refinement(best, K, xy, X, params) if final else best
 
 
 def _refine_own_estimate(
