@@ -435,6 +435,60 @@ def test_guided_matching_on_few_matches_keeps_more_hypotheses_still_verified(
     assert used == [conf.few_matches_ratio, None]
 
 
+def test_guided_search_scans_scope_nprobe_lists_only_on_frames_holding_enough_matches(
+    world, bundle, cam
+):
+    """``scope_nprobe``: the localizer's guided (scoped) k-ANN search scans that many inverted
+    lists on a frame holding at least ``few_matches_below`` 3D matches, ``nprobe`` below it
+    (where a thin map needs every candidate), and only on maps whose median point is seen by
+    at least ``scope_nprobe_min_track`` images; the real search runs (its nprobe recorded),
+    and what the fewer lists find still verifies within ``guided_threshold_px``."""
+    import sfmloc.engine.localizer as localizer_mod
+    from sfmloc.engine.scope import median_track_length
+
+    track = median_track_length(bundle)
+    conf = EngineConf(scope_nprobe_min_track=track)
+    assert 0 < conf.scope_nprobe < conf.nprobe and track >= 2
+    gray, gt, c, desc, uv, seen = _guided_inputs(world, bundle, cam, conf)
+    fewer = guided_matching(desc, c.xy, bundle, seen, gt, cam.K, conf, nprobe=conf.scope_nprobe)
+    found = fewer.point >= 0
+    assert found.sum() > 0
+    e = reprojection_errors(gt, cam.K, c.xy[found], bundle.points_xyz[fewer.point[found]])
+    assert np.all(e < conf.guided_threshold_px)
+
+    loc = Localizer(bundle, cam, conf)
+    assert loc.scope_nprobe == conf.scope_nprobe
+    thinner = Localizer(bundle, cam, EngineConf(scope_nprobe_min_track=track + 0.5))
+    off = Localizer(bundle, cam, EngineConf(scope_nprobe_min_track=track, scope_nprobe=0))
+    assert thinner.scope_nprobe is None and off.scope_nprobe is None
+    image = localizer_mod._FrameImage(gray, loc.extractor)
+    seen_nprobe: list[int | None] = []
+    search = bundle.index.search
+
+    def spy(*a, **kw):
+        seen_nprobe.append(kw.get("nprobe"))
+        return search(*a, **kw)
+
+    n = len(c.xy)
+
+    def table(matched: int) -> TrackTable:
+        t = TrackTable.empty(conf.max_hypotheses)
+        t.append(np.arange(n), c.xy.copy(), np.zeros((n, 4), np.uint64))
+        t.point[:matched] = seen[:matched]
+        return t
+
+    bundle.index.search = spy  # the real search runs; only its nprobe is recorded
+    try:
+        for matched in (conf.few_matches_below - 1, conf.few_matches_below):
+            loc._guided_matching(table(matched), np.arange(matched, n), image, gt)
+        for other in (thinner, off):
+            m = conf.few_matches_below
+            other._guided_matching(table(m), np.arange(m, n), image, gt)
+    finally:
+        del bundle.index.search
+    assert seen_nprobe == [conf.nprobe, conf.scope_nprobe, conf.nprobe, conf.nprobe], seen_nprobe
+
+
 def test_relocalize_with_a_prior(world, bundle, cam):
     gt = world.gt_cam_from_world[45]
     prior = Rigid3d(

@@ -199,6 +199,11 @@ def test_the_guided_search_scans_fewer_lists_only_on_maps_from_dense_video(maps)
     assert guided_nprobe(maps[1], conf.model_copy(update={"scope_dense_nprobe": False})) == 16
     assert guided_nprobe(maps[1], conf.model_copy(update={"nprobe": 32})) == round(32 / np.sqrt(n))
     assert guided_nprobe(maps[1], conf.model_copy(update={"nprobe": 4})) == 4  # at least 4
+    # a caller's list count (the localizer's scope_nprobe) replaces nprobe, and on the dense
+    # map it is the one divided
+    assert guided_nprobe(maps[10], EngineConf(nprobe=16), 8) == 8
+    assert guided_nprobe(maps[10], EngineConf(nprobe=16), None) == 16
+    assert guided_nprobe(maps[1], conf, 32) == round(32 / np.sqrt(n))
 
 
 def test_guided_matching_searches_with_the_dense_maps_nprobe(maps):

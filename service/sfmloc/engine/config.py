@@ -118,6 +118,22 @@ class EngineConf(StrictModel):
     # 0.285 cm, every 30th 998; below 20 at 0.3: every 60th 989.
     few_matches_ratio: float = 0.5
     few_matches_below: int = 20  # (see few_matches_ratio; 0: never)
+    # Inverted lists the guided (scoped) k-ANN search scans per query (0: nprobe) on maps whose
+    # median point is seen by at least scope_nprobe_min_track map images, on frames holding at
+    # least few_matches_below 3D matches (fewer matches, recovery, thinner maps: nprobe). A
+    # full batch (100 queries) sets the p99 per frame and its search is half of it (4.9 ms per
+    # batch at 16 lists, 2.8 at 8); a point seen by more images has more descriptors in more
+    # lists, so fewer lists still reach one. 16 -> 8 (`python -m sfmloc.bench.ab`, nice 19,
+    # against main, 1000 redkitchen frames, 2 reps, load 4-7): CPU mean x0.898, p99 x0.891,
+    # match stage 1.47 -> 1.16 ms/frame, 1000/1000, 0 wrong, within 5 cm / 5 deg 99.8 ->
+    # 99.9%, median 0.279 -> 0.285 cm; synthetic walk (median track 4) 300/300, 0.172 ->
+    # 0.176 cm, p99 x0.81. Without the track gate, on every frame: redkitchen every 60th
+    # (median track 2) 997 -> 998 posed, 98.9 -> 99.5% within 5 cm / 5 deg; every 30th (3)
+    # 999 -> 999, 0 wrong; but density-6x (2) 237 -> 233 of 300 (issue 9's row). Without the
+    # few_matches_below rule as well: every 60th 997 -> 997 at 8 lists, 987 at 12; every 30th
+    # 1 wrong pose at 8; density-6x 234.
+    scope_nprobe: int = 8
+    scope_nprobe_min_track: float = 4.0
     min_inliers: int = 10  # a pose with fewer inliers is rejected
     # Global matching also needs this fraction of its ratio-test matches as inliers: 10 inliers
     # out of ~500 candidates is chance (a relocalization 3.7 m / 140 deg off had 1.9%; correct

@@ -63,7 +63,7 @@ from .relocalize import (
     pose_from_hypotheses,
     visible_points,
 )
-from .scope import image_weights
+from .scope import image_weights, median_track_length
 from .timing import StageTimer
 from .track_table import TrackTable
 from .tracker import (
@@ -230,6 +230,11 @@ class Localizer:
         # search needs them (``engine/submaps.py``). None: nothing.
         self.before_global_matching: Callable[[], None] | None = None
         prepare(bundle, self.conf)
+        c = self.conf
+        # (scope_nprobe: on maps whose points are seen by enough images, None elsewhere)
+        self.scope_nprobe: int | None = None
+        if c.scope_nprobe > 0 and median_track_length(bundle) >= c.scope_nprobe_min_track:
+            self.scope_nprobe = c.scope_nprobe
         self.reset()
 
     def reset(self) -> None:
@@ -771,6 +776,7 @@ class Localizer:
         fewer than ``few_matches_below`` matches, with the looser ``few_matches_ratio``
         hypotheses."""
         c = self.conf
+        few = table.n_3d() < c.few_matches_below
         desc = describe(self.extractor, self.bundle, image.prepared, table.xy[rows])
         gm = guided_matching(
             desc,
@@ -780,7 +786,8 @@ class Localizer:
             pose,
             self.K,
             c,
-            ratio=c.few_matches_ratio if table.n_3d() < c.few_matches_below else None,
+            ratio=c.few_matches_ratio if few else None,
+            nprobe=None if few else self.scope_nprobe,
         )
         table.point[rows] = gm.point
         table.hyp[rows] = gm.hyp

@@ -279,13 +279,15 @@ def guided_matching(
     conf: EngineConf,
     neighbours: tuple[np.ndarray, np.ndarray] | None = None,
     ratio: float | None = None,
+    nprobe: int | None = None,
 ) -> GuidedMatches:
     """Match a batch of keypoints (descriptors ``desc``, undistorted positions ``xy_u``) within
     the scope of the already-matched points, verify against ``cam_from_world``.
 
     ``neighbours``: an unscoped k-ANN search of these same descriptors (global matching's),
     restricted to the scope instead of a second search (``restrict_neighbours``).
-    ``ratio``: the hypotheses' strength ratio instead of ``conf.ratio``."""
+    ``ratio``: the hypotheses' strength ratio instead of ``conf.ratio``; ``nprobe``: the
+    scoped search's inverted lists instead of ``conf.nprobe`` (``guided_nprobe``)."""
     nq = len(desc)
     H = conf.max_hypotheses
     out = GuidedMatches(np.full(nq, -1, np.int64), np.full((nq, H), -1, np.int64), 0)
@@ -305,7 +307,7 @@ def guided_matching(
     else:
         ptr = bundle.image_desc_ptr
         allowed = bitmap_from_ranges(bundle.n_descriptors, ptr[imgs], ptr[imgs + 1])
-        npr = guided_nprobe(bundle, conf)
+        npr = guided_nprobe(bundle, conf, nprobe)
         D, I = bundle.index.search(desc, conf.k, allowed=allowed, nprobe=npr)
     w = neighbour_strengths(D, I, conf.sigma)
     cands = point_candidates(I, w, bundle.desc_point)

@@ -83,28 +83,41 @@ def image_weights(bundle: MapBundle, radius: float, min_duplicates: float = 0.0)
     return w
 
 
-def guided_nprobe(bundle: MapBundle, conf: EngineConf) -> int:
-    """Inverted lists the scoped (guided) k-ANN search scans per query: ``conf.nprobe``, on a
+def guided_nprobe(bundle: MapBundle, conf: EngineConf, nprobe: int | None = None) -> int:
+    """Inverted lists the scoped (guided) k-ANN search scans per query: ``nprobe`` (None:
+    ``conf.nprobe``), on a
     map from dense video (``is_dense``) divided by the square root of its median image's
     near-duplicate count ``n`` (``conf.scope_dense_nprobe``; at least 4). The index's lists
     grow as the square root of its descriptors (``map.index.choose_nlist``), and a map from
     every frame holds each place's descriptors ``n`` times over: scanning ``nprobe /
     sqrt(n)`` of its lists scans as many entries per query as ``nprobe`` on the map of one
     image per place."""
+    nprobe = int(nprobe or conf.nprobe)
     if not (conf.scope_dense_nprobe and conf.scope_radius > 0):
-        return int(conf.nprobe)
+        return nprobe
     per = _nprobe_cache.setdefault(bundle, {})
-    key = (float(conf.scope_radius), float(conf.scope_min_duplicates), int(conf.nprobe))
+    key = (float(conf.scope_radius), float(conf.scope_min_duplicates), nprobe)
     got = per.get(key)
     if got is None:
         d = duplicate_counts(bundle, conf.scope_radius)
-        got = int(conf.nprobe)
+        got = nprobe
         if is_dense(d, conf.scope_min_duplicates):
-            got = max(min(4, got), int(round(conf.nprobe / np.sqrt(float(np.median(d))))))
+            got = max(min(4, got), int(round(nprobe / np.sqrt(float(np.median(d))))))
         per[key] = got
     return got
 
 
+def median_track_length(bundle: MapBundle) -> float:
+    """The number of map images the median map point is observed in (cached per bundle)."""
+    got = _track_cache.get(bundle)
+    if got is None:
+        n = np.bincount(bundle.image_points_idx, minlength=len(bundle.points_xyz))
+        got = float(np.median(n)) if len(n) else 0.0
+        _track_cache[bundle] = got
+    return got
+
+
+_track_cache: weakref.WeakKeyDictionary[MapBundle, float] = weakref.WeakKeyDictionary()
 _nprobe_cache: weakref.WeakKeyDictionary[MapBundle, dict[tuple[float, float, int], int]] = (
     weakref.WeakKeyDictionary()
 )
