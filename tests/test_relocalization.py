@@ -216,11 +216,14 @@ def test_two_stage_relocalization_is_one_stage_unless_the_first_is_strong(world,
     from sfmloc.engine.relocalize import spread_order
 
     one = EngineConf(relocalize_first_keypoints=0)
-    default = EngineConf()
+    # Only strong first-stage poses (weak ones: the next test, ``relocalize_first_min_inliers``).
+    default = EngineConf(relocalize_first_min_inliers=0)
     assert default.relocalize_first_keypoints == 300
     # A bar the synthetic room's first 300 corners reach (30-45 inliers against 85-106 from
     # 1000; the default asks 100): the accepting path taken.
-    low = EngineConf(global_verify_min_inliers=40, global_verify_min_ratio=0.2)
+    low = default.model_copy(
+        update={"global_verify_min_inliers": 40, "global_verify_min_ratio": 0.2}
+    )
     scale = bundle.scene_scale
     accepted = 0
     for i in (5, 15, 25, 40, 50):
@@ -333,3 +336,62 @@ def test_first_stage_gives_up_only_where_no_pose_could_be_strong(world, bundle, 
         r1 = relocalize(world.gray[i], cam, bundle, one)
         assert ra.status is r1.status and ra.inliers == r1.inliers
         np.testing.assert_allclose(ra.cam_from_world.matrix(), r1.cam_from_world.matrix(), atol=0)
+
+
+def test_weak_first_stage_pose_is_the_answer_only_when_published_relocalized(world, bundle, cam):
+    """``relocalize_first_min_inliers``: a first-stage RANSAC pose below the strong bar with
+    that many inliers is verified by guided matching as a one-stage pose is, and is the answer
+    only when it would be published RELOCALIZED (certain, not withheld); otherwise the second
+    stage runs and gives the one-stage answer. The synthetic room's first 300 corners reach
+    30-45 inliers (the strong bar asks 100): the weak path is taken."""
+    from sfmloc.engine.certainty import certainty, withheld
+    from sfmloc.engine.relocalize import spread_order
+
+    conf = EngineConf()
+    assert conf.relocalize_first_min_inliers > 0  # on by default
+    off = conf.model_copy(update={"relocalize_first_min_inliers": 0})
+    one = conf.model_copy(update={"relocalize_first_keypoints": 0})
+    scale = bundle.scene_scale
+    taken = handed = 0
+    for i in (5, 15, 25, 40, 50, 58):
+        c = detect_corners(
+            world.gray[i], rel_threshold=conf.gamma, max_corners=1000, border=conf.mu // 2
+        )
+        assert len(c.xy) >= conf.relocalize_staged_from  # the two stages apply
+        sub = np.sort(spread_order(c.xy, c.response, cam.width, cam.height)[:300])
+        ex = DaisyExtractor()
+        desc = describe(ex, bundle, ex.prepare(world.gray[i]), c.xy[sub])
+        strong, _ = global_pose(desc, c.xy[sub], bundle, cam, conf, strong_only=True)
+        first, why = global_pose(
+            desc,
+            c.xy[sub],
+            bundle,
+            cam,
+            conf,
+            strong_only=True,
+            first_min_inliers=conf.relocalize_first_min_inliers,
+        )
+        r = relocalize(world.gray[i], cam, bundle, conf)
+        if first is None:
+            # handed over: the one-stage answer (as without the weak path)
+            r1 = relocalize(world.gray[i], cam, bundle, one)
+            ro = relocalize(world.gray[i], cam, bundle, off)
+            assert r.status is r1.status and r.inliers == r1.inliers, (i, why)
+            assert ro.inliers == r.inliers
+            handed += 1
+            continue
+        est = first[0]
+        assert strong is None or strong[0].num_inliers >= conf.global_verify_min_inliers
+        if strong is None:
+            taken += 1
+            assert conf.relocalize_first_min_inliers <= est.num_inliers
+        cert = certainty(est, cam.K, bundle, conf)
+        assert cert.verified and withheld(cert.position_sd, est.num_inliers, conf) is None
+        assert r.status is Status.RELOCALIZED and r.inliers == est.num_inliers
+        np.testing.assert_allclose(
+            r.cam_from_world.matrix(), est.cam_from_world.matrix(), atol=1e-9
+        )
+        gt = world.gt_cam_from_world[i]
+        err_m, err_deg = pose_errors(r.cam_from_world, gt)
+        assert err_m < 0.02 * scale and err_deg < 2.0, (i, err_m / scale, err_deg)
+    assert taken >= 1 and handed + taken == 6

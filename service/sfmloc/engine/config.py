@@ -365,14 +365,31 @@ class EngineConf(StrictModel):
     # stage. 0: one stage.
     relocalize_first_keypoints: int = 300
     relocalize_first_iterations: int = 100
+    # A first stage's RANSAC pose below the strong bar but with at least this many inliers
+    # is verified by guided matching (as a one-stage pose is) and is the answer when it would
+    # be published RELOCALIZED (certain, not withheld), after the distinctness tests; else the
+    # second stage runs. 0: only strong first-stage poses. Issue 10 (reloc4): the failing
+    # first stages (48-98 inliers of the 100 asked) paid both stages, ~74 ms, 15 of the 25
+    # slowest calls. With ``relocalize_staged_from`` 500 -> 450, CPU per call interleaved
+    # per frame against main 0617ea5 (nice 19, load 7-10): redkitchen 500 frames p95 x0.875,
+    # p99 x0.83, mean x0.995 (both stages 17 -> 2 frames), 500/500, 0 wrong, median 0.245 cm
+    # both; every 30th / 60th (200 frames) mean x0.82 / x0.80, p95 x0.63 / x0.91, posed
+    # 198 / 188 -> 198 / 189, 0 wrong, median 0.390 -> 0.400 / 0.462 -> 0.470 cm;
+    # redkitchen-split (250 frames) mean x0.66, p95 x0.55, posed 244 -> 247, 0 wrong, median
+    # 0.447 -> 0.478 cm on the 244 common frames (poses on fewer corners, also from staging
+    # at 450); density-6x (100 frames) the same poses, mean x1.01. Without the certainty
+    # gate density-6x turned 8 RELOCALIZED to UNVERIFIED (median 0.0144 -> 0.0166 units).
+    relocalize_first_min_inliers: int = 30
     # Frames with at least this many corners run the two stages (fewer: one stage). Issue 10,
     # redkitchen (map every 10th frame), 500 frames: from 600 the 500-600-corner frames (a
     # fifth, most of the p95 tail) ran one stage at ~47 ms; from 500 they take ~30 where the
     # first stage holds (99) and 63 -> 74 where it fails (17); with the cluster-bit votes,
     # CPU per call against 600 (nice 19, load ~13) mean x0.89, p95 x0.84-0.89, p99 x0.96,
     # 0 wrong, median 0.237 -> 0.245 cm. On the thin maps (every 30th / 60th frame) more
-    # first stages fail: p95 x1.07 / x1.10, mean x0.96 / x0.99 (README, issue 10).
-    relocalize_staged_from: int = 500
+    # first stages fail: p95 x1.07 / x1.10, mean x0.96 / x0.99 (README, issue 10). From 450
+    # with ``relocalize_first_min_inliers`` (a failing first stage costs less): redkitchen's
+    # 450-500-corner frames ~43 -> ~35 ms.
+    relocalize_staged_from: int = 450
     max_hypotheses: int = 8  # one-to-many 3D hypotheses kept per keypoint
     ransac_threshold_px: float = 4.0  # inlier reprojection error in RANSAC
     ransac_confidence: float = 0.999

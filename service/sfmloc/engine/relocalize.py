@@ -123,11 +123,15 @@ def global_pose(
     deadline: float | None = None,
     cpu_deadline: float | None = None,
     strong_only: bool = False,
+    first_min_inliers: int = 0,
 ) -> tuple[tuple[PoseEstimate, np.ndarray, np.ndarray, np.ndarray] | None, str]:
     """``pose_from_global``'s answer and, when it is None, why. ``strong_only``: a pose only
     when RANSAC's is far above chance (``_needs_no_verification``, whatever
     ``global_verify``), with ``relocalize_first_iterations`` RANSAC iterations at most; no
-    verification by guided matching (``relocalize``'s first stage)."""
+    verification by guided matching (``relocalize``'s first stage). ``first_min_inliers``
+    (with ``strong_only``; 0: off): a weaker RANSAC pose with at least that many inliers is
+    verified and judged as a one-stage pose is, and kept only when it would be published
+    RELOCALIZED (``EngineConf.relocalize_first_min_inliers``)."""
     if neighbours is None and conf.global_nprobe:
         neighbours = bundle.index.search(desc, conf.k, nprobe=conf.global_nprobe)
     gm = global_matching(desc, bundle, conf, neighbours)
@@ -135,8 +139,10 @@ def global_pose(
     none = "no pose: too few consistent 2D-3D matches"
     if len(gm.set1_q) < 3:
         return None, none
-    if strong_only and not _needs_no_verification(
-        _at_most_inliers(gm.set2_q), len(gm.set1_q), conf
+    if (
+        strong_only
+        and not _needs_no_verification(_at_most_inliers(gm.set2_q), len(gm.set1_q), conf)
+        and (first_min_inliers <= 0 or _at_most_inliers(gm.set2_q) < first_min_inliers)
     ):
         # a RANSAC pose's inliers are distinct keypoints with a hypothesis: too few to be
         # strong whatever RANSAC finds (the same answer, without the RANSAC)
@@ -168,7 +174,11 @@ def global_pose(
     strong = (conf.global_verify or strong_only) and _needs_no_verification(
         est.num_inliers, len(gm.set1_q), conf
     )
-    if strong_only and not strong:
+    if (
+        strong_only
+        and not strong
+        and (first_min_inliers <= 0 or est.num_inliers < first_min_inliers)
+    ):
         return None, "no strong pose from the first keypoints"
     if conf.global_verify and not strong:
         # Guided matching of the whole frame around the RANSAC pose (scope: the map points it
@@ -192,6 +202,13 @@ def global_pose(
         # inliers), which the guided matching's pose would have been.
         fine = robust_final(est, K, conf) if strong else est
         out = fine, gm.set2_q[chosen], gm.set2_p[chosen], hyp
+    if strong_only and not strong:
+        # A weak first-stage pose is the answer only when it would be published as
+        # RELOCALIZED: one that the other corners would make certain (a thin map's) is left
+        # to them, before the distinctness tests' cost.
+        cert = certainty(out[0], K, bundle, conf)
+        if not cert.verified or withheld(cert.position_sd, out[0].num_inliers, conf):
+            return None, "no strong pose from the first keypoints"
     # Distinct: inliers over the image, and no other place nearly as good (``distinct``).
     if out[0].num_inliers < conf.spread_max_inliers:
         visible = None
@@ -400,7 +417,16 @@ def _relocalize(
         nb_1 = bundle.index.search(desc_1, conf.k, nprobe=conf.global_nprobe)
         check_deadline(deadline, "the first keypoints' search", cpu_deadline)
         res, _ = global_pose(
-            desc_1, xy_u[sub], bundle, camera, conf, nb_1, deadline, cpu_deadline, True
+            desc_1,
+            xy_u[sub],
+            bundle,
+            camera,
+            conf,
+            nb_1,
+            deadline,
+            cpu_deadline,
+            True,
+            conf.relocalize_first_min_inliers,
         )
         est = None if res is None else res[0]
         desc = desc_1  # (not used again when est is the answer)
