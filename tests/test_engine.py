@@ -1440,3 +1440,58 @@ def test_a_handful_of_pending_keypoints_waits_while_the_frame_has_matches(bundle
     assert len(loc._pending_batch(table(60, conf.batch_max + 7))) == conf.batch_max
     eager = Localizer(bundle, cam, EngineConf(guided_min_pending=1))
     assert len(eager._pending_batch(table(60, 1))) == 1
+
+
+def test_guided_batches_spread_only_where_the_map_answers_readily(world, bundle, cam):
+    """``batch_spread``: a frame takes at most ``batch_spread`` pending keypoints while the
+    running share of guided matching's queries matched (updated by real guided matching) is
+    at least ``spread_min_yield``; with a low share (a thin map), after a reset and with
+    spreading off, or on a map whose median point is seen by fewer than
+    ``batch_spread_min_track`` images, it takes ``batch_max`` at once. The lazy wait is
+    unchanged."""
+    from sfmloc.engine.scope import median_track_length
+    from sfmloc.engine.track_table import TrackTable
+
+    track = median_track_length(bundle)
+    conf = EngineConf(batch_spread=40, batch_spread_min_track=track)
+    assert 0 < conf.batch_spread < conf.batch_max and 0 < conf.spread_min_yield < 1
+
+    def table(matched: int, pending: int) -> TrackTable:
+        t = TrackTable.empty(conf.max_hypotheses)
+        n = matched + pending
+        t.append(np.arange(n), np.zeros((n, 2)), np.zeros((n, 4), np.uint64))
+        t.age[:] = 3
+        t.point[:matched] = np.arange(matched)
+        t.pending[:] = False
+        t.pending[matched:] = True
+        return t
+
+    loc = Localizer(bundle, cam, conf)
+    assert loc.guided_yield == 0.0  # nothing known yet: full batches
+    many = table(60, conf.batch_max + 7)
+    assert len(loc._pending_batch(many)) == conf.batch_max
+    res = run_sequence(loc, world.gray[:60], [i / 30 for i in range(60)])
+    assert sum(r.matching == "guided" for r in res) >= 3
+    # real guided matching updated the running share (on this scene few pending keypoints
+    # match, ~0.05: its batches stay full)
+    assert 0.0 < loc.guided_yield < 1.0
+    assert all(r.cam_from_world is not None for r in res[1:])
+    for r, g in zip(res, world.gt_cam_from_world[:60]):
+        if r.cam_from_world is not None:
+            assert pose_errors(r.cam_from_world, g)[0] < 0.05 * bundle.scene_scale
+    # most queries matched (a map that answers readily): the first batch_spread pending rows
+    loc.guided_yield = conf.spread_min_yield
+    rows = loc._pending_batch(many)
+    assert rows.tolist() == list(range(60, 60 + conf.batch_spread))
+    assert len(loc._pending_batch(table(60, conf.guided_min_pending - 1))) == 0  # still lazy
+    # few queries matched (a thin map): full batches at once
+    loc.guided_yield = 0.5 * conf.spread_min_yield
+    assert len(loc._pending_batch(many)) == conf.batch_max
+    loc.reset()
+    assert loc.guided_yield == 0.0 and len(loc._pending_batch(many)) == conf.batch_max
+    # spreading off, or a map whose median point is seen by fewer images: full batches
+    off = Localizer(bundle, cam, EngineConf(batch_spread=0, batch_spread_min_track=track))
+    thinner = Localizer(bundle, cam, EngineConf(batch_spread_min_track=track + 0.5))
+    for other in (off, thinner):
+        other.guided_yield = 1.0
+        assert len(other._pending_batch(many)) == conf.batch_max

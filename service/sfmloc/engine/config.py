@@ -68,6 +68,29 @@ class EngineConf(StrictModel):
     # -> 0.203 (better in 54% of the frames; frames 121-124 0.7 -> 1.7 cm), 0 wrong. 5: 227
     # guided frames.
     guided_min_pending: int = 20
+    # Spread guided matching over frames where the map answers it readily: a frame takes at
+    # most batch_spread pending keypoints (the rest wait, in order, for the next frames) while
+    # the running share of queried keypoints guided matching matched (spread_yield_weight of
+    # the last batch, the rest the earlier ones; 0 after a reset) is at least
+    # spread_min_yield; otherwise batch_max at once (batch_spread 0: off). A full batch (its
+    # k-ANN search, DAISY, verification: ~9 ms CPU on redkitchen) sets the p99 per frame. On
+    # a thin map the pending keypoints are its future tracks and few of them match: spreading
+    # every batch there lost poses (every 60th frame, 1000 frames, batches of 40 on every
+    # frame: localized 992 -> 985; gated on the frame's 3D matches >= 40 / 60: 986 / 986),
+    # and neither the 3D-match count (full batches on redkitchen at a median 66, every 60th
+    # 46) nor the last pose's certainty tells the maps apart. The yield does: per batch a
+    # median 0.50 on redkitchen (map every 10th) and 0.12 on the every-60th map. Even so the
+    # every-60th map lost poses at 0.35 (997 -> 993 after 94518e5; a null change, k 51: 997):
+    # batches spread only on maps whose median point is seen by at least
+    # batch_spread_min_track map images (redkitchen every 10th, the synthetic walk: 4; every
+    # 30th / 60th, density-3x / 6x: 2-3). With the 8-list scoped search (scope_nprobe),
+    # `python -m sfmloc.bench.ab`, 1000 redkitchen frames, 2 reps, nice 19, load 3.5-4:
+    # against main CPU mean x0.951 (x0.929-x0.972), p99 20.01 -> 18.11 ms (x0.905), 1000/1000,
+    # 0 wrong, within 5 cm / 5 deg 99.8 -> 99.9%, median 0.278 -> 0.271 cm.
+    batch_spread: int = 40
+    batch_spread_min_track: float = 4.0
+    spread_min_yield: float = 0.35
+    spread_yield_weight: float = 0.3
     top_images: int = 30  # guided matching scope
     # An image counts for 1/n of the scope's top_images, n: the map images taken from within
     # scope_radius of the scene scale of it, looking the same way (engine/scope.py), on maps

@@ -235,6 +235,7 @@ class Localizer:
         self.scope_nprobe: int | None = None
         if c.scope_nprobe > 0 and median_track_length(bundle) >= c.scope_nprobe_min_track:
             self.scope_nprobe = c.scope_nprobe
+        self.spread_batches = median_track_length(bundle) >= c.batch_spread_min_track
         self.reset()
 
     def reset(self) -> None:
@@ -257,6 +258,7 @@ class Localizer:
         self.unverified = False  # tracking from a relocalization not verified yet
         self.last_posed_stamp: float | None = None
         self.last_inliers = 0  # of the last posed frame
+        self.guided_yield = 0.0  # running share of guided matching's queries matched
         self.last_pose: Rigid3d | None = None  # cam_from_world of the last posed frame
         self.interval = 0.0  # seconds from the frame before the last to the last
         self.last_interval = 0.0  # the same one frame earlier
@@ -767,6 +769,9 @@ class Localizer:
             # the DAISY preparation of the whole frame and the search's fixed cost whatever
             # its size. Most such keypoints are dropped by the tracker before their turn.
             return rows[:0]
+        if c.batch_spread > 0 and self.spread_batches and self.guided_yield >= c.spread_min_yield:
+            # The map answers readily here: the rest wait for the next frames (spread_min_yield)
+            return rows[: min(c.batch_spread, c.batch_max)]
         return rows[: c.batch_max]
 
     def _guided_matching(
@@ -792,6 +797,10 @@ class Localizer:
         table.point[rows] = gm.point
         table.hyp[rows] = gm.hyp
         table.pending[rows] = False
+        if len(rows):
+            share = np.count_nonzero(gm.point >= 0) / len(rows)
+            w = self.conf.spread_yield_weight
+            self.guided_yield = w * share + (1.0 - w) * self.guided_yield
         return table
 
     def _recover(
