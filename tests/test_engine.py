@@ -1273,7 +1273,7 @@ def test_status_and_matching_are_enums_read_as_their_wire_strings():
 
     assert Status is contract.Status and Matching is contract.Matching
     assert STATUSES == ("TRACKING", "RELOCALIZED", "UNVERIFIED", "LOST")  # the wire's values
-    assert [m.value for m in Matching] == ["none", "guided", "global"]
+    assert [m.value for m in Matching] == ["none", "guided", "global", "odometry"]
     assert set(STATUS_TO_PB) == set(STATUSES) and set(STATUS_FROM_PB.values()) == set(STATUSES)
     for e in (*Status, *Matching):
         assert e == e.value and str(e) == f"{e}" == e.value

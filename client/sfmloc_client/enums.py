@@ -36,3 +36,7 @@ class Matching(WireEnum):
     NONE = "none"  # only matches tracked from the previous frame
     GUIDED = "guided"  # guided matching around a pose (the tracked one, or the prediction)
     GLOBAL = "global"  # global matching: relocalization from scratch
+    # visual odometry beyond the map: the pose rests on session points the engine triangulated
+    # from its own tracks in earlier map-posed frames (never map-verified; its covariance
+    # carries those frames' uncertainty and grows with the distance from them)
+    ODOMETRY = "odometry"

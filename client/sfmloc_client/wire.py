@@ -60,7 +60,7 @@ Pose message (msgpack map), one per processed frame, and one per rejected frame:
      "filtered": {"cam_from_world": {...}, "world_from_cam": {...}} | nil,
      "inliers": uint, "latency_ms": float, "engine_ms": float, "engine_cpu_ms": float,
      "counts": {"detected": uint, "tracked": uint, "tracked_3d": uint},
-     "matching": "none" | "guided" | "global", "dropped": uint,
+     "matching": "none" | "guided" | "global" | "odometry", "dropped": uint,
      "map": str, "client_id": str, "build_id": str, "server_id": str,
      "message": str,
      "error": nil | {"code": "INVALID_ARGUMENT" | "NOT_FOUND" | "RESOURCE_EXHAUSTED" | ...,

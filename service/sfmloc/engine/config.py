@@ -613,6 +613,23 @@ class EngineConf(StrictModel):
     # (centre NEES 40, expected 3); its re-match 4.0% off, sd 1.9%, 4.7% from it -> sd 4.9%,
     # withheld. False: the tracked pose's own covariance.
     rematch_disagreement: bool = True
+    # ---- visual odometry beyond the map (engine/session_points.py)
+    # A frame whose map matches give no publishable pose, after a published one, is posed on
+    # session points (the tracker's unmatched tracks triangulated from two map-posed frames)
+    # beside its map matches; its covariance carries the anchor frames' (compounded, never
+    # averaged) and the status rules judge it as any other (TRACKING, matching "odometry").
+    # Measured reason: see the README ("Visual odometry beyond the map"). False: off.
+    odometry: bool = True
+    # triangulation: at least this parallax between the two rays (degrees), at most this
+    # reprojection error on either (px), depth at most this many scene scales
+    odometry_min_parallax_deg: float = Field(2.0, gt=0.0)
+    odometry_max_reprojection_px: float = Field(2.0, gt=0.0)
+    odometry_max_depth_scales: float = Field(10.0, gt=0.0)
+    # a track's pixel noise over its life (tracked frame to frame; the point's sd is
+    # sqrt(2) * depth * noise / focal / sin(parallax))
+    odometry_noise_px: float = Field(1.0, gt=0.0)
+    # session points among the pose's inliers, at least
+    odometry_min_points: int = Field(20, ge=6)
     # ---- out-of-core maps (engine/submaps.py; issue 14)
     # Resident sub-maps of a sub-map set, in MB, per engine worker (``sfmloc serve
     # --map-memory``): the worker's sessions on the set share its parts within it. None: sub-map

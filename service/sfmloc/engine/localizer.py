@@ -48,7 +48,7 @@ from ..cameras import Camera, as_camera
 from ..features.daisy import DaisyExtractor
 from ..map.bundle import MapBundle
 from ..transforms import Rigid3d, rotation_angle_deg
-from .certainty import Certainty, certainty, with_disagreement, withheld
+from .certainty import Certainty, certainty, position_sd, with_disagreement, withheld
 from .config import EngineConf
 from .frame import to_gray, to_working
 from .matching import guided_matching, search_all, verify_hypotheses
@@ -64,6 +64,7 @@ from .relocalize import (
     visible_points,
 )
 from .scope import image_weights, median_track_length
+from .session_points import SessionPoints, odometry_covariance
 from .timing import StageTimer
 from .track_table import TrackTable
 from .tracker import (
@@ -140,6 +141,20 @@ def _median_rows(a: np.ndarray) -> np.ndarray:
         return np.partition(a, k, axis=0)[k]
     part = np.partition(a, (k - 1, k), axis=0)
     return (part[k - 1] + part[k]) / 2
+
+
+def _keep_track_ids(table: TrackTable, tracked: TrackTable) -> None:
+    """Rows of ``table`` (restarted from this frame's keypoints) at the position of a row of
+    ``tracked`` (this frame's tracked table: its rows sit on the same keypoints) take that
+    row's track id and age."""
+    if len(table) == 0 or len(tracked) == 0:
+        return
+    at = {(float(x), float(y)): i for i, (x, y) in enumerate(tracked.xy)}
+    for r, (x, y) in enumerate(table.xy):
+        i = at.get((float(x), float(y)))
+        if i is not None:
+            table.track_id[r] = tracked.track_id[i]
+            table.age[r] = tracked.age[i]
 
 
 def _unmatch(table: TrackTable, rows: np.ndarray | slice) -> None:
@@ -236,12 +251,21 @@ class Localizer:
         if c.scope_nprobe > 0 and median_track_length(bundle) >= c.scope_nprobe_min_track:
             self.scope_nprobe = c.scope_nprobe
         self.spread_batches = median_track_length(bundle) >= c.batch_spread_min_track
+        self.session = SessionPoints(
+            self.K,
+            bundle.scene_scale,
+            c.odometry_min_parallax_deg,
+            c.odometry_max_reprojection_px,
+            c.odometry_max_depth_scales,
+            c.odometry_noise_px,
+        )
         self.reset()
 
     def reset(self) -> None:
         """Forget tracks and motion: the next frame relocalizes."""
         c = self.conf
         self.table = TrackTable.empty(c.max_hypotheses)
+        self.session.reset()  # session points are the tracks': they go with them
         self.filter = make_pose_filter(
             c.motion_model,
             c.accel_noise_scales_per_s2,
@@ -265,6 +289,7 @@ class Localizer:
         self.motion_published = False  # the last posed frame's pose was published (not withheld)
         # this frame's pose and covariance as judged (published or withheld), None without one
         self.judged: tuple[PoseEstimate, np.ndarray] | None = None
+        self._odo_map_inliers = 0  # map inliers of the last odometry pose
 
     def swap_bundle(
         self, bundle: MapBundle, point_rows: Callable[[np.ndarray], np.ndarray]
@@ -354,6 +379,24 @@ class Localizer:
                     table = self._guided_matching(table, batch, image, est.cam_from_world)
                     matching = Matching.GUIDED
                     timer.lap("match")
+        # the tracked table (before a recovery or relocalization restarts it): its tracks
+        # carry the session points visual odometry poses a frame on
+        tracked_table = table
+        odo_cert: Certainty | None = None  # the odometry pose's certainty, when it has one
+        if est is None and not ambiguous and self._odometry_ready():
+            # Tracking found no map pose after a published one: odometry on the session points
+            # first (the recovery's and global matching's poses on a thin map are the ones
+            # that go wrong, and they cost 10-100x more), kept when publishable.
+            vo = self._odometry(table, pred)
+            timer.lap("pose")
+            if vo is not None and withheld(vo[1].position_sd, vo[0].num_inliers, c) is None:
+                est, odo_cert = vo
+                matching = Matching.ODOMETRY
+                back = self._map_again(kps, image, est, table)
+                if back is not None:  # a map pose again: judged as any below
+                    table, est, _ = back
+                    odo_cert, matching = None, Matching.GUIDED
+                timer.lap("match")
         # (not around a prediction the frame contradicts: global matching decides)
         can_recover = c.prior_recovery and len(self.scope_points) > 0 and not ambiguous
         if est is None and pred.cam_from_world is not None and can_recover:
@@ -380,7 +423,9 @@ class Localizer:
             lost_why = lost_why or why
             timer.lap("reloc")
         c2 = _match_ids(table)
-        if (len(c2) > c.kappa2 and not np.array_equal(c2, c1) and not relocalized) or unrefined:
+        odo = odo_cert is not None  # (an odometry pose: tracking gave none, so not unrefined)
+        new_matches = len(c2) > c.kappa2 and not np.array_equal(c2, c1) and not relocalized
+        if (new_matches and not odo) or unrefined:
             # The new matches were verified against this frame's pose: it is the better prior.
             # The first estimate stopped before its robust final refinement: this is it, on
             # C2 (issue 10: one Cauchy refinement per frame fewer; on redkitchen C2 differs
@@ -395,9 +440,10 @@ class Localizer:
             timer.lap("pose")
 
         # A pose is a promise: judge it by its covariance before anyone relies on it.
-        cert = None if est is None else certainty(est, self.K, self.bundle, c)
+        cert = odo_cert if odo else None if est is None else certainty(est, self.K, self.bundle, c)
         timer.lap("pose")
-        if est is not None and cert is not None and not relocalized and c.densify_uncertain:
+        tracked = not (relocalized or odo)  # tracked on the map this frame
+        if est is not None and cert is not None and tracked and c.densify_uncertain:
             uncertain = withheld(cert.position_sd, est.num_inliers, c) is not None
             # A pose resting on its most influential match (that one may be wrong and fitted)
             # or on a weak consensus of its tracked matches is replaced only by a re-matched
@@ -422,13 +468,13 @@ class Localizer:
                     cert = with_disagreement(cert, est, dense[1], self.bundle, c)
                 timer.lap("match")
         message = lost_why if est is None else ""
-        if est is not None and cert is not None and not relocalized and not cert.verified:
+        if est is not None and cert is not None and not (relocalized or odo or cert.verified):
             if est.num_inliers < self.conf.collapse_ratio * self.last_inliers:
                 table, est, cert, message = self._verify_collapse(kps, image, est, table)
                 if est is not None:
                     relocalized, matching = True, Matching.GLOBAL
                 timer.lap("reloc")
-        if est is not None and cert is not None and not relocalized and not cert.verified:
+        if est is not None and cert is not None and not (relocalized or odo or cert.verified):
             message = self._other_solution(table, est, pred.cam_from_world)
             if message and c.ambiguity_relocalize:
                 # the matches do not decide between two poses: this frame's global matching
@@ -450,6 +496,26 @@ class Localizer:
                 _unmatch(table, slice(None))
                 est, cert = None, None
 
+        if not odo and est is not None and cert is not None and self._odometry_ready():
+            if withheld(cert.position_sd, est.num_inliers, c) is not None:
+                # A map pose too uncertain to publish (thin map): odometry instead, when it is
+                # more certain (its own status rules judge it below).
+                vo = self._odometry(tracked_table, pred)
+                timer.lap("pose")
+                if vo is not None and vo[1].position_sd < cert.position_sd:
+                    est, cert = vo
+                    table, relocalized, matching, message = (
+                        tracked_table,
+                        False,
+                        Matching.ODOMETRY,
+                        "",
+                    )
+                    back = self._map_again(kps, image, est, tracked_table)
+                    if back is not None:
+                        table, est, cert = back
+                        matching = Matching.GUIDED
+                    timer.lap("match")
+
         if est is not None and cert is not None and not relocalized and c.projected_refine:
             est, cert = self._projected_refinement(est, cert, kps, table)
             timer.lap("pose")
@@ -458,7 +524,10 @@ class Localizer:
         if est is not None:
             filtered = self._kalman_filter_update(est.cam_from_world, relocalized, stamp)
             self.last_posed_stamp = stamp
-            self.last_inliers = est.num_inliers
+            # (an odometry pose's map inliers: the collapse test compares map matches)
+            self.last_inliers = (
+                self._odo_map_inliers if matching is Matching.ODOMETRY else est.num_inliers
+            )
             self.last_pose = est.cam_from_world
             self.scope_points = table.point[table.point >= 0]  # (a boolean index copies)
         timer.lap("filter")
@@ -472,6 +541,8 @@ class Localizer:
         )
         if est is not None:  # the motion filter now rests on this pose: published or withheld
             self.motion_published = status is not Status.LOST
+        if c.odometry:
+            self._session_points(table, est, cert, status, matching)
         pose = est.cam_from_world if est is not None and status is not Status.LOST else None
         return FrameResult(
             status=status,
@@ -966,6 +1037,128 @@ class Localizer:
             )
             return pose
         return self.filter.update(pose)
+
+    def _odometry(
+        self, table: TrackTable, pred: Prediction
+    ) -> tuple[PoseEstimate, Certainty] | None:
+        """Visual odometry beyond the map: the pose from the table's session points and its map
+        matches together, around the motion prediction, with an honest covariance: the
+        relative fit's (pixel noise, each point's own triangulation or map uncertainty) plus
+        the anchor frames' carried rigidly to this camera (``SessionPoints``). Not verified
+        (it is not the map's pose). None without ``odometry_min_points`` session inliers or
+        a plausible pose. Outliers among the map matches lose their match."""
+        c = self.conf
+        if pred.cam_from_world is None:
+            return None
+        sm = self.session.matches(table.track_id)
+        if len(sm.rows) < c.odometry_min_points:
+            return None
+        mrows, mpts = table.matches()
+        rows = np.concatenate([sm.rows, mrows])
+        X = np.concatenate([sm.xyz, self.bundle.points_xyz[mpts]])
+        xy = self._undistort(table.xy[rows])
+        est = estimate_pose(
+            xy,
+            X,
+            self.K,
+            self._ransac(),
+            prior=pred.cam_from_world,
+            prior_threshold=c.prior_threshold_px,
+        )
+        if est is None or not self._plausible(est.cam_from_world, pred.cam_from_world, pred.dt):
+            return None
+        ns = len(sm.rows)
+        inl = est.inlier_mask
+        if np.count_nonzero(inl[:ns]) < c.odometry_min_points:
+            return None
+        pose = est.cam_from_world
+        z = X[inl] @ pose.rotation[2] + pose.translation[2]
+        if not np.all(z > 0):
+            return None
+        sigma = np.empty(len(z))
+        s_in = inl[:ns]
+        k = int(np.count_nonzero(s_in))
+        sigma[:k] = sm.sigma_px(s_in, pose, self.K)
+        m_in = np.nonzero(inl[ns:])[0]
+        if len(m_in):
+            pu = PointUncertainty.for_bundle(self.bundle)
+            sigma[k:] = pu.sigma_px_of(mpts[m_in], z[k:], c.map_noise_px)
+        cov = odometry_covariance(
+            self.session,
+            pose,
+            self.K,
+            xy[inl],
+            X[inl],
+            sigma,
+            sm.anchor[s_in],
+            c.refine_loss_scale_px,
+        )
+        sd = position_sd(cov) / self.bundle.scene_scale
+        _unmatch(table, mrows[~inl[ns:]])
+        est.inlier_points = None
+        self._odo_map_inliers = len(m_in)
+        return est, Certainty(cov, sd, False, sd)
+
+    def _odometry_ready(self) -> bool:
+        """Whether a frame may be posed by odometry: on, with session points, after a
+        published pose."""
+        return self.conf.odometry and len(self.session) > 0 and self.motion_published
+
+    def _map_again(
+        self, kps: Keypoints, image: _FrameImage, odo: PoseEstimate, tracked: TrackTable
+    ) -> tuple[TrackTable, PoseEstimate, Certainty] | None:
+        """Back on the map from an odometry pose: the whole frame re-matched around it, scoped
+        by the map points it makes visible (``_recover``, as ``_densify``). Returns the
+        restarted table, the map pose and its certainty when that pose is publishable (not
+        withheld) and agrees with the odometry pose (within the wrong-pose limits,
+        ``contradiction_position``, ``contradiction_deg``), else None (odometry goes on).
+        Only frames posed by odometry pay it (a thin map; they would otherwise relocalize).
+        The restarted table's rows at a keypoint of the ``tracked`` table keep that row's track
+        id and age: the session points stay theirs (robust density-6x, rebuilt map: back on the
+        map at frame 273 on 25-27 inliers, frames 276-277 then withheld at sd 2.7-2.9% with no
+        session point left to pose them)."""
+        c = self.conf
+        visible = visible_points(self.camera, odo.cam_from_world, self.bundle.points_xyz)
+        if len(visible) < c.min_inliers:
+            return None
+        dense = self._recover(kps, image, odo.cam_from_world, visible)
+        if dense is None:
+            return None
+        table, est = dense
+        cert = certainty(est, self.K, self.bundle, c)
+        if withheld(cert.position_sd, est.num_inliers, c) is not None:
+            return None
+        dpos, drot = self._apart(est.cam_from_world, odo.cam_from_world)
+        if dpos > c.contradiction_position or drot > c.contradiction_deg:
+            return None
+        _keep_track_ids(table, tracked)
+        return table, est, cert
+
+    def _session_points(
+        self,
+        table: TrackTable,
+        est: PoseEstimate | None,
+        cert: Certainty | None,
+        status: Status,
+        matching: Matching,
+    ) -> None:
+        """The session points after a frame: a published map pose (TRACKING or RELOCALIZED)
+        adds its unmatched tracks' rays and triangulates; a LOST frame drops them (the next
+        published frame starts over); an odometry or unverified pose leaves them."""
+        if status is Status.LOST or est is None or cert is None:
+            if len(self.session) or len(self.session.obs_id):
+                self.session.reset()
+            return
+        if status is Status.UNVERIFIED:
+            return
+        self.session.observe(
+            table.track_id,
+            self._undistort(table.xy),
+            table.point < 0,
+            est.cam_from_world,
+            cert.covariance,
+            odometry=matching is Matching.ODOMETRY,
+        )
 
     # ------------------------------------------------------------------ helpers
     def _ransac(self) -> RansacParams:
