@@ -188,3 +188,28 @@ def test_odometry_carries_the_pose_beyond_the_map_without_a_wrong_pose(world, st
         counts[odometry] = (posed, odo)
     assert counts[False][1] == 0
     assert counts[True][1] >= 3 and counts[True][0] > counts[False][0], counts
+
+
+def test_recorded_frames_triangulate_as_observed_ones_when_odometry_needs_them():
+    """While the map poses every frame a published frame is only recorded (no work); the first
+    frame that needs odometry triangulates the recorded ones (``activate``): the same points
+    as triangulating each as it came. Frames beyond the window are not kept."""
+    rng = np.random.default_rng(5)
+    X = np.array([0.0, 0.0, 3.0]) + rng.uniform(-1, 1, (50, 3))
+    ids = np.arange(100, 150, dtype=np.int64)
+    poses = [Rigid3d(np.eye(3), -np.array([0.05 * k, 0.0, 0.0])) for k in range(8)]
+    eager, lazy = _session(0.5), _session(0.5)
+    for k, pose in enumerate(poses):
+        xy = project(pose, K, X)[0] + rng.normal(0, 0.3, (50, 2))
+        cov = np.eye(6) * 1e-6 * (k + 1)
+        eager.observe(ids, xy, np.ones(50, bool), pose, cov)
+        lazy.record(ids, xy, np.ones(50, bool), pose, cov)
+        assert len(lazy) == 0 and lazy.ready() == (k >= 1)
+    lazy.activate()
+    a, b = eager.matches(ids), lazy.matches(ids)
+    assert len(a.rows) == len(b.rows) == 50
+    assert np.array_equal(a.xyz, b.xyz) and np.array_equal(a.anchor, b.anchor)
+    small = SessionPoints(K, 3.0, 2.0, 2.0, 10.0, 0.5, window=3)
+    for pose in poses:
+        small.record(ids, project(pose, K, X)[0], np.ones(50, bool), pose, np.eye(6))
+    assert len(small.recent) == 3

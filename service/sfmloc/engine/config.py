@@ -634,6 +634,10 @@ class EngineConf(StrictModel):
     odometry_noise_px: float = Field(1.0, gt=0.0)
     # session points among the pose's inliers, at least
     odometry_min_points: int = Field(20, ge=6)
+    # the published frames kept for triangulation while the map poses every frame (their
+    # tracks' first rays are at most this many frames back), and the map-posed frames after
+    # odometry that keep the session points (then they go, and recording is lazy again)
+    odometry_window: int = Field(60, ge=2)
     # ---- out-of-core maps (engine/submaps.py; issue 14)
     # Resident sub-maps of a sub-map set, in MB, per engine worker (``sfmloc serve
     # --map-memory``): the worker's sessions on the set share its parts within it. None: sub-map

@@ -258,6 +258,8 @@ class Localizer:
             c.odometry_max_reprojection_px,
             c.odometry_max_depth_scales,
             c.odometry_noise_px,
+            c.odometry_window,
+            self._undistort,
         )
         self.reset()
 
@@ -290,6 +292,7 @@ class Localizer:
         # this frame's pose and covariance as judged (published or withheld), None without one
         self.judged: tuple[PoseEstimate, np.ndarray] | None = None
         self._odo_map_inliers = 0  # map inliers of the last odometry pose
+        self._odo_outliers = np.zeros(0, np.int64)  # its table rows of map-match outliers
 
     def swap_bundle(
         self, bundle: MapBundle, point_rows: Callable[[np.ndarray], np.ndarray]
@@ -392,6 +395,7 @@ class Localizer:
             if vo is not None and withheld(vo[1].position_sd, vo[0].num_inliers, c) is None:
                 est, odo_cert = vo
                 matching = Matching.ODOMETRY
+                _unmatch(table, self._odo_outliers)
                 back = self._map_again(kps, image, est, table)
                 if back is not None:  # a map pose again: judged as any below
                     table, est, _ = back
@@ -504,6 +508,7 @@ class Localizer:
                 timer.lap("pose")
                 if vo is not None and vo[1].position_sd < cert.position_sd:
                     est, cert = vo
+                    _unmatch(tracked_table, self._odo_outliers)
                     table, relocalized, matching, message = (
                         tracked_table,
                         False,
@@ -1046,10 +1051,12 @@ class Localizer:
         relative fit's (pixel noise, each point's own triangulation or map uncertainty) plus
         the anchor frames' carried rigidly to this camera (``SessionPoints``). Not verified
         (it is not the map's pose). None without ``odometry_min_points`` session inliers or
-        a plausible pose. Outliers among the map matches lose their match."""
+        a plausible pose. The map matches it finds outliers are ``_odo_outliers`` (they lose
+        their match when the pose is adopted)."""
         c = self.conf
         if pred.cam_from_world is None:
             return None
+        self.session.activate()
         sm = self.session.matches(table.track_id)
         if len(sm.rows) < c.odometry_min_points:
             return None
@@ -1094,15 +1101,15 @@ class Localizer:
             c.refine_loss_scale_px,
         )
         sd = position_sd(cov) / self.bundle.scene_scale
-        _unmatch(table, mrows[~inl[ns:]])
         est.inlier_points = None
         self._odo_map_inliers = len(m_in)
+        self._odo_outliers = mrows[~inl[ns:]]
         return est, Certainty(cov, sd, False, sd)
 
     def _odometry_ready(self) -> bool:
         """Whether a frame may be posed by odometry: on, with session points, after a
         published pose."""
-        return self.conf.odometry and len(self.session) > 0 and self.motion_published
+        return self.conf.odometry and self.session.ready() and self.motion_published
 
     def _map_again(
         self, kps: Keypoints, image: _FrameImage, odo: PoseEstimate, tracked: TrackTable
@@ -1146,14 +1153,14 @@ class Localizer:
         adds its unmatched tracks' rays and triangulates; a LOST frame drops them (the next
         published frame starts over); an odometry or unverified pose leaves them."""
         if status is Status.LOST or est is None or cert is None:
-            if len(self.session) or len(self.session.obs_id):
+            if self.session.active or self.session.recent:
                 self.session.reset()
             return
         if status is Status.UNVERIFIED:
             return
-        self.session.observe(
+        self.session.record(
             table.track_id,
-            self._undistort(table.xy),
+            table.xy,
             table.point < 0,
             est.cam_from_world,
             cert.covariance,

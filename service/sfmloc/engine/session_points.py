@@ -22,6 +22,8 @@ Plain numpy; no state beyond the session's tracks.
 
 from __future__ import annotations
 
+from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -98,6 +100,8 @@ class SessionPoints:
         max_reprojection_px: float,
         max_depth_scales: float,
         noise_px: float,
+        window: int = 60,
+        undistort: Callable[[np.ndarray], np.ndarray] | None = None,
     ) -> None:
         self.K = np.asarray(K, np.float64)
         self.Kinv = np.linalg.inv(self.K)
@@ -107,9 +111,20 @@ class SessionPoints:
         self.max_reprojection_px = float(max_reprojection_px)
         self.max_depth = float(max_depth_scales) * self.scene_scale
         self.noise_px = float(noise_px)
+        self.window = int(window)
+        self.undistort = undistort
         self.reset()
 
     def reset(self) -> None:
+        # Lazy: while the map poses every frame, a published frame only appends its track ids,
+        # positions and pose here (references, no work: the incremental triangulation cost
+        # 0.62 ms of redkitchen's 10.4 ms a frame); the first frame that needs odometry
+        # replays them (``activate``), and from then on ``record`` triangulates as it goes.
+        self.recent: deque[tuple[np.ndarray, np.ndarray, np.ndarray, Rigid3d, np.ndarray]] = deque(
+            maxlen=self.window
+        )
+        self.active = False
+        self.idle = 0  # map-posed frames recorded since odometry last posed one
         # first observation of each unmatched track: centre, unit ray (world), frame
         self.obs_id = np.zeros(0, np.int64)  # sorted
         self.obs_c = np.zeros((0, 3))
@@ -125,6 +140,47 @@ class SessionPoints:
         # anchor frames: number -> (centre, 6x6 covariance, centre sd)
         self.frames: dict[int, tuple[np.ndarray, np.ndarray, float]] = {}
         self.frame_no = 0
+
+    def ready(self) -> bool:
+        """Whether odometry may have points: recorded frames or points."""
+        return len(self.recent) > 1 or len(self.pt_id) > 0
+
+    def record(
+        self,
+        track_id: np.ndarray,
+        xy: np.ndarray,
+        unmatched: np.ndarray,
+        pose: Rigid3d,
+        cov: np.ndarray,
+        odometry: bool = False,
+    ) -> None:
+        """A published frame (``observe``'s arguments, ``xy`` as detected: undistorted when
+        used): kept for later while inactive; triangulated now while active. After
+        ``window`` map-posed frames without odometry the points go and recording is lazy
+        again."""
+        if not self.active:
+            self.recent.append((track_id, xy, unmatched, pose, cov))
+            return
+        self.idle = 0 if odometry else self.idle + 1
+        if self.idle > self.window:
+            self.reset()
+            self.recent.append((track_id, xy, unmatched, pose, cov))
+            return
+        self.observe(track_id, self._undistorted(xy), unmatched, pose, cov, odometry)
+
+    def activate(self) -> None:
+        """Triangulate the recorded frames (in order, as ``observe`` would have as they came)
+        and triangulate each published frame from now on."""
+        if self.active:
+            return
+        for track_id, xy, unmatched, pose, cov in self.recent:
+            self.observe(track_id, self._undistorted(xy), unmatched, pose, cov)
+        self.recent.clear()
+        self.active = True
+        self.idle = 0
+
+    def _undistorted(self, xy: np.ndarray) -> np.ndarray:
+        return xy if self.undistort is None else self.undistort(xy)
 
     def __len__(self) -> int:
         return len(self.pt_id)
