@@ -4,6 +4,8 @@ the tracker's own tracks in posed frames, and the honest covariance of a pose re
 
 from __future__ import annotations
 
+import gc
+import weakref
 from pathlib import Path
 
 import numpy as np
@@ -213,3 +215,19 @@ def test_recorded_frames_triangulate_as_observed_ones_when_odometry_needs_them()
     for pose in poses:
         small.record(ids, project(pose, K, X)[0], np.ones(50, bool), pose, np.eye(6))
     assert len(small.recent) == 3
+
+
+def test_a_dropped_localizer_frees_its_bundle_without_the_cyclic_gc(bundle, cam):
+    """A session's localizer holds no reference cycle: dropped (a map replaced under a
+    session), it and its bundle go at once, so the replaced map's index is unmapped (the
+    server test of a replacement under load caught a cycle through the session points'
+    undistort function that kept the old mapping for 30 s and more)."""
+    gc.collect()
+    gc.disable()
+    try:
+        loc = Localizer(bundle, cam, EngineConf(odometry=True))
+        gone = weakref.ref(loc)
+        del loc
+        assert gone() is None
+    finally:
+        gc.enable()

@@ -259,7 +259,10 @@ class Localizer:
             c.odometry_max_depth_scales,
             c.odometry_noise_px,
             c.odometry_window,
-            self._undistort,
+            # the camera's own function, not ``self._undistort``: a bound method would make a
+            # reference cycle (localizer -> session -> localizer) that keeps a replaced map's
+            # bundle, and its mapped index, alive until the cyclic GC happens to run
+            self.camera.undistort_points if self._distorted else None,
         )
         self.reset()
 
