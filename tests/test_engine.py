@@ -447,7 +447,7 @@ def test_guided_search_scans_scope_nprobe_lists_only_on_frames_holding_enough_ma
     from sfmloc.engine.scope import median_track_length
 
     track = median_track_length(bundle)
-    conf = EngineConf(scope_nprobe_min_track=track)
+    conf = EngineConf(scope_nprobe=8, scope_nprobe_min_track=track)  # off by default (orbit)
     assert 0 < conf.scope_nprobe < conf.nprobe and track >= 2
     gray, gt, c, desc, uv, seen = _guided_inputs(world, bundle, cam, conf)
     fewer = guided_matching(desc, c.xy, bundle, seen, gt, cam.K, conf, nprobe=conf.scope_nprobe)
@@ -458,7 +458,7 @@ def test_guided_search_scans_scope_nprobe_lists_only_on_frames_holding_enough_ma
 
     loc = Localizer(bundle, cam, conf)
     assert loc.scope_nprobe == conf.scope_nprobe
-    thinner = Localizer(bundle, cam, EngineConf(scope_nprobe_min_track=track + 0.5))
+    thinner = Localizer(bundle, cam, EngineConf(scope_nprobe=8, scope_nprobe_min_track=track + 0.5))
     off = Localizer(bundle, cam, EngineConf(scope_nprobe_min_track=track, scope_nprobe=0))
     assert thinner.scope_nprobe is None and off.scope_nprobe is None
     image = localizer_mod._FrameImage(gray, loc.extractor)
@@ -1491,7 +1491,9 @@ def test_guided_batches_spread_only_where_the_map_answers_readily(world, bundle,
     assert loc.guided_yield == 0.0 and len(loc._pending_batch(many)) == conf.batch_max
     # spreading off, or a map whose median point is seen by fewer images: full batches
     off = Localizer(bundle, cam, EngineConf(batch_spread=0, batch_spread_min_track=track))
-    thinner = Localizer(bundle, cam, EngineConf(batch_spread_min_track=track + 0.5))
+    thinner = Localizer(
+        bundle, cam, EngineConf(batch_spread=40, batch_spread_min_track=track + 0.5)
+    )
     for other in (off, thinner):
         other.guided_yield = 1.0
         assert len(other._pending_batch(many)) == conf.batch_max
