@@ -49,14 +49,7 @@ def covariances(
     if est.inlier_xy is None or est.inlier_X is None:
         inf = np.full((6, 6), np.inf)
         return inf, inf
-    extra = None
-    if conf.map_noise_px > 0:
-        z = est.inlier_X @ est.cam_from_world.rotation[2] + est.cam_from_world.translation[2]
-        pu = PointUncertainty.for_bundle(bundle)
-        if est.inlier_points is not None:
-            extra = pu.sigma_px_of(est.inlier_points, z, conf.map_noise_px)
-        else:
-            extra = pu.sigma_px(est.inlier_X, z, conf.map_noise_px)
+    extra = _point_sigma_px(est, bundle, conf)
     # The pixel noise is measured with the final refinement's own Cauchy weights
     # (``refine_loss_scale_px``), as the pose was estimated.
     # the leave-one-out is only asked whether it would withhold the pose (``withheld``)
@@ -70,6 +63,66 @@ def covariances(
         loss_scale=conf.refine_loss_scale_px,
         leave_one_out=conf.covariance_leave_one_out,
         loo_sd_over=limit * bundle.scene_scale,
+    )
+
+
+def _point_sigma_px(est: PoseEstimate, bundle: MapBundle, conf: EngineConf) -> np.ndarray | None:
+    """The inliers' map points' own error in pixels (``point_uncertainty``), None when off."""
+    if conf.map_noise_px <= 0 or est.inlier_X is None:
+        return None
+    z = est.inlier_X @ est.cam_from_world.rotation[2] + est.cam_from_world.translation[2]
+    pu = PointUncertainty.for_bundle(bundle)
+    if est.inlier_points is not None:
+        return pu.sigma_px_of(est.inlier_points, z, conf.map_noise_px)
+    return pu.sigma_px(est.inlier_X, z, conf.map_noise_px)
+
+
+def position_sd_without(
+    est: PoseEstimate, K: np.ndarray, bundle: MapBundle, conf: EngineConf, k: int
+) -> float:
+    """The centre sd (scene scales, worst direction) without the ``k`` map points whose removal
+    widens it most (greedily: the most influential, then the most influential of the rest, ...).
+    A map point is one piece of evidence: its matches (two keypoints a pixel apart, one per
+    detection scale, can both match it) are counted once. What the pose would be worth if ``k``
+    of its matches were wrong (``EngineConf.relocalize_leave_out_sd``)."""
+    if est.inlier_xy is None or est.inlier_X is None:
+        return float("inf")
+    _, first = np.unique(est.inlier_X, axis=0, return_index=True)
+    keep = np.sort(first)
+    extra = _point_sigma_px(est, bundle, conf)
+    for _ in range(k):
+        removed: list[int] = []
+        _, loo = pose_covariances(
+            est.cam_from_world,
+            K,
+            est.inlier_xy[keep],
+            est.inlier_X[keep],
+            point_sigma_px=None if extra is None else extra[keep],
+            loss_scale=conf.refine_loss_scale_px,
+            removed=removed,
+        )
+        if not removed:  # too few points, or one the pose cannot do without
+            return float("inf")
+        keep = np.delete(keep, removed[0])
+    return position_sd(loo) / bundle.scene_scale
+
+
+def rests_on_few(
+    est: PoseEstimate, K: np.ndarray, bundle: MapBundle, conf: EngineConf, verified: bool
+) -> str | None:
+    """Why a single-image pose is withheld for resting on a few matches (its centre sd without
+    its ``relocalize_leave_out`` most influential map points, ``relocalize_leave_out_verified``
+    for a pose passing the strict test, over ``relocalize_leave_out_sd``), or None."""
+    k = conf.relocalize_leave_out_verified if verified else conf.relocalize_leave_out
+    if conf.relocalize_leave_out_sd <= 0 or k <= 0:
+        return None
+    sd = position_sd_without(est, K, bundle, conf, k)
+    if sd <= conf.relocalize_leave_out_sd:
+        return None
+    return (
+        f"pose withheld: it rests on {k} matches (centre sd {sd * 100:.1f}% of the scene "
+        f"scale without them, limit {conf.relocalize_leave_out_sd * 100:.1f}%), "
+        f"{est.num_inliers} inliers"
     )
 
 

@@ -90,6 +90,7 @@ def pose_covariances(
     loss_scale: float = 0.0,
     leave_one_out: bool = True,
     loo_sd_over: float = 0.0,
+    removed: list[int] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """6x6 covariance of a refined pose (order ``COVARIANCE_ORDER``) from its inlier
     correspondences (undistorted pixels ``xy`` (N,2), world points ``X`` (N,3)): the
@@ -108,7 +109,8 @@ def pose_covariances(
     matches on a far wall (centre sd 8.6% of the scene scale) and one wrong on a near point:
     sd 0.6% with it, the pose 5.1% off. ``loo_sd_over`` > 0 (map units): a caller that only
     asks whether that covariance's centre sd is over it may get an upper bound instead, when
-    the bound is not over it (``_without_most_influential``'s ``sd_over``)."""
+    the bound is not over it (``_without_most_influential``'s ``sd_over``). ``removed``: the
+    index of the correspondence left out is appended to it (when one was)."""
     n = len(xy)
     inf = np.full((6, 6), np.inf)
     if n < 4:
@@ -168,7 +170,7 @@ def pose_covariances(
     if not leave_one_out:
         cov = to_world(cov)
         return cov, cov
-    loo = _without_most_influential(cov, B.T @ Cu, B.T @ Cv, w, loo_sd_over)
+    loo = _without_most_influential(cov, B.T @ Cu, B.T @ Cv, w, loo_sd_over, removed)
     return to_world(cov), (to_world(loo) if np.all(np.isfinite(loo)) else loo)
 
 
@@ -186,7 +188,12 @@ def _cov_map(fx: float, fy: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def _without_most_influential(
-    cov: np.ndarray, Ju: np.ndarray, Jv: np.ndarray, w: np.ndarray, sd_over: float = 0.0
+    cov: np.ndarray,
+    Ju: np.ndarray,
+    Jv: np.ndarray,
+    w: np.ndarray,
+    sd_over: float = 0.0,
+    removed: list[int] | None = None,
 ) -> np.ndarray:
     """The covariance ``cov`` (of the information sum of the Jacobian rows ``Ju``, ``Jv``
     (n, 6), a correspondence's u and v rows, weighted by its ``w``) without the correspondence
@@ -249,6 +256,8 @@ def _without_most_influential(
             )
         )
     )
+    if removed is not None:
+        removed.append(worst)
     A = np.stack([Au[worst], Av[worst]])
     Sinv = np.array([[i00[worst], i01[worst]], [i01[worst], i11[worst]]])
     out = cov + A.T @ Sinv @ A

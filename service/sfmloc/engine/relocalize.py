@@ -15,7 +15,7 @@ from ..features.daisy import DaisyExtractor
 from ..features.harris import detect_corners
 from ..map.bundle import MapBundle
 from ..transforms import Rigid3d
-from .certainty import certainty, withheld
+from .certainty import certainty, rests_on_few, withheld
 from .config import EngineConf
 from .distinct import inlier_spread, place_points, second_place
 from .frame import to_gray, to_working, working_scale
@@ -470,6 +470,9 @@ def _relocalize(
         timer.lap("pose")
         result.inliers = est.num_inliers
         held = withheld(cert.position_sd, est.num_inliers, conf)
+        if held is None:
+            # a single image has no next frame to check the matches its certainty rests on
+            held = rests_on_few(est, camera.K, bundle, conf, cert.verified)
         if held is not None:
             result.message = held
         else:
