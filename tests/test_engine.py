@@ -1412,24 +1412,29 @@ def test_recovery_around_the_prediction_with_either_search(world, bundle, cam):
         assert dp < 0.02 * bundle.scene_scale and dr < 1.0, (search, dp, dr)
 
 
+def _pending_table(conf: EngineConf, matched: int, pending: int) -> TrackTable:
+    """A track table of ``matched`` rows with a 3D point and ``pending`` rows waiting for
+    guided matching (the lazy-wait and spread-batch tests)."""
+    t = TrackTable.empty(conf.max_hypotheses)
+    n = matched + pending
+    t.append(np.arange(n), np.zeros((n, 2)), np.zeros((n, 4), np.uint64))
+    t.age[:] = 3
+    t.point[:matched] = np.arange(matched)
+    t.pending[:] = False
+    t.pending[matched:] = True
+    return t
+
+
 def test_a_handful_of_pending_keypoints_waits_while_the_frame_has_matches(bundle, cam):
     """MATCHES-PENDING, lazily: fewer than ``guided_min_pending`` pending keypoints wait for
     more while the table holds at least ``refill_3d`` matches; with fewer matches every
     pending keypoint is tried at once; a full batch is capped at ``batch_max``."""
-    from sfmloc.engine.track_table import TrackTable
 
     conf = EngineConf()
     loc = Localizer(bundle, cam, conf)
 
     def table(matched: int, pending: int) -> TrackTable:
-        t = TrackTable.empty(conf.max_hypotheses)
-        n = matched + pending
-        t.append(np.arange(n), np.zeros((n, 2)), np.zeros((n, 4), np.uint64))
-        t.age[:] = 3
-        t.point[:matched] = np.arange(matched)
-        t.pending[:] = False
-        t.pending[matched:] = True
-        return t
+        return _pending_table(conf, matched, pending)
 
     few = conf.guided_min_pending - 1
     assert conf.guided_min_pending > 1 and conf.refill_3d > 1
@@ -1450,21 +1455,13 @@ def test_guided_batches_spread_only_where_the_map_answers_readily(world, bundle,
     ``batch_spread_min_track`` images, it takes ``batch_max`` at once. The lazy wait is
     unchanged."""
     from sfmloc.engine.scope import median_track_length
-    from sfmloc.engine.track_table import TrackTable
 
     track = median_track_length(bundle)
     conf = EngineConf(batch_spread=40, batch_spread_min_track=track)
     assert 0 < conf.batch_spread < conf.batch_max and 0 < conf.spread_min_yield < 1
 
     def table(matched: int, pending: int) -> TrackTable:
-        t = TrackTable.empty(conf.max_hypotheses)
-        n = matched + pending
-        t.append(np.arange(n), np.zeros((n, 2)), np.zeros((n, 4), np.uint64))
-        t.age[:] = 3
-        t.point[:matched] = np.arange(matched)
-        t.pending[:] = False
-        t.pending[matched:] = True
-        return t
+        return _pending_table(conf, matched, pending)
 
     loc = Localizer(bundle, cam, conf)
     assert loc.guided_yield == 0.0  # nothing known yet: full batches
