@@ -396,13 +396,8 @@ class Localizer:
             vo = self._odometry(table, pred)
             timer.lap("pose")
             if vo is not None and withheld(vo[1].position_sd, vo[0].num_inliers, c) is None:
-                est, odo_cert = vo
-                matching = Matching.ODOMETRY
-                _unmatch(table, self._odo_outliers)
-                back = self._map_again(kps, image, est, table)
-                if back is not None:  # a map pose again: judged as any below
-                    table, est, _ = back
-                    odo_cert, matching = None, Matching.GUIDED
+                table, est, back, matching = self._adopt_odometry(kps, image, vo[0], table)
+                odo_cert = vo[1] if back is None else None  # a map pose again: judged below
                 timer.lap("match")
         # (not around a prediction the frame contradicts: global matching decides)
         can_recover = c.prior_recovery and len(self.scope_points) > 0 and not ambiguous
@@ -510,18 +505,11 @@ class Localizer:
                 vo = self._odometry(tracked_table, pred)
                 timer.lap("pose")
                 if vo is not None and vo[1].position_sd < cert.position_sd:
-                    est, cert = vo
-                    _unmatch(tracked_table, self._odo_outliers)
-                    table, relocalized, matching, message = (
-                        tracked_table,
-                        False,
-                        Matching.ODOMETRY,
-                        "",
+                    table, est, back, matching = self._adopt_odometry(
+                        kps, image, vo[0], tracked_table
                     )
-                    back = self._map_again(kps, image, est, tracked_table)
-                    if back is not None:
-                        table, est, cert = back
-                        matching = Matching.GUIDED
+                    cert = vo[1] if back is None else back
+                    relocalized, message = False, ""
                     timer.lap("match")
 
         if est is not None and cert is not None and not relocalized and c.projected_refine:
@@ -1108,6 +1096,20 @@ class Localizer:
         self._odo_map_inliers = len(m_in)
         self._odo_outliers = mrows[~inl[ns:]]
         return est, Certainty(cov, sd, False, sd)
+
+    def _adopt_odometry(
+        self, kps: Keypoints, image: _FrameImage, odo: PoseEstimate, tracked: TrackTable
+    ) -> tuple[TrackTable, PoseEstimate, Certainty | None, Matching]:
+        """An odometry pose taken for the frame: the map matches it found outliers lose their
+        match in ``tracked`` (the frame's tracked table), then the whole frame is re-matched
+        around it (``_map_again``). Returns the table, the pose, the map pose's certainty when
+        back on the map (None: still the odometry pose) and how the matches were found."""
+        _unmatch(tracked, self._odo_outliers)
+        back = self._map_again(kps, image, odo, tracked)
+        if back is None:
+            return tracked, odo, None, Matching.ODOMETRY
+        table, est, cert = back
+        return table, est, cert, Matching.GUIDED
 
     def _odometry_ready(self) -> bool:
         """Whether a frame may be posed by odometry: on, with session points, after a
