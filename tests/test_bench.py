@@ -421,6 +421,67 @@ def test_throughput_rows_show_the_worst_client_and_the_relocalized_share_of_pose
     assert cells[-4:] == ["5.0", "30.0%", "25.0%", "10"]
 
 
+def test_throughput_rows_show_the_engines_cpu_by_the_gap_since_the_previous_pose():
+    """Poses are bucketed by the frames since their client's previous pose; each bucket's
+    share and engine CPU per pose are over all clients' poses (weighted), and the report
+    shows them; a run without gap records (older results) has no gap rows."""
+    from sfmloc.bench.throughput import aggregate
+    from sfmloc.bench.transport import GAP_BUCKETS, gap_bucket
+
+    assert [gap_bucket(g) for g in (1, 2, 3, 4, 7, 8, 300)] == [
+        "1",
+        "2",
+        "3",
+        "4-7",
+        "4-7",
+        "8+",
+        "8+",
+    ]
+
+    def client(gaps: dict[str, list[float]]) -> dict:
+        n = int(sum(v[0] for v in gaps.values()))
+        return {
+            "sent": 300,
+            "received": n,
+            "latency_ms_p50": 20.0,
+            "latency_ms_p99": 40.0,
+            "engine_ms_mean": 12.0,
+            "errors": 0,
+            "statuses": {"TRACKING": n},
+            "gaps": gaps,
+        }
+
+    row = aggregate(
+        [
+            client({"1": [60, 60 * 8.0], "2": [20, 20 * 9.0]}),
+            client({"1": [10, 10 * 10.0], "4-7": [5, 5 * 20.0], "8+": [5, 5 * 60.0]}),
+        ],
+        30.0,
+    )
+    assert row["gaps"]["1"] == {"poses": 70, "pct": 70.0, "engine_cpu_ms": (480 + 100) / 70}
+    assert row["gaps"]["3"]["poses"] == 0 and row["gaps"]["3"]["pct"] == 0.0
+    assert list(row["gaps"]) == list(GAP_BUCKETS)
+    assert row["gap_4plus_pct"] == 10.0  # 10 of the 100 poses
+    assert row["engine_cpu_ms_gap_1_3"] == pytest.approx((480 + 180 + 100) / 90)
+    assert row["engine_cpu_ms_gap_4plus"] == pytest.approx(40.0)
+    results = {"suites": {"throughput": {"rows": [row]}}}
+    assert report.gap_rows(results) == [
+        [
+            "2",
+            "70.0% (8.3)",
+            "20.0% (9.0)",
+            "0.0% (n/a)",
+            "5.0% (20.0)",
+            "5.0% (60.0)",
+            "8.44",
+            "40.00",
+        ]
+    ]
+    old = aggregate([{k: v for k, v in client({"1": [3, 30.0]}).items() if k != "gaps"}], 30.0)
+    assert "gaps" not in old
+    assert report.gap_rows({"suites": {"throughput": {"rows": [old]}}}) == []
+
+
 def test_throughput_rows_show_the_servers_cpu_beyond_the_engines():
     """The engine's CPU per pose is the mean over every pose delivered (weighted by the
     clients' poses, not a mean of the clients' means), and the server's CPU beyond it is its

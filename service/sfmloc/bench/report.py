@@ -193,6 +193,37 @@ def throughput_rows(results: dict) -> list[list[str]]:
     ]
 
 
+GAP_HEADER = [
+    "clients",
+    "after 1 frame",
+    "2",
+    "3",
+    "4-7",
+    "8+",
+    "engine CPU per pose after 1-3 (ms)",
+    "after 4+ (ms)",
+]
+
+
+def gap_rows(results: dict) -> list[list[str]]:
+    """Per throughput row: the share of poses (and the engine's CPU per pose, ms) by the frames
+    since their client's previous pose; rows of older runs (no gap records) are left out."""
+    t = results.get("suites", {}).get("throughput")
+    if not t:
+        return []
+    out = []
+    for r in t["rows"]:
+        g = r.get("gaps")
+        if not g:
+            continue
+        out.append(
+            [str(r["clients"])]
+            + [f"{f1(v['pct'])}% ({f1(v['engine_cpu_ms'])})" for v in g.values()]
+            + [f1(r["engine_cpu_ms_gap_1_3"], 2), f1(r["engine_cpu_ms_gap_4plus"], 2)]
+        )
+    return out
+
+
 def _server_cpu_ms(row: dict) -> float:
     per = row.get("cpu_ms_per_pose")
     return per["server"] + per["workers"] if per else float("nan")
@@ -321,6 +352,13 @@ def summary_text(results: dict) -> str:
             text_table(THROUGHPUT_HEADER, throughput_rows(results)),
             "",
         ]
+        if gap_rows(results):
+            parts += [
+                "Throughput: poses by frames since the client's previous pose, % (engine CPU "
+                "ms per pose)",
+                text_table(GAP_HEADER, gap_rows(results)),
+                "",
+            ]
     m = results.get("suites", {}).get("map")
     if m:
         parts.append("map " + map_line(m))
@@ -576,6 +614,18 @@ def write_report(results: dict, out: Path) -> Path:
             "CPU).",
             "",
         ]
+        if gap_rows(results):
+            L += [
+                "Poses by the frames since their client's previous pose (1: none dropped "
+                "between), % of the poses (the engine's CPU per pose, ms). Under overload the "
+                "server keeps only each client's newest frame, so the gaps widen with the "
+                "client count; a pose after 4 or more frames (133 ms at 30 Hz) has more motion "
+                "to track over and costs the engine more: this is why the CPU per pose rises "
+                "past the server's capacity.",
+                "",
+                markdown_table(GAP_HEADER, gap_rows(results)),
+                "",
+            ]
         if memory_rows(results):
             L += [
                 "Resident memory of the server and its workers (the map loaded, one session per "

@@ -88,6 +88,42 @@ def aggregate(clients: list[dict[str, Any]], rate_hz: float) -> dict[str, Any]:
         ),
         "errors": int(sum(c["errors"] for c in clients)),
         "error_codes": _sum(clients, "error_codes"),
+        **gap_summary(clients),
+    }
+
+
+def gap_summary(clients: list[dict[str, Any]]) -> dict[str, Any]:
+    """Poses by the frames since their client's previous pose (``transport.GAP_BUCKETS``):
+    share of the poses and the engine's CPU per pose in each bucket, and the share of poses
+    that came 4 or more frames after the previous one. Under overload latest-frame-only
+    widens the gaps, and a pose after a wide gap costs the engine about twice one after 1-3
+    frames (more motion to track over): why the CPU per pose rises with the client count.
+    Empty for clients without gap records (an older run)."""
+    from .transport import GAP_BUCKETS
+
+    if not any("gaps" in c for c in clients):
+        return {}
+    poses = {b: 0 for b in GAP_BUCKETS}
+    cpu = {b: 0.0 for b in GAP_BUCKETS}
+    for c in clients:
+        for b, (n, ms) in c.get("gaps", {}).items():
+            poses[b] += int(n)
+            cpu[b] += float(ms)
+    total = sum(poses.values())
+    wide = poses["4-7"] + poses["8+"]
+    return {
+        "gaps": {
+            b: {
+                "poses": poses[b],
+                "pct": 100.0 * poses[b] / total if total else float("nan"),
+                "engine_cpu_ms": _ratio(cpu[b], poses[b]),
+            }
+            for b in GAP_BUCKETS
+        },
+        "gap_4plus_pct": 100.0 * wide / total if total else float("nan"),
+        # the engine's CPU per pose after 1-3 frames and after 4 or more
+        "engine_cpu_ms_gap_1_3": _ratio(cpu["1"] + cpu["2"] + cpu["3"], total - wide),
+        "engine_cpu_ms_gap_4plus": _ratio(cpu["4-7"] + cpu["8+"], wide),
     }
 
 

@@ -348,6 +348,12 @@ def bench_clients(
             # warm-up barrier, so every session relocalizes at once); these show what follows.
             settled: dict[str, int] = {}
             codes: dict[str, int] = {}  # error answers by code (DEADLINE_EXCEEDED, ...)
+            # Poses by the frames since the client's previous pose (1: none dropped between):
+            # bucket -> [poses, engine CPU ms summed]. The engine's CPU per pose grows with the
+            # gap (motion since the last pose), so this says why a loaded server's CPU per pose
+            # rises (throughput.gap_rows).
+            gaps: dict[str, list[float]] = {}
+            prev = [0]  # seq of the previous pose (the warm-up frame is seq 0)
             lock = threading.Lock()
 
             def on_pose(p: Any) -> None:
@@ -362,6 +368,11 @@ def bench_clients(
                         statuses[p.status] = statuses.get(p.status, 0) + 1
                         if p.seq is not None and p.seq > rate:
                             settled[p.status] = settled.get(p.status, 0) + 1
+                        if p.seq is not None and p.seq > prev[0]:
+                            g = gaps.setdefault(gap_bucket(p.seq - prev[0]), [0, 0.0])
+                            g[0] += 1
+                            g[1] += p.engine_cpu_ms
+                            prev[0] = p.seq
                     if p.seq in sent_at:
                         lat.append((now - sent_at[p.seq]) * 1e3)
                         server_lat.append(p.latency_ms)
@@ -383,6 +394,8 @@ def bench_clients(
                     last.update(received=0, dropped=0, errors=0)
                     statuses.clear()
                     codes.clear()
+                    gaps.clear()
+                    prev[0] = 0
                 base_dropped = poses.last.dropped if poses.last else 0
                 barrier.wait()
                 t_start = time.perf_counter()
@@ -420,6 +433,7 @@ def bench_clients(
                     "localized": sum(1 for _ in engine),
                     "statuses": dict(statuses),
                     "statuses_after_1s": dict(settled),
+                    "gaps": {k: list(v) for k, v in gaps.items()},
                 }
 
         threads = [threading.Thread(target=client, args=(i,)) for i in range(clients)]
@@ -450,6 +464,17 @@ def bench_clients(
         "cpu_seconds": cpu_s,
         "relocalize": reloc,
     }
+
+
+# Buckets of the frames between a client's two poses (1: consecutive frames): the engine's CPU
+# per pose is flat up to 3 frames at 30 Hz and about doubles beyond (more motion: tracks lost,
+# guided matching), so these are the buckets the throughput rows report.
+GAP_BUCKETS = ("1", "2", "3", "4-7", "8+")
+
+
+def gap_bucket(frames: int) -> str:
+    """The ``GAP_BUCKETS`` bucket of a pose that came ``frames`` frames after the previous."""
+    return str(frames) if frames <= 3 else ("4-7" if frames <= 7 else "8+")
 
 
 # ============================================================================ memory
