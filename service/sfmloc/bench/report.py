@@ -619,8 +619,9 @@ def write_report(results: dict, out: Path) -> Path:
                 "Poses by the frames since their client's previous pose (1: none dropped "
                 "between), % of the poses (the engine's CPU per pose, ms). Under overload the "
                 "server keeps only each client's newest frame, so the gaps widen with the "
-                "client count; a pose after 4 or more frames (133 ms at 30 Hz) has more motion "
-                "to track over and costs the engine more: this is why the CPU per pose rises "
+                "client count, and a pose after a wide gap has more motion to track over and "
+                "costs the engine more (one Localizer fed every k-th redkitchen frame: flat up "
+                "to k = 4, x1.35 at 5-6, x2 at 8, x5 at 12): this is why the CPU per pose rises "
                 "past the server's capacity.",
                 "",
                 markdown_table(GAP_HEADER, gap_rows(results)),

@@ -96,8 +96,9 @@ def gap_summary(clients: list[dict[str, Any]]) -> dict[str, Any]:
     """Poses by the frames since their client's previous pose (``transport.GAP_BUCKETS``):
     share of the poses and the engine's CPU per pose in each bucket, and the share of poses
     that came 4 or more frames after the previous one. Under overload latest-frame-only
-    widens the gaps, and a pose after a wide gap costs the engine about twice one after 1-3
-    frames (more motion to track over): why the CPU per pose rises with the client count.
+    widens the gaps, and past 4 frames a pose costs the engine more (x1.35 at 5-6 frames, x2
+    at 8, x5 at 12: more motion to track over): why the CPU per pose rises with the client
+    count.
     Empty for clients without gap records (an older run)."""
     from .transport import GAP_BUCKETS
 

@@ -466,9 +466,10 @@ def bench_clients(
     }
 
 
-# Buckets of the frames between a client's two poses (1: consecutive frames): the engine's CPU
-# per pose is flat up to 3 frames at 30 Hz and about doubles beyond (more motion: tracks lost,
-# guided matching), so these are the buckets the throughput rows report.
+# Buckets of the frames between a client's two poses (1: consecutive frames), which the
+# throughput rows report. The engine's CPU per frame against the gap (one Localizer fed every
+# k-th redkitchen frame, nice 19, load ~11): flat up to k = 4 (10-11.6 ms), x1.35 at 5-6, x2.1
+# at 8, x5 at 12 (more motion to bridge: guided matching, relocalizations).
 GAP_BUCKETS = ("1", "2", "3", "4-7", "8+")
 
 
