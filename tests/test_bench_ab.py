@@ -79,6 +79,24 @@ def test_ab_finds_identical_and_different_variants(world, tmp_path, capsys):
     assert "stages (CPU ms/frame): detect" in text
 
 
+def test_ab_compares_each_variant_s_repetitions_with_its_first(world, tmp_path, capsys):
+    """With two repetitions each variant's second run is compared with its first (another
+    process, another hash seed): the engine is repeatable, so an A/A run is identical within
+    and across variants."""
+    synth = world.root / "synth"
+    out = tmp_path / "ab.json"
+    args = [str(world.maps_dir / "room"), str(synth / "video")]
+    args += ["--camera", str(synth / "camera.json"), "--max-frames", "10", "--reps", "2"]
+    args += ["--variant", f"a={TREE}", "--variant", f"b={TREE}", "--json", str(out)]
+    assert ab.main(args) == 0
+    doc = json.loads(out.read_text())["variants"]
+    for name in ("a", "b"):
+        assert doc[name]["repeats"] == {"identical_poses": 1.0, "max_centre_distance": 0.0}
+    assert doc["b"]["vs_base"]["identical_poses"] == 1.0
+    text = capsys.readouterr().out
+    assert text.count("repeats against its first run: identical poses 100.0%") == 2
+
+
 def test_ab_replays_a_variant_s_own_map(world, tmp_path, capsys):
     """A variant's --map is the bundle it replays: a folder whose arrays are missing fails
     that variant's replay, named."""

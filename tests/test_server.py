@@ -125,6 +125,42 @@ def test_two_clients_on_two_maps_at_once(world, z):
         assert np.median(position_errors(world, poses)) < 0.05
 
 
+def test_sessions_sharing_workers_get_the_poses_of_a_session_alone(world, z):
+    """The engine is repeatable (README, Conventions): three sessions on one map streamed at
+    once, lockstep (no frame stale), on two workers (two of them share one, frame by frame),
+    get bit for bit the poses, covariances and statuses of a session streamed alone."""
+
+    def answers(poses: list) -> list:
+        return [
+            (
+                p.seq,
+                p.status,
+                p.matching,
+                p.inliers,
+                p.cam_from_world,
+                p.filtered_cam_from_world,
+                p.covariance,
+                p.message,
+            )
+            for p in poses
+        ]
+
+    alone = answers(stream_lockstep(z, "room", "alone", world, n=40))
+    assert [a[0] for a in alone] == list(range(40))
+    results: dict[str, list] = {}
+
+    def client(cid: str) -> None:
+        results[cid] = answers(stream_lockstep(z, "room", cid, world, n=40))
+
+    threads = [threading.Thread(target=client, args=(c,)) for c in ("s1", "s2", "s3")]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(180)
+    for cid in ("s1", "s2", "s3"):
+        assert results[cid] == alone, cid
+
+
 def test_latest_frame_only_intake_drops_and_counts_stale_frames(world, z, grpc_client):
     """A burst far faster than the engine: stale frames are dropped (never queued), counted,
     reported in the poses and in ListSessions, and the newest frame is always processed."""

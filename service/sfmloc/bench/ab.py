@@ -9,7 +9,10 @@ fall on both. Printed per variant: engine CPU per frame (mean, p99; process CPU 
 each stage (wall clock, as the engine's timers), the accuracy summary, and against the first
 variant: CPU and latency ratios (median over the repetitions, with their range), the share
 of frames whose pose is bit for bit the same (the trajectories' text) and the largest distance
-between their camera centres. The load average is printed before and after.
+between their camera centres. With two or more repetitions, each variant's later runs are
+compared with its first the same way ("repeats: identical poses"): the engine is repeatable
+(README, Conventions), so anything below 100% there is a fault, not noise, and a difference
+between variants is theirs. The load average is printed before and after.
 
     python -m sfmloc.bench.ab MAP FRAMES --camera 'PINHOLE 640 480 525.5 525.5 320 240' \\
         --groundtruth FRAMES/pgt_sfm_seq01.txt --max-frames 300 --reps 3 \\
@@ -190,6 +193,13 @@ def compare(variants: list[Variant]) -> dict:
             else {},
             "accuracy": _accuracy(v.runs[0]["summary"]),
         }
+        if len(v.runs) > 1:
+            # each repetition against the variant's first run: the replay's repeatability
+            again = [_same_poses(r, v.runs[0]) for r in v.runs[1:]]
+            row["repeats"] = {
+                "identical_poses": min(s for s, _ in again),
+                "max_centre_distance": max(f for _, f in again),
+            }
         if v is not base:
             both_cpu = row["cpu_recorded"] and all(r["cpu"] for r in base.runs)
             key = "ms" if both_cpu else "latency"
@@ -233,6 +243,13 @@ def format_report(result: dict, load_before: str, load_after: str, reps: int) ->
                 + ", ".join(f"{k} {v:.2f}" for k, v in r["stages_cpu_ms"].items())
             )
         lines.append(f"{'':12s} {r['accuracy']}")
+        rep = r.get("repeats")
+        if rep:
+            lines.append(
+                f"{'':12s} repeats against its first run: identical poses "
+                f"{rep['identical_poses'] * 100:.1f}% (the least of them), centres at most "
+                f"{rep['max_centre_distance']:.3g} apart"
+            )
         vb = r.get("vs_base")
         if vb:
             lo, hi = vb["mean_ratio_range"]
