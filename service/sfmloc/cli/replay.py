@@ -33,6 +33,10 @@ unless --timestamps names another source:
                                      'timestamp ...' line per frame in frame order
 The engine's motion model runs on this clock: a gap over max_frame_gap_s (1 s) between frames
 resets tracking. The summary names the clock used and counts such gaps.
+
+Repeatable: the same map, frames, timestamps, camera and config give bit-identical poses and
+covariances in every run (no wall clock or shared random state decides a pose; README,
+Conventions, "Repeatable poses").
 """
 
 
