@@ -40,6 +40,7 @@ import logging
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -48,7 +49,14 @@ from ..cameras import Camera, as_camera
 from ..features.daisy import DaisyExtractor
 from ..map.bundle import MapBundle
 from ..transforms import Rigid3d, rotation_angle_deg
-from .certainty import Certainty, certainty, position_sd, with_disagreement, withheld
+from .certainty import (
+    Certainty,
+    certainty,
+    position_sd,
+    rests_on_few,
+    with_disagreement,
+    withheld,
+)
 from .config import EngineConf
 from .frame import to_gray, to_working
 from .matching import guided_matching, search_all, verify_hypotheses
@@ -170,10 +178,12 @@ def _status(
     message: str,
     unverified: bool,
     conf: EngineConf,
+    rests_on: Callable[[], str | None] | None = None,
 ) -> tuple[Status, str, bool]:
     """The frame's status and message, and whether tracking now continues from an unverified
     relocalization (``unverified``: it did before this frame): the frames tracked from one
-    are UNVERIFIED until one passes the strict test."""
+    are UNVERIFIED until one passes the strict test. ``rests_on``: why the pose rests on a
+    few matches (``Localizer._rests_on_few``), asked of a tracked UNVERIFIED pose."""
     if est is None or cert is None:
         return Status.LOST, message or "not enough 2D-3D matches for a pose", unverified
     if relocalized:
@@ -191,6 +201,15 @@ def _status(
             f"(fewer than {conf.unverified_min_inliers})"
         )
         return Status.LOST, why, unverified
+    if unverified and not relocalized and rests_on is not None:
+        # Tracked on from an unverified (or withheld) relocalization: its tracks carry the
+        # same matches, no independent check of them (robust density-6x, a session reset
+        # every 10 frames: a withheld relocalization 50-80% of the scene scale off, followed,
+        # gathered guided matches around itself and was published UNVERIFIED 46-80% off
+        # with sd 1.4-1.8%, 13-16% without its 2 most influential points).
+        why = rests_on()
+        if why is not None:
+            return Status.LOST, why, unverified
     if unverified:
         return Status.UNVERIFIED, message, unverified
     return (Status.RELOCALIZED if relocalized else Status.TRACKING), message, unverified
@@ -493,8 +512,10 @@ class Localizer:
             timer.lap("pose")
         if est is not None and cert is not None and relocalized:
             message = self._contradiction(est, cert, pred.cam_from_world, stamp)
+            message = message or self._rests_on_few(est, cert) or ""
             if message:
-                # weak and against the motion: not adopted; the next frame relocalizes again
+                # weak and against the motion, or resting on a few matches: not adopted; the
+                # next frame relocalizes again
                 _unmatch(table, slice(None))
                 est, cert = None, None
 
@@ -532,8 +553,18 @@ class Localizer:
         # The pose and covariance the status rules judge, published or withheld (LOST): what
         # eval.calibration measures, withheld poses included.
         self.judged = (est, cert.covariance) if est is not None and cert is not None else None
+
         status, message, self.unverified = _status(
-            est, cert, relocalized, message, self.unverified, c
+            est,
+            cert,
+            relocalized,
+            message,
+            self.unverified,
+            c,
+            # (an odometry pose's certainty is its own: session points, not map points)
+            None
+            if est is None or cert is None or matching is Matching.ODOMETRY
+            else partial(self._rests_on_few, est, cert),
         )
         if est is not None:  # the motion filter now rests on this pose: published or withheld
             self.motion_published = status is not Status.LOST
@@ -1017,6 +1048,20 @@ class Localizer:
                 f"{drot:.0f} deg from the motion prediction: rejected"
             )
         return ""
+
+    def _rests_on_few(self, est: PoseEstimate, cert: Certainty) -> str | None:
+        """Why a pose the status rules would publish rests on a few matches
+        (``certainty.rests_on_few``, the single-image rule), or None when it does not
+        (``track_relocalize_leave_out``). Asked of a relocalization (not adopted when it does:
+        the frames tracked from it would keep those matches, their tracks, and be published
+        too; the next frame relocalizes) and of the frames tracked on from an unverified one
+        (withheld)."""
+        c = self.conf
+        if not c.track_relocalize_leave_out:
+            return None
+        if withheld(cert.position_sd, est.num_inliers, c) is not None:
+            return None  # withheld anyway (LOST); followed as any withheld pose
+        return rests_on_few(est, self.K, self.bundle, c, cert.verified)
 
     def _kalman_filter_update(self, pose: Rigid3d, relocalized: bool, stamp: float) -> Rigid3d:
         """KALMAN-FILTER-UPDATE with the frame's pose: the filtered pose. A relocalization
