@@ -79,8 +79,10 @@ def test_interleaved_sessions_give_the_poses_of_a_session_alone(world, bundle, c
     for i, (f, t) in enumerate(zip(frames, stamps)):
         _disturb(i)
         got2.append(_fingerprint(a2.localize(f, t)))
-        b_res.append(b.localize(world.gray[order[i % len(order)]], t))
-        relocalize(world.gray[order[-1 - i % len(order)]], cam, other_bundle)
+        if i % 3 == 0:  # (every 3rd / 5th step: each of B's frames is a global matching)
+            b_res.append(b.localize(world.gray[order[i % len(order)]], t))
+        if i % 5 == 2:
+            relocalize(world.gray[order[-1 - i % len(order)]], cam, other_bundle)
         _disturb(1000 + i)
         got3.append(_fingerprint(a3.localize(f, t)))
     assert sum(r.status is not Status.LOST for r in b_res) > 0  # B did work: it posed frames
@@ -89,7 +91,7 @@ def test_interleaved_sessions_give_the_poses_of_a_session_alone(world, bundle, c
 
 
 def test_a_relocalization_asked_twice_gives_the_same_answer(world, bundle, cam):
-    picks = [3, 17, 31, 45, 58]
+    picks = [3, 31, 58]
     gt = world.gt_cam_from_world
     # a prior a little off the truth: the scoped search and its verification run too
     priors = [Rigid3d(gt[i].rotation, gt[i].translation + [0.04, -0.02, 0.03]) for i in picks]
@@ -97,7 +99,7 @@ def test_a_relocalization_asked_twice_gives_the_same_answer(world, bundle, cam):
     first_p = [
         _fingerprint(relocalize(world.gray[i], cam, bundle, prior=p)) for i, p in zip(picks, priors)
     ]
-    assert sum(f[0] is Status.RELOCALIZED for f in first) >= 3
+    assert sum(f[0] is Status.RELOCALIZED for f in first) >= 2
     # again, in the reverse order, with the generators moved and a session running between
     loc = Localizer(bundle, cam)
     again, again_p = [], []
@@ -123,12 +125,12 @@ def test_two_processes_replay_the_same_trajectory_and_covariances(world, tmp_pat
         )
         cmd = [sys.executable, "-m", "sfmloc", "replay", str(world.maps_dir / "room")]
         cmd += [str(synth / "video"), "--camera", str(synth / "camera.json")]
-        cmd += ["--trajectory", str(traj), "--no-verify"]
+        cmd += ["--trajectory", str(traj), "--no-verify", "--max-frames", "30"]
         res = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
         assert res.returncode == 0, res.stderr[-2000:]
         cov = Path(str(traj) + ".cov")
         outs.append((traj.read_bytes(), cov.read_bytes()))
-    assert outs[0][0].count(b"\n") >= 50  # posed frames written
+    assert outs[0][0].count(b"\n") >= 25  # posed frames written
     assert outs[0] == outs[1]
 
 
