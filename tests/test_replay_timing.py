@@ -176,3 +176,19 @@ def test_replay_cli_names_the_clock(world, tmp_path, capsys):
     assert s["status_counts"]["LOST"] == 0
     # per-frame records say why a frame has no pose ("" for every posed frame here)
     assert [r["message"] for r in s["per_frame"]] == [""] * 8
+
+
+def test_replay_cli_resets_the_session_every_n_frames(world, tmp_path):
+    """``--reset-every N``: the tracker relocalizes on every N-th frame (its own
+    relocalizations, measured as a reconnecting client sees them) and tracks the others."""
+    from sfmloc.cli.main import main
+
+    folder = _folder(tmp_path / "reset", world, [f"{i:06d}.png" for i in range(9)])
+    out = tmp_path / "summary.json"
+    args = ["replay", str(world.maps_dir / "room"), str(folder), "--camera", world.camera_spec]
+    assert main([*args, "--reset-every", "4", "--json", str(out)]) == 0
+    frames = json.loads(out.read_text())["per_frame"]
+    assert [f["matching"] == "global" for f in frames] == [i % 4 == 0 for i in range(9)]
+    assert [f["status"] for f in frames] == [
+        "RELOCALIZED" if i % 4 == 0 else "TRACKING" for i in range(9)
+    ]

@@ -84,6 +84,14 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--start", type=int, default=0, help="first frame index (default 0)")
     p.add_argument("--max-frames", type=int, help="stop after this many frames")
     p.add_argument(
+        "--reset-every",
+        type=int,
+        default=0,
+        metavar="N",
+        help="reset the session before every N frames: the tracker relocalizes there "
+        "(its relocalizations and the frames tracked on from them; default 0: never)",
+    )
+    p.add_argument(
         "--config", help="engine config file (JSON/TOML; SFMLOC_ENGINE__* variables also apply)"
     )
     p.add_argument(
@@ -182,6 +190,7 @@ def run(args: argparse.Namespace) -> int:
         gt,
         start=args.start,
         max_frames=args.max_frames,
+        reset_every=args.reset_every,
         on_frame=lambda r: bar(
             "replay", (r.index - args.start + 1) / max(1, total), f"{r.name} {r.status}"
         ),

@@ -590,10 +590,11 @@ class EngineConf(StrictModel):
     # matches (LOST; the next frame relocalizes), and a pose tracked on from an unverified
     # (or withheld) relocalization is withheld when it does (its tracks keep the same
     # matches). Robust density-6x streamed with the session reset every 1 / 10 / 30 frames
-    # (main 641a3ba): 18 / 27 / 27 published poses 5-118% of the scene scale off (UNVERIFIED
-    # with sd 1.3-2.5%: relocalizations, or frames tracked on from a withheld one that
-    # gathered guided matches around itself) -> 2 / 1 / 0; right poses published 190 / 192 /
-    # 213 -> 186 / 191 / 212. Without resets, density-3x, redkitchen every 60th: unchanged.
+    # (``sfmloc replay --reset-every``; main 641a3ba): 18 / 27 / 27 published poses 5-118%
+    # of the scene scale off (UNVERIFIED with sd 1.3-2.5%: relocalizations, or frames
+    # tracked on from a withheld one that gathered guided matches around itself) -> 2 / 1 /
+    # 0; right poses published 190 / 192 / 213 -> 186 / 191 / 212. Without resets,
+    # density-3x, redkitchen every 60th: unchanged.
     # False: only single-image relocalization has the rule.
     track_relocalize_leave_out: bool = True
     # A tracked pose failing the strict test on fewer inliers than this fraction of the last

@@ -27,8 +27,12 @@ def replay(
     start: int = 0,
     max_frames: int | None = None,
     on_frame: Callable[[FrameRecord], None] | None = None,
+    reset_every: int = 0,
 ) -> tuple[list[FrameRecord], float]:
-    """Per-frame records, and the mean decode time (ms)."""
+    """Per-frame records, and the mean decode time (ms). ``reset_every`` > 0: the session is
+    reset before every that many frames (the first included), so the tracker relocalizes
+    there: its own relocalizations, and the frames tracked on from them, as a stream whose
+    client reconnects sees them."""
     loc = Localizer(bundle, camera, conf)
     records: list[FrameRecord] = []
     decode_ms = 0.0
@@ -40,6 +44,8 @@ def replay(
         if max_frames is not None and len(records) >= max_frames:
             break
         decode_ms += (time.perf_counter() - t_dec) * 1e3
+        if reset_every > 0 and len(records) % reset_every == 0:
+            loc.reset()
         cpu0 = time.process_time()
         res = loc.localize(frame.image, frame.stamp)
         cpu_ms = (time.process_time() - cpu0) * 1e3
