@@ -16,6 +16,7 @@ from sfmloc.engine.tracker import (
     pair_distances,
     track_2d,
     window_pairs,
+    window_size,
 )
 from sfmloc.features.brief import hamming
 
@@ -99,6 +100,29 @@ def test_track_2d_equals_the_per_track_rule_with_ties_and_shared_candidates():
         got = track_2d(_table(brief_t), pred, kps, conf)
         np.testing.assert_array_equal(got, _plain_track_2d(brief_t, pred, brief_k, xy, conf))
         assert (got >= 0).any() or trial % 2  # not vacuous on the tie-heavy trials
+
+
+def test_the_window_widens_with_the_frame_interval():
+    """rho up to wide_window_gap_s, then in proportion to the interval, at most
+    wide_window_max times rho; track_2d at an interval is the plain search with that window."""
+    conf = EngineConf()
+    gap, rho = conf.wide_window_gap_s, conf.rho
+    assert window_size(conf, 0.0) == window_size(conf, 1 / 30) == window_size(conf, gap) == rho
+    assert window_size(conf, 2 * gap) == pytest.approx(2 * rho)
+    assert window_size(conf, 100.0) == pytest.approx(conf.wide_window_max * rho)
+    assert window_size(EngineConf(wide_window_gap_s=0), 100.0) == rho
+    rng = np.random.default_rng(5)
+    xy = rng.uniform(0, 640, (400, 2))
+    brief_k = rng.integers(0, 2**63, (400, 4), dtype=np.uint64)
+    pick = rng.integers(0, 400, 150)
+    brief_t = brief_k[pick] ^ (rng.integers(0, 2**63, (150, 4), dtype=np.uint64) & 7)
+    pred = xy[pick] + rng.uniform(-60, 60, (150, 2))  # up to 60 px off: past rho / 2
+    kps = Keypoints(xy, np.ones(400), brief_k, 1.0)
+    wide = conf.model_copy(update={"rho": window_size(conf, 3 * gap)})
+    got = track_2d(_table(brief_t), pred, kps, conf, dt=3 * gap)
+    np.testing.assert_array_equal(got, _plain_track_2d(brief_t, pred, brief_k, xy, wide))
+    narrow = track_2d(_table(brief_t), pred, kps, conf)
+    assert (got >= 0).sum() > (narrow >= 0).sum()
 
 
 def test_pair_distances_equal_hamming_up_to_all_256_bits():

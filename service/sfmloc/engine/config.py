@@ -43,6 +43,13 @@ class EngineConf(StrictModel):
     mu: int = 32  # BRIEF patch size (pixels)
     rho: int = 48  # tracking search window (pixels, square)
     psi: float = 0.8  # best / second-best Hamming ratio for a track match
+    # The tracking window widens with the frame interval: past wide_window_gap_s it is rho
+    # times interval / wide_window_gap_s, at most wide_window_max times rho (0: always rho).
+    # The motion prediction's error grows with the interval it extrapolates: redkitchen fed
+    # every 12th frame (0.4 s) puts the tracked map points a median 20-80 px from their
+    # keypoints, past rho / 2, and tracking decays to a relocalization every 3-4 frames.
+    wide_window_gap_s: float = 0.1
+    wide_window_max: float = 4.0
     kappa1: int = 25  # add new keypoints when fewer are tracked
     kappa2: int = 10  # relocalize when at most this many 2D-3D matches remain
     gamma: float = 0.001  # Harris threshold: gamma * previous frame's maximum cornerness

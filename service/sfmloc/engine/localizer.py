@@ -369,7 +369,7 @@ class Localizer:
             self.prev_max_response = kps.max_response
         timer.lap("detect")
 
-        table, used = self._track_2d(prev, kps, pred.cam_from_world)
+        table, used = self._track_2d(prev, kps, pred.cam_from_world, pred.dt)
         eta = len(table)
         if eta < c.kappa1 or table.n_3d() < c.refill_3d or self._uncovered(table, kps):
             table = self._add_good_features(table, kps, used)
@@ -614,11 +614,12 @@ class Localizer:
         return self.conf.gamma * prev_max_response if prev_max_response else None
 
     def _track_2d(
-        self, prev: TrackTable, kps: Keypoints, pred: Rigid3d | None
+        self, prev: TrackTable, kps: Keypoints, pred: Rigid3d | None, dt: float
     ) -> tuple[TrackTable, np.ndarray]:
         """TRACK-2D: this frame's table, the rows of ``prev`` tracked into ``kps`` (moved to
-        their keypoint, BRIEF updated, one frame older), and the keypoint of each row."""
-        m = track_2d(prev, self._predict_positions(prev, pred), kps, self.conf)
+        their keypoint, BRIEF updated, one frame older), and the keypoint of each row;
+        ``dt``: the frame interval (the window widens with it)."""
+        m = track_2d(prev, self._predict_positions(prev, pred), kps, self.conf, dt)
         tracked = m >= 0
         table = prev.take(tracked)
         used = m[tracked]
@@ -740,7 +741,7 @@ class Localizer:
         Returns the table, pose and tracked count chosen, and why there is no pose."""
         assert self.last_pose is not None
         c = self.conf
-        table_b, used = self._track_2d(prev, kps, self.last_pose)
+        table_b, used = self._track_2d(prev, kps, self.last_pose, dt)
         eta_b = len(table_b)
         if eta_b < c.kappa1 or table_b.n_3d() < c.refill_3d or self._uncovered(table_b, kps):
             table_b = self._add_good_features(table_b, kps, used)

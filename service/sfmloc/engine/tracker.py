@@ -157,9 +157,10 @@ _ROWS3 = np.arange(3, dtype=np.float64)
 
 
 def track_2d(
-    table: TrackTable, pred_xy: np.ndarray, kps: Keypoints, conf: EngineConf
+    table: TrackTable, pred_xy: np.ndarray, kps: Keypoints, conf: EngineConf, dt: float = 0.0
 ) -> np.ndarray:
-    """TRACK-2D: for each row of ``table``, the index of its match among ``kps`` or -1.
+    """TRACK-2D: for each row of ``table``, the index of its match among ``kps`` or -1;
+    ``dt``: the frame interval (s), which widens the window (``window_size``).
 
     A candidate claimed by several tracks goes to the closest one (in Hamming distance); the
     others are lost, so identities stay unique."""
@@ -167,7 +168,7 @@ def track_2d(
     match = np.full(n, -1, np.int64)
     if n == 0 or len(kps) == 0:
         return match
-    ti, cj = window_pairs(pred_xy, kps.xy, conf.rho / 2.0)
+    ti, cj = window_pairs(pred_xy, kps.xy, window_size(conf, dt) / 2.0)
     if len(ti) == 0:
         return match
     dist = pair_distances(table.brief, ti, kps.brief, cj)
@@ -191,6 +192,16 @@ def track_2d(
     uniq[1:] = cands[1:] != cands[:-1]
     match[rows[uniq]] = cands[uniq]
     return match
+
+
+def window_size(conf: EngineConf, dt: float) -> float:
+    """The tracking window's side (pixels) for a frame ``dt`` seconds after the previous:
+    ``rho``, widened in proportion past ``wide_window_gap_s`` (at most ``wide_window_max``
+    times): the motion prediction the window is placed at errs more the longer it
+    extrapolates, and a window it misses loses the track."""
+    if conf.wide_window_gap_s <= 0 or dt <= conf.wide_window_gap_s:
+        return float(conf.rho)
+    return conf.rho * min(conf.wide_window_max, dt / conf.wide_window_gap_s)
 
 
 _FAR = np.int64(1 << 20)  # above every distance: "no second candidate"
