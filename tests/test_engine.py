@@ -1238,10 +1238,11 @@ def test_single_images_of_identical_walls_are_never_wrong(ambiguous_world):
 
 
 def test_an_unverified_recovered_pose_is_checked_by_global_matching(ambiguous_world, monkeypatch):
-    """Robust walk at 3 Hz, frame 90 (frame 80 tracked 12 cm off, tracking then found no
-    pose): the recovery around the motion prediction agreed on a pose 1.6 m off (55% of the
-    scene scale) on 172 inliers, unverified, withheld only by its centre sd 3.02% against the
-    3% limit, while the frame's global matching finds the right pose on 590. A recovered pose
+    """Robust walk at 3 Hz (main 2771732), frame 90: tracking found no pose after frame 80's
+    12 cm off, and the recovery around the motion prediction agreed on a pose 1.43 m off (53%
+    of the scene scale) on 173 inliers, unverified, withheld only by its centre sd 3.02%
+    against the 3% limit, while the frame's global matching finds the right pose on 590
+    (frame 130 since the wide tracking window: 1.80 m off, 122 inliers). A recovered pose
     failing the strict test is checked by the frame's global matching and replaced by its pose
     when that passes the strict test (``recovered_global_check``). Reproduced on the room of
     identical walls: frame 20's tracks lost and its motion prediction turned by 270 deg about

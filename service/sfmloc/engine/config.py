@@ -614,10 +614,13 @@ class EngineConf(StrictModel):
     # A pose recovered around the motion prediction on a frame tracking found no pose for,
     # that fails the strict test, is checked by the frame's global matching: replaced by its
     # pose when that one passes the strict test (as a collapsed tracked pose is); else it
-    # goes on unchanged. Robust walk at 3 Hz frame 90 (frame 80 tracked 12 cm off): recovered
-    # 1.6 m off (55% of the scene scale) on 172 inliers, centre sd 3.02% (withheld by 0.02%
-    # of the 3% limit; 2.68%, published, when earlier poses move by ~1 mm); its global
-    # matching: the right pose on 590 inliers. False: off.
+    # goes on unchanged. Robust walk at 3 Hz: frame 130 recovered 1.80 m off (67% of the scene
+    # scale, 122 inliers), its global matching the right pose on 404 (without the check the
+    # ambiguity check's global matching found it too; with neither, LOST). Before the wide
+    # tracking window (2771732) frame 90: recovered 1.43 m off on 173 inliers, withheld only
+    # by its centre sd 3.02% against the 3% limit (at a 3.5% limit published as TRACKING;
+    # with the check RELOCALIZED, 590 inliers, 0.37 cm off). Redkitchen 1000 frames: recovery
+    # 3 times, the check never (poses identical). False: off.
     recovered_global_check: bool = True
     # An unverified relocalization farther than this from the motion prediction (fraction of
     # scene_scale, degrees: the wrong-pose limits) is rejected (LOST) while the last pose is
