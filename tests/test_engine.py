@@ -489,6 +489,49 @@ def test_guided_search_scans_scope_nprobe_lists_only_on_frames_holding_enough_ma
     assert seen_nprobe == [conf.nprobe, conf.scope_nprobe, conf.nprobe, conf.nprobe], seen_nprobe
 
 
+def test_guided_search_keeps_nprobe_lists_on_frames_holding_many_matches(world, bundle, cam):
+    """``scope_nprobe_max_3d``: the scoped search scans ``scope_nprobe`` lists only on frames
+    holding fewer than that many 3D matches (and at least ``few_matches_below``); from it on,
+    ``nprobe`` (an orbit around an object holds 270-320 matches at its full batches, where
+    the narrower search moved the pose; redkitchen 68). The real search runs, its nprobe
+    recorded."""
+    import sfmloc.engine.localizer as localizer_mod
+    from sfmloc.engine.scope import median_track_length
+
+    track = median_track_length(bundle)
+    few = EngineConf().few_matches_below
+    most = few + 10
+    conf = EngineConf(scope_nprobe=8, scope_nprobe_min_track=track, scope_nprobe_max_3d=most)
+    gray, gt, c, desc, uv, seen = _guided_inputs(world, bundle, cam, conf)
+    n = len(c.xy)
+    assert len(seen) > most and n > most + 10
+    loc = Localizer(bundle, cam, conf)
+    unlimited = Localizer(bundle, cam, conf.model_copy(update={"scope_nprobe_max_3d": 0}))
+    image = localizer_mod._FrameImage(gray, loc.extractor)
+    seen_nprobe: list[int | None] = []
+    search = bundle.index.search
+
+    def spy(*a, **kw):
+        seen_nprobe.append(kw.get("nprobe"))
+        return search(*a, **kw)
+
+    def table(matched: int) -> TrackTable:
+        t = TrackTable.empty(conf.max_hypotheses)
+        t.append(np.arange(n), c.xy.copy(), np.zeros((n, 4), np.uint64))
+        t.point[:matched] = seen[:matched]
+        return t
+
+    bundle.index.search = spy  # the real search runs; only its nprobe is recorded
+    try:
+        for matched in (few, most - 1, most, most + 5):
+            loc._guided_matching(table(matched), np.arange(matched, n), image, gt)
+        unlimited._guided_matching(table(most + 5), np.arange(most + 5, n), image, gt)
+    finally:
+        del bundle.index.search
+    narrow, full = conf.scope_nprobe, conf.nprobe
+    assert seen_nprobe == [narrow, narrow, full, full, narrow], seen_nprobe
+
+
 def test_relocalize_with_a_prior(world, bundle, cam):
     gt = world.gt_cam_from_world[45]
     prior = Rigid3d(
@@ -1568,8 +1611,9 @@ def test_guided_batches_spread_only_where_the_map_answers_readily(world, bundle,
     for r, g in zip(res, world.gt_cam_from_world[:60]):
         if r.cam_from_world is not None:
             assert pose_errors(r.cam_from_world, g)[0] < 0.05 * bundle.scene_scale
-    # most queries matched (a map that answers readily): the first batch_spread pending rows
-    loc.guided_yield = conf.spread_min_yield
+    # most queries matched (a map that answers readily) and no 3D match lost lately
+    # (spread_keep_up, its own test): the first batch_spread pending rows
+    loc.guided_yield, loc.loss_3d = conf.spread_min_yield, 0.0
     rows = loc._pending_batch(many)
     assert rows.tolist() == list(range(60, 60 + conf.batch_spread))
     assert len(loc._pending_batch(table(60, conf.guided_min_pending - 1))) == 0  # still lazy
@@ -1586,3 +1630,46 @@ def test_guided_batches_spread_only_where_the_map_answers_readily(world, bundle,
     for other in (off, thinner):
         other.guided_yield = 1.0
         assert len(other._pending_batch(many)) == conf.batch_max
+
+
+def test_guided_batches_spread_only_while_a_short_batch_keeps_up_with_lost_matches(
+    world, bundle, cam
+):
+    """``spread_keep_up``: a frame spreads its batch only while the running number of 3D
+    matches its tracked frames lose (``loss_3d``, from real tracking) is under spread_keep_up
+    x batch_spread x the running yield, what a short batch brings back; where tracks die
+    faster (an orbit at 3 Hz lost ~30 matches a frame against ~25 a short batch brings back;
+    redkitchen ~1.3) a waiting keypoint is a lost match, and the batch stays full."""
+    from sfmloc.engine.scope import median_track_length
+
+    track = median_track_length(bundle)
+    conf = EngineConf(batch_spread=40, batch_spread_min_track=track, spread_keep_up=0.25)
+    many = _pending_table(conf, 60, conf.batch_max + 7)
+    loc = Localizer(bundle, cam, conf)
+    loc.guided_yield = 0.5
+    brings = conf.spread_keep_up * conf.batch_spread * loc.guided_yield
+    assert conf.spread_min_yield <= loc.guided_yield and brings > 0
+    for loss, size in ((0.0, conf.batch_spread), (0.99 * brings, conf.batch_spread)):
+        loc.loss_3d = loss
+        assert len(loc._pending_batch(many)) == size, loss
+    for loss in (brings, 3 * brings):
+        loc.loss_3d = loss
+        assert len(loc._pending_batch(many)) == conf.batch_max, loss
+    loc.reset()
+    assert loc.loss_3d == 0.0
+    ungated = Localizer(bundle, cam, conf.model_copy(update={"spread_keep_up": 0.0}))
+    ungated.guided_yield, ungated.loss_3d = 0.5, 3 * brings
+    assert len(ungated._pending_batch(many)) == conf.batch_spread
+
+    # the running loss comes from real tracking: the same video with its frames 5 apart
+    # loses more 3D matches per tracked frame than at 30 Hz
+    def losses(step: int) -> list[float]:
+        run = Localizer(bundle, cam, conf)
+        out = []
+        for i in range(0, 60, step):
+            run.localize(world.gray[i], i / 30)
+            out.append(run.loss_3d)
+        return out
+
+    near, far = losses(1), losses(5)
+    assert max(near) > 0 and np.mean(far) > np.mean(near), (np.mean(near), np.mean(far))

@@ -307,6 +307,7 @@ class Localizer:
         self.last_posed_stamp: float | None = None
         self.last_inliers = 0  # of the last posed frame
         self.guided_yield = 0.0  # running share of guided matching's queries matched
+        self.loss_3d = 0.0  # running 3D matches lost per tracked frame (_note_3d_loss)
         self.last_pose: Rigid3d | None = None  # cam_from_world of the last posed frame
         self.interval = 0.0  # seconds from the frame before the last to the last
         self.last_interval = 0.0  # the same one frame earlier
@@ -400,6 +401,7 @@ class Localizer:
             weak = est is not None and est.num_inliers < c.track_consensus * len(c1)
             if est is not None:
                 table = self._reverify(table, est.cam_from_world)
+                self._note_3d_loss(prev.n_3d() - table.n_3d())
                 batch = self._pending_batch(table)
                 if len(batch):
                     table = self._guided_matching(table, batch, image, est.cam_from_world)
@@ -882,10 +884,30 @@ class Localizer:
             # the DAISY preparation of the whole frame and the search's fixed cost whatever
             # its size. Most such keypoints are dropped by the tracker before their turn.
             return rows[:0]
-        if c.batch_spread > 0 and self.spread_batches and self.guided_yield >= c.spread_min_yield:
-            # The map answers readily here: the rest wait for the next frames (spread_min_yield)
-            return rows[: min(c.batch_spread, c.batch_max)]
+        n = min(c.batch_spread, c.batch_max)
+        if (
+            n > 0
+            and self.spread_batches
+            and self.guided_yield >= c.spread_min_yield
+            and (c.spread_keep_up <= 0 or self.loss_3d < c.spread_keep_up * n * self.guided_yield)
+        ):
+            # The map answers readily here and a short batch brings (n x the yield) more
+            # matches than tracking loses a frame: the rest wait for the next frames
+            # (spread_keep_up: where tracks die faster, a waiting keypoint is a lost match)
+            return rows[:n]
         return rows[: c.batch_max]
+
+    def _many_3d(self, table: TrackTable) -> bool:
+        """The frame holds scope_nprobe_max_3d or more 3D matches: the scoped search keeps
+        its full nprobe lists (``scope_nprobe_max_3d``)."""
+        m = self.conf.scope_nprobe_max_3d
+        return m > 0 and table.n_3d() >= m
+
+    def _note_3d_loss(self, lost: int) -> None:
+        """The running number of 3D matches a tracked frame loses (tracking, re-verification)
+        against the previous frame's, the weight of the guided yield's (``spread_keep_up``)."""
+        w = self.conf.spread_yield_weight
+        self.loss_3d = w * max(0, lost) + (1.0 - w) * self.loss_3d
 
     def _guided_matching(
         self, table: TrackTable, rows: np.ndarray, image: _FrameImage, pose: Rigid3d
@@ -905,7 +927,7 @@ class Localizer:
             self.K,
             c,
             ratio=c.few_matches_ratio if few else None,
-            nprobe=None if few else self.scope_nprobe,
+            nprobe=None if few or self._many_3d(table) else self.scope_nprobe,
         )
         table.point[rows] = gm.point
         table.hyp[rows] = gm.hyp
