@@ -3,8 +3,10 @@ to end on a synthetic video and on real redkitchen frames, and with bad input.""
 
 from __future__ import annotations
 
+import contextlib
 import subprocess
 import sys
+from collections.abc import Iterator
 
 import numpy as np
 import pytest
@@ -435,6 +437,36 @@ def test_guided_matching_on_few_matches_keeps_more_hypotheses_still_verified(
     assert used == [conf.few_matches_ratio, None]
 
 
+def _table_matched(
+    conf: EngineConf, xy: np.ndarray, points: np.ndarray, matched: int
+) -> TrackTable:
+    """A track table of the keypoints ``xy`` whose first ``matched`` rows hold ``points``
+    (the guided-search nprobe tests)."""
+    n = len(xy)
+    t = TrackTable.empty(conf.max_hypotheses)
+    t.append(np.arange(n), xy.copy(), np.zeros((n, 4), np.uint64))
+    t.point[:matched] = points[:matched]
+    return t
+
+
+@contextlib.contextmanager
+def _recorded_nprobe(bundle: MapBundle) -> Iterator[list[int | None]]:
+    """The nprobe of every search of the bundle's index while inside: the real search runs,
+    only its nprobe is recorded."""
+    seen: list[int | None] = []
+    search = bundle.index.search
+
+    def spy(*a, **kw):
+        seen.append(kw.get("nprobe"))
+        return search(*a, **kw)
+
+    bundle.index.search = spy
+    try:
+        yield seen
+    finally:
+        del bundle.index.search
+
+
 def test_guided_search_scans_scope_nprobe_lists_only_on_frames_holding_enough_matches(
     world, bundle, cam
 ):
@@ -462,30 +494,17 @@ def test_guided_search_scans_scope_nprobe_lists_only_on_frames_holding_enough_ma
     off = Localizer(bundle, cam, EngineConf(scope_nprobe_min_track=track, scope_nprobe=0))
     assert thinner.scope_nprobe is None and off.scope_nprobe is None
     image = localizer_mod._FrameImage(gray, loc.extractor)
-    seen_nprobe: list[int | None] = []
-    search = bundle.index.search
-
-    def spy(*a, **kw):
-        seen_nprobe.append(kw.get("nprobe"))
-        return search(*a, **kw)
-
     n = len(c.xy)
 
     def table(matched: int) -> TrackTable:
-        t = TrackTable.empty(conf.max_hypotheses)
-        t.append(np.arange(n), c.xy.copy(), np.zeros((n, 4), np.uint64))
-        t.point[:matched] = seen[:matched]
-        return t
+        return _table_matched(conf, c.xy, seen, matched)
 
-    bundle.index.search = spy  # the real search runs; only its nprobe is recorded
-    try:
+    with _recorded_nprobe(bundle) as seen_nprobe:
         for matched in (conf.few_matches_below - 1, conf.few_matches_below):
             loc._guided_matching(table(matched), np.arange(matched, n), image, gt)
         for other in (thinner, off):
             m = conf.few_matches_below
             other._guided_matching(table(m), np.arange(m, n), image, gt)
-    finally:
-        del bundle.index.search
     assert seen_nprobe == [conf.nprobe, conf.scope_nprobe, conf.nprobe, conf.nprobe], seen_nprobe
 
 
@@ -508,26 +527,14 @@ def test_guided_search_keeps_nprobe_lists_on_frames_holding_many_matches(world, 
     loc = Localizer(bundle, cam, conf)
     unlimited = Localizer(bundle, cam, conf.model_copy(update={"scope_nprobe_max_3d": 0}))
     image = localizer_mod._FrameImage(gray, loc.extractor)
-    seen_nprobe: list[int | None] = []
-    search = bundle.index.search
-
-    def spy(*a, **kw):
-        seen_nprobe.append(kw.get("nprobe"))
-        return search(*a, **kw)
 
     def table(matched: int) -> TrackTable:
-        t = TrackTable.empty(conf.max_hypotheses)
-        t.append(np.arange(n), c.xy.copy(), np.zeros((n, 4), np.uint64))
-        t.point[:matched] = seen[:matched]
-        return t
+        return _table_matched(conf, c.xy, seen, matched)
 
-    bundle.index.search = spy  # the real search runs; only its nprobe is recorded
-    try:
+    with _recorded_nprobe(bundle) as seen_nprobe:
         for matched in (few, most - 1, most, most + 5):
             loc._guided_matching(table(matched), np.arange(matched, n), image, gt)
         unlimited._guided_matching(table(most + 5), np.arange(most + 5, n), image, gt)
-    finally:
-        del bundle.index.search
     narrow, full = conf.scope_nprobe, conf.nprobe
     assert seen_nprobe == [narrow, narrow, full, full, narrow], seen_nprobe
 
