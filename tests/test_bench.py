@@ -544,6 +544,23 @@ def test_global_every_frame_prepares_the_bundle_untimed(world, bundle, cam):
     assert pos_err < 0.05 * bundle.scene_scale
 
 
+def test_robust_cache_keys_hold_in_a_copied_work_folder(tmp_path):
+    """A robust row's input inside the work folder is keyed relative to it, so a copied work
+    folder (cp -r OUT/work OTHER/work, then --reuse) reuses its rows; one outside is keyed by
+    its absolute path."""
+    from sfmloc.bench.config import BenchConf
+    from sfmloc.bench.robust import RobustData
+
+    a, b = tmp_path / "a" / "work", tmp_path / "b" / "work"
+    for w in (a, b):
+        (w / "synthetic-walk" / "data").mkdir(parents=True)
+    key_a = RobustData(BenchConf(), a, lambda *x: None)._in_work(a / "synthetic-walk" / "data")
+    key_b = RobustData(BenchConf(), b, lambda *x: None)._in_work(b / "synthetic-walk" / "data")
+    assert key_a == key_b == "synthetic-walk/data"
+    outside = RobustData(BenchConf(), a, lambda *x: None)._in_work(tmp_path / "elsewhere")
+    assert outside == str((tmp_path / "elsewhere").resolve())
+
+
 def test_reuse_rebuilds_a_map_made_by_another_builder(tmp_path, caplog):
     """--reuse takes a cached map only when its input and the builder that made it are today's:
     a stamp from another builder (as every map cached before a builder change has) is rebuilt,

@@ -307,10 +307,20 @@ class RobustData:
                 except Exception as exc:  # noqa: BLE001 - recorded as the peer's failure
                     failed.write_text(f"building its map: {_error_text(exc)}")
 
-            self._cached(folder, {"base": str(data), "k": k, "synth": self._synth_key()}, build)
+            key = {"base": self._in_work(data), "k": k, "synth": self._synth_key()}
+            self._cached(folder, key, build)
             return self.work / "maps" / name, sift
 
         return self._once(("density", k), make)
+
+    def _in_work(self, path: Path) -> str:
+        """``path`` as a cache key: relative to the work folder when inside it, so that a work
+        folder copied or moved (``cp -r OUT/work OTHER/work``, then --reuse) keeps its rows
+        (the absolute path rebuilt density and scale rows, 45 s each, in a copy)."""
+        try:
+            return Path(path).resolve().relative_to(self.work.resolve()).as_posix()
+        except ValueError:
+            return str(Path(path).resolve())
 
     def _synth_key(self) -> dict:
         return synth_conf(self.conf, "walk").model_dump(mode="json")
@@ -345,7 +355,8 @@ class RobustData:
                 )
                 robust_data.scale_pose_list(data / "video_poses.txt", folder / "video_poses.txt", s)
 
-            self._cached(folder, {"base": str(data), "s": s, "synth": self._synth_key()}, build)
+            key = {"base": self._in_work(data), "s": s, "synth": self._synth_key()}
+            self._cached(folder, key, build)
             return self.work / "maps" / name, folder / "sift-map.npz", folder / "video_poses.txt"
 
         return self._once(("scale", s), make)
