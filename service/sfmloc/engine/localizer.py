@@ -384,6 +384,7 @@ class Localizer:
         ambiguous = ""  # why the frame's tracked poses were not trusted
         weak = False  # the tracked pose explains too few of its tracked matches
         from_recovery = False  # est was recovered around the prediction (tracking found none)
+        global_unverified = False  # this frame's global matching ran and verified no pose
         if len(c1) > c.kappa2:
             # Without the robust final refinement where the frame holds many matches: the
             # second estimate below is that refinement, on the matches this pose then
@@ -510,10 +511,13 @@ class Localizer:
                 if est_g is not None:
                     table, est, cert = table_g, est_g, cert_g
                     relocalized, matching = True, Matching.GLOBAL
+                global_unverified = est_g is None
                 timer.lap("reloc")
         if est is not None and cert is not None and not (relocalized or odo or cert.verified):
             message = self._other_solution(table, est, pred.cam_from_world)
-            if message and c.ambiguity_relocalize:
+            # (not when this frame's global matching already found no verified pose: the same
+            # keypoints give the same answer)
+            if message and c.ambiguity_relocalize and not global_unverified:
                 # the matches do not decide between two poses: this frame's global matching
                 # does, when it passes the strict test (as a collapsed pose is checked)
                 table_g, est_g, cert_g = self._verified_global(kps, image)
