@@ -47,9 +47,9 @@ def test_index_recall_at_50(kind):
 @pytest.mark.parametrize("nprobe", [1, 4, 16])
 def test_coarse_assigner_chooses_the_flat_quantizers_lists(nprobe):
     """The lists ``CoarseAssigner`` picks are the flat quantizer's (its nprobe nearest
-    centroids, same order, same distances), and the search through them returns faiss's own
-    neighbours (measured on redkitchen's 1,879 lists, 23,748 real queries, nprobe 4 and 16:
-    every row identical)."""
+    centroids, same order, same distances), whatever its group size, and the search through
+    them returns faiss's own neighbours (measured on redkitchen's 1,879 lists, 23,748 real
+    queries, nprobe 4 and 16: every row identical)."""
     import faiss
 
     from sfmloc.map import index as index_mod
@@ -63,18 +63,84 @@ def test_coarse_assigner_chooses_the_flat_quantizers_lists(nprobe):
     )
     ivf = faiss.extract_index_ivf(ix._index)
     Dq, Iq = ivf.quantizer.search(q, nprobe)
-    assigner = index_mod.CoarseAssigner(ivf.quantizer.reconstruct_n(0, ivf.nlist))
-    Da, Ia = assigner.assign(q, nprobe)
-    assert np.mean(np.all(Ia == Iq, axis=1)) >= 0.998  # ties between equal distances aside
-    assert all(set(a) == set(b) for a, b in zip(Ia, Iq))
-    np.testing.assert_allclose(Da, Dq, rtol=1e-4, atol=1e-3)
+    centroids = ivf.quantizer.reconstruct_n(0, ivf.nlist)
+    first = None
+    for size in (4, 8, 16, 32):
+        Da, Ia = index_mod.CoarseAssigner(centroids, size).assign(q, nprobe)
+        assert np.mean(np.all(Ia == Iq, axis=1)) >= 0.998  # ties between equal distances aside
+        assert all(set(a) == set(b) for a, b in zip(Ia, Iq))
+        np.testing.assert_allclose(Da, Dq, rtol=1e-4, atol=1e-3)
+        if first is None:
+            first = (Da, Ia)
+        else:  # the group size changes the cost only: the same lists, in the same order
+            np.testing.assert_array_equal(Ia, first[1])
+            np.testing.assert_array_equal(Da, first[0])
     D, I = ix.search(q, 50, nprobe=nprobe)  # through the assigner (500 queries)
-    assert ix._coarse is not None
+    assert list(ix._coarse) == [index_mod.coarse_group_size(ix.nlist, nprobe)]
     D0, I0 = ix._index.search(q, 50, params=faiss.SearchParametersIVF(nprobe=nprobe))
     assert np.mean(np.all(I == I0, axis=1)) >= 0.998
     found = I0 >= 0  # (faiss gives missing neighbours FLT_MAX, the index inf and id -1)
     np.testing.assert_array_equal(I >= 0, found)
     np.testing.assert_allclose(D[found] ** 2, D0[found], rtol=1e-4, atol=1e-3)
+
+
+def test_coarse_group_size_is_the_power_of_two_nearest_the_balance():
+    """sqrt(lists / nprobe) to the nearest power of two, within [4, 64]: redkitchen's 1,879
+    lists give 8 at guided matching's nprobe 16 and 16 at global matching's 4."""
+    from sfmloc.map.index import coarse_group_size
+
+    assert coarse_group_size(1879, 16) == 8
+    assert coarse_group_size(1879, 4) == 16
+    assert coarse_group_size(1879, 1) == 32  # sqrt(1879) = 43.3: log2 5.44
+    assert coarse_group_size(256, 64) == 4
+    assert coarse_group_size(10**7, 1) == 64
+
+
+def test_coarse_group_sizes_give_the_same_neighbours_on_redkitchen_frames(redkitchen):
+    """Real DAISY descriptors, PCA-32 as the bundle stores them (Harris corners of 40
+    redkitchen frames as the database, of 4 others as queries): the assigner of the size the
+    index now picks and the one of size 32 it replaces choose the same lists, and the index's
+    search through it returns faiss's own neighbours, at guided (16) and global (4) nprobe."""
+    import cv2
+    import faiss
+
+    from sfmloc.features.daisy import DaisyExtractor, Pca
+    from sfmloc.features.harris import detect_corners
+    from sfmloc.map import index as index_mod
+
+    ex = DaisyExtractor()
+
+    def raw(frames):
+        out = []
+        for i in frames:
+            path = redkitchen / f"frame-{i:06d}.color.jpg"
+            gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+            xy = detect_corners(gray, rel_threshold=0.001, max_corners=1000, border=4).xy
+            out.append(ex.compute(gray, xy)[1])
+        return np.concatenate(out)
+
+    db_raw = raw(range(0, 1000, 25))
+    pca = Pca.fit(db_raw)
+    db = pca.project(db_raw)
+    q = np.ascontiguousarray(pca.project(raw([12, 262, 512, 762])), dtype=np.float32)
+    assert len(db) > 20000 and len(q) > 2000
+    ix = DescriptorIndex.build(db, IndexConf(kind="ivf-sq8"))
+    assert ix.nlist >= index_mod.COARSE_MIN_LISTS
+    ivf = faiss.extract_index_ivf(ix._index)
+    centroids = ivf.quantizer.reconstruct_n(0, ivf.nlist)
+    for nprobe in (4, 16):
+        size = index_mod.coarse_group_size(ix.nlist, nprobe)
+        assert size != 32
+        Da, Ia = index_mod.CoarseAssigner(centroids, size).assign(q, nprobe)
+        Db, Ib = index_mod.CoarseAssigner(centroids, 32).assign(q, nprobe)
+        np.testing.assert_array_equal(Ia, Ib)
+        np.testing.assert_array_equal(Da, Db)
+        D, I = ix.search(q, 50, nprobe=nprobe)
+        D0, I0 = ix._index.search(q, 50, params=faiss.SearchParametersIVF(nprobe=nprobe))
+        assert np.mean(np.all(I == I0, axis=1)) >= 0.998  # ties between equal distances aside
+        found = I0 >= 0
+        np.testing.assert_array_equal(I >= 0, found)
+        np.testing.assert_allclose(D[found] ** 2, D0[found], rtol=1e-4, atol=1e-3)
 
 
 def test_index_restricted_search_only_returns_allowed_ids():
