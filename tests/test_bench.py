@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import time
 from pathlib import Path
 
 import numpy as np
@@ -523,6 +524,54 @@ def test_throughput_rows_show_the_servers_cpu_beyond_the_engines():
     )
     assert got["cpu_ms_per_pose"] == {"server": 1.0, "workers": 12.0}
     assert got["capacity_hz"] == pytest.approx(1e3 * (os.cpu_count() or 1) / 13.0)
+
+
+def test_throughput_rows_say_which_thread_of_the_server_spends_its_cpu():
+    """``throughput.server_threads``: a thread kind's CPU and voluntary context switches
+    between the streams' start and end, per delivered pose (read from /proc: a named thread
+    of this process that burns 0.2 s of CPU shows up under its name), and the server
+    process's CPU per frame sent; the report lists the kinds by CPU per pose."""
+    import threading
+
+    from sfmloc.bench.scale import threads_of
+    from sfmloc.bench.throughput import server_threads
+    from sfmloc.server.zygote import set_process_name
+
+    burned = threading.Event()
+    release = threading.Event()
+
+    def burn() -> None:
+        set_process_name("wiretest-burn-1")
+        t0 = time.thread_time()
+        while time.thread_time() - t0 < 0.2:
+            pass
+        burned.set()
+        release.wait(30)
+
+    start = threads_of([os.getpid()])
+    t = threading.Thread(target=burn)
+    t.start()
+    assert burned.wait(60)
+    end = threads_of([os.getpid()])
+    release.set()
+    t.join(30)
+    res = {
+        "threads": {"start": start, "end": end},
+        "cpu_seconds": {"server": 0.6, "workers": 5.0},
+        "clients": [{"sent": 300}, {"sent": 300}],
+    }
+    got = server_threads(res, 10)
+    key = [k for k in got["server_threads"] if k.endswith("/wiretest-burn")]
+    assert len(key) == 1, sorted(got["server_threads"])
+    row = got["server_threads"][key[0]]
+    assert row["threads"] == 1 and row["cpu_ms_per_pose"] >= 15.0  # 0.2 s over 10 poses
+    assert list(got["server_threads"])[0] == key[0]  # the busiest kind first
+    assert got["server_cpu_ms_per_frame_sent"] == pytest.approx(1.0)  # 0.6 s / 600 frames
+    assert server_threads({"clients": []}, 10) == {}  # an older run: no thread samples
+    results = {"suites": {"throughput": {"rows": [{"clients": 2, **got}]}}}
+    (line,) = report.server_thread_lines(results)
+    assert line.startswith("2 clients: server 1.000 ms per frame sent; ")
+    assert key[0] in line
 
 
 def test_global_every_frame_prepares_the_bundle_untimed(world, bundle, cam):

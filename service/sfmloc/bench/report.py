@@ -193,6 +193,24 @@ def throughput_rows(results: dict) -> list[list[str]]:
     ]
 
 
+def server_thread_lines(results: dict, top: int = 8) -> list[str]:
+    """Per client count, the server's CPU per frame sent and its ``top`` thread kinds by CPU
+    per pose (``throughput.server_threads``); none for runs without them."""
+    t = results.get("suites", {}).get("throughput") or {}
+    out = []
+    for r in t.get("rows", []):
+        th = r.get("server_threads")
+        if not th:
+            continue
+        kinds = ", ".join(
+            f"{k} {v['cpu_ms_per_pose']:.2f} ({v['vcs_per_pose']:.1f})"
+            for k, v in list(th.items())[:top]
+        )
+        per_frame = f1(r.get("server_cpu_ms_per_frame_sent"), 3)
+        out.append(f"{r['clients']} clients: server {per_frame} ms per frame sent; {kinds}")
+    return out
+
+
 GAP_HEADER = [
     "clients",
     "after 1 frame",
@@ -357,6 +375,13 @@ def summary_text(results: dict) -> str:
                 "Throughput: poses by frames since the client's previous pose, % (engine CPU "
                 "ms per pose)",
                 text_table(GAP_HEADER, gap_rows(results)),
+                "",
+            ]
+        if server_thread_lines(results):
+            parts += [
+                "Throughput: CPU ms per pose of the server and its workers by thread kind "
+                "(voluntary context switches per pose)",
+                *server_thread_lines(results),
                 "",
             ]
     m = results.get("suites", {}).get("map")

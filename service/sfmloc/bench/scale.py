@@ -62,6 +62,7 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -196,16 +197,18 @@ class CpuMeter:
         """Per thread kind of the servers (summed over servers): CPU seconds and voluntary /
         involuntary context switches so far, keyed by process name / thread name (workers,
         zygote, the server's Zenoh runtime threads, pumps ...): where the servers' CPU goes."""
-        out: dict[str, dict[str, float]] = {}
-        for k, pids in self.groups.items():
-            if k == "clients":
-                continue
-            for pid in pids:
-                for key, row in _thread_rows(pid).items():
-                    acc = out.setdefault(key, {"cpu_s": 0.0, "vcs": 0.0, "ivcs": 0.0, "n": 0})
-                    for f in ("cpu_s", "vcs", "ivcs", "n"):
-                        acc[f] += row[f]
-        return out
+        return threads_of(p for k, pids in self.groups.items() if k != "clients" for p in pids)
+
+
+def threads_of(pids: Iterable[int]) -> dict[str, dict[str, float]]:
+    """``_thread_rows`` of every process in ``pids``, summed per thread kind."""
+    out: dict[str, dict[str, float]] = {}
+    for pid in pids:
+        for key, row in _thread_rows(pid).items():
+            acc = out.setdefault(key, {"cpu_s": 0.0, "vcs": 0.0, "ivcs": 0.0, "n": 0})
+            for f in ("cpu_s", "vcs", "ivcs", "n"):
+                acc[f] += row[f]
+    return out
 
 
 def _thread_rows(pid: int) -> dict[str, dict[str, float]]:

@@ -184,6 +184,7 @@ def run_throughput(
         if "cpu_seconds" in res:  # the CPU of the streams over the poses they got
             row.update(cpu_per_pose(res["cores_used"], 0.0, res["cpu_seconds"], posed))
         row["outside_engine_ms"] = outside_engine_ms(row)
+        row.update(server_threads(res, posed))
         row["load_before"], row["load_after"] = res["load_before"], res["load_after"]
         rows.append(row)
         raw.append(res)
@@ -231,6 +232,26 @@ def cpu_per_pose(
         "cores_used": {k: float(v) for k, v in cores.items()},
         "cpu_ms_per_pose": per,
         "capacity_hz": 1e3 * ncpu / server_ms if server_ms > 0 else float("nan"),
+    }
+
+
+def server_threads(res: dict[str, Any], posed: int) -> dict[str, Any]:
+    """Where the CPU of the server and its workers goes, per thread kind ("process/thread",
+    trailing digits dropped: ``sfmloc-worker/sfmloc-worker``, the server's ``sfmloc-recv``
+    result threads, Zenoh's ``rx``/``tx`` runtime threads, ``python`` for Zenoh's Python
+    callback thread, ...): CPU ms and context switches per delivered pose; and the server
+    process's CPU per frame sent, which its intake spends on every frame, the ones superseded
+    or refused too. Empty for a run without thread samples."""
+    from .scale import thread_rows_delta
+
+    th = res.get("threads")
+    if not th:
+        return {}
+    sent = sum(c["sent"] for c in res["clients"])
+    server_s = res.get("cpu_seconds", {}).get("server", float("nan"))
+    return {
+        "server_threads": thread_rows_delta(th["start"], th["end"], posed),
+        "server_cpu_ms_per_frame_sent": 1e3 * server_s / sent if sent else float("nan"),
     }
 
 

@@ -304,6 +304,8 @@ def bench_clients(
 ) -> dict[str, Any]:
     from sfmloc_client import CameraSpec, FrameStreamer, PoseSubscriber
 
+    from .scale import threads_of
+
     spec = CameraSpec.parse(inp.camera)
     n_frames = int(rate * duration)
     frames = inp.jpeg if encoding == "jpeg" else [g.tobytes() for g in inp.gray]
@@ -325,6 +327,7 @@ def bench_clients(
             # The CPU counts from here (every client warmed up: its first frame, which
             # relocalizes, is not a pose of the measurement), to the CPU of the poses counted.
             start["cpu"] = {k: sum(_cpu_seconds(p) for p in v) for k, v in pids.items()}
+            start["threads"] = threads_of(pids["server"] + pids["workers"])
             start["t"] = time.perf_counter()
 
         barrier = threading.Barrier(clients + (1 if reloc_rate > 0 else 0), action=streams_start)
@@ -453,6 +456,9 @@ def bench_clients(
         wall = time.perf_counter() - start["t"]
         cpu_s = {k: sum(_cpu_seconds(p) for p in v) - start["cpu"][k] for k, v in pids.items()}
         cores = {k: v / wall for k, v in cpu_s.items()}
+        # Per thread kind of the server and its workers, over the same window: which thread
+        # the server's CPU beyond the engine is spent on (intake, results, Zenoh, workers).
+        threads = {"start": start["threads"], "end": threads_of(pids["server"] + pids["workers"])}
     return {
         "workers": workers,
         "kind": kind,
@@ -462,6 +468,7 @@ def bench_clients(
         "load_after": os.getloadavg()[0],
         "cores_used": cores,
         "cpu_seconds": cpu_s,
+        "threads": threads,
         "relocalize": reloc,
     }
 
