@@ -650,6 +650,34 @@ class EngineConf(StrictModel):
     # with the check RELOCALIZED, 590 inliers, 0.37 cm off). Redkitchen 1000 frames: recovery
     # 3 times, the check never (poses identical). False: off.
     recovered_global_check: bool = True
+    # ... and when that global matching keeps no pose, the recovered pose is withheld (LOST)
+    # if the strongest pose it found and did not keep (one failing the strict test, or an
+    # ambiguous answer's best) has at least the recovered pose's inliers and lies farther
+    # from it than a wrong pose (contradiction_position / contradiction_deg below); one near
+    # it (the motion chose among an ambiguous answer's poses) supports it. Room of identical
+    # walls (tests/test_engine.py), strict test at 100 inliers, frame 10's prediction turned
+    # onto a twin wall: recovered 0.69 scene scales / 90 deg off on 51 inliers, centre sd
+    # 0.34%; its global matching ambiguous, 165 inliers for the right pose, 64 where the
+    # recovered one is: main 7eae836 published it as TRACKING, now LOST. Robust rows walk,
+    # flight, orbit at 3 Hz, orbit 10/30 Hz, walk/flight 10 Hz, density 3x/6x, every 30th/60th,
+    # and replays of redkitchen every 8th/12th frame, density-6x at 3/6 Hz, redkitchen 1000
+    # frames (instrumented): this path ran 0 times (its one global check there, walk-3hz
+    # frame 130, verified the right pose). False: the recovered pose goes on unchanged.
+    recovered_rivals: bool = True
+    # A recovered pose that passes the strict test is checked the same way: replaced by the
+    # frame's global matching's pose when that passes the strict test and lies farther from
+    # it than a wrong pose on at least its inliers, withheld when a pose global matching
+    # found and did not keep does (``recovered_rivals``). A recovered pose 0.7 scene scales off
+    # is as certain as a right one: on the room of identical walls (default configuration;
+    # frames 10, 20, 25, 30, prediction turned by 90, 180, 270 deg, the recovery given the last
+    # frame's scope or every map point) main 7eae836 published 7 of 24 frames as TRACKING
+    # 0.69-1.25 scene scales off on 42-86 inliers, centre sd 0.1-0.4%: now 0 (5 RELOCALIZED
+    # 0.2-0.5% off, 2 LOST, ambiguous); the one right recovered pose stays. Its price: one
+    # global matching per verified recovered frame (robust walk-3hz frame 70, 532 inliers:
+    # CPU 102 -> 155 ms, unchanged pose); on the rows and replays above every frame's status,
+    # inliers and error are unchanged (redkitchen 1000 frames: no recovery). False: a
+    # verified recovered pose is published unchecked.
+    recovered_verified_check: bool = True
     # An unverified relocalization farther than this from the motion prediction (fraction of
     # scene_scale, degrees: the wrong-pose limits) is rejected (LOST) while the last pose is
     # at most max_frame_gap_s old: redkitchen frame 461, 10 inliers, 1.49 m / 33 deg off, was

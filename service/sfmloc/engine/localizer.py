@@ -494,6 +494,24 @@ class Localizer:
                     cert = with_disagreement(cert, est, dense[1], self.bundle, c)
                 timer.lap("match")
         message = lost_why if est is None else ""
+        if from_recovery and est is not None and cert is not None and cert.verified:
+            if c.recovered_verified_check:
+                # Recovered around the prediction and passing the strict test: guided matching
+                # around a prediction turned onto a twin wall agrees on a wrong pose as
+                # certain as a right one (``recovered_verified_check``). The frame's global
+                # matching replaces it (its pose passes the strict test) or withholds it when
+                # it places the frame elsewhere on at least its inliers.
+                rivals: list[PoseEstimate] = []
+                table_g, est_g, cert_g = self._verified_global(kps, image, rivals)
+                why = self._rivalled(est, rivals if est_g is None else [est_g])
+                if why and est_g is not None:
+                    table, est, cert = table_g, est_g, cert_g
+                    relocalized, matching = True, Matching.GLOBAL
+                elif why:
+                    _unmatch(table, slice(None))
+                    est, cert, message = None, None, why
+                global_unverified = est_g is None
+                timer.lap("reloc")
         if est is not None and cert is not None and not (relocalized or odo or cert.verified):
             if est.num_inliers < self.conf.collapse_ratio * self.last_inliers:
                 table, est, cert, message = self._verify_collapse(kps, image, est, table)
@@ -506,11 +524,17 @@ class Localizer:
                 # test (guided matching around a wrong prediction can agree on a wrong pose,
                 # robust walk at 3 Hz: frame 130, 122 inliers 1.80 m off, 67% of the scene
                 # scale; its global matching: the right pose on 404). Not verified by global
-                # matching: the recovered pose goes on to the checks below unchanged.
-                table_g, est_g, cert_g = self._verified_global(kps, image)
+                # matching: withheld when a pose global matching found and did not keep
+                # places the frame elsewhere on more inliers (``recovered_rivals``), else it
+                # goes on to the checks below unchanged.
+                rivals = []
+                table_g, est_g, cert_g = self._verified_global(kps, image, rivals)
                 if est_g is not None:
                     table, est, cert = table_g, est_g, cert_g
                     relocalized, matching = True, Matching.GLOBAL
+                elif c.recovered_rivals and (why := self._rivalled(est, rivals)):
+                    _unmatch(table, slice(None))
+                    est, cert, message = None, None, why
                 global_unverified = est_g is None
                 timer.lap("reloc")
         if est is not None and cert is not None and not (relocalized or odo or cert.verified):
@@ -1014,20 +1038,19 @@ class Localizer:
         return best
 
     def _global_matching(
-        self, kps: Keypoints, image: _FrameImage
+        self, kps: Keypoints, image: _FrameImage, rivals: list[PoseEstimate] | None = None
     ) -> tuple[TrackTable, PoseEstimate | None, str]:
         """GLOBAL-MATCHING on the frame's keypoints: a new table restarted from them (with
         their matches when a pose was found), the pose, and why there is none (the frame's
-        message: a LOST says which test it failed)."""
+        message: a LOST says which test it failed). ``rivals``: see ``global_pose``."""
         c = self.conf
         table = self._restart_table(kps)
         if len(table) < c.min_inliers:
             return table, None, f"only {len(table)} keypoints in the frame"
         xy_u = self._undistort(table.xy)
         desc = image.describe_all(self.bundle, table.xy)
-        res, why = global_pose(
-            desc, xy_u, self.bundle, self.camera, c, image.search_all(self.bundle, c, table.xy)
-        )
+        search = image.search_all(self.bundle, c, table.xy)
+        res, why = global_pose(desc, xy_u, self.bundle, self.camera, c, search, rivals=rivals)
         if res is None:
             return table, None, why
         est, q, p, hyp = res
@@ -1037,6 +1060,26 @@ class Localizer:
         # the new pose, gets another try at them over the next frames.
         table.pending = table.point < 0
         return table, est, ""
+
+    def _rivalled(self, est: PoseEstimate, rivals: list[PoseEstimate]) -> str:
+        """Why a recovered pose is withheld (or ""): the strongest of the poses the frame's
+        global matching found and did not keep (``rivals``) has at least its inliers and lies
+        farther from it than a wrong pose (``contradiction_position``, ``contradiction_deg``).
+        One near it (an ambiguous answer whose best is the recovered pose) supports it."""
+        if not rivals:
+            return ""
+        c = self.conf
+        rival = max(rivals, key=lambda r: r.num_inliers)
+        if rival.num_inliers < est.num_inliers:
+            return ""
+        dpos, drot = self._apart(est.cam_from_world, rival.cam_from_world)
+        if dpos <= c.contradiction_position and drot <= c.contradiction_deg:
+            return ""
+        return (
+            f"recovered pose withheld: {est.num_inliers} inliers around the motion prediction, "
+            f"global matching {rival.num_inliers} for a pose {dpos:.2f} scene scales / "
+            f"{drot:.0f} deg away"
+        )
 
     def _verify_collapse(
         self, kps: Keypoints, image: _FrameImage, est: PoseEstimate, table: TrackTable
@@ -1057,14 +1100,18 @@ class Localizer:
         return table, None, None, why
 
     def _verified_global(
-        self, kps: Keypoints, image: _FrameImage
+        self, kps: Keypoints, image: _FrameImage, rivals: list[PoseEstimate] | None = None
     ) -> tuple[TrackTable, PoseEstimate | None, Certainty | None]:
         """Global matching on this frame, kept only when its pose passes the strict test (a
         check of a doubtful tracked pose: an unverified relocalization would not settle it).
-        Returns the restarted table, the pose and its certainty, or (table, None, None)."""
-        table_g, est_g, _ = self._global_matching(kps, image)
+        Returns the restarted table, the pose and its certainty, or (table, None, None).
+        ``rivals``: when given, the poses it found and did not keep are appended to it (one
+        that fails the strict test, or an ambiguous answer's two)."""
+        table_g, est_g, _ = self._global_matching(kps, image, rivals)
         cert_g = None if est_g is None else certainty(est_g, self.K, self.bundle, self.conf)
         if est_g is None or cert_g is None or not cert_g.verified:
+            if est_g is not None and rivals is not None:
+                rivals.append(est_g)
             return table_g, None, None
         return table_g, est_g, cert_g
 

@@ -124,8 +124,11 @@ def global_pose(
     cpu_deadline: float | None = None,
     strong_only: bool = False,
     first_min_inliers: int = 0,
+    rivals: list[PoseEstimate] | None = None,
 ) -> tuple[tuple[PoseEstimate, np.ndarray, np.ndarray, np.ndarray] | None, str]:
-    """``pose_from_global``'s answer and, when it is None, why. ``strong_only``: a pose only
+    """``pose_from_global``'s answer and, when it is None, why. ``rivals``: when given, an
+    ambiguous answer's two poses (the best, then the second place) are appended to it (a
+    caller's own pose is judged against them). ``strong_only``: a pose only
     when RANSAC's is far above chance (``_needs_no_verification``, whatever
     ``global_verify``), with ``relocalize_first_iterations`` RANSAC iterations at most; no
     verification by guided matching (``relocalize``'s first stage). ``first_min_inliers``
@@ -236,6 +239,8 @@ def global_pose(
         )
         check_deadline(deadline, "the second-place test", cpu_deadline)
         if other is not None:
+            if rivals is not None:
+                rivals += [out[0], other]
             dist = np.linalg.norm(other.cam_from_world.center - est.cam_from_world.center)
             return None, (
                 f"ambiguous: another place {dist / bundle.scene_scale:.2f} scene scales away "
