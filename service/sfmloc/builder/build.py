@@ -419,7 +419,10 @@ def _map_data(
         index_faiss=index_faiss,
         cameras=cameras,
         image_names=image_names,
-        **clusters,
+        cluster_images_ptr=clusters["cluster_images_ptr"],
+        cluster_images_idx=clusters["cluster_images_idx"],
+        point_clusters_ptr=clusters["point_clusters_ptr"],
+        point_clusters_idx=clusters["point_clusters_idx"],
     )
     data.keypoint_scales = keypoint_scales(
         data.desc_image,
@@ -561,7 +564,11 @@ def main(
         if colmap is not None:
             if poses is not None:
                 raise BuildError("give either --colmap or --poses, not both", stage="input")
-            source = {"kind": "colmap", "model": str(colmap), "images": str(image_dir)}
+            source: dict[str, Any] = {
+                "kind": "colmap",
+                "model": str(colmap),
+                "images": str(image_dir),
+            }
             stages("sfm", 0.0, f"reading COLMAP model {colmap}")
             rec = sfm.load_colmap_input(
                 colmap, image_dir, conf=sfm_conf, progress=stages, should_cancel=should_cancel

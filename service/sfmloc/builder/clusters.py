@@ -53,8 +53,8 @@ class Clusters:
             rows.append(pts)
             cols.append(np.full(len(pts), c, np.int64))
         r = np.concatenate(rows) if rows else np.zeros(0, np.int64)
-        c = np.concatenate(cols) if cols else np.zeros(0, np.int64)
-        m = sp.csr_matrix((np.ones(len(r), np.int8), (r, c)), shape=(n_points, len(self.images)))
+        col = np.concatenate(cols) if cols else np.zeros(0, np.int64)
+        m = sp.csr_matrix((np.ones(len(r), np.int8), (r, col)), shape=(n_points, len(self.images)))
         m.sort_indices()
         return m.indptr.astype(np.int64), m.indices.astype(np.int32)
 

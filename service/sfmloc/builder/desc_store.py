@@ -16,6 +16,7 @@ from __future__ import annotations
 import os
 import tempfile
 from collections.abc import Iterator
+from io import BufferedRandom
 from pathlib import Path
 
 import numpy as np
@@ -34,7 +35,7 @@ class RawStore:
         self.chunk_rows = max(1, int(chunk_rows))
         self._n = 0
         self._mem: list[np.ndarray] | None = None
-        self._file = None
+        self._file: BufferedRandom | None = None
         self.path: Path | None = None
         if folder is None:
             self._mem = []
@@ -51,12 +52,18 @@ class RawStore:
     def on_disk(self) -> bool:
         return self._mem is None
 
+    def _disk(self) -> BufferedRandom:
+        """The open file of an on-disk store."""
+        if self._file is None:
+            raise ValueError(f"raw descriptor store {self.path} is closed")
+        return self._file
+
     def append(self, raw: np.ndarray) -> None:
         raw = np.ascontiguousarray(raw, dtype=self.dtype).reshape(-1, self.dim)
         if self._mem is not None:
             self._mem.append(raw)
         else:
-            self._file.write(raw.tobytes())  # an OSError (full disk) names the file
+            self._disk().write(raw.tobytes())  # an OSError (full disk) names the file
         self._n += len(raw)
 
     def chunks(self) -> Iterator[tuple[int, np.ndarray]]:
@@ -67,14 +74,15 @@ class RawStore:
             if self._n:
                 yield 0, self._mem[0]
             return
-        self._file.flush()
+        file = self._disk()
+        file.flush()
         buf = np.empty((min(self.chunk_rows, max(self._n, 1)), self.dim), self.dtype)
-        self._file.seek(0)
+        file.seek(0)
         start = 0
         while start < self._n:
             m = min(len(buf), self._n - start)
             view = buf[:m]
-            got = self._file.readinto(memoryview(view).cast("B"))
+            got = file.readinto(view.data.cast("B"))
             if got != view.nbytes:
                 msg = f"short read of raw descriptors ({got} of {view.nbytes} bytes)"
                 raise OSError(msg, str(self.path))
@@ -91,8 +99,9 @@ class RawStore:
             self._consolidate()
             out[:] = self._mem[0][start:stop]
             return out
-        self._file.flush()
-        got = os.preadv(self._file.fileno(), [memoryview(out).cast("B")], start * self._row_bytes)
+        file = self._disk()
+        file.flush()
+        got = os.preadv(file.fileno(), [out.data.cast("B")], start * self._row_bytes)
         if got != out.nbytes:
             msg = f"short read of stored rows ({got} of {out.nbytes} bytes)"
             raise OSError(msg, str(self.path))
@@ -118,7 +127,7 @@ class RawStore:
         return out
 
     def _consolidate(self) -> None:
-        if len(self._mem) > 1:
+        if self._mem is not None and len(self._mem) > 1:
             self._mem = [np.concatenate(self._mem)]
 
     def close(self) -> None:

@@ -671,7 +671,9 @@ def _extend(
         p, n, d = p[free], n[free], d[free]
         dd = np.sqrt(np.maximum(2.0 - 2.0 * np.einsum("ij,ij->i", mean[p], desc_all[n]), 0.0))
         m = dd < conf.max_descriptor_distance
-        cand_p.append(p[m]), cand_n.append(n[m]), cand_d.append(d[m])
+        cand_p.append(p[m])
+        cand_n.append(n[m])
+        cand_d.append(d[m])
     if not cand_p:
         return tracks
     p, n, d = np.concatenate(cand_p), np.concatenate(cand_n), np.concatenate(cand_d)

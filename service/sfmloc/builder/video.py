@@ -169,8 +169,8 @@ def read_pose_log(path: str | Path) -> tuple[np.ndarray, list[Rigid3d]]:
             "with --video, --poses must be a TUM file 'timestamp tx ty tz qx qy qz qw' on the "
             f"video's clock (first frame at 0 s); {path} looks like a COLMAP list"
         )
-    entries = sorted(poses.entries, key=lambda e: e.timestamp)
-    return np.array([e.timestamp for e in entries]), [e.world_from_cam for e in entries]
+    entries = sorted(poses.entries, key=lambda e: e.stamp)
+    return np.array([e.stamp for e in entries]), [e.world_from_cam for e in entries]
 
 
 # --------------------------------------------------------------------------- decoding
@@ -224,11 +224,13 @@ def analyze_video(
     """The analysis pass (module docstring, step 1). ``cam_from_world_at(t)`` gives a frame's
     pose (or None) when there are poses; ``camera`` is then needed for the depth estimate."""
     fps = video_fps(path)
-    pos_ms, sharp, flow = [], [], []
+    pos_ms: list[float] = []
+    sharp: list[float] = []
+    flow: list[float] = []
     depths: list[float] = []
-    prev = None
-    pts = None  # tracked corners in the previous frame (analysis pixels)
-    anchor_pts = None  # the same tracks where the segment started
+    prev: np.ndarray | None = None
+    pts: np.ndarray | None = None  # tracked corners in the previous frame (analysis pixels)
+    anchor_pts: np.ndarray | None = None  # the same tracks where the segment started
     anchor_i = 0
     anchor_count = 0
     increasing = True  # container times so far strictly increasing (the clock, see _clock)
@@ -255,9 +257,10 @@ def analyze_video(
         times.append(ms / 1000.0 if increasing or fps <= 0 else i / fps)
         sharp.append(_sharpness(gray))
         step = 0.0
-        if prev is not None and pts is not None and len(pts) > 0:
+        if prev is not None and pts is not None and anchor_pts is not None and len(pts) > 0:
+            # nextPts is only an output here (no OPTFLOW_USE_INITIAL_FLOW): its values are unused.
             nxt, st, _ = cv2.calcOpticalFlowPyrLK(
-                prev, gray, pts, None, winSize=(21, 21), maxLevel=3
+                prev, gray, pts, np.empty_like(pts), winSize=(21, 21), maxLevel=3
             )
             ok = st.ravel() == 1
             if ok.sum() >= 8:
@@ -272,8 +275,13 @@ def analyze_video(
         # Segment end: triangulate the tracks with the known poses; restart the tracks.
         seg_end = pts is None or i - anchor_i >= conf.depth_segment or 2 * len(pts) < anchor_count
         if seg_end:
-            posed = cam_from_world_at is not None and camera is not None
-            if posed and pts is not None and i > anchor_i:
+            if (
+                cam_from_world_at is not None
+                and camera is not None
+                and pts is not None
+                and anchor_pts is not None
+                and i > anchor_i
+            ):
                 d = _segment_depth(
                     (anchor_pts + 0.5) / scale,
                     (pts + 0.5) / scale,
@@ -297,9 +305,9 @@ def analyze_video(
             progress("video", 0.5 * frac, f"analysing frame {i + 1}{of}")
     if not pos_ms:
         raise ImageDecodeError(f"video {path}: no frame could be decoded")
-    times, clock = _clock(np.array(pos_ms) / 1000.0, fps)
+    frame_times, clock = _clock(np.array(pos_ms) / 1000.0, fps)
     depth = float(np.median(depths)) if depths else None
-    return FrameStats(times, np.array(sharp), np.array(flow), clock, fps, depth)
+    return FrameStats(frame_times, np.array(sharp), np.array(flow), clock, fps, depth)
 
 
 def _clock(pos_s: np.ndarray, fps: float) -> tuple[np.ndarray, str]:
@@ -357,21 +365,23 @@ def select_keyframes(
     valid = np.ones(n, bool) if poses is None else np.array([p is not None for p in poses])
     rep.dropped_no_pose = int((~valid).sum())
     w = max(1, conf.sharpness_window)
-    use_pose = poses is not None and stats.scene_depth is not None
+    depth = stats.scene_depth
 
-    def sharpest(start: int) -> int | None:
+    def sharpest(start: int) -> int:
+        # start itself is valid (both callers check), so there is a candidate
         cand = [j for j in range(start, min(n, start + w)) if valid[j]]
-        return max(cand, key=lambda j: stats.sharpness[j]) if cand else None
+        return max(cand, key=lambda j: stats.sharpness[j])
 
     def enough_motion(k: int, i: int) -> bool:
-        if use_pose:
+        if poses is not None and depth is not None:
             if conf.max_interval_s > 0 and stats.times[i] - stats.times[k] >= conf.max_interval_s:
                 return True
             A, B = poses[k], poses[i]
+            assert A is not None and B is not None  # keyframes are valid[], i.e. posed frames
             if rotation_angle_deg(A.rotation, B.rotation) >= conf.min_rotation_deg:
                 return True
             moved = float(np.linalg.norm(A.center - B.center))
-            return moved >= conf.min_translation * stats.scene_depth
+            return moved >= conf.min_translation * depth
         return float(np.sum(stats.flow[k + 1 : i + 1])) >= conf.min_flow
 
     keys: list[int] = []
@@ -473,7 +483,9 @@ def extract_keyframes(
     poses_file = None
     if frame_poses is not None:
         poses_file = out_dir / "poses.txt"
-        write_colmap_list(poses_file, names, [frame_poses[i] for i in keys])
+        key_poses = [p for i in keys if (p := frame_poses[i]) is not None]
+        assert len(key_poses) == len(keys)  # select_keyframes keeps posed frames only
+        write_colmap_list(poses_file, names, key_poses)
     log.info("video %s: %s", video, rep.summary())
     if progress:
         progress("video", 1.0, rep.summary())

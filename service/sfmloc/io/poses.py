@@ -30,6 +30,13 @@ class PoseEntry:
     def world_from_cam(self) -> Rigid3d:
         return self.cam_from_world.inverse()
 
+    @property
+    def stamp(self) -> float:
+        """The timestamp of a TUM entry (a COLMAP list's entries have none)."""
+        if self.timestamp is None:
+            raise ModelFormatError(f"pose {self.key!r} has no timestamp (not a TUM entry)")
+        return self.timestamp
+
 
 @dataclass
 class PoseList:

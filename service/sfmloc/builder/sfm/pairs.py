@@ -112,7 +112,7 @@ def triangulation_angles_deg(
 def wide_pairs(
     camera: Camera,
     cam_from_worlds: Sequence[Rigid3d],
-    depths: Sequence[float],
+    depths: Sequence[float] | np.ndarray,
     angles_deg: Sequence[float],
     min_overlap: float,
     max_angle_deg: float,

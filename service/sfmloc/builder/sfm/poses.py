@@ -157,10 +157,11 @@ def _numeric_stem(name: str) -> float | None:
 def _match_tum(
     poses: PoseList, names: Sequence[str], poses_file, image_dir, max_dt: float
 ) -> list[tuple[str, Rigid3d]]:
-    stamps = [_numeric_stem(n) for n in names]
-    if all(s is not None for s in stamps):
-        order = sorted(range(len(poses.entries)), key=lambda i: poses.entries[i].timestamp)
-        ts = [poses.entries[i].timestamp for i in order]
+    named = [_numeric_stem(n) for n in names]
+    stamps = [s for s in named if s is not None]
+    if len(stamps) == len(named):
+        order = sorted(range(len(poses.entries)), key=lambda i: poses.entries[i].stamp)
+        ts = [poses.entries[i].stamp for i in order]
         out = []
         used: dict[int, str] = {}
         for name, s in sorted(zip(names, stamps), key=lambda x: x[1]):

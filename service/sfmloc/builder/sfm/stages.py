@@ -84,7 +84,7 @@ def opencv_sift(gray: np.ndarray, conf: SfmConf) -> tuple[np.ndarray, np.ndarray
         gray = cv2.resize(
             gray, (max(1, round(w * scale)), max(1, round(h * scale))), interpolation=cv2.INTER_AREA
         )
-    sift = cv2.SIFT_create(nfeatures=conf.max_features, contrastThreshold=conf.contrast_threshold)
+    sift = cv2.SIFT.create(nfeatures=conf.max_features, contrastThreshold=conf.contrast_threshold)
     kps, desc = sift.detectAndCompute(gray, None)
     if desc is None or not kps:
         return np.zeros((0, 6), np.float32), np.zeros((0, 128), np.uint8)
