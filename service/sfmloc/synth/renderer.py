@@ -309,7 +309,7 @@ def render_full(
     inv, fid, drawn = _rasterize(scene, camera, cam_from_world, conf.near)
     pyr = _pyramids(scene)
     K = camera.K
-    out = np.zeros((camera.height, camera.width, 3), np.uint8)
+    out: np.ndarray = np.zeros((camera.height, camera.width, 3), np.uint8)
     for face, (i0, i1, j0, j1) in drawn:
         vis = fid[j0 : j1 + 1, i0 : i1 + 1] == face.index
         rows, cols = np.flatnonzero(vis.any(axis=1)), np.flatnonzero(vis.any(axis=0))

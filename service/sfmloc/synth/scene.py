@@ -109,7 +109,7 @@ class Face(Quad):
 
 def vertical_face(
     center_xy, normal_xy, width: float, z0: float, z1: float
-) -> tuple[np.ndarray, ...]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(origin, u, v) of an upright rectangle seen from the ``normal_xy`` side, t downwards."""
     n = np.array([normal_xy[0], normal_xy[1], 0.0])
     n /= np.linalg.norm(n)
@@ -195,7 +195,7 @@ class Track:
         )
         return np.hypot(d[:, 0], d[:, 1])
 
-    def point(self, theta: np.ndarray, rho: np.ndarray) -> np.ndarray:
+    def point(self, theta: float | np.ndarray, rho: float | np.ndarray) -> np.ndarray:
         theta, rho = np.asarray(theta, np.float64), np.asarray(rho, np.float64)
         a, b = self.semi_axes
         x = self.center[0] + rho * a * np.cos(theta)
@@ -239,8 +239,8 @@ def _layout_quads(layout: RoomLayout) -> list[Quad]:
         ("wall_yW", (L / 2, W), (0, -1), L),
         ("wall_x0", (0.0, W / 2), (1, 0), W),
     ]
-    for name, c, n, width in walls:
-        add(name, *vertical_face(c, n, width, 0.0, H), ("wall",))
+    for name, centre, n, width in walls:
+        add(name, *vertical_face(centre, n, width, 0.0, H), ("wall",))
     # Floor seen from above: s along +x, t along -y. Ceiling seen from below: s +x, t +y.
     add("floor", (0.0, W, 0.0), (L, 0, 0), (0, -W, 0), ("floor",))
     add("ceiling", (0.0, 0.0, H), (L, 0, 0), (0, W, 0), ("ceiling",))
@@ -433,7 +433,7 @@ def room_layout(seed: int, conf: SceneConf | None = None) -> RoomLayout:
                     )
                     yaw = base.yaw + np.radians(rng.uniform(-20, 20))
                     c = np.asarray(base.center) + rng.uniform(-0.1, 0.1, 2)
-                    b = Box(
+                    box = Box(
                         f"box{n}",
                         "crate",
                         (float(c[0]), float(c[1])),
@@ -441,22 +441,22 @@ def room_layout(seed: int, conf: SceneConf | None = None) -> RoomLayout:
                         yaw,
                         base.z1,
                     )
-                    if np.all(base.distance_xy(b.footprint()) == 0.0):
-                        placed.append(b)
+                    if np.all(base.distance_xy(box.footprint()) == 0.0):
+                        placed.append(box)
                         break
         elif kind == "under" and table is not None:
             for _ in range(100):
                 sx, sy, sz = rng.uniform(0.3, 0.45), rng.uniform(0.25, 0.35), rng.uniform(0.25, 0.4)
                 c = np.asarray(table.center) + rng.uniform(-0.25, 0.25, 2) * np.array([1, 0.3])
                 yaw = table.yaw + np.radians(rng.uniform(-30, 30))
-                b = Box(f"box{n}", "crate", (float(c[0]), float(c[1])), (sx, sy, sz), yaw)
+                box = Box(f"box{n}", "crate", (float(c[0]), float(c[1])), (sx, sy, sz), yaw)
                 legs = [o for o in placed if o.kind == "table_leg"]
-                if np.all(table.distance_xy(b.footprint()) == 0.0) and all(
-                    np.all(o.distance_xy(b.footprint()) > 0.05)
-                    and b.distance_xy(np.asarray(o.center)[None])[0] > 0.05
+                if np.all(table.distance_xy(box.footprint()) == 0.0) and all(
+                    np.all(o.distance_xy(box.footprint()) > 0.05)
+                    and box.distance_xy(np.asarray(o.center)[None])[0] > 0.05
                     for o in legs
                 ):
-                    placed.append(b)
+                    placed.append(box)
                     break
     return RoomLayout(size=(L, W, H), boxes=tuple(placed), track=track)
 

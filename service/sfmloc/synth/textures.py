@@ -20,6 +20,7 @@ Public: ``Canvas``, ``verify_corners``, ``compose_wall``, ``compose_floor``,
 from __future__ import annotations
 
 import colorsys
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -47,6 +48,11 @@ def jitter(c: Color, rng: np.random.Generator, amount: float) -> Color:
     common = rng.uniform(-amount, amount)
     out = tuple(int(np.clip(x + common + rng.uniform(-amount, amount) / 4, 12, 243)) for x in c)
     return out  # type: ignore[return-value]
+
+
+def each(c: Color, f: Callable[[int], int]) -> Color:
+    """``f`` applied to each channel."""
+    return (f(c[0]), f(c[1]), f(c[2]))
 
 
 def gray_of(c: Color) -> float:
@@ -125,13 +131,12 @@ class Canvas:
         h, w = self.h, self.w
         out = self.img.astype(np.float32)
         if grain > 0:
-            g = rng.standard_normal((h, w), dtype=np.float32)
-            g = cv2.GaussianBlur(g, (0, 0), 0.7)
-            g *= grain / max(1e-6, float(g.std()))
+            g = cv2.GaussianBlur(rng.standard_normal((h, w), dtype=np.float32), (0, 0), 0.7)
+            g = g * (grain / max(1e-6, float(g.std())))  # float32 (a Python float is weak)
             out += g[..., None]
         # Large-scale (~1 m) multiplicative variation: dirt, uneven paint, light falloff.
         gh, gw = max(2, int(h * self.texel) + 2), max(2, int(w * self.texel) + 2)
-        low = rng.uniform(0.96, 1.04, (gh, gw)).astype(np.float32)
+        low: np.ndarray = rng.uniform(0.96, 1.04, (gh, gw)).astype(np.float32)
         low = cv2.resize(low, (w, h), interpolation=cv2.INTER_CUBIC)
         out *= low[..., None]
         self.img = np.clip(np.rint(out), 0, 255).astype(np.uint8)
@@ -703,10 +708,8 @@ def _wall_low_band(cv: Canvas, rng: np.random.Generator, row) -> None:
         if kind == "wainscot":
             pw = cv.t(rng.uniform(0.35, 0.55))
             frame_c = jitter((150, 160, 170), rng, 25)
-            inner = jitter(frame_c, rng, 10)
-            inner = tuple(
-                int(np.clip(c + 45 * (1 if gray_of(frame_c) < 128 else -1), 0, 255)) for c in inner
-            )
+            shift = 45 * (1 if gray_of(frame_c) < 128 else -1)
+            inner = each(jitter(frame_c, rng, 10), lambda c: int(np.clip(c + shift, 0, 255)))
             cv.rect(x, row(0.85), x1, row(0.1), frame_c)
             for px in range(x + cv.t(0.04), x1 - pw // 2, pw):
                 cv.rect(px, row(0.8), min(x1 - cv.t(0.04), px + pw - cv.t(0.05)), row(0.15), inner)
@@ -721,7 +724,7 @@ def _wall_low_band(cv: Canvas, rng: np.random.Generator, row) -> None:
                     top + cv.t(0.03),
                     sx + slat // 2,
                     bot - cv.t(0.03),
-                    tuple(int(c * 0.7) for c in body),
+                    each(body, lambda c: int(c * 0.7)),
                 )
         elif kind == "tiles":
             colors = [
