@@ -55,6 +55,11 @@ def each(c: Color, f: Callable[[int], int]) -> Color:
     return (f(c[0]), f(c[1]), f(c[2]))
 
 
+def shifted(c: Color, d: int) -> Color:
+    """Each channel plus ``d``, clipped to 0..255."""
+    return each(c, lambda v: int(np.clip(v + d, 0, 255)))
+
+
 def gray_of(c: Color) -> float:
     b, g, r = c
     return 0.114 * b + 0.587 * g + 0.299 * r
@@ -708,8 +713,7 @@ def _wall_low_band(cv: Canvas, rng: np.random.Generator, row) -> None:
         if kind == "wainscot":
             pw = cv.t(rng.uniform(0.35, 0.55))
             frame_c = jitter((150, 160, 170), rng, 25)
-            shift = 45 * (1 if gray_of(frame_c) < 128 else -1)
-            inner = each(jitter(frame_c, rng, 10), lambda c: int(np.clip(c + shift, 0, 255)))
+            inner = shifted(jitter(frame_c, rng, 10), 45 * (1 if gray_of(frame_c) < 128 else -1))
             cv.rect(x, row(0.85), x1, row(0.1), frame_c)
             for px in range(x + cv.t(0.04), x1 - pw // 2, pw):
                 cv.rect(px, row(0.8), min(x1 - cv.t(0.04), px + pw - cv.t(0.05)), row(0.15), inner)
