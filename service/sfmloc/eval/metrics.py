@@ -84,6 +84,7 @@ def wrong_poses(records: list[FrameRecord], scene_scale: float) -> list[FrameRec
         for r in records
         if is_pose(r.status)
         and r.position_error_m is not None
+        and r.rotation_error_deg is not None
         and (r.position_error_m > limit or r.rotation_error_deg > WRONG_ROTATION_DEG)
     ]
 
@@ -95,6 +96,7 @@ def within(records: list[FrameRecord], position: float, rotation_deg: float) -> 
         for r in records
         if is_pose(r.status)
         and r.position_error_m is not None
+        and r.rotation_error_deg is not None
         and r.position_error_m <= position
         and r.rotation_error_deg <= rotation_deg
     )

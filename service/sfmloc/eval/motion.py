@@ -70,9 +70,16 @@ def run(
     stride: int = 1,
 ) -> dict:
     loc = ProbedLocalizer(bundle, camera, conf)
-    pred_px, still_px, statuses, errs, tracked, tracked_3d, matching = [], [], [], [], [], [], []
+    pred_px: list[float] = []
+    still_px: list[float] = []
+    statuses: list[str] = []
+    errs: list[tuple[float, float]] = []
+    tracked: list[int] = []
+    tracked_3d: list[int] = []
+    matching: list[Matching] = []
     prev_pose = None
-    lat, worst = [], []
+    lat: list[float] = []
+    worst: list[tuple[float, int, str, Matching, int]] = []
     for fr in source:
         if fr.index < start or (fr.index - start) % stride:
             continue
