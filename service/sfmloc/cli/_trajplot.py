@@ -84,7 +84,7 @@ class StreamRecorder:
             sent = dict(self._sent)
             poses = dict(self._poses)
         names = [sent[s][0] or f"{s:06d}" for s in seqs]
-        stamps = [sent[s][1] if sent[s][1] is not None else s / fps for s in seqs]
+        stamps = [stamp if (stamp := sent[s][1]) is not None else s / fps for s in seqs]
         gt = load_groundtruth(groundtruth, names, stamps, fps) if groundtruth else None
         out = []
         for i, s in enumerate(seqs):

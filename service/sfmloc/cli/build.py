@@ -350,12 +350,11 @@ def _build_video(args: argparse.Namespace, conf, sconf, bar):
 
 def _align_built(args: argparse.Namespace, path, out_dir: str):
     """The freshly built bundle aligned as ``sfmloc map align`` would, written to OUT/NAME."""
-    from types import SimpleNamespace
 
     from ..map.align import write_aligned
     from .map import align_bundle_from_args, print_align_report
 
-    opts = SimpleNamespace(
+    opts = argparse.Namespace(
         positions=None,
         poses=args.align_positions,  # read_known_positions takes 'name x y z' or pose files
         points=args.align_points,

@@ -110,8 +110,10 @@ def run(args: argparse.Namespace) -> int:
         CameraSpec,
         FrameStreamer,
         LocalizationClient,
+        PoseMessage,
         PoseSubscriber,
         SourceFrame,
+        Transform,
         make_zenoh_config,
     )
 
@@ -188,11 +190,11 @@ def run(args: argparse.Namespace) -> int:
             # ---- stream
             step(f"streaming {len(frames)} frames at {args.fps:g} Hz over Zenoh ({args.encoding})")
             sent_at: dict[int, float] = {}
-            poses: dict[int, object] = {}
+            poses: dict[int, PoseMessage] = {}
             rtt: list[float] = []
             lock = threading.Lock()
 
-            def on_pose(p) -> None:  # noqa: ANN001 - PoseMessage
+            def on_pose(p: PoseMessage) -> None:
                 now = time.perf_counter()
                 with lock:
                     if p.seq is not None:
@@ -230,8 +232,7 @@ def run(args: argparse.Namespace) -> int:
             exit_code = srv.stop()
 
         # ---- report
-        def errors(p, k: int) -> tuple[float, float]:  # noqa: ANN001
-            w = p.world_from_cam
+        def errors(w: Transform, k: int) -> tuple[float, float]:
             est = Rigid3d.from_quat_xyzw(np.array(w.quat_xyzw), np.array(w.t))
             ref = gt_list[k].inverse()
             return float(np.linalg.norm(est.translation - ref.translation)), rotation_angle_deg(
@@ -239,7 +240,11 @@ def run(args: argparse.Namespace) -> int:
             )
 
         got = [poses[k] for k in sorted(poses)]
-        loc = [(p.seq, *errors(p, p.seq)) for p in got if p.localized]
+        loc = [
+            (k, *errors(w, k))
+            for k, p in sorted(poses.items())
+            if p.localized and (w := p.world_from_cam) is not None
+        ]
         dpos = np.array([e[1] for e in loc]) * 100
         drot = np.array([e[2] for e in loc])
         statuses: dict[str, int] = {}

@@ -350,7 +350,7 @@ def align_bundle_from_args(args: argparse.Namespace, path: str):
     up = _parse_up(args.up, bundle)
     centers = A.image_centers(bundle)
     corr = None
-    given = None
+    given = ""  # what corr holds, set with it
     if getattr(args, "points", None):
         corr = A.read_point_pairs(args.points)
         given = "points"

@@ -4,8 +4,12 @@ from __future__ import annotations
 
 import argparse
 import textwrap
+from typing import TYPE_CHECKING
 
 from ._clientopts import add_grpc_option, camera_spec, grpc_client
+
+if TYPE_CHECKING:
+    import numpy as np
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -51,22 +55,21 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"image {path} does not exist")
     suffix = path.suffix.lower()
     if suffix in (".jpg", ".jpeg", ".png"):
-        image, encoding = path.read_bytes(), ("png" if suffix == ".png" else "jpeg")
+        image: bytes | np.ndarray = path.read_bytes()
+        encoding = "png" if suffix == ".png" else "jpeg"
     else:
         import cv2
 
-        image, encoding = (
-            cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION),
-            "png",
-        )
-        if image is None:
+        decoded = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
+        if decoded is None:
             raise InputError(f"cannot read image {path}")
+        image, encoding = decoded, "png"
     prior = None
     if args.prior:
         v = [float(x) for x in args.prior.split()]
         if len(v) != 7:
             raise InputError("--prior takes 7 numbers: qx qy qz qw tx ty tz")
-        prior = Transform(tuple(v[:4]), tuple(v[4:]))  # type: ignore[arg-type]
+        prior = Transform((v[0], v[1], v[2], v[3]), (v[4], v[5], v[6]))
     with grpc_client(args) as c:
         try:
             pose = c.relocalize(image, args.map, cam, encoding=encoding, prior=prior)

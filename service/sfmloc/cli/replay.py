@@ -220,8 +220,9 @@ def run(args: argparse.Namespace) -> int:
     if summary["ate_m"] == summary["ate_m"]:
         print(f"ATE (SE(3)-aligned)  {summary['ate_m'] * 100:.2f} cm")
     if args.trajectory:
-        ok = [r for r in records if r.cam_from_world is not None]
-        write_tum(args.trajectory, [r.stamp for r in ok], [r.cam_from_world.inverse() for r in ok])
+        posed = [(r, T) for r in records if (T := r.cam_from_world) is not None]
+        ok = [r for r, _ in posed]
+        write_tum(args.trajectory, [r.stamp for r in ok], [T.inverse() for _, T in posed])
         cov = write_tum_covariances(
             args.trajectory + ".cov",
             [r.stamp for r in ok],
