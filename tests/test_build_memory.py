@@ -211,3 +211,14 @@ def test_whole_build_peak_grows_less_than_300_bytes_per_descriptor(rooms, tmp_pa
     )
     assert old["descriptors"] == large["descriptors"]
     assert old["peak"] - large["peak"] > BYTES_PER_DESCRIPTOR * large["descriptors"], (old, large)
+
+
+def test_raw_store_refuses_use_after_close(tmp_path):
+    # mypy found the closed store's file (None) read as a file: an AttributeError on None
+    store = RawStore(8, tmp_path)
+    store.append(np.ones((3, 8), np.float32))
+    store.close()
+    with pytest.raises(ValueError, match="closed"):
+        store.append(np.ones((1, 8), np.float32))
+    with pytest.raises(ValueError, match="closed"):
+        store.read(0, 2)
