@@ -651,3 +651,34 @@ def test_reuse_rebuilds_a_map_made_by_another_builder(tmp_path, caplog):
     with open(copy / "builder" / "build.py", "a") as f:
         f.write("# another builder\n")
     assert suites.source_hash(copy) != suites.builder_identity()["source"]
+
+
+def test_bench_video_encoder_names_a_missing_frame(tmp_path):
+    # cv2.imread returns None for a missing file; the encoder read None.shape (AttributeError)
+    # until mypy saw it
+    from sfmloc.bench.builder import _encode_video
+    from sfmloc.errors import ImageDecodeError
+
+    with pytest.raises(ImageDecodeError, match="frame-000000.png"):
+        _encode_video(tmp_path, ["frame-000000.png"], tmp_path / "v.avi")
+
+
+def test_bench_image_reads_name_a_missing_or_broken_frame(tmp_path):
+    # what the bench reads frames with (it handed cv2's None on to the engine before)
+    import cv2
+
+    from sfmloc.errors import ImageDecodeError
+    from sfmloc.io.frames import decode_image, read_image
+
+    broken = tmp_path / "frame-000001.png"
+    broken.write_bytes(b"not a png")
+    with pytest.raises(ImageDecodeError, match="frame-000002.png"):
+        read_image(tmp_path / "frame-000002.png")
+    with pytest.raises(ImageDecodeError, match="frame-000001.png"):
+        read_image(broken, cv2.IMREAD_GRAYSCALE)
+    with pytest.raises(ImageDecodeError, match="frame-000001.png"):
+        decode_image(broken.read_bytes(), cv2.IMREAD_GRAYSCALE, str(broken))
+    good = tmp_path / "good.png"
+    cv2.imwrite(str(good), np.full((4, 6), 7, np.uint8))
+    assert read_image(good, cv2.IMREAD_GRAYSCALE).shape == (4, 6)
+    assert decode_image(good.read_bytes(), cv2.IMREAD_GRAYSCALE, "good").sum() == 7 * 24

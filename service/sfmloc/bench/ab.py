@@ -37,6 +37,7 @@ import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -177,7 +178,7 @@ def compare(variants: list[Variant]) -> dict:
                 stages[k] = stages.get(k, 0.0) + st["mean"] / len(v.runs)
             for k, st in r["summary"].get("stages_cpu_ms", {}).items():
                 stages_cpu[k] = stages_cpu.get(k, 0.0) + st["mean"] / len(v.runs)
-        row = {
+        row: dict[str, Any] = {
             "tree": str(v.tree),
             "config": str(v.config) if v.config else None,
             "map": str(v.map) if v.map else None,

@@ -159,12 +159,14 @@ def density_part(work: Path, data: Path, frames: int, strides: list[int], n_relo
 def _encode_video(data: Path, names: list[str], path: Path, fps: float = 30.0) -> Path:
     import cv2
 
-    first = cv2.imread(str(data / names[0]))
+    from ..io.frames import read_image
+
+    first = read_image(data / names[0])
     h, w = first.shape[:2]
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), fps, (w, h))
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"MJPG"), fps, (w, h))
     try:
         for n in names:
-            writer.write(cv2.imread(str(data / n)))
+            writer.write(read_image(data / n))
     finally:
         writer.release()
     return path

@@ -92,8 +92,9 @@ def evaluate(bundle_dir: Path, data: Path, frames: int, n_reloc: int) -> dict:
         source, np.linspace(0, n - 1, n_reloc).round().astype(int)
     ):
         r = relocalize(gray, cam, bundle, conf)
-        if r.cam_from_world is not None and gt[i] is not None:
-            dp, dr = pose_errors(r.cam_from_world, gt[i])
+        g = gt[i]
+        if r.cam_from_world is not None and g is not None:
+            dp, dr = pose_errors(r.cam_from_world, g)
             ok += dp <= WRONG_FRACTION * scale and dr <= WRONG_DEG
     recs, _ = replay(bundle, source, cam, conf, gt, max_frames=n)
     s = summarize(recs, scale)

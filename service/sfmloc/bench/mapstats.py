@@ -38,13 +38,15 @@ def probe(bundle: str, frames: list[str], camera: str, verify: bool = True) -> d
     import cv2
     import numpy as np
 
+    from ..io.frames import read_image
+
     pin_threads_runtime()
     from ..cameras import Camera
     from ..engine import Localizer
     from ..map.bundle import MapBundle
 
     cam = Camera.parse(camera)
-    grays = [cv2.imread(f, cv2.IMREAD_GRAYSCALE) for f in frames]
+    grays = [read_image(f, cv2.IMREAD_GRAYSCALE) for f in frames]
     before = _status_kib()
     t0 = time.perf_counter()
     b = MapBundle(bundle, verify=verify)

@@ -104,6 +104,7 @@ def prepare(work: Path, n_frames: int = 60, mapping_views: int = 40) -> World:
     import cv2
 
     from ..cameras import Camera
+    from ..io.frames import read_image
     from ..io.poses import read_poses
     from ..map.bundle import MapBundle
 
@@ -134,7 +135,7 @@ def prepare(work: Path, n_frames: int = 60, mapping_views: int = 40) -> World:
     return World(
         maps_dir=maps_dir,
         camera=f"PINHOLE {cam.width} {cam.height} " + " ".join(repr(float(p)) for p in cam.params),
-        gray=[cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) for f in frames],
+        gray=[read_image(f, cv2.IMREAD_GRAYSCALE) for f in frames],
         gt_cam_from_world=[np.asarray(gt[f.stem].matrix()) for f in frames],
         scene_scale=MapBundle(maps_dir / MAP, verify=False).scene_scale,
     )
@@ -148,6 +149,7 @@ def prepare_redkitchen(
     import cv2
 
     from ..cameras import Camera
+    from ..io.frames import read_image
     from ..io.poses import read_poses
     from ..map.bundle import MapBundle
 
@@ -160,7 +162,7 @@ def prepare_redkitchen(
     return World(
         maps_dir=Path(maps_dir),
         camera=f"PINHOLE {cam.width} {cam.height} " + " ".join(repr(float(p)) for p in cam.params),
-        gray=[cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) for f in frames],
+        gray=[read_image(f, cv2.IMREAD_GRAYSCALE) for f in frames],
         gt_cam_from_world=[np.asarray(gt[f.stem].matrix()) for f in frames],
         scene_scale=bundle.scene_scale,
         name=name,
@@ -470,10 +472,12 @@ class StreamClient(threading.Thread):
                 # where it went and whether it carried the handover prior (what publish() did)
                 self.log.sent_to[seq] = (fs.server, fs._handover_prior(fs.server) is not None)
                 if self.rate_hz is None:
+
+                    def answered(s: int = seq) -> bool:
+                        return s in self.log.answered
+
                     with self._cv:
-                        if not self._cv.wait_for(
-                            lambda s=seq: s in self.log.answered, self.timeout
-                        ):
+                        if not self._cv.wait_for(answered, self.timeout):
                             self.log.timeouts += 1
                 else:
                     t_next += 1.0 / self.rate_hz
@@ -859,7 +863,7 @@ def run_fuzz(
             crashes += 0 if alive else 1
             stop.set()
             canary.join(deadline_s + 5)
-    by_code = Counter()
+    by_code: Counter[str] = Counter()
     for key, v in codes.items():
         by_code[key.split()[1]] += v
     can = canary.summary(t0, t1)
@@ -1766,7 +1770,8 @@ def run_bundle(
     copy = Path(work) / "mutated" / MAP
     shutil.rmtree(copy.parent, ignore_errors=True)
     shutil.copytree(world.bundle, copy)
-    rows, cli_ok, cli_n = [], 0, 0
+    rows: list[dict[str, Any]] = []
+    cli_ok, cli_n = 0, 0
     files = sorted(p for p in copy.rglob("*") if p.is_file())
     for f in files:
         size = f.stat().st_size

@@ -431,9 +431,13 @@ def frame_dicts(records: list[FrameRecord]) -> list[dict]:
 
 def write_tum_pair(records: list[FrameRecord], est_path: Path, gt_path: Path) -> int:
     """Estimate and ground truth (world_from_cam) at the same timestamps, for ``evo_ape tum``."""
-    both = [r for r in records if r.cam_from_world is not None and r.gt_cam_from_world is not None]
-    write_tum(est_path, [r.stamp for r in both], [r.cam_from_world.inverse() for r in both])
-    write_tum(gt_path, [r.stamp for r in both], [r.gt_cam_from_world.inverse() for r in both])
+    both = [
+        (r.stamp, est, gt)
+        for r in records
+        if (est := r.cam_from_world) is not None and (gt := r.gt_cam_from_world) is not None
+    ]
+    write_tum(est_path, [s for s, _, _ in both], [est.inverse() for _, est, _ in both])
+    write_tum(gt_path, [s for s, _, _ in both], [gt.inverse() for _, _, gt in both])
     return len(both)
 
 

@@ -32,6 +32,7 @@ import traceback
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from ..cameras import Camera
 from ..errors import InputError
@@ -214,7 +215,7 @@ class RobustData:
             raise value
         return value
 
-    def _cached(self, folder: Path, key: dict, make: Callable[[], None]) -> Path:
+    def _cached(self, folder: Path, key: dict, make: Callable[[], object]) -> Path:
         """Run ``make`` (it fills ``folder``) unless --reuse and ``key`` made ``folder`` with
         today's builder (``suites.cached``)."""
         stamp = folder / "robust-source.json"
@@ -439,7 +440,8 @@ def prepare_row(spec: RowSpec, data: RobustData) -> Prepared:
     name = f"robust/{spec.name}"
     if spec.real:
         rk = data.redkitchen()
-        info = {"exclude_every": 10}  # never compare on a map image of the every-10th map
+        # never compare on a map image of the every-10th map
+        info: dict[str, Any] = {"exclude_every": 10}
         if spec.name == "redkitchen-1920x1440":
             frames, cam = data.redkitchen_upsampled()
             n = len(FrameSource(frames))
@@ -505,13 +507,13 @@ def prepare_row(spec: RowSpec, data: RobustData) -> Prepared:
             info,
         )
     if spec.name.startswith("scale-") and spec.name != "scale-1":
-        bundle, sift, gt = data.scaled(float(spec.name[6:]))
+        bundle, sift, gt_file = data.scaled(float(spec.name[6:]))
         return Prepared(
             name,
             "synthetic",
             base.frames_dir,
             base.camera,
-            _groundtruth(gt, base.frames_dir, VIDEO_HZ),
+            _groundtruth(gt_file, base.frames_dir, VIDEO_HZ),
             0,
             n30,
             bundle,
@@ -765,7 +767,8 @@ def run_robust(
     sift_conf = sift_conf or SiftPeerConf()
     data = RobustData(conf, work, progress, preps)
     t_start = time.perf_counter()
-    rows, done = [], {}
+    rows: list[dict[str, Any]] = []
+    done: dict[tuple[Any, ...], dict[str, Any]] = {}  # run key -> the row that ran it
 
     def suite() -> dict:
         return {

@@ -251,10 +251,11 @@ def build_index(data: np.ndarray, search: str, hnsw_m: int = 32):
 
     d = data.shape[1]
     if search == "exact":
-        index = faiss.IndexFlatL2(d)
+        index: faiss.Index = faiss.IndexFlatL2(d)
     else:
-        index = faiss.IndexHNSWFlat(d, hnsw_m)
-        index.hnsw.efConstruction = 80
+        hnsw = faiss.IndexHNSWFlat(d, hnsw_m)
+        hnsw.hnsw.efConstruction = 80
+        index = hnsw
     index.add(np.ascontiguousarray(data, np.float32))
     return index
 

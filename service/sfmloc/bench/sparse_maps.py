@@ -175,7 +175,7 @@ def _classify(est: Rigid3d | None, gt: Rigid3d | None, scale: float) -> tuple[st
 def _summ(rows: list[tuple[str, float | None]]) -> dict:
     n = len(rows)
     loc = [r for r in rows if r[0] in ("ok", "wrong")]
-    errs = [r[1] for r in rows if r[0] == "ok"]
+    errs = [e for kind, e in rows if kind == "ok" and e is not None]  # "ok" rows have an error
     return {
         "frames": n,
         "localized": len(loc),

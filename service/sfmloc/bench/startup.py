@@ -63,7 +63,7 @@ def time_to_serving(maps: Path, workers: int, mode: str, timeout: float = 120.0)
 def restart_times(bundle: Path, kills: int) -> dict[str, list[float]]:
     """Per mode, seconds from kill -9 of worker 0 until its replacement serves with
     ``bundle``; the two pools run side by side and are killed in turn."""
-    from ..server.pool import WorkerPool
+    from ..server.pool import WorkerHandle, WorkerPool
 
     pools = {}
     for m in MODES:
@@ -78,9 +78,11 @@ def restart_times(bundle: Path, kills: int) -> dict[str, list[float]]:
                 victim = pool.workers[0]
                 t0 = time.monotonic()
                 os.kill(victim.pid, signal.SIGKILL)
-                if not pool.wait_for(
-                    lambda p=pool, v=victim: p.workers[0] is not v and p.is_alive(0), 120
-                ):
+
+                def replaced(p: WorkerPool = pool, v: WorkerHandle = victim) -> bool:
+                    return p.workers[0] is not v and p.is_alive(0)
+
+                if not pool.wait_for(replaced, 120):
                     raise TimeoutError("the replacement did not serve within 120 s")
                 out[m].append(time.monotonic() - t0)
                 time.sleep(0.5)

@@ -149,6 +149,7 @@ def run_submaps(
     from ..engine.localizer import Localizer
     from ..engine.submaps import SubmapLocalizer
     from ..engine.types import Status
+    from ..io.frames import read_image
     from ..map.bundle import MapBundle
     from ..map.submaps import SubmapSet, split_bundle
 
@@ -179,7 +180,7 @@ def run_submaps(
     whole = Localizer(whole_map, world.camera)
     rows: dict[str, list[dict[str, Any]]] = {"whole": [], "submaps": []}
     for i, (path, gt, room) in enumerate(zip(world.frames, world.gt, world.room)):
-        gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        gray = read_image(path, cv2.IMREAD_GRAYSCALE)
         stamp = i / 30.0
         for name, loc in (("whole", whole), ("submaps", sub)):
             before = (sub.stats.switches, sub.stats.sync_loads, sub.stats.loads)
@@ -189,8 +190,8 @@ def run_submaps(
             t = time.perf_counter()
             r = loc.localize(gray, stamp)
             ms = (time.perf_counter() - t) * 1e3
-            posed = r.status is not Status.LOST and r.cam_from_world is not None
-            err = float(np.linalg.norm(r.cam_from_world.center - gt.center)) if posed else None
+            T = r.cam_from_world if r.status is not Status.LOST else None
+            err = float(np.linalg.norm(T.center - gt.center)) if T is not None else None
             row = {"ms": ms, "err": err, "room": room, "status": r.status.name}
             if name == "submaps":
                 after = (sub.stats.switches, sub.stats.sync_loads, sub.stats.loads)

@@ -27,6 +27,7 @@ import os
 import threading
 import time
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -52,9 +53,12 @@ class BenchInput:
     def load(self, n: int) -> None:
         import cv2
 
+        from ..io.frames import decode_image
+
         self.jpeg = [p.read_bytes() for p in self.frames[:n]]
         self.gray = [
-            cv2.imdecode(np.frombuffer(b, np.uint8), cv2.IMREAD_GRAYSCALE) for b in self.jpeg
+            decode_image(b, cv2.IMREAD_GRAYSCALE, str(p))
+            for p, b in zip(self.frames[:n], self.jpeg)
         ]
 
 
@@ -202,7 +206,7 @@ def bench_overhead(inp: BenchInput, n: int) -> dict[str, Any]:
                     t0 = time.perf_counter()
                     fs.publish(data=data, encoding=enc, seq=k, stamp_ns=int(k * 1e9 / 30))
                     with cond:
-                        cond.wait_for(lambda k=k, recv=recv: k in recv, 10)
+                        cond.wait_for(partial(recv.__contains__, k), 10)
                     if k not in recv or k < 5:
                         continue
                     t1, p = recv[k]
@@ -311,7 +315,7 @@ def bench_clients(
     frames = inp.jpeg if encoding == "jpeg" else [g.tobytes() for g in inp.gray]
     results: list[dict[str, Any]] = [{} for _ in range(clients)]
     load0 = os.getloadavg()[0]
-    extra = ("--max-pending", str(max_pending))
+    extra: tuple[str, ...] = ("--max-pending", str(max_pending))
     if reloc_workers is not None:
         extra += ("--relocalize-workers", str(reloc_workers))
     reloc: dict[str, Any] = {"rate_hz": reloc_rate, "workers": reloc_workers}
@@ -576,11 +580,12 @@ def _engine_job(
 
     from ..cameras import Camera
     from ..engine import Localizer
+    from ..io.frames import read_image
     from ..map.bundle import MapBundle
 
     pin_threads_runtime()
     loc = Localizer(MapBundle(Path(maps) / map_name, verify=False), Camera.parse(camera))
-    imgs = [cv2.imread(f, cv2.IMREAD_GRAYSCALE) for f in frames]
+    imgs = [read_image(f, cv2.IMREAD_GRAYSCALE) for f in frames]
     loc.localize(imgs[0], 0.0)  # the first frame relocalizes: not part of the steady state
     time.sleep(max(0.0, start_at - time.time()))
     lat = []

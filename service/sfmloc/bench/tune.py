@@ -18,12 +18,13 @@ import itertools
 import logging
 import time
 from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 
 from ..eval.metrics import RECALL_POSITION_M, RECALL_ROTATION_DEG
-from ..io.frames import FrameSource
+from ..io.frames import FrameSource, decode_image
 from ..map.bundle import read_manifest
 from ..transforms import pose_errors
 from .sift_peer import SiftLocalizer, SiftMap, SiftPeerConf, build_index
@@ -32,6 +33,15 @@ log = logging.getLogger(__name__)
 
 # Relative difference of median errors below which two settings count as equally accurate.
 ACCURACY_TIE = 0.10
+
+
+@dataclass
+class _Tally:
+    """One (descriptors, ratio, max error) combination over the tuning frames."""
+
+    err: list[tuple[float, float]] = field(default_factory=list)  # (position, rotation)
+    t_pose: list[float] = field(default_factory=list)  # ms of ratio test + pose, per frame
+    loc: int = 0  # frames with a pose
 
 
 def tuning_frames(prep, n: int) -> list[int]:
@@ -81,10 +91,12 @@ def tune_sift(
     sift_map = SiftMap.load(prep.sift_map_path)
     source = FrameSource(prep.frames_dir)
     base = conf.sift
-    grays = []
-    for i in frames:
-        img = cv2.imdecode(np.fromfile(str(source.files[i]), np.uint8), cv2.IMREAD_GRAYSCALE)
-        grays.append(img)
+    grays = [
+        decode_image(
+            np.fromfile(str(source.files[i]), np.uint8), cv2.IMREAD_GRAYSCALE, str(source.files[i])
+        )
+        for i in frames
+    ]
     loc0 = SiftLocalizer(sift_map, prep.camera, base.model_copy(update={"search": "exact"}), {})
     feats, t_extract = [], []
     for g in grays:
@@ -113,7 +125,7 @@ def tune_sift(
             done += 1
             if progress:
                 progress("tune-sift", done / total, f"{mode}: exact search")
-        per = {c: {"err": [], "t_pose": [], "loc": 0} for c in combos if c[0] == mode}
+        per = {c: _Tally() for c in combos if c[0] == mode}
         for (xy, _desc), (dist, nn), i in zip(feats, searched, frames):
             gt = prep.groundtruth[i]
             for c in per:
@@ -121,12 +133,12 @@ def tune_sift(
                 t0 = time.perf_counter()
                 q, p = loc.ratio_matches(dist, nn, ratio)
                 pose, _inl = loc.pose(xy[q], sift_map.points_xyz[p], max_err)
-                per[c]["t_pose"].append((time.perf_counter() - t0) * 1e3)
+                per[c].t_pose.append((time.perf_counter() - t0) * 1e3)
                 if pose is not None:
-                    per[c]["loc"] += 1
-                    per[c]["err"].append(pose_errors(pose, gt))
+                    per[c].loc += 1
+                    per[c].err.append(pose_errors(pose, gt))
         for c, v in per.items():
-            e = np.array(v["err"]).reshape(-1, 2)
+            e = np.array(v.err).reshape(-1, 2)
             good = (
                 int(np.sum((e[:, 0] <= RECALL_POSITION_M) & (e[:, 1] <= RECALL_ROTATION_DEG)))
                 if len(e)
@@ -138,7 +150,7 @@ def tune_sift(
                     "ratio": c[1],
                     "ransac_max_error_px": c[2],
                     "frames": len(frames),
-                    "localized_pct": 100.0 * v["loc"] / len(frames),
+                    "localized_pct": 100.0 * v.loc / len(frames),
                     "recall_5cm_5deg_pct": 100.0 * good / len(frames),
                     "median_position_error_m": float(np.median(e[:, 0]))
                     if len(e)
@@ -148,7 +160,7 @@ def tune_sift(
                     else float("nan"),
                     "ms_extract": float(np.mean(t_extract)),
                     "ms_search_exact": float(np.mean(t_search)),
-                    "ms_match_pose": float(np.mean(v["t_pose"])),
+                    "ms_match_pose": float(np.mean(v.t_pose)),
                 }
             )
         # HNSW recall against exact search, per efSearch.

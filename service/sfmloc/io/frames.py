@@ -28,6 +28,25 @@ IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm", ".mpg", ".mpeg")
 
 
+def read_image(path: str | Path, flags: int = cv2.IMREAD_COLOR) -> np.ndarray:
+    """``cv2.imread(path, flags)``, raising ImageDecodeError where it returns None (a missing
+    or undecodable file) instead of handing None on."""
+    img = cv2.imread(str(path), flags)
+    if img is None:
+        raise ImageDecodeError(f"cannot read image {path}")
+    return img
+
+
+def decode_image(data: bytes | np.ndarray, flags: int, what: str) -> np.ndarray:
+    """``cv2.imdecode`` of encoded bytes, raising ImageDecodeError (naming ``what``) where it
+    returns None."""
+    buf = np.frombuffer(data, np.uint8) if isinstance(data, bytes) else data
+    img = cv2.imdecode(buf, flags) if buf.size else None
+    if img is None:
+        raise ImageDecodeError(f"cannot decode {what}")
+    return img
+
+
 @dataclass
 class Frame:
     index: int
