@@ -55,7 +55,7 @@ format: $(STAMP)
 	$(BIN)/python tools/split_long_strings.py $$(git ls-files '*.py' ':!:client/sfmloc_client/pb')
 	$(BIN)/ruff format .
 
-# Types of the online path (engine, map, server, client: pyproject [tool.mypy]); cache in .venv.
+# Types of all of sfmloc and sfmloc_client (pyproject [tool.mypy]); cache in .venv.
 typecheck: $(STAMP)
 	$(BIN)/mypy --cache-dir $(VENV)/.mypy_cache
 
