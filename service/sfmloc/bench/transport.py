@@ -462,7 +462,7 @@ def bench_clients(
         cores = {k: v / wall for k, v in cpu_s.items()}
         # Per thread kind of the server and its workers, over the same window: which thread
         # the server's CPU beyond the engine is spent on (intake, results, Zenoh, workers).
-        threads = {"start": start["threads"], "end": threads_of(pids["server"] + pids["workers"])}
+        by_thread = {"start": start["threads"], "end": threads_of(pids["server"] + pids["workers"])}
     return {
         "workers": workers,
         "kind": kind,
@@ -472,7 +472,7 @@ def bench_clients(
         "load_after": os.getloadavg()[0],
         "cores_used": cores,
         "cpu_seconds": cpu_s,
-        "threads": threads,
+        "threads": by_thread,
         "relocalize": reloc,
     }
 
