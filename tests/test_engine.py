@@ -1561,15 +1561,29 @@ def test_frames_localize_keypoints_as_the_map_did(bundle, cam):
     assert Localizer(bundle, cam).subpixel == BuildConf().descriptors.subpixel == "quadratic"
 
 
+@pytest.mark.parametrize(
+    ("conf", "expected_searches"),
+    [
+        (EngineConf(recovery_search="global"), [True]),
+        # scoped (the default): the recovery is judged hopeless on global matching's search,
+        # so its own scoped search (a second one) never runs ...
+        (EngineConf(), [True]),
+        # ... which it does without that check (recover_precheck off): scoped, then global
+        (EngineConf(recover_precheck=False), [False, True]),
+    ],
+    ids=["global", "scoped", "scoped-no-precheck"],
+)
 def test_a_failed_recovery_and_its_global_matching_describe_and_search_once(
-    world, bundle, cam, monkeypatch
+    world, bundle, cam, monkeypatch, conf, expected_searches
 ):
     """Recovery around the prediction and the global matching that follows it describe the
-    same keypoints: DAISY runs once for both, and so does the k-ANN search of the map."""
+    same keypoints: DAISY runs once for both, and so does the k-ANN search of the map; with
+    the scoped recovery search, a recovery that cannot pass its first test on global
+    matching's search (``recover_precheck``) makes no search of its own."""
     from sfmloc.engine.types import Matching
     from sfmloc.features.daisy import DaisyExtractor
 
-    loc = Localizer(bundle, cam, EngineConf(recovery_search="global"))
+    loc = Localizer(bundle, cam, conf)
     for i in range(4):
         loc.localize(world.gray[i], i / 30)
     assert len(loc.scope_points) > 0
@@ -1593,9 +1607,8 @@ def test_a_failed_recovery_and_its_global_matching_describe_and_search_once(
     r = loc.localize(world.gray[far], 4 / 30)
     assert r.matching == Matching.GLOBAL and "reloc" in r.timings_ms
     assert len(calls) == 1, calls
-    # ... and, with recovery_search "global", search the map once (recovery, global matching
-    # and its verification share it)
-    assert searches == [True], searches
+    # ... and search the map once (recovery, global matching and its verification share it)
+    assert searches == expected_searches, searches
     assert (
         pose_errors(r.cam_from_world, world.gt_cam_from_world[far])[0] < 0.05 * bundle.scene_scale
     )

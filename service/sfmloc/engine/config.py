@@ -361,6 +361,16 @@ class EngineConf(StrictModel):
     # Over the 972 frames both runs posed (frames 0-999): median 0.477 -> 0.501 cm, mean 0.699
     # -> 0.700 cm: the median is worse in both segments, so "scoped" stays the default.
     recovery_search: Literal["global", "scoped"] = "scoped"
+    # With "scoped": a recovery around the motion prediction first counts the keypoints whose
+    # hypotheses from the search global matching makes (restricted to the recovery's scope)
+    # fall within prior_threshold_px of the prediction, the recovery's own first test; under
+    # recover_min_inliers the recovery is skipped and global matching takes the frame with that
+    # search (made once). A recovery fails on that test when the prediction is off by more than
+    # the threshold, as it is when tracking lost a fast camera after a long interval: robust
+    # flight-3hz, 7 failed recoveries with predictions 8-19 deg off, 0-16 such keypoints by
+    # either search (0-17 scoped), 30-63 ms each before its global matching; the 5 recoveries
+    # that succeeded on walk-3hz/10hz (0.02-2.6 deg off) counted 46-717 (41-696 scoped).
+    recover_precheck: bool = True
     prior_threshold_px: float = 20.0
     # A recovered pose needs more inliers than a tracked one: verification within 20 px of a
     # prediction admits chance matches (an 11-inlier recovery on redkitchen was 0.65 m off).

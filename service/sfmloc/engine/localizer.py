@@ -425,7 +425,11 @@ class Localizer:
         # (not around a prediction the frame contradicts: global matching decides)
         can_recover = c.prior_recovery and len(self.scope_points) > 0 and not ambiguous
         if est is None and pred.cam_from_world is not None and can_recover:
-            recovered = self._recover(kps, image, pred.cam_from_world, self.scope_points)
+            recovered = (
+                None
+                if self._recovery_fails(kps, image, pred.cam_from_world)
+                else self._recover(kps, image, pred.cam_from_world, self.scope_points)
+            )
             if recovered is not None:
                 table, est = recovered
                 matching = Matching.GUIDED
@@ -994,6 +998,27 @@ class Localizer:
         table.pending = table.point < 0
         return self._reverify(table, est.cam_from_world), est
 
+    def _recovery_fails(self, kps: Keypoints, image: _FrameImage, pred: Rigid3d) -> bool:
+        """Whether ``_recover`` around ``pred`` is bound to fail its first test (fewer than
+        ``recover_min_inliers`` keypoints with a hypothesis within ``prior_threshold_px`` of the
+        prediction), judged on the hypotheses of the whole-map search global matching makes
+        (restricted to the recovery's scope) instead of the recovery's own scoped search:
+        global matching follows a failed recovery and reuses that search, so a recovery that
+        cannot succeed costs no search of its own (``recover_precheck``)."""
+        c = self.conf
+        if not c.recover_precheck or c.recovery_search != "scoped":
+            return False
+        xy = kps.xy[self._restart_rows(kps)]  # (the keypoints of ``_recover``'s table)
+        if len(xy) < c.min_inliers:
+            return False  # (``_recover`` returns at once)
+        desc = image.describe_all(self.bundle, xy)
+        loose = c.model_copy(update={"guided_threshold_px": c.prior_threshold_px})
+        reuse = image.search_all(self.bundle, c, xy)
+        gm = guided_matching(
+            desc, self._undistort(xy), self.bundle, self.scope_points, pred, self.K, loose, reuse
+        )
+        return int(np.count_nonzero(gm.point >= 0)) < c.recover_min_inliers
+
     def _densify(
         self,
         kps: Keypoints,
@@ -1333,6 +1358,14 @@ class Localizer:
         xy[rows] = uv
         return xy
 
+    def _restart_rows(self, kps: Keypoints) -> np.ndarray:
+        """The keypoints a restarted table holds: the ``global_max_keypoints`` strongest."""
+        sel = np.arange(len(kps))
+        if len(sel) > self.conf.global_max_keypoints:
+            top = np.argsort(-kps.response, kind="stable")[: self.conf.global_max_keypoints]
+            sel = np.sort(top)
+        return sel
+
     def _new_ids(self, n: int) -> np.ndarray:
         ids = np.arange(self.next_track_id, self.next_track_id + n, dtype=np.int64)
         self.next_track_id += n
@@ -1355,9 +1388,7 @@ class Localizer:
     def _restart_table(self, kps: Keypoints) -> TrackTable:
         """A fresh track table from the frame's strongest keypoints (after tracking failed)."""
         c = self.conf
-        sel = np.arange(len(kps))
-        if len(sel) > c.global_max_keypoints:
-            sel = np.sort(np.argsort(-kps.response, kind="stable")[: c.global_max_keypoints])
+        sel = self._restart_rows(kps)
         table = TrackTable.empty(c.max_hypotheses)
         table.append(self._new_ids(len(sel)), kps.xy[sel], kps.brief[sel])
         table.pending[:] = False
