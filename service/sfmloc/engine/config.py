@@ -254,6 +254,22 @@ class EngineConf(StrictModel):
     # right global poses (26 and 62 inliers, 1% and 0.1% of the scene scale off) covering 20%
     # and 27% of the cells with keypoints but 3 of 4 and 4 of 7 of those the map reaches.
     spread_cells: Literal["visible", "keypoints"] = "visible"
+    # ... and when its inliers lie in fewer than this many of the 4x4 image cells, whatever
+    # the fraction (0: off; as the fraction, only below ``spread_max_inliers`` inliers). A patch
+    # within 2 cells spans at most half by a quarter of the image: on a far, nearly planar
+    # patch a pose and its mirror both fit the matches, and a few wrong ones pick between
+    # them. Robust density-6x (every frame a relocalization) frame 158: 53 inliers in 2
+    # cells, 49 of them right matches on a patch 3.1 scene scales away that fit the true
+    # pose too, plus 4 wrong matches to 3 near points that chose the mirror: published
+    # UNVERIFIED 118% of the scene scale / 20 deg off, centre sd 2.3% (2.5% without 2
+    # points: the leave-out rule's linearization sees one minimum); the true pose has 60
+    # inliers in 4 cells. The "visible" fraction passed it.
+    # Density-6x with a session reset every frame: all 38 global poses in 2 cells or fewer
+    # were 7%-1000% of the scene scale off (37 withheld as too uncertain; 13 in 3 cells, 8
+    # right); density-3x, redkitchen every 30th/60th: none in 2 cells. With a reset every 10
+    # or 30 frames the next frame relocalizes instead of tracking on from a withheld wrong
+    # pose: right poses 191 -> 207 and 212 -> 230 (README, *Beyond the paper*).
+    min_inlier_cells: int = 3
     # ... and when RANSAC, on the candidate matches the pose leaves unexplained, finds a pose at
     # another place (beyond the wrong-pose limits ``contradiction_*``) with at least this
     # fraction of its inliers (and ``recover_min_inliers``: places by chance gather 12-16)

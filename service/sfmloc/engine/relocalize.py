@@ -17,7 +17,7 @@ from ..map.bundle import MapBundle
 from ..transforms import Rigid3d
 from .certainty import certainty, rests_on_few, withheld
 from .config import EngineConf
-from .distinct import inlier_spread, place_points, second_place
+from .distinct import inlier_spread, occupied_cells, place_points, second_place
 from .frame import to_gray, to_working, working_scale
 from .matching import global_matching, guided_matching, verify_hypotheses
 from .pose import (
@@ -219,6 +219,12 @@ def global_pose(
             pose = out[0].cam_from_world
             visible = project(pose, K, X[visible_points(camera, pose, X)])[0]
         spread = inlier_spread(xy_u, xy_u[out[1]], camera.width, camera.height, visible)
+        cells = occupied_cells(xy_u[out[1]], camera.width, camera.height)
+        if cells < conf.min_inlier_cells:
+            return None, (
+                f"no pose: its {out[0].num_inliers} inliers lie in {cells} of the 16 image "
+                f"cells (at least {conf.min_inlier_cells}): a narrow patch fits two poses"
+            )
         if spread < conf.min_inlier_spread:
             where = "with keypoints" + (" and visible map points" if visible is not None else "")
             return None, (
