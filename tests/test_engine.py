@@ -1614,6 +1614,78 @@ def test_a_failed_recovery_and_its_global_matching_describe_and_search_once(
     )
 
 
+@pytest.mark.parametrize(
+    ("min_tracked", "second_estimates"), [(EngineConf().second_start_min_tracked, 0), (0.0, 1)]
+)
+def test_a_second_start_that_tracks_few_of_the_last_inliers_estimates_no_pose(
+    world, bundle, cam, monkeypatch, min_tracked, second_estimates
+):
+    """The first start found no pose, and tracking from the last pose kept fewer than
+    ``second_start_min_tracked`` of the last frame's inliers: the second start's estimate
+    (RANSAC on a few mostly wrong tracks, its whole budget) is skipped; global matching takes
+    the frame as before. Without the rule (0) it runs and fails."""
+    from sfmloc.engine import localizer as engine
+
+    loc = Localizer(bundle, cam, EngineConf(second_start_min_tracked=min_tracked))
+    for i in range(4):
+        loc.localize(world.gray[i], i / 30)
+    priors = []
+    orig = engine.estimate_pose
+
+    def counting(*a, **k):
+        priors.append(k.get("prior"))
+        return orig(*a, **k)
+
+    monkeypatch.setattr(engine, "estimate_pose", counting)
+    tracked = []
+    track = Localizer._track_2d
+
+    def counting_track(self, *a, **k):
+        out = track(self, *a, **k)
+        tracked.append(out[0].n_3d())
+        return out
+
+    monkeypatch.setattr(Localizer, "_track_2d", counting_track)
+    last, last_inliers = loc.last_pose, loc.last_inliers
+    far = 20  # 16 frames on: both starts track a few of the last frame's ~100 inliers
+    r = loc.localize(world.gray[far], 4 / 30)
+    # (the case: two starts, the second's tracks above kappa2, under the share)
+    assert len(tracked) == 2, tracked
+    assert loc.conf.kappa2 < tracked[1] < 0.25 * last_inliers, (tracked, last_inliers)
+    assert sum(p is last for p in priors) == second_estimates, priors
+    assert r.matching == Matching.GLOBAL and r.status is Status.RELOCALIZED, r.message
+    dp = pose_errors(r.cam_from_world, world.gt_cam_from_world[far])[0]
+    assert dp < 0.02 * bundle.scene_scale, dp
+
+
+def test_a_second_start_that_tracks_most_of_the_last_inliers_still_estimates(
+    world, bundle, cam, monkeypatch
+):
+    """The early exit above does not fire where the second start succeeds: the camera stopped
+    (the same frame again) after a stall, the prediction overshoots half a second of motion,
+    the first start finds no pose and the second, from the last pose, tracks the frame."""
+    starts = []
+    second = Localizer._second_start
+
+    def recording(self, prev, kps, table, est, *a, **k):
+        out = second(self, prev, kps, table, est, *a, **k)
+        starts.append((est is None, out[1] is not None))
+        return out
+
+    monkeypatch.setattr(Localizer, "_second_start", recording)
+    for min_tracked in (EngineConf().second_start_min_tracked, 0.0):
+        loc = Localizer(bundle, cam, EngineConf(second_start_min_tracked=min_tracked))
+        for i in range(4):
+            loc.localize(world.gray[i], i / 30)
+        starts.clear()
+        r = loc.localize(world.gray[3], 0.5)
+        # the first start failed and the second gave the pose
+        assert starts == [(True, True)], (min_tracked, starts)
+        assert r.matching == Matching.GUIDED and r.status is Status.TRACKING, r.message
+        dp, dr = pose_errors(r.cam_from_world, world.gt_cam_from_world[3])
+        assert dp < 0.01 * bundle.scene_scale and dr < 0.5, (min_tracked, dp, dr)
+
+
 def test_recovery_around_the_prediction_with_either_search(world, bundle, cam):
     """Tracks lost, motion known: the frame is recovered by guided matching of all its
     keypoints around the prediction (not global matching), whether the candidates come from

@@ -341,6 +341,15 @@ class EngineConf(StrictModel):
     second_start_dt_ratio: float = 1.5
     second_start_inliers: float = 0.0
     second_start_tie: float = 0.8
+    # The second start's ESTIMATE-POSE is skipped when the first start found no pose and
+    # tracking from the last pose kept fewer than second_start_min_tracked x the last posed
+    # frame's inliers (0: never skipped): the camera also left the windows around the last
+    # pose, and RANSAC on those few tracks, most of them wrong, runs its whole budget (1000
+    # iterations, 14-25 ms) to find 4-7 inliers. Robust flight-3hz (issue 10): the 5 second
+    # starts that failed kept 12-39 tracks of the last frame's 139-544 inliers (0.05-0.17)
+    # and cost 26-43 ms each (tracking 3-10, the estimate 16-33); the one that succeeded
+    # kept 142 of 281 (0.51). Walk-3hz 13 of 126 (0.10) failed too.
+    second_start_min_tracked: float = 0.25
     # An unverified tracked pose is checked against RANSAC on its matches without the prior:
     # a pose farther away than a wrong pose, on >= second_start_tie of the inliers and nearer
     # the motion prediction, means the matches admit two solutions (near-planar points) and

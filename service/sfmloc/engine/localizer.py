@@ -795,6 +795,10 @@ class Localizer:
             table_b = self._add_good_features(table_b, kps, used)
         if table_b.n_3d() <= c.kappa2:
             return table, est, eta, ""
+        if est is None and table_b.n_3d() < c.second_start_min_tracked * self.last_inliers:
+            # the windows around the last pose missed too: RANSAC would spend its whole
+            # budget on a few, mostly wrong, tracks (``second_start_min_tracked``)
+            return table, est, eta, ""
         table_b, est_b = self._estimate_pose(table_b, self.last_pose, dt, final=final)
         if est_b is None:
             return table, est, eta, ""
