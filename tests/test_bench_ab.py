@@ -107,6 +107,33 @@ def test_ab_compares_each_variant_s_repetitions_with_its_first():
     assert "repeats" not in single["a"]  # one run: nothing to compare
 
 
+def test_ab_fps_sets_the_replay_clock_and_the_default_stays_30(world, tmp_path, capsys):
+    """--fps HZ reaches the engine: the replay's per-frame stamps (the ones ``localize`` gets)
+    are index / HZ; without it they are index / 30, as before."""
+    synth = world.root / "synth"
+    base = [str(world.maps_dir / "room"), str(synth / "video")]
+    base += ["--camera", str(synth / "camera.json"), "--max-frames", "4", "--start", "2"]
+    stamps = {}
+    for label, extra in (("default", []), ("10", ["--fps", "10"]), ("3", ["--fps", "3"])):
+        args = ab.build_parser().parse_args([*base, *extra])
+        work = tmp_path / label
+        work.mkdir()
+        run = ab.run_once(ab.Variant("v", TREE), args, work, 0)
+        stamps[label] = [f["stamp"] for f in run["summary"]["per_frame"]]
+        assert run["summary"]["clock_fps"] == pytest.approx(float(label) if extra else 30.0)
+        # (the trajectory writes stamps to 6 decimals)
+        assert sorted(float(t) for t in run["traj"]) == pytest.approx(stamps[label], abs=1e-6)
+    assert stamps["default"] == pytest.approx([i / 30 for i in range(2, 6)])
+    assert stamps["10"] == pytest.approx([i / 10 for i in range(2, 6)])
+    assert stamps["3"] == pytest.approx([i / 3 for i in range(2, 6)])
+    # and through main: the report names the clock; a non-positive rate is refused
+    args = [*base, "--reps", "1", "--variant", f"a={TREE}", "--variant", f"b={TREE}"]
+    assert ab.main([*args, "--fps", "10"]) == 0
+    assert "replay clock 10 frames/s" in capsys.readouterr().out
+    assert ab.main([*args, "--fps", "0"]) == 2
+    assert "--fps must be positive" in capsys.readouterr().err
+
+
 def test_ab_replays_a_variant_s_own_map(world, tmp_path, capsys):
     """A variant's --map is the bundle it replays: a folder whose arrays are missing fails
     that variant's replay, named."""

@@ -17,7 +17,7 @@ between variants is theirs. The load average is printed before and after.
     python -m sfmloc.bench.ab MAP FRAMES --camera 'PINHOLE 640 480 525.5 525.5 320 240' \\
         --groundtruth FRAMES/pgt_sfm_seq01.txt --max-frames 300 --reps 3 \\
         --variant main=/work/main --variant mine=/work/wt-speed \\
-        [--config mine=engine.json] [--json ab.json]
+        [--config mine=engine.json] [--fps 10] [--json ab.json]
 
 ``--map NAME=BUNDLE`` gives a variant its own map (the same frames): two maps compared in one
 run, e.g. redkitchen from every frame against every 10th (issue 17's time target).
@@ -112,6 +112,8 @@ def run_once(v: Variant, args: argparse.Namespace, work: Path, rep: int) -> dict
     cmd = [args.python, "-m", "sfmloc", "replay", str(bundle), str(args.frames)]
     cmd += ["--camera", args.camera, "--json", str(js), "--trajectory", str(traj)]
     cmd += ["--start", str(args.start), "--max-frames", str(args.max_frames), "--no-verify"]
+    if args.fps is not None:  # else replay's own default clock (30 Hz), as before
+        cmd += ["--fps", str(args.fps)]
     if args.groundtruth:
         cmd += ["--groundtruth", str(args.groundtruth)]
     if v.config is not None:
@@ -193,6 +195,8 @@ def compare(variants: list[Variant]) -> dict:
             if all("stages_cpu_ms" in r["summary"] for r in v.runs)
             else {},
             "accuracy": _accuracy(v.runs[0]["summary"]),
+            # the replay's clock (frames/s): what --fps gave, or replay's default
+            "clock_fps": v.runs[0]["summary"].get("clock_fps"),
         }
         if len(v.runs) > 1:
             # each repetition against the variant's first run: the replay's repeatability
@@ -225,6 +229,9 @@ def compare(variants: list[Variant]) -> dict:
 def format_report(result: dict, load_before: str, load_after: str, reps: int) -> str:
     names = list(result)
     lines = [f"A/B, {reps} repetition(s) per variant, interleaved; load before {load_before}"]
+    clocks = {result[n].get("clock_fps") for n in names} - {None}
+    if clocks:
+        lines.append("replay clock " + ", ".join(f"{c:g}" for c in sorted(clocks)) + " frames/s")
     for n in names:
         r = result[n]
         what = "CPU" if r["cpu_recorded"] else "latency (no per-frame CPU in this tree)"
@@ -284,6 +291,16 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--start", type=int, default=0, help="first frame (default 0)")
     ap.add_argument("--max-frames", type=int, default=300, help="frames per run (default 300)")
     ap.add_argument(
+        "--fps",
+        type=float,
+        metavar="HZ",
+        help="the replay clock, passed to sfmloc replay --fps: frame i is stamped i / HZ, so "
+        "the engine sees a 1/HZ frame interval (the tracking window widens with it). Use the "
+        "rate the frames were taken at, e.g. 10 or 3 for the robust suite's 10/3 Hz rows "
+        "(their folders keep every 3rd/10th frame of a 30 Hz video). Default: replay's "
+        "default, 30 Hz",
+    )
+    ap.add_argument(
         "--variant",
         action="append",
         default=[],
@@ -318,6 +335,8 @@ def main(argv: list[str] | None = None) -> int:
         variants = parse_variants(args.variant, args.config, args.maps)
         if args.reps < 1 or args.max_frames < 1:
             raise InputError("--reps and --max-frames must be at least 1")
+        if args.fps is not None and not args.fps > 0:
+            raise InputError(f"--fps must be positive, got {args.fps}")
         load_before = _load()
         with tempfile.TemporaryDirectory(prefix="sfmloc-ab-") as tmp:
             for rep in range(args.reps):
