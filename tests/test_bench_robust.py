@@ -326,6 +326,87 @@ def test_a_row_runs_both_methods_on_the_same_frames_and_writes_per_frame_records
     assert [f["index"] for f in peer] == robust.peer_frames(prep, 3) == [2, 6, 10]
 
 
+def test_engine_config_is_checked_named_in_the_suite_and_reaches_our_engine(tiny, tmp_path, caplog):
+    """--engine-config: an unknown key is refused naming it (before any suite runs, from the
+    CLI too); a valid file is recorded in the suite and the report note, and its settings reach
+    our engine in a row (a 50x higher Harris threshold detects fewer corners on every frame),
+    not the peer."""
+    import json
+
+    from sfmloc.bench.config import SiftPeerConf
+    from sfmloc.bench.robust_report import robust_note
+    from sfmloc.bench.suites import build_sift_map_of_model
+    from sfmloc.builder.build import BuildConf, assemble
+    from sfmloc.cli.main import main as cli_main
+    from sfmloc.config import ConfigError
+    from sfmloc.map.bundle import write_bundle
+
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"gamma": 0.05, "no_such_setting": 1}))
+    with pytest.raises(ConfigError, match="no_such_setting"):
+        robust.load_engine_conf(bad)
+    out_dir = tmp_path / "cli-out"
+    argv = ["bench", "--suites", "robust", "--engine-config", str(bad), "--out", str(out_dir)]
+    assert cli_main(argv) != 0
+    assert "no_such_setting" in caplog.text and "Extra inputs are not permitted" in caplog.text
+    assert not (out_dir / "results.json").exists()
+    with pytest.raises(ConfigError, match="no_such_setting"):  # the suite itself checks too
+        robust.run_robust(
+            BenchConf(data=tmp_path / "none", robust_engine_config=bad), tmp_path / "w0", print
+        )
+
+    good = tmp_path / "fewer.json"
+    good.write_text(json.dumps({"gamma": 0.05}))
+    caplog.clear()
+    argv = ["bench", "--suites", "map", "--engine-config", str(good), "--out", str(out_dir)]
+    assert cli_main(argv) != 0  # not silently ignored by the other suites
+    assert "robust suite only" in caplog.text and not (out_dir / "results.json").exists()
+    assert (
+        robust.load_engine_conf(good).gamma == 0.05 and robust.load_engine_conf(None).gamma < 0.05
+    )
+    conf = BenchConf(
+        data=tmp_path / "none", robust_rows=["redkitchen-every-30th"], robust_engine_config=good
+    )
+    suite = robust.run_robust(conf, tmp_path / "work", lambda *a: None)
+    assert suite["engine_config"] == {"file": str(good), "settings": {"gamma": 0.05}}
+    note = robust_note({"suites": {"robust": suite}})
+    assert f"engine config {good}" in note and '"gamma": 0.05' in note
+    default = robust.run_robust(
+        BenchConf(data=tmp_path / "none", robust_rows=["redkitchen-every-30th"]),
+        tmp_path / "w2",
+        lambda *a: None,
+    )
+    assert default["engine_config"] is None
+    assert "engine config" not in robust_note({"suites": {"robust": default}})
+
+    cam = Camera.from_json(tiny / "camera.json")
+    data, timings, info = assemble(read_model(tiny / "sparse"), tiny / "images", BuildConf())
+    bundle = write_bundle(data, tmp_path / "maps", "tiny", timings_s=timings, index_info=info)
+    sift = build_sift_map_of_model(
+        tiny / "sparse", tiny / "images", cam, tmp_path, tmp_path / "sift.npz", lambda *a: None
+    )
+    src = FrameSource(tiny / "video")
+    gt = load_groundtruth(tiny / "video_poses.txt", src.names(), [src.stamp(i) for i in range(30)])
+    prep = Prepared("robust/tiny", "synthetic", tiny / "video", cam, gt, 0, 8, bundle, sift, {})
+    frames = {}
+    for name, ec in (("default", None), ("fewer", robust.load_engine_conf(good))):
+        files = tmp_path / "rows" / name
+        robust.run_row(prep, 2, SiftPeerConf(), 600.0, lambda *a: None, files, ec)
+        frames[name] = {
+            m: json.loads((files / f"frames-{m}.json").read_text())
+            for m in ("sfmloc", "pycolmap-sift")
+        }
+    ours_d = [f["detected"] for f in frames["default"]["sfmloc"]]
+    ours_f = [f["detected"] for f in frames["fewer"]["sfmloc"]]
+    assert len(ours_d) == len(ours_f) == 8
+    assert all(f < d for f, d in zip(ours_f, ours_d)), (ours_f, ours_d)
+    peer = [
+        [(f["index"], f["status"], f["inliers"]) for f in frames[n]["pycolmap-sift"]]
+        for n in ("default", "fewer")
+    ]
+    assert peer[0] == peer[1]  # the peer is not given the engine config
+
+
 def test_localized_not_wrong_leaves_the_wrong_poses_out():
     """The table's "localized, not wrong" column: a method's localized fraction counts its
     wrong poses (the peer's on a thin map: 19 of 20 localized, 5 wrong), this one does not."""

@@ -116,6 +116,9 @@ class BenchConf(StrictModel):
     robust_peer_frames: int = Field(20, ge=1)
     robust_rows: list[str] | None = None
     robust_budget_s: float = Field(150.0, gt=0)
+    # An engine config file (JSON/TOML, EngineConf fields) for our engine in the robust suite
+    # (not the peers, not the other suites); None: the defaults.
+    robust_engine_config: Path | None = None
     # The builder suite: its parts (extend, memory, density, video; see bench/builder.py) and
     # the synthetic room sizes (mapping views) of its memory part.
     builder_parts: list[str] = Field(default_factory=lambda: ["memory", "extend"])

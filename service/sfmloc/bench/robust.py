@@ -32,7 +32,7 @@ import traceback
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ..cameras import Camera
 from ..errors import InputError
@@ -52,6 +52,9 @@ from .suites import (
     stamp_cached,
     synth_conf,
 )
+
+if TYPE_CHECKING:
+    from ..engine import EngineConf
 
 log = logging.getLogger(__name__)
 
@@ -587,10 +590,37 @@ def _error_text(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {exc}{where}"
 
 
+def load_engine_conf(path: Path | None) -> EngineConf:
+    """The EngineConf of ``--engine-config`` (the defaults without one): the file only, read
+    by the loader of ``sfmloc replay --config``, not SFMLOC_ENGINE__* variables (a stray
+    variable must not change a bench row unnoticed). An unknown key or a bad value raises
+    ConfigError naming it."""
+    from ..config import load_config
+    from ..engine import EngineConf
+
+    if path is None:
+        return EngineConf()
+    return load_config(EngineConf, path, prefix="SFMLOC_ENGINE__", environ={})
+
+
+def _engine_config_doc(path: Path | None) -> dict | None:
+    """What the report says about --engine-config: the file and the settings it gives."""
+    if path is None:
+        return None
+    from ..config import read_config_file
+
+    return {"file": str(path), "settings": read_config_file(path)}
+
+
 def run_ours(
-    prep: Prepared, bundle, budget_s: float, progress: Progress
+    prep: Prepared,
+    bundle,
+    budget_s: float,
+    progress: Progress,
+    engine_conf: EngineConf | None = None,
 ) -> tuple[list[FrameRecord], str | None, bool]:
-    """Our engine on every frame of the row as a video: (records, error or None, stopped)."""
+    """Our engine on every frame of the row as a video: (records, error or None, stopped).
+    ``engine_conf``: an EngineConf (--engine-config), else the defaults."""
     from ..engine import EngineConf
     from ..eval.replay import replay
 
@@ -608,7 +638,7 @@ def run_ours(
             bundle,
             FrameSource(prep.frames_dir, fps=prep.fps),
             prep.camera,
-            EngineConf(),
+            engine_conf if engine_conf is not None else EngineConf(),
             prep.groundtruth,
             start=prep.start,
             max_frames=prep.count,
@@ -698,10 +728,12 @@ def run_row(
     budget_s: float,
     progress: Progress,
     files_dir: Path | None = None,
+    engine_conf: EngineConf | None = None,
 ) -> dict:
     """Both methods on one prepared row; its summary, targets, errors and timings. With
     ``files_dir``, each method's per-frame records go to ``frames-METHOD.json`` there (to see
-    which frames were lost or wrong)."""
+    which frames were lost or wrong). ``engine_conf``: our engine's EngineConf (the defaults
+    when None); the peer is not affected."""
     from ..map.bundle import MapBundle
 
     t0 = time.perf_counter()
@@ -709,7 +741,7 @@ def run_row(
     bundle = MapBundle(prep.bundle_path, verify=False)  # built by this run (or --reuse)
     mp = _map_info(bundle)
     log.info("%s: our engine on %d frames, the peer on %d", prep.name, prep.count, len(idx))
-    ours, ours_err, ours_stop = run_ours(prep, bundle, budget_s, progress)
+    ours, ours_err, ours_stop = run_ours(prep, bundle, budget_s, progress, engine_conf)
     peer, peer_err, peer_stop = run_sift(prep, idx, sift_conf, budget_s, progress)
     out = summarize_row(ours, peer, mp["scene_scale"])
     out.update(
@@ -765,6 +797,11 @@ def run_robust(
     from .config import SiftPeerConf
 
     sift_conf = sift_conf or SiftPeerConf()
+    # Only our engine's settings change with it. Row results are not cached (--reuse keeps
+    # maps and rendered data, which the engine config does not touch), so every row runs
+    # under this config.
+    engine_conf = load_engine_conf(conf.robust_engine_config)
+    engine_doc = _engine_config_doc(conf.robust_engine_config)
     data = RobustData(conf, work, progress, preps)
     t_start = time.perf_counter()
     rows: list[dict[str, Any]] = []
@@ -782,6 +819,7 @@ def run_robust(
                 "budget_s": conf.robust_budget_s,
             },
             "sift_peer_conf": sift_conf.model_dump(),
+            "engine_config": engine_doc,  # --engine-config (None: the defaults)
         }
 
     def save_partial() -> None:
@@ -793,7 +831,7 @@ def run_robust(
             write_json(Path(out) / "robust" / "rows-so-far.json", suite())
 
     for spec in select_rows(conf.robust_rows):
-        row = {"name": spec.name, "group": spec.group, "text": spec.text}
+        row: dict[str, Any] = {"name": spec.name, "group": spec.group, "text": spec.text}
         if spec.real and not data.has_redkitchen():
             row.update(
                 status="skipped",
@@ -831,7 +869,9 @@ def run_robust(
                         conf.robust_budget_s,
                         progress,
                         None if out is None else Path(out) / "robust" / spec.name,
+                        engine_conf,
                     ),
+                    engine_config=None if engine_doc is None else engine_doc["file"],
                 )
                 if out is not None:
                     row["files"] = f"robust/{spec.name}"  # relative to out

@@ -124,7 +124,23 @@ def robust_note(results: dict) -> str:
         'those frames ("localized, not wrong": without the wrong poses among them). Wrong '
         "poses count every frame each method ran. Median position error in "
         "map units and as a fraction of the scene scale (our map's median depth). The peer's "
-        "settings were " + tuned + " Per-frame records: robust/ROW/frames-METHOD.json."
+        "settings were "
+        + tuned
+        + " Per-frame records: robust/ROW/frames-METHOD.json."
+        + _engine_config_text(rb)
+    )
+
+
+def _engine_config_text(rb: dict) -> str:
+    """--engine-config: which file our engine ran with and what it sets (else nothing)."""
+    ec = rb.get("engine_config")
+    if not ec:
+        return ""
+    import json
+
+    return (
+        f" Our engine ran with the engine config {ec['file']} (--engine-config; the peer "
+        f"unchanged): {json.dumps(ec['settings'], sort_keys=True)}."
     )
 
 

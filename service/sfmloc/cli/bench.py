@@ -6,6 +6,7 @@ import argparse
 import shlex
 import sys
 import textwrap
+from pathlib import Path
 
 SUITES_TEXT = """\
 Suites (--suite, repeatable; default: all but builder):
@@ -111,6 +112,18 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--no-tune", action="store_true", help="skip the SIFT peer's tuning (use its defaults)"
     )
     p.add_argument(
+        "--engine-config",
+        metavar="FILE",
+        type=Path,
+        help="robust suite: run OUR engine with this engine config (JSON/TOML, the EngineConf "
+        "fields, read as sfmloc replay --config but without SFMLOC_ENGINE__* variables) "
+        "instead of the defaults, to measure an engine variant without a code copy. The peers "
+        "are unchanged; refused without --suites robust (no other suite reads it). Checked "
+        "before any suite runs (an unknown key is an error naming it); the report names the "
+        "file and its settings. --reuse still reuses maps and renders (the config does not "
+        "make them); the rows always run again",
+    )
+    p.add_argument(
         "--reuse",
         action="store_true",
         help="reuse maps and synthetic data already under OUT/work when the same input and the "
@@ -178,12 +191,19 @@ def run(args: argparse.Namespace) -> int:
         changes["tune"] = False
     if args.reuse:
         changes["reuse"] = True
+    if args.engine_config is not None:
+        from ..bench.robust import load_engine_conf
+
+        load_engine_conf(args.engine_config)  # a bad file fails now, not after other suites
+        changes["robust_engine_config"] = args.engine_config.resolve()
     conf = quick_conf(**changes) if args.quick else BenchConf(**changes)
     command = (
         "sfmloc bench " + " ".join(shlex.quote(a) for a in sys.argv[2:])
         if len(sys.argv) > 2
         else "sfmloc bench"
     )
+    if conf.robust_engine_config is not None and "robust" not in conf.suites:
+        raise InputError("--engine-config applies to the robust suite only: add --suites robust")
     if conf.robust_rows and "robust" in conf.suites:
         from ..bench.robust import select_rows
 
