@@ -288,12 +288,9 @@ def test_rows_without_data_are_skipped_and_failing_rows_recorded(tmp_path, capsy
     assert "redkitchen-every-30th" in printed and "redkitchen-every-60th" in printed
 
 
-def test_a_row_runs_both_methods_on_the_same_frames_and_writes_per_frame_records(tiny, tmp_path):
-    """One row end to end on the tiny data set: our engine on every frame as a video, the peer
-    on evenly strided frames, both summarised on those, per-frame records written."""
-    import json
-
-    from sfmloc.bench.config import SiftPeerConf
+def _tiny_row(tiny: Path, tmp_path: Path, count: int) -> Prepared:
+    """A robust row on the tiny data set: our map and the peer's SIFT map of its model (in
+    tmp_path), its video's first ``count`` frames with their ground truth."""
     from sfmloc.bench.suites import build_sift_map_of_model
     from sfmloc.builder.build import BuildConf, assemble
     from sfmloc.map.bundle import write_bundle
@@ -306,7 +303,17 @@ def test_a_row_runs_both_methods_on_the_same_frames_and_writes_per_frame_records
     )
     src = FrameSource(tiny / "video")
     gt = load_groundtruth(tiny / "video_poses.txt", src.names(), [src.stamp(i) for i in range(30)])
-    prep = Prepared("robust/tiny", "synthetic", tiny / "video", cam, gt, 0, 12, bundle, sift, {})
+    return Prepared("robust/tiny", "synthetic", tiny / "video", cam, gt, 0, count, bundle, sift, {})
+
+
+def test_a_row_runs_both_methods_on_the_same_frames_and_writes_per_frame_records(tiny, tmp_path):
+    """One row end to end on the tiny data set: our engine on every frame as a video, the peer
+    on evenly strided frames, both summarised on those, per-frame records written."""
+    import json
+
+    from sfmloc.bench.config import SiftPeerConf
+
+    prep = _tiny_row(tiny, tmp_path, 12)
     row = robust.run_row(prep, 3, SiftPeerConf(), 600.0, lambda *a: None, tmp_path / "rows" / "t")
     assert row["ours_error"] is None and row["peer_error"] is None, (
         row["ours_error"],
@@ -335,11 +342,8 @@ def test_engine_config_is_checked_named_in_the_suite_and_reaches_our_engine(tiny
 
     from sfmloc.bench.config import SiftPeerConf
     from sfmloc.bench.robust_report import robust_note
-    from sfmloc.bench.suites import build_sift_map_of_model
-    from sfmloc.builder.build import BuildConf, assemble
     from sfmloc.cli.main import main as cli_main
     from sfmloc.config import ConfigError
-    from sfmloc.map.bundle import write_bundle
 
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps({"gamma": 0.05, "no_such_setting": 1}))
@@ -379,15 +383,7 @@ def test_engine_config_is_checked_named_in_the_suite_and_reaches_our_engine(tiny
     assert default["engine_config"] is None
     assert "engine config" not in robust_note({"suites": {"robust": default}})
 
-    cam = Camera.from_json(tiny / "camera.json")
-    data, timings, info = assemble(read_model(tiny / "sparse"), tiny / "images", BuildConf())
-    bundle = write_bundle(data, tmp_path / "maps", "tiny", timings_s=timings, index_info=info)
-    sift = build_sift_map_of_model(
-        tiny / "sparse", tiny / "images", cam, tmp_path, tmp_path / "sift.npz", lambda *a: None
-    )
-    src = FrameSource(tiny / "video")
-    gt = load_groundtruth(tiny / "video_poses.txt", src.names(), [src.stamp(i) for i in range(30)])
-    prep = Prepared("robust/tiny", "synthetic", tiny / "video", cam, gt, 0, 8, bundle, sift, {})
+    prep = _tiny_row(tiny, tmp_path, 8)
     frames = {}
     for name, ec in (("default", None), ("fewer", robust.load_engine_conf(good))):
         files = tmp_path / "rows" / name
