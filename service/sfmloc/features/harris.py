@@ -77,6 +77,25 @@ class Corners:
 # corners (tau = 2 px, sub-pixel): a detector change needs every map rebuilt for a gain of at
 # most 1-2 ms. Computing the response only where a cheap bound (a b >= response) passes the
 # threshold is exact but slower: the bound passes 24% of a frame's pixels.
+# Candidate-first, measured and not taken (issue 10, engine only): FAST (no suppression)
+# picks pixels and this response is computed only at their 3x3 neighbourhoods, bit for bit
+# (each pixel's 9x9 patch laid side by side in one 9-row image through these same OpenCV
+# passes), then this maximum test, threshold, cap and quadratic step: where it finds a corner
+# it is this detector's, to the bit (116,192 corners, none extra). But a candidate costs ~1.2
+# us (its 81 pixels at the dense pass's ~11 ns each), and FAST is a poor guide to the ~600
+# maxima of a frame: at threshold 10 it fires on 8,300 pixels and hits 73% of them. 200
+# redkitchen frames at the tracker's settings, interleaved call by call
+# (nice 19, load 0.1-1.0; 3.28-3.42 ms here), FAST threshold 10: x2.98, 73% of our corners at
+# the same sub-pixel position (89% of the pose inliers of a 300-frame replay); 10 plus two
+# steps up the response to the neighbour's maximum: x4.54, 96% (99.6%); 20: x0.85, 48% (74%);
+# 25: x0.65, 37% (64%); 30: x0.49, 28% (53%); 20 with its NMS: x0.32, 16% (24%). The synthetic
+# walk, flight and orbit (100 frames each) are worse (x3.9-5.2 for 97%). Free gathering would
+# still save under 1 ms: FAST 10 has a pixel within 2 px of 98.4% of our corners, and FAST plus
+# its patches' share of the image (34%) times this pass is 1.32 against 2.22 ms; grouping the
+# candidates into boxes (cv2.connectedComponentsWithStats) costs 1.56 ms. It wins on large,
+# sharp frames, which the engine never detects at (it works at 640x480 at most): the walk at
+# 3072x2048, threshold 20 plus two steps, x0.33 for 99.9%; redkitchen upsampled to 1920x1440
+# x0.16 but 62%.
 # Also measured and not taken (issue 10, 50 redkitchen frames in one process, nice 19, load
 # 7-16; each bit-identical to this code): the tensor and response in strips of 16 / 32 / 64
 # rows that stay in L2 (x1.15-1.29 / x0.96-0.98 / x0.90-0.98 of the whole-image passes: they
