@@ -83,9 +83,10 @@ class Corners:
 # passes), then this maximum test, threshold, cap and quadratic step: where it finds a corner
 # it is this detector's, to the bit (116,192 corners, none extra). But a candidate costs ~1.2
 # us (its 81 pixels at the dense pass's ~11 ns each), and FAST is a poor guide to the ~600
-# maxima of a frame: at threshold 10 it fires on 8,300 pixels and hits 73% of them. 200
-# redkitchen frames at the tracker's settings, interleaved call by call
-# (nice 19, load 0.1-1.0; 3.28-3.42 ms here), FAST threshold 10: x2.98, 73% of our corners at
+# maxima of a frame: at threshold 10 it fires on 8,300 pixels and hits 73% of them (its 7_12
+# pattern 3,800 and 55%, 5_8 under 3% at any threshold). 200 redkitchen frames at the
+# tracker's settings, interleaved call by call (nice 19, load 0.1-1.0; 3.28-3.42 ms here),
+# FAST threshold 10: x2.98, 73% of our corners at
 # the same sub-pixel position (89% of the pose inliers of a 300-frame replay); 10 plus two
 # steps up the response to the neighbour's maximum: x4.54, 96% (99.6%); 20: x0.85, 48% (74%);
 # 25: x0.65, 37% (64%); 30: x0.49, 28% (53%); 20 with its NMS: x0.32, 16% (24%). The synthetic
