@@ -252,6 +252,24 @@ def reference_without_most_influential(cov, J, w):
     return 0.5 * (out + out.T)
 
 
+def test_symmetric_eigensolvers_equal_numpy_linalg_bit_for_bit():
+    """``eigh_sym`` / ``eigvalsh_sym`` (the LAPACK gufuncs without numpy.linalg's wrapper)
+    against ``np.linalg.eigh`` / ``eigvalsh``, bytes equal: the 6x6 normal matrices and 3x3
+    centre blocks (views, as ``position_sd`` passes them) of random, near-singular and diagonal
+    symmetric matrices."""
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(300, 6, 6)) * rng.uniform(1e-4, 1e4, (300, 1, 1))
+    mats = list(A @ A.transpose(0, 2, 1)) + list(A + A.transpose(0, 2, 1))
+    mats += [np.diag(rng.uniform(0, 1, 6)), np.outer(*rng.normal(size=(2, 6))) + np.eye(6)]
+    for H in mats:
+        H = 0.5 * (H + H.T)
+        w, V = pose.eigh_sym(H)
+        w0, V0 = np.linalg.eigh(H)
+        assert w.tobytes() == w0.tobytes() and V.tobytes() == V0.tobytes()
+        for block in (H, H[3:, 3:]):
+            assert pose.eigvalsh_sym(block).tobytes() == np.linalg.eigvalsh(block).tobytes()
+
+
 def test_largest_eigenvalues_3x3_equal_lapack():
     """The closed form against ``np.linalg.eigvalsh`` on random, near-degenerate (a double and
     a triple eigenvalue), rank-deficient and diagonal symmetric matrices: within 1e-12 of the

@@ -19,13 +19,39 @@ Two estimators, both returning None or a ``PoseEstimate`` with inlier statistics
 from __future__ import annotations
 
 import functools
+import importlib
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
 from ..transforms import Rigid3d
+
+
+def _symmetric_eigensolvers() -> tuple[
+    Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], Callable[[np.ndarray], np.ndarray]
+]:
+    """``np.linalg.eigh`` and ``np.linalg.eigvalsh`` of a float64 matrix without their Python
+    wrapper: the LAPACK gufuncs (dsyevd) the wrapper calls, called as it calls them on float64
+    input, so the same bits. Issue 10: on a frame's 6x6 and 3x3 covariance blocks the wrapper's
+    argument checks, type resolution and errstate block cost twice the LAPACK call (eigh 23 ->
+    10 us, eigvalsh 11 -> 3.5 us; four calls a tracked frame). Callers pass finite matrices
+    (checked before), where the wrapper's error on non-convergence cannot arise.
+    ``numpy.linalg._umath_linalg`` is private: where it is missing, the public functions."""
+    try:
+        gufuncs = importlib.import_module("numpy.linalg._umath_linalg")
+        eigh_lo, eigvalsh_lo = gufuncs.eigh_lo, gufuncs.eigvalsh_lo
+    except (ImportError, AttributeError):
+        return np.linalg.eigh, np.linalg.eigvalsh
+    return (
+        functools.partial(eigh_lo, signature="d->dd"),
+        functools.partial(eigvalsh_lo, signature="d->d"),
+    )
+
+
+eigh_sym, eigvalsh_sym = _symmetric_eigensolvers()
 
 
 @dataclass(frozen=True)
@@ -151,11 +177,11 @@ def pose_covariances(
     QH, Cu, Cv = _cov_map(float(fx), float(fy))
     Bs = B * np.sqrt(w)
     H = ((Bs @ Bs.T).reshape(81) @ QH).reshape(6, 6)
-    if not np.all(np.isfinite(H)):
+    if not np.isfinite(H).all():  # (the array's own .all(): np.all's dispatch costs 3 us)
         return inf, inf
     # H is symmetric: one eigendecomposition gives its condition number and its inverse
     # (np.linalg.cond's SVD and np.linalg.inv cost twice as much)
-    ev, V = np.linalg.eigh(H)
+    ev, V = eigh_sym(H)
     if not ev[0] > 0 or ev[-1] > 1e12 * ev[0]:
         return inf, inf
     cov = (V / ev) @ V.T
@@ -171,7 +197,7 @@ def pose_covariances(
         cov = to_world(cov)
         return cov, cov
     loo = _without_most_influential(cov, B.T @ Cu, B.T @ Cv, w, loo_sd_over, removed)
-    return to_world(cov), (to_world(loo) if np.all(np.isfinite(loo)) else loo)
+    return to_world(cov), (to_world(loo) if np.isfinite(loo).all() else loo)
 
 
 @functools.lru_cache(maxsize=8)
@@ -235,7 +261,7 @@ def _without_most_influential(
         )
         if h < 1.0:
             bound = cov / (1.0 - h)
-            if np.linalg.eigvalsh(bound[3:, 3:])[-1] <= sd_over * sd_over:
+            if eigvalsh_sym(bound[3:, 3:])[-1] <= sd_over * sd_over:
                 return bound
     i00, i11, i01 = s11 / det, s00 / det, -s01 / det  # S_i^-1
     # centre block of cov_-i: cov_c + sum_kl Sinv_kl a_k a_l^T, a_0 / a_1 = A_i's rows' centre
