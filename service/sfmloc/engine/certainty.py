@@ -148,8 +148,10 @@ def small_sample_factor(inliers: int, z: float) -> float:
     freedom: sqrt(dof / chi2 quantile), the quantile by Wilson-Hilferty. 1 for ``z`` = 0."""
     dof = max(2 * inliers - 6, 1)
     a = 2.0 / (9.0 * dof)
-    q = dof * max(1.0 - a - z * np.sqrt(a), 1e-3) ** 3
-    return float(np.sqrt(dof / q)) if z > 0 else 1.0
+    # (math.sqrt: np.sqrt's correctly rounded root without its dispatch on a scalar; 5 calls a
+    # frame)
+    q = dof * max(1.0 - a - z * math.sqrt(a), 1e-3) ** 3
+    return math.sqrt(dof / q) if z > 0 else 1.0
 
 
 def withheld(sd: float, inliers: int, conf: EngineConf) -> str | None:

@@ -138,8 +138,8 @@ def pose_covariances(
     the bound is not over it (``_without_most_influential``'s ``sd_over``). ``removed``: the
     index of the correspondence left out is appended to it (when one was)."""
     n = len(xy)
-    inf = np.full((6, 6), np.inf)
     if n < 4:
+        inf = np.full((6, 6), np.inf)
         return inf, inf
     R_cw = cam_from_world.rotation
     pc = np.asarray(X, np.float64) @ R_cw.T + cam_from_world.translation
@@ -168,8 +168,9 @@ def pose_covariances(
         rw = 1.0 / (1.0 + r2 / loss_scale**2)
     else:
         rw = np.ones(n)
-    dof = max(2 * float(rw.sum()) - 6, 1.0)
-    var = max(float(np.sum(rw * r2)) / dof, min_noise_px**2)
+    # (np.add.reduce: the sums .sum() and np.sum take, without their Python layers)
+    dof = max(2 * float(np.add.reduce(rw)) - 6, 1.0)
+    var = max(float(np.add.reduce(rw * r2)) / dof, min_noise_px**2)
     if point_sigma_px is None:
         w = rw / var
     else:
@@ -178,11 +179,13 @@ def pose_covariances(
     Bs = B * np.sqrt(w)
     H = ((Bs @ Bs.T).reshape(81) @ QH).reshape(6, 6)
     if not np.isfinite(H).all():  # (the array's own .all(): np.all's dispatch costs 3 us)
+        inf = np.full((6, 6), np.inf)
         return inf, inf
     # H is symmetric: one eigendecomposition gives its condition number and its inverse
     # (np.linalg.cond's SVD and np.linalg.inv cost twice as much)
     ev, V = eigh_sym(H)
     if not ev[0] > 0 or ev[-1] > 1e12 * ev[0]:
+        inf = np.full((6, 6), np.inf)
         return inf, inf
     cov = (V / ev) @ V.T
     cov = 0.5 * (cov + cov.T)
