@@ -181,7 +181,8 @@ def test_refine_errors_are_those_of_its_pose_and_finish_reuses_them():
 
 def test_estimate_pose_paths_recover_the_pose():
     """Every branch that now reuses errors (prior with and without the loose first round,
-    plain least squares, RANSAC) still finds the true pose and its inliers."""
+    plain least squares, RANSAC) still finds the true pose and its inliers, counted as a
+    Python int."""
     for seed in range(3):
         gt, start, xy, X = noisy_scene(30 + seed, 300)
         front = (X @ gt.rotation.T + gt.translation)[:, 2] > 0
@@ -200,6 +201,8 @@ def test_estimate_pose_paths_recover_the_pose():
                 c = est.cam_from_world
                 assert np.linalg.norm(c.center - gt.center) < 0.02
                 assert (est.inlier_mask == good).mean() > 0.97
+                # a Python int and float (the replay's JSON takes them as they are)
+                assert type(est.num_inliers) is int and type(est.mean_error_px) is float
 
 
 def test_kernels_on_redkitchen_corners_equal_the_references(redkitchen: Path):

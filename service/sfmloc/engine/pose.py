@@ -717,7 +717,7 @@ def _finish(
 ) -> PoseEstimate | None:
     """The estimate of ``pose`` on the matches in ``mask``; ``err``: every match's error at
     ``pose`` when already computed."""
-    n_in = np.count_nonzero(mask)
+    n_in = int(np.count_nonzero(mask))  # (a Python int: num_inliers goes into JSON)
     if n_in < min_inliers or not pose.is_finite():
         return None
     err = reprojection_errors(pose, K, xy[mask], X[mask]) if err is None else err[mask]
