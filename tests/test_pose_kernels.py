@@ -181,7 +181,8 @@ def test_refine_errors_are_those_of_its_pose_and_finish_reuses_them():
 
 def test_estimate_pose_paths_recover_the_pose():
     """Every branch that now reuses errors (prior with and without the loose first round,
-    plain least squares, RANSAC) still finds the true pose and its inliers."""
+    plain least squares, RANSAC) still finds the true pose and its inliers, counted as a
+    Python int."""
     for seed in range(3):
         gt, start, xy, X = noisy_scene(30 + seed, 300)
         front = (X @ gt.rotation.T + gt.translation)[:, 2] > 0
@@ -200,6 +201,8 @@ def test_estimate_pose_paths_recover_the_pose():
                 c = est.cam_from_world
                 assert np.linalg.norm(c.center - gt.center) < 0.02
                 assert (est.inlier_mask == good).mean() > 0.97
+                # a Python int and float (the replay's JSON takes them as they are)
+                assert type(est.num_inliers) is int and type(est.mean_error_px) is float
 
 
 def test_kernels_on_redkitchen_corners_equal_the_references(redkitchen: Path):
@@ -250,6 +253,24 @@ def reference_without_most_influential(cov, J, w):
     worst = int(np.argmax(np.linalg.eigvalsh(pos)[:, -1]))
     out = cov + A[worst].T @ Sinv[worst] @ A[worst]
     return 0.5 * (out + out.T)
+
+
+def test_symmetric_eigensolvers_equal_numpy_linalg_bit_for_bit():
+    """``eigh_sym`` / ``eigvalsh_sym`` (the LAPACK gufuncs without numpy.linalg's wrapper)
+    against ``np.linalg.eigh`` / ``eigvalsh``, bytes equal: the 6x6 normal matrices and 3x3
+    centre blocks (views, as ``position_sd`` passes them) of random, near-singular and diagonal
+    symmetric matrices."""
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(300, 6, 6)) * rng.uniform(1e-4, 1e4, (300, 1, 1))
+    mats = list(A @ A.transpose(0, 2, 1)) + list(A + A.transpose(0, 2, 1))
+    mats += [np.diag(rng.uniform(0, 1, 6)), np.outer(*rng.normal(size=(2, 6))) + np.eye(6)]
+    for H in mats:
+        H = 0.5 * (H + H.T)
+        w, V = pose.eigh_sym(H)
+        w0, V0 = np.linalg.eigh(H)
+        assert w.tobytes() == w0.tobytes() and V.tobytes() == V0.tobytes()
+        for block in (H, H[3:, 3:]):
+            assert pose.eigvalsh_sym(block).tobytes() == np.linalg.eigvalsh(block).tobytes()
 
 
 def test_largest_eigenvalues_3x3_equal_lapack():

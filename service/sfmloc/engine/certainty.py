@@ -4,6 +4,7 @@ Algorithm 1 (``localizer``) and single-image relocalization (``relocalize``)."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -11,7 +12,7 @@ import numpy as np
 from ..map.bundle import MapBundle
 from .config import EngineConf
 from .point_uncertainty import PointUncertainty
-from .pose import PoseEstimate, pose_covariances, pose_error_vector
+from .pose import PoseEstimate, eigvalsh_sym, pose_covariances, pose_error_vector
 
 
 @dataclass(frozen=True)
@@ -134,9 +135,11 @@ def is_verified(est: PoseEstimate, sd: float, conf: EngineConf) -> bool:
 
 def position_sd(cov: np.ndarray) -> float:
     """Standard deviation of the camera centre in its worst direction (map units)."""
-    if not np.all(np.isfinite(cov)):
+    if not np.isfinite(cov).all():  # (the array's own .all(): np.all's dispatch costs 3 us)
         return float("inf")
-    return float(np.sqrt(max(np.linalg.eigvalsh(cov[3:, 3:]).max(), 0.0)))
+    # (the largest eigenvalue: LAPACK returns them ascending; math.sqrt: the same correctly
+    # rounded root as np.sqrt, without its dispatch on a scalar)
+    return math.sqrt(max(float(eigvalsh_sym(cov[3:, 3:])[-1]), 0.0))
 
 
 def small_sample_factor(inliers: int, z: float) -> float:
@@ -145,8 +148,10 @@ def small_sample_factor(inliers: int, z: float) -> float:
     freedom: sqrt(dof / chi2 quantile), the quantile by Wilson-Hilferty. 1 for ``z`` = 0."""
     dof = max(2 * inliers - 6, 1)
     a = 2.0 / (9.0 * dof)
-    q = dof * max(1.0 - a - z * np.sqrt(a), 1e-3) ** 3
-    return float(np.sqrt(dof / q)) if z > 0 else 1.0
+    # (math.sqrt: np.sqrt's correctly rounded root without its dispatch on a scalar; 5 calls a
+    # frame)
+    q = dof * max(1.0 - a - z * math.sqrt(a), 1e-3) ** 3
+    return math.sqrt(dof / q) if z > 0 else 1.0
 
 
 def withheld(sd: float, inliers: int, conf: EngineConf) -> str | None:

@@ -1386,7 +1386,7 @@ class Localizer:
         reach_scales = min(c.max_speed_scales_per_s * slack, c.max_jump_scales)
         reach_scales += c.jump_tolerance_scales
         reach = reach_scales * self.bundle.scene_scale
-        turn = c.max_angular_speed_rad_s * slack + np.radians(c.jump_tolerance_deg)
+        turn = c.max_angular_speed_rad_s * slack + math.radians(c.jump_tolerance_deg)
         return dpos <= reach and drot <= turn
 
     def _restart_table(self, kps: Keypoints) -> TrackTable:

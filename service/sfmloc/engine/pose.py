@@ -19,13 +19,39 @@ Two estimators, both returning None or a ``PoseEstimate`` with inlier statistics
 from __future__ import annotations
 
 import functools
+import importlib
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
 from ..transforms import Rigid3d
+
+
+def _symmetric_eigensolvers() -> tuple[
+    Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], Callable[[np.ndarray], np.ndarray]
+]:
+    """``np.linalg.eigh`` and ``np.linalg.eigvalsh`` of a float64 matrix without their Python
+    wrapper: the LAPACK gufuncs (dsyevd) the wrapper calls, called as it calls them on float64
+    input, so the same bits. Issue 10: on a frame's 6x6 and 3x3 covariance blocks the wrapper's
+    argument checks, type resolution and errstate block cost twice the LAPACK call (eigh 23 ->
+    10 us, eigvalsh 11 -> 3.5 us; four calls a tracked frame). Callers pass finite matrices
+    (checked before), where the wrapper's error on non-convergence cannot arise.
+    ``numpy.linalg._umath_linalg`` is private: where it is missing, the public functions."""
+    try:
+        gufuncs = importlib.import_module("numpy.linalg._umath_linalg")
+        eigh_lo, eigvalsh_lo = gufuncs.eigh_lo, gufuncs.eigvalsh_lo
+    except (ImportError, AttributeError):
+        return np.linalg.eigh, np.linalg.eigvalsh
+    return (
+        functools.partial(eigh_lo, signature="d->dd"),
+        functools.partial(eigvalsh_lo, signature="d->d"),
+    )
+
+
+eigh_sym, eigvalsh_sym = _symmetric_eigensolvers()
 
 
 @dataclass(frozen=True)
@@ -112,8 +138,8 @@ def pose_covariances(
     the bound is not over it (``_without_most_influential``'s ``sd_over``). ``removed``: the
     index of the correspondence left out is appended to it (when one was)."""
     n = len(xy)
-    inf = np.full((6, 6), np.inf)
     if n < 4:
+        inf = np.full((6, 6), np.inf)
         return inf, inf
     R_cw = cam_from_world.rotation
     pc = np.asarray(X, np.float64) @ R_cw.T + cam_from_world.translation
@@ -142,8 +168,9 @@ def pose_covariances(
         rw = 1.0 / (1.0 + r2 / loss_scale**2)
     else:
         rw = np.ones(n)
-    dof = max(2 * float(rw.sum()) - 6, 1.0)
-    var = max(float(np.sum(rw * r2)) / dof, min_noise_px**2)
+    # (np.add.reduce: the sums .sum() and np.sum take, without their Python layers)
+    dof = max(2 * float(np.add.reduce(rw)) - 6, 1.0)
+    var = max(float(np.add.reduce(rw * r2)) / dof, min_noise_px**2)
     if point_sigma_px is None:
         w = rw / var
     else:
@@ -151,12 +178,14 @@ def pose_covariances(
     QH, Cu, Cv = _cov_map(float(fx), float(fy))
     Bs = B * np.sqrt(w)
     H = ((Bs @ Bs.T).reshape(81) @ QH).reshape(6, 6)
-    if not np.all(np.isfinite(H)):
+    if not np.isfinite(H).all():  # (the array's own .all(): np.all's dispatch costs 3 us)
+        inf = np.full((6, 6), np.inf)
         return inf, inf
     # H is symmetric: one eigendecomposition gives its condition number and its inverse
     # (np.linalg.cond's SVD and np.linalg.inv cost twice as much)
-    ev, V = np.linalg.eigh(H)
+    ev, V = eigh_sym(H)
     if not ev[0] > 0 or ev[-1] > 1e12 * ev[0]:
+        inf = np.full((6, 6), np.inf)
         return inf, inf
     cov = (V / ev) @ V.T
     cov = 0.5 * (cov + cov.T)
@@ -171,7 +200,7 @@ def pose_covariances(
         cov = to_world(cov)
         return cov, cov
     loo = _without_most_influential(cov, B.T @ Cu, B.T @ Cv, w, loo_sd_over, removed)
-    return to_world(cov), (to_world(loo) if np.all(np.isfinite(loo)) else loo)
+    return to_world(cov), (to_world(loo) if np.isfinite(loo).all() else loo)
 
 
 @functools.lru_cache(maxsize=8)
@@ -235,7 +264,7 @@ def _without_most_influential(
         )
         if h < 1.0:
             bound = cov / (1.0 - h)
-            if np.linalg.eigvalsh(bound[3:, 3:])[-1] <= sd_over * sd_over:
+            if eigvalsh_sym(bound[3:, 3:])[-1] <= sd_over * sd_over:
                 return bound
     i00, i11, i01 = s11 / det, s00 / det, -s01 / det  # S_i^-1
     # centre block of cov_-i: cov_c + sum_kl Sinv_kl a_k a_l^T, a_0 / a_1 = A_i's rows' centre
@@ -318,7 +347,8 @@ def reprojection_errors(
     # (N, 2) temporaries (called ~14 times per frame; x0.5 CPU).
     pc = X @ cam_from_world.rotation.T + cam_from_world.translation
     z = pc[:, 2]
-    zs = np.where(z > 1e-9, z, 1e-9)
+    # (np.fmax: z where z > 1e-9, else 1e-9, NaN included: np.where's values, without its mask)
+    zs = np.fmax(z, 1e-9)
     du = K[0, 0] * pc[:, 0] / zs + K[0, 2] - xy[:, 0]
     dv = K[1, 1] * pc[:, 1] / zs + K[1, 2] - xy[:, 1]
     err = np.sqrt(du * du + dv * dv)
@@ -362,7 +392,7 @@ def _refine(
     err = reprojection_errors(pose, K, xy, X)
     mask = err < threshold
     for _ in range(rounds):
-        if mask.sum() < 4:
+        if np.count_nonzero(mask) < 4:
             break
         if gauss_newton:
             gn = least_squares(pose, K, xy[mask], X[mask])
@@ -371,7 +401,7 @@ def _refine(
             if float(e1 @ e1) < float(e0 @ e0):
                 pose, err = gn, gn_err
                 new_mask = err < threshold
-                if np.array_equal(new_mask, mask):
+                if (new_mask == mask).all():  # (the same shape: np.array_equal's checks cost 1 us)
                     break
                 mask = new_mask
                 continue
@@ -387,7 +417,7 @@ def _refine(
         pose = _rigid(rvec, tvec)
         err = reprojection_errors(pose, K, xy, X)
         new_mask = err < threshold
-        if np.array_equal(new_mask, mask):
+        if (new_mask == mask).all():
             break
         mask = new_mask
     return pose, mask, err
@@ -482,7 +512,7 @@ def _gauss_newton(
     Q = _gn_map(float(K[0, 0]), float(K[1, 1]))
     for _ in range(iterations):
         pc = P @ Xh
-        if pc[2].min() <= 1e-9:
+        if np.minimum.reduce(pc[2]) <= 1e-9:  # (ndarray.min's Python layer: 0.3 us)
             break
         np.divide(1.0, pc[2], out=A[3])  # iz
         np.multiply(pc[:2], A[3], out=A[1:3])  # x, y
@@ -512,8 +542,9 @@ def _gauss_newton(
         if tol > 0 and np.abs(delta[:3]).max() < tol:
             if np.abs(delta[3:]).max() < tol * max(float(np.linalg.norm(P[:, 3])), 1e-12):
                 break
-    out = Rigid3d(P[:, :3].copy(), P[:, 3].copy())
-    return out if out.is_finite() else cam_from_world
+    if not np.isfinite(P).all():  # (P holds the pose: one test, not Rigid3d.is_finite's two)
+        return cam_from_world
+    return Rigid3d(P[:, :3].copy(), P[:, 3].copy())
 
 
 def _jacobian_maps(fx: float, fy: float) -> tuple[np.ndarray, np.ndarray]:
@@ -656,7 +687,7 @@ def _refine_own_estimate(
     near-outliers the Cauchy loss then down-weights, only moved where it started)."""
     err = reprojection_errors(pose, K, xy, X)
     sel = err < (prior_threshold if prior_threshold is not None else params.threshold)
-    if sel.sum() < max(4, params.min_inliers):
+    if np.count_nonzero(sel) < max(4, params.min_inliers):
         return None
     pose = robust_refine(pose, K, xy[sel], X[sel], params.loss_scale)
     err = reprojection_errors(pose, K, xy, X)
@@ -675,7 +706,7 @@ def final_refinement(
     pose = robust_refine(est.cam_from_world, K, xy[sel], X[sel], params.loss_scale)
     err = reprojection_errors(pose, K, xy, X)
     mask = err < params.refine_threshold
-    if mask.sum() < params.min_inliers:
+    if np.count_nonzero(mask) < params.min_inliers:
         return est
     out = _finish(pose, mask, K, xy, X, params.min_inliers, err)
     return out if out is not None else est
@@ -686,13 +717,13 @@ def _finish(
 ) -> PoseEstimate | None:
     """The estimate of ``pose`` on the matches in ``mask``; ``err``: every match's error at
     ``pose`` when already computed."""
-    n_in = int(mask.sum())
+    n_in = int(np.count_nonzero(mask))  # (a Python int: num_inliers goes into JSON)
     if n_in < min_inliers or not pose.is_finite():
         return None
     err = reprojection_errors(pose, K, xy[mask], X[mask]) if err is None else err[mask]
-    return PoseEstimate(
-        pose, mask, n_in, float(err.mean()) if n_in else float("inf"), xy[mask], X[mask]
-    )
+    # (the mean as np.mean takes it, np.add.reduce over n_in, without its Python layer: 2 us)
+    mean = float(np.add.reduce(err)) / n_in if n_in else float("inf")
+    return PoseEstimate(pose, mask, n_in, mean, xy[mask], X[mask])
 
 
 def estimate_pose_one_to_many(
