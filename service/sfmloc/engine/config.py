@@ -791,6 +791,16 @@ class EngineConf(StrictModel):
     # tracks' first rays are at most this many frames back), and the map-posed frames after
     # odometry that keep the session points (then they go, and recording is lazy again)
     odometry_window: int = Field(60, ge=2)
+    # An odometry pose whose inliers are fewer than this fraction of its candidate matches
+    # (the frame's tracks with a session point, and its map matches) is no pose (0: off):
+    # most tracks left the points they were triangulated on (at a low frame rate the
+    # tracking windows around a prediction that is off sit on other corners, which can agree
+    # on a wrong pose), and an odometry pose has no check but its matches (never verified;
+    # the map path's ``track_consensus`` re-match cannot apply). Robust density-6x / 3x,
+    # every 10th / 5th frame (3 / 6 Hz; main 86b8d11): the 4 wrong odometry poses (6x frames
+    # 160 and 230, 3x 150 and 160: 7-11% of the scene scale off, centre sd 0.5-2.6%) had
+    # 0.30-0.50 of their matches as inliers; the right ones 0.67-1.0 (at 30 Hz 0.89-1.0).
+    odometry_min_consensus: float = Field(0.6, ge=0.0, le=1.0)
     # ---- out-of-core maps (engine/submaps.py; issue 14)
     # Resident sub-maps of a sub-map set, in MB, per engine worker (``sfmloc serve
     # --map-memory``): the worker's sessions on the set share its parts within it. None: sub-map

@@ -316,6 +316,7 @@ class Localizer:
         self.judged: tuple[PoseEstimate, np.ndarray] | None = None
         self._odo_map_inliers = 0  # map inliers of the last odometry pose
         self._odo_outliers = np.zeros(0, np.int64)  # its table rows of map-match outliers
+        self._odo_why = ""  # why this frame's odometry pose was no pose (or "")
 
     def swap_bundle(
         self, bundle: MapBundle, point_rows: Callable[[np.ndarray], np.ndarray]
@@ -361,6 +362,7 @@ class Localizer:
             self.reset()  # a long gap (or time going back): motion and tracks are stale
         pred = self._kalman_filter_predict(stamp)
         prev = self.table  # the previous frame's track table, read once
+        self._odo_why = ""
         timer.lap("filter")
 
         image = _FrameImage(to_working(gray, self.scale), self.extractor)
@@ -498,6 +500,9 @@ class Localizer:
                     cert = with_disagreement(cert, est, dense[1], self.bundle, c)
                 timer.lap("match")
         message = lost_why if est is None else ""
+        if est is None and self._odo_why:
+            # (odometry had a pose and it was not kept: said first, then what else failed)
+            message = f"{self._odo_why}; {message}" if message else self._odo_why
         if from_recovery and est is not None and cert is not None and cert.verified:
             if c.recovered_verified_check:
                 # Recovered around the prediction and passing the strict test: guided matching
@@ -1226,6 +1231,14 @@ class Localizer:
             prior_threshold=c.prior_threshold_px,
         )
         if est is None or not self._plausible(est.cam_from_world, pred.cam_from_world, pred.dt):
+            return None
+        if est.num_inliers < c.odometry_min_consensus * len(rows):
+            # Most of the frame's tracks disagree with the pose: they jumped to other corners
+            # (``odometry_min_consensus``), and a consensus of the rest is no check.
+            self._odo_why = (
+                f"odometry pose withheld: {est.num_inliers} of its {len(rows)} matches "
+                f"agree (fewer than {c.odometry_min_consensus:.0%})"
+            )
             return None
         ns = len(sm.rows)
         inl = est.inlier_mask
