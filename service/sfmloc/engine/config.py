@@ -766,6 +766,18 @@ class EngineConf(StrictModel):
     # (centre NEES 40, expected 3); its re-match 4.0% off, sd 1.9%, 4.7% from it -> sd 4.9%,
     # withheld. False: the tracked pose's own covariance.
     rematch_disagreement: bool = True
+    # ... and such a pose (suspect, its re-match not replacing it) whose centre sd without its
+    # most influential match (``covariance_leave_one_out``) exceeds relocalize_leave_out_sd
+    # (the wrong-pose limit: that one unchecked match can put it a wrong pose away at one sd)
+    # is judged at that sd: withheld, and the tracker follows it as any too uncertain pose
+    # (odometry may pose the frame instead). Robust density-6x at 10 Hz (every 3rd frame,
+    # main 86b8d11), frame 216: 48 right tracked matches on one far patch (sd 14%), guided
+    # matching around that pose added one wrong match to a nearer point that fixed it:
+    # TRACKING 15.9% of the scene scale off, sd 1.41% (13.5% without it), its re-match, from
+    # that pose, 16.2% off; the next 6 frames were odometry on points triangulated from it,
+    # 12.7-13.1% off. Now 216 TRACKING 0.67% off (odometry, then back on the map), 219-234
+    # withheld: wrong 7 -> 0. False: the pose's own covariance (widened by the re-match).
+    suspect_leave_out: bool = True
     # ---- visual odometry beyond the map (engine/session_points.py)
     # A frame whose map matches give no publishable pose, after a published one, is posed on
     # session points (the tracker's unmatched tracks triangulated from two map-posed frames)

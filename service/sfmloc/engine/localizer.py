@@ -493,11 +493,17 @@ class Localizer:
                 if dense is not None and (uncertain or dense[2].verified):
                     table, est, cert = dense
                     matching = Matching.GUIDED
-                elif dense is not None and c.rematch_disagreement:
-                    # Not replaced, but the frame's own matches also place it elsewhere: the
-                    # tracked pose is that uncertain at least (redkitchen --extend map, frame
-                    # 466: TRACKING 17 cm off with sd 4.4 cm; its re-match 9.4 cm from it).
-                    cert = with_disagreement(cert, est, dense[1], self.bundle, c)
+                elif dense is not None:
+                    if c.rematch_disagreement:
+                        # Not replaced, but the frame's own matches also place it elsewhere:
+                        # the tracked pose is that uncertain at least (redkitchen --extend
+                        # map, frame 466: TRACKING 17 cm off with sd 4.4 cm; its re-match
+                        # 9.4 cm from it).
+                        cert = with_disagreement(cert, est, dense[1], self.bundle, c)
+                    if c.suspect_leave_out:
+                        # (suspect, not replaced: the re-match started from this pose and
+                        # cannot check the match it rests on)
+                        cert = self._judged_without_one(cert)
                 timer.lap("match")
         message = lost_why if est is None else ""
         if est is None and self._odo_why:
@@ -1170,6 +1176,20 @@ class Localizer:
                 f"{drot:.0f} deg from the motion prediction: rejected"
             )
         return ""
+
+    def _judged_without_one(self, cert: Certainty) -> Certainty:
+        """A suspect tracked pose that its re-match did not replace, judged at its centre sd
+        without its most influential match when that is over ``relocalize_leave_out_sd``
+        (``suspect_leave_out``): the covariance scaled to that sd. Nothing checked that match
+        (the re-match started from the pose it fixed), and it alone can put the pose a wrong
+        pose away. Over the withholding limit (a fraction of it), the pose is withheld."""
+        limit = self.conf.relocalize_leave_out_sd
+        sd, loo = cert.position_sd, cert.position_sd_loo
+        if limit <= 0 or not loo > limit or not loo > sd:
+            return cert
+        # (over the withholding limit the leave-one-out sd is exact, not its upper bound)
+        scale = (loo / sd) ** 2 if sd > 0 else math.inf
+        return Certainty(cert.covariance * scale, loo, False, loo)
 
     def _rests_on_few(self, est: PoseEstimate, cert: Certainty) -> str | None:
         """Why a pose the status rules would publish rests on a few matches
