@@ -988,6 +988,61 @@ def test_no_wrong_tracked_pose_after_a_gap_on_one_influential_wrong_match(world,
     assert replay(EngineConf()) == ([], len(seqs))
 
 
+def test_a_suspect_pose_its_re_match_cannot_check_is_judged_without_its_one_match(
+    world, bundle, cam, monkeypatch
+):
+    """Robust density-6x at 10 Hz, frame 216: 48 right tracked matches on one far patch (sd
+    14% of the scene scale) and one wrong guided match to a nearer point that fixed the pose
+    15.9% off (sd 1.41%, 13.5% without it). Its whole-frame re-match started from that pose,
+    agreed with it (16.2% off) and did not pass the strict test: published TRACKING. Here the
+    frames of the gap test above (frame 967: 20 right matches on a far wall, one wrong near
+    match; TRACKING 5.1% off with sd 0.6%, 8.6% without it), with the re-match a thin map
+    gives (from the pose, agreeing with it, more certain but not verified): without
+    ``suspect_leave_out`` a wrong TRACKING pose; with it, judged at its sd without that match,
+    the pose is withheld and no frame is wrong."""
+    from sfmloc.engine import localizer as L
+    from sfmloc.engine.certainty import Certainty
+
+    n = len(world.gray)
+    period = 2 * (n - 1)
+    seqs = [949, 950, 951, 955, 956, 957, 958, 959, 967, 970, 971, 977]
+    limit = 0.05 * bundle.scene_scale
+    judged = []
+    densify = L.Localizer._densify
+
+    def thin_rematch(self, kps, image, est, cert, wider=None):
+        if wider is not None:  # (a pose about to be withheld: re-matched as it is)
+            return densify(self, kps, image, est, cert, wider)
+        judged.append(cert.position_sd_loo / cert.position_sd)
+        agreeing = Certainty(0.81 * cert.covariance, 0.9 * cert.position_sd, False, 0.0)
+        return self.table, est, agreeing
+
+    monkeypatch.setattr(L.Localizer, "_densify", thin_rematch)
+
+    def replay(conf: EngineConf) -> tuple[list[int], int]:
+        loc = Localizer(bundle, cam, conf)
+        bad, posed = [], 0
+        for seq in seqs:
+            f = seq % period if seq % period < n else period - seq % period
+            r = loc.localize(world.gray[f], seq * 0.1)
+            if r.cam_from_world is None:
+                continue
+            posed += 1
+            dp, dr = pose_errors(r.cam_from_world, world.gt_cam_from_world[f])
+            if dp > limit or dr > 10:
+                bad.append(seq)
+        return bad, posed
+
+    # (at rho, as the gap test's wrong frames: the window widened after the gaps tracks
+    # other corners)
+    conf = EngineConf(batch_max=100, wide_window_gap_s=0)
+    bad_off, _ = replay(conf.model_copy(update={"suspect_leave_out": False}))
+    assert 967 in bad_off
+    assert max(judged) > 10  # (its sd without the one match: an order of magnitude wider)
+    bad_on, posed = replay(conf)
+    assert bad_on == [] and posed >= len(seqs) - 4, (bad_on, posed)
+
+
 def test_leave_one_out_covariance_is_the_covariance_without_the_worst_match():
     """``pose_covariances``' second matrix is the covariance of the matches without the one
     whose removal widens the centre's sd most (checked by removing each in turn, at a noise

@@ -766,6 +766,18 @@ class EngineConf(StrictModel):
     # (centre NEES 40, expected 3); its re-match 4.0% off, sd 1.9%, 4.7% from it -> sd 4.9%,
     # withheld. False: the tracked pose's own covariance.
     rematch_disagreement: bool = True
+    # ... and such a pose (suspect, its re-match not replacing it) whose centre sd without its
+    # most influential match (``covariance_leave_one_out``) exceeds relocalize_leave_out_sd
+    # (the wrong-pose limit: that one unchecked match can put it a wrong pose away at one sd)
+    # is judged at that sd: withheld, and the tracker follows it as any too uncertain pose
+    # (odometry may pose the frame instead). Robust density-6x at 10 Hz (every 3rd frame,
+    # main 86b8d11), frame 216: 48 right tracked matches on one far patch (sd 14%), guided
+    # matching around that pose added one wrong match to a nearer point that fixed it:
+    # TRACKING 15.9% of the scene scale off, sd 1.41% (13.5% without it), its re-match, from
+    # that pose, 16.2% off; the next 6 frames were odometry on points triangulated from it,
+    # 12.7-13.1% off. Now 216 TRACKING 0.67% off (odometry, then back on the map), 219-234
+    # withheld: wrong 7 -> 0. False: the pose's own covariance (widened by the re-match).
+    suspect_leave_out: bool = True
     # ---- visual odometry beyond the map (engine/session_points.py)
     # A frame whose map matches give no publishable pose, after a published one, is posed on
     # session points (the tracker's unmatched tracks triangulated from two map-posed frames)
@@ -791,6 +803,16 @@ class EngineConf(StrictModel):
     # tracks' first rays are at most this many frames back), and the map-posed frames after
     # odometry that keep the session points (then they go, and recording is lazy again)
     odometry_window: int = Field(60, ge=2)
+    # An odometry pose whose inliers are fewer than this fraction of its candidate matches
+    # (the frame's tracks with a session point, and its map matches) is no pose (0: off):
+    # most tracks left the points they were triangulated on (at a low frame rate the
+    # tracking windows around a prediction that is off sit on other corners, which can agree
+    # on a wrong pose), and an odometry pose has no check but its matches (never verified;
+    # the map path's ``track_consensus`` re-match cannot apply). Robust density-6x / 3x,
+    # every 10th / 5th frame (3 / 6 Hz; main 86b8d11): the 4 wrong odometry poses (6x frames
+    # 160 and 230, 3x 150 and 160: 7-11% of the scene scale off, centre sd 0.5-2.6%) had
+    # 0.30-0.50 of their matches as inliers; the right ones 0.67-1.0 (at 30 Hz 0.89-1.0).
+    odometry_min_consensus: float = Field(0.6, ge=0.0, le=1.0)
     # ---- out-of-core maps (engine/submaps.py; issue 14)
     # Resident sub-maps of a sub-map set, in MB, per engine worker (``sfmloc serve
     # --map-memory``): the worker's sessions on the set share its parts within it. None: sub-map

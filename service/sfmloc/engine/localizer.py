@@ -316,6 +316,7 @@ class Localizer:
         self.judged: tuple[PoseEstimate, np.ndarray] | None = None
         self._odo_map_inliers = 0  # map inliers of the last odometry pose
         self._odo_outliers = np.zeros(0, np.int64)  # its table rows of map-match outliers
+        self._odo_why = ""  # why this frame's odometry pose was no pose (or "")
 
     def swap_bundle(
         self, bundle: MapBundle, point_rows: Callable[[np.ndarray], np.ndarray]
@@ -361,6 +362,7 @@ class Localizer:
             self.reset()  # a long gap (or time going back): motion and tracks are stale
         pred = self._kalman_filter_predict(stamp)
         prev = self.table  # the previous frame's track table, read once
+        self._odo_why = ""
         timer.lap("filter")
 
         image = _FrameImage(to_working(gray, self.scale), self.extractor)
@@ -491,13 +493,22 @@ class Localizer:
                 if dense is not None and (uncertain or dense[2].verified):
                     table, est, cert = dense
                     matching = Matching.GUIDED
-                elif dense is not None and c.rematch_disagreement:
-                    # Not replaced, but the frame's own matches also place it elsewhere: the
-                    # tracked pose is that uncertain at least (redkitchen --extend map, frame
-                    # 466: TRACKING 17 cm off with sd 4.4 cm; its re-match 9.4 cm from it).
-                    cert = with_disagreement(cert, est, dense[1], self.bundle, c)
+                elif dense is not None:
+                    if c.rematch_disagreement:
+                        # Not replaced, but the frame's own matches also place it elsewhere:
+                        # the tracked pose is that uncertain at least (redkitchen --extend
+                        # map, frame 466: TRACKING 17 cm off with sd 4.4 cm; its re-match
+                        # 9.4 cm from it).
+                        cert = with_disagreement(cert, est, dense[1], self.bundle, c)
+                    if c.suspect_leave_out:
+                        # (suspect, not replaced: the re-match started from this pose and
+                        # cannot check the match it rests on)
+                        cert = self._judged_without_one(cert)
                 timer.lap("match")
         message = lost_why if est is None else ""
+        if est is None and self._odo_why:
+            # (odometry had a pose and it was not kept: said first, then what else failed)
+            message = f"{self._odo_why}; {message}" if message else self._odo_why
         if from_recovery and est is not None and cert is not None and cert.verified:
             if c.recovered_verified_check:
                 # Recovered around the prediction and passing the strict test: guided matching
@@ -1166,6 +1177,20 @@ class Localizer:
             )
         return ""
 
+    def _judged_without_one(self, cert: Certainty) -> Certainty:
+        """A suspect tracked pose that its re-match did not replace, judged at its centre sd
+        without its most influential match when that is over ``relocalize_leave_out_sd``
+        (``suspect_leave_out``): the covariance scaled to that sd. Nothing checked that match
+        (the re-match started from the pose it fixed), and it alone can put the pose a wrong
+        pose away. Over the withholding limit (a fraction of it), the pose is withheld."""
+        limit = self.conf.relocalize_leave_out_sd
+        sd, loo = cert.position_sd, cert.position_sd_loo
+        if limit <= 0 or not loo > limit or not loo > sd:
+            return cert
+        # (over the withholding limit the leave-one-out sd is exact, not its upper bound)
+        scale = (loo / sd) ** 2 if sd > 0 else math.inf
+        return Certainty(cert.covariance * scale, loo, False, loo)
+
     def _rests_on_few(self, est: PoseEstimate, cert: Certainty) -> str | None:
         """Why a pose the status rules would publish rests on a few matches
         (``certainty.rests_on_few``, the single-image rule), or None when it does not
@@ -1226,6 +1251,14 @@ class Localizer:
             prior_threshold=c.prior_threshold_px,
         )
         if est is None or not self._plausible(est.cam_from_world, pred.cam_from_world, pred.dt):
+            return None
+        if est.num_inliers < c.odometry_min_consensus * len(rows):
+            # Most of the frame's tracks disagree with the pose: they jumped to other corners
+            # (``odometry_min_consensus``), and a consensus of the rest is no check.
+            self._odo_why = (
+                f"odometry pose withheld: {est.num_inliers} of its {len(rows)} matches "
+                f"agree (fewer than {c.odometry_min_consensus:.0%})"
+            )
             return None
         ns = len(sm.rows)
         inl = est.inlier_mask
