@@ -1051,14 +1051,27 @@ def p3p_batch(X: np.ndarray, x: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, 
         def frame(P: np.ndarray) -> np.ndarray:
             e1 = P[:, 1] - P[:, 0]
             e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
-            e3 = np.cross(e1, P[:, 2] - P[:, 0])
+            e3 = _cross_rows(e1, P[:, 2] - P[:, 0])
             e3 /= np.linalg.norm(e3, axis=1, keepdims=True)
-            return np.stack([e1, np.cross(e3, e1), e3], 2)
+            return np.stack([e1, _cross_rows(e3, e1), e3], 2)
 
         R = frame(Pc) @ frame(Xw).transpose(0, 2, 1)
         t = Pc[:, 0] - np.einsum("nij,nj->ni", R, Xw[:, 0])
         fin = np.isfinite(R).all((1, 2)) & np.isfinite(t).all(1)
     return R[fin], t[fin], n_idx[fin]
+
+
+def _cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``np.cross`` of (N, 3) rows, the same products and differences in the same order
+    (a1 b2 - a2 b1, a2 b0 - a0 b2, a0 b1 - a1 b0: bit for bit), without its axis handling
+    (issue 10: four calls per ``p3p_batch``, ~0.1 ms of Python each)."""
+    out = np.empty(a.shape)
+    a0, a1, a2 = a[:, 0], a[:, 1], a[:, 2]
+    b0, b1, b2 = b[:, 0], b[:, 1], b[:, 2]
+    np.subtract(a1 * b2, a2 * b1, out=out[:, 0])
+    np.subtract(a2 * b0, a0 * b2, out=out[:, 1])
+    np.subtract(a0 * b1, a1 * b0, out=out[:, 2])
+    return out
 
 
 def _minimal_samples(rng: np.random.Generator, pool: int, n: int) -> np.ndarray:
