@@ -493,3 +493,79 @@ def test_leave_one_out_bound_gives_the_same_answer():
                 else:
                     took_bound += 1
     assert took_bound > 20 and took_exact > 20
+
+
+def greedy_leave_out_sd(gt, K, xy, X, k, sig, loss):
+    """``certainty.position_sd_without``'s greedy steps at the pose level (map units): ``k``
+    times the covariance of the matches left without its most influential one."""
+    keep = np.arange(len(xy))
+    loo = np.full((6, 6), np.inf)
+    for _ in range(k):
+        removed: list[int] = []
+        _, loo = pose.pose_covariances(
+            gt,
+            K,
+            xy[keep],
+            X[keep],
+            point_sigma_px=None if sig is None else sig[keep],
+            loss_scale=loss,
+            removed=removed,
+        )
+        if not removed:
+            return np.inf
+        keep = np.delete(keep, removed[0])
+    if not np.isfinite(loo).all():
+        return np.inf
+    return float(np.sqrt(max(np.linalg.eigvalsh(loo[3:, 3:])[-1], 0.0)))
+
+
+def test_leave_out_bound_is_never_below_the_greedy_steps():
+    """Issue 10: ``leave_out_sd_bound`` stands for the k greedy leave-one-out steps where it
+    is within a caller's limit: it is never below them (with point uncertainties, the Cauchy
+    weights and without, points bunched on a far plane, noise and outliers in the residuals,
+    k 1-4), it is finite where the matches constrain the pose well (150+ matches over a range
+    of depths), and it is infinite where a step could end infinite (fewer than k + 6
+    matches)."""
+    finite = 0
+    for n in (6, 8, 12, 30, 150, 600):
+        for seed in range(6):
+            gt, xy, X, sig = _covariance_case(90, seed, n)
+            for k in (1, 2, 4):
+                for loss in (1.0, 0.0):
+                    bound = pose.leave_out_sd_bound(
+                        gt, K, xy, X, k, point_sigma_px=sig, loss_scale=loss
+                    )
+                    exact = greedy_leave_out_sd(gt, K, xy, X, k, sig, loss)
+                    if n < k + 6:
+                        assert bound == np.inf
+                    if np.isfinite(bound):
+                        finite += 1
+                        assert np.isfinite(exact), (n, seed, k, loss)
+                        assert bound >= exact * (1 - 1e-9), (n, seed, k, loss, bound, exact)
+                    if n >= 150 and seed % 2 == 0:  # points over the depth range
+                        assert np.isfinite(bound), (n, seed, k, loss)
+    assert finite > 50
+
+
+def test_cross_rows_equals_numpy_cross_and_p3p_batch_is_unchanged(monkeypatch):
+    """Issue 10: ``p3p_batch``'s row cross products without ``np.cross``'s axis handling: the
+    same values bit for bit (random rows with zeros, signed zeros, infinities and NaNs), and
+    ``p3p_batch`` with ``np.cross`` in their place gives the very same solutions on 2,000
+    random samples."""
+    rng = np.random.default_rng(7)
+    a, b = rng.normal(0, 10, (500, 3)), rng.normal(0, 10, (500, 3))
+    a[:20] = 0.0
+    b[10:30] = -0.0
+    a[40:45, 1] = np.inf
+    b[50:55, 2] = np.nan
+    got, want = pose._cross_rows(a, b), np.cross(a, b)
+    assert np.array_equal(got, want, equal_nan=True)
+    assert np.array_equal(np.signbit(got), np.signbit(want))
+    X = rng.uniform(-3, 3, (2000, 3, 3)) + [0.0, 0.0, 6.0]
+    uv = rng.uniform(0, 640, (2000, 3, 2))
+    new = pose.p3p_batch(X, uv, K)
+    monkeypatch.setattr(pose, "_cross_rows", np.cross)
+    old = pose.p3p_batch(X, uv, K)
+    assert len(new[0]) > 1000
+    for n, o in zip(new, old):
+        np.testing.assert_array_equal(n, o)

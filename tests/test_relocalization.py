@@ -562,3 +562,38 @@ def test_the_trackers_relocalization_resting_on_a_few_matches_is_not_adopted(
         assert status is Status.LOST and "rests on" in why and still
         status, _, still = _status(est, cert, False, "", True, conf)
         assert status is Status.UNVERIFIED and still
+
+
+def test_rests_on_few_bound_gives_the_greedy_answer(bundle, cam):
+    """Issue 10: ``position_sd_without`` with ``sd_over`` (``rests_on_few``'s question) answers
+    with the bound of ``pose.leave_out_sd_bound`` where it is within the limit, else with the
+    greedy steps: never below them, and over the limit exactly when they are, on the views of
+    the two-wrong-matches test (wrong poses, withheld) and their right matches (published).
+    The bound is taken on the right matches (its value is not the greedy one: this fails
+    without it) and the greedy steps decide the wrong poses."""
+    from sfmloc.engine.certainty import certainty, position_sd_without
+    from sfmloc.engine.pose import PoseEstimate, robust_refine
+
+    conf = EngineConf()
+    K = cam.K
+    X = bundle.points_xyz
+    limit = conf.relocalize_leave_out_sd
+    rng = np.random.default_rng(0)
+    took_bound = exact_over = 0
+    for _k, gt, xy, idx, wrong in _resting_on_few(bundle, cam, conf, rng):
+        sel = idx[np.argsort(rng.random(len(idx)))[:150]]
+        obs = xy[sel] + rng.normal(0, 0.5, (len(sel), 2))
+        pose = robust_refine(gt, K, obs, X[sel], 0.0)
+        right = PoseEstimate(pose, np.ones(len(sel), bool), len(sel), 0.0, obs, X[sel], sel)
+        for est in [right] + [e for _, e in wrong]:
+            verified = certainty(est, K, bundle, conf).verified
+            k = conf.relocalize_leave_out_verified if verified else conf.relocalize_leave_out
+            exact = position_sd_without(est, K, bundle, conf, k)
+            got = position_sd_without(est, K, bundle, conf, k, sd_over=limit)
+            assert (got > limit) == (exact > limit)
+            assert got >= exact * (1 - 1e-9)
+            if got != exact:
+                took_bound += 1
+                assert got <= limit
+            exact_over += exact > limit
+    assert took_bound >= 1 and exact_over >= 2, (took_bound, exact_over)

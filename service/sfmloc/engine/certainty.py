@@ -12,7 +12,13 @@ import numpy as np
 from ..map.bundle import MapBundle
 from .config import EngineConf
 from .point_uncertainty import PointUncertainty
-from .pose import PoseEstimate, eigvalsh_sym, pose_covariances, pose_error_vector
+from .pose import (
+    PoseEstimate,
+    eigvalsh_sym,
+    leave_out_sd_bound,
+    pose_covariances,
+    pose_error_vector,
+)
 
 
 @dataclass(frozen=True)
@@ -79,18 +85,37 @@ def _point_sigma_px(est: PoseEstimate, bundle: MapBundle, conf: EngineConf) -> n
 
 
 def position_sd_without(
-    est: PoseEstimate, K: np.ndarray, bundle: MapBundle, conf: EngineConf, k: int
+    est: PoseEstimate,
+    K: np.ndarray,
+    bundle: MapBundle,
+    conf: EngineConf,
+    k: int,
+    sd_over: float = 0.0,
 ) -> float:
     """The centre sd (scene scales, worst direction) without the ``k`` map points whose removal
     widens it most (greedily: the most influential, then the most influential of the rest, ...).
     A map point is one piece of evidence: its matches (two keypoints a pixel apart, one per
     detection scale, can both match it) are counted once. What the pose would be worth if ``k``
-    of its matches were wrong (``EngineConf.relocalize_leave_out_sd``)."""
+    of its matches were wrong (``EngineConf.relocalize_leave_out_sd``). ``sd_over`` > 0
+    (scene scales): a caller that only asks whether it is over that value may get an upper
+    bound instead, when the bound is not over it (``pose.leave_out_sd_bound``)."""
     if est.inlier_xy is None or est.inlier_X is None:
         return float("inf")
     _, first = np.unique(est.inlier_X, axis=0, return_index=True)
     keep = np.sort(first)
     extra = _point_sigma_px(est, bundle, conf)
+    if sd_over > 0:
+        bound = leave_out_sd_bound(
+            est.cam_from_world,
+            K,
+            est.inlier_xy[keep],
+            est.inlier_X[keep],
+            k,
+            point_sigma_px=None if extra is None else extra[keep],
+            loss_scale=conf.refine_loss_scale_px,
+        )
+        if bound / bundle.scene_scale <= sd_over:
+            return bound / bundle.scene_scale
     for _ in range(k):
         removed: list[int] = []
         _, loo = pose_covariances(
@@ -117,7 +142,7 @@ def rests_on_few(
     k = conf.relocalize_leave_out_verified if verified else conf.relocalize_leave_out
     if conf.relocalize_leave_out_sd <= 0 or k <= 0:
         return None
-    sd = position_sd_without(est, K, bundle, conf, k)
+    sd = position_sd_without(est, K, bundle, conf, k, sd_over=conf.relocalize_leave_out_sd)
     if sd <= conf.relocalize_leave_out_sd:
         return None
     return (

@@ -142,39 +142,10 @@ def pose_covariances(
         inf = np.full((6, 6), np.inf)
         return inf, inf
     R_cw = cam_from_world.rotation
-    pc = np.asarray(X, np.float64) @ R_cw.T + cam_from_world.translation
     fx, fy = K[0, 0], K[1, 1]
-    # The normal matrix from the weighted moments of the nine per-match terms b = [1, x, y,
-    # iz, x^2, xy, x iz, y^2, y iz] (as ``robust_refine``; every Jacobian entry is +-fx or
-    # +-fy times one of them or a sum of two), in robust_refine's parameters (a rotation w
-    # and a shift v on the camera side: x_cam = exp(w) (R X + t) + v), then turned into
-    # this covariance's: with R_wc' = exp([d]x) R_wc and the centre c' = c + e, to first
-    # order w = -R_cw d and v = -R_cw e, so cov = G' cov_cam G with G = diag(-R_cw, -R_cw)
-    # (orthogonal: the same eigenvalues, the same centre-block spectrum). Issue 10: the
-    # (2N, 6) Jacobian written out per entry cost x2 the CPU (the same matrix to rounding,
-    # ``tests/test_pose_kernels.py``).
-    B = np.empty((9, n))
-    B[0] = 1.0
-    np.divide(1.0, np.maximum(pc[:, 2], 1e-9), out=B[3])  # iz
-    np.multiply(pc[:, :2].T, B[3], out=B[1:3])  # x, y
-    np.multiply(B[1:4], B[1], out=B[4:7])  # x^2, xy, x iz
-    np.multiply(B[2:4], B[2], out=B[7:9])  # y^2, y iz
-    du = fx * B[1] + K[0, 2] - xy[:, 0]
-    dv = fy * B[2] + K[1, 2] - xy[:, 1]
-    r2 = du * du + dv * dv
-    if loss_scale > 0:
-        # The robust refinement's Cauchy weights: the noise is what its weighted residuals say,
-        # not inflated by the near-outliers (2-3 px) it down-weights.
-        rw = 1.0 / (1.0 + r2 / loss_scale**2)
-    else:
-        rw = np.ones(n)
-    # (np.add.reduce: the sums .sum() and np.sum take, without their Python layers)
-    dof = max(2 * float(np.add.reduce(rw)) - 6, 1.0)
-    var = max(float(np.add.reduce(rw * r2)) / dof, min_noise_px**2)
-    if point_sigma_px is None:
-        w = rw / var
-    else:
-        w = rw / (var + np.asarray(point_sigma_px, np.float64) ** 2)
+    B, rw, r2, var, w = _weighted_terms(
+        cam_from_world, K, xy, X, min_noise_px, point_sigma_px, loss_scale
+    )
     QH, Cu, Cv = _cov_map(float(fx), float(fy))
     Bs = B * np.sqrt(w)
     H = ((Bs @ Bs.T).reshape(81) @ QH).reshape(6, 6)
@@ -201,6 +172,125 @@ def pose_covariances(
         return cov, cov
     loo = _without_most_influential(cov, B.T @ Cu, B.T @ Cv, w, loo_sd_over, removed)
     return to_world(cov), (to_world(loo) if np.isfinite(loo).all() else loo)
+
+
+def _weighted_terms(
+    cam_from_world: Rigid3d,
+    K: np.ndarray,
+    xy: np.ndarray,
+    X: np.ndarray,
+    min_noise_px: float,
+    point_sigma_px: np.ndarray | None,
+    loss_scale: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, np.ndarray]:
+    """``pose_covariances``' per-match quantities: the terms b (9, n), the Cauchy weights
+    ``rw`` (ones without a loss), the squared residuals ``r2`` (px^2), the pixel noise variance
+    ``var`` and the information weights ``w``.
+
+    The normal matrix comes from the weighted moments of the nine per-match terms b = [1, x,
+    y, iz, x^2, xy, x iz, y^2, y iz] (as ``robust_refine``; every Jacobian entry is +-fx or
+    +-fy times one of them or a sum of two), in robust_refine's parameters (a rotation w and
+    a shift v on the camera side: x_cam = exp(w) (R X + t) + v), then turned into the
+    covariance's: with R_wc' = exp([d]x) R_wc and the centre c' = c + e, to first order
+    w = -R_cw d and v = -R_cw e, so cov = G' cov_cam G with G = diag(-R_cw, -R_cw)
+    (orthogonal: the same eigenvalues, the same centre-block spectrum). Issue 10: the (2N, 6)
+    Jacobian written out per entry cost x2 the CPU (the same matrix to rounding,
+    ``tests/test_pose_kernels.py``)."""
+    n = len(xy)
+    pc = np.asarray(X, np.float64) @ cam_from_world.rotation.T + cam_from_world.translation
+    fx, fy = K[0, 0], K[1, 1]
+    B = np.empty((9, n))
+    B[0] = 1.0
+    np.divide(1.0, np.maximum(pc[:, 2], 1e-9), out=B[3])  # iz
+    np.multiply(pc[:, :2].T, B[3], out=B[1:3])  # x, y
+    np.multiply(B[1:4], B[1], out=B[4:7])  # x^2, xy, x iz
+    np.multiply(B[2:4], B[2], out=B[7:9])  # y^2, y iz
+    du = fx * B[1] + K[0, 2] - xy[:, 0]
+    dv = fy * B[2] + K[1, 2] - xy[:, 1]
+    r2 = du * du + dv * dv
+    if loss_scale > 0:
+        # The robust refinement's Cauchy weights: the noise is what its weighted residuals say,
+        # not inflated by the near-outliers (2-3 px) it down-weights.
+        rw = 1.0 / (1.0 + r2 / loss_scale**2)
+    else:
+        rw = np.ones(n)
+    # (np.add.reduce: the sums .sum() and np.sum take, without their Python layers)
+    dof = max(2 * float(np.add.reduce(rw)) - 6, 1.0)
+    var = max(float(np.add.reduce(rw * r2)) / dof, min_noise_px**2)
+    if point_sigma_px is None:
+        w = rw / var
+    else:
+        w = rw / (var + np.asarray(point_sigma_px, np.float64) ** 2)
+    return B, rw, r2, var, w
+
+
+def leave_out_sd_bound(
+    cam_from_world: Rigid3d,
+    K: np.ndarray,
+    xy: np.ndarray,
+    X: np.ndarray,
+    k: int,
+    min_noise_px: float = MIN_NOISE_PX,
+    point_sigma_px: np.ndarray | None = None,
+    loss_scale: float = 0.0,
+) -> float:
+    """An upper bound of the centre sd (map units, worst direction) that ``k`` greedy
+    leave-one-out steps reach (``certainty.position_sd_without``: ``pose_covariances`` on
+    the matches left, its most influential one removed, ``k`` times), valid for any ``k``
+    matches removed; inf where it cannot be bounded so, including wherever those steps might
+    end at an infinite covariance (too few matches, a match the pose cannot do without).
+
+    Issue 10: the greedy steps were ~6% of a relocalization's CPU, to answer whether the sd
+    without them exceeds ``relocalize_leave_out_sd``; where this bound is within it, so is
+    the exact value (the same decision). Why it bounds, with H the information of all ``n``
+    matches, h_i = max eig(w_i J_i H^-1 J_i^T) each match's leverage (w_i J_i^T J_i <= h_i H)
+    and var the noise variance they give: a step's set T (at most k - 1 removed) re-estimates
+    the variance from its own residuals, between var_lo (the k - 1 largest weighted squared
+    residuals gone, the same degrees of freedom) and var_hi (all residuals, k - 1 matches'
+    degrees of freedom gone: each Cauchy weight is at most 1); a weight rw / (var_T + s^2)
+    is then at least var / var_hi and at most var / var_lo times its weight at var. So the
+    information of any set without k matches is at least shrink H, shrink = var / var_hi x
+    (1 - the k largest h_i summed), its covariance at most H^-1 / shrink, and a match's
+    leverage in a step at most (var / var_lo) h_i / shrink: under 0.999, no step meets a
+    singular downdate, and the condition number stays far under ``pose_covariances``' 1e12.
+    """
+    n = len(xy)
+    if k < 1 or n < k + 6:
+        return float("inf")
+    B, rw, r2, var, w = _weighted_terms(
+        cam_from_world, K, xy, X, min_noise_px, point_sigma_px, loss_scale
+    )
+    QH, Cu, Cv = _cov_map(float(K[0, 0]), float(K[1, 1]))
+    Bs = B * np.sqrt(w)
+    H = ((Bs @ Bs.T).reshape(81) @ QH).reshape(6, 6)
+    if not np.all(np.isfinite(H)):
+        return float("inf")
+    ev, V = np.linalg.eigh(H)
+    if not ev[0] > 0 or ev[-1] > 1e10 * ev[0]:
+        return float("inf")
+    cov = (V / ev) @ V.T
+    cov = 0.5 * (cov + cov.T)
+    Ju, Jv = B.T @ Cu, B.T @ Cv
+    Au, Av = Ju @ cov, Jv @ cov
+    l00 = np.einsum("ij,ij->i", Au, Ju)
+    l11 = np.einsum("ij,ij->i", Av, Jv)
+    l01 = np.einsum("ij,ij->i", Au, Jv)
+    half = 0.5 * (l00 + l11)
+    h = w * (half + np.sqrt(np.maximum(half * half - (l00 * l11 - l01 * l01), 0.0)))
+    top = np.sort(h)[-k:]
+    s_rw, rr = float(rw.sum()), rw * r2
+    s_rr = float(rr.sum())
+    var_hi = max(s_rr / max(2 * s_rw - 6 - 2 * (k - 1), 1.0), min_noise_px**2)
+    gone = float(np.sort(rr)[len(rr) - (k - 1) :].sum()) if k > 1 else 0.0
+    var_lo = max((s_rr - gone) / max(2 * s_rw - 6, 1.0), min_noise_px**2)
+    shrink = var / var_hi * (1.0 - float(top.sum()))
+    if not shrink > 0:
+        return float("inf")
+    grow = var / var_lo
+    if grow * float(h.max()) / shrink >= 0.999 or ev[-1] / ev[0] * grow / shrink > 1e11:
+        return float("inf")
+    lam = float(np.linalg.eigvalsh(cov[3:, 3:])[-1])
+    return math.sqrt(max(lam, 0.0) / shrink)
 
 
 @functools.lru_cache(maxsize=8)
@@ -992,14 +1082,27 @@ def p3p_batch(X: np.ndarray, x: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, 
         def frame(P: np.ndarray) -> np.ndarray:
             e1 = P[:, 1] - P[:, 0]
             e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
-            e3 = np.cross(e1, P[:, 2] - P[:, 0])
+            e3 = _cross_rows(e1, P[:, 2] - P[:, 0])
             e3 /= np.linalg.norm(e3, axis=1, keepdims=True)
-            return np.stack([e1, np.cross(e3, e1), e3], 2)
+            return np.stack([e1, _cross_rows(e3, e1), e3], 2)
 
         R = frame(Pc) @ frame(Xw).transpose(0, 2, 1)
         t = Pc[:, 0] - np.einsum("nij,nj->ni", R, Xw[:, 0])
         fin = np.isfinite(R).all((1, 2)) & np.isfinite(t).all(1)
     return R[fin], t[fin], n_idx[fin]
+
+
+def _cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``np.cross`` of (N, 3) rows, the same products and differences in the same order
+    (a1 b2 - a2 b1, a2 b0 - a0 b2, a0 b1 - a1 b0: bit for bit), without its axis handling
+    (issue 10: four calls per ``p3p_batch``, ~0.1 ms of Python each)."""
+    out = np.empty(a.shape)
+    a0, a1, a2 = a[:, 0], a[:, 1], a[:, 2]
+    b0, b1, b2 = b[:, 0], b[:, 1], b[:, 2]
+    np.subtract(a1 * b2, a2 * b1, out=out[:, 0])
+    np.subtract(a2 * b0, a0 * b2, out=out[:, 1])
+    np.subtract(a0 * b1, a1 * b0, out=out[:, 2])
+    return out
 
 
 def _minimal_samples(rng: np.random.Generator, pool: int, n: int) -> np.ndarray:

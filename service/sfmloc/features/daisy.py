@@ -23,6 +23,7 @@ the level.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import cv2
@@ -68,26 +69,16 @@ class DaisyExtractor:
     params: DaisyParams = field(default_factory=DaisyParams)
 
     def __post_init__(self) -> None:
-        p = self.params
-        # Descriptor patch: (grid+2)^2 samples so central differences leave grid^2.
-        g = p.grid + 2
-        c = (np.arange(g) - (g - 1) / 2.0) * p.spacing
-        gx, gy = np.meshgrid(c, c)
-        self._grid_xy = np.stack([gx.ravel(), gy.ravel()], axis=1).astype(np.float32)  # (g*g, 2)
-        self._pool = _pooling_matrix(p).astype(np.float32)  # (13, grid*grid)
-        # The central differences' 1/2 moved into the pooling weights: halving is exact in
-        # float32, so (w / 2) @ rect(2 g) adds the very products w @ rect(g) adds.
-        self._half_pool = self._pool * np.float32(0.5)
-        # Orientation window.
-        go = p.ori_grid + 2
-        co = (np.arange(go) - (go - 1) / 2.0) * p.ori_spacing
-        ox, oy = np.meshgrid(co, co)
-        self._ori_xy = np.stack([ox.ravel(), oy.ravel()], axis=1).astype(np.float32)
-        inner = (np.arange(p.ori_grid) - (p.ori_grid - 1) / 2.0) * p.ori_spacing
-        ix, iy = np.meshgrid(inner, inner)
-        self._ori_weight = (
-            np.exp(-(ix**2 + iy**2) / (2 * p.ori_sigma**2)).astype(np.float32).ravel()
-        )
+        # The patch grids, pooling weights and orientation window depend on the params only:
+        # made once per params and shared read-only (issue 10: single-image relocalization
+        # makes an extractor per call, and building them was ~0.25 ms of its ~25 ms CPU).
+        (
+            self._grid_xy,
+            self._pool,
+            self._half_pool,
+            self._ori_xy,
+            self._ori_weight,
+        ) = _extractor_constants(self.params)
 
     # ------------------------------------------------------------------ public
     def prepare(self, gray: np.ndarray) -> np.ndarray:
@@ -231,6 +222,36 @@ class DaisyExtractor:
             ay = (my3[idx] - np.float32(y0)).reshape(-1, side)
             out[idx] = _remap_patches(sub, ax, ay, side).reshape(len(idx), side, side)
         return out
+
+
+@functools.lru_cache(maxsize=8)
+def _extractor_constants(
+    p: DaisyParams,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``DaisyExtractor``'s constants for ``p`` (read-only, shared by every extractor): the
+    descriptor patch's sample offsets, the pooling matrix and its half, the orientation
+    window's sample offsets and its Gaussian weights."""
+    # Descriptor patch: (grid+2)^2 samples so central differences leave grid^2.
+    g = p.grid + 2
+    c = (np.arange(g) - (g - 1) / 2.0) * p.spacing
+    gx, gy = np.meshgrid(c, c)
+    grid_xy = np.stack([gx.ravel(), gy.ravel()], axis=1).astype(np.float32)  # (g*g, 2)
+    pool = _pooling_matrix(p).astype(np.float32)  # (13, grid*grid)
+    # The central differences' 1/2 moved into the pooling weights: halving is exact in
+    # float32, so (w / 2) @ rect(2 g) adds the very products w @ rect(g) adds.
+    half_pool = pool * np.float32(0.5)
+    # Orientation window.
+    go = p.ori_grid + 2
+    co = (np.arange(go) - (go - 1) / 2.0) * p.ori_spacing
+    ox, oy = np.meshgrid(co, co)
+    ori_xy = np.stack([ox.ravel(), oy.ravel()], axis=1).astype(np.float32)
+    inner = (np.arange(p.ori_grid) - (p.ori_grid - 1) / 2.0) * p.ori_spacing
+    ix, iy = np.meshgrid(inner, inner)
+    ori_weight = np.exp(-(ix**2 + iy**2) / (2 * p.ori_sigma**2)).astype(np.float32).ravel()
+    out = (grid_xy, pool, half_pool, ori_xy, ori_weight)
+    for a in out:
+        a.flags.writeable = False
+    return out
 
 
 def _remap_patches(img: np.ndarray, mx: np.ndarray, my: np.ndarray, side: int) -> np.ndarray:
