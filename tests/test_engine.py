@@ -948,6 +948,31 @@ def test_every_8th_frame_keeps_tracking_where_a_fixed_window_relocalizes(world, 
     assert bad_fixed == [] and fixed >= 10
 
 
+# The reliability bench's gaps pattern, seed 1 (10 Hz ping-pong over the video after a 1.1 s
+# gap): a fresh engine replays these frames exactly as the bench did.
+_GAP_SEQS = [949, 950, 951, 955, 956, 957, 958, 959, 967, 970, 971, 977]
+
+
+def _replay_gap_frames(world, bundle, cam, conf: EngineConf) -> tuple[list[int], int]:
+    """The gap frames through a fresh engine: the wrong ones (over 5% of the scene scale or
+    10 deg off) and how many were posed."""
+    n = len(world.gray)
+    period = 2 * (n - 1)
+    limit = 0.05 * bundle.scene_scale
+    loc = Localizer(bundle, cam, conf)
+    bad, posed = [], 0
+    for seq in _GAP_SEQS:
+        f = seq % period if seq % period < n else period - seq % period
+        r = loc.localize(world.gray[f], seq * 0.1)
+        if r.cam_from_world is None:
+            continue
+        posed += 1
+        dp, dr = pose_errors(r.cam_from_world, world.gt_cam_from_world[f])
+        if dp > limit or dr > 10:
+            bad.append(seq)
+    return bad, posed
+
+
 def test_no_wrong_tracked_pose_after_a_gap_on_one_influential_wrong_match(world, bundle, cam):
     """Issue 9 (the reliability bench's gaps pattern, seed 1: a TRACKING pose 5.1% of the scene
     scale off after a 0.8 s gap, 76 -> 21 inliers, and the two frames tracked from it): after
@@ -958,24 +983,10 @@ def test_no_wrong_tracked_pose_after_a_gap_on_one_influential_wrong_match(world,
     frames as the bench (a relocalization after a 1.1 s gap starts them, so a fresh engine
     replays them exactly), exact ground truth: every frame posed, none wrong; judging all the
     matches (main d1def86), frames 967, 970 and 971 are wrong."""
-    n = len(world.gray)
-    period = 2 * (n - 1)
-    seqs = [949, 950, 951, 955, 956, 957, 958, 959, 967, 970, 971, 977]
-    limit = 0.05 * bundle.scene_scale
+    seqs = _GAP_SEQS
 
     def replay(conf: EngineConf) -> tuple[list[int], int]:
-        loc = Localizer(bundle, cam, conf)
-        bad, posed = [], 0
-        for seq in seqs:
-            f = seq % period if seq % period < n else period - seq % period
-            r = loc.localize(world.gray[f], seq * 0.1)
-            if r.cam_from_world is None:
-                continue
-            posed += 1
-            dp, dr = pose_errors(r.cam_from_world, world.gt_cam_from_world[f])
-            if dp > limit or dr > 10:
-                bad.append(seq)
-        return bad, posed
+        return _replay_gap_frames(world, bundle, cam, conf)
 
     # (guided batches of 100, as measured: with batches of 50, 34bb399, these frames take other
     # tracks, 3.3% off at worst with the re-match on or off)
@@ -1003,10 +1014,7 @@ def test_a_suspect_pose_its_re_match_cannot_check_is_judged_without_its_one_matc
     from sfmloc.engine import localizer as L
     from sfmloc.engine.certainty import Certainty
 
-    n = len(world.gray)
-    period = 2 * (n - 1)
-    seqs = [949, 950, 951, 955, 956, 957, 958, 959, 967, 970, 971, 977]
-    limit = 0.05 * bundle.scene_scale
+    seqs = _GAP_SEQS
     judged = []
     densify = L.Localizer._densify
 
@@ -1020,18 +1028,7 @@ def test_a_suspect_pose_its_re_match_cannot_check_is_judged_without_its_one_matc
     monkeypatch.setattr(L.Localizer, "_densify", thin_rematch)
 
     def replay(conf: EngineConf) -> tuple[list[int], int]:
-        loc = Localizer(bundle, cam, conf)
-        bad, posed = [], 0
-        for seq in seqs:
-            f = seq % period if seq % period < n else period - seq % period
-            r = loc.localize(world.gray[f], seq * 0.1)
-            if r.cam_from_world is None:
-                continue
-            posed += 1
-            dp, dr = pose_errors(r.cam_from_world, world.gt_cam_from_world[f])
-            if dp > limit or dr > 10:
-                bad.append(seq)
-        return bad, posed
+        return _replay_gap_frames(world, bundle, cam, conf)
 
     # (at rho, as the gap test's wrong frames: the window widened after the gaps tracks
     # other corners)
