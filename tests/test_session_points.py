@@ -189,7 +189,10 @@ def test_odometry_carries_the_pose_beyond_the_map_without_a_wrong_pose(world, st
                 assert nees < 16.3, (i, nees)
         counts[odometry] = (posed, odo)
     assert counts[False][1] == 0
-    assert counts[True][1] >= 3 and counts[True][0] > counts[False][0], counts
+    # (odometry poses frames the map alone does not: 48 against 44 posed. With
+    # suspect_leave_out the map itself poses frames 37-38, 0.32-0.38% of the scene scale off,
+    # which odometry posed 0.72-0.79% off before it: odometry frames 3 -> 1)
+    assert counts[True][1] >= 1 and counts[True][0] > counts[False][0], counts
 
 
 def test_recorded_frames_triangulate_as_observed_ones_when_odometry_needs_them():
