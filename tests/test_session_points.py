@@ -315,3 +315,24 @@ def test_an_odometry_pose_most_of_whose_tracks_disagree_is_no_pose(world, start_
         out = loc._odometry(table, pred)
         assert out is not None
         assert np.linalg.norm(out[0].cam_from_world.center - truth.center) / S < 0.01
+
+
+def test_a_suspect_pose_withheld_without_its_one_match_says_so(world, start_map, cam):
+    """``suspect_leave_out`` on real replays, no stub: on the map cut to the video's start,
+    frames 49, 51 and 52 rest on 28-31 guided matches whose centre sd is 1.7-2.4% of the
+    scene scale with all of them and 13% without the most influential one; the whole-frame
+    re-match starts from that pose and cannot check it. With the rule they are LOST, and the
+    message says the sd it quotes is the one without that match; without it they are
+    published (right here, 0.6-1.0% off, but resting on one unchecked match)."""
+    posed, said = {}, {}
+    for rule in (False, True):
+        loc = Localizer(start_map, cam, EngineConf(suspect_leave_out=rule))
+        posed[rule], said[rule] = set(), set()
+        for i, img in enumerate(world.gray):
+            r = loc.localize(img, i / 30)
+            if r.status is not Status.LOST:
+                posed[rule].add(i)
+            elif "without its most influential match" in r.message:
+                said[rule].add(i)
+    assert len(said[True]) >= 2 and not said[False], said
+    assert said[True] <= posed[False], (said, posed[False])  # published without the rule

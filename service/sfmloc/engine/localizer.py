@@ -414,6 +414,7 @@ class Localizer:
         # carry the session points visual odometry poses a frame on
         tracked_table = table
         odo_cert: Certainty | None = None  # the odometry pose's certainty, when it has one
+        loo_cert: Certainty | None = None  # a suspect pose's, judged without its one match
         if est is None and not ambiguous and self._odometry_ready():
             # Tracking found no map pose after a published one: odometry on the session points
             # first (the recovery's and global matching's poses on a thin map are the ones
@@ -503,7 +504,9 @@ class Localizer:
                     if c.suspect_leave_out:
                         # (suspect, not replaced: the re-match started from this pose and
                         # cannot check the match it rests on)
-                        cert = self._judged_without_one(cert)
+                        judged = self._judged_without_one(cert)
+                        if judged is not cert:
+                            cert = loo_cert = judged
                 timer.lap("match")
         message = lost_why if est is None else ""
         if est is None and self._odo_why:
@@ -625,6 +628,12 @@ class Localizer:
             if est is None or cert is None or matching is Matching.ODOMETRY
             else partial(self._rests_on_few, est, cert),
         )
+        if status is Status.LOST and cert is not None and cert is loo_cert:
+            # (the sd quoted is the one without that match: say so, and why)
+            message += (
+                "; judged without its most influential match, which the whole-frame re-match"
+                " (started from this pose) could not check"
+            )
         if est is not None:  # the motion filter now rests on this pose: published or withheld
             self.motion_published = status is not Status.LOST
         if c.odometry:
