@@ -146,20 +146,11 @@ def pose_covariances(
     B, rw, r2, var, w = _weighted_terms(
         cam_from_world, K, xy, X, min_noise_px, point_sigma_px, loss_scale
     )
-    QH, Cu, Cv = _cov_map(float(fx), float(fy))
-    Bs = B * np.sqrt(w)
-    H = ((Bs @ Bs.T).reshape(81) @ QH).reshape(6, 6)
-    if not np.isfinite(H).all():  # (the array's own .all(): np.all's dispatch costs 3 us)
+    inverted = _camera_covariance(B, w, float(fx), float(fy), 1e12)
+    if inverted is None:
         inf = np.full((6, 6), np.inf)
         return inf, inf
-    # H is symmetric: one eigendecomposition gives its condition number and its inverse
-    # (np.linalg.cond's SVD and np.linalg.inv cost twice as much)
-    ev, V = eigh_sym(H)
-    if not ev[0] > 0 or ev[-1] > 1e12 * ev[0]:
-        inf = np.full((6, 6), np.inf)
-        return inf, inf
-    cov = (V / ev) @ V.T
-    cov = 0.5 * (cov + cov.T)
+    _, cov, Cu, Cv = inverted
     G = np.zeros((6, 6))
     G[:3, :3] = G[3:, 3:] = -R_cw
 
@@ -224,6 +215,27 @@ def _weighted_terms(
     return B, rw, r2, var, w
 
 
+def _camera_covariance(
+    B: np.ndarray, w: np.ndarray, fx: float, fy: float, max_cond: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    """The pose covariance in ``robust_refine``'s camera-side parameters from the per-match
+    terms ``B`` and weights ``w`` (``_weighted_terms``): the normal matrix's eigenvalues
+    (ascending), its inverse, and the Jacobian maps ``Cu``, ``Cv`` (``_cov_map``); None where
+    the normal matrix is not finite or its condition number is over ``max_cond``."""
+    QH, Cu, Cv = _cov_map(fx, fy)
+    Bs = B * np.sqrt(w)
+    H = ((Bs @ Bs.T).reshape(81) @ QH).reshape(6, 6)
+    if not np.isfinite(H).all():  # (the array's own .all(): np.all's dispatch costs 3 us)
+        return None
+    # H is symmetric: one eigendecomposition gives its condition number and its inverse
+    # (np.linalg.cond's SVD and np.linalg.inv cost twice as much)
+    ev, V = eigh_sym(H)
+    if not ev[0] > 0 or ev[-1] > max_cond * ev[0]:
+        return None
+    cov = (V / ev) @ V.T
+    return ev, 0.5 * (cov + cov.T), Cu, Cv
+
+
 def leave_out_sd_bound(
     cam_from_world: Rigid3d,
     K: np.ndarray,
@@ -260,16 +272,10 @@ def leave_out_sd_bound(
     B, rw, r2, var, w = _weighted_terms(
         cam_from_world, K, xy, X, min_noise_px, point_sigma_px, loss_scale
     )
-    QH, Cu, Cv = _cov_map(float(K[0, 0]), float(K[1, 1]))
-    Bs = B * np.sqrt(w)
-    H = ((Bs @ Bs.T).reshape(81) @ QH).reshape(6, 6)
-    if not np.all(np.isfinite(H)):
+    inverted = _camera_covariance(B, w, float(K[0, 0]), float(K[1, 1]), 1e10)
+    if inverted is None:
         return float("inf")
-    ev, V = np.linalg.eigh(H)
-    if not ev[0] > 0 or ev[-1] > 1e10 * ev[0]:
-        return float("inf")
-    cov = (V / ev) @ V.T
-    cov = 0.5 * (cov + cov.T)
+    ev, cov, Cu, Cv = inverted
     Ju, Jv = B.T @ Cu, B.T @ Cv
     Au, Av = Ju @ cov, Jv @ cov
     l00 = np.einsum("ij,ij->i", Au, Ju)
@@ -289,7 +295,7 @@ def leave_out_sd_bound(
     grow = var / var_lo
     if grow * float(h.max()) / shrink >= 0.999 or ev[-1] / ev[0] * grow / shrink > 1e11:
         return float("inf")
-    lam = float(np.linalg.eigvalsh(cov[3:, 3:])[-1])
+    lam = float(eigvalsh_sym(cov[3:, 3:])[-1])
     return math.sqrt(max(lam, 0.0) / shrink)
 
 
