@@ -921,31 +921,39 @@ def test_every_8th_frame_keeps_tracking_where_a_fixed_window_relocalizes(world, 
     synthetic video back and forth, exact ground truth: every frame posed, none beyond the
     wrong-pose limits, global matching only at the start (its first two frames) and at most
     once more; with the fixed window (main 421d4f3) 14 of the 40 frames relocalize."""
+    seqs = [8 * j for j in range(40)]
+    stamps = [s / 30 for s in seqs]
+    bad, posed, relocs = _replay_back_and_forth(world, bundle, cam, EngineConf(), seqs, stamps)
+    assert bad == [] and posed == len(seqs)
+    assert relocs <= 3
+    bad_fixed, _, fixed = _replay_back_and_forth(
+        world, bundle, cam, EngineConf(wide_window_gap_s=0), seqs, stamps
+    )
+    assert bad_fixed == [] and fixed >= 10
+
+
+def _replay_back_and_forth(
+    world, bundle, cam, conf: EngineConf, seqs: list[int], stamps: list[float]
+) -> tuple[list[int], int, int]:
+    """The synthetic video played back and forth (``seqs`` count frames along that path,
+    stamped ``stamps``) through a fresh engine: the wrong ones of ``seqs`` (over 5% of the
+    scene scale or 10 deg off), how many were posed, how many ran global matching."""
     n = len(world.gray)
     period = 2 * (n - 1)
-    frames = [(8 * j) % period for j in range(40)]
-    frames = [f if f < n else period - f for f in frames]
     limit = 0.05 * bundle.scene_scale
-
-    def replay(conf: EngineConf) -> tuple[int, int, list[int]]:
-        loc = Localizer(bundle, cam, conf)
-        relocs, posed, bad = 0, 0, []
-        for j, f in enumerate(frames):
-            r = loc.localize(world.gray[f], 8 * j / 30)
-            relocs += r.matching is Matching.GLOBAL
-            if r.cam_from_world is None:
-                continue
-            posed += 1
-            dp, dr = pose_errors(r.cam_from_world, world.gt_cam_from_world[f])
-            if dp > limit or dr > 10:
-                bad.append(j)
-        return relocs, posed, bad
-
-    relocs, posed, bad = replay(EngineConf())
-    assert bad == [] and posed == len(frames)
-    assert relocs <= 3
-    fixed, _, bad_fixed = replay(EngineConf(wide_window_gap_s=0))
-    assert bad_fixed == [] and fixed >= 10
+    loc = Localizer(bundle, cam, conf)
+    bad, posed, relocs = [], 0, 0
+    for seq, stamp in zip(seqs, stamps):
+        f = seq % period if seq % period < n else period - seq % period
+        r = loc.localize(world.gray[f], stamp)
+        relocs += r.matching is Matching.GLOBAL
+        if r.cam_from_world is None:
+            continue
+        posed += 1
+        dp, dr = pose_errors(r.cam_from_world, world.gt_cam_from_world[f])
+        if dp > limit or dr > 10:
+            bad.append(seq)
+    return bad, posed, relocs
 
 
 # The reliability bench's gaps pattern, seed 1 (10 Hz ping-pong over the video after a 1.1 s
@@ -956,20 +964,8 @@ _GAP_SEQS = [949, 950, 951, 955, 956, 957, 958, 959, 967, 970, 971, 977]
 def _replay_gap_frames(world, bundle, cam, conf: EngineConf) -> tuple[list[int], int]:
     """The gap frames through a fresh engine: the wrong ones (over 5% of the scene scale or
     10 deg off) and how many were posed."""
-    n = len(world.gray)
-    period = 2 * (n - 1)
-    limit = 0.05 * bundle.scene_scale
-    loc = Localizer(bundle, cam, conf)
-    bad, posed = [], 0
-    for seq in _GAP_SEQS:
-        f = seq % period if seq % period < n else period - seq % period
-        r = loc.localize(world.gray[f], seq * 0.1)
-        if r.cam_from_world is None:
-            continue
-        posed += 1
-        dp, dr = pose_errors(r.cam_from_world, world.gt_cam_from_world[f])
-        if dp > limit or dr > 10:
-            bad.append(seq)
+    stamps = [seq * 0.1 for seq in _GAP_SEQS]
+    bad, posed, _ = _replay_back_and_forth(world, bundle, cam, conf, _GAP_SEQS, stamps)
     return bad, posed
 
 
