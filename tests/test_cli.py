@@ -88,6 +88,21 @@ def test_demo_bar_judges_what_was_measured_not_stale_drops():
     assert rows[0][0].startswith(">= 80%") and rows[0][2] == "9/12" and not rows[0][1]
 
 
+def test_demo_runs_end_to_end():
+    """`make demo`'s job, small: render, build, serve, stream over Zenoh, relocalize over gRPC,
+    report and judge. Its report reads every kind of answer (streamed poses and gRPC
+    relocalizations); a report that crashes on one (as a typing change once made it do on the
+    gRPC answers) fails here, not in a user's first command."""
+    r = run_cli("demo", "--frames", "60", "--mapping-views", "30")
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    assert "Traceback" not in r.stderr
+    out = r.stdout
+    assert "demo passed" in out
+    # the single images over gRPC were measured against the ground truth (cm per image)
+    reloc = [ln for ln in out.splitlines() if ln.strip().startswith("frame ") and " cm " in ln]
+    assert len(reloc) >= 4, out
+
+
 # A command whose output outlives its reader: `sfmloc ... | head -1`. The entry point's own
 # handling is under test, so the command is a real `main()` with one added subcommand that
 # prints more than a pipe buffer holds after the reader has gone.

@@ -223,7 +223,7 @@ def run(args: argparse.Namespace) -> int:
             # ---- relocalize
             step("relocalizing single images over gRPC")
             picks = list(np.linspace(0, len(frames) - 1, 6).astype(int)[1:-1]) + [len(frames) // 3]
-            reloc = []
+            reloc: list[tuple[int, PoseMessage, float]] = []
             with LocalizationClient(srv.grpc) as c:
                 for k in picks:
                     t0 = time.perf_counter()
@@ -303,8 +303,8 @@ def run(args: argparse.Namespace) -> int:
         print("  single images over gRPC (Relocalize):")
         ok_reloc = 0
         for k, r, ms in reloc:
-            if r.localized:
-                dp, dr = errors(r, k)
+            if r.localized and (w := r.world_from_cam) is not None:
+                dp, dr = errors(w, k)
                 ok_reloc += dp < 0.1
                 print(
                     f"    frame {k:4d}: {r.status:<11} {r.inliers:4d} inliers  {dp * 100:6.2f} cm  "
