@@ -77,6 +77,26 @@ def test_client_imports_nothing_of_the_server_or_heavy_libraries():
     assert r.stdout.strip() == "", f"sfmloc_client imported {r.stdout.strip()}"
 
 
+def test_every_lazy_export_is_typed_for_type_checkers():
+    """Each name the package exports lazily (``_EXPORTS``) is also imported under
+    TYPE_CHECKING from the same module: otherwise mypy sees it as Any and checks none of its
+    uses (a report once passed a PoseMessage where a Transform belongs, unnoticed)."""
+    import ast
+
+    import sfmloc_client
+
+    tree = ast.parse(open(sfmloc_client.__file__).read())
+    typed = {}
+    for node in ast.walk(tree):
+        if isinstance(node, ast.If) and getattr(node.test, "id", None) == "TYPE_CHECKING":
+            for imp in node.body:
+                assert isinstance(imp, ast.ImportFrom)
+                for a in imp.names:
+                    assert a.asname == a.name  # an explicit re-export
+                    typed[a.name] = imp.module
+    assert typed == sfmloc_client._EXPORTS
+
+
 # ----------------------------------------------------------------------------- wire
 def test_frame_round_trip_and_unknown_keys_are_ignored():
     data = bytes(range(256)) * 12
