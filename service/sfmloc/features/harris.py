@@ -344,16 +344,25 @@ def detect_corners(
     thr = threshold if threshold is not None else rel_threshold * r_max_s / _R_SCALE
     thr_s = max(float(thr), 1e-12) * _R_SCALE  # exact: a power of two
     # 3x3 local maxima above the threshold: the pixels over it first (2-6% of a redkitchen
-    # frame), then the maximum test on those only. Contiguous full-image masks: np.flatnonzero
-    # on one is ~10x faster than np.nonzero on a strided view of the interior.
-    idx = np.flatnonzero(np.greater(R, thr_s, out=ws.gt))
-    dil = cv2.dilate(R, _KERNEL_3X3, dst=ws.s)
+    # frame), then the maximum test on those only. Contiguous masks: np.flatnonzero on one is
+    # ~10x faster than np.nonzero on a strided view of the interior. Only the rows a corner
+    # may lie in (``border`` off the top and bottom; contiguous, and the maximum is exact
+    # whatever the rows around): the dilation reads one row more each side, and its rows at
+    # that block's edge, which see the border value, are never read.
+    y0 = min(border, h)
+    y1 = max(h - border, y0)
+    idx = np.flatnonzero(np.greater(R[y0:y1], thr_s, out=ws.gt[y0:y1]))
+    if y0:
+        idx += y0 * w
+    lo, hi = max(y0 - 1, 0), min(y1 + 1, h)
+    if y1 > y0:
+        cv2.dilate(R[lo:hi], _KERNEL_3X3, dst=ws.s[lo:hi])
     r_flat = R.ravel()
     resp_s = r_flat[idx]
-    idx = idx[resp_s >= dil.ravel()[idx]]
+    idx = idx[resp_s >= ws.s.ravel()[idx]]
     ys, xs = np.divmod(idx, w)
     if border > 0:
-        inside = (xs >= border) & (xs < w - border) & (ys >= border) & (ys < h - border)
+        inside = (xs >= border) & (xs < w - border)
         idx, ys, xs = idx[inside], ys[inside], xs[inside]
     if mask is not None:
         allowed = mask[ys, xs] != 0
