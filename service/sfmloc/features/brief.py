@@ -156,7 +156,10 @@ def _brief_windows(
     )
     off = _window_offsets(patch_size)
     patches = windows[cy - half, cx - half].reshape(len(cx), side * side)
-    v = np.take(patches, off, axis=1)
+    # mode="clip": the offsets lie in the window by construction, and numpy's default
+    # ("raise") checks each of the N x 512 indices on the way: the copy and this gather
+    # 376 -> 357 us on redkitchen frames (~600 keypoints; 0.235 -> 0.147 ms on a cached array)
+    v = np.take(patches, off, axis=1, mode="clip")
     packed[:] = np.packbits(np.less(v[:, :N_BITS], v[:, N_BITS:]), axis=1)
     return packed
 
