@@ -245,6 +245,22 @@ def test_harris_equals_the_plain_formula_at_full_contrast_and_rejects_other_dtyp
         harris_response(np.zeros((40, 40), np.uint16))
 
 
+@pytest.mark.parametrize("width", [640, 641, 655, 7])
+def test_opencv_scaled_multiply_rounds_as_k_times_p_then_times_p(width):
+    # The response takes k (a + b)^2 from cv2.multiply(p, p, scale=k) as (k * p) * p, the
+    # numpy formula's order; (p * p) * k rounds differently on about a third of such floats,
+    # so an OpenCV computing that order (in its vector loop or its scalar tail: odd widths)
+    # fails here.
+    rng = np.random.default_rng(width)
+    p = (rng.random((40, width), dtype=np.float32) * np.float32(1e9)).astype(np.float32)
+    p[::2] -= np.float32(5e8)
+    want = np.multiply(np.multiply(0.04, p), p)
+    assert want.dtype == np.float32
+    got = cv2.multiply(p, p, scale=0.04)
+    np.testing.assert_array_equal(got.view(np.int32), want.view(np.int32))
+    assert (np.multiply(np.multiply(p, p), np.float32(0.04)) != want).mean() > 0.1
+
+
 def tracker_sequence(grays, **kw):
     """Corners of consecutive frames detected as the tracker does: the threshold of a frame is
     gamma times the previous frame's maximum (None on the first)."""

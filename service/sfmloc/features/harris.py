@@ -123,6 +123,17 @@ class Corners:
 # 208 MB installed (llvmlite 173 MB), 0.6 s CPU at each worker start to import numba and load
 # its cache (the first frame 88-120 -> 389-577 ms; 4.7 s CPU compiling without a cache), and an
 # on-disk cache that numba pickles (we read no pickle from disk).
+# Exact cuts (issue 10; the same corners, responses, maxima bit for bit; extract_keypoints
+# interleaved call by call against the code before, redkitchen 1000 frames, nice 19, load
+# 4-7): the response's (k p) p as one scaled cv2.multiply (x0.98 of the call) and the maximum
+# test on the rows a corner may lie in (x0.99). Measured and not taken: the tensor, response
+# and maximum test on the interior only (the border plus the filters' 4 px): r_max, the next
+# frame's threshold, is the whole image's, and lay within 15 px of the edge on 19 of 200
+# frames (every 5th); the bound (1/4 - k) max(gx^2 + gy^2)^2 over that ring cleared it on 7
+# (median 5.9x the interior maximum), so the ring's response is needed anyway, and the ring is
+# 11% of the pixels. The quadratic step's nine gathers as one (3, 3, N) gather (124 -> 66 us
+# alone): x1.001 of the call. The products from float32 copies of dx, dy (0.35 -> 0.45 ms);
+# the Gaussian out of place (164 -> 194 us a plane).
 _M_SCALE = 64.0  # (Sobel / 8)^2 -> Sobel^2
 _R_SCALE = _M_SCALE * _M_SCALE
 _INV_R_SCALE = np.float32(1.0 / _R_SCALE)
@@ -290,8 +301,11 @@ class _Tensor:
         np.multiply(c, c, out=p)
         np.subtract(r, p, out=r)
         np.add(a, b, out=p)
-        np.multiply(k, p, out=t)
-        np.multiply(t, p, out=t)
+        # (k * p) * p in one pass: OpenCV's float32 multiply with a scale computes
+        # ``(scale * src1) * src2`` in float32, in its vector loop and its scalar tail alike
+        # (core/src/arithm.simd.hpp, op_mul_scale), the order of the two numpy passes it
+        # replaces (which (p * p) * k is not: it differs on a third of the pixels)
+        cv2.multiply(p, p, dst=t, scale=k)
         np.subtract(r, t, out=r)
         return r
 
@@ -341,16 +355,25 @@ def detect_corners(
     thr = threshold if threshold is not None else rel_threshold * r_max_s / _R_SCALE
     thr_s = max(float(thr), 1e-12) * _R_SCALE  # exact: a power of two
     # 3x3 local maxima above the threshold: the pixels over it first (2-6% of a redkitchen
-    # frame), then the maximum test on those only. Contiguous full-image masks: np.flatnonzero
-    # on one is ~10x faster than np.nonzero on a strided view of the interior.
-    idx = np.flatnonzero(np.greater(R, thr_s, out=ws.gt))
-    dil = cv2.dilate(R, _KERNEL_3X3, dst=ws.s)
+    # frame), then the maximum test on those only. Contiguous masks: np.flatnonzero on one is
+    # ~10x faster than np.nonzero on a strided view of the interior. Only the rows a corner
+    # may lie in (``border`` off the top and bottom; contiguous, and the maximum is exact
+    # whatever the rows around): the dilation reads one row more each side, and its rows at
+    # that block's edge, which see the border value, are never read.
+    y0 = min(border, h)
+    y1 = max(h - border, y0)
+    idx = np.flatnonzero(np.greater(R[y0:y1], thr_s, out=ws.gt[y0:y1]))
+    if y0:
+        idx += y0 * w
+    lo, hi = max(y0 - 1, 0), min(y1 + 1, h)
+    if y1 > y0:
+        cv2.dilate(R[lo:hi], _KERNEL_3X3, dst=ws.s[lo:hi])
     r_flat = R.ravel()
     resp_s = r_flat[idx]
-    idx = idx[resp_s >= dil.ravel()[idx]]
+    idx = idx[resp_s >= ws.s.ravel()[idx]]
     ys, xs = np.divmod(idx, w)
     if border > 0:
-        inside = (xs >= border) & (xs < w - border) & (ys >= border) & (ys < h - border)
+        inside = (xs >= border) & (xs < w - border)
         idx, ys, xs = idx[inside], ys[inside], xs[inside]
     if mask is not None:
         allowed = mask[ys, xs] != 0
