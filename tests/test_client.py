@@ -170,6 +170,31 @@ def test_frame_validation_names_the_problem(payload, words):
     assert words in str(e.value) and e.value.code == "INVALID_ARGUMENT"
 
 
+def test_a_camera_seen_before_is_its_validated_spec_and_only_the_same_values_are():
+    """Frames carry their camera each time; one whose encoding was validated before is that
+    spec (not validated again), and only exactly the same values and types are: 64 and 64.0,
+    0.0 and -0.0, 1 and True are different cameras, as validation sees them."""
+    cam = {"model": "PINHOLE", "width": 64, "height": 48, "params": [50.0, 50.0, 32.0, 24.0]}
+    first = decode_frame(_env(camera=cam)).camera
+    assert decode_frame(_env(camera=dict(cam))).camera is first
+    assert first == CAM
+    as_float = decode_frame(_env(camera={**cam, "width": 64.0})).camera
+    assert as_float == first and as_float is not first  # validated: 64.0 is 64
+    zero = decode_frame(_env(camera={**cam, "params": [50.0, 50.0, 0.0, 24.0]})).camera
+    negzero = decode_frame(_env(camera={**cam, "params": [50.0, 50.0, -0.0, 24.0]})).camera
+    assert math.copysign(1.0, zero.params[2]) == 1.0
+    assert math.copysign(1.0, negzero.params[2]) == -1.0  # not the cached +0.0 camera
+    one = {"model": "PINHOLE", "width": 1, "height": 1, "params": [1.0, 1.0, 0.5, 0.5]}
+    data = {"encoding": "gray8", "data": b"\x00"}
+    assert decode_frame(_env(camera=one, **data)).camera.width == 1
+    with pytest.raises(WireError, match="width must be an integer"):
+        decode_frame(_env(camera={**one, "width": True}, **data))
+    bad = {**cam, "params": [50.0, 50.0, float("nan"), 24.0]}
+    for _ in range(2):  # a refused camera is refused every time (never kept)
+        with pytest.raises(WireError, match="finite"):
+            decode_frame(_env(camera=bad))
+
+
 def test_oversized_frames_are_refused_before_parsing():
     with pytest.raises(MessageTooLargeError) as e:
         decode_frame(_env(), max_bytes=1000)

@@ -59,6 +59,23 @@ MESSAGES = [
         P.Result(5, 12, 0, 3, "", None, P.WorkerError("ImageDecodeError", "bad png"), 0.0, 1.0),
     ),
     (P.TO_SERVER, P.RelocResult(8, POSE, None, 80.0)),
+    (
+        P.TO_SERVER,
+        P.Result(
+            5,
+            13,
+            7,
+            3,
+            "b1",
+            None,
+            None,
+            1.0,
+            11.0,
+            9,
+            P.PoseBrief("TRACKING", "guided", 9.5, TF),
+            b"\xa6status\xa8TRACKING",
+        ),
+    ),
 ]
 
 
@@ -264,3 +281,67 @@ def _read_all(sock: socket.socket, out: list[bytes]) -> None:
             out.append(b"".join(chunks))
             return
         chunks.append(c)
+
+
+def test_a_worker_encoded_pose_is_the_pose_message_encode_pose_writes():
+    """A stream frame's pose travels from the worker as its brief and the pose message's
+    engine entries already encoded (``stream_pose``); the server adds its own fields around
+    those bytes (``encode_pose_entries``, ``SessionManager._send_encoded``). What a client
+    receives is byte for byte ``encode_pose`` of the pose message the server built from the
+    whole ``PoseResult`` (``pose_message``), for tracked, filtered-less and LOST poses."""
+    import numpy as np
+
+    from sfmloc.engine.types import FrameResult, Matching, Status
+    from sfmloc.transforms import Rigid3d
+    from sfmloc_client.wire import decode_pose, encode_pose, encode_pose_entries
+
+    rng = np.random.default_rng(5)
+    T = Rigid3d(_rot(rng.normal(0, 1.5, 3)), rng.normal(0, 10, 3))
+    F = Rigid3d(_rot(rng.normal(0, 1.5, 3)), rng.normal(0, 10, 3))
+    results = [
+        FrameResult(
+            Status.TRACKING,
+            1.0,
+            cam_from_world=T,
+            filtered_cam_from_world=F,
+            inliers=40,
+            detected=900,
+            tracked=300,
+            tracked_3d=120,
+            matching=Matching.GUIDED,
+            covariance=rng.normal(size=(6, 6)),
+            timings_ms={"total": 7.25},
+            cpu_timings_ms={"total": 7.0},
+        ),
+        FrameResult(Status.RELOCALIZED, 1.0, cam_from_world=T, matching=Matching.GLOBAL),
+        FrameResult(Status.LOST, 1.0, message="no corners: 'é' \u2013 kept"),
+    ]
+    for r in results:
+        brief, wire = P.stream_pose(r)
+        msg = P.Result(5, 11, 123, 3, "b1", None, None, 1.0, 11.0, 7, brief, wire)
+        a, b = socket.socketpair()
+        with Connection(a.detach()) as ours, Connection(b.detach()) as theirs:
+            P.TO_SERVER.send(ours, msg)
+            got = P.TO_SERVER.recv(theirs)
+        assert isinstance(got, P.Result) and got.pose is None and got.posed == brief
+        whole = P.PoseResult.of(r)
+        assert (brief.status, brief.matching, brief.engine_ms, brief.cam_from_world) == (
+            whole.status,
+            whole.matching,
+            whole.engine_ms,
+            whole.cam_from_world,
+        )
+        server = {
+            "seq": 11,
+            "stamp_ns": 123,
+            "map_name": "room",
+            "client_id": "c",
+            "build_id": "b1",
+            "server_id": "s",
+            "latency_ms": 12.5,
+            "dropped": 2,
+        }
+        want = P.pose_message(whole, None, **server)
+        data = encode_pose_entries(got.pose_wire, **server)
+        assert data == encode_pose(want)
+        assert decode_pose(data) == want

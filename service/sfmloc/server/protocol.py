@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from sfmloc_client.wire import CameraSpec, PoseMessage, Transform
+from sfmloc_client.wire import CameraSpec, PoseMessage, Transform, pose_engine_entries
 
 from ..childproc import Message, Part, Protocol, ProtocolError, payload
 from ..engine.types import Status
@@ -179,6 +179,39 @@ _POSE_TFS = (
 )
 
 
+@dataclass
+class PoseBrief(Part):
+    """What the server itself reads of a stream frame's pose (its turns, the session's state,
+    metrics); the pose message's engine fields travel beside it already encoded
+    (``Result.pose_wire``)."""
+
+    status: str
+    matching: str
+    engine_ms: float
+    cam_from_world: Transform | None
+
+    def to_wire(self) -> list[Any]:
+        return [self.status, self.matching, self.engine_ms, _tf_to_wire(self.cam_from_world)]
+
+    @classmethod
+    def from_wire(cls, values: Any) -> PoseBrief:
+        b = super().from_wire(values)
+        b.cam_from_world = _tf_from_wire(b.cam_from_world)
+        return b
+
+
+def stream_pose(r: Any) -> tuple[PoseBrief, bytes]:
+    """An engine ``FrameResult`` as a stream frame's ``Result`` carries it: the brief the
+    server reads, and the pose message's engine entries (``wire.pose_engine_entries``), which
+    the server publishes as they are (the same bytes ``encode_pose`` writes)."""
+    pose = PoseResult.of(r)
+    msg = pose_message(pose, None, seq=None, stamp_ns=0, map_name="")
+    return (
+        PoseBrief(pose.status, pose.matching, pose.engine_ms, pose.cam_from_world),
+        pose_engine_entries(msg),
+    )
+
+
 # ============================================================================ server -> worker
 @dataclass
 class Load(Message):
@@ -324,12 +357,23 @@ class Result(Message):
     decode_ms: float
     worker_ms: float
     ticket: int = 0  # the LocalizeFrame's
+    # A pose as the engine worker sends it (``stream_pose``): ``pose`` is None, ``brief`` what
+    # the server reads of it and ``pose_wire`` the pose message's engine entries, published as
+    # they are. (``pose`` is the whole pose as values, for other senders: test workers.)
+    brief: PoseBrief | None = None
+    pose_wire: bytes = b""
+
+    @property
+    def posed(self) -> PoseResult | PoseBrief | None:
+        """The pose's status, matching, engine_ms and cam_from_world (None: an error)."""
+        return self.pose if self.pose is not None else self.brief
 
     @classmethod
     def from_wire(cls, values: Any) -> Result:
         m = super().from_wire(values)
         m.pose = None if m.pose is None else PoseResult.from_wire(m.pose)
         m.error = None if m.error is None else WorkerError.from_wire(m.error)
+        m.brief = None if m.brief is None else PoseBrief.from_wire(m.brief)
         return m
 
 

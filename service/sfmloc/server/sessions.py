@@ -66,7 +66,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from sfmloc_client.wire import ErrorInfo, Frame, PoseMessage
+from sfmloc_client.wire import ErrorInfo, Frame, PoseMessage, decode_pose, encode_pose_entries
 
 from ..cameras import Camera
 from ..engine.types import Matching, Status
@@ -96,6 +96,10 @@ _POSED = frozenset({Status.TRACKING.value, Status.RELOCALIZED.value, Status.UNVE
 
 
 class Sink(Protocol):
+    """Where a session's poses go. A sink may also have ``send_encoded(data: bytes)``, taking
+    a pose message already encoded (``wire.encode_pose``'s bytes): poses the engine worker
+    encoded are published without being decoded (``SessionManager._send_encoded``)."""
+
     def send(self, pose: PoseMessage) -> None: ...
 
     def close(self) -> None: ...
@@ -549,11 +553,12 @@ class SessionManager:
         with self._lock:
             ran_on = self._slots.get(msg.ticket)  # the worker it was sent to
             sent_cold = msg.ticket in self._cold
+            res = msg.posed
             relocalized = (  # what its work was, as the worker did it
                 sent_cold
-                or msg.pose is None
-                or msg.pose.status != Status.TRACKING.value
-                or msg.pose.matching == Matching.GLOBAL.value
+                or res is None
+                or res.status != Status.TRACKING.value
+                or res.matching == Matching.GLOBAL.value
             )
             if ran_on is not None:
                 self._charge(ran_on, relocalized, msg.worker_ms)
@@ -583,7 +588,6 @@ class SessionManager:
                 s.processed += 1
                 s.last_latency_ms = latency_ms
                 s.latency_sum_ms += latency_ms
-                res = msg.pose
                 if res is not None:
                     s.last_status = res.status
                     s.localized += res.status != Status.LOST
@@ -602,14 +606,43 @@ class SessionManager:
         self._dispatch_all(turns)  # the next frames first: the worker is idle meanwhile
         if s is None:
             return
-        pose = self._pose(s, msg, latency_ms, dropped)
         if res is not None:
             self.metrics.frames_done.inc(s.map, res.status)
             self.metrics.engine_latency.observe(s.map, value=res.engine_ms / 1e3)
-        else:
-            self.metrics.frame_errors.inc(s.map, pose.error.code if pose.error else "INTERNAL")
         self.metrics.latency.observe(s.map, value=latency_ms / 1e3)
+        if msg.pose_wire and res is not None:
+            self._send_encoded(s, msg, latency_ms, dropped)
+            return
+        pose = self._pose(s, msg, latency_ms, dropped)
+        if res is None:
+            self.metrics.frame_errors.inc(s.map, pose.error.code if pose.error else "INTERNAL")
         self._send(s, pose)
+
+    def _send_encoded(self, s: Session, msg: Result, latency_ms: float, dropped: int) -> None:
+        """Publish a pose the worker encoded (``Result.pose_wire``) with the server's fields
+        (the same bytes ``encode_pose`` writes): a sink that publishes pose messages takes the
+        bytes; another (gRPC, ROS 2) gets them decoded."""
+        data = encode_pose_entries(
+            msg.pose_wire,
+            seq=msg.seq,
+            stamp_ns=msg.stamp_ns,
+            latency_ms=latency_ms,
+            dropped=dropped,
+            map_name=s.map,
+            client_id=s.client_id,
+            build_id=msg.build_id,  # the build the frame ran on, as in _pose
+            server_id=self.server_id,
+        )
+        send = getattr(s.sink, "send_encoded", None)
+        if send is None:
+            self._send(s, decode_pose(data))
+            return
+        try:
+            send(data)
+        except Exception as exc:  # noqa: BLE001 - a broken sink ends that session only
+            event(
+                log, logging.WARNING, "sink_failed", map=s.map, client=s.client_id, error=str(exc)
+            )
 
     def _reject_pending(self, s: Session, p: _Pending, ticket: int) -> None:
         from ..errors import MapNotFoundError

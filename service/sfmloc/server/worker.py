@@ -193,7 +193,7 @@ class _Worker:
         from ..errors import DeadlineExceededError
 
         t0 = time.perf_counter()
-        pose: P.PoseResult | None = None
+        pose: tuple[P.PoseBrief, bytes] | None = None
         error: P.WorkerError | None = None
         # [build id, decode ms]: what a failed frame still reports
         done: list[Any] = ["", 0.0]
@@ -230,15 +230,17 @@ class _Worker:
                 m.stamp_ns,
                 m.gen,
                 done[0],
-                pose,
+                None,
                 error,
                 done[1],
                 (time.perf_counter() - t0) * 1e3,
                 m.ticket,
+                None if pose is None else pose[0],
+                b"" if pose is None else pose[1],
             )
         )
 
-    def _localize(self, m: P.LocalizeFrame, done: list[Any]) -> P.PoseResult:
+    def _localize(self, m: P.LocalizeFrame, done: list[Any]) -> tuple[P.PoseBrief, bytes]:
         from sfmloc_client.images import decode_image
 
         from ..transforms import Rigid3d
@@ -258,7 +260,7 @@ class _Worker:
         done[1] = (time.perf_counter() - t0) * 1e3
         # validated by the server (wire.Frame): finite, nonzero quaternion (normalised here)
         prior = None if m.prior is None else Rigid3d.from_transform(m.prior)
-        return P.PoseResult.of(st.localizer.localize(img, m.stamp_ns * 1e-9, prior))
+        return P.stream_pose(st.localizer.localize(img, m.stamp_ns * 1e-9, prior))
 
     def _arm(self, budget_ms: float) -> None:
         """Start this frame's CPU budget: past it, SIGPROF interrupts the frame (between two

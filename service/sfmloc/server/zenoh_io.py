@@ -67,6 +67,10 @@ class ZenohPoseSink:
     def send(self, pose: PoseMessage) -> None:
         self._pub.put(encode_pose(pose))
 
+    def send_encoded(self, data: bytes) -> None:
+        """A pose message already encoded (``encode_pose``'s bytes)."""
+        self._pub.put(data)
+
     def close(self) -> None:
         try:
             self._pub.undeclare()
