@@ -293,6 +293,43 @@ def test_per_frame_shortcuts_give_numpy_s_numbers_bit_for_bit():
             assert rotation_angle_deg(R, S) == float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
 
 
+def test_predicted_positions_are_camera_project_s_bit_for_bit(bundle, cam):
+    """TRACK-2D's predicted positions written out for a camera without distortion (issue 10)
+    are those of ``Camera.project`` bit for bit: map points in front, behind and in the
+    camera's plane, rows without a 3D point moved by the median motion, a pose not finite."""
+    loc = Localizer(bundle, cam)
+    assert not loc._distorted
+    rng = np.random.default_rng(3)
+    n = 200
+    table = TrackTable.empty(3)
+    table.append(np.arange(n), rng.uniform(0, 640, (n, 2)), np.zeros((n, 4), np.uint64))
+    table.point[:] = rng.integers(0, len(bundle.points_xyz), n)
+    table.point[::4] = -1
+    images = bundle.image_cam_from_world
+    poses = [images[0], images[len(images) // 2]]
+    R = rotmat_from_rotvec([0.1, 2.5, 0.0])  # facing away from most of the room
+    poses += [Rigid3d(R, rng.normal(size=3)), Rigid3d(np.eye(3), np.full(3, np.nan))]
+    X0 = bundle.points_xyz[table.point[1]]
+    in_plane = Rigid3d(np.eye(3), np.array([0.0, 0.0, -X0[2]]))  # point 1 at depth 0
+    poses.append(in_plane)
+    behind = 0
+    for pose in poses:
+        got = loc._predict_positions(table, pose)
+        loc._distorted = True  # Camera.project's path (a copy where not distorted)
+        want = loc._predict_positions(table, pose)
+        loc._distorted = False
+        assert got.tobytes() == want.tobytes()
+        rows = table.point >= 0
+        behind += int(
+            (
+                (bundle.points_xyz[table.point[rows]] @ pose.rotation.T)[:, 2] + pose.translation[2]
+                <= 0
+            ).sum()
+        )
+    assert behind > 0
+    assert np.array_equal(loc._predict_positions(table, poses[-2]), table.xy)  # nothing finite
+
+
 def test_tracking_keeps_identities():
     """Keypoints tracked from one rendered frame to the next are the same scene points: back-
     project each through the exact depth map and the ground-truth poses."""

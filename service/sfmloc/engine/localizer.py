@@ -254,6 +254,9 @@ class Localizer:
         self.K = self.camera.K
         # (``Camera.is_distorted`` builds the distortion coefficients: ~5 calls a frame)
         self._distorted = self.camera.is_distorted
+        # (the pinhole part of the projection, for the prediction of tracked keypoints)
+        self._focal = np.array(self.camera.focal, np.float64)
+        self._principal = np.array(self.camera.principal_point, np.float64)
         self.subpixel = map_subpixel(self.conf, bundle.manifest.params)
         self.extractor = DaisyExtractor()
         self._scope_points = ScopePoints(self.conf.projected_top_images)
@@ -1391,14 +1394,27 @@ class Localizer:
         xy = table.xy.copy()
         if pred is None or len(table) == 0:
             return xy
-        rows = np.nonzero(table.point >= 0)[0]
+        rows = np.flatnonzero(table.point >= 0)
         if len(rows) == 0:
             return xy
-        uv, z = self.camera.project(pred, self.bundle.points_xyz[table.point[rows]])
-        ok = (z > 0) & np.isfinite(uv).all(axis=1)
-        rows, uv = rows[ok], uv[ok]
-        if len(rows) == 0:
-            return xy
+        X = self.bundle.points_xyz[table.point[rows]]
+        if self._distorted:
+            uv, z = self.camera.project(pred, X)
+        else:
+            # Camera.project's arithmetic, bit for bit, without its layers (its distortion
+            # check builds the coefficients, and np.stack): the same projections, x0.76 CPU
+            pc = np.asarray(X, np.float64) @ pred.rotation.T + pred.translation
+            z = pc[:, 2]
+            uv = pc[:, :2] / np.where(np.abs(z) < 1e-12, 1e-12, z)[:, None]
+            uv *= self._focal
+            uv += self._principal
+        # (both coordinates finite: a (N, 2) bool row read as one uint16, not .all(axis=1))
+        ok = np.isfinite(uv).view(np.uint16).ravel() == 257
+        ok &= z > 0
+        if not ok.all():
+            rows, uv = rows[ok], uv[ok]
+            if len(rows) == 0:
+                return xy
         shift = _median_rows(uv - table.xy[rows])
         xy += shift  # keypoints without a 3D point follow the median image motion
         xy[rows] = uv
