@@ -177,3 +177,24 @@ def test_window_pairs_on_cell_borders_and_wide_extents(half):
             ti, cj = window_pairs(pred, cand, half)
             assert sorted(zip(ti.tolist(), cj.tolist())) == _brute(pred, cand, half)
             assert np.all(np.diff(ti) >= 0)  # grouped by prediction
+
+
+def test_window_pairs_of_degenerate_windows_and_candidates():
+    """Windows of no size (exactly equal positions), negative, not finite or far below a
+    pixel, and candidates not finite: the pairs the plain test gives (no grid)."""
+    rng = np.random.default_rng(2)
+    cand = np.round(rng.uniform(0, 40, (60, 2)))
+    pred = np.concatenate([cand[:20], np.round(rng.uniform(0, 40, (20, 2)))])
+    for half in (0.0, -1.0, np.inf, np.nan, 1e-300, 1e-3):
+        with np.errstate(all="ignore"):
+            ti, cj = window_pairs(pred, cand, half)
+            want = _brute(pred, cand, half)
+        assert sorted(zip(ti.tolist(), cj.tolist())) == want
+        assert np.all(np.diff(ti) >= 0)
+    assert len(window_pairs(pred, cand, 0.0)[0]) >= 20  # equal positions pair at 0
+    bad = cand.copy()
+    bad[::7] = np.nan
+    bad[1] = np.inf
+    with np.errstate(all="ignore"):
+        ti, cj = window_pairs(pred, bad, 3.0)
+        assert sorted(zip(ti.tolist(), cj.tolist())) == _brute(pred, bad, 3.0)

@@ -119,12 +119,17 @@ def window_pairs(pred: np.ndarray, cand: np.ndarray, half: float) -> tuple[np.nd
     60 us of a frame's 200, issue 10). Only the ranges' candidates are tested exactly."""
     if len(pred) == 0 or len(cand) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    if not 0 < half < np.inf:  # a window of no size, or not finite: no grid
+        return _window_pairs_plain(pred, cand, half)
     cx, cy = cand[:, 0], cand[:, 1]
     px, py = pred[:, 0], pred[:, 1]
     row = np.floor(cy / half)
     rmin, rmax = row.min(), row.max()
     x0 = cx.min()
     width = float(cx.max() - x0)
+    if not (np.isfinite(rmax - rmin + width) and rmax - rmin < _MAX_CELLS):
+        # nor for candidates not finite, or windows below a 4096th of the candidates' height
+        return _window_pairs_plain(pred, cand, half)
     # 3 empty rows padded either side (a window's rows are clipped into them) and an empty
     # column either side (its columns likewise): a window off the candidates reads empty cells
     nrow = int(rmax - rmin) + 7
@@ -181,6 +186,21 @@ def window_pairs(pred: np.ndarray, cand: np.ndarray, half: float) -> tuple[np.nd
 _COLS_PER_HALF = 2.0
 _MAX_CELLS = 2**12
 _ROWS3_INT = np.arange(3, dtype=np.int64)
+
+
+def _window_pairs_plain(
+    pred: np.ndarray, cand: np.ndarray, half: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """``window_pairs`` by testing every pair, a block of predictions at a time (the cases
+    the cell grid does not hold; none of the engine's defaults)."""
+    ti, cj = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
+    step = max(1, (1 << 20) // len(cand))
+    for s in range(0, len(pred), step):
+        d = np.abs(pred[s : s + step, None, :] - cand[None, :, :])
+        i, j = np.nonzero((d[..., 0] <= half) & (d[..., 1] <= half))
+        ti.append(i + s)
+        cj.append(j)
+    return np.concatenate(ti), np.concatenate(cj)
 
 
 def track_2d(
