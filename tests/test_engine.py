@@ -28,7 +28,7 @@ from sfmloc.engine.pose import (
 from sfmloc.engine.relocalize import describe
 from sfmloc.engine.timing import STAGES
 from sfmloc.engine.track_table import TrackTable
-from sfmloc.engine.tracker import extract_keypoints, track_2d
+from sfmloc.engine.tracker import Keypoints, extract_keypoints, track_2d
 from sfmloc.errors import ImageDecodeError
 from sfmloc.features.daisy import DaisyExtractor
 from sfmloc.features.harris import detect_corners
@@ -291,6 +291,84 @@ def test_per_frame_shortcuts_give_numpy_s_numbers_bit_for_bit():
         for S in (R, R0, -R0 @ np.diag([1.0, 1.0, -1.0])):
             c = (np.trace(R @ S.T) - 1.0) / 2.0
             assert rotation_angle_deg(R, S) == float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def test_tracked_table_and_refill_coverage_read_the_keypoints_rows(bundle, cam):
+    """TRACK-2D's new table (``TrackTable.tracked``) is the rows taken, moved to their
+    keypoints and one frame older; the refill coverage test reads each tracked row's cell
+    from its keypoint's, as from the row's own position (issue 10: the same answers)."""
+    loc = Localizer(bundle, cam)
+    rng = np.random.default_rng(5)
+    size = np.array([cam.width, cam.height], np.float64)
+
+    def cells(xy: np.ndarray) -> int:
+        ij = np.clip((xy * (4.0 / size)).astype(np.int64), 0, 3)
+        return len(set((ij[:, 1] * 4 + ij[:, 0]).tolist()))
+
+    answers = set()
+    for trial in range(200):
+        n, m = int(rng.integers(0, 80)), int(rng.integers(1, 300))
+        prev = TrackTable.empty(3)
+        prev.append(np.arange(n) + 100, rng.uniform(0, 640, (n, 2)), np.zeros((n, 4), np.uint64))
+        prev.age[:] = rng.integers(0, 50, n)
+        prev.point[:] = np.where(rng.random(n) < 0.5, rng.integers(0, 1000, n), -1)
+        # keypoints bunched in a corner on some trials (the test's two answers), on the image
+        # edge and just outside it on others (the clipped cells)
+        spread = size * (0.3 if trial % 3 == 0 else 1.0)
+        xy = rng.uniform(0, 1, (m, 2)) * spread
+        xy[: m // 10] = np.round(xy[: m // 10] / size) * size
+        kps = Keypoints(xy, np.ones(m), rng.integers(0, 9, (m, 4)).astype(np.uint64), 1.0)
+        rows = np.sort(rng.choice(n, int(rng.integers(0, n + 1)), replace=False))
+        used = rng.choice(m, len(rows), replace=len(rows) > m)
+        table = prev.tracked(rows, kps.xy[used], kps.brief[used])
+        want = prev.take(rows)
+        want.xy, want.brief = kps.xy[used], kps.brief[used]
+        want.age += 1
+        for name in ("track_id", "xy", "brief", "age", "point", "hyp", "pending"):
+            got = getattr(table, name)
+            assert got.dtype == getattr(want, name).dtype
+            assert np.array_equal(got, getattr(want, name))
+        plain = cells(table.xy[table.point >= 0]) < loc.conf.refill_coverage * cells(kps.xy)
+        assert loc._uncovered(table, kps, used) == plain
+        answers.add(plain)
+    assert answers == {True, False}
+
+
+def test_predicted_positions_are_camera_project_s_bit_for_bit(bundle, cam):
+    """TRACK-2D's predicted positions written out for a camera without distortion (issue 10)
+    are those of ``Camera.project`` bit for bit: map points in front, behind and in the
+    camera's plane, rows without a 3D point moved by the median motion, a pose not finite."""
+    loc = Localizer(bundle, cam)
+    assert not loc._distorted
+    rng = np.random.default_rng(3)
+    n = 200
+    table = TrackTable.empty(3)
+    table.append(np.arange(n), rng.uniform(0, 640, (n, 2)), np.zeros((n, 4), np.uint64))
+    table.point[:] = rng.integers(0, len(bundle.points_xyz), n)
+    table.point[::4] = -1
+    images = bundle.image_cam_from_world
+    poses = [images[0], images[len(images) // 2]]
+    R = rotmat_from_rotvec([0.1, 2.5, 0.0])  # facing away from most of the room
+    poses += [Rigid3d(R, rng.normal(size=3)), Rigid3d(np.eye(3), np.full(3, np.nan))]
+    X0 = bundle.points_xyz[table.point[1]]
+    in_plane = Rigid3d(np.eye(3), np.array([0.0, 0.0, -X0[2]]))  # point 1 at depth 0
+    poses.append(in_plane)
+    behind = 0
+    for pose in poses:
+        got = loc._predict_positions(table, pose)
+        loc._distorted = True  # Camera.project's path (a copy where not distorted)
+        want = loc._predict_positions(table, pose)
+        loc._distorted = False
+        assert got.tobytes() == want.tobytes()
+        rows = table.point >= 0
+        behind += int(
+            (
+                (bundle.points_xyz[table.point[rows]] @ pose.rotation.T)[:, 2] + pose.translation[2]
+                <= 0
+            ).sum()
+        )
+    assert behind > 0
+    assert np.array_equal(loc._predict_positions(table, poses[-2]), table.xy)  # nothing finite
 
 
 def test_tracking_keeps_identities():

@@ -156,3 +156,45 @@ def test_track_2d_and_window_pairs_on_consecutive_redkitchen_frames(redkitchen):
             matched += int((got >= 0).sum())
         prev = kps
     assert matched > 1000
+
+
+@pytest.mark.parametrize("half", [24.0, 6.0, 1.5])
+def test_window_pairs_on_cell_borders_and_wide_extents(half):
+    """The cell table's columns (half / 2 wide, wider past its size bound, int64 cells past
+    int16's range) and its padding: candidates on column borders and window edges, negative
+    coordinates, one column of candidates, extents from a few cells to 100k px."""
+    rng = np.random.default_rng(int(half * 100) + 1)
+    for extent in (3.0 * half, 640.0, 5000.0, 1e5):
+        for trial in range(40):
+            m, n = int(rng.integers(1, 200)), int(rng.integers(1, 80))
+            cand = rng.uniform(-extent / 3, extent, (m, 2))
+            cand[: m // 3] = np.round(cand[: m // 3] / (half / 2)) * (half / 2)  # on borders
+            if trial % 5 == 0:
+                cand[:, 0] = cand[0, 0]  # one column
+            pred = rng.uniform(-extent / 2, 1.2 * extent, (n, 2))
+            near = cand[rng.integers(0, m, n // 2)]
+            pred[: n // 2] = near + rng.choice([-half, 0.0, half, half / 2], (n // 2, 2))
+            ti, cj = window_pairs(pred, cand, half)
+            assert sorted(zip(ti.tolist(), cj.tolist())) == _brute(pred, cand, half)
+            assert np.all(np.diff(ti) >= 0)  # grouped by prediction
+
+
+def test_window_pairs_of_degenerate_windows_and_candidates():
+    """Windows of no size (exactly equal positions), negative, not finite or far below a
+    pixel, and candidates not finite: the pairs the plain test gives (no grid)."""
+    rng = np.random.default_rng(2)
+    cand = np.round(rng.uniform(0, 40, (60, 2)))
+    pred = np.concatenate([cand[:20], np.round(rng.uniform(0, 40, (20, 2)))])
+    for half in (0.0, -1.0, np.inf, np.nan, 1e-300, 1e-3):
+        with np.errstate(all="ignore"):
+            ti, cj = window_pairs(pred, cand, half)
+            want = _brute(pred, cand, half)
+        assert sorted(zip(ti.tolist(), cj.tolist())) == want
+        assert np.all(np.diff(ti) >= 0)
+    assert len(window_pairs(pred, cand, 0.0)[0]) >= 20  # equal positions pair at 0
+    bad = cand.copy()
+    bad[::7] = np.nan
+    bad[1] = np.inf
+    with np.errstate(all="ignore"):
+        ti, cj = window_pairs(pred, bad, 3.0)
+        assert sorted(zip(ti.tolist(), cj.tolist())) == _brute(pred, bad, 3.0)

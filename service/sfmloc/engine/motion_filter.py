@@ -142,8 +142,18 @@ def _matmul3(A: list[list[float]], B: list[list[float]]) -> list[list[float]]:
 
 
 def _matmul3_t(A: list[list[float]], B: list[list[float]]) -> list[list[float]]:
-    """``A @ B.T``: the products of A's rows with B's rows."""
-    return [[a0 * b0 + a1 * b1 + a2 * b2 for b0, b1, b2 in B] for a0, a1, a2 in A]
+    """``A @ B.T``: the products of A's rows with B's rows (unrolled: x0.4-0.55 of the
+    nested comprehension's 1.4-3.1 us)."""
+    (a00, a01, a02), (a10, a11, a12), (a20, a21, a22) = A
+    (b00, b01, b02), (b10, b11, b12), (b20, b21, b22) = B
+    return [
+        [a00 * b00 + a01 * b01 + a02 * b02, a00 * b10 + a01 * b11 + a02 * b12,
+         a00 * b20 + a01 * b21 + a02 * b22],
+        [a10 * b00 + a11 * b01 + a12 * b02, a10 * b10 + a11 * b11 + a12 * b12,
+         a10 * b20 + a11 * b21 + a12 * b22],
+        [a20 * b00 + a21 * b01 + a22 * b02, a20 * b10 + a21 * b11 + a22 * b12,
+         a20 * b20 + a21 * b21 + a22 * b22],
+    ]  # fmt: skip
 
 
 def _matvec3(A: list[list[float]], v: list[float]) -> list[float]:
@@ -228,11 +238,12 @@ class Se3PoseFilter:
             a, b, bl, c = self._a, self._b, self._bl, self._c
             for i in range(6):
                 # F P F' + Q of the block: F P = [[a + dt bl, b + dt c], [bl, c]]
-                top = b[i] + dt * c[i]
-                a[i] = a[i] + dt * bl[i] + dt * top + q3[i]
+                bli, ci = bl[i], c[i]
+                top = b[i] + dt * ci
+                a[i] = a[i] + dt * bli + dt * top + q3[i]
                 b[i] = top + q2[i]
-                bl[i] = bl[i] + dt * c[i] + q2[i]
-                c[i] = c[i] + q1[i]
+                bl[i] = bli + dt * ci + q2[i]
+                c[i] = ci + q1[i]
             self._fold([dt * v for v in self._xi])  # delta = dt xi (delta was 0)
             self.stamp = stamp
         return self.current()
@@ -250,22 +261,26 @@ class Se3PoseFilter:
         a, b, bl, c, r, xi = self._a, self._b, self._bl, self._c, self.meas_var, self._xi
         delta = [0.0] * 6
         for i in range(6):
-            s_inv = 1.0 / (a[i] + r[i])  # S = H P H' + R is diagonal
-            k1, k2 = a[i] * s_inv, bl[i] * s_inv  # K = P H' S^-1: K[i, i], K[i+6, i]
-            delta[i] = k1 * z[i]
-            xi[i] = xi[i] + k2 * z[i]
+            # (each entry read once into a local: the list indexing was a third of the loop)
+            ai, bi, bli, ci, ri, zi = a[i], b[i], bl[i], c[i], r[i], z[i]
+            s_inv = 1.0 / (ai + ri)  # S = H P H' + R is diagonal
+            k1, k2 = ai * s_inv, bli * s_inv  # K = P H' S^-1: K[i, i], K[i+6, i]
+            delta[i] = k1 * zi
+            xi[i] = xi[i] + k2 * zi
             # Joseph form: (I - K H) P (I - K H)' + K R K', I - K H = [[1 - k1, 0], [-k2, 1]]
             m = 1.0 - k1
-            p00, p01 = m * a[i], m * b[i]
-            p10, p11 = -k2 * a[i] + bl[i], -k2 * b[i] + c[i]
-            k1r, k2r = k1 * r[i], k2 * r[i]
+            p00, p01 = m * ai, m * bi
+            p10, p11 = -k2 * ai + bli, -k2 * bi + ci
+            k1r, k2r = k1 * ri, k2 * ri
             a[i] = p00 * m + k1r * k1
             b[i] = p00 * -k2 + p01 + k1r * k2
             bl[i] = p10 * m + k2r * k1
             c[i] = p10 * -k2 + p11 + k2r * k2
         self._fold(delta)
-        self.last = (self.current(), self.stamp)
-        return self.current()
+        # one pose for both (poses are not changed in place: Rigid3d's operations make new ones)
+        filtered = self.current()
+        self.last = (filtered, self.stamp)
+        return filtered
 
     def _fold(self, delta: list[float]) -> None:
         # Move the error into the pose: the linear state stays near zero, the pose on SE(3).

@@ -59,6 +59,21 @@ class TrackTable:
             self.n_hyp,
         )
 
+    def tracked(self, rows: np.ndarray, xy: np.ndarray, brief: np.ndarray) -> TrackTable:
+        """TRACK-2D's new table: the given rows (indices), in that order, moved to ``xy`` with
+        the descriptors ``brief``, one frame older; this one is left as it is. (Not ``take``
+        and then new positions: its two gathers of the old ones were thrown away.)"""
+        return TrackTable(
+            self.track_id[rows],
+            xy,
+            brief,
+            self.age[rows] + 1,
+            self.point[rows],
+            self.hyp[rows],
+            self.pending[rows],
+            self.n_hyp,
+        )
+
     def keep(self, mask_or_index: np.ndarray) -> None:
         """Keep only the given rows (boolean mask or indices), in that order."""
         for name in ("track_id", "xy", "brief", "age", "point", "hyp", "pending"):

@@ -110,51 +110,97 @@ def with_keypoints(kps: Keypoints, more: Keypoints) -> Keypoints:
 
 def window_pairs(pred: np.ndarray, cand: np.ndarray, half: float) -> tuple[np.ndarray, np.ndarray]:
     """All (i, j) with candidate j inside the square window of half-size ``half`` around
-    ``pred[i]``, grouped by i (ascending). Candidates are sorted by (row of height ``half``,
-    x): a window spans 3 rows, and in each its candidates in x are one range of that order
-    (two binary searches), so only the rows' 3 x 2 ``half`` strip is tested, not 3 x 3 cells."""
+    ``pred[i]``, grouped by i (ascending; within a group in no promised order).
+
+    Candidates go into cells of ``half`` rows by ``half / 2`` columns, counted into a table of
+    each cell's first index in cell order (one bincount and cumsum, and a radix argsort of the
+    cells): a window spans 3 rows, and in each its columns are one range of that order, read
+    from the table (two gathers; the binary searches of (row, x)-sorted keys they replace cost
+    60 us of a frame's 200, issue 10). Only the ranges' candidates are tested exactly."""
     if len(pred) == 0 or len(cand) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    if not 0 < half < np.inf:  # a window of no size, or not finite: no grid
+        return _window_pairs_plain(pred, cand, half)
     cx, cy = cand[:, 0], cand[:, 1]
     px, py = pred[:, 0], pred[:, 1]
     row = np.floor(cy / half)
+    rmin, rmax = row.min(), row.max()
     x0 = cx.min()
     width = float(cx.max() - x0)
-    # key = row * span + (x - x0); span leaves more than 6 half between rows, so a range
-    # reaching 3 half (half past a clipped x below) beyond either end of a row stays in it
-    span = float(2.0 ** np.ceil(np.log2(width + 8.0 * half + 1.0)))
-    key = row * span + (cx - x0)
-    order = np.argsort(key, kind="stable")
-    skey = key[order]
-    # A window's first row, and its x, clipped to just outside the candidates' rows and
-    # columns: a prediction far off the image (or not finite) looks at empty ranges.
+    if not (np.isfinite(rmax - rmin + width) and rmax - rmin < _MAX_CELLS):
+        # nor for candidates not finite, or windows below a 4096th of the candidates' height
+        return _window_pairs_plain(pred, cand, half)
+    # 3 empty rows padded either side (a window's rows are clipped into them) and an empty
+    # column either side (its columns likewise): a window off the candidates reads empty cells
+    nrow = int(rmax - rmin) + 7
+    col_w = half / _COLS_PER_HALF
+    if nrow * (width / col_w + 3.0) > _MAX_CELLS:  # wider columns: the table's size bounded
+        col_w = max(col_w, width / max(1.0, _MAX_CELLS // nrow - 3.0))
+    cols = int(width / col_w) + 3
+    # (cx - x0 >= 0: the truncation is the floor)
+    cell = (row - (rmin - 3.0)).astype(np.int64) * cols + ((cx - x0) / col_w).astype(np.int64) + 1
+    starts = np.zeros(nrow * cols + 1, np.int64)
+    np.cumsum(np.bincount(cell, minlength=nrow * cols), out=starts[1:])
+    # (int16 cells: numpy's stable argsort is a radix sort, x5 against int64's)
+    order = np.argsort(cell.astype(np.int16) if nrow * cols < 2**15 else cell, kind="stable")
+    # A window's first row and its column range (end exclusive), clipped to the padding: a
+    # prediction far off the image (or not finite: np.fmax takes the bound) reads empty cells.
+    # The columns' margin, far above the rounding (1e-13 px), makes the ranges a superset,
+    # and the exact test below the window's pairs.
     with np.errstate(invalid="ignore"):
-        r0 = np.floor((py - half) / half)
-        xq = px - x0
-    rlo, rhi = row.min() - 3.0, row.max() + 1.0
-    # (np.fmax: the lower bound where NaN, as np.where(np.isnan) then np.maximum gave)
-    r0 = np.minimum(np.fmax(r0, rlo), rhi)
-    xq = np.minimum(np.fmax(xq, -2.0 * half), width + 2.0 * half)
-    # the ranges of the three rows; a margin far above the keys' rounding (1e-12 px at image
-    # coordinates) makes them a superset, and the exact test below the window's pairs
-    margin = half + 1e-6 * span
-    base = (r0[:, None] + _ROWS3) * span + xq[:, None]
-    lo = np.searchsorted(skey, (base - margin).ravel(), "left")
-    lens = np.searchsorted(skey, (base + margin).ravel(), "right") - lo
+        r0 = np.floor((py - half) / half) - (rmin - 3.0)
+        xq = (px - x0) / col_w
+    r0 = np.minimum(np.fmax(r0, 0.0), nrow - 3.0)
+    m = half * (1.0 + 1e-6) / col_w
+    c_lo = np.minimum(np.fmax(np.floor(xq - m) + 1.0, 0.0), cols - 1.0)
+    c_end = np.minimum(np.fmax(np.floor(xq + m) + 2.0, 1.0), float(cols))
+    rows3 = _ROWS3_INT * cols
+    lo = starts[((r0 * cols + c_lo).astype(np.int64)[:, None] + rows3).ravel()]
+    lens = starts[((r0 * cols + c_end).astype(np.int64)[:, None] + rows3).ravel()] - lo
     ends = np.cumsum(lens)
     total = int(ends[-1])
     if total == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     per_row = lens.reshape(-1, 3)
     # (the three rows' lengths added as columns: .sum(axis=1)'s reduction costs x3 on rows of 3)
-    owner = np.repeat(np.arange(len(pred)), per_row[:, 0] + per_row[:, 1] + per_row[:, 2])
-    j = order[np.repeat(lo - (ends - lens), lens) + np.arange(total)]
-    inside = np.abs(cy[j] - py[owner]) <= half
-    inside &= np.abs(cx[j] - px[owner]) <= half
-    return owner[inside], j[inside]
+    counts = per_row[:, 0] + per_row[:, 1] + per_row[:, 2]
+    owner = np.repeat(np.arange(len(pred)), counts)
+    k = np.repeat(lo - (ends - lens), lens) + np.arange(total)  # positions in cell order
+    # the exact test on the candidates in cell order (one gather fewer than through order[k])
+    # against the owners' coordinates repeated (cheaper than gathered); one nonzero, two takes
+    t = cy[order][k]
+    t -= np.repeat(py, counts)
+    inside = np.abs(t, out=t) <= half
+    t = cx[order][k]
+    t -= np.repeat(px, counts)
+    inside &= np.abs(t, out=t) <= half
+    at = np.flatnonzero(inside)
+    return owner[at], order[k[at]]
 
 
-_ROWS3 = np.arange(3, dtype=np.float64)
+# Columns of half / 2: against the binary searches, on the calls of 1000 redkitchen frames,
+# x0.77; half / 3 x0.79, half / 4 x0.81 (the larger table); rows of half / 2, 5 a window,
+# x0.80. At most _MAX_CELLS cells (wider columns past it): ADD-GOOD-FEATURES' 6 px windows
+# would make 19k cells of a 640 x 480 frame, whose bincount and cumsum cost more than the
+# wider ranges (2**14 cells x1.15 of 2**12 there; the tracking windows' 1.5k cells unaffected).
+_COLS_PER_HALF = 2.0
+_MAX_CELLS = 2**12
+_ROWS3_INT = np.arange(3, dtype=np.int64)
+
+
+def _window_pairs_plain(
+    pred: np.ndarray, cand: np.ndarray, half: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """``window_pairs`` by testing every pair, a block of predictions at a time (the cases
+    the cell grid does not hold; none of the engine's defaults)."""
+    ti, cj = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
+    step = max(1, (1 << 20) // len(cand))
+    for s in range(0, len(pred), step):
+        d = np.abs(pred[s : s + step, None, :] - cand[None, :, :])
+        i, j = np.nonzero((d[..., 0] <= half) & (d[..., 1] <= half))
+        ti.append(i + s)
+        cj.append(j)
+    return np.concatenate(ti), np.concatenate(cj)
 
 
 def track_2d(
@@ -163,8 +209,8 @@ def track_2d(
     """TRACK-2D: for each row of ``table``, the index of its match among ``kps`` or -1;
     ``dt``: the frame interval (s), which widens the window (``window_size``).
 
-    A candidate claimed by several tracks goes to the closest one (in Hamming distance); the
-    others are lost, so identities stay unique."""
+    A candidate claimed by several tracks goes to the closest one (in Hamming distance; the
+    lower row on a tie); the others are lost, so identities stay unique."""
     n = len(table)
     match = np.full(n, -1, np.int64)
     if n == 0 or len(kps) == 0:
@@ -173,32 +219,38 @@ def track_2d(
     if len(ti) == 0:
         return match
     dist = pair_distances(table.brief, ti, kps.brief, cj)
-    # per track (pairs come grouped by track): the best distance, how many candidates have
-    # it, and the best of the others. A tie for the best fails the ratio test (best < psi best
-    # is false), so the accepted best is always one pair, whatever the order within a track.
-    # (written out: np.concatenate of a list and np.diff(append=) cost 15 us of Python layers)
+    # (pairs come grouped by track; written out: np.diff(append=) cost 15 us of Python layers)
     first = np.empty(len(ti), bool)
     first[0] = True
     np.not_equal(ti[1:], ti[:-1], out=first[1:])
     starts = first.nonzero()[0]
-    lens = np.empty_like(starts)
-    np.subtract(starts[1:], starts[:-1], out=lens[:-1])
-    lens[-1] = len(ti) - starts[-1]
-    best = np.minimum.reduceat(dist, starts)
-    is_best = dist == np.repeat(best, lens)
-    n_best = np.add.reduceat(is_best, starts, dtype=np.int64)
-    second = np.minimum.reduceat(np.where(is_best, _FAR, dist), starts)
-    second = np.where(n_best > 1, best, second)  # _FAR where the best is all there is
+    # Per track the smallest (distance, position) key, and with that one pair set aside the
+    # next: the best and the second best counted with multiplicity, so a tie for the best
+    # gives second == best and fails the ratio test (best < psi best is false), whatever the
+    # order within a track; the key's position is the accepted pair. (With the packed sort
+    # below, against the best, its count and the best of the others by five reductions and an
+    # argsort: track_2d's own CPU 128 -> 94 us a redkitchen frame.)
+    key = dist << 32
+    key |= np.arange(len(ti))
+    low = np.minimum.reduceat(key, starts)
+    at = low & 0xFFFFFFFF
+    key[at] = _FAR << 32
+    best = low >> 32
+    second = np.minimum.reduceat(key, starts) >> 32  # _FAR where the best is all there is
     accept = (best <= conf.max_hamming) & (best < conf.psi * second)
-    pick = is_best & np.repeat(accept, lens)
-    at = pick.nonzero()[0]  # (one nonzero for the three gathers)
-    rows, cands, bdist = ti[at], cj[at], dist[at]
-    # unique candidates: the closest track wins
-    o = np.argsort(cands * 257 + bdist, kind="stable")
-    rows, cands = rows[o], cands[o]
-    uniq = np.ones(len(cands), bool)
-    uniq[1:] = cands[1:] != cands[:-1]
-    match[rows[uniq]] = cands[uniq]
+    at = at[accept]
+    # unique candidates: the closest track wins, the lower row on a tie; one sort of
+    # (candidate, distance, row) packed in an int64 (rows < 2**31, distances < 2**9,
+    # candidates < 2**23)
+    claim = cj[at] << 40
+    claim |= best[accept] << 31
+    claim |= ti[at]
+    claim.sort()
+    cand = claim >> 40
+    won = np.empty(len(claim), bool)
+    won[:1] = True
+    np.not_equal(cand[1:], cand[:-1], out=won[1:])
+    match[claim[won] & 0x7FFFFFFF] = cand[won]
     return match
 
 
@@ -217,13 +269,14 @@ _FAR = np.int64(1 << 20)  # above every distance: "no second candidate"
 
 def pair_distances(a: np.ndarray, i: np.ndarray, b: np.ndarray, j: np.ndarray) -> np.ndarray:
     """Hamming distances (int64) between BRIEF rows ``a[i]`` and ``b[j]``. The four words'
-    popcounts (bytes of at most 64) are summed within one uint32 by two shift-and-add steps:
-    a fifth of the CPU of summing the (P, 4) counts along their short axis."""
+    popcounts (bytes of at most 64) are summed within one uint32 by a shift-and-add step and
+    a multiply: a fifth of the CPU of summing the (P, 4) counts along their short axis."""
     x = np.take(a, i, axis=0)
     x ^= np.take(b, j, axis=0)
     c = np.bitwise_count(x).view(np.uint32).ravel()
     c = (c & 0x00FF00FF) + ((c >> 8) & 0x00FF00FF)  # two 16-bit sums of at most 128
-    return ((c & 0xFFFF) + (c >> 16)).astype(np.int64)
+    # (hi << 16 | lo) * 0x10001 mod 2**32 = (hi + lo) << 16 | lo, and hi + lo <= 256
+    return ((c * 0x10001) >> 16).astype(np.int64)
 
 
 def free_candidates(
