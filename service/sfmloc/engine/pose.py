@@ -162,7 +162,12 @@ def pose_covariances(
         cov = to_world(cov)
         return cov, cov
     loo = _without_most_influential(cov, B.T @ Cu, B.T @ Cv, w, loo_sd_over, removed)
-    return to_world(cov), (to_world(loo) if np.isfinite(loo).all() else loo)
+    cov_w = to_world(cov)
+    if isinstance(loo, float):
+        # the bound cov / (1 - h): turned with cov, not turned again (issue 10: the second
+        # turn and its finiteness test were ~10% of a tracked frame's covariance)
+        return cov_w, cov_w * loo
+    return cov_w, (to_world(loo) if np.isfinite(loo).all() else loo)
 
 
 def _weighted_terms(
@@ -319,7 +324,7 @@ def _without_most_influential(
     w: np.ndarray,
     sd_over: float = 0.0,
     removed: list[int] | None = None,
-) -> np.ndarray:
+) -> np.ndarray | float:
     """The covariance ``cov`` (of the information sum of the Jacobian rows ``Ju``, ``Jv``
     (n, 6), a correspondence's u and v rows, weighted by its ``w``) without the correspondence
     whose removal widens the camera centre's standard deviation most (its worst direction).
@@ -331,7 +336,8 @@ def _without_most_influential(
     eigenvalue of W_i^1/2 J_i cov J_i^T W_i^1/2 over all i; every downdate is within it:
     H_-i >= (1 - h_i) H), puts the centre's standard deviation at most ``sd_over``, that
     bound instead (the caller only asks whether the exact one is over ``sd_over``: the same
-    answer, without the per-match 3x3 algebra)."""
+    answer, without the per-match 3x3 algebra), as its factor 1 / (1 - h) (a float: the
+    caller scales the covariance it already has)."""
     n = len(Ju)
     if n <= 4:
         return np.full((6, 6), np.inf)
@@ -359,9 +365,9 @@ def _without_most_influential(
             (w * (half + np.sqrt(np.maximum(half * half - (l00 * l11 - l01 * l01), 0.0)))).max()
         )
         if h < 1.0:
-            bound = cov / (1.0 - h)
-            if eigvalsh_sym(bound[3:, 3:])[-1] <= sd_over * sd_over:
-                return bound
+            grow = 1.0 / (1.0 - h)
+            if eigvalsh_sym(cov[3:, 3:])[-1] * grow <= sd_over * sd_over:
+                return grow
     i00, i11, i01 = s11 / det, s00 / det, -s01 / det  # S_i^-1
     # centre block of cov_-i: cov_c + sum_kl Sinv_kl a_k a_l^T, a_0 / a_1 = A_i's rows' centre
     # parts (the centre block alone decides which removal is worst; in ``robust_refine``'s
