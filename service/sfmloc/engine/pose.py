@@ -64,6 +64,9 @@ class RansacParams:
     # Final refinement on every match within ``refine_threshold`` with a Cauchy loss of this
     # scale (px); 0: plain least squares on them (see ``robust_refine``).
     loss_scale: float = 0.0
+    # The least-squares round from a prior (``least_squares``) stops after a step shorter than
+    # this many of the pose's own standard deviations (0: only at ``least_squares``' tol).
+    converged_sd: float = 0.0
 
 
 @dataclass
@@ -485,11 +488,13 @@ def _refine(
     threshold: float,
     rounds: int = 2,
     gauss_newton: bool = False,
+    converged_sd: float = 0.0,
 ) -> tuple[Rigid3d, np.ndarray, np.ndarray]:
     """``refine``, and the reprojection errors of every match at the returned pose (callers
     select other inlier sets from them instead of projecting again). ``gauss_newton``: each
     round by ``least_squares`` (falling back to OpenCV's Levenberg-Marquardt where it does
-    not lower the squared error) instead."""
+    not lower the squared error) instead, stopped as ``least_squares``' ``converged_sd``
+    says."""
     pose = cam_from_world
     err = reprojection_errors(pose, K, xy, X)
     mask = err < threshold
@@ -497,7 +502,7 @@ def _refine(
         if np.count_nonzero(mask) < 4:
             break
         if gauss_newton:
-            gn = least_squares(pose, K, xy[mask], X[mask])
+            gn = least_squares(pose, K, xy[mask], X[mask], converged_sd=converged_sd)
             gn_err = reprojection_errors(gn, K, xy, X)
             e0, e1 = err[mask], gn_err[mask]
             if float(e1 @ e1) < float(e0 @ e0):
@@ -536,16 +541,19 @@ def least_squares(
     X: np.ndarray,
     iterations: int = 5,
     tol: float = 1e-8,
+    converged_sd: float = 0.0,
 ) -> Rigid3d:
     """Gauss-Newton on the squared reprojection error (``robust_refine``'s steps without the
     loss), stopped once a step moves the rotation and the translation by less than ``tol``
-    (radians; relative to the translation's length): the minimum OpenCV's
+    (radians; relative to the translation's length), or, with ``converged_sd`` > 0, once a
+    step is shorter than that many of the pose's standard deviations (``_gauss_newton``):
+    the minimum OpenCV's
     ``solvePnPRefineLM`` reaches (within 1e-5, its own stopping tolerance, and lower, on
     synthetic scenes started 3-17 px off, ``tests/test_pose_kernels.py``) at ~x0.5 its CPU on ~120
     matches (issue 10: its setup dominates whatever its iteration cap). No damping beyond
     ``robust_refine``'s 1e-9: a caller checks that the squared error went down
     (``_refine``)."""
-    return _gauss_newton(cam_from_world, K, xy, X, 0.0, iterations, tol)
+    return _gauss_newton(cam_from_world, K, xy, X, 0.0, iterations, tol, converged_sd)
 
 
 # Measured for issue 10 and left as they are (redkitchen, map every 10th frame): a tracked frame
@@ -590,9 +598,19 @@ def _gauss_newton(
     scale: float,
     iterations: int,
     tol: float = 0.0,
+    converged_sd: float = 0.0,
 ) -> Rigid3d:
     """``robust_refine``'s steps; ``scale`` 0: without the loss (``least_squares``). ``tol``
-    > 0: stop after a step below it (radians, and relative to the translation's length)."""
+    > 0: stop after a step below it (radians, and relative to the translation's length).
+    ``converged_sd`` > 0: stop after a step whose Mahalanobis length is below it, in the
+    standard deviations of a pose whose pixel noise is ``MIN_NOISE_PX`` (the least any
+    covariance here claims, so at least as strict as the pose's own: outliers inflate a
+    least-squares residual's variance): delta' H delta, with H delta = g, is delta' g.
+    Issue 10: the tracker's first estimate (from the motion prediction, ~10 sd off) took
+    3.9 steps a frame to reach ``tol`` on redkitchen (1000 frames); in its own residuals'
+    sd its second step was a median 0.08 (p90 0.27, at most 1.0) and its third 3.5e-5 (at
+    most 1.5e-3): Gauss-Newton on a least-squares pose converges about quadratically, and a
+    step under 0.5 sd leaves it ~1e-4 sd from where the further steps would take it."""
     n = len(xy)
     if n < 4:
         return cam_from_world
@@ -641,6 +659,8 @@ def _gauss_newton(
         dR, _ = cv2.Rodrigues(-delta[:3])
         P = dR @ P
         P[:, 3] -= delta[3:, 0]
+        if converged_sd > 0 and float(Hg[36:] @ delta[:, 0]) < converged_sd**2 * MIN_NOISE_PX**2:
+            break  # (delta' g = delta' H delta)
         if tol > 0 and np.abs(delta[:3]).max() < tol:
             if np.abs(delta[3:]).max() < tol * max(float(np.linalg.norm(P[:, 3])), 1e-12):
                 break
@@ -734,7 +754,16 @@ def estimate_pose(
             return _refine_own_estimate(prior, K, xy, X, params, prior_threshold)
         err = None  # the errors of every match at ``pose`` once known (not projected twice)
         if loose and prior_threshold is not None:  # (`loose` implies it; mypy needs it said)
-            pose, _, err = _refine(pose, K, xy, X, prior_threshold, rounds=1, gauss_newton=True)
+            pose, _, err = _refine(
+                pose,
+                K,
+                xy,
+                X,
+                prior_threshold,
+                rounds=1,
+                gauss_newton=True,
+                converged_sd=params.converged_sd,
+            )
         if params.loss_scale > 0 and loose:
             # The robust final refinement follows: a least-squares round at the tighter
             # thresholds first only changes where it starts, and for the worse (redkitchen,
