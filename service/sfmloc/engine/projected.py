@@ -162,7 +162,15 @@ def projected_matches(
         return (j + 1) * pw + (i + 1)
 
     kp_cell = cells(kp_xy[:, 0], kp_xy[:, 1])
-    p_cell = cells(u, v)
+    if clear_px >= 0.5:
+        # A projection inside the image (u, v >= -0.5, u <= width - 0.5) lies in cells
+        # 0 .. int(width / clear_px) + 1 of ``cells``' padded numbering: its clipping never
+        # binds there (the same cells without its four passes; undistorted keypoints may lie
+        # outside and keep them)
+        p_cell = (np.floor(v / clear_px).astype(np.int64) + 2) * pw
+        p_cell += np.floor(u / clear_px).astype(np.int64) + 2
+    else:
+        p_cell = cells(u, v)
     # The count and the index sum in one grid, one bincount and one gather (CPU x0.6 of two):
     # each keypoint weighs 1 + (its index + 1) * span, span a power of two above the keypoint
     # count, so a 3x3 sum is its count (at most the keypoint count: below the span) plus its
