@@ -826,9 +826,16 @@ def _refine_own_estimate(
     near-outliers the Cauchy loss then down-weights, only moved where it started)."""
     err = reprojection_errors(pose, K, xy, X)
     sel = err < (prior_threshold if prior_threshold is not None else params.threshold)
-    if np.count_nonzero(sel) < max(4, params.min_inliers):
+    n_sel = np.count_nonzero(sel)
+    if n_sel < max(4, params.min_inliers):
         return None
-    pose = robust_refine(pose, K, xy[sel], X[sel], params.loss_scale)
+    # (every match verified within the guided threshold of this pose is within it: on a
+    # tracked frame all are, and the matches go in as they are, not copied)
+    if n_sel < len(sel):
+        xy_sel, X_sel = xy[sel], X[sel]
+    else:
+        xy_sel, X_sel = xy, X
+    pose = robust_refine(pose, K, xy_sel, X_sel, params.loss_scale)
     err = reprojection_errors(pose, K, xy, X)
     return _finish(pose, err < params.refine_threshold, K, xy, X, params.min_inliers, err)
 
