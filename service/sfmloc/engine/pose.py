@@ -507,12 +507,20 @@ def _refine(
     err = reprojection_errors(pose, K, xy, X)
     mask = err < threshold
     for _ in range(rounds):
-        if np.count_nonzero(mask) < 4:
+        n_in = np.count_nonzero(mask)
+        if n_in < 4:
             break
         if gauss_newton:
-            gn = least_squares(pose, K, xy[mask], X[mask], converged_sd=converged_sd)
-            gn_err = reprojection_errors(gn, K, xy, X)
-            e0, e1 = err[mask], gn_err[mask]
+            if n_in == len(mask):
+                # every match within the threshold (the tracker's first estimate, usually):
+                # the matches and errors as they are, not four fancy-indexed copies
+                gn = least_squares(pose, K, xy, X, converged_sd=converged_sd)
+                gn_err = reprojection_errors(gn, K, xy, X)
+                e0, e1 = err, gn_err
+            else:
+                gn = least_squares(pose, K, xy[mask], X[mask], converged_sd=converged_sd)
+                gn_err = reprojection_errors(gn, K, xy, X)
+                e0, e1 = err[mask], gn_err[mask]
             if float(e1 @ e1) < float(e0 @ e0):
                 pose, err = gn, gn_err
                 new_mask = err < threshold
