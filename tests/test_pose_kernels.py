@@ -569,3 +569,57 @@ def test_cross_rows_equals_numpy_cross_and_p3p_batch_is_unchanged(monkeypatch):
     assert len(new[0]) > 1000
     for n, o in zip(new, old):
         np.testing.assert_array_equal(n, o)
+
+
+@pytest.mark.parametrize("n", [40, 120, 600])
+def test_least_squares_stops_once_a_step_is_under_its_sd(n):
+    """``converged_sd``: the least-squares round from a prediction (the tracker's first
+    estimate, ~10 of the pose's sd off) stops after the first step shorter than 0.5 sd (at
+    0.3 px noise) instead of running on to 1e-8 rad: after 2-3 steps here where the tolerance
+    took 4-5 (the same pose, bit for bit, as that many steps), within 1e-3 sd (the centre's,
+    from the pose's covariance) of where the further steps went, with the same matches within
+    3 px; through ``estimate_pose`` (``RansacParams.converged_sd``) as well."""
+    rng = np.random.default_rng(n)
+    checked = 0
+    for seed in range(8):
+        gt, _, xy, X = noisy_scene(200 + seed, n + n // 10 + 2)
+        front = (X @ gt.rotation.T + gt.translation)[:, 2] > 0
+        xy, X = xy[front][:n], X[front][:n]
+        start = Rigid3d(
+            rotmat_from_rotvec(rng.normal(0, 0.015, 3)) @ gt.rotation,
+            gt.translation + rng.normal(0, 0.03, 3),
+        )
+        sel = reprojection_errors(start, K, xy, X) < 20.0
+        xs, Xs = xy[sel], X[sel]
+        full = pose.least_squares(start, K, xs, Xs)
+        inl = reprojection_errors(full, K, xy, X) < 3.0
+        if inl.sum() < 0.5 * sel.sum():
+            continue  # (the start too far for this scene: no tracker would accept it)
+        checked += 1
+        early = pose.least_squares(start, K, xs, Xs, converged_sd=0.5)
+        steps = [pose.least_squares(start, K, xs, Xs, iterations=k, tol=0.0) for k in range(6)]
+
+        def took(p: Rigid3d, steps: list[Rigid3d] = steps) -> int:  # steps that gave p
+            return next(k for k, q in enumerate(steps) if np.array_equal(q.rotation, p.rotation))
+
+        assert 2 <= took(early) < took(full)
+        cov = pose.pose_covariance(full, K, xy[inl], X[inl])
+        sd = np.sqrt(np.linalg.eigvalsh(cov[3:, 3:])[-1])
+        assert np.linalg.norm(early.center - full.center) < 1e-3 * sd
+        np.testing.assert_array_equal(reprojection_errors(early, K, xy, X) < 3.0, inl)
+        got = estimate_pose(
+            xy,
+            X,
+            K,
+            RansacParams(loss_scale=1.0, converged_sd=0.5),
+            prior=start,
+            prior_threshold=20.0,
+            final=False,
+        )
+        ref = estimate_pose(
+            xy, X, K, RansacParams(loss_scale=1.0), prior=start, prior_threshold=20.0, final=False
+        )
+        assert got is not None and ref is not None
+        assert np.linalg.norm(got.cam_from_world.center - ref.cam_from_world.center) < 1e-3 * sd
+        np.testing.assert_array_equal(got.inlier_mask, ref.inlier_mask)
+    assert checked >= 6

@@ -155,8 +155,43 @@ def test_scope_points_follow_the_matched_points(bundle):
     moved = scope(bundle, other)
     assert np.array_equal(np.sort(moved), points_of(scope_images(bundle, other, 3)))
     assert not np.array_equal(np.sort(moved), np.sort(got))
+    assert scope(bundle, first) is got  # back to a recent scope: kept
     twin = MapBundle(bundle.path)  # the same map loaded again: another bundle
     assert scope(twin, other) is not moved
+    assert scope(bundle, first) is not got  # (a swap starts afresh)
+
+
+def test_scope_points_keep_the_most_recent_scopes(bundle):
+    """The answers of the ``keep`` most recent scopes are kept (a scope that flips back to
+    one of a few frames before costs no new deduplication), the least recently used dropped
+    first; each equal to a fresh answer, and read only."""
+    from sfmloc.engine.projected import ScopePoints
+
+    ptr, idx = bundle.image_points_ptr, bundle.image_points_idx
+    scope = ScopePoints(top=2, keep=2)
+    seen: dict[bytes, np.ndarray] = {}
+    queries = []
+    for i in range(bundle.n_images):
+        q = np.asarray(idx[ptr[i] : ptr[i] + 30], np.int64)
+        got = scope(bundle, q)
+        key = np.sort(got).tobytes()
+        if key not in seen:
+            seen[key] = got
+            queries.append(q)
+        if len(queries) == 3:
+            break
+    assert len(queries) == 3  # three distinct scopes
+    a, b, c = queries
+    pa = scope(bundle, a)  # recomputed: a was dropped when c came (keep 2)
+    assert pa is not seen[np.sort(pa).tobytes()]
+    assert np.array_equal(pa, seen[np.sort(pa).tobytes()])
+    assert scope(bundle, c) is scope(bundle, c)  # c and a kept, b dropped
+    assert scope(bundle, a) is pa
+    assert not pa.flags.writeable
+    fresh = ScopePoints(top=2)
+    for q in (a, b, c):
+        assert np.array_equal(scope(bundle, q), fresh(bundle, q))
+        assert np.array_equal(scope.with_xyz(bundle, q)[1], bundle.points_xyz[scope(bundle, q)])
 
 
 def test_first_listed_is_the_sorted_deduplication():

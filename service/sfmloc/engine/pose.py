@@ -64,6 +64,9 @@ class RansacParams:
     # Final refinement on every match within ``refine_threshold`` with a Cauchy loss of this
     # scale (px); 0: plain least squares on them (see ``robust_refine``).
     loss_scale: float = 0.0
+    # The least-squares round from a prior (``least_squares``) stops after a step shorter than
+    # this many of the pose's own standard deviations (0: only at ``least_squares``' tol).
+    converged_sd: float = 0.0
 
 
 @dataclass
@@ -162,7 +165,12 @@ def pose_covariances(
         cov = to_world(cov)
         return cov, cov
     loo = _without_most_influential(cov, B.T @ Cu, B.T @ Cv, w, loo_sd_over, removed)
-    return to_world(cov), (to_world(loo) if np.isfinite(loo).all() else loo)
+    cov_w = to_world(cov)
+    if isinstance(loo, float):
+        # the bound cov / (1 - h): turned with cov, not turned again (issue 10: the second
+        # turn and its finiteness test were ~10% of a tracked frame's covariance)
+        return cov_w, cov_w * loo
+    return cov_w, (to_world(loo) if np.isfinite(loo).all() else loo)
 
 
 def _weighted_terms(
@@ -319,7 +327,7 @@ def _without_most_influential(
     w: np.ndarray,
     sd_over: float = 0.0,
     removed: list[int] | None = None,
-) -> np.ndarray:
+) -> np.ndarray | float:
     """The covariance ``cov`` (of the information sum of the Jacobian rows ``Ju``, ``Jv``
     (n, 6), a correspondence's u and v rows, weighted by its ``w``) without the correspondence
     whose removal widens the camera centre's standard deviation most (its worst direction).
@@ -331,7 +339,8 @@ def _without_most_influential(
     eigenvalue of W_i^1/2 J_i cov J_i^T W_i^1/2 over all i; every downdate is within it:
     H_-i >= (1 - h_i) H), puts the centre's standard deviation at most ``sd_over``, that
     bound instead (the caller only asks whether the exact one is over ``sd_over``: the same
-    answer, without the per-match 3x3 algebra)."""
+    answer, without the per-match 3x3 algebra), as its factor 1 / (1 - h) (a float: the
+    caller scales the covariance it already has)."""
     n = len(Ju)
     if n <= 4:
         return np.full((6, 6), np.inf)
@@ -340,11 +349,24 @@ def _without_most_influential(
     # (the batched (n, 2, 6) products, three-operand einsum and n LAPACK 3x3 eigensolves cost
     # x4 the CPU on ~150 matches; the same quantities up to rounding).
     Au, Av = Ju @ cov, Jv @ cov  # (n, 6) each: the rows of A_i
-    # S_i = W_i^-1 - J_i cov J_i^T (symmetric: its off-diagonal from one side)
-    iw = 1.0 / w
     l00 = np.einsum("ij,ij->i", Au, Ju)  # J_i cov J_i^T
     l11 = np.einsum("ij,ij->i", Av, Jv)
     l01 = np.einsum("ij,ij->i", Au, Jv)
+    h = 1.0
+    if sd_over > 0:
+        half = 0.5 * (l00 + l11)
+        h = float(
+            (w * (half + np.sqrt(np.maximum(half * half - (l00 * l11 - l01 * l01), 0.0)))).max()
+        )
+        # Every leverage under 1 - 1e-4 (the usual case): each downdate's (1 - l1)(1 - l2)
+        # exceeds 1e-8, so the positive-definiteness test below passes, and the bound is
+        # answered without it (issue 10: ~8 operations over all matches a tracked frame).
+        if h < 1.0 - 1e-4:
+            grow = 1.0 / (1.0 - h)
+            if eigvalsh_sym(cov[3:, 3:])[-1] * grow <= sd_over * sd_over:
+                return grow
+    # S_i = W_i^-1 - J_i cov J_i^T (symmetric: its off-diagonal from one side)
+    iw = 1.0 / w
     s00, s11, s01 = iw - l00, iw - l11, -l01
     det = s00 * s11 - s01 * s01
     # W_i^-1 - J_i cov J_i^T is positive definite exactly when the downdate leaves the
@@ -353,15 +375,10 @@ def _without_most_influential(
     ok = (det > 1e-9 * scale) & (s00 > 0)
     if not ok.all():
         return np.full((6, 6), np.inf)
-    if sd_over > 0:
-        half = 0.5 * (l00 + l11)
-        h = float(
-            (w * (half + np.sqrt(np.maximum(half * half - (l00 * l11 - l01 * l01), 0.0)))).max()
-        )
-        if h < 1.0:
-            bound = cov / (1.0 - h)
-            if eigvalsh_sym(bound[3:, 3:])[-1] <= sd_over * sd_over:
-                return bound
+    if sd_over > 0 and 1.0 - 1e-4 <= h < 1.0:  # (under, the bound was tried above)
+        grow = 1.0 / (1.0 - h)
+        if eigvalsh_sym(cov[3:, 3:])[-1] * grow <= sd_over * sd_over:
+            return grow
     i00, i11, i01 = s11 / det, s00 / det, -s01 / det  # S_i^-1
     # centre block of cov_-i: cov_c + sum_kl Sinv_kl a_k a_l^T, a_0 / a_1 = A_i's rows' centre
     # parts (the centre block alone decides which removal is worst; in ``robust_refine``'s
@@ -479,21 +496,31 @@ def _refine(
     threshold: float,
     rounds: int = 2,
     gauss_newton: bool = False,
+    converged_sd: float = 0.0,
 ) -> tuple[Rigid3d, np.ndarray, np.ndarray]:
     """``refine``, and the reprojection errors of every match at the returned pose (callers
     select other inlier sets from them instead of projecting again). ``gauss_newton``: each
     round by ``least_squares`` (falling back to OpenCV's Levenberg-Marquardt where it does
-    not lower the squared error) instead."""
+    not lower the squared error) instead, stopped as ``least_squares``' ``converged_sd``
+    says."""
     pose = cam_from_world
     err = reprojection_errors(pose, K, xy, X)
     mask = err < threshold
     for _ in range(rounds):
-        if np.count_nonzero(mask) < 4:
+        n_in = np.count_nonzero(mask)
+        if n_in < 4:
             break
         if gauss_newton:
-            gn = least_squares(pose, K, xy[mask], X[mask])
-            gn_err = reprojection_errors(gn, K, xy, X)
-            e0, e1 = err[mask], gn_err[mask]
+            if n_in == len(mask):
+                # every match within the threshold (the tracker's first estimate, usually):
+                # the matches and errors as they are, not four fancy-indexed copies
+                gn = least_squares(pose, K, xy, X, converged_sd=converged_sd)
+                gn_err = reprojection_errors(gn, K, xy, X)
+                e0, e1 = err, gn_err
+            else:
+                gn = least_squares(pose, K, xy[mask], X[mask], converged_sd=converged_sd)
+                gn_err = reprojection_errors(gn, K, xy, X)
+                e0, e1 = err[mask], gn_err[mask]
             if float(e1 @ e1) < float(e0 @ e0):
                 pose, err = gn, gn_err
                 new_mask = err < threshold
@@ -530,16 +557,19 @@ def least_squares(
     X: np.ndarray,
     iterations: int = 5,
     tol: float = 1e-8,
+    converged_sd: float = 0.0,
 ) -> Rigid3d:
     """Gauss-Newton on the squared reprojection error (``robust_refine``'s steps without the
     loss), stopped once a step moves the rotation and the translation by less than ``tol``
-    (radians; relative to the translation's length): the minimum OpenCV's
+    (radians; relative to the translation's length), or, with ``converged_sd`` > 0, once a
+    step is shorter than that many of the pose's standard deviations (``_gauss_newton``):
+    the minimum OpenCV's
     ``solvePnPRefineLM`` reaches (within 1e-5, its own stopping tolerance, and lower, on
     synthetic scenes started 3-17 px off, ``tests/test_pose_kernels.py``) at ~x0.5 its CPU on ~120
     matches (issue 10: its setup dominates whatever its iteration cap). No damping beyond
     ``robust_refine``'s 1e-9: a caller checks that the squared error went down
     (``_refine``)."""
-    return _gauss_newton(cam_from_world, K, xy, X, 0.0, iterations, tol)
+    return _gauss_newton(cam_from_world, K, xy, X, 0.0, iterations, tol, converged_sd)
 
 
 # Measured for issue 10 and left as they are (redkitchen, map every 10th frame): a tracked frame
@@ -584,9 +614,19 @@ def _gauss_newton(
     scale: float,
     iterations: int,
     tol: float = 0.0,
+    converged_sd: float = 0.0,
 ) -> Rigid3d:
     """``robust_refine``'s steps; ``scale`` 0: without the loss (``least_squares``). ``tol``
-    > 0: stop after a step below it (radians, and relative to the translation's length)."""
+    > 0: stop after a step below it (radians, and relative to the translation's length).
+    ``converged_sd`` > 0: stop after a step whose Mahalanobis length is below it, in the
+    standard deviations of a pose whose pixel noise is ``MIN_NOISE_PX`` (the least any
+    covariance here claims, so at least as strict as the pose's own: outliers inflate a
+    least-squares residual's variance): delta' H delta, with H delta = g, is delta' g.
+    Issue 10: the tracker's first estimate (from the motion prediction, ~10 sd off) took
+    3.9 steps a frame to reach ``tol`` on redkitchen (1000 frames); in its own residuals'
+    sd its second step was a median 0.08 (p90 0.27, at most 1.0) and its third 3.5e-5 (at
+    most 1.5e-3): Gauss-Newton on a least-squares pose converges about quadratically, and a
+    step under 0.5 sd leaves it ~1e-4 sd from where the further steps would take it."""
     n = len(xy)
     if n < 4:
         return cam_from_world
@@ -635,6 +675,8 @@ def _gauss_newton(
         dR, _ = cv2.Rodrigues(-delta[:3])
         P = dR @ P
         P[:, 3] -= delta[3:, 0]
+        if converged_sd > 0 and float(Hg[36:] @ delta[:, 0]) < converged_sd**2 * MIN_NOISE_PX**2:
+            break  # (delta' g = delta' H delta)
         if tol > 0 and np.abs(delta[:3]).max() < tol:
             if np.abs(delta[3:]).max() < tol * max(float(np.linalg.norm(P[:, 3])), 1e-12):
                 break
@@ -728,7 +770,16 @@ def estimate_pose(
             return _refine_own_estimate(prior, K, xy, X, params, prior_threshold)
         err = None  # the errors of every match at ``pose`` once known (not projected twice)
         if loose and prior_threshold is not None:  # (`loose` implies it; mypy needs it said)
-            pose, _, err = _refine(pose, K, xy, X, prior_threshold, rounds=1, gauss_newton=True)
+            pose, _, err = _refine(
+                pose,
+                K,
+                xy,
+                X,
+                prior_threshold,
+                rounds=1,
+                gauss_newton=True,
+                converged_sd=params.converged_sd,
+            )
         if params.loss_scale > 0 and loose:
             # The robust final refinement follows: a least-squares round at the tighter
             # thresholds first only changes where it starts, and for the worse (redkitchen,
@@ -783,9 +834,16 @@ def _refine_own_estimate(
     near-outliers the Cauchy loss then down-weights, only moved where it started)."""
     err = reprojection_errors(pose, K, xy, X)
     sel = err < (prior_threshold if prior_threshold is not None else params.threshold)
-    if np.count_nonzero(sel) < max(4, params.min_inliers):
+    n_sel = np.count_nonzero(sel)
+    if n_sel < max(4, params.min_inliers):
         return None
-    pose = robust_refine(pose, K, xy[sel], X[sel], params.loss_scale)
+    # (every match verified within the guided threshold of this pose is within it: on a
+    # tracked frame all are, and the matches go in as they are, not copied)
+    if n_sel < len(sel):
+        xy_sel, X_sel = xy[sel], X[sel]
+    else:
+        xy_sel, X_sel = xy, X
+    pose = robust_refine(pose, K, xy_sel, X_sel, params.loss_scale)
     err = reprojection_errors(pose, K, xy, X)
     return _finish(pose, err < params.refine_threshold, K, xy, X, params.min_inliers, err)
 
