@@ -54,18 +54,23 @@ def test_sparse_3d_matches_trigger_a_refill(world, bundle, cam):
     kps = loc._extract_keypoints(world.gray[0], None)
     assert len(kps) > 100
     n = 80
-    table = TrackTable.empty(loc.conf.max_hypotheses)
+    # the table's rows sit on keypoints (row r on kps[used[r]], as TRACK-2D leaves them): all
+    # in the image's top-left sixteenth, or drawn from every keypoint
     rng = np.random.default_rng(0)
-    corner = rng.uniform([0, 0], [cam.width / 4, cam.height / 4], (n, 2))
-    table.append(np.arange(n), corner, np.zeros((n, 4), np.uint64))
+    x, y = kps.xy[:, 0], kps.xy[:, 1]
+    in_corner = np.flatnonzero((x < cam.width / 4) & (y < cam.height / 4))
+    assert len(in_corner) >= 5
+    bunched = rng.choice(in_corner, n)
+    spread = rng.choice(len(kps), n, replace=False)
+    table = TrackTable.empty(loc.conf.max_hypotheses)
+    table.append(np.arange(n), kps.xy[bunched], kps.brief[bunched])
     table.point[:] = np.arange(n)
     assert table.n_3d() >= loc.conf.refill_3d
-    assert loc._uncovered(table, kps)
-    table.xy = rng.uniform([0, 0], [cam.width, cam.height], (n, 2))
-    assert not loc._uncovered(table, kps)
+    assert loc._uncovered(table, kps, bunched)
+    table.xy = kps.xy[spread]
+    assert not loc._uncovered(table, kps, spread)
     off = Localizer(bundle, cam, EngineConf(refill_coverage=0))
-    table.xy = corner
-    assert not off._uncovered(table, kps)
+    assert not off._uncovered(table, kps, bunched)
 
 
 def test_projected_matches_in_the_final_refinement_lower_the_error(world, bundle, cam):
