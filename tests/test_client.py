@@ -78,22 +78,22 @@ def test_client_imports_nothing_of_the_server_or_heavy_libraries():
 
 
 def test_every_lazy_export_is_typed_for_type_checkers():
-    """Each name the package exports lazily (``_EXPORTS``) is also imported under
-    TYPE_CHECKING from the same module: otherwise mypy sees it as Any and checks none of its
-    uses (a report once passed a PoseMessage where a Transform belongs, unnoticed)."""
+    """Each name the package exports lazily (``_EXPORTS``) is declared in its stub
+    (``__init__.pyi``) as a re-export from the same module: otherwise mypy sees it as Any and
+    checks none of its uses (a report once passed a PoseMessage where a Transform belongs,
+    unnoticed)."""
     import ast
+    from pathlib import Path
 
     import sfmloc_client
 
-    tree = ast.parse(open(sfmloc_client.__file__).read())
+    stub = Path(sfmloc_client.__file__).with_suffix(".pyi")
     typed = {}
-    for node in ast.walk(tree):
-        if isinstance(node, ast.If) and getattr(node.test, "id", None) == "TYPE_CHECKING":
-            for imp in node.body:
-                assert isinstance(imp, ast.ImportFrom)
-                for a in imp.names:
-                    assert a.asname == a.name  # an explicit re-export
-                    typed[a.name] = imp.module
+    for node in ast.parse(stub.read_text()).body:
+        if isinstance(node, ast.ImportFrom) and node.level == 1:
+            for a in node.names:
+                assert a.asname == a.name  # an explicit re-export
+                typed[a.name] = node.module
     assert typed == sfmloc_client._EXPORTS
 
 

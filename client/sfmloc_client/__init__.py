@@ -36,11 +36,13 @@ server uses the same functions.
 
 import importlib
 import logging
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 # Public name -> submodule. Loaded on first use (PEP 562), so that importing the contract
 # modules (``errors``, ``enums``, ``cameras``, ``keys``, ``rotations``), as the service's
 # per-frame core does, loads neither grpc nor zenoh.
+# The names and their modules; __init__.pyi declares the same names with their types (the
+# lazy __getattr__ below would leave them Any to type checkers).
 _EXPORTS = {
     "Matching": "enums",
     "Status": "enums",
@@ -81,51 +83,6 @@ _EXPORTS = {
     "list_server_ids": "discovery",
     "query_servers": "discovery",
 }
-
-
-# The real types for type checkers, as explicit re-exports (`X as X`: __all__ is built from
-# _EXPORTS, which linters cannot read). Without them mypy saw every export as Any, and the
-# demo's report passed a PoseMessage where a Transform belongs unnoticed. At run time the
-# exports still load lazily (__getattr__).
-if TYPE_CHECKING:
-    from .discovery import list_server_ids as list_server_ids
-    from .discovery import query_servers as query_servers
-    from .enums import Matching as Matching
-    from .enums import Status as Status
-    from .errors import ClientError as ClientError
-    from .errors import ImageDataError as ImageDataError
-    from .errors import ImageDecodeError as ImageDecodeError
-    from .errors import InputError as InputError
-    from .errors import MessageTooLargeError as MessageTooLargeError
-    from .errors import RemoteError as RemoteError
-    from .errors import SfmlocError as SfmlocError
-    from .errors import WireError as WireError
-    from .grpc_client import AsyncLocalizationClient as AsyncLocalizationClient
-    from .grpc_client import LocalizationClient as LocalizationClient
-    from .images import decode_image as decode_image
-    from .images import encode_image as encode_image
-    from .placement import Placement as Placement
-    from .sources import SourceFrame as SourceFrame
-    from .sources import open_source as open_source
-    from .streamer import FrameStreamer as FrameStreamer
-    from .streamer import StreamStats as StreamStats
-    from .subscriber import PoseSubscriber as PoseSubscriber
-    from .trajectory import FramesWriter as FramesWriter
-    from .trajectory import TumWriter as TumWriter
-    from .wire import CameraSpec as CameraSpec
-    from .wire import ErrorInfo as ErrorInfo
-    from .wire import Frame as Frame
-    from .wire import MapAnnouncement as MapAnnouncement
-    from .wire import PoseMessage as PoseMessage
-    from .wire import ServerInfo as ServerInfo
-    from .wire import Transform as Transform
-    from .wire import decode_frame as decode_frame
-    from .wire import decode_map_announcement as decode_map_announcement
-    from .wire import decode_pose as decode_pose
-    from .wire import encode_frame as encode_frame
-    from .wire import encode_map_announcement as encode_map_announcement
-    from .wire import encode_pose as encode_pose
-    from .zconfig import make_zenoh_config as make_zenoh_config
 
 
 def __getattr__(name: str) -> Any:
