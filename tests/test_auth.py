@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -243,3 +244,43 @@ def test_tls_files_are_checked_at_start(world, pki):
     )
     with pytest.raises(Exception, match="cannot read the TLS certificate"):
         ServerThread(conf).start()
+
+
+def _sfmloc(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "sfmloc", *args], capture_output=True, text=True, timeout=120
+    )
+
+
+def test_the_readme_deployment_commands_end_to_end(world, pki, tmp_path):
+    """README, Deployment: authentication and TLS, as a user runs it: `sfmloc auth add-token`
+    prints the tokens, `sfmloc serve --tls-cert --tls-key --tokens` serves with them and the
+    client commands pass `--tls-ca --token` (only the servers of the tests above were made in
+    Python; these command paths ran in no test)."""
+    from sfmloc.testing import free_port, serve_command
+
+    tokens = tmp_path / "tokens.json"
+    r = _sfmloc("auth", "add-token", str(tokens), "--identity", "drone-7", "--role", "localize")
+    assert r.returncode == 0, r.stderr
+    drone = r.stdout.split()[0]
+    r = _sfmloc("auth", "add-token", str(tokens), "--identity", "ops", "--role", "admin")
+    assert r.returncode == 0, r.stderr
+    admin = r.stdout.split()[0]
+    assert drone not in tokens.read_text() and admin not in tokens.read_text()
+    grpc = f"127.0.0.1:{free_port()}"
+    tls = ["--tls-cert", str(pki / "server.pem"), "--tls-key", str(pki / "server.key")]
+    cmd = serve_command(world.maps_dir, zenoh_endpoint(), grpc, 1)
+    with subprocess.Popen([*cmd, *tls, "--tokens", str(tokens)]) as server:
+        try:
+            with LocalizationClient(grpc, tls_ca=str(pki / "ca.pem")) as c:
+                assert c.wait_ready(120), "the TLS server did not become ready"
+            client = ["--grpc", grpc, "--tls-ca", str(pki / "ca.pem")]
+            r = _sfmloc("maps", "list", *client, "--token", admin)
+            assert r.returncode == 0 and "room2" in r.stdout, r.stderr
+            r = _sfmloc("maps", "unload", "room2", *client, "--token", drone)
+            assert r.returncode == 2 and "PERMISSION_DENIED" in r.stderr, r.stderr
+            r = _sfmloc("maps", "list", *client)  # no token
+            assert r.returncode == 2 and "UNAUTHENTICATED" in r.stderr, r.stderr
+        finally:
+            server.terminate()
+    assert server.returncode == 0

@@ -165,3 +165,18 @@ def test_ab_names_bad_variants(tmp_path):
         ab.parse_variants([f"a={TREE}", f"b={TREE}"], [], [f"b={tmp_path}"])
     with pytest.raises(InputError, match="NAME=BUNDLE for a named variant"):
         ab.parse_variants([f"a={TREE}", f"b={TREE}"], [], [f"c={tmp_path}"])
+
+
+def test_the_readme_ab_command_parses():
+    """README's `python -m sfmloc.bench.ab MAP FRAMES ...` lines (not the elided `...` ones)
+    parse as written: README gave it without the required --camera."""
+    import re
+    import shlex
+
+    text = (TREE / "README.md").read_text()
+    spans = re.findall(r"`python -m sfmloc\.bench\.ab ([^`]+)`", text)
+    lines = [s for s in spans if "..." not in s]
+    assert lines, "README shows how to run sfmloc.bench.ab"
+    for line in lines:
+        args = ab.build_parser().parse_args(shlex.split(line))  # exits 2 on a bad line
+        assert len(args.variant) >= 2, line

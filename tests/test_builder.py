@@ -590,3 +590,31 @@ def test_a_long_track_refines_on_its_most_spread_views():
         err[select] = np.linalg.norm(new - truth, axis=1)
     # the error falls with the baseline: x0.40-0.43 (mean) over seeds 0-3 here
     assert np.mean(err["spread"]) < 0.6 * np.mean(err["first"])
+
+
+def test_the_builder_commands_end_to_end(world, small_model, tmp_path):
+    """README's `sfmloc builder serve` and its client commands (submit with progress, list,
+    watch, cancel) as a user runs them: the tests above call the service in-process and its
+    gRPC stubs; these command paths (progress printing, the job table) ran in no test."""
+    grpc_addr = f"127.0.0.1:{free_port()}"
+    out = tmp_path / "maps"
+    serve = [sys.executable, "-m", "sfmloc", "builder", "serve", "--out", str(out)]
+    with subprocess.Popen([*serve, "--grpc", grpc_addr, "--no-announce"]) as svc:
+        try:
+            to = ["--builder", grpc_addr]
+            images = str(world.root / "synth" / "images")
+            assert wait_until(lambda: run_cli("builder", "list", *to).returncode == 0, 60)
+            r = run_cli("builder", "submit", "small", "--colmap", str(small_model), "--images",
+                        images, *to)  # fmt: skip
+            assert r.returncode == 0 and "SUCCEEDED" in r.stdout, r.stderr[-2000:]
+            job = r.stdout.split(":")[0].strip()
+            assert verify_bundle(out / "small") == []
+            r = run_cli("builder", "list", *to)
+            assert r.returncode == 0 and f"{job}  small" in r.stdout and "SUCCEEDED" in r.stdout
+            r = run_cli("builder", "watch", job, *to)  # an ended job: its progress, then the end
+            assert r.returncode == 0 and f"{job}: SUCCEEDED" in r.stdout, r.stderr
+            r = run_cli("builder", "cancel", job, *to)
+            assert r.returncode == 0 and "already ended" in r.stdout
+        finally:
+            svc.send_signal(signal.SIGTERM)
+    assert svc.returncode == 0

@@ -3,12 +3,19 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
+import re
+import shlex
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
 from sfmloc.cli.main import COMMANDS, build_parser, main
+
+README = Path(__file__).resolve().parents[1] / "README.md"
 
 
 def command_names() -> list[str]:
@@ -134,3 +141,49 @@ def test_a_closed_pipe_ends_quietly_like_sigpipe():
     err = p.stderr.read().decode()
     assert p.wait(timeout=60) == 141, err
     assert "Traceback" not in err and "BrokenPipeError" not in err
+
+
+def _command_lines(text: str) -> list[str]:
+    """The `sfmloc ...` lines of shell examples (continuations joined; comments dropped;
+    `a && b` split)."""
+    lines = []
+    for line in text.replace("\\\n", " ").splitlines():
+        for part in line.split("#")[0].split("&&"):
+            if re.match(r"sfmloc [a-z]", part.strip()):  # not a table row naming sfmloc
+                lines.append(part.strip())
+    return lines
+
+
+def _documented_commands() -> list[str]:
+    """Every command line README's sh/bash blocks and the commands' own --help pages tell a
+    user to run."""
+    blocks = re.findall(r"```(?:sh|bash)\n(.*?)```", README.read_text(), re.S)
+    lines = [line for block in blocks for line in _command_lines(block)]
+    todo = [build_parser()]
+    while todo:
+        parser = todo.pop()
+        lines += _command_lines(f"{parser.description or ''}\n{parser.epilog or ''}")
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                todo += list(dict.fromkeys(action.choices.values()))
+    return list(dict.fromkeys(lines))
+
+
+@pytest.mark.parametrize("line", _documented_commands(), ids=lambda line: line[:70])
+def test_documented_command_lines_parse(line):
+    """A command the docs show runs as written: its words parse (README showed `sfmloc stream
+    video.mp4`, a positional `stream` never took; `--source` it is). `[--opt X]` is optional
+    and `...` elides required options the text leaves out."""
+    words = shlex.split(line.replace("[", "").replace("]", ""))[1:]
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err), contextlib.suppress(SystemExit):
+        args = build_parser().parse_args([w for w in words if w != "..."])
+    message = err.getvalue().strip()
+    if "..." in words:
+        assert not message or "arguments are required" in message, message
+        return
+    assert not message, message
+    if args.command == "build" and args.extend:
+        # build refuses an existing OUT/NAME without --replace; extending a map in place
+        # (README's `build lab --extend maps/lab`) names it.
+        assert args.replace or Path(args.out) / args.name != Path(args.extend), line

@@ -581,6 +581,21 @@ def test_cli_relocalize_maps_sessions_servers(world, server):
     assert r.returncode == 0 and "client-tests: ready" in r.stdout and "room" in r.stdout
 
 
+def test_cli_maps_unload_load_and_sessions_reset(world, server):
+    """The map and session commands' other paths (README: map management): unload and load
+    back by name, a reset of a client the server does not know."""
+    srv, _ = server
+    target = f"127.0.0.1:{srv.grpc_port}"
+    r = _cli("maps", "unload", "room2", "--grpc", target)
+    assert r.returncode == 0 and "unloaded room2" in r.stdout, r.stderr
+    r = _cli("maps", "load", "room2", "--grpc", target)  # a name: from the maps folder
+    assert r.returncode == 0 and r.stdout.startswith("loaded room2 (build "), r.stderr
+    r = _cli("maps", "load", "/etc", "--grpc", target)
+    assert r.returncode == 2 and "PERMISSION_DENIED" in r.stderr
+    r = _cli("sessions", "reset", "nobody", "--grpc", target)
+    assert r.returncode == 2 and "NOT_FOUND" in r.stderr
+
+
 def test_every_command_has_help():
     for cmd in ("serve", "stream", "relocalize", "maps", "sessions", "servers"):
         r = _cli(cmd, "--help", timeout=60)

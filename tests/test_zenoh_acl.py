@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -73,6 +74,24 @@ def test_committed_config_is_the_generators_output():
     )
     zenoh.Config.from_file(str(SERVER_FILE))  # zenoh accepts it (schema of the installed one)
     zenoh.Config.from_file(str(DEVICE_FILE))
+
+
+def test_the_readme_command_writes_the_committed_config(tmp_path):
+    """README's `sfmloc auth zenoh-acl --device drone-1 --device drone-2 --admin builder
+    --tls-ca /certs/ca.pem ... --out FILE` (the command path, not only its functions) writes
+    docker/zenoh-server-acl.json5, as README says."""
+    out = tmp_path / "zenoh-server.json5"
+    certs = ["--tls-ca", "/certs/ca.pem", "--tls-cert", "/certs/server.pem"]
+    r = subprocess.run(
+        [sys.executable, "-m", "sfmloc", "auth", "zenoh-acl", "--device", "drone-1"]
+        + ["--device", "drone-2", "--admin", "builder", *certs]
+        + ["--tls-key", "/certs/server.key", "--out", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode == 0, r.stderr
+    assert out.read_text() == SERVER_FILE.read_text()
 
 
 def test_acl_refuses_bad_lists():

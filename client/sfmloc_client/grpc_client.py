@@ -10,6 +10,8 @@ Maps and sessions are returned as the protobuf messages ``MapInfo`` and ``Sessio
 
 from __future__ import annotations
 
+import contextlib
+import threading
 import time
 from collections.abc import AsyncIterator, Iterable, Iterator
 from typing import Any
@@ -136,23 +138,40 @@ def _stream_requests(
     encoding: str,
     jpeg_quality: int,
     rate: float | None = None,
+    stop: threading.Event | None = None,
+    busy: threading.Lock | None = None,
 ) -> Iterator[pb.StreamFrame]:
-    for seq, fr in enumerate(_paced(frames, rate)):
-        enc, data = _image(fr, encoding, jpeg_quality)
-        stamp = (
-            fr.stamp_ns
-            if isinstance(fr, SourceFrame) and fr.stamp_ns is not None
-            else time.time_ns()
-        )
-        msg = pb.StreamFrame(
-            seq=seq, stamp_ns=stamp, image=image_to_pb(enc, data, camera.width, camera.height)
-        )
-        if isinstance(fr, SourceFrame) and fr.prior is not None:
-            msg.prior_cam_from_world.CopyFrom(transform_to_pb(fr.prior))
-        if seq == 0:  # map, client and camera are only required on the first frame
-            msg.map, msg.client_id = map_name, client_id
-            msg.camera.CopyFrom(camera_to_pb(camera))
+    """The stream's requests. ``stop``: end before the next frame; ``busy``: held while a frame
+    is read and encoded (the blocking client waits on it, see ``LocalizationClient.stream``)."""
+    paced = iter(_paced(frames, rate))
+    seq = 0
+    while True:
+        with busy or _NO_LOCK:
+            if stop is not None and stop.is_set():
+                return
+            fr = next(paced, _END)
+            if fr is _END:
+                return
+            enc, data = _image(fr, encoding, jpeg_quality)
+            stamp = (
+                fr.stamp_ns
+                if isinstance(fr, SourceFrame) and fr.stamp_ns is not None
+                else time.time_ns()
+            )
+            msg = pb.StreamFrame(
+                seq=seq, stamp_ns=stamp, image=image_to_pb(enc, data, camera.width, camera.height)
+            )
+            if isinstance(fr, SourceFrame) and fr.prior is not None:
+                msg.prior_cam_from_world.CopyFrom(transform_to_pb(fr.prior))
+            if seq == 0:  # map, client and camera are only required on the first frame
+                msg.map, msg.client_id = map_name, client_id
+                msg.camera.CopyFrom(camera_to_pb(camera))
         yield msg
+        seq += 1
+
+
+_END = object()
+_NO_LOCK = contextlib.nullcontext()
 
 
 class LocalizationClient:
@@ -225,18 +244,31 @@ class LocalizationClient:
         the server drops those that queue up behind a busy one (latest frame only).
         ``camera``: a ``CameraSpec``, a camera.json path or ``"MODEL w h params..."``."""
         _check_rate(rate)
+        # The requests are read, decoded and encoded on grpc's own (daemon) thread. When the
+        # stream ends early (the server refused it, the caller stopped iterating) that thread
+        # may be inside OpenCV, and a process exiting then is killed there (std::terminate,
+        # SIGABRT: README's client block with an unknown map exited 134 in 7 of 8 runs). So
+        # the end stops the requests and waits for the frame in hand.
+        stop, busy = threading.Event(), threading.Lock()
         calls = self.stub.StreamLocalize(
             _stream_requests(
-                frames, map_name, _camera(camera), client_id, encoding, jpeg_quality, rate
+                frames, map_name, _camera(camera), client_id, encoding, jpeg_quality, rate,
+                stop, busy,
             ),
             timeout=timeout,
             metadata=self.metadata,
-        )
+        )  # fmt: skip
         try:
             for update in calls:
                 yield pose_from_update_pb(update)
         except grpc.RpcError as exc:
             raise _remote(exc) from None
+        finally:
+            stop.set()
+            calls.cancel()
+            # A frame takes milliseconds; a camera read that hangs is not waited out.
+            if busy.acquire(timeout=10.0):
+                busy.release()
 
     def list_maps(self) -> list[pb.MapInfo]:
         return list(self._call(self.stub.ListMaps, pb.ListMapsRequest(), None).maps)

@@ -750,10 +750,10 @@ def run(args: Any) -> int:
             inp, args.workers or (os.cpu_count() or 1), args.n, args.repeat
         )
         rows = [("1 Localizer", f"{e['single_fps']:.1f} frames/s, {e['single_ms_p50']:.1f} ms p50")]
-        for kind in ("thread", "process"):
+        for kind, kinds in (("thread", "threads"), ("process", "processes")):
             rows.append(
                 (
-                    f"{e['parallel']} Localizers in {kind}s",
+                    f"{e['parallel']} Localizers in {kinds}",
                     f"{e[f'{kind}_fps']:.1f} frames/s ({e[f'{kind}_speedup']:.2f}x), "
                     f"{e[f'{kind}_ms_p50']:.1f} ms p50 per frame",
                 )

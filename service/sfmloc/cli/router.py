@@ -13,7 +13,7 @@ depends on). Servers, builders and clients then run in client mode and connect t
   sfmloc router --listen tcp/0.0.0.0:7447
   sfmloc serve --maps maps --zenoh-mode client --zenoh-connect tcp/ROUTER:7447 --server-id s1
   sfmloc serve --maps maps --zenoh-mode client --zenoh-connect tcp/ROUTER:7447 --server-id s2
-  sfmloc stream video.mp4 --map kitchen --camera camera.json --server auto \\
+  sfmloc stream --map kitchen --source video.mp4 --camera camera.json --server auto \\
       --zenoh-mode client --zenoh-connect tcp/ROUTER:7447
 
 Clients in client mode talk only to the router (no peer-to-peer links, no multicast), so the

@@ -1,0 +1,57 @@
+"""sfmloc bench-transport end to end: the command a user runs (README: `sfmloc bench-transport
+--only overhead`), on the synthetic world with real server subprocesses and real Zenoh, so
+that its report (each section formatted from the measured numbers) is executed by a test."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+
+import cv2
+import pytest
+
+
+@pytest.fixture(scope="module")
+def inputs(world, tmp_path_factory):
+    """The world's map alone in a maps folder (the server loads all of it), and its frames as
+    JPEG files (the command reads a camera's recording)."""
+    d = tmp_path_factory.mktemp("bench-transport")
+    shutil.copytree(world.maps_dir / "room", d / "maps" / "room")
+    (d / "frames").mkdir()
+    for k, path in enumerate(world.frames[:12]):
+        cv2.imwrite(str(d / "frames" / f"{k:06d}.jpg"), cv2.imread(str(path)))
+    return d
+
+
+def _bench(world, d, json_out, *only: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [
+            sys.executable, "-m", "sfmloc", "bench-transport",
+            "--maps", str(d / "maps"), "--map", "room",
+            "--frames", str(d / "frames"), "--camera", world.camera_spec,
+            "--only", ",".join(only), "--n", "8", "--repeat", "1", "--workers", "1",
+            "--clients", "1", "--rate", "10", "--duration", "1",
+            "--json", str(json_out),
+        ],
+        capture_output=True, text=True, timeout=180,
+    )  # fmt: skip
+
+
+def test_bench_transport_wire_overhead_and_clients(world, inputs, tmp_path):
+    r = _bench(world, inputs, tmp_path / "b.json", "wire", "overhead", "clients")
+    assert r.returncode == 0, r.stderr[-3000:]
+    for heading in ("== wire:", "== overhead:", "== 1 clients x 10 Hz x 1 s, jpeg frames"):
+        assert heading in r.stdout, r.stdout
+    report = json.loads((tmp_path / "b.json").read_text())
+    assert report["wire"]["jpeg_bytes"] > 0 and report["overhead"]["jpeg_e2e_ms_p50"] > 0
+    (client,) = report["clients"]["clients"]
+    assert client["sent"] > 0 and client["received"] > 0 and client["errors"] == 0
+
+
+def test_bench_transport_engine_section(world, inputs, tmp_path):
+    r = _bench(world, inputs, tmp_path / "b.json", "engine")
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "== engine scaling:" in r.stdout and "1 Localizers in processes" in r.stdout, r.stdout
+    assert json.loads((tmp_path / "b.json").read_text())["engine"]["process_fps"] > 0
