@@ -403,6 +403,20 @@ def reference_refine_lm(cam_from_world, K, xy, X, threshold):
     return pose_, reprojection_errors(pose_, K, xy, X)
 
 
+def _scene_and_prediction(
+    seed: int, n: int, rng: np.random.Generator
+) -> tuple[Rigid3d, np.ndarray, np.ndarray, Rigid3d]:
+    """A noisy scene's pose, its first ``n`` matches in front of the camera, and a prediction
+    ~1.5 deg and ~5 cm off (10-20 px on these scenes), as the tracker's first estimate starts."""
+    gt, _, xy, X = noisy_scene(seed, n + n // 10 + 2)
+    front = (X @ gt.rotation.T + gt.translation)[:, 2] > 0
+    start = Rigid3d(
+        rotmat_from_rotvec(rng.normal(0, 0.015, 3)) @ gt.rotation,
+        gt.translation + rng.normal(0, 0.03, 3),
+    )
+    return gt, xy[front][:n], X[front][:n], start
+
+
 @pytest.mark.parametrize("n", [12, 40, 120, 600])
 def test_least_squares_reaches_the_levenberg_marquardt_minimum(n):
     """The tracker's first refinement (one round on the matches within 20 px of a prediction)
@@ -414,14 +428,7 @@ def test_least_squares_reaches_the_levenberg_marquardt_minimum(n):
     error is the larger, by 1e-11 to 6e-10."""
     rng = np.random.default_rng(n)
     for seed in range(8):
-        gt, _, xy, X = noisy_scene(100 + seed, n + n // 10 + 2)
-        front = (X @ gt.rotation.T + gt.translation)[:, 2] > 0
-        xy, X = xy[front][:n], X[front][:n]
-        # a prediction: ~1.5 deg and ~5 cm off (10-20 px on these scenes)
-        start = Rigid3d(
-            rotmat_from_rotvec(rng.normal(0, 0.015, 3)) @ gt.rotation,
-            gt.translation + rng.normal(0, 0.03, 3),
-        )
+        gt, xy, X, start = _scene_and_prediction(100 + seed, n, rng)
         got, _, err = pose._refine(start, K, xy, X, 20.0, rounds=1, gauss_newton=True)
         want, want_err = reference_refine_lm(start, K, xy, X, 20.0)
         assert_same_pose(got, want, tol=1e-5)
@@ -582,13 +589,7 @@ def test_least_squares_stops_once_a_step_is_under_its_sd(n):
     rng = np.random.default_rng(n)
     checked = 0
     for seed in range(8):
-        gt, _, xy, X = noisy_scene(200 + seed, n + n // 10 + 2)
-        front = (X @ gt.rotation.T + gt.translation)[:, 2] > 0
-        xy, X = xy[front][:n], X[front][:n]
-        start = Rigid3d(
-            rotmat_from_rotvec(rng.normal(0, 0.015, 3)) @ gt.rotation,
-            gt.translation + rng.normal(0, 0.03, 3),
-        )
+        gt, xy, X, start = _scene_and_prediction(200 + seed, n, rng)
         sel = reprojection_errors(start, K, xy, X) < 20.0
         xs, Xs = xy[sel], X[sel]
         full = pose.least_squares(start, K, xs, Xs)
