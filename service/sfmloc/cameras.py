@@ -218,10 +218,13 @@ class Camera:
         return self.img_from_normalized(uv)
 
     def img_from_normalized(self, uv: np.ndarray) -> np.ndarray:
+        # (K in place on distort_normalized's new array: fx u + cx and fy v + cy, the same
+        # products and sums as column by column, without np.stack's layers; the tracker
+        # projects its map points through this every frame)
         uv = self.distort_normalized(uv)
-        fx, fy = self.focal
-        cx, cy = self.principal_point
-        return np.stack([fx * uv[:, 0] + cx, fy * uv[:, 1] + cy], axis=1)
+        uv *= self.focal
+        uv += self.principal_point
+        return uv
 
     def cam_from_img(self, points2D: np.ndarray) -> np.ndarray:
         """Undistorted normalized coordinates (N, 2) of image points (N, 2)."""

@@ -254,9 +254,6 @@ class Localizer:
         self.K = self.camera.K
         # (``Camera.is_distorted`` builds the distortion coefficients: ~5 calls a frame)
         self._distorted = self.camera.is_distorted
-        # (the pinhole part of the projection, for the prediction of tracked keypoints)
-        self._focal = np.array(self.camera.focal, np.float64)
-        self._principal = np.array(self.camera.principal_point, np.float64)
         self._cell_scale = 4.0 / np.array([self.camera.width, self.camera.height], np.float64)
         self.subpixel = map_subpixel(self.conf, bundle.manifest.params)
         self.extractor = DaisyExtractor()
@@ -1393,17 +1390,7 @@ class Localizer:
         rows = np.flatnonzero(table.point >= 0)
         if len(rows) == 0:
             return xy
-        X = self.bundle.points_xyz[table.point[rows]]
-        if self._distorted:
-            uv, z = self.camera.project(pred, X)
-        else:
-            # Camera.project's arithmetic, bit for bit, without its layers (its distortion
-            # check builds the coefficients, and np.stack): the same projections, x0.76 CPU
-            pc = np.asarray(X, np.float64) @ pred.rotation.T + pred.translation
-            z = pc[:, 2]
-            uv = pc[:, :2] / np.where(np.abs(z) < 1e-12, 1e-12, z)[:, None]
-            uv *= self._focal
-            uv += self._principal
+        uv, z = self.camera.project(pred, self.bundle.points_xyz[table.point[rows]])
         # (both coordinates finite: a (N, 2) bool row read as one uint16, not .all(axis=1))
         ok = np.isfinite(uv).view(np.uint16).ravel() == 257
         ok &= z > 0
