@@ -284,13 +284,8 @@ def leave_out_sd_bound(
     if inverted is None:
         return float("inf")
     ev, cov, Cu, Cv = inverted
-    Ju, Jv = B.T @ Cu, B.T @ Cv
-    Au, Av = Ju @ cov, Jv @ cov
-    l00 = np.einsum("ij,ij->i", Au, Ju)
-    l11 = np.einsum("ij,ij->i", Av, Jv)
-    l01 = np.einsum("ij,ij->i", Au, Jv)
-    half = 0.5 * (l00 + l11)
-    h = w * (half + np.sqrt(np.maximum(half * half - (l00 * l11 - l01 * l01), 0.0)))
+    _, _, l00, l11, l01 = _leverage_rows(cov, B.T @ Cu, B.T @ Cv)
+    h = _leverages(w, l00, l11, l01)
     top = np.sort(h)[-k:]
     s_rw, rr = float(rw.sum()), rw * r2
     s_rr = float(rr.sum())
@@ -318,6 +313,25 @@ def _cov_map(fx: float, fy: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     for a in (QH, Cu, Cv):
         a.flags.writeable = False
     return QH, Cu, Cv
+
+
+def _leverage_rows(
+    cov: np.ndarray, Ju: np.ndarray, Jv: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per correspondence (its Jacobian rows ``Ju``, ``Jv``, (n, 6)): A_i's rows ``Au``,
+    ``Av`` (J_i cov) and J_i cov J_i^T's entries ``l00``, ``l11``, ``l01``."""
+    Au, Av = Ju @ cov, Jv @ cov  # (n, 6) each: the rows of A_i
+    l00 = np.einsum("ij,ij->i", Au, Ju)  # J_i cov J_i^T
+    l11 = np.einsum("ij,ij->i", Av, Jv)
+    l01 = np.einsum("ij,ij->i", Au, Jv)
+    return Au, Av, l00, l11, l01
+
+
+def _leverages(w: np.ndarray, l00: np.ndarray, l11: np.ndarray, l01: np.ndarray) -> np.ndarray:
+    """Each correspondence's leverage: the largest eigenvalue of W_i^1/2 J_i cov J_i^T
+    W_i^1/2 (its 2x2 entries from ``_leverage_rows``, weight ``w``), in closed form."""
+    half = 0.5 * (l00 + l11)
+    return w * (half + np.sqrt(np.maximum(half * half - (l00 * l11 - l01 * l01), 0.0)))
 
 
 def _without_most_influential(
@@ -348,22 +362,16 @@ def _without_most_influential(
     # GEMMs, and the 2x2 and 3x3 algebra below is written out per entry over all n at once
     # (the batched (n, 2, 6) products, three-operand einsum and n LAPACK 3x3 eigensolves cost
     # x4 the CPU on ~150 matches; the same quantities up to rounding).
-    Au, Av = Ju @ cov, Jv @ cov  # (n, 6) each: the rows of A_i
-    l00 = np.einsum("ij,ij->i", Au, Ju)  # J_i cov J_i^T
-    l11 = np.einsum("ij,ij->i", Av, Jv)
-    l01 = np.einsum("ij,ij->i", Au, Jv)
-    h = 1.0
+    Au, Av, l00, l11, l01 = _leverage_rows(cov, Ju, Jv)
+    grow = 0.0  # the bound's factor 1 / (1 - h), where it answers
     if sd_over > 0:
-        half = 0.5 * (l00 + l11)
-        h = float(
-            (w * (half + np.sqrt(np.maximum(half * half - (l00 * l11 - l01 * l01), 0.0)))).max()
-        )
-        # Every leverage under 1 - 1e-4 (the usual case): each downdate's (1 - l1)(1 - l2)
-        # exceeds 1e-8, so the positive-definiteness test below passes, and the bound is
-        # answered without it (issue 10: ~8 operations over all matches a tracked frame).
-        if h < 1.0 - 1e-4:
+        h = float(_leverages(w, l00, l11, l01).max())
+        if h < 1.0 and eigvalsh_sym(cov[3:, 3:])[-1] * (1.0 / (1.0 - h)) <= sd_over * sd_over:
             grow = 1.0 / (1.0 - h)
-            if eigvalsh_sym(cov[3:, 3:])[-1] * grow <= sd_over * sd_over:
+            # Every leverage under 1 - 1e-4 (the usual case): each downdate's (1 - l1)(1 - l2)
+            # exceeds 1e-8, so the positive-definiteness test below passes, and the bound is
+            # answered without it (issue 10: ~8 operations over all matches a tracked frame).
+            if h < 1.0 - 1e-4:
                 return grow
     # S_i = W_i^-1 - J_i cov J_i^T (symmetric: its off-diagonal from one side)
     iw = 1.0 / w
@@ -375,10 +383,8 @@ def _without_most_influential(
     ok = (det > 1e-9 * scale) & (s00 > 0)
     if not ok.all():
         return np.full((6, 6), np.inf)
-    if sd_over > 0 and 1.0 - 1e-4 <= h < 1.0:  # (under, the bound was tried above)
-        grow = 1.0 / (1.0 - h)
-        if eigvalsh_sym(cov[3:, 3:])[-1] * grow <= sd_over * sd_over:
-            return grow
+    if grow:  # (a leverage within 1e-4 of 1: the bound once every downdate passed)
+        return grow
     i00, i11, i01 = s11 / det, s00 / det, -s01 / det  # S_i^-1
     # centre block of cov_-i: cov_c + sum_kl Sinv_kl a_k a_l^T, a_0 / a_1 = A_i's rows' centre
     # parts (the centre block alone decides which removal is worst; in ``robust_refine``'s
@@ -511,16 +517,13 @@ def _refine(
         if n_in < 4:
             break
         if gauss_newton:
-            if n_in == len(mask):
-                # every match within the threshold (the tracker's first estimate, usually):
-                # the matches and errors as they are, not four fancy-indexed copies
-                gn = least_squares(pose, K, xy, X, converged_sd=converged_sd)
-                gn_err = reprojection_errors(gn, K, xy, X)
-                e0, e1 = err, gn_err
-            else:
-                gn = least_squares(pose, K, xy[mask], X[mask], converged_sd=converged_sd)
-                gn_err = reprojection_errors(gn, K, xy, X)
-                e0, e1 = err[mask], gn_err[mask]
+            # every match within the threshold (the tracker's first estimate, usually): the
+            # matches and errors as they are, not four fancy-indexed copies
+            every = n_in == len(mask)
+            xs, Xs = (xy, X) if every else (xy[mask], X[mask])
+            gn = least_squares(pose, K, xs, Xs, converged_sd=converged_sd)
+            gn_err = reprojection_errors(gn, K, xy, X)
+            e0, e1 = (err, gn_err) if every else (err[mask], gn_err[mask])
             if float(e1 @ e1) < float(e0 @ e0):
                 pose, err = gn, gn_err
                 new_mask = err < threshold
