@@ -633,16 +633,7 @@ class SessionManager:
             build_id=msg.build_id,  # the build the frame ran on, as in _pose
             server_id=self.server_id,
         )
-        send = getattr(s.sink, "send_encoded", None)
-        if send is None:
-            self._send(s, decode_pose(data))
-            return
-        try:
-            send(data)
-        except Exception as exc:  # noqa: BLE001 - a broken sink ends that session only
-            event(
-                log, logging.WARNING, "sink_failed", map=s.map, client=s.client_id, error=str(exc)
-            )
+        self._send(s, data)
 
     def _reject_pending(self, s: Session, p: _Pending, ticket: int) -> None:
         from ..errors import MapNotFoundError
@@ -666,9 +657,16 @@ class SessionManager:
             ),
         )
 
-    def _send(self, s: Session, pose: PoseMessage) -> None:
+    def _send(self, s: Session, pose: PoseMessage | bytes) -> None:
+        """``pose`` to the session's sink; bytes (an encoded pose message) to its
+        ``send_encoded`` where it has one, else decoded."""
         try:
-            s.sink.send(pose)
+            if not isinstance(pose, bytes):
+                s.sink.send(pose)
+            elif (send_encoded := getattr(s.sink, "send_encoded", None)) is not None:
+                send_encoded(pose)
+            else:
+                s.sink.send(decode_pose(pose))
         except Exception as exc:  # noqa: BLE001 - a broken sink ends that session only
             event(
                 log, logging.WARNING, "sink_failed", map=s.map, client=s.client_id, error=str(exc)
