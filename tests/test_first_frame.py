@@ -55,3 +55,28 @@ def test_a_pose_subscription_declared_just_before_the_first_frame_gets_its_answe
                     fs.publish(data=world.png[0], encoding="png")
                     assert answered.wait(30), f"session {i}: no answer to its first frame"
                 fs.close()
+
+
+def test_a_frame_addressed_to_no_server_is_still_counted_lost(world):
+    """The new addressed publisher waits (bounded) for its match status before its first frame
+    (a frame through a router was counted lost while it arrived); a frame that names a server
+    nobody runs is still counted: the count holds exactly the frames no server could get."""
+    endpoint = zenoh_endpoint()
+    with (
+        running_server(server_config(world, endpoint, server_id="here")),
+        zenoh.open(make_zenoh_config("peer", connect=[endpoint], multicast=False)) as z,
+    ):
+        with FrameStreamer(z, "room", "lonely", camera(world), encoding="png", server="gone") as fs:
+            fs.match_wait_s = 0.2
+            assert fs.wait_for_server(30)  # "here" subscribes to the map-wide key
+            fs.publish(data=world.png[0], encoding="png")
+            fs.publish(data=world.png[1], encoding="png")
+            assert fs.undelivered == 2
+        got: list = []
+        with (
+            PoseSubscriber(z, "room", "named", callback=got.append) as poses,
+            FrameStreamer(z, "room", "named", camera(world), encoding="png", server="here") as fs,
+        ):
+            assert fs.wait_for_server(30)
+            fs.publish(data=world.png[0], encoding="png")
+            assert poses.wait_for(0, 30) and fs.undelivered == 0

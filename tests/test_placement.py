@@ -94,6 +94,9 @@ def _stream(z, world, client_id, frames, got, **kw):
         stats = fs.run(src, lockstep=True, poses=poses, pose_timeout=10, **kw)
         poses.wait_for(stats.last_seq, 10)
         time.sleep(0.3)  # a second answer to any frame would arrive by now
+        # Every frame was answered, so none was lost: the first one's new (addressed)
+        # publisher must not count it undelivered before its match status is known.
+        assert stats.undelivered == 0, stats
         return fs.server
 
 
@@ -208,6 +211,18 @@ def test_servers_and_clients_through_a_router(world):
             assert _stream(z, world, "via-router", range(3), got) == "routed"
             assert sorted(p.seq for p in got) == [0, 1, 2]
             assert all(p.localized for p in got)
+            # README's `sfmloc stream --server auto` through the router: every frame answered,
+            # none reported lost (the first frame was, before its publisher's match was known).
+            cli = subprocess.run(
+                [sys.executable, "-m", "sfmloc", "stream", "--map", "room", "--server", "auto",
+                 "--source", str(world.frames[0].parent), "--pattern", "*.png",
+                 "--camera", world.camera_spec, "--encoding", "png", "--max-frames", "4",
+                 "--zenoh-mode", "client", "--zenoh-connect", er, "--no-multicast"],
+                capture_output=True, text=True, timeout=120,
+            )  # fmt: skip
+            assert cli.returncode == 0, cli.stderr
+            assert "4 poses received for 4 frames sent" in cli.stdout, cli.stdout
+            assert "lost" not in cli.stdout, cli.stdout
     finally:
         router.send_signal(signal.SIGTERM)
         rc = router.wait(timeout=20)

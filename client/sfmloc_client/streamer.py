@@ -128,6 +128,8 @@ class FrameStreamer:
         # (cam_from_world, server id, time.monotonic()) of the last localized pose (note_pose)
         self._last_pose: tuple[Transform, str, float] | None = None
         self.handover_max_age_s = 5.0
+        # How long a new addressed publisher waits for its match status (see _publisher).
+        self.match_wait_s = 1.0
 
     def _declare(self, key: str) -> Any:
         return self._session.declare_publisher(key, **self._publisher_options)
@@ -190,7 +192,7 @@ class FrameStreamer:
                 log.warning(
                     "frame %d not delivered: no server subscribes to %s (%d so far)",
                     seq,
-                    self.key,
+                    pub.key_expr,  # the addressed key when frames name a server
                     self.undelivered,
                 )
         self.last_put_time = time.perf_counter()
@@ -224,6 +226,13 @@ class FrameStreamer:
                 self._addressed.pop(next(iter(self._addressed))).undeclare()
             pub = self._declare(frame_key(self.map_name, self.client_id, target))
             self._addressed[target] = pub
+            # A new publisher's match status is not known at once: through a router it is
+            # False until the router answers (~ms), while the router already forwards what is
+            # put. Wait for it (a bounded while: a frame to a server that really is gone is
+            # then counted undelivered, as it should be) so the count only holds lost frames.
+            deadline = time.monotonic() + self.match_wait_s
+            while not self._matched(pub) and time.monotonic() < deadline:
+                time.sleep(0.002)
         return pub
 
     @property
