@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -613,6 +614,19 @@ def test_the_builder_commands_end_to_end(world, small_model, tmp_path):
             assert r.returncode == 0 and f"{job}  small" in r.stdout and "SUCCEEDED" in r.stdout
             r = run_cli("builder", "watch", job, *to)  # an ended job: its progress, then the end
             assert r.returncode == 0 and f"{job}: SUCCEEDED" in r.stdout, r.stderr
+            # Said plainly, with when it ended and how long it ran; the replayed stages show
+            # the times the job recorded (they all said 0.0 s: the replay's own clock).
+            ended = re.search(r"had already ended: SUCCEEDED at (\S+Z) after ([\d.]+) s", r.stderr)
+            assert ended is not None, r.stderr
+            ran = float(ended.group(2))
+            shown = [float(m) for m in re.findall(r"^ *\w+ +[\d.]+% +([\d.]+)s", r.stderr, re.M)]
+            assert shown and max(shown) > 0, r.stderr
+            stages = re.search(r"^stages: (.*)$", r.stderr, re.M)
+            assert stages is not None, r.stderr
+            times = dict(re.findall(r"(\w+) ([\d.]+) s", stages.group(1)))
+            assert {"descriptors", "index"} <= set(times), times
+            # The stages add up to the job's run (each rounded to 0.1 s).
+            assert abs(sum(map(float, times.values())) - ran) <= 0.05 * len(times) + 0.1, r.stderr
             r = run_cli("builder", "cancel", job, *to)
             assert r.returncode == 0 and "already ended" in r.stdout
         finally:

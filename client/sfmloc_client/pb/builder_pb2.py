@@ -25,15 +25,15 @@ _sym_db = _symbol_database.Default()
 from . import common_pb2 as sfmloc_dot_v1_dot_common__pb2
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x17sfmloc/v1/builder.proto\x12\tsfmloc.v1\x1a\x16sfmloc/v1/common.proto\"3\n\x0b\x43olmapInput\x12\x11\n\tmodel_dir\x18\x01 \x01(\t\x12\x11\n\timage_dir\x18\x02 \x01(\t\"\\\n\x10PosedImagesInput\x12\x11\n\timage_dir\x18\x01 \x01(\t\x12\x12\n\nposes_file\x18\x02 \x01(\t\x12!\n\x06\x63\x61mera\x18\x03 \x01(\x0b\x32\x11.sfmloc.v1.Camera\"Y\n\x0fImagesOnlyInput\x12\x11\n\timage_dir\x18\x01 \x01(\t\x12!\n\x06\x63\x61mera\x18\x02 \x01(\x0b\x32\x11.sfmloc.v1.Camera\x12\x10\n\x08matching\x18\x03 \x01(\t\"\x83\x02\n\x12SubmitBuildRequest\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\x0f\n\x07out_dir\x18\x02 \x01(\t\x12(\n\x06\x63olmap\x18\x03 \x01(\x0b\x32\x16.sfmloc.v1.ColmapInputH\x00\x12\x33\n\x0cposed_images\x18\x04 \x01(\x0b\x32\x1b.sfmloc.v1.PosedImagesInputH\x00\x12\x31\n\x0bimages_only\x18\x05 \x01(\x0b\x32\x1a.sfmloc.v1.ImagesOnlyInputH\x00\x12\x0e\n\x06preset\x18\x06 \x01(\t\x12\x13\n\x0b\x63onfig_json\x18\x07 \x01(\t\x12\x0e\n\x06stride\x18\x08 \x01(\rB\x07\n\x05input\"%\n\x13SubmitBuildResponse\x12\x0e\n\x06job_id\x18\x01 \x01(\t\"\xab\x01\n\nBuildEvent\x12\x0e\n\x06job_id\x18\x01 \x01(\t\x12$\n\x05state\x18\x02 \x01(\x0e\x32\x15.sfmloc.v1.BuildState\x12\r\n\x05stage\x18\x03 \x01(\t\x12\x10\n\x08\x66raction\x18\x04 \x01(\x01\x12\x0f\n\x07message\x18\x05 \x01(\t\x12\x11\n\telapsed_s\x18\x06 \x01(\x01\x12\x13\n\x0b\x62undle_path\x18\x07 \x01(\t\x12\r\n\x05\x65rror\x18\x08 \x01(\t\"\xe2\x01\n\x08\x42uildJob\x12\x0e\n\x06job_id\x18\x01 \x01(\t\x12\x0c\n\x04name\x18\x02 \x01(\t\x12$\n\x05state\x18\x03 \x01(\x0e\x32\x15.sfmloc.v1.BuildState\x12\r\n\x05stage\x18\x04 \x01(\t\x12\x10\n\x08\x66raction\x18\x05 \x01(\x01\x12\x0f\n\x07message\x18\x06 \x01(\t\x12\x11\n\telapsed_s\x18\x07 \x01(\x01\x12\x13\n\x0b\x62undle_path\x18\x08 \x01(\t\x12\r\n\x05\x65rror\x18\t \x01(\t\x12\x12\n\ninput_kind\x18\n \x01(\t\x12\x15\n\rsubmitted_utc\x18\x0b \x01(\t\"#\n\x11WatchBuildRequest\x12\x0e\n\x06job_id\x18\x01 \x01(\t\"\x13\n\x11ListBuildsRequest\"7\n\x12ListBuildsResponse\x12!\n\x04jobs\x18\x01 \x03(\x0b\x32\x13.sfmloc.v1.BuildJob\"!\n\x0fGetBuildRequest\x12\x0e\n\x06job_id\x18\x01 \x01(\t\"$\n\x12\x43\x61ncelBuildRequest\x12\x0e\n\x06job_id\x18\x01 \x01(\t\"(\n\x13\x43\x61ncelBuildResponse\x12\x11\n\tcancelled\x18\x01 \x01(\x08*\xa8\x01\n\nBuildState\x12\x1b\n\x17\x42UILD_STATE_UNSPECIFIED\x10\x00\x12\x16\n\x12\x42UILD_STATE_QUEUED\x10\x01\x12\x17\n\x13\x42UILD_STATE_RUNNING\x10\x02\x12\x19\n\x15\x42UILD_STATE_SUCCEEDED\x10\x03\x12\x16\n\x12\x42UILD_STATE_FAILED\x10\x04\x12\x19\n\x15\x42UILD_STATE_CANCELLED\x10\x05\x32\xf5\x02\n\nMapBuilder\x12L\n\x0bSubmitBuild\x12\x1d.sfmloc.v1.SubmitBuildRequest\x1a\x1e.sfmloc.v1.SubmitBuildResponse\x12\x43\n\nWatchBuild\x12\x1c.sfmloc.v1.WatchBuildRequest\x1a\x15.sfmloc.v1.BuildEvent0\x01\x12I\n\nListBuilds\x12\x1c.sfmloc.v1.ListBuildsRequest\x1a\x1d.sfmloc.v1.ListBuildsResponse\x12;\n\x08GetBuild\x12\x1a.sfmloc.v1.GetBuildRequest\x1a\x13.sfmloc.v1.BuildJob\x12L\n\x0b\x43\x61ncelBuild\x12\x1d.sfmloc.v1.CancelBuildRequest\x1a\x1e.sfmloc.v1.CancelBuildResponseb\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x17sfmloc/v1/builder.proto\x12\tsfmloc.v1\x1a\x16sfmloc/v1/common.proto\"3\n\x0b\x43olmapInput\x12\x11\n\tmodel_dir\x18\x01 \x01(\t\x12\x11\n\timage_dir\x18\x02 \x01(\t\"\\\n\x10PosedImagesInput\x12\x11\n\timage_dir\x18\x01 \x01(\t\x12\x12\n\nposes_file\x18\x02 \x01(\t\x12!\n\x06\x63\x61mera\x18\x03 \x01(\x0b\x32\x11.sfmloc.v1.Camera\"Y\n\x0fImagesOnlyInput\x12\x11\n\timage_dir\x18\x01 \x01(\t\x12!\n\x06\x63\x61mera\x18\x02 \x01(\x0b\x32\x11.sfmloc.v1.Camera\x12\x10\n\x08matching\x18\x03 \x01(\t\"\x83\x02\n\x12SubmitBuildRequest\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\x0f\n\x07out_dir\x18\x02 \x01(\t\x12(\n\x06\x63olmap\x18\x03 \x01(\x0b\x32\x16.sfmloc.v1.ColmapInputH\x00\x12\x33\n\x0cposed_images\x18\x04 \x01(\x0b\x32\x1b.sfmloc.v1.PosedImagesInputH\x00\x12\x31\n\x0bimages_only\x18\x05 \x01(\x0b\x32\x1a.sfmloc.v1.ImagesOnlyInputH\x00\x12\x0e\n\x06preset\x18\x06 \x01(\t\x12\x13\n\x0b\x63onfig_json\x18\x07 \x01(\t\x12\x0e\n\x06stride\x18\x08 \x01(\rB\x07\n\x05input\"%\n\x13SubmitBuildResponse\x12\x0e\n\x06job_id\x18\x01 \x01(\t\"\xab\x01\n\nBuildEvent\x12\x0e\n\x06job_id\x18\x01 \x01(\t\x12$\n\x05state\x18\x02 \x01(\x0e\x32\x15.sfmloc.v1.BuildState\x12\r\n\x05stage\x18\x03 \x01(\t\x12\x10\n\x08\x66raction\x18\x04 \x01(\x01\x12\x0f\n\x07message\x18\x05 \x01(\t\x12\x11\n\telapsed_s\x18\x06 \x01(\x01\x12\x13\n\x0b\x62undle_path\x18\x07 \x01(\t\x12\r\n\x05\x65rror\x18\x08 \x01(\t\"\xf5\x01\n\x08\x42uildJob\x12\x0e\n\x06job_id\x18\x01 \x01(\t\x12\x0c\n\x04name\x18\x02 \x01(\t\x12$\n\x05state\x18\x03 \x01(\x0e\x32\x15.sfmloc.v1.BuildState\x12\r\n\x05stage\x18\x04 \x01(\t\x12\x10\n\x08\x66raction\x18\x05 \x01(\x01\x12\x0f\n\x07message\x18\x06 \x01(\t\x12\x11\n\telapsed_s\x18\x07 \x01(\x01\x12\x13\n\x0b\x62undle_path\x18\x08 \x01(\t\x12\r\n\x05\x65rror\x18\t \x01(\t\x12\x12\n\ninput_kind\x18\n \x01(\t\x12\x15\n\rsubmitted_utc\x18\x0b \x01(\t\x12\x11\n\tended_utc\x18\x0c \x01(\t\"#\n\x11WatchBuildRequest\x12\x0e\n\x06job_id\x18\x01 \x01(\t\"\x13\n\x11ListBuildsRequest\"7\n\x12ListBuildsResponse\x12!\n\x04jobs\x18\x01 \x03(\x0b\x32\x13.sfmloc.v1.BuildJob\"!\n\x0fGetBuildRequest\x12\x0e\n\x06job_id\x18\x01 \x01(\t\"$\n\x12\x43\x61ncelBuildRequest\x12\x0e\n\x06job_id\x18\x01 \x01(\t\"(\n\x13\x43\x61ncelBuildResponse\x12\x11\n\tcancelled\x18\x01 \x01(\x08*\xa8\x01\n\nBuildState\x12\x1b\n\x17\x42UILD_STATE_UNSPECIFIED\x10\x00\x12\x16\n\x12\x42UILD_STATE_QUEUED\x10\x01\x12\x17\n\x13\x42UILD_STATE_RUNNING\x10\x02\x12\x19\n\x15\x42UILD_STATE_SUCCEEDED\x10\x03\x12\x16\n\x12\x42UILD_STATE_FAILED\x10\x04\x12\x19\n\x15\x42UILD_STATE_CANCELLED\x10\x05\x32\xf5\x02\n\nMapBuilder\x12L\n\x0bSubmitBuild\x12\x1d.sfmloc.v1.SubmitBuildRequest\x1a\x1e.sfmloc.v1.SubmitBuildResponse\x12\x43\n\nWatchBuild\x12\x1c.sfmloc.v1.WatchBuildRequest\x1a\x15.sfmloc.v1.BuildEvent0\x01\x12I\n\nListBuilds\x12\x1c.sfmloc.v1.ListBuildsRequest\x1a\x1d.sfmloc.v1.ListBuildsResponse\x12;\n\x08GetBuild\x12\x1a.sfmloc.v1.GetBuildRequest\x1a\x13.sfmloc.v1.BuildJob\x12L\n\x0b\x43\x61ncelBuild\x12\x1d.sfmloc.v1.CancelBuildRequest\x1a\x1e.sfmloc.v1.CancelBuildResponseb\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
 _builder.BuildTopDescriptorsAndMessages(DESCRIPTOR, 'sfmloc.v1.builder_pb2', _globals)
 if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
-  _globals['_BUILDSTATE']._serialized_start=1235
-  _globals['_BUILDSTATE']._serialized_end=1403
+  _globals['_BUILDSTATE']._serialized_start=1254
+  _globals['_BUILDSTATE']._serialized_end=1422
   _globals['_COLMAPINPUT']._serialized_start=62
   _globals['_COLMAPINPUT']._serialized_end=113
   _globals['_POSEDIMAGESINPUT']._serialized_start=115
@@ -47,19 +47,19 @@ if not _descriptor._USE_C_DESCRIPTORS:
   _globals['_BUILDEVENT']._serialized_start=602
   _globals['_BUILDEVENT']._serialized_end=773
   _globals['_BUILDJOB']._serialized_start=776
-  _globals['_BUILDJOB']._serialized_end=1002
-  _globals['_WATCHBUILDREQUEST']._serialized_start=1004
-  _globals['_WATCHBUILDREQUEST']._serialized_end=1039
-  _globals['_LISTBUILDSREQUEST']._serialized_start=1041
-  _globals['_LISTBUILDSREQUEST']._serialized_end=1060
-  _globals['_LISTBUILDSRESPONSE']._serialized_start=1062
-  _globals['_LISTBUILDSRESPONSE']._serialized_end=1117
-  _globals['_GETBUILDREQUEST']._serialized_start=1119
-  _globals['_GETBUILDREQUEST']._serialized_end=1152
-  _globals['_CANCELBUILDREQUEST']._serialized_start=1154
-  _globals['_CANCELBUILDREQUEST']._serialized_end=1190
-  _globals['_CANCELBUILDRESPONSE']._serialized_start=1192
-  _globals['_CANCELBUILDRESPONSE']._serialized_end=1232
-  _globals['_MAPBUILDER']._serialized_start=1406
-  _globals['_MAPBUILDER']._serialized_end=1779
+  _globals['_BUILDJOB']._serialized_end=1021
+  _globals['_WATCHBUILDREQUEST']._serialized_start=1023
+  _globals['_WATCHBUILDREQUEST']._serialized_end=1058
+  _globals['_LISTBUILDSREQUEST']._serialized_start=1060
+  _globals['_LISTBUILDSREQUEST']._serialized_end=1079
+  _globals['_LISTBUILDSRESPONSE']._serialized_start=1081
+  _globals['_LISTBUILDSRESPONSE']._serialized_end=1136
+  _globals['_GETBUILDREQUEST']._serialized_start=1138
+  _globals['_GETBUILDREQUEST']._serialized_end=1171
+  _globals['_CANCELBUILDREQUEST']._serialized_start=1173
+  _globals['_CANCELBUILDREQUEST']._serialized_end=1209
+  _globals['_CANCELBUILDRESPONSE']._serialized_start=1211
+  _globals['_CANCELBUILDRESPONSE']._serialized_end=1251
+  _globals['_MAPBUILDER']._serialized_start=1425
+  _globals['_MAPBUILDER']._serialized_end=1798
 # @@protoc_insertion_point(module_scope)

@@ -98,7 +98,7 @@ class BuildEvent(_message.Message):
     def __init__(self, job_id: _Optional[str] = ..., state: _Optional[_Union[BuildState, str]] = ..., stage: _Optional[str] = ..., fraction: _Optional[float] = ..., message: _Optional[str] = ..., elapsed_s: _Optional[float] = ..., bundle_path: _Optional[str] = ..., error: _Optional[str] = ...) -> None: ...
 
 class BuildJob(_message.Message):
-    __slots__ = ("job_id", "name", "state", "stage", "fraction", "message", "elapsed_s", "bundle_path", "error", "input_kind", "submitted_utc")
+    __slots__ = ("job_id", "name", "state", "stage", "fraction", "message", "elapsed_s", "bundle_path", "error", "input_kind", "submitted_utc", "ended_utc")
     JOB_ID_FIELD_NUMBER: _ClassVar[int]
     NAME_FIELD_NUMBER: _ClassVar[int]
     STATE_FIELD_NUMBER: _ClassVar[int]
@@ -110,6 +110,7 @@ class BuildJob(_message.Message):
     ERROR_FIELD_NUMBER: _ClassVar[int]
     INPUT_KIND_FIELD_NUMBER: _ClassVar[int]
     SUBMITTED_UTC_FIELD_NUMBER: _ClassVar[int]
+    ENDED_UTC_FIELD_NUMBER: _ClassVar[int]
     job_id: str
     name: str
     state: BuildState
@@ -121,7 +122,8 @@ class BuildJob(_message.Message):
     error: str
     input_kind: str
     submitted_utc: str
-    def __init__(self, job_id: _Optional[str] = ..., name: _Optional[str] = ..., state: _Optional[_Union[BuildState, str]] = ..., stage: _Optional[str] = ..., fraction: _Optional[float] = ..., message: _Optional[str] = ..., elapsed_s: _Optional[float] = ..., bundle_path: _Optional[str] = ..., error: _Optional[str] = ..., input_kind: _Optional[str] = ..., submitted_utc: _Optional[str] = ...) -> None: ...
+    ended_utc: str
+    def __init__(self, job_id: _Optional[str] = ..., name: _Optional[str] = ..., state: _Optional[_Union[BuildState, str]] = ..., stage: _Optional[str] = ..., fraction: _Optional[float] = ..., message: _Optional[str] = ..., elapsed_s: _Optional[float] = ..., bundle_path: _Optional[str] = ..., error: _Optional[str] = ..., input_kind: _Optional[str] = ..., submitted_utc: _Optional[str] = ..., ended_utc: _Optional[str] = ...) -> None: ...
 
 class WatchBuildRequest(_message.Message):
     __slots__ = ("job_id",)

@@ -119,6 +119,9 @@ def job_to_pb(job: Job) -> pb.BuildJob:
         error=job.error,
         input_kind=job.spec.input_kind,
         submitted_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(job.submitted)),
+        ended_utc=""
+        if job.ended is None
+        else time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(job.ended)),
     )
 
 

@@ -153,19 +153,36 @@ def _grpc_call(fn, *a):
 
 
 def _watch(stub, job_id: str) -> int:
+    """Follow a job to its end (a job that has ended already: its recorded progress, each stage
+    with the time it took); 0 when it succeeded."""
     from sfmloc_client.pb import builder_pb2 as pb
 
     from .progress import ProgressPrinter
 
+    job = _grpc_call(stub.GetBuild, pb.GetBuildRequest(job_id=job_id))
+    if job.state in (pb.BUILD_STATE_SUCCEEDED, pb.BUILD_STATE_FAILED, pb.BUILD_STATE_CANCELLED):
+        # WatchBuild replays the recorded events at once: say so, rather than let the replay
+        # pass for a build happening now.
+        state = pb.BuildState.Name(job.state).removeprefix("BUILD_STATE_")
+        print(
+            f"{job_id} ({job.name}) had already ended: {state} at {job.ended_utc or '?'} "
+            f"after {job.elapsed_s:.1f} s (submitted {job.submitted_utc}). Its recorded "
+            "progress, times from the job's events:",
+            file=sys.stderr,
+        )
     bar = ProgressPrinter()
     last = None
     for ev in _grpc_call(stub.WatchBuild, pb.WatchBuildRequest(job_id=job_id)):
         last = ev
         if ev.stage:
-            bar(ev.stage, ev.fraction, ev.message)
+            # The event's own time (since the job started), not the time it reached us.
+            bar(ev.stage, ev.fraction, ev.message, t=ev.elapsed_s)
     bar.close()
     if last is None:
         return 1
+    stages = [(s, d) for s, d in bar.stage_times().items() if s != "done"]
+    if stages:
+        print("stages: " + ", ".join(f"{s} {d:.1f} s" for s, d in stages), file=sys.stderr)
     state = pb.BuildState.Name(last.state).removeprefix("BUILD_STATE_")
     if last.state == pb.BUILD_STATE_SUCCEEDED:
         print(f"{job_id}: SUCCEEDED in {last.elapsed_s:.1f} s: {last.bundle_path}")

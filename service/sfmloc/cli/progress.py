@@ -17,16 +17,29 @@ class ProgressPrinter:
         self.stage: str | None = None
         self.t_stage = time.perf_counter()
         self.last_decile = -1
+        # (stage, time of its first event) in order, and the time of the last event: stage
+        # durations for stage_times().
+        self._starts: list[tuple[str, float]] = []
+        self._t_last = self.t_stage
 
-    def __call__(self, stage: str, fraction: float, message: str = "") -> None:
+    def __call__(
+        self, stage: str, fraction: float, message: str = "", t: float | None = None
+    ) -> None:
+        """One progress event. ``t``: when it happened, in seconds on the caller's clock (a
+        builder job's events carry their time since the job started: a finished job's
+        progress, replayed at once, still shows how long each stage took); default now."""
         fraction = min(max(float(fraction), 0.0), 1.0)
+        now = time.perf_counter() if t is None else float(t)
+        self._t_last = now
+        if not self._starts or self._starts[-1][0] != stage:
+            self._starts.append((stage, now))
         if stage != self.stage:
             if self.stage is not None and self.tty:
                 self.stream.write("\n")
             self.stage = stage
-            self.t_stage = time.perf_counter()
+            self.t_stage = now
             self.last_decile = -1
-        elapsed = time.perf_counter() - self.t_stage
+        elapsed = now - self.t_stage
         if self.tty:
             filled = int(round(fraction * self.width))
             bar = "#" * filled + "-" * (self.width - filled)
@@ -44,6 +57,15 @@ class ProgressPrinter:
             self.last_decile = decile
             self.stream.write(f"{stage:>12s} {fraction * 100:5.1f}% {elapsed:6.1f}s {message}\n")
             self.stream.flush()
+
+    def stage_times(self) -> dict[str, float]:
+        """Seconds per stage, in order: from a stage's first event to the next stage's first
+        (the last stage: to the last event); a stage seen twice adds up."""
+        out: dict[str, float] = {}
+        ends = [t for _, t in self._starts[1:]] + [self._t_last]
+        for (stage, t0), t1 in zip(self._starts, ends):
+            out[stage] = out.get(stage, 0.0) + (t1 - t0)
+        return out
 
     def close(self) -> None:
         if self.tty and self.stage is not None:
