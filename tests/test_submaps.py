@@ -23,6 +23,7 @@ from sfmloc.map.bundle import PACKED_FILE, MapBundle, read_manifest
 from sfmloc.map.submaps import (
     SET_MANIFEST,
     SubmapSet,
+    read_set_manifest,
     split_bundle,
     translate,
     verify_submap_set,
@@ -228,6 +229,27 @@ def test_cli_split_and_verify_detects_corruption(world, tmp_path):
         text=True,
     )
     assert r.returncode == 2 and "not allowed with" in r.stderr
+
+
+def test_cli_split_names_the_set_after_the_folder_given(world, tmp_path):
+    """README: `sfmloc map split maps/campus --parts N` then `maps show campus-submaps`. The
+    set was named after the manifest's map name, so a bundle in a folder of another name (a
+    copy, a renamed folder) gave `room-submaps`, and two copies of one build wrote one set."""
+    import shutil
+
+    (tmp_path / "maps").mkdir()
+    shutil.copytree(world.maps_dir / "room", tmp_path / "maps" / "campus")  # calls itself room
+    r = subprocess.run(
+        [sys.executable, "-m", "sfmloc", "map", "split", "maps/campus", "--parts", "2"],
+        capture_output=True, text=True, timeout=120, cwd=tmp_path,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    path = tmp_path / "maps" / "campus-submaps"
+    assert f"wrote {path}" in r.stdout
+    assert sorted(p.name for p in (tmp_path / "maps").iterdir()) == ["campus", "campus-submaps"]
+    # The name a server hosts the set under (server/maps.py: the set manifest's name).
+    assert read_set_manifest(path).name == "campus-submaps"
+    assert "named after the folder 'campus'" in r.stderr and "'room'" in r.stderr
 
 
 # ---------------------------------------------------------------- localization across parts

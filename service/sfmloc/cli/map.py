@@ -151,6 +151,11 @@ boxes and clusters, a place-recognition sample of descriptors) says which sub-ma
 query touches. Written atomically like a bundle, with checksums: 'sfmloc map verify OUT/NAME'
 checks the set and every part. Give --parts K, or --max-points N (cut until each part holds at
 most N points; a camera cluster is never cut).
+
+The set is named after the bundle folder given (maps/campus -> maps/campus-submaps), not after
+the name inside the bundle's manifest, and a server hosts it under that name ('sfmloc maps show
+campus-submaps'): two copies of one build in different folders never write the same set.
+--name chooses another.
 """
 
 
@@ -161,14 +166,16 @@ def add_split_parser(msub: argparse._SubParsersAction) -> None:
         description=SPLIT_DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    sp.add_argument("path", help="bundle folder to split")
+    sp.add_argument("path", metavar="FOLDER", help="bundle folder to split")
     how = sp.add_mutually_exclusive_group(required=True)
     how.add_argument("--parts", type=int, help="number of sub-maps")
     how.add_argument("--max-points", type=int, help="at most this many points per sub-map")
     sp.add_argument(
         "--out", default=None, help="folder to write the set into (default: beside the bundle)"
     )
-    sp.add_argument("--name", default=None, help="name of the set (default: BUNDLE-submaps)")
+    sp.add_argument(
+        "--name", default=None, help="name of the set (default: FOLDER-submaps, FOLDER's own name)"
+    )
     sp.add_argument(
         "--overlap",
         type=float,
@@ -195,8 +202,18 @@ def run_split(args: argparse.Namespace) -> int:
         for p in problems:
             print(f"CORRUPT: {p}", file=sys.stderr)
         return 1
-    out = Path(args.out) if args.out else Path(args.path).resolve().parent
-    name = args.name or f"{bundle.name}-submaps"
+    folder = Path(args.path).resolve()
+    out = Path(args.out) if args.out else folder.parent
+    # After the folder the user named (README: `map split maps/campus` then `maps show
+    # campus-submaps`), not the manifest's name: a copied or renamed folder keeps its build's
+    # name, and two copies of one build would write (and replace) the same set.
+    name = args.name or f"{folder.name}-submaps"
+    if args.name is None and folder.name != bundle.name:
+        print(
+            f"note: the set is named after the folder {folder.name!r}; the bundle inside calls "
+            f"itself {bundle.name!r} (--name to choose)",
+            file=sys.stderr,
+        )
     try:
         path = split_bundle(
             bundle,
