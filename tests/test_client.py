@@ -581,6 +581,40 @@ def test_cli_relocalize_maps_sessions_servers(world, server):
     assert r.returncode == 0 and "client-tests: ready" in r.stdout and "room" in r.stdout
 
 
+def test_cli_relocalize_with_a_prior(world, server):
+    """README's `relocalize --prior 'qx qy qz qw tx ty tz'` (cam_from_world) ran in no test: a
+    right prior reaches the engine (its search scoped around the prior verifies more matches:
+    98 inliers against 32 for the whole-map search here), a wrong one costs time and not a
+    wrong pose, and a malformed one is a clean exit 2 (words were a ValueError traceback)."""
+    srv, _ = server
+    k = 15
+    gt = world.gt_cam_from_world[k].inverse().translation
+
+    def reloc(*prior: str) -> subprocess.CompletedProcess:
+        return _cli(
+            "relocalize", str(world.frames[k]), "--map", "room", "--camera", world.camera_spec,
+            "--grpc", f"127.0.0.1:{srv.grpc_port}", "--json", *prior,
+        )  # fmt: skip
+
+    without = json.loads(reloc().stdout)
+    right = Transform.from_matrix(world.gt_cam_from_world[k].matrix4())
+    r = reloc("--prior", " ".join(f"{v:.9f}" for v in (*right.quat_xyzw, *right.t)))
+    assert r.returncode == 0, r.stderr
+    d = json.loads(r.stdout)
+    assert d["status"] == "RELOCALIZED", d
+    assert np.linalg.norm(np.array(d["world_from_cam"]["t"]) - gt) < 0.1
+    assert d["inliers"] > without["inliers"], (d, without)
+    r = reloc("--prior", "0 0 0 1 100 100 100")  # nowhere near: found by global matching, or LOST
+    d = json.loads(r.stdout)
+    assert r.returncode in (0, 1) and (r.returncode == 0) == (d["world_from_cam"] is not None)
+    if r.returncode == 0:
+        assert np.linalg.norm(np.array(d["world_from_cam"]["t"]) - gt) < 0.1, d
+    for bad in ("1 2 3", "a b c d e f g"):
+        r = reloc("--prior", bad)
+        assert r.returncode == 2 and "--prior takes 7 numbers" in r.stderr, r.stderr
+        assert "Traceback" not in r.stderr
+
+
 def test_cli_maps_unload_load_and_sessions_reset(world, server):
     """The map and session commands' other paths (README: map management): unload and load
     back by name, a reset of a client the server does not know."""

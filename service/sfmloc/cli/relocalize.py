@@ -34,7 +34,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--prior",
         metavar="'qx qy qz qw tx ty tz'",
-        help="approximate cam_from_world to search near",
+        help="approximate cam_from_world to search near first (then the whole map: a wrong "
+        "prior costs time, not a wrong pose)",
     )
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     add_grpc_option(p)
@@ -66,9 +67,12 @@ def run(args: argparse.Namespace) -> int:
         image, encoding = decoded, "png"
     prior = None
     if args.prior:
-        v = [float(x) for x in args.prior.split()]
+        try:
+            v = [float(x) for x in args.prior.split()]
+        except ValueError:  # a word where a number goes: exit 2 with the rule, no traceback
+            v = []
         if len(v) != 7:
-            raise InputError("--prior takes 7 numbers: qx qy qz qw tx ty tz")
+            raise InputError(f"--prior takes 7 numbers: qx qy qz qw tx ty tz, got {args.prior!r}")
         prior = Transform((v[0], v[1], v[2], v[3]), (v[4], v[5], v[6]))
     with grpc_client(args) as c:
         try:
