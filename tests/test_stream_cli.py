@@ -116,6 +116,18 @@ def test_stream_bad_sources_fail_cleanly_before_connecting(world, tmp_path):
     assert r.returncode == 2 and "no numeric stem" in r.stderr
 
 
+def test_stream_from_a_missing_camera_says_so_before_connecting(world):
+    """`--source DEVICE` (README: `sfmloc stream --map lab --source 0 ...`) with no such camera:
+    exit 2 naming the camera and where it would be, before any wait for a server."""
+    device = 93
+    if Path(f"/dev/video{device}").exists():
+        pytest.skip(f"/dev/video{device} exists here: this test needs a camera index with none")
+    r = _stream(world, zenoh_endpoint(), device, "--map", "room")  # nobody at the endpoint
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    assert f"cannot open camera {device}" in r.stderr and f"/dev/video{device}" in r.stderr
+    assert "no server" not in r.stderr  # checked before connecting
+
+
 def test_grpc_stream_is_paced_and_takes_a_camera_string(world, server):
     from sfmloc_client import LocalizationClient
 

@@ -85,7 +85,12 @@ def video_frames(source: str | int, *, gray: bool = False) -> Iterator[SourceFra
     cv2 = _cv2()
     cap = cv2.VideoCapture(source)
     if not cap.isOpened():
-        raise InputError(f"cannot open video source {source!r}")
+        if isinstance(source, int):  # say it was taken for a camera, and where Linux has it
+            raise InputError(
+                f"cannot open camera {source} (a number is a camera index: /dev/video{source} "
+                "on Linux; no such device, or another program holds it)"
+            )
+        raise InputError(f"cannot open video {source!r}")
     is_file = isinstance(source, str)
     fps = (cap.get(cv2.CAP_PROP_FPS) or 30.0) if is_file else 0.0
     try:
