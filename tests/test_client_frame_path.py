@@ -204,3 +204,44 @@ def test_every_other_message_decodes_or_is_refused_exactly_as_the_checks_say():
         payload = msgpack.packb(d, use_bin_type=True)
         assert _decoded(payload) == _checked(payload), (path, "missing")
     assert base == msgpack.unpackb(encode_pose(_pose()), raw=False)
+
+
+def _reported(fs: FrameStreamer) -> bool:
+    return fs._reported[id(fs._pub)][0][0]
+
+
+def _until(cond, timeout: float = 30.0) -> bool:
+    event = threading.Event()
+    for _ in range(int(timeout / 0.01)):
+        if cond():
+            return True
+        event.wait(0.01)
+    return cond()
+
+
+def test_the_streamer_follows_its_server_from_zenoh_reports_and_counts_frames_lost(world):
+    """A frame is counted undelivered exactly when no server subscribes: before the server,
+    while it serves (Zenoh's report: no question per frame), and after it stopped."""
+    ep = zenoh_endpoint()
+    with client_zenoh(ep) as z:
+        got: list = []
+        with (
+            PoseSubscriber(z, "room", "reports", callback=got.append) as poses,
+            FrameStreamer(z, "room", "reports", camera(world), encoding="png") as fs,
+        ):
+            assert not _reported(fs) and not fs.server_present()
+            fs.publish(data=world.png[0], encoding="png")
+            assert fs.undelivered == 1
+            with running_server(server_config(world, ep)):
+                assert fs.wait_for_server(60)
+                assert _until(lambda: _reported(fs))  # Zenoh reported the match
+                for k in range(1, 4):  # in lockstep: the server keeps only a newest frame
+                    fs.publish(data=world.png[k], encoding="png")
+                    assert poses.wait_for(k, 30)
+                assert fs.undelivered == 1
+            assert _until(lambda: not fs.server_present())
+            assert _until(lambda: not _reported(fs))  # ... and that it is gone
+            fs.publish(data=world.png[4], encoding="png")
+            assert fs.undelivered == 2
+        assert sorted(p.seq for p in got) == [1, 2, 3]
+    assert fs._reported == {}  # the listener went with its publisher
