@@ -204,6 +204,9 @@ def projected_matches(
     n_kp = len(kp_xy)
     if n_kp <= _ONE_GRID_MAX_KEYPOINTS:
         span = float(1 << n_kp.bit_length())
+        # (measured, not taken: a preallocated grid filled by np.add.at, read, and zeroed again
+        # at the keypoints' cells: 12.9 against 12.6 us hot, each with the gather; the grid's
+        # zeroing is not what costs)
         grid = np.bincount(
             (kp_cell[:, None] + offsets).ravel(),
             _weights_by_9(n_kp.bit_length())[: 9 * n_kp],
@@ -226,6 +229,8 @@ def projected_matches(
     # Several map points may project onto one keypoint: mostly one corner triangulated more
     # than once (on redkitchen a quarter of the projections have another within 1.7 px), so
     # the closest is kept.
+    # (measured, not taken: two stable argsorts, d2 then kp, the same order: x1.5-2 the CPU of
+    # lexsort on ~130 pairs, 6.2-6.5 against 3.3-4.2 us hot)
     order = np.lexsort((d2, kp))
     first = np.ones(len(order), bool)
     first[1:] = kp[order[1:]] != kp[order[:-1]]
