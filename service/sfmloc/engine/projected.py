@@ -254,6 +254,8 @@ def unmatched_only(
         key = np.ascontiguousarray(kp_xy[kp_i], np.float64).view(np.complex128).ravel()
         keep &= used[np.minimum(np.searchsorted(used, key), len(used) - 1)] != key
     if len(matched_points):
+        # (measured, not taken: np.isin(kind="table"), x1.27 the CPU of this sort and search
+        # on 299 recorded redkitchen calls, 27.7 -> 35.3 us, issue 10)
         taken = np.sort(matched_points)
         keep &= taken[np.minimum(np.searchsorted(taken, pt_i), len(taken) - 1)] != pt_i
     return kp_i[keep], pt_i[keep]
