@@ -134,6 +134,23 @@ def test_camera_project_world_points_and_depth():
     assert np.allclose(uv[0], [500 * 0.05 + 321, 510 * 0.1 + 239])
 
 
+@pytest.mark.parametrize("cam", CAMERAS, ids=lambda c: c.model)
+def test_camera_project_is_the_transform_then_the_image_mapping_bit_for_bit(cam):
+    """``Camera.project`` writes the transform out (R^T contiguous) and, for a pinhole
+    model, applies K in place: the bits of ``Rigid3d.apply`` followed by the division and
+    ``img_from_normalized`` (what the tracker's predicted positions were), every model, one
+    point and many, points behind and on the camera plane too."""
+    for n in (1, 2, 5, 100, 1000):
+        T = Rigid3d(random_rotation(), rng.normal(0, 1, 3))
+        X = rng.normal(0, 3, (n, 3))
+        X[: n // 3] = T.inverse().apply(np.c_[rng.normal(0, 1, (n // 3, 2)), np.zeros(n // 3)])
+        pc = T.apply(X)
+        z = pc[:, 2]
+        want = cam.img_from_normalized(pc[:, :2] / np.where(np.abs(z) < 1e-12, 1e-12, z)[:, None])
+        uv, depth = cam.project(T, X)
+        assert uv.tobytes() == want.tobytes() and depth.tobytes() == z.tobytes()
+
+
 def test_camera_parse_forms_and_errors(tmp_path):
     c = Camera.parse("PINHOLE 640 480 525.505 525.505 320 240")
     assert c.model == "PINHOLE" and c.size == (640, 480) and np.allclose(c.K[0], [525.505, 0, 320])

@@ -306,6 +306,7 @@ def test_tracked_table_and_refill_coverage_read_the_keypoints_rows(bundle, cam):
         return len(set((ij[:, 1] * 4 + ij[:, 0]).tolist()))
 
     answers = set()
+    early = 0
     for trial in range(200):
         n, m = int(rng.integers(0, 80)), int(rng.integers(1, 300))
         prev = TrackTable.empty(3)
@@ -328,10 +329,13 @@ def test_tracked_table_and_refill_coverage_read_the_keypoints_rows(bundle, cam):
             got = getattr(table, name)
             assert got.dtype == getattr(want, name).dtype
             assert np.array_equal(got, getattr(want, name))
-        plain = cells(table.xy[table.point >= 0]) < loc.conf.refill_coverage * cells(kps.xy)
+        covered = cells(table.xy[table.point >= 0])
+        plain = covered < loc.conf.refill_coverage * cells(kps.xy)
         assert loc._uncovered(table, kps, used) == plain
         answers.add(plain)
-    assert answers == {True, False}
+        # (10 of the 16 cells or more: answered without the keypoints' cells)
+        early += covered >= 10
+    assert answers == {True, False} and early > 0
 
 
 def test_predicted_positions_are_camera_project_s_bit_for_bit(bundle, cam):

@@ -148,6 +148,8 @@ def test_scope_points_follow_the_matched_points(bundle):
     assert first_listing == sorted(first_listing)
     pts, xyz = scope.with_xyz(bundle, first)
     assert pts is got and np.array_equal(xyz, bundle.points_xyz[got])
+    # stored axis by axis: projected_matches reads the (3, N) rows without a copy
+    assert xyz.T.flags.c_contiguous and not xyz.T.flags.writeable
     assert scope(bundle, first[:39]) is got  # the same images: reused
     centers = np.array([T.center for T in bundle.image_cam_from_world])
     far = int(np.argmax(np.linalg.norm(centers - centers[0], axis=1)))
@@ -344,3 +346,36 @@ def test_projected_matches_at_the_one_grid_limit_and_past_it(n_kp):
     np.testing.assert_array_equal(got[1], want[1])
     # the high keypoint indices are matched too (their index sums are the largest)
     assert len(got[0]) > 10_000 and got[0].max() > n_kp - 10
+
+
+def test_the_scope_projected_axis_by_axis_is_the_row_major_product_bit_for_bit():
+    """``projected_matches`` projects the scope as R @ X^T, (3, N), where it took X @ R^T,
+    (N, 3): the same products summed in the same order, so the same bits (what its pairs, and
+    the poses refined on them, rest on), for any count of points (BLAS takes other kernels for
+    small and large products) and the coordinates' own layout or a copy of them."""
+    from sfmloc.transforms import rotmat_from_rotvec as rot
+
+    rng = np.random.default_rng(5)
+    for n in (1, 2, 3, 7, 64, 255, 1000, 2274, 9000):
+        for _ in range(4):
+            R = rot(rng.normal(0, 1.5, 3))
+            t = rng.normal(0, 3, 3)
+            X = rng.normal(0, 1, (n, 3)) * 10.0 ** rng.uniform(-3, 3, (n, 1))
+            row_major = X @ np.ascontiguousarray(R.T) + t
+            by_axis = R @ np.ascontiguousarray(X.T)
+            by_axis += t[:, None]
+            if n > 1:  # (one point: matrix-vector products, projected_matches keeps X @ R^T)
+                assert row_major.tobytes() == np.ascontiguousarray(by_axis.T).tobytes()
+            # and so the pairs: each candidate alone (the one-point path) and all of them
+            kp = (K[:2, :2] @ (row_major[:, :2] / row_major[:, 2:]).T).T + K[:2, 2]
+            kp = np.vstack([kp + rng.normal(0, 0.3, kp.shape), [[-50.0, -50.0]]])
+            pose = Rigid3d(R, t)
+            want = _reference_projected_matches(pose, K, W, H, kp, X, 1.5, 3.0)
+            got = projected_matches(pose, K, W, H, kp, X, np.arange(n), 1.5, 3.0)
+            np.testing.assert_array_equal(got[0], want[0])
+            np.testing.assert_array_equal(got[1], want[1])
+            for i in range(min(n, 3)):
+                one = projected_matches(pose, K, W, H, kp, X, np.array([i]), 1.5, 3.0)
+                ref = _reference_projected_matches(pose, K, W, H, kp, X[i : i + 1], 1.5, 3.0)
+                np.testing.assert_array_equal(one[0], ref[0])
+                np.testing.assert_array_equal(one[1], ref[1] + i)

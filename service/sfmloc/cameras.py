@@ -245,11 +245,25 @@ class Camera:
         self, cam_from_world: Rigid3d, points3D: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
         """Image coordinates (N, 2) and depths (N,) of world points; depth <= 0 is behind."""
-        pc = cam_from_world.apply(np.asarray(points3D, dtype=np.float64).reshape(-1, 3))
+        p = np.asarray(points3D, dtype=np.float64).reshape(-1, 3)
+        if len(p) > 1:
+            # (Rigid3d.apply written out with R^T contiguous: the same product and bits, without
+            # OpenBLAS's transposed-operand path; the tracker projects its map points through
+            # this every frame. One point: a matrix-vector product, whose bits differ)
+            pc = p @ np.ascontiguousarray(cam_from_world.rotation.T)
+            pc += cam_from_world.translation
+        else:
+            pc = cam_from_world.apply(p)
         z = pc[:, 2]
         safe = np.where(np.abs(z) < 1e-12, 1e-12, z)
         uv = pc[:, :2] / safe[:, None]
-        return self.img_from_normalized(uv), z
+        if self.is_distorted:
+            return self.img_from_normalized(uv), z
+        # (K applied in place on the division's new array: distort_normalized's copy of it
+        # for a pinhole camera skipped, the same products and sums)
+        uv *= self.focal
+        uv += self.principal_point
+        return uv, z
 
     def in_image(self, points2D: np.ndarray, margin: float = 0.0) -> np.ndarray:
         p = np.asarray(points2D).reshape(-1, 2)

@@ -701,11 +701,22 @@ class Localizer:
         c = self.conf
         if c.refill_coverage <= 0 or len(kps) == 0:
             return False
-        ij = np.minimum(np.maximum((kps.xy * self._cell_scale).astype(np.int64), 0), 3)
-        cell = ij[:, 1] * 4 + ij[:, 0]
+
+        def cells(xy: np.ndarray) -> np.ndarray:
+            ij = np.minimum(np.maximum((xy * self._cell_scale).astype(np.int64), 0), 3)
+            return ij[:, 1] * 4 + ij[:, 0]
+
         # (a row's cell is its keypoint's: the row's position is the keypoint's, bit for bit)
-        covered = int(np.count_nonzero(np.bincount(cell[used[table.point >= 0]], minlength=16)))
-        return covered < c.refill_coverage * int(np.count_nonzero(np.bincount(cell, minlength=16)))
+        covered = int(
+            np.count_nonzero(np.bincount(cells(kps.xy[used[table.point >= 0]]), minlength=16))
+        )
+        if covered >= c.refill_coverage * 16:
+            # Enough whatever cells the keypoints have (16 at most; the product rounds
+            # monotonically): the frame's ~650 keypoints' cells are not needed (issue 10)
+            return False
+        return covered < c.refill_coverage * int(
+            np.count_nonzero(np.bincount(cells(kps.xy), minlength=16))
+        )
 
     def _add_good_features(self, table: TrackTable, kps: Keypoints, used: np.ndarray) -> TrackTable:
         """ADD-GOOD-FEATURES: keypoints away from every tracked one join the table, pending,
@@ -910,7 +921,7 @@ class Localizer:
         rows = np.nonzero((table.point < 0) & (table.hyp[:, 0] >= 0))[0]
         if len(rows) == 0:
             return table
-        out = table.point[rows].copy()
+        out = table.point[rows]  # (a copy: an index array's gather)
         verified = verify_hypotheses(
             table.hyp[rows],
             self._undistort(table.xy[rows]),

@@ -71,9 +71,12 @@ class ScopePoints:
         ptr = bundle.image_points_ptr
         idx = bundle.image_points_idx
         points = _first_listed(bundle.n_points, [idx[ptr[i] : ptr[i + 1]] for i in imgs])
-        out = points, np.ascontiguousarray(bundle.points_xyz[points], np.float64)
-        for a in out:
-            a.flags.writeable = False  # (shared with later frames)
+        # (stored axis by axis, (3, N) C-contiguous, and handed out as its (N, 3) transpose:
+        # ``projected_matches`` projects it as R @ X^T, whose rows are contiguous)
+        xyz_by_axis = np.ascontiguousarray(bundle.points_xyz[points].T, np.float64)
+        for a in (points, xyz_by_axis):
+            a.flags.writeable = False  # (shared with later frames; before the view is taken)
+        out = points, xyz_by_axis.T
         self._recent[key] = out
         if len(self._recent) > self.keep:
             self._recent.popitem(last=False)
@@ -102,6 +105,23 @@ def _first_listed(n_points: int, parts: list[np.ndarray]) -> np.ndarray:
     return listed[np.sort(first)]
 
 
+_WEIGHTS_BY_9: dict[int, np.ndarray] = {}
+
+
+def _weights_by_9(bits: int) -> np.ndarray:
+    """``projected_matches``' keypoint weights 1 + (index + 1) * span, span = 2^bits, each
+    repeated 9 times, for every index below the span: the first 9 n are those of n keypoints
+    (made once per span up to 2^14 keypoints, 1.2 MB, not per frame)."""
+    w = _WEIGHTS_BY_9.get(bits)
+    if w is None:
+        span = float(1 << bits)
+        w = np.repeat(np.arange(1, (1 << bits) + 1, dtype=np.float64) * span + 1.0, 9)
+        w.flags.writeable = False
+        if bits <= 14:
+            _WEIGHTS_BY_9[bits] = w
+    return w
+
+
 def projected_matches(
     cam_from_world: Rigid3d,
     K: np.ndarray,
@@ -119,23 +139,28 @@ def projected_matches(
     it ("near": in the 3x3 cells of ``clear_px`` around it, which hold everything within
     ``clear_px``); per keypoint, the closest such projection (the first listed candidate on
     a tie). ``candidates_xyz``: ``points_xyz[candidates]`` when the caller has it
-    (``ScopePoints.with_xyz``)."""
+    (``ScopePoints.with_xyz``: the transpose of a C-contiguous (3, N) array, used as is)."""
     empty = np.zeros(0, np.int64)
     if len(candidates) == 0 or len(kp_xy) < 2:
         return empty, empty
     X = points_xyz[candidates] if candidates_xyz is None else candidates_xyz
-    # (R^T contiguous: OpenBLAS packs both operands into the same panels either way, the same
-    # kernel and bits, but its transposed-operand path for these (N, 3) x (3, 3) products costs
-    # x2: 9.6 -> 5.1 us on 2,136 points)
-    pc = X @ np.ascontiguousarray(cam_from_world.rotation.T) + cam_from_world.translation
-    z = pc[:, 2]
-    front = z > 1e-9
-    zs = np.where(front, z, 1.0)
-    u = K[0, 0] * pc[:, 0] / zs + K[0, 2]
-    v = K[1, 1] * pc[:, 1] / zs + K[1, 2]
-    inside = np.nonzero(
-        front & (u >= -0.5) & (u <= width - 0.5) & (v >= -0.5) & (v <= height - 0.5)
-    )[0]
+    # The camera coordinates axis by axis, (3, N): R @ X^T is the product X @ R^T transposed,
+    # the same three products summed in the same order by the same BLAS kernel (the same bits,
+    # two points or more: tests/test_projected.py), and each axis's row is contiguous for the
+    # divisions and comparisons below, which ran on stride-3 columns (issue 10: this block
+    # 30 -> 17 us hot on 2,274 points). X^T is free for ScopePoints' coordinates.
+    if len(X) > 1:
+        pc = cam_from_world.rotation @ np.ascontiguousarray(X.T)
+    else:  # (a single point: numpy takes matrix-vector products, not the same bits)
+        pc = (X @ np.ascontiguousarray(cam_from_world.rotation.T)).T
+    pc += cam_from_world.translation[:, None]
+    z = pc[2]
+    # (behind the camera: NaN, which every comparison below rejects, instead of a mask of its
+    # own and-ed in)
+    zs = np.where(z > 1e-9, z, np.nan)
+    u = K[0, 0] * pc[0] / zs + K[0, 2]
+    v = K[1, 1] * pc[1] / zs + K[1, 2]
+    inside = np.nonzero((u >= -0.5) & (u <= width - 0.5) & (v >= -0.5) & (v <= height - 0.5))[0]
     if len(inside) == 0:
         return empty, empty
     # (coordinates as separate vectors: no (N, 2) stacking; x0.5 CPU with the deduplicated
@@ -152,7 +177,7 @@ def projected_matches(
     # box filters over the whole grid (~35k cells). Integer sums: exact in any order.
     gw, gh = int(width / clear_px) + 3, int(height / clear_px) + 3
     pw = gw + 2  # padded row length
-    offsets = (np.arange(-1, 2)[:, None] * pw + np.arange(-1, 2)).ravel()
+    offsets = np.array([-pw - 1, -pw, -pw + 1, -1, 0, 1, pw - 1, pw, pw + 1])
 
     def cells(x: np.ndarray, y: np.ndarray) -> np.ndarray:
         i = np.floor(x / clear_px).astype(np.int64) + 1
@@ -179,9 +204,13 @@ def projected_matches(
     n_kp = len(kp_xy)
     if n_kp <= _ONE_GRID_MAX_KEYPOINTS:
         span = float(1 << n_kp.bit_length())
-        weights = np.arange(1, n_kp + 1, dtype=np.float64) * span + 1.0
+        # (measured, not taken: a preallocated grid filled by np.add.at, read, and zeroed again
+        # at the keypoints' cells: 12.9 against 12.6 us hot, each with the gather; the grid's
+        # zeroing is not what costs)
         grid = np.bincount(
-            (kp_cell[:, None] + offsets).ravel(), np.repeat(weights, 9), minlength=pw * (gh + 2)
+            (kp_cell[:, None] + offsets).ravel(),
+            _weights_by_9(n_kp.bit_length())[: 9 * n_kp],
+            minlength=pw * (gh + 2),
         )
         total = grid[p_cell]
         index_sum = np.floor(total / span)
@@ -200,11 +229,13 @@ def projected_matches(
     # Several map points may project onto one keypoint: mostly one corner triangulated more
     # than once (on redkitchen a quarter of the projections have another within 1.7 px), so
     # the closest is kept.
+    # (measured, not taken: two stable argsorts, d2 then kp, the same order: x1.5-2 the CPU of
+    # lexsort on ~130 pairs, 6.2-6.5 against 3.3-4.2 us hot)
     order = np.lexsort((d2, kp))
     first = np.ones(len(order), bool)
     first[1:] = kp[order[1:]] != kp[order[:-1]]
     sel = order[first]
-    return kp[sel], candidates[inside[p_idx[sel]]].astype(np.int64)
+    return kp[sel], candidates[inside[p_idx[sel]]].astype(np.int64, copy=False)
 
 
 def unmatched_only(
@@ -223,6 +254,8 @@ def unmatched_only(
         key = np.ascontiguousarray(kp_xy[kp_i], np.float64).view(np.complex128).ravel()
         keep &= used[np.minimum(np.searchsorted(used, key), len(used) - 1)] != key
     if len(matched_points):
+        # (measured, not taken: np.isin(kind="table"), x1.27 the CPU of this sort and search
+        # on 299 recorded redkitchen calls, 27.7 -> 35.3 us, issue 10)
         taken = np.sort(matched_points)
         keep &= taken[np.minimum(np.searchsorted(taken, pt_i), len(taken) - 1)] != pt_i
     return kp_i[keep], pt_i[keep]
