@@ -80,3 +80,20 @@ def test_a_frame_addressed_to_no_server_is_still_counted_lost(world):
             assert fs.wait_for_server(30)
             fs.publish(data=world.png[0], encoding="png")
             assert poses.wait_for(0, 30) and fs.undelivered == 0
+
+
+def test_a_long_stream_keeps_a_bounded_record_of_its_send_times(world):
+    """``StreamStats.send_ms`` holds the last SEND_MS_KEEP frames' send times, not one per frame
+    of the whole stream (a client streams for hours: ~3 MB an hour at 30 Hz before)."""
+    from sfmloc_client.streamer import SEND_MS_KEEP
+
+    endpoint = zenoh_endpoint()
+    n = SEND_MS_KEEP + 25
+    with (
+        zenoh.open(make_zenoh_config("peer", connect=[endpoint], multicast=False)) as z,
+        FrameStreamer(z, "room", "long", camera(world), encoding="png") as fs,
+    ):
+        src = [SourceFrame(data=world.png[0], encoding="png")] * n
+        stats = fs.run(src, wait_server=0)  # no server: every frame is counted lost, and timed
+    assert stats.sent == n and stats.undelivered == n
+    assert len(stats.send_ms) == SEND_MS_KEEP and all(t >= 0 for t in stats.send_ms)

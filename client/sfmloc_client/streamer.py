@@ -8,6 +8,7 @@ out once the previous one's pose is back, i.e. as fast as the server answers).
 
 from __future__ import annotations
 
+import collections
 import itertools
 import logging
 import time
@@ -38,13 +39,20 @@ def unanswered(last_sent_seq: int, poses: PoseSubscriber | None) -> int:
     return 0 if poses is None else max(0, last_sent_seq - max(poses.max_seq, -1))
 
 
+SEND_MS_KEEP = 1000
+
+
 @dataclass
 class StreamStats:
     sent: int = 0
     last_seq: int = -1
     started: float = 0.0
     ended: float = 0.0
-    send_ms: list[float] = field(default_factory=list)  # client-side encode + publish time
+    # Client-side encode + publish time (ms) of the last SEND_MS_KEEP frames: a stream lives for
+    # hours (a list of every frame grew ~3 MB an hour at 30 Hz).
+    send_ms: collections.deque[float] = field(
+        default_factory=lambda: collections.deque(maxlen=SEND_MS_KEEP)
+    )
     # With ``poses``: the most frames ever sent after the newest answered one, and how many
     # times that reached ``OUTAGE_FRAMES`` (each outage counted once, however long).
     max_unanswered: int = 0
