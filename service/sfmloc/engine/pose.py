@@ -54,6 +54,21 @@ def _symmetric_eigensolvers() -> tuple[
 eigh_sym, eigvalsh_sym = _symmetric_eigensolvers()
 
 
+def _einsum_kernel() -> Callable[..., np.ndarray]:
+    """``np.einsum`` without its Python layer: the C function it calls itself when not asked
+    to optimize (numpy 2's ``einsum``: ``return c_einsum(*operands, **kwargs)``), so the same
+    bits. Issue 10: the layer (its dispatcher and keyword checks) was a third of the call on
+    the leave-one-out's (n, 6) rows, three calls a tracked frame. Private: where it is
+    missing, the public function."""
+    try:
+        return importlib.import_module("numpy._core._multiarray_umath").c_einsum
+    except (ImportError, AttributeError):
+        return np.einsum
+
+
+_c_einsum = _einsum_kernel()
+
+
 @dataclass(frozen=True)
 class RansacParams:
     threshold: float = 4.0  # inlier reprojection error (px) while hypothesizing
@@ -321,9 +336,9 @@ def _leverage_rows(
     """Per correspondence (its Jacobian rows ``Ju``, ``Jv``, (n, 6)): A_i's rows ``Au``,
     ``Av`` (J_i cov) and J_i cov J_i^T's entries ``l00``, ``l11``, ``l01``."""
     Au, Av = Ju @ cov, Jv @ cov  # (n, 6) each: the rows of A_i
-    l00 = np.einsum("ij,ij->i", Au, Ju)  # J_i cov J_i^T
-    l11 = np.einsum("ij,ij->i", Av, Jv)
-    l01 = np.einsum("ij,ij->i", Au, Jv)
+    l00 = _c_einsum("ij,ij->i", Au, Ju)  # J_i cov J_i^T
+    l11 = _c_einsum("ij,ij->i", Av, Jv)
+    l01 = _c_einsum("ij,ij->i", Au, Jv)
     return Au, Av, l00, l11, l01
 
 
