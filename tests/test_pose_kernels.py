@@ -638,6 +638,11 @@ def test_row_selection_and_finite_test_equal_numpy():
                 got, want = pose._take_rows(a, idx), a[mask]
                 assert got.dtype == want.dtype and got.shape == want.shape
                 assert got.flags.c_contiguous and got.tobytes() == want.tobytes()
+                if n:  # integer indices of any shape (RANSAC's (samples, 3) gathers)
+                    S = rng.integers(0, n, (5, 3))
+                    got, want = pose._take_rows(a, S), a[S]
+                    assert got.dtype == want.dtype and got.shape == want.shape
+                    assert got.flags.c_contiguous and got.tobytes() == want.tobytes()
     p = Rigid3d(rotmat_from_rotvec(np.array([0.1, -0.2, 0.3])), np.array([1.0, -2.0, 3.0]))
     assert pose._finite_pose(p) and p.is_finite()
     for i in range(12):

@@ -548,9 +548,11 @@ def _refine(
                 mask = new_mask
                 continue
         rvec, _ = cv2.Rodrigues(pose.rotation)
+        idx = mask.nonzero()[0]
         rvec, tvec = cv2.solvePnPRefineLM(
-            X[mask].astype(np.float64),
-            xy[mask].astype(np.float64),
+            # (float64 copies: of the taken rows, not copied again when already float64)
+            _take_rows(X, idx).astype(np.float64, copy=False),
+            _take_rows(xy, idx).astype(np.float64, copy=False),
             K,
             None,
             rvec,
@@ -918,10 +920,11 @@ def _finite_pose(pose: Rigid3d) -> bool:
 
 
 def _take_rows(a: np.ndarray, idx: np.ndarray) -> np.ndarray:
-    """``a[mask]`` for ``idx = mask.nonzero()[0]``: the same rows, copied, C-ordered. Issue
-    10: on the (n, 2) and (n, 3) match arrays numpy's boolean (and integer) indexing costs x3-5
-    ``take``'s (n 100-400: 3.7-10.1 us for the three of ``_finish``, 1.2-2.0 us taken), five
-    to eight such selections a tracked frame."""
+    """``a[idx]`` for integer indices ``idx`` of any shape (``a[mask]`` for ``idx =
+    mask.nonzero()[0]``): the same rows, copied, C-ordered. Issue 10: on the (n, 2) and (n, 3)
+    match arrays numpy's boolean and integer indexing cost x3-9 ``take``'s (n 100-400:
+    3.7-10.1 us for the three of ``_finish``, 1.2-2.0 us taken), five to eight such
+    selections a tracked frame, a few hundred in a relocalization's RANSAC."""
     return a.take(idx, 0)
 
 
@@ -989,8 +992,8 @@ def estimate_pose_one_to_many(
     # "any inlier hypothesis" is a difference of cumulative sums at each keypoint's last row.
     by_kp = np.argsort(kp_dense, kind="stable")
     kp_last = np.flatnonzero(np.r_[np.diff(kp_dense[by_kp]) != 0, True])
-    Xh = np.hstack([ver_X[by_kp].astype(np.float64), np.ones((len(ver_X), 1))])
-    sxy = ver_xy[by_kp]
+    Xh = np.hstack([_take_rows(ver_X, by_kp).astype(np.float64), np.ones((len(ver_X), 1))])
+    sxy = _take_rows(ver_xy, by_kp)
     zero, one = np.zeros(len(Xh)), np.ones(len(Xh))
     rows_u = np.stack([np.full(len(Xh), K[0, 0]), zero, K[0, 2] - sxy[:, 0]], 1)
     rows_v = np.stack([zero, np.full(len(Xh), K[1, 1]), K[1, 2] - sxy[:, 1]], 1)
@@ -1023,7 +1026,7 @@ def estimate_pose_one_to_many(
         S_all = np.concatenate(
             [_minimal_samples(rng, pool_size(b * batch), batch) for b in range(n_b)]
         )
-        R_all, T_all, s_all = p3p_batch(obj[S_all], img[S_all], K)
+        R_all, T_all, s_all = p3p_batch(_take_rows(obj, S_all), _take_rows(img, S_all), K)
         pre = (R_all, T_all, np.searchsorted(s_all, np.arange(n_b + 1) * batch))
     n_batch = 0
     while it < min(needed, max_iterations):
@@ -1046,7 +1049,7 @@ def estimate_pose_one_to_many(
             it += len(S)
             # The batch's sample points gathered at once: a view per sample instead of two
             # fancy indexings (the same contiguous (3, 3) and (3, 2) arrays for the solver).
-            R, T = p3p_opencv(obj[S], img[S], K)
+            R, T = p3p_opencv(_take_rows(obj, S), _take_rows(img, S), K)
             B = len(R)
             if B == 0:
                 continue
@@ -1070,7 +1073,9 @@ def estimate_pose_one_to_many(
             cand = Rigid3d(R[b], T[b])
             chosen = _closest_per_keypoint(cand, K, kp_dense, ver_xy, ver_X, threshold)
             if chosen.sum() >= 4:
-                cand, _ = refine(cand, K, ver_xy[chosen], ver_X[chosen], threshold, rounds=2)
+                idx = chosen.nonzero()[0]
+                xy_c, X_c = _take_rows(ver_xy, idx), _take_rows(ver_X, idx)
+                cand, _ = refine(cand, K, xy_c, X_c, threshold, rounds=2)
             score = int(_closest_per_keypoint(cand, K, kp_dense, ver_xy, ver_X, threshold).sum())
             if score > best_score:
                 best_score, best_pose = score, cand
@@ -1097,9 +1102,13 @@ def estimate_pose_one_to_many(
         chosen = _closest_per_keypoint(pose, K, kp_dense, ver_xy, ver_X, threshold)
         if chosen.sum() < 4:
             return None
-        pose, mask = refine(pose, K, ver_xy[chosen], ver_X[chosen], refine_threshold)
+        idx = chosen.nonzero()[0]
+        xy_c, X_c = _take_rows(ver_xy, idx), _take_rows(ver_X, idx)
+        pose, mask = refine(pose, K, xy_c, X_c, refine_threshold)
     chosen = _closest_per_keypoint(pose, K, kp_dense, ver_xy, ver_X, refine_threshold)
-    est = _finish(pose, chosen[chosen], K, ver_xy[chosen], ver_X[chosen], min_inliers)
+    idx = chosen.nonzero()[0]
+    xy_c, X_c = _take_rows(ver_xy, idx), _take_rows(ver_X, idx)
+    est = _finish(pose, chosen[chosen], K, xy_c, X_c, min_inliers)
     if est is None:
         return None
     est.inlier_mask = chosen
