@@ -624,3 +624,42 @@ def test_least_squares_stops_once_a_step_is_under_its_sd(n):
         assert np.linalg.norm(got.cam_from_world.center - ref.cam_from_world.center) < 1e-3 * sd
         np.testing.assert_array_equal(got.inlier_mask, ref.inlier_mask)
     assert checked >= 6
+
+
+def test_row_selection_and_finite_test_equal_numpy():
+    """The selections by ``take`` (``_take_rows``) and the finiteness test on Python floats
+    (``_finite_pose``) against the numpy calls they replace: the same bytes, dtypes and
+    shapes; the same answer for a NaN, +inf or -inf in each of a pose's twelve numbers."""
+    rng = np.random.default_rng(3)
+    for n in (0, 1, 7, 150):
+        for mask in (rng.random(n) < 0.7, np.ones(n, bool), np.zeros(n, bool)):
+            idx = mask.nonzero()[0]
+            for a in (rng.random((n, 2)), rng.random((n, 3)).astype(np.float32), rng.random(n)):
+                got, want = pose._take_rows(a, idx), a[mask]
+                assert got.dtype == want.dtype and got.shape == want.shape
+                assert got.flags.c_contiguous and got.tobytes() == want.tobytes()
+                if n:  # integer indices of any shape (RANSAC's (samples, 3) gathers)
+                    S = rng.integers(0, n, (5, 3))
+                    got, want = pose._take_rows(a, S), a[S]
+                    assert got.dtype == want.dtype and got.shape == want.shape
+                    assert got.flags.c_contiguous and got.tobytes() == want.tobytes()
+    p = Rigid3d(rotmat_from_rotvec(np.array([0.1, -0.2, 0.3])), np.array([1.0, -2.0, 3.0]))
+    assert pose._finite_pose(p) and p.is_finite()
+    for i in range(12):
+        for bad in (np.nan, np.inf, -np.inf):
+            R, t = p.rotation.copy(), p.translation.copy()
+            if i < 9:
+                R.reshape(9)[i] = bad
+            else:
+                t[i - 9] = bad
+            q = Rigid3d(R, t)
+            assert pose._finite_pose(q) is False and q.is_finite() is False
+
+
+def test_einsum_kernel_equals_numpy_einsum():
+    """``np.einsum``'s C kernel called directly (``_c_einsum``, the leverages' row products)
+    against ``np.einsum``: the same bytes."""
+    rng = np.random.default_rng(4)
+    for n in (1, 5, 150, 600):
+        A, B = rng.normal(size=(2, n, 6)) * rng.uniform(1e-3, 1e3)
+        assert pose._c_einsum("ij,ij->i", A, B).tobytes() == np.einsum("ij,ij->i", A, B).tobytes()

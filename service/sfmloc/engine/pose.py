@@ -54,6 +54,21 @@ def _symmetric_eigensolvers() -> tuple[
 eigh_sym, eigvalsh_sym = _symmetric_eigensolvers()
 
 
+def _einsum_kernel() -> Callable[..., np.ndarray]:
+    """``np.einsum`` without its Python layer: the C function it calls itself when not asked
+    to optimize (numpy 2's ``einsum``: ``return c_einsum(*operands, **kwargs)``), so the same
+    bits. Issue 10: the layer (its dispatcher and keyword checks) was a third of the call on
+    the leave-one-out's (n, 6) rows, three calls a tracked frame. Private: where it is
+    missing, the public function."""
+    try:
+        return importlib.import_module("numpy._core._multiarray_umath").c_einsum
+    except (ImportError, AttributeError):
+        return np.einsum
+
+
+_c_einsum = _einsum_kernel()
+
+
 @dataclass(frozen=True)
 class RansacParams:
     threshold: float = 4.0  # inlier reprojection error (px) while hypothesizing
@@ -321,9 +336,9 @@ def _leverage_rows(
     """Per correspondence (its Jacobian rows ``Ju``, ``Jv``, (n, 6)): A_i's rows ``Au``,
     ``Av`` (J_i cov) and J_i cov J_i^T's entries ``l00``, ``l11``, ``l01``."""
     Au, Av = Ju @ cov, Jv @ cov  # (n, 6) each: the rows of A_i
-    l00 = np.einsum("ij,ij->i", Au, Ju)  # J_i cov J_i^T
-    l11 = np.einsum("ij,ij->i", Av, Jv)
-    l01 = np.einsum("ij,ij->i", Au, Jv)
+    l00 = _c_einsum("ij,ij->i", Au, Ju)  # J_i cov J_i^T
+    l11 = _c_einsum("ij,ij->i", Av, Jv)
+    l01 = _c_einsum("ij,ij->i", Au, Jv)
     return Au, Av, l00, l11, l01
 
 
@@ -520,10 +535,11 @@ def _refine(
             # every match within the threshold (the tracker's first estimate, usually): the
             # matches and errors as they are, not four fancy-indexed copies
             every = n_in == len(mask)
-            xs, Xs = (xy, X) if every else (xy[mask], X[mask])
+            idx = None if every else mask.nonzero()[0]
+            xs, Xs = (xy, X) if idx is None else (_take_rows(xy, idx), _take_rows(X, idx))
             gn = least_squares(pose, K, xs, Xs, converged_sd=converged_sd)
             gn_err = reprojection_errors(gn, K, xy, X)
-            e0, e1 = (err, gn_err) if every else (err[mask], gn_err[mask])
+            e0, e1 = (err, gn_err) if idx is None else (err.take(idx), gn_err.take(idx))
             if float(e1 @ e1) < float(e0 @ e0):
                 pose, err = gn, gn_err
                 new_mask = err < threshold
@@ -532,9 +548,11 @@ def _refine(
                 mask = new_mask
                 continue
         rvec, _ = cv2.Rodrigues(pose.rotation)
+        idx = mask.nonzero()[0]
         rvec, tvec = cv2.solvePnPRefineLM(
-            X[mask].astype(np.float64),
-            xy[mask].astype(np.float64),
+            # (float64 copies: of the taken rows, not copied again when already float64)
+            _take_rows(X, idx).astype(np.float64, copy=False),
+            _take_rows(xy, idx).astype(np.float64, copy=False),
             K,
             None,
             rvec,
@@ -759,9 +777,11 @@ def estimate_pose(
     if n < max(4, min_inliers):
         return None
     from_prior = None
-    if prior_is_estimate and (prior is None or not prior.is_finite()):
+    # (the prior's finiteness tested once)
+    finite_prior = prior is not None and _finite_pose(prior)
+    if prior_is_estimate and not finite_prior:
         return None
-    if prior is not None and prior.is_finite():
+    if prior is not None and finite_prior:
         # Select inliers with the looser RANSAC threshold first: the prior is a prediction. A
         # prediction can be farther off than that (15-30 px at 3 Hz): then a first round within
         # ``prior_threshold`` px. Without it, a walk at 3 Hz lost the prior's hypothesis and took
@@ -843,7 +863,8 @@ def _refine_own_estimate(
     # (every match verified within the guided threshold of this pose is within it: on a
     # tracked frame all are, and the matches go in as they are, not copied)
     if n_sel < len(sel):
-        xy_sel, X_sel = xy[sel], X[sel]
+        idx = sel.nonzero()[0]
+        xy_sel, X_sel = _take_rows(xy, idx), _take_rows(X, idx)
     else:
         xy_sel, X_sel = xy, X
     pose = robust_refine(pose, K, xy_sel, X_sel, params.loss_scale)
@@ -860,7 +881,10 @@ def final_refinement(
     if est is None or params.loss_scale <= 0:
         return est
     sel = est.inlier_mask
-    pose = robust_refine(est.cam_from_world, K, xy[sel], X[sel], params.loss_scale)
+    idx = sel.nonzero()[0]
+    pose = robust_refine(
+        est.cam_from_world, K, _take_rows(xy, idx), _take_rows(X, idx), params.loss_scale
+    )
     err = reprojection_errors(pose, K, xy, X)
     mask = err < params.refine_threshold
     if np.count_nonzero(mask) < params.min_inliers:
@@ -875,12 +899,33 @@ def _finish(
     """The estimate of ``pose`` on the matches in ``mask``; ``err``: every match's error at
     ``pose`` when already computed."""
     n_in = int(np.count_nonzero(mask))  # (a Python int: num_inliers goes into JSON)
-    if n_in < min_inliers or not pose.is_finite():
+    if n_in < min_inliers or not _finite_pose(pose):
         return None
-    err = reprojection_errors(pose, K, xy[mask], X[mask]) if err is None else err[mask]
+    idx = mask.nonzero()[0]  # (the rows once, for the three ``_take_rows``)
+    xy_in, X_in = _take_rows(xy, idx), _take_rows(X, idx)
+    err = reprojection_errors(pose, K, xy_in, X_in) if err is None else err.take(idx)
     # (the mean as np.mean takes it, np.add.reduce over n_in, without its Python layer: 2 us)
     mean = float(np.add.reduce(err)) / n_in if n_in else float("inf")
-    return PoseEstimate(pose, mask, n_in, mean, xy[mask], X[mask])
+    return PoseEstimate(pose, mask, n_in, mean, xy_in, X_in)
+
+
+def _finite_pose(pose: Rigid3d) -> bool:
+    """``pose.is_finite()`` on its twelve numbers as Python floats (the same test: a float64
+    is finite exactly when its Python float is). Issue 10: x0.25 of the four numpy calls'
+    4.8 us; two to three calls a tracked frame."""
+    isfinite = math.isfinite
+    return all(map(isfinite, pose.rotation.ravel().tolist())) and all(
+        map(isfinite, pose.translation.tolist())
+    )
+
+
+def _take_rows(a: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """``a[idx]`` for integer indices ``idx`` of any shape (``a[mask]`` for ``idx =
+    mask.nonzero()[0]``): the same rows, copied, C-ordered. Issue 10: on the (n, 2) and (n, 3)
+    match arrays numpy's boolean and integer indexing cost x3-9 ``take``'s (n 100-400:
+    3.7-10.1 us for the three of ``_finish``, 1.2-2.0 us taken), five to eight such
+    selections a tracked frame, a few hundred in a relocalization's RANSAC."""
+    return a.take(idx, 0)
 
 
 def estimate_pose_one_to_many(
@@ -947,8 +992,8 @@ def estimate_pose_one_to_many(
     # "any inlier hypothesis" is a difference of cumulative sums at each keypoint's last row.
     by_kp = np.argsort(kp_dense, kind="stable")
     kp_last = np.flatnonzero(np.r_[np.diff(kp_dense[by_kp]) != 0, True])
-    Xh = np.hstack([ver_X[by_kp].astype(np.float64), np.ones((len(ver_X), 1))])
-    sxy = ver_xy[by_kp]
+    Xh = np.hstack([_take_rows(ver_X, by_kp).astype(np.float64), np.ones((len(ver_X), 1))])
+    sxy = _take_rows(ver_xy, by_kp)
     zero, one = np.zeros(len(Xh)), np.ones(len(Xh))
     rows_u = np.stack([np.full(len(Xh), K[0, 0]), zero, K[0, 2] - sxy[:, 0]], 1)
     rows_v = np.stack([zero, np.full(len(Xh), K[1, 1]), K[1, 2] - sxy[:, 1]], 1)
@@ -981,7 +1026,7 @@ def estimate_pose_one_to_many(
         S_all = np.concatenate(
             [_minimal_samples(rng, pool_size(b * batch), batch) for b in range(n_b)]
         )
-        R_all, T_all, s_all = p3p_batch(obj[S_all], img[S_all], K)
+        R_all, T_all, s_all = p3p_batch(_take_rows(obj, S_all), _take_rows(img, S_all), K)
         pre = (R_all, T_all, np.searchsorted(s_all, np.arange(n_b + 1) * batch))
     n_batch = 0
     while it < min(needed, max_iterations):
@@ -1004,7 +1049,7 @@ def estimate_pose_one_to_many(
             it += len(S)
             # The batch's sample points gathered at once: a view per sample instead of two
             # fancy indexings (the same contiguous (3, 3) and (3, 2) arrays for the solver).
-            R, T = p3p_opencv(obj[S], img[S], K)
+            R, T = p3p_opencv(_take_rows(obj, S), _take_rows(img, S), K)
             B = len(R)
             if B == 0:
                 continue
@@ -1028,7 +1073,9 @@ def estimate_pose_one_to_many(
             cand = Rigid3d(R[b], T[b])
             chosen = _closest_per_keypoint(cand, K, kp_dense, ver_xy, ver_X, threshold)
             if chosen.sum() >= 4:
-                cand, _ = refine(cand, K, ver_xy[chosen], ver_X[chosen], threshold, rounds=2)
+                idx = chosen.nonzero()[0]
+                xy_c, X_c = _take_rows(ver_xy, idx), _take_rows(ver_X, idx)
+                cand, _ = refine(cand, K, xy_c, X_c, threshold, rounds=2)
             score = int(_closest_per_keypoint(cand, K, kp_dense, ver_xy, ver_X, threshold).sum())
             if score > best_score:
                 best_score, best_pose = score, cand
@@ -1055,9 +1102,13 @@ def estimate_pose_one_to_many(
         chosen = _closest_per_keypoint(pose, K, kp_dense, ver_xy, ver_X, threshold)
         if chosen.sum() < 4:
             return None
-        pose, mask = refine(pose, K, ver_xy[chosen], ver_X[chosen], refine_threshold)
+        idx = chosen.nonzero()[0]
+        xy_c, X_c = _take_rows(ver_xy, idx), _take_rows(ver_X, idx)
+        pose, mask = refine(pose, K, xy_c, X_c, refine_threshold)
     chosen = _closest_per_keypoint(pose, K, kp_dense, ver_xy, ver_X, refine_threshold)
-    est = _finish(pose, chosen[chosen], K, ver_xy[chosen], ver_X[chosen], min_inliers)
+    idx = chosen.nonzero()[0]
+    xy_c, X_c = _take_rows(ver_xy, idx), _take_rows(ver_X, idx)
+    est = _finish(pose, chosen[chosen], K, xy_c, X_c, min_inliers)
     if est is None:
         return None
     est.inlier_mask = chosen
