@@ -308,9 +308,11 @@ def bench_clients(
 ) -> dict[str, Any]:
     from sfmloc_client import CameraSpec, FrameStreamer, PoseSubscriber
 
+    from ..server.sessions import TIMELINE_ENV
     from .scale import threads_of
 
     spec = CameraSpec.parse(inp.camera)
+    timeline = bool(os.environ.get(TIMELINE_ENV))  # the server records one too (its env)
     n_frames = int(rate * duration)
     frames = inp.jpeg if encoding == "jpeg" else [g.tobytes() for g in inp.gray]
     results: list[dict[str, Any]] = [{} for _ in range(clients)]
@@ -362,10 +364,26 @@ def bench_clients(
             gaps: dict[str, list[float]] = {}
             prev = [0]  # seq of the previous pose (the warm-up frame is seq 0)
             lock = threading.Lock()
+            # Every answer as it came (perf_counter, the server's clock on this machine), for
+            # the server's timeline (``sessions.TIMELINE_ENV``); None when that is off.
+            answers: list[tuple[Any, ...]] | None = [] if timeline else None
 
             def on_pose(p: Any) -> None:
                 now = time.perf_counter()
                 with lock:
+                    if answers is not None:
+                        answers.append(
+                            (
+                                p.seq,
+                                now,
+                                p.status,
+                                p.matching,
+                                p.engine_ms,
+                                p.engine_cpu_ms,
+                                p.latency_ms,
+                                None if p.error is None else p.error.code,
+                            )
+                        )
                     last["received"] += 1  # answers: those with an error carry no pose
                     last["dropped"] = max(last["dropped"], p.dropped)
                     last["errors"] += p.error is not None
@@ -442,6 +460,8 @@ def bench_clients(
                     "statuses_after_1s": dict(settled),
                     "gaps": {k: list(v) for k, v in gaps.items()},
                 }
+                if answers is not None:
+                    results[i]["timeline"] = {"sent": sent_at, "answers": answers}
 
         threads = [threading.Thread(target=client, args=(i,)) for i in range(clients)]
         reloc_thread = threading.Thread(target=relocalizer) if reloc_rate > 0 else None
