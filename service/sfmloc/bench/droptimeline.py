@@ -3,7 +3,8 @@ server's per-frame timeline on (``sessions.TIMELINE_ENV``), then every dropped f
 pose over ``--late-ms`` classified by what its session's worker was doing meanwhile::
 
     python -m sfmloc.bench.droptimeline OUT --maps MAPS_DIR --map redkitchen \\
-        --frames /work/shared/data/redkitchen-seq01 [--clients 8] [--workers 2]
+        --frames /work/shared/data/redkitchen-seq01 [--clients 8] [--workers 2] \\
+        [--client-phases aligned|spread] [--frame-loop wrap|pingpong]
     python -m sfmloc.bench.droptimeline OUT --analyze-only
 
 The run is the throughput suite's (``transport.bench_clients``: a real ``sfmloc serve``
@@ -38,7 +39,8 @@ CAUSES = ("own-reloc", "other-reloc", "other-reloc-100ms", "heavy-cpu", "preempt
 
 
 def record(out: Path, maps: Path, map_name: str, frames_dir: Path, camera: str, clients: int,
-           workers: int, rate_hz: float, duration_s: float) -> dict[str, Any]:  # fmt: skip
+           workers: int, rate_hz: float, duration_s: float, phases: str = "aligned",
+           frame_loop: str = "wrap") -> dict[str, Any]:  # fmt: skip
     """One ``bench_clients`` run with the timeline on: the server writes its rows into ``out``
     at shutdown, the clients' sends and answers go to ``out/clients.json``."""
     from ..server.sessions import TIMELINE_ENV
@@ -52,7 +54,9 @@ def record(out: Path, maps: Path, map_name: str, frames_dir: Path, camera: str, 
     frames = sorted(p for p in frames_dir.iterdir() if p.suffix.lower() in (".jpg", ".png"))
     inp = BenchInput(serve_folder(out, maps / map_name), map_name, frames, camera)
     inp.load(min(len(frames), int(rate_hz * duration_s) + 10))  # as the throughput suite
-    res = bench_clients(inp, clients, rate_hz, duration_s, workers, "process")
+    res = bench_clients(
+        inp, clients, rate_hz, duration_s, workers, "process", phases=phases, frame_loop=frame_loop
+    )
     (out / "clients.json").write_text(json.dumps(res))
     return aggregate(res["clients"], rate_hz)
 
@@ -176,12 +180,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rate", type=float, default=30.0)
     ap.add_argument("--duration", type=float, default=10.0)
     ap.add_argument("--late-ms", type=float, default=50.0)
+    ap.add_argument("--client-phases", choices=("aligned", "spread"), default="aligned")
+    ap.add_argument("--frame-loop", choices=("wrap", "pingpong"), default="wrap")
     args = ap.parse_args(argv)
     if not args.analyze_only:
         if args.maps is None:
             ap.error("--maps is needed to record")
         row = record(args.out, args.maps, args.map, args.frames, args.camera, args.clients,
-                     args.workers, args.rate, args.duration)  # fmt: skip
+                     args.workers, args.rate, args.duration, args.client_phases,
+                     args.frame_loop)  # fmt: skip
         keys = ("dropped_pct", "dropped_pct_worst_client", "latency_ms_p50", "latency_ms_p99")
         print({k: round(row[k], 2) for k in keys}, "load", [round(x, 2) for x in os.getloadavg()])
     a = analyze(args.out, args.late_ms)
