@@ -99,6 +99,7 @@ UNKNOWN_MAP = "(not loaded)"  # metrics label of frames for maps this server doe
 # clients' clock on this machine), and writes them at shutdown (``write_timeline``). Unset, the
 # default, it costs one attribute test per event.
 TIMELINE_ENV = "SFMLOC_TIMELINE"
+TIMELINE_ROWS = 500_000  # ~4 rows a frame: the last ~17 min of 4 clients at 30 Hz, ~100 MB
 # Last statuses after which the session's next frame tracks (a LOST one relocalizes).
 _POSED = frozenset({Status.TRACKING.value, Status.RELOCALIZED.value, Status.UNVERIFIED.value})
 
@@ -229,9 +230,10 @@ class SessionManager:
         self._sid = itertools.count(1)
         self._idle = threading.Condition(self._lock)  # notified when a session stops being busy
         self.draining = False  # shutting down: no new frames, no more pending dispatches
-        # (event, perf_counter, ...) rows while TIMELINE_ENV is set; list.append under the GIL
-        self.timeline: builtins.list[tuple[Any, ...]] | None = (
-            [] if os.environ.get(TIMELINE_ENV) else None
+        # (event, perf_counter, ...) rows while TIMELINE_ENV is set (deque.append is atomic);
+        # the newest TIMELINE_ROWS only: a server left recording must not grow without bound
+        self.timeline: deque[tuple[Any, ...]] | None = (
+            deque(maxlen=TIMELINE_ROWS) if os.environ.get(TIMELINE_ENV) else None
         )
 
     def write_timeline(self) -> str | None:
