@@ -55,3 +55,26 @@ def test_bench_transport_engine_section(world, inputs, tmp_path):
     assert r.returncode == 0, r.stderr[-3000:]
     assert "== engine scaling:" in r.stdout and "1 Localizers in processes" in r.stdout, r.stdout
     assert json.loads((tmp_path / "b.json").read_text())["engine"]["process_fps"] > 0
+
+
+def test_throughput_clients_loop_without_a_jump_and_send_spread_when_asked():
+    """The throughput suite's frame loop and send phases (issue 10's drop diagnosis): "pingpong"
+    steps to a neighbouring frame every time, the wrap included, where "wrap" jumps from the
+    last frame to the first (a relocalization for every session that wraps); "spread" gives
+    each client its own phase within a frame interval, "aligned" the same one to all."""
+    from sfmloc.bench.transport import loop_order, phase_of
+
+    n = 7
+    ping = loop_order(n, "pingpong")
+    assert sorted(set(ping)) == list(range(n))
+    steps = [abs(b - a) for a, b in zip(ping, ping[1:] + ping[:1])]  # cyclic: the loop too
+    assert steps == [1] * len(ping)
+    wrap = loop_order(n, "wrap")
+    assert wrap == list(range(n)) and abs(wrap[0] - wrap[-1]) == n - 1
+    assert [phase_of(i, 4, "aligned") for i in range(4)] == [0.0] * 4
+    spread = [phase_of(i, 4, "spread") for i in range(4)]
+    assert spread == [0.0, 0.25, 0.5, 0.75]
+    with pytest.raises(ValueError):
+        loop_order(n, "shuffle")
+    with pytest.raises(ValueError):
+        phase_of(0, 4, "random")

@@ -106,6 +106,13 @@ class BenchConf(StrictModel):
     rate_hz: float = Field(30.0, gt=0)
     duration_s: float = Field(10.0, gt=0)
     workers: int = Field(0, ge=0)  # server workers (0: one per core)
+    # When the clients send ("aligned": all at the same instants after the warm-up barrier;
+    # "spread": client i of n i/n of a frame interval later, as independent cameras) and how
+    # each loops over the loaded frames ("wrap": back to the first, a jump every session that
+    # wraps relocalizes after; "pingpong": forwards then backwards, no jump). Issue 10's drop
+    # diagnosis (python -m sfmloc.bench.droptimeline): both defaults are the suite as it was.
+    client_phases: Literal["aligned", "spread"] = "aligned"
+    frame_loop: Literal["wrap", "pingpong"] = "wrap"
     # The robust suite: frames per row (30 Hz span of the synthetic and redkitchen rows; the
     # 10 and 3 Hz rows keep every 3rd / 10th of it), frames of the large-image rows (the
     # 3072x2048 row 2/5 of them), frames per row for the peer (evenly strided; half on the

@@ -458,6 +458,8 @@ def main(
                 conf.duration_s,
                 conf.workers,
                 progress,
+                phases=conf.client_phases,
+                frame_loop=conf.frame_loop,
             )
             th["fig_throughput"] = _rel(
                 figures.throughput(

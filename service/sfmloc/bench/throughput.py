@@ -152,6 +152,8 @@ def run_throughput(
     workers: int,
     progress=None,
     memory_workers: tuple[int, ...] = (1, 2, 4),
+    phases: str = "aligned",
+    frame_loop: str = "wrap",
 ) -> dict[str, Any]:
     from ..bench.transport import BenchInput, bench_clients, bench_memory
 
@@ -177,7 +179,9 @@ def run_throughput(
             duration_s,
             n_workers,
         )
-        res = bench_clients(inp, n, rate_hz, duration_s, n_workers, "process")
+        res = bench_clients(
+            inp, n, rate_hz, duration_s, n_workers, "process", phases=phases, frame_loop=frame_loop
+        )
         row = aggregate(res["clients"], rate_hz)
         posed = sum(c["received"] - c["errors"] for c in res["clients"])
         row.update(cpu_per_pose(res["cores_used"], row["delivered_hz_total"]))
@@ -204,6 +208,8 @@ def run_throughput(
         "duration_s": duration_s,
         "map": bundle.name,
         "encoding": "jpeg",
+        "client_phases": phases,
+        "frame_loop": frame_loop,
         "rows": rows,
         "per_client": [r["clients"] for r in raw],
     }

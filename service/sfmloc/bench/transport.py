@@ -294,6 +294,28 @@ def _relocalize_load(
     out.update(calls=len(lat), ms_p50=_pct(lat, 50), ms_p99=_pct(lat, 99))
 
 
+def loop_order(n: int, frame_loop: str) -> list[int]:
+    """The order in which a throughput client plays ``n`` loaded frames, looping over it:
+    "wrap" 0..n-1 (then 0 again: the camera jumps from the last frame to the first), "pingpong"
+    0..n-1..1 (then 0 again: every step is to a neighbouring frame)."""
+    if frame_loop == "wrap":
+        return list(range(n))
+    if frame_loop == "pingpong":
+        return list(range(n)) + list(range(n - 2, 0, -1))
+    raise ValueError(f"frame_loop must be 'wrap' or 'pingpong', not {frame_loop!r}")
+
+
+def phase_of(i: int, clients: int, phases: str) -> float:
+    """When client ``i`` of ``clients`` sends, in frame intervals after the common start:
+    "aligned" 0 for all (each frame interval begins with a burst of one frame per client),
+    "spread" i / clients (independent cameras are not synchronized)."""
+    if phases == "aligned":
+        return 0.0
+    if phases == "spread":
+        return i / clients
+    raise ValueError(f"phases must be 'aligned' or 'spread', not {phases!r}")
+
+
 def bench_clients(
     inp: BenchInput,
     clients: int,
@@ -305,14 +327,26 @@ def bench_clients(
     max_pending: int = 1,
     reloc_rate: float = 0.0,
     reloc_workers: int | None = None,
+    phases: str = "aligned",
+    frame_loop: str = "wrap",
 ) -> dict[str, Any]:
+    """``clients`` streams at ``rate`` Hz for ``duration`` s against a fresh server. Each client
+    starts at its own frame of ``inp`` and loops over them. ``phases``: "aligned" (every client
+    sends at the same instants after the warm-up barrier: bursts of one frame per client) or
+    "spread" (client i sends i / clients of a frame interval later, as independent cameras
+    would). ``frame_loop``: "wrap" (after the last frame the first again: the camera jumps, and
+    every session that wraps relocalizes) or "pingpong" (forwards, then backwards: no jump)."""
     from sfmloc_client import CameraSpec, FrameStreamer, PoseSubscriber
 
+    from ..server.sessions import TIMELINE_ENV
     from .scale import threads_of
 
     spec = CameraSpec.parse(inp.camera)
+    timeline = bool(os.environ.get(TIMELINE_ENV))  # the server records one too (its env)
     n_frames = int(rate * duration)
-    frames = inp.jpeg if encoding == "jpeg" else [g.tobytes() for g in inp.gray]
+    loaded = inp.jpeg if encoding == "jpeg" else [g.tobytes() for g in inp.gray]
+    frames = [loaded[j] for j in loop_order(len(loaded), frame_loop)]
+    phase_of(0, clients, phases)  # a bad value fails here, before the server starts
     results: list[dict[str, Any]] = [{} for _ in range(clients)]
     load0 = os.getloadavg()[0]
     extra: tuple[str, ...] = ("--max-pending", str(max_pending))
@@ -362,10 +396,26 @@ def bench_clients(
             gaps: dict[str, list[float]] = {}
             prev = [0]  # seq of the previous pose (the warm-up frame is seq 0)
             lock = threading.Lock()
+            # Every answer as it came (perf_counter, the server's clock on this machine), for
+            # the server's timeline (``sessions.TIMELINE_ENV``); None when that is off.
+            answers: list[tuple[Any, ...]] | None = [] if timeline else None
 
             def on_pose(p: Any) -> None:
                 now = time.perf_counter()
                 with lock:
+                    if answers is not None:
+                        answers.append(
+                            (
+                                p.seq,
+                                now,
+                                p.status,
+                                p.matching,
+                                p.engine_ms,
+                                p.engine_cpu_ms,
+                                p.latency_ms,
+                                None if p.error is None else p.error.code,
+                            )
+                        )
                     last["received"] += 1  # answers: those with an error carry no pose
                     last["dropped"] = max(last["dropped"], p.dropped)
                     last["errors"] += p.error is not None
@@ -387,7 +437,8 @@ def bench_clients(
                         if p.error is None:
                             engine_cpu.append(p.engine_cpu_ms)
 
-            offset = (i * len(inp.jpeg)) // clients
+            offset = (i * len(frames)) // clients
+            phase = phase_of(i, clients, phases)
             with (
                 _zenoh(srv.endpoint) as z,
                 PoseSubscriber(z, inp.map_name, cid, callback=on_pose) as poses,
@@ -407,7 +458,7 @@ def bench_clients(
                 barrier.wait()
                 t_start = time.perf_counter()
                 for k in range(1, n_frames + 1):
-                    t_due = t_start + (k - 1) / rate
+                    t_due = t_start + (k - 1 + phase) / rate
                     delay = t_due - time.perf_counter()
                     if delay > 0:
                         time.sleep(delay)
@@ -442,6 +493,8 @@ def bench_clients(
                     "statuses_after_1s": dict(settled),
                     "gaps": {k: list(v) for k, v in gaps.items()},
                 }
+                if answers is not None:
+                    results[i]["timeline"] = {"sent": sent_at, "answers": answers}
 
         threads = [threading.Thread(target=client, args=(i,)) for i in range(clients)]
         reloc_thread = threading.Thread(target=relocalizer) if reloc_rate > 0 else None

@@ -106,6 +106,18 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--duration", type=float, help="seconds per throughput run (default 10)")
     p.add_argument(
+        "--client-phases",
+        choices=("aligned", "spread"),
+        help="throughput clients send at the same instants (aligned, default) or each 1/n of a "
+        "frame interval after the previous one (spread, as independent cameras)",
+    )
+    p.add_argument(
+        "--frame-loop",
+        choices=("wrap", "pingpong"),
+        help="throughput clients loop over the frames back to the first (wrap, default: a jump "
+        "each session relocalizes after) or forwards then backwards (pingpong, no jump)",
+    )
+    p.add_argument(
         "--workers", type=int, help="server workers for throughput (default one per core)"
     )
     p.add_argument(
@@ -187,6 +199,10 @@ def run(args: argparse.Namespace) -> int:
         changes["duration_s"] = args.duration
     if args.workers is not None:
         changes["workers"] = args.workers
+    if args.client_phases:
+        changes["client_phases"] = args.client_phases
+    if args.frame_loop:
+        changes["frame_loop"] = args.frame_loop
     if args.no_tune:
         changes["tune"] = False
     if args.reuse:

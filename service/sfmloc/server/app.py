@@ -407,6 +407,7 @@ class Server:
         if self.zenoh is not None:
             await loop.run_in_executor(None, self.zenoh.close)
         await loop.run_in_executor(None, self.pool.stop)
+        self.sessions.write_timeline()  # diagnosis only (sessions.TIMELINE_ENV); None when off
         if self.metrics_server is not None:
             self.metrics_server.stop()
         self.executor.shutdown(wait=False, cancel_futures=True)

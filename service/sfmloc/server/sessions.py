@@ -56,7 +56,9 @@ from __future__ import annotations
 
 import builtins
 import itertools
+import json
 import logging
+import os
 import threading
 import time
 from collections import deque
@@ -91,6 +93,13 @@ SOURCE_TAKEOVER_S = 3.0
 # old. As the client's own handover after a failover (FrameStreamer.handover_max_age_s).
 HANDOVER_MAX_AGE_S = 5.0
 UNKNOWN_MAP = "(not loaded)"  # metrics label of frames for maps this server does not host
+# A per-frame timeline for diagnosing drops and late poses (issue 10): with this environment
+# variable set to a directory, the session manager records every frame's receipt, its being
+# superseded (dropped), its start in a worker and its result, with perf_counter times (the
+# clients' clock on this machine), and writes them at shutdown (``write_timeline``). Unset, the
+# default, it costs one attribute test per event.
+TIMELINE_ENV = "SFMLOC_TIMELINE"
+TIMELINE_ROWS = 500_000  # ~4 rows a frame: the last ~17 min of 4 clients at 30 Hz, ~100 MB
 # Last statuses after which the session's next frame tracks (a LOST one relocalizes).
 _POSED = frozenset({Status.TRACKING.value, Status.RELOCALIZED.value, Status.UNVERIFIED.value})
 
@@ -221,6 +230,23 @@ class SessionManager:
         self._sid = itertools.count(1)
         self._idle = threading.Condition(self._lock)  # notified when a session stops being busy
         self.draining = False  # shutting down: no new frames, no more pending dispatches
+        # (event, perf_counter, ...) rows while TIMELINE_ENV is set (deque.append is atomic);
+        # the newest TIMELINE_ROWS only: a server left recording must not grow without bound
+        self.timeline: deque[tuple[Any, ...]] | None = (
+            deque(maxlen=TIMELINE_ROWS) if os.environ.get(TIMELINE_ENV) else None
+        )
+
+    def write_timeline(self) -> str | None:
+        """The recorded timeline (``TIMELINE_ENV``) as JSON lines in that directory; its path."""
+        folder = os.environ.get(TIMELINE_ENV)
+        if self.timeline is None or not folder:
+            return None
+        os.makedirs(folder, exist_ok=True)
+        path = os.path.join(folder, f"timeline-{os.getpid()}.jsonl")
+        with open(path, "w") as f:
+            for row in list(self.timeline):
+                f.write(json.dumps(row) + "\n")
+        return path
 
     # ------------------------------------------------------------------ intake
     def submit(
@@ -264,11 +290,17 @@ class SessionManager:
         with self._lock:
             if s.closed:
                 return s
+            if self.timeline is not None:
+                self.timeline.append(("recv", t_recv, s.sid, frame.seq, s.busy, s.waiting))
             if s.busy or s.waiting:
                 if len(s.pending) >= self.max_pending:
-                    s.pending.popleft()  # the stalest waiting frame makes room
+                    old = s.pending.popleft()  # the stalest waiting frame makes room
                     s.dropped += 1
                     self.metrics.frames_dropped.inc(map_name)
+                    if self.timeline is not None:
+                        self.timeline.append(
+                            ("drop", time.perf_counter(), s.sid, old.frame.seq, frame.seq)
+                        )
                 s.pending.append(_Pending(frame, t_recv))
                 return s
             if not self._has_room(s.worker):
@@ -296,6 +328,10 @@ class SessionManager:
             self._cold.add(ticket)
         self._slots[ticket] = s.worker
         self._in_worker[s.worker] = self._in_worker.get(s.worker, 0) + 1
+        if self.timeline is not None:
+            self.timeline.append(
+                ("start", time.perf_counter(), s.sid, p.frame.seq, s.worker, ticket, cold)
+            )
         return ticket
 
     def _free(self, ticket: int) -> None:
@@ -466,6 +502,8 @@ class SessionManager:
         self._by_key[key] = s
         self._by_sid[s.sid] = s
         self.metrics.sessions_opened.inc(map_name, transport)
+        if self.timeline is not None:
+            self.timeline.append(("open", time.perf_counter(), s.sid, client_id, worker))
         event(
             log,
             logging.INFO,
@@ -562,6 +600,23 @@ class SessionManager:
             )
             if ran_on is not None:
                 self._charge(ran_on, relocalized, msg.worker_ms)
+            if self.timeline is not None:
+                self.timeline.append(
+                    (
+                        "res",
+                        now,
+                        msg.sid,
+                        msg.seq,
+                        ran_on,
+                        msg.ticket,
+                        None if res is None else res.status,
+                        None if res is None else res.matching,
+                        msg.worker_ms,
+                        msg.decode_ms,
+                        None if res is None else res.engine_ms,
+                        relocalized,
+                    )
+                )
             self._free(msg.ticket)  # its worker has room again, whatever became of the frame
             s = self._by_sid.get(msg.sid)
             if s is not None and msg.ticket and msg.ticket != s.ticket:
