@@ -119,7 +119,7 @@ def test_stream_bad_sources_fail_cleanly_before_connecting(world, tmp_path):
 def test_grpc_stream_is_paced_and_takes_a_camera_string(world, server):
     """Frames 1 s apart. On an idle machine each is answered before the next comes; on a
     starved one it is not: at load ~10 on 2 cores a relocalization (0.13-0.36 s of CPU here)
-    took 1.3-4.8 s, and the server kept the newest frame (latest-frame-only), counting the one
+    took up to 5.3 s, and the server kept the newest frame (latest-frame-only), counting the one
     it skipped in its next answer's ``dropped`` (31 of 41 such streams in a row, load 7.7-12;
     this test asserted one pose each and failed 1 of 4 runs at load 8-10). What the stream
     promises, checked here: every frame is answered or counted skipped, the last one is
