@@ -129,18 +129,32 @@ def test_stream_from_a_missing_camera_says_so_before_connecting(world):
 
 
 def test_grpc_stream_is_paced_and_takes_a_camera_string(world, server):
+    """Frames 1 s apart. On an idle machine each is answered before the next comes; on a
+    starved one it is not: at load ~10 on 2 cores a relocalization (0.13-0.36 s of CPU here)
+    took up to 5.3 s, and the server kept the newest frame (latest-frame-only), counting the one
+    it skipped in its next answer's ``dropped`` (31 of 41 such streams in a row, load 7.7-12;
+    this test asserted one pose each and failed 1 of 4 runs at load 8-10). What the stream
+    promises, checked here: every frame is answered or counted skipped, the last one is
+    answered, and an answer is a pose or an error that names why."""
     from sfmloc_client import LocalizationClient
 
     srv, _ = server
-    n, rate = 5, 1.0  # 1 s apart: even a loaded machine answers each before the next
+    n, rate = 5, 1.0
     with LocalizationClient(f"127.0.0.1:{srv.grpc_port}", timeout=60) as c:
         t0 = time.monotonic()
         poses = list(c.stream(world.png[:n], "room", world.camera_spec, encoding="png", rate=rate))
         elapsed = time.monotonic() - t0
-        # Paced below the server's rate, no frame queues behind another: one pose each.
-        assert [p.seq for p in poses] == list(range(n))
+        seqs = [p.seq for p in poses]
+        assert seqs == sorted(set(seqs)) and seqs[-1] == n - 1, seqs
+        # None lost: the answers and the skipped frames the last answer counts are all n.
+        assert len(poses) + poses[-1].dropped == n, [(p.seq, p.dropped) for p in poses]
         assert elapsed >= (n - 1) / rate
-        assert sum(p.localized for p in poses) >= n - 1
+        # Each a pose, or DEADLINE_EXCEEDED naming why: a frame its worker could not start
+        # within frame_budget_ms, or one a starved worker had not finished at frame_hang_ms
+        # (once in 27 such streams at load 8: a relocalization 10 s in the worker).
+        for p in poses:
+            assert p.localized or (p.error is not None and p.error.code == "DEADLINE_EXCEEDED"), p
+        assert any(p.localized for p in poses)
         one = c.relocalize(world.png[3], "room", world.camera_spec, encoding="png")
         assert one.localized
         from sfmloc_client.errors import InputError

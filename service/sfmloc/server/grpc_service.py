@@ -57,13 +57,22 @@ SERVICE_NAME = pb.DESCRIPTOR.services_by_name["Localization"].full_name
 
 
 class _StreamSink:
-    """Poses of a gRPC stream session: onto the stream's asyncio queue, from any thread."""
+    """Poses of a gRPC stream's sessions: onto the stream's asyncio queue, from any thread.
+    ``answered`` counts them as they are queued (on the event loop), so that the stream's end
+    comes after its last pose (``changed``: set at each)."""
 
     def __init__(self, loop: asyncio.AbstractEventLoop, q: asyncio.Queue[Any]) -> None:
         self.loop, self.q = loop, q
+        self.answered = 0
+        self.changed = asyncio.Event()
 
     def send(self, pose: PoseMessage) -> None:
-        self.loop.call_soon_threadsafe(self.q.put_nowait, pose)
+        self.loop.call_soon_threadsafe(self._put, pose)
+
+    def _put(self, pose: PoseMessage) -> None:
+        self.q.put_nowait(pose)
+        self.answered += 1
+        self.changed.set()
 
     def close(self) -> None:
         pass
@@ -142,8 +151,33 @@ class LocalizationService(pb_grpc.LocalizationServicer):
         q: asyncio.Queue[Any] = asyncio.Queue()
         state: dict[str, Any] = {"session": None, "map": "", "client": "", "camera": None}
         stream_id = uuid.uuid4().hex[:8]
+        # One sink for the stream's sessions (a new one after its map was unloaded and loaded
+        # again), and the frames handed to them: each is answered through the sink or counted
+        # in its session's ``dropped`` (superseded by a newer one), never neither.
+        sink = _StreamSink(loop, q)
+        sessions: list[Any] = []
+        submitted = 0
+
+        async def settled() -> None:
+            """Until every frame handed to a session is answered (its pose queued) or counted
+            dropped, at most ``grace_s`` + 30 s. Waiting for no frame in a worker was not
+            enough: a session's last frame waiting for its turn at a full worker
+            (``worker_queue``) is in none, and the stream ended and dropped it unanswered; and
+            a pose's queueing (on the worker's result thread, after the session went idle)
+            could come after the stream's end."""
+            deadline = loop.time() + self.grace_s + 30.0
+            while sink.answered + sum(x.dropped for x in sessions) < submitted:
+                left = deadline - loop.time()
+                if left <= 0:
+                    return
+                sink.changed.clear()
+                try:  # drops made off the event loop are seen at the next poll
+                    await asyncio.wait_for(sink.changed.wait(), min(left, 0.25))
+                except asyncio.TimeoutError:
+                    pass
 
         async def read() -> None:
+            nonlocal submitted
             try:
                 async for req in request_iterator:
                     t_recv = time.perf_counter()
@@ -193,10 +227,13 @@ class LocalizationService(pb_grpc.LocalizationServicer):
                             "grpc",
                             frame,
                             t_recv,
-                            make_sink=lambda: _StreamSink(loop, q),
+                            make_sink=lambda: sink,
                             key_suffix=f":{stream_id}",
                         )
                         state["session"] = s
+                        submitted += 1
+                        if s not in sessions:
+                            sessions.append(s)
                     except (
                         InputError,
                         MapNotFoundError,
@@ -207,10 +244,8 @@ class LocalizationService(pb_grpc.LocalizationServicer):
                                 state["map"], state["client"], req.seq, req.stamp_ns, exc
                             )
                         )
-                # The client is done sending: let the last frames finish, then end the stream.
-                s = state["session"]
-                if s is not None:
-                    await loop.run_in_executor(None, loc.wait_idle, [s], self.grace_s + 30.0)
+                # The client is done sending: every frame answered or counted, then the end.
+                await settled()
                 q.put_nowait(None)
             except asyncio.CancelledError:
                 raise
