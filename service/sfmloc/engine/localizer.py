@@ -729,7 +729,8 @@ class Localizer:
         if len(free) > room:
             free = free[np.argsort(-kps.response[free], kind="stable")[:room]]
             free.sort()
-        table.append(self._new_ids(len(free)), kps.xy[free], kps.brief[free])
+        # (take: row gathers, as in ``_track_2d``)
+        table.append(self._new_ids(len(free)), kps.xy.take(free, 0), kps.brief.take(free, 0))
         return table
 
     def _estimate_pose(
@@ -984,10 +985,11 @@ class Localizer:
         hypotheses."""
         c = self.conf
         few = table.n_3d() < c.few_matches_below
-        desc = describe(self.extractor, self.bundle, image.prepared, table.xy[rows])
+        # (take: row gathers, as in ``_track_2d``; two copies, as the two gathers were)
+        desc = describe(self.extractor, self.bundle, image.prepared, table.xy.take(rows, 0))
         gm = guided_matching(
             desc,
-            self._undistort(table.xy[rows]),
+            self._undistort(table.xy.take(rows, 0)),
             self.bundle,
             table.point[table.point >= 0],
             pose,
