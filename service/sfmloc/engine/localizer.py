@@ -691,7 +691,9 @@ class Localizer:
         m = track_2d(prev, self._predict_positions(prev, pred), kps, self.conf, dt)
         rows = np.flatnonzero(m >= 0)
         used = m[rows]
-        return prev.tracked(rows, kps.xy[used], kps.brief[used]), used
+        # (take, not ``kps.xy[used]``: the same rows; numpy 2.4 gathers rows of an (M, 2) or
+        # (M, 4) array by integer indexing at x3-8 take's CPU, issue 10)
+        return prev.tracked(rows, kps.xy.take(used, 0), kps.brief.take(used, 0)), used
 
     def _uncovered(self, table: TrackTable, kps: Keypoints, used: np.ndarray) -> bool:
         """Whether the 3D matches cover fewer than ``refill_coverage`` of the image cells (a
@@ -727,7 +729,8 @@ class Localizer:
         if len(free) > room:
             free = free[np.argsort(-kps.response[free], kind="stable")[:room]]
             free.sort()
-        table.append(self._new_ids(len(free)), kps.xy[free], kps.brief[free])
+        # (take: row gathers, as in ``_track_2d``)
+        table.append(self._new_ids(len(free)), kps.xy.take(free, 0), kps.brief.take(free, 0))
         return table
 
     def _estimate_pose(
@@ -905,14 +908,14 @@ class Localizer:
             scope_xyz,
         )
         # the table's positions are its keypoints' own
-        kp_i, pt_i = unmatched_only(kp_i, pt_i, kps.xy, table.xy[rows], pts)
+        kp_i, pt_i = unmatched_only(kp_i, pt_i, kps.xy, table.xy.take(rows, 0), pts)
         if len(kp_i) == 0:
             return est, cert
         est = refine_with_projections(
             est,
             self.K,
-            kp_u[kp_i],
-            self.bundle.points_xyz[pt_i],
+            kp_u.take(kp_i, 0),
+            self.bundle.points_xyz.take(pt_i, 0),
             self._ransac(),
             iterations=c.projected_iterations,
         )
@@ -925,8 +928,8 @@ class Localizer:
             return table
         out = table.point[rows]  # (a copy: an index array's gather)
         verified = verify_hypotheses(
-            table.hyp[rows],
-            self._undistort(table.xy[rows]),
+            table.hyp.take(rows, 0),  # (take: row gathers, as in ``_track_2d``)
+            self._undistort(table.xy.take(rows, 0)),
             self.bundle.points_xyz,
             pose,
             self.K,
@@ -982,10 +985,11 @@ class Localizer:
         hypotheses."""
         c = self.conf
         few = table.n_3d() < c.few_matches_below
-        desc = describe(self.extractor, self.bundle, image.prepared, table.xy[rows])
+        # (take: row gathers, as in ``_track_2d``; two copies, as the two gathers were)
+        desc = describe(self.extractor, self.bundle, image.prepared, table.xy.take(rows, 0))
         gm = guided_matching(
             desc,
-            self._undistort(table.xy[rows]),
+            self._undistort(table.xy.take(rows, 0)),
             self.bundle,
             table.point[table.point >= 0],
             pose,
@@ -1403,7 +1407,8 @@ class Localizer:
         rows = np.flatnonzero(table.point >= 0)
         if len(rows) == 0:
             return xy
-        uv, z = self.camera.project(pred, self.bundle.points_xyz[table.point[rows]])
+        # (take: row gathers, as in ``_track_2d``)
+        uv, z = self.camera.project(pred, self.bundle.points_xyz.take(table.point[rows], 0))
         # (both coordinates finite: a (N, 2) bool row read as one uint16, not .all(axis=1))
         ok = np.isfinite(uv).view(np.uint16).ravel() == 257
         ok &= z > 0
@@ -1411,7 +1416,7 @@ class Localizer:
             rows, uv = rows[ok], uv[ok]
             if len(rows) == 0:
                 return xy
-        shift = _median_rows(uv - table.xy[rows])
+        shift = _median_rows(uv - table.xy.take(rows, 0))
         xy += shift  # keypoints without a 3D point follow the median image motion
         xy[rows] = uv
         return xy

@@ -334,11 +334,15 @@ def verify_hypotheses(
 ) -> np.ndarray:
     """For each row, the hypothesis reprojecting closest to ``xy_u`` within ``threshold`` is
     written to ``out_point`` (rows without one keep their value). Returns rows verified."""
-    rows, cols = np.nonzero(hyp >= 0)
+    has = hyp >= 0
+    rows, cols = has.nonzero()
     if len(rows) == 0:
         return np.zeros(0, np.int64)
-    pts = hyp[rows, cols]
-    err = reprojection_errors(cam_from_world, K, xy_u[rows], points_xyz[pts])
+    # (the mask, not ``hyp[rows, cols]``: the same values in the same C order, one boolean
+    # pass instead of a two-array gather: 3.90 -> 3.38 us on 1001 recorded redkitchen calls)
+    pts = hyp[has]
+    # (take: row gathers, x3-8 faster than integer indexing of (n, 2) / (n, 3) arrays, issue 10)
+    err = reprojection_errors(cam_from_world, K, xy_u.take(rows, 0), points_xyz.take(pts, 0))
     ok = err < threshold
     rows, pts, err = rows[ok], pts[ok], err[ok]
     if len(rows) == 0:

@@ -69,7 +69,7 @@ class TrackTable:
             brief,
             self.age[rows] + 1,
             self.point[rows],
-            self.hyp[rows],
+            self.hyp.take(rows, 0),  # (take: x3-8 faster than integer indexing of (n, k) rows)
             self.pending[rows],
             self.n_hyp,
         )
