@@ -78,3 +78,41 @@ def test_throughput_clients_loop_without_a_jump_and_send_spread_when_asked():
         loop_order(n, "shuffle")
     with pytest.raises(ValueError):
         phase_of(0, 4, "random")
+
+
+def test_throughput_suite_streams_spread_without_jumps_and_keeps_an_aligned_wrapping_row(
+    world, inputs, tmp_path
+):
+    """The throughput suite's own runs (real server processes, real Zenoh clients): by default
+    independent cameras (spread sends, no jump), plus one stress row of clients sending together
+    and jumping from the last frame to the first, labelled as such in the report."""
+    from sfmloc.bench import report
+    from sfmloc.bench.config import BenchConf
+    from sfmloc.bench.throughput import run_throughput
+
+    conf = BenchConf()
+    assert (conf.client_phases, conf.frame_loop, conf.stress_clients) == ("spread", "pingpong", 8)
+    t = run_throughput(
+        tmp_path,
+        inputs / "maps" / "room",
+        inputs / "frames",
+        world.camera_spec,
+        [2],
+        10.0,
+        1.0,
+        1,
+        memory_workers=(),
+        phases=conf.client_phases,
+        frame_loop=conf.frame_loop,
+        stress_clients=2,
+    )
+    (row,) = t["rows"]
+    (stress,) = t["stress_rows"]
+    assert (row["client_phases"], row["frame_loop"]) == ("spread", "pingpong")
+    assert (stress["client_phases"], stress["frame_loop"]) == ("aligned", "wrap")
+    assert row["clients"] == stress["clients"] == 2 and row["delivered_hz_total"] > 0
+    assert stress["delivered_hz_total"] > 0
+    cells = report.throughput_rows({"suites": {"throughput": t}})
+    assert [c[0] for c in cells] == ["2", "2 (aligned, wrap)"]
+    mode = report.throughput_mode(t)
+    assert "independent cameras" in mode and "no jump" in mode and "stress row" in mode

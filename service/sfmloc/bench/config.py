@@ -47,7 +47,9 @@ SUITE_HELP = {
     "throughput": "1, 2, 4, 8, 12, 16 clients streaming redkitchen JPEGs over Zenoh (loopback, "
     "no multicast) at 30 Hz each to one `sfmloc serve` process: delivered rate, dropped "
     "fraction (all and worst client), latency p50/p99, CPU per pose of the server and its "
-    "workers; resident memory of the server with 1, 2 and 4 workers",
+    "workers; resident memory of the server with 1, 2 and 4 workers. Clients send spread over "
+    "the frame interval and loop without a jump (streaming cameras); one more row at 8 clients "
+    "sends aligned and jumps from the last frame to the first (a stress row)",
     "map": "build time, bundle size, load time and resident memory (fresh process) of the "
     "redkitchen "
     "bundle, per million descriptors",
@@ -106,13 +108,18 @@ class BenchConf(StrictModel):
     rate_hz: float = Field(30.0, gt=0)
     duration_s: float = Field(10.0, gt=0)
     workers: int = Field(0, ge=0)  # server workers (0: one per core)
-    # When the clients send ("aligned": all at the same instants after the warm-up barrier;
-    # "spread": client i of n i/n of a frame interval later, as independent cameras) and how
-    # each loops over the loaded frames ("wrap": back to the first, a jump every session that
-    # wraps relocalizes after; "pingpong": forwards then backwards, no jump). Issue 10's drop
-    # diagnosis (python -m sfmloc.bench.droptimeline): both defaults are the suite as it was.
-    client_phases: Literal["aligned", "spread"] = "aligned"
-    frame_loop: Literal["wrap", "pingpong"] = "wrap"
+    # When the clients send ("spread": client i of n i/n of a frame interval later, as
+    # independent cameras; "aligned": all at the same instants after the warm-up barrier) and
+    # how each loops over the loaded frames ("pingpong": forwards then backwards, no jump;
+    # "wrap": back to the first, a jump every session that wraps relocalizes after). The
+    # defaults are streaming cameras. Until issue 10's drop diagnosis (python -m
+    # sfmloc.bench.droptimeline) the suite ran aligned + wrap: bursts of one frame per client
+    # and a relocalization per client every 10 s, which made most of its 8-client drops.
+    client_phases: Literal["aligned", "spread"] = "spread"
+    frame_loop: Literal["wrap", "pingpong"] = "pingpong"
+    # One more run at this many clients, aligned + wrap (that stress, kept comparable with
+    # earlier benches; 0: none).
+    stress_clients: int = Field(8, ge=0)
     # The robust suite: frames per row (30 Hz span of the synthetic and redkitchen rows; the
     # 10 and 3 Hz rows keep every 3rd / 10th of it), frames of the large-image rows (the
     # 3072x2048 row 2/5 of them), frames per row for the peer (evenly strided; half on the
@@ -147,6 +154,7 @@ def quick_conf(**changes) -> BenchConf:
         "tune_max_errors": [12.0],
         "tune_ef": [64],
         "clients": [1, 2],
+        "stress_clients": 2,
         "duration_s": 3.0,
         "robust_frames": 30,
         "robust_large_frames": 4,

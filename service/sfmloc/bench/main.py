@@ -460,6 +460,7 @@ def main(
                 progress,
                 phases=conf.client_phases,
                 frame_loop=conf.frame_loop,
+                stress_clients=conf.stress_clients,
             )
             th["fig_throughput"] = _rel(
                 figures.throughput(

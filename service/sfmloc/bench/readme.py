@@ -28,6 +28,7 @@ from .report import (
     markdown_table,
     ratio_lines,
     table2_rows,
+    throughput_mode,
     throughput_rows,
     verdict,
     wrong_pose_rule,
@@ -100,7 +101,7 @@ def render_block(results: dict, source: str = "docs/results.json") -> str:
         t = results["suites"]["throughput"]
         L += [
             f"**Throughput**: clients streaming at {t['rate_hz']:g} Hz each to one `sfmloc serve` "
-            f"({t['workers']} workers, Zenoh on loopback):",
+            f"({t['workers']} workers, Zenoh on loopback). {throughput_mode(t)}",
             "",
             markdown_table(THROUGHPUT_HEADER, throughput_rows(results)),
             "",

@@ -161,13 +161,39 @@ def verdict(t: dict) -> str:
     return "skipped" if t.get("met") is None else ("met" if t["met"] else "missed")
 
 
+def throughput_mode(t: dict) -> str:
+    """How the suite's clients sent (results without the keys ran aligned, wrapping)."""
+    ph, loop = t.get("client_phases", "aligned"), t.get("frame_loop", "wrap")
+    words = {
+        "spread": "Each client sends 1/n of a frame interval after the previous one (independent "
+        "cameras)",
+        "aligned": "All clients send at the same instants (a burst of one frame per client)",
+        "pingpong": "each loops over its frames forwards, then backwards (no jump)",
+        "wrap": "each jumps from its last frame to its first (a relocalization per client every "
+        "loop)",
+    }
+    text = f"{words.get(ph, ph)}, and {words.get(loop, loop)}."
+    if t.get("stress_rows"):
+        text += (
+            " Rows marked *aligned, wrap*: the same clients sending together and jumping from "
+            "the last loaded frame to the first (a relocalization per client in each run): the "
+            "suite's mode before issue 10's drop diagnosis, kept as a stress row."
+        )
+    return text
+
+
 def throughput_rows(results: dict) -> list[list[str]]:
     t = results.get("suites", {}).get("throughput")
     if not t:
         return []
     return [
         [
-            str(r["clients"]),
+            str(r["clients"])
+            + (
+                f" ({r['client_phases']}, {r['frame_loop']})"
+                if r in t.get("stress_rows", [])
+                else ""
+            ),
             f1(r["offered_hz"], 0),
             f1(r["delivered_hz_total"]),
             f1(r["delivered_hz_per_client"]),
@@ -189,7 +215,7 @@ def throughput_rows(results: dict) -> list[list[str]]:
             # Answers without a pose (DEADLINE_EXCEEDED under overload), in "dropped" too.
             str(r["errors"]) if "error_codes" in r else "n/a",
         ]
-        for r in t["rows"]
+        for r in [*t["rows"], *t.get("stress_rows", [])]
     ]
 
 
@@ -625,7 +651,7 @@ def write_report(results: dict, out: Path) -> Path:
             "without a pose (the server keeps only each client's newest frame when it falls "
             "behind); latency = "
             "frame published -> pose received, p50 of the median client and p99 of the worst "
-            "client.",
+            "client. " + throughput_mode(t),
             "",
             markdown_table(THROUGHPUT_HEADER, throughput_rows(results)),
             "",

@@ -152,9 +152,13 @@ def run_throughput(
     workers: int,
     progress=None,
     memory_workers: tuple[int, ...] = (1, 2, 4),
-    phases: str = "aligned",
-    frame_loop: str = "wrap",
+    phases: str = "spread",
+    frame_loop: str = "pingpong",
+    stress_clients: int = 0,
 ) -> dict[str, Any]:
+    """One server run per client count (``phases``, ``frame_loop``: see ``bench_clients``),
+    then, with ``stress_clients`` > 0, one run at that many clients sending aligned and
+    wrapping (``stress_rows``: the suite's mode before issue 10's drop diagnosis)."""
     from ..bench.transport import BenchInput, bench_clients, bench_memory
 
     frames = sorted(
@@ -166,21 +170,28 @@ def run_throughput(
     inp = BenchInput(maps, bundle.name, frames, camera)
     inp.load(min(len(frames), int(rate_hz * duration_s) + 10))
     n_workers = workers or (os.cpu_count() or 1)
-    rows, raw = [], []
-    for k, n in enumerate(clients):
+    rows, raw, stress_rows = [], [], []
+    runs = [(n, phases, frame_loop) for n in clients]
+    if stress_clients > 0:
+        runs.append((stress_clients, "aligned", "wrap"))
+    for k, (n, ph, loop) in enumerate(runs):
         if progress:
             progress(
-                "throughput", k / len(clients), f"{n} client(s) x {rate_hz:g} Hz x {duration_s:g} s"
+                "throughput",
+                k / len(runs),
+                f"{n} client(s) x {rate_hz:g} Hz x {duration_s:g} s ({ph}, {loop})",
             )
         log.info(
-            "throughput: %d client(s) at %g Hz for %g s, %d server workers",
+            "throughput: %d client(s) at %g Hz for %g s, %d server workers, %s sends, %s loop",
             n,
             rate_hz,
             duration_s,
             n_workers,
+            ph,
+            loop,
         )
         res = bench_clients(
-            inp, n, rate_hz, duration_s, n_workers, "process", phases=phases, frame_loop=frame_loop
+            inp, n, rate_hz, duration_s, n_workers, "process", phases=ph, frame_loop=loop
         )
         row = aggregate(res["clients"], rate_hz)
         posed = sum(c["received"] - c["errors"] for c in res["clients"])
@@ -190,8 +201,12 @@ def run_throughput(
         row["outside_engine_ms"] = outside_engine_ms(row)
         row.update(server_threads(res, posed))
         row["load_before"], row["load_after"] = res["load_before"], res["load_after"]
-        rows.append(row)
-        raw.append(res)
+        row["client_phases"], row["frame_loop"] = ph, loop
+        if k < len(clients):
+            rows.append(row)
+            raw.append(res)
+        else:
+            stress_rows.append(row)
     memory: dict[str, Any] = {}
     if memory_workers:
         if progress:
@@ -211,6 +226,7 @@ def run_throughput(
         "client_phases": phases,
         "frame_loop": frame_loop,
         "rows": rows,
+        "stress_rows": stress_rows,
         "per_client": [r["clients"] for r in raw],
     }
 

@@ -108,14 +108,20 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--client-phases",
         choices=("aligned", "spread"),
-        help="throughput clients send at the same instants (aligned, default) or each 1/n of a "
-        "frame interval after the previous one (spread, as independent cameras)",
+        help="throughput clients send each 1/n of a frame interval after the previous one "
+        "(spread, default: independent cameras) or all at the same instants (aligned)",
     )
     p.add_argument(
         "--frame-loop",
         choices=("wrap", "pingpong"),
-        help="throughput clients loop over the frames back to the first (wrap, default: a jump "
-        "each session relocalizes after) or forwards then backwards (pingpong, no jump)",
+        help="throughput clients loop over the frames forwards then backwards (pingpong, "
+        "default: no jump) or back to the first (wrap: a jump each session relocalizes after); "
+        "either way one more run at 8 clients is aligned + wrap (--stress-clients)",
+    )
+    p.add_argument(
+        "--stress-clients",
+        type=int,
+        help="throughput: clients of the extra aligned + wrap run (default 8; 0: none)",
     )
     p.add_argument(
         "--workers", type=int, help="server workers for throughput (default one per core)"
@@ -203,6 +209,8 @@ def run(args: argparse.Namespace) -> int:
         changes["client_phases"] = args.client_phases
     if args.frame_loop:
         changes["frame_loop"] = args.frame_loop
+    if args.stress_clients is not None:
+        changes["stress_clients"] = args.stress_clients
     if args.no_tune:
         changes["tune"] = False
     if args.reuse:
