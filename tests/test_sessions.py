@@ -558,3 +558,27 @@ def test_registry_refuses_a_corrupt_bundle_before_any_worker_sees_it(world):
     with pytest.raises(BundleError, match="corrupt"):
         reg.load(world.corrupt)
     assert not pool.maps and reg.list() == []
+
+
+def test_a_frame_whose_session_closes_as_it_arrives_goes_to_the_next_session(env, monkeypatch):
+    """A session closed (map unload, drain, reset, expiry) between a frame's lookup of it and
+    the frame's hand-over: the frame opens the key's next session and is dispatched there,
+    rather than vanishing unanswered and uncounted with the closed one."""
+    import sfmloc.server.sessions as sessions_mod
+
+    pool, _, sm, sinks, submit = env
+    real = sessions_mod.validate_camera
+    first: list = []
+
+    def close_while_validating(cam, max_pixels):  # the other thread's close, at this instant
+        if not first:
+            first.append(next(iter(sm._by_key.values())))
+            sm.close(first[0], "reset")
+        return real(cam, max_pixels)
+
+    monkeypatch.setattr(sessions_mod, "validate_camera", close_while_validating)
+    s = submit("c", 0)
+    assert first and first[0].closed and s is not first[0] and not s.closed
+    assert [m.seq for _, m in pool.frames] == [0] and pool.frames[0][1].sid == s.sid
+    _answer(sm, pool.frames[0][1])
+    assert [(p.seq, p.status) for p in sinks["c"].poses] == [(0, "TRACKING")]

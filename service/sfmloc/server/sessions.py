@@ -258,6 +258,7 @@ class SessionManager:
         t_recv: float,
         make_sink: Callable[[], Sink],
         key_suffix: str = "",
+        _retry: bool = True,
     ) -> Session:
         """Hand a validated frame to its session (created on first use). Raises for what the
         client must hear about before any engine work: unknown map, bad camera, overload."""
@@ -266,7 +267,8 @@ class SessionManager:
 
             raise UnavailableError("the server is shutting down")
         entry = self.registry.get(map_name)  # MapNotFoundError
-        self.metrics.frames_in.inc(map_name, transport)
+        if _retry:  # once per frame
+            self.metrics.frames_in.inc(map_name, transport)
         key = (map_name, client_id, transport + key_suffix)
         replaced = None
         with self._lock:
@@ -288,8 +290,19 @@ class SessionManager:
             validate_camera(frame.camera, self.max_image_pixels)
             s.camera = frame.camera
         with self._lock:
-            if s.closed:
+            closed = s.closed
+            if closed and not _retry:  # closed twice in a row around this frame: counted
+                s.dropped += 1
+                self.metrics.frames_dropped.inc(map_name)
                 return s
+        if closed:
+            # The session ended (map unloaded, drain, reset, expiry) between its lookup and
+            # here: the frame goes to the key's next session, or its map's or the server's
+            # error is raised to the client, instead of vanishing with the closed one.
+            return self.submit(
+                map_name, client_id, transport, frame, t_recv, make_sink, key_suffix, False
+            )
+        with self._lock:
             if self.timeline is not None:
                 self.timeline.append(("recv", t_recv, s.sid, frame.seq, s.busy, s.waiting))
             if s.busy or s.waiting:
