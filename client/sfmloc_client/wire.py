@@ -250,7 +250,9 @@ def _float(v: Any, name: str) -> float:
 _FLOAT_TYPE = {float}
 
 
-def _floats(v: Any, n: int | None, name: str) -> tuple[float, ...]:
+def _plain_floats(v: Any, n: int | None) -> tuple[float, ...] | None:
+    """``v`` as a tuple when it is a list of only floats (of length ``n`` if given) with a
+    finite sum, else None (left to the value-by-value checks)."""
     if (
         type(v) is list
         and (n is None or len(v) == n)
@@ -258,6 +260,13 @@ def _floats(v: Any, n: int | None, name: str) -> tuple[float, ...]:
         and math.isfinite(sum(v))
     ):
         return tuple(v)
+    return None
+
+
+def _floats(v: Any, n: int | None, name: str) -> tuple[float, ...]:
+    plain = _plain_floats(v, n)
+    if plain is not None:
+        return plain
     if not isinstance(v, (list, tuple)):
         raise WireError(f"{name} must be a list of numbers, got {type(v).__name__}")
     if n is not None and len(v) != n:
@@ -740,11 +749,10 @@ def _str_as_written(v: Any) -> str:
 
 
 def _floats_as_written(v: Any, n: int) -> tuple[float, ...]:
-    # Only floats, of a finite sum: every value finite (``_floats``' fast path, exactly n)
-    if type(v) is list and len(v) == n and set(map(type, v)) <= _FLOAT_TYPE:
-        if math.isfinite(sum(v)):
-            return tuple(v)
-    raise _Unusual
+    plain = _plain_floats(v, n)
+    if plain is None:
+        raise _Unusual
+    return plain
 
 
 def _transform_as_written(v: Any) -> Transform | None:
