@@ -268,7 +268,7 @@ class EngineConf(StrictModel):
     # were 7%-1000% of the scene scale off (37 withheld as too uncertain; 13 in 3 cells, 8
     # right); density-3x, redkitchen every 30th/60th: none in 2 cells. With a reset every 10
     # or 30 frames the next frame relocalizes instead of tracking on from a withheld wrong
-    # pose: right poses 191 -> 207 and 212 -> 230 (README, *Beyond the paper*).
+    # pose: right poses 191 -> 207 and 212 -> 230 (docs/beyond-the-paper.md#min-inlier-cells).
     min_inlier_cells: int = 3
     # ... and when RANSAC, on the candidate matches the pose leaves unexplained, finds a pose at
     # another place (beyond the wrong-pose limits ``contradiction_*``) with at least this
@@ -516,7 +516,8 @@ class EngineConf(StrictModel):
     # CPU 2.52 -> 2.34 ms/frame (x0.93; x 4 runs; x0.94 in another x 2), engine mean 9.62 ->
     # 9.60 ms (inside the load's noise), 1000/1000, 99.8% within 5 cm / 5 deg, 0 wrong, median
     # 0.279 -> 0.282 cm; map every 60th: pose 2.44 -> 2.25 ms, 997/997 posed, 98.9% both; every
-    # 30th: 2.89 -> 2.68 ms, 999/999, 99.9%; density-6x 237/237, walk 300/300 (README).
+    # 30th: 2.89 -> 2.68 ms, 999/999, 99.9%; density-6x 237/237, walk 300/300
+    # (docs/beyond-the-paper.md#first-unrefined).
     # On every frame (0 matches up): every 60th 997 -> 992 posed (frames 393-396 and 465-466
     # lost), every 30th 999 -> 998; a hair's change of refine_loss_scale_px moved neither.
     # With few matches a near-outlier pulls the least-squares pose that then decides which

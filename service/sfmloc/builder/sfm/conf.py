@@ -54,7 +54,8 @@ class SfmConf(StrictModel):
     # nearest 8874 / 9956 / 4539 (its every-frame pairs: all under 1.5 deg, median 0.31 deg at
     # the 2 m scene depth); geometric 7710 / 11407 / 19990 (pair angles median 5.6 deg).
     # All 1000 frames, every 10th/4th/2nd/1st: 9434/19176/29176/49819 map points, replay
-    # 99.0/99.1/99.2/99.6% (nearest: every frame 16336 points, 81.5-91%); README.
+    # 99.0/99.1/99.2/99.6% (nearest: every frame 16336 points, 81.5-91%);
+    # docs/beyond-the-paper.md#pair-selection.
     pair_selection: Literal["geometric", "nearest"] = "geometric"
     pair_near: int = Field(2, ge=0, description="known poses, geometric: nearest views per image")
     pair_angles_deg: tuple[float, ...] = Field(

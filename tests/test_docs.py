@@ -1,0 +1,117 @@
+"""README's "Beyond the paper" and its records (docs/beyond-the-paper.md): every link and every
+citation finds its record, and every record keeps its three parts.
+
+The records were the cells of one README table (up to 7,500 characters a cell), cited from code
+comments and read by everyone before trying an idea; README now gives each behaviour change in
+a line and links to its record. A link or a citation that names no record sends the reader
+nowhere, and nothing else notices it."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+README = REPO / "README.md"
+RECORDS = REPO / "docs" / "beyond-the-paper.md"
+RECORDS_NAME = "docs/beyond-the-paper.md"
+# The record groups, by their section anchors (README links to each group).
+BEHAVIOUR, SAME_RESULTS, NOT_TAKEN = "behaviour-changes", "same-results", "measured-not-taken"
+ANCHOR = re.compile(r'<a id="([^"]+)"></a>\n')
+
+
+def _slug(heading: str) -> str:
+    """GitHub's anchor for a heading: lower case, punctuation dropped, spaces to hyphens."""
+    text = re.sub(r"[^\w\- ]", "", heading.strip().lower())
+    return text.replace(" ", "-")
+
+
+def _anchors(text: str) -> list[str]:
+    """The anchors a Markdown file defines: explicit ``<a id>`` and its headings' slugs
+    (outside fenced blocks, where a ``#`` line is no heading)."""
+    prose = re.sub(r"```.*?```", "", text, flags=re.S)
+    headings = re.findall(r"^#{1,6} (.+)$", prose, re.M)
+    return ANCHOR.findall(prose) + [_slug(h) for h in headings]
+
+
+def _records() -> dict[str, tuple[str, str]]:
+    """Each record's anchor -> (its group's anchor, its text up to the next anchor)."""
+    text = re.sub(r"```.*?```", "", RECORDS.read_text(), flags=re.S)
+    parts = ANCHOR.split(text)
+    records: dict[str, tuple[str, str]] = {}
+    group = ""
+    for anchor, body in zip(parts[1::2], parts[2::2]):
+        if body.startswith("## "):
+            group = anchor
+        elif body.startswith("### "):
+            records[anchor] = (group, body)
+    return records
+
+
+def _links(text: str, target: str) -> list[str]:
+    """The anchors of the Markdown links and plain citations of ``target#anchor`` in text."""
+    return re.findall(re.escape(target) + r"#([A-Za-z0-9_-]+)", text)
+
+
+def test_records_anchors_are_unique_and_grouped():
+    # Explicit anchors and heading slugs apart: a group's anchor is its own heading's slug.
+    text = re.sub(r"```.*?```", "", RECORDS.read_text(), flags=re.S)
+    for anchors in (ANCHOR.findall(text), [_slug(h) for h in re.findall(r"^#+ (.+)$", text, re.M)]):
+        assert len(anchors) == len(set(anchors)), {a for a in anchors if anchors.count(a) > 1}
+    groups = {group for group, _ in _records().values()}
+    assert groups == {BEHAVIOUR, SAME_RESULTS, NOT_TAKEN}, groups
+
+
+def test_every_record_has_change_why_and_switch():
+    for anchor, (_, body) in _records().items():
+        for part in ("**Change:** ", "**Why (measured):** ", "**Switch:** "):
+            assert f"\n{part}" in body, f"record {anchor} has no {part.strip()}"
+
+
+def test_every_record_is_in_the_contents():
+    text = RECORDS.read_text()
+    contents = text.split("## Contents", 1)[1].split('<a id="', 1)[0]
+    listed = re.findall(r"\]\(#([A-Za-z0-9_-]+)\)", contents)
+    assert sorted(set(listed) - {BEHAVIOUR, SAME_RESULTS, NOT_TAKEN}) == sorted(_records())
+
+
+def test_readme_links_find_their_records():
+    """Every README link into the records names one, and README's table links every behaviour
+    change (a record in that group without a row is a change a README reader never sees)."""
+    readme = README.read_text()
+    linked = _links(readme, RECORDS_NAME)
+    assert linked, "README links to no record"
+    missing = sorted(set(linked) - set(_anchors(RECORDS.read_text())))
+    assert not missing, f"README links to anchors {RECORDS_NAME} does not define: {missing}"
+    section = readme.split("\n## Beyond the paper\n", 1)[1].split("\n## ", 1)[0]
+    rows = [line for line in section.splitlines() if line.startswith("| [")]
+    in_table = [a for row in rows for a in _links(row.split(" | ", 1)[0], RECORDS_NAME)]
+    behaviour = sorted(a for a, (g, _) in _records().items() if g == BEHAVIOUR)
+    assert sorted(in_table) == behaviour
+    for group in (SAME_RESULTS, NOT_TAKEN):
+        assert group in _links(section, RECORDS_NAME), f"README's section links no {group}"
+
+
+def test_records_links_resolve():
+    """The records' own links: within the file, and back to README's sections."""
+    text = RECORDS.read_text()
+    own = set(_anchors(text))
+    inner = re.findall(r"\]\(#([A-Za-z0-9_-]+)\)", text)
+    assert sorted(set(inner) - own) == []
+    to_readme = _links(text, "../README.md")
+    assert to_readme and not set(to_readme) - set(_anchors(README.read_text()))
+
+
+def test_code_citations_find_their_records():
+    """A comment or docstring citing ``docs/beyond-the-paper.md#ANCHOR`` (what a measured
+    default points its reader to) names a record that exists."""
+    anchors = set(_anchors(RECORDS.read_text()))
+    cited: dict[str, list[str]] = {}
+    for root in ("service", "client", "tests"):
+        for path in sorted((REPO / root).rglob("*.py")):
+            if path == Path(__file__).resolve():
+                continue  # its docstrings name the form, not a record
+            for anchor in _links(path.read_text(), RECORDS_NAME):
+                cited.setdefault(anchor, []).append(str(path.relative_to(REPO)))
+    missing = {a: paths for a, paths in cited.items() if a not in anchors}
+    assert not missing, missing
