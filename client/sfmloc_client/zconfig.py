@@ -36,7 +36,8 @@ def make_zenoh_config(
     turn it off unless asked (``True``, or a config file that sets ``transport/shared_memory``):
     with it on, a process keeps every peer's 16 MiB segment mapped after that peer leaves
     (zenoh 1.10; eclipse-zenoh/zenoh#2787, #1700), so a server grew ~20 MB per short-lived
-    client process that ever connected. Off costs copies over loopback only (README, Zenoh).
+    client process that ever connected. Off costs copies over loopback only (README, Zenoh;
+    docs/measurements.md#zenoh-shm).
 
     A lost ``connect`` endpoint (a restarted server) is tried again every 0.1-0.5 s
     (``CONNECT_RETRY``) unless the config file sets ``retry`` itself."""

@@ -490,7 +490,8 @@ class EngineConf(StrictModel):
     # first stage holds (99) and 63 -> 74 where it fails (17); with the cluster-bit votes,
     # CPU per call against 600 (nice 19, load ~13) mean x0.89, p95 x0.84-0.89, p99 x0.96,
     # 0 wrong, median 0.237 -> 0.245 cm. On the thin maps (every 30th / 60th frame) more
-    # first stages fail: p95 x1.07 / x1.10, mean x0.96 / x0.99 (README, issue 10). From 450
+    # first stages fail: p95 x1.07 / x1.10, mean x0.96 / x0.99
+    # (docs/measurements.md#relocalization-time). From 450
     # with ``relocalize_first_min_inliers`` (a failing first stage costs less): redkitchen's
     # 450-500-corner frames ~43 -> ~35 ms.
     relocalize_staged_from: int = 450
@@ -585,7 +586,8 @@ class EngineConf(StrictModel):
     position_noise_scales: float = 0.01  # measurement noise of a pose
     orientation_noise_rad: float = 0.01
     max_frame_gap_s: float = 1.0  # a longer gap between frames resets the filter
-    # ---- a pose is a promise (README, "Pose covariance" and "Status")
+    # ---- a pose is a promise (README, Conventions: "Pose covariance" and "Status"; their
+    # evidence: docs/measurements.md#covariance-calibration, docs/measurements.md#status-rules)
     # Pixel noise of the map's keypoints, for the map points' own uncertainty in the pose
     # covariance (engine/point_uncertainty.py; 0: the frame's pixel noise only). Fitted on exact
     # synthetic ground truth with ``python -m sfmloc.eval.calibration`` (150 frames per video,
@@ -863,7 +865,8 @@ class EngineConf(StrictModel):
     # --rooms 24 --ratio 10): waiting as long as a load took (the old default, per part),
     # 956/960 localized, stall p99 55-63 ms; 0 (never), 922/960 before the early loads; 10
     # with them (load 12-18): 947/960 (98.65%, 4 frames under issue 14's 99%: room 13's first
-    # frames stop at a part not loaded in time), stall p99 9.1 ms, 7 frames over 15 ms (README).
+    # frames stop at a part not loaded in time), stall p99 9.1 ms, 7 frames over 15 ms
+    # (docs/measurements.md#submap-measurements).
     submap_load_wait_ms: float = Field(10.0, ge=0.0, le=60_000.0)
 
     @model_validator(mode="before")

@@ -35,10 +35,11 @@ Per frame, before the ``Localizer`` runs:
    frames, as the paper spreads global matching). When the budget cannot hold the part
    beside the session's own, the session lets go of its own for it. Scale bench (24 rooms,
    72 parts, 10x the budget): stall p99 55 ms -> 9 ms, 956/960 -> 947/960 localized (numbers
-   in the README). Which loads finish within that wait depends on a load's cost: parts are
-   packed bundles (``map/bundle.py``: one mapped file, a load's CPU p50 ~7 -> ~2 ms, its
-   wall on the loader thread ~29 -> ~2.4 ms), and the loads the walk waited for in vain, 4-9
-   frames a run, became 1-2 (README). Parts are tried until one poses:
+   in docs/measurements.md#submap-measurements). Which loads finish within that wait depends
+   on a load's cost: parts are packed bundles (``map/bundle.py``: one mapped file, a load's
+   CPU p50 ~7 -> ~2 ms, its wall on the loader thread ~29 -> ~2.4 ms), and the loads the
+   walk waited for in vain, 4-9 frames a run, became 1-2
+   (docs/measurements.md#submap-measurements). Parts are tried until one poses:
    ``lost_parts_per_frame`` parts (``EngineConf.submap_lost_parts``, 2) at least, then more
    while the frame's search has used less than ``EngineConf.submap_search_cpu_ms`` of its
    thread's CPU (at most ``submap_search_max_parts``). The vote is discounted by
@@ -57,7 +58,7 @@ Per frame, before the ``Localizer`` runs:
    failed frames 0-5 on the second-place test, each frame's second try went to another room,
    and its third part, which poses frame 0, was met once (frame 1, which it does not pose).
    With the discounts and a CPU budget of 1000 ms (3-4 parts a searching frame), 956/960,
-   0 wrong (the walk alone, load 23; bench numbers in the README).
+   0 wrong (the walk alone, load 23; bench numbers: docs/measurements.md#submap-measurements).
 
 Memory: the resident parts' ``memory_bytes`` (as ``MapBundle.memory_bytes``: arrays touched by
 the engine plus the ANN index; a part being loaded counts from the moment its load starts)

@@ -23,7 +23,8 @@ class ZenohConf(StrictModel):
     config_file: str | None = None  # a zenoh JSON5 config; the settings above go over it
     # Zenoh's shared-memory transport. None: off unless config_file sets it. Off by default:
     # with it on, the server kept each client's 16 MiB segment mapped after the client left
-    # (10 short-lived clients: +207 MB RSS, +20 /dev/shm files; off: +13 MB, +0; README, Zenoh).
+    # (10 short-lived clients: +207 MB RSS, +20 /dev/shm files; off: +13 MB, +0;
+    # docs/measurements.md#zenoh-shm).
     shared_memory: bool | None = None
     # Reply NOT_FOUND to frames for maps this server does not host. Turn off when several
     # servers share a Zenoh network, each hosting different maps.
@@ -88,10 +89,11 @@ class ServerConfig(StrictModel):
     # overload poses stay fresh and sessions keep their tracks. 0: no limit, each session's
     # frame goes to its worker at once, where it waits behind the other sessions' frames while
     # newer ones arrive, and no turns are chosen (16 clients on 2 workers collapsed into
-    # relocalizations, see README). 2 (default): one frame waits in the pipe while one runs,
-    # so the worker never idles for a round trip through the server. Measured (nice 0, quiet,
-    # sfmloc bench --suites throughput, 2 and 0 alternating): 16 clients 28.4 / 65.8 Hz, then
-    # 54.8 / 41.8 Hz: no gain beyond run-to-run variance; 16 clients collapse with either.
+    # relocalizations, docs/measurements.md#throughput). 2 (default): one frame waits in the
+    # pipe while one runs, so the worker never idles for a round trip through the server.
+    # Measured (nice 0, quiet, sfmloc bench --suites throughput, 2 and 0 alternating): 16
+    # clients 28.4 / 65.8 Hz, then 54.8 / 41.8 Hz: no gain beyond run-to-run variance; 16
+    # clients collapse with either.
     worker_queue: int = Field(2, ge=0, le=64)
     # The most of a stream worker's time that relocalizing frames (a session's first frame,
     # after LOST or past the engine's frame gap: global matching, ~6x a tracked frame) take
