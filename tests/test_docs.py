@@ -1,10 +1,12 @@
-"""README's "Beyond the paper" and its records (docs/beyond-the-paper.md): every link and every
-citation finds its record, and every record keeps its three parts.
+"""README and its records in docs/: every link and every citation finds its record, and every
+record keeps its parts.
 
-The records were the cells of one README table (up to 7,500 characters a cell), cited from code
-comments and read by everyone before trying an idea; README now gives each behaviour change in
-a line and links to its record. A link or a citation that names no record sends the reader
-nowhere, and nothing else notices it."""
+docs/beyond-the-paper.md holds the rows of README's "Beyond the paper" table (up to 7,500
+characters a cell), read by everyone before trying an idea; docs/measurements.md the measurement
+logs that were README's paragraphs (Throughput, Status, Reliability, ...: up to 13,000
+characters each), docs/development.md the make targets' details. README gives the user part in
+short and links to each record; code comments cite them as ``docs/FILE.md#ANCHOR``. A link or a
+citation that names no record sends the reader nowhere, and nothing else notices it."""
 
 from __future__ import annotations
 
@@ -105,16 +107,91 @@ def test_records_links_resolve():
     assert to_readme and not set(to_readme) - set(_anchors(README.read_text()))
 
 
+# The records moved out of README's paragraphs: one record per paragraph, each linked from the
+# README text it was cut from.
+PARAGRAPH_RECORDS = ("measurements.md", "development.md")
+DOC_LINK = re.compile(r"docs/([A-Za-z0-9_.-]+\.md)#([A-Za-z0-9_-]+)")
+
+
+def _doc_anchors(name: str) -> set[str]:
+    path = REPO / "docs" / name
+    assert path.is_file(), f"docs/{name} is cited but does not exist"
+    return set(_anchors(path.read_text()))
+
+
+def _paragraph_records(name: str) -> dict[str, str]:
+    """A paragraph-records file's records: anchor -> its text up to the next anchor."""
+    parts = ANCHOR.split((REPO / "docs" / name).read_text())
+    return {a: body for a, body in zip(parts[1::2], parts[2::2]) if body.startswith("### ")}
+
+
+def test_paragraph_records_are_unique_listed_linked_and_point_back():
+    """Each record of docs/measurements.md and docs/development.md: its anchor is unique, it
+    is in the file's contents, README links to it (a record nothing links to is a measurement
+    no reader finds from the text it backs), and it names the README section it came from."""
+    readme = README.read_text()
+    readme_anchors = set(_anchors(readme))
+    for name in PARAGRAPH_RECORDS:
+        text = (REPO / "docs" / name).read_text()
+        anchors = ANCHOR.findall(text)
+        assert len(anchors) == len(set(anchors)), {a for a in anchors if anchors.count(a) > 1}
+        records = _paragraph_records(name)
+        assert records, f"docs/{name} has no records"
+        contents = text.split("## Contents", 1)[1].split('<a id="', 1)[0]
+        assert sorted(re.findall(r"\]\(#([A-Za-z0-9_-]+)\)", contents)) == sorted(records)
+        linked = set(_links(readme, f"docs/{name}"))
+        assert not set(records) - linked, f"README links to no {sorted(set(records) - linked)}"
+        for anchor, body in records.items():
+            back = _links(body.split("\n\n", 2)[1], "../README.md")
+            assert back, f"docs/{name}#{anchor} names no README section"
+            assert set(back) <= readme_anchors, f"docs/{name}#{anchor}: {back} not in README"
+
+
+def test_readme_links_into_docs_resolve():
+    """Every ``docs/FILE.md#ANCHOR`` README names (links and text) is a file with that anchor."""
+    readme = README.read_text()
+    cited = DOC_LINK.findall(readme)
+    assert {name for name, _ in cited} >= {"beyond-the-paper.md", *PARAGRAPH_RECORDS}
+    missing = sorted(f"docs/{n}#{a}" for n, a in set(cited) if a not in _doc_anchors(n))
+    assert not missing, f"README names anchors that do not exist: {missing}"
+    for name in re.findall(r"\]\(docs/([A-Za-z0-9_.-]+)\)", readme):
+        assert (REPO / "docs" / name).is_file(), f"README links to docs/{name}, which is missing"
+
+
 def test_code_citations_find_their_records():
-    """A comment or docstring citing ``docs/beyond-the-paper.md#ANCHOR`` (what a measured
-    default points its reader to) names a record that exists."""
-    anchors = set(_anchors(RECORDS.read_text()))
+    """A comment or docstring citing ``docs/FILE.md#ANCHOR`` (what a measured default points
+    its reader to) names a record that exists, in any docs file."""
     cited: dict[str, list[str]] = {}
     for root in ("service", "client", "tests"):
         for path in sorted((REPO / root).rglob("*.py")):
             if path == Path(__file__).resolve():
                 continue  # its docstrings name the form, not a record
-            for anchor in _links(path.read_text(), RECORDS_NAME):
-                cited.setdefault(anchor, []).append(str(path.relative_to(REPO)))
-    missing = {a: paths for a, paths in cited.items() if a not in anchors}
+            for name, anchor in DOC_LINK.findall(path.read_text()):
+                cited.setdefault(f"docs/{name}#{anchor}", []).append(str(path.relative_to(REPO)))
+    assert any(c.startswith("docs/measurements.md#") for c in cited), "no code cites a measurement"
+    missing = {
+        c: paths
+        for c, paths in cited.items()
+        if c.split("#")[1] not in _doc_anchors(c.split("/", 1)[1].split("#")[0])
+    }
     assert not missing, missing
+
+
+def test_code_citations_of_readme_name_its_sections():
+    """``README, Conventions`` / ``README, Zenoh`` in code: the name starts a README heading or
+    a bold list item or paragraph (the promise it cites must still be in README, not only in a
+    record)."""
+    readme = README.read_text()
+    names = re.findall(r"^#{1,6} (.+)$", readme, re.M)
+    names += re.findall(r"^(?:- )?\*\*([^*]+)\*\*", readme, re.M)
+    cited: dict[str, list[str]] = {}
+    for root in ("service", "client", "tests"):
+        for path in sorted((REPO / root).rglob("*.py")):
+            if path == Path(__file__).resolve():
+                continue
+            text = " ".join(path.read_text().split())  # a citation may wrap
+            for name in re.findall(r"README, ([A-Z][A-Za-z0-9 ]*[A-Za-z0-9])", text):
+                cited.setdefault(name, []).append(str(path.relative_to(REPO)))
+    assert cited, "no code cites a README section"
+    missing = {n: p for n, p in cited.items() if not any(h.startswith(n) for h in names)}
+    assert not missing, f"code cites README sections that do not exist: {missing}"

@@ -3,7 +3,7 @@ live pose feed over real Zenoh sessions and server-sent events, and the page its
 headless Chromium against a real server localizing a streamed client (the marker moves along
 the synthetic ground truth; the screenshot shows the map and the marker).
 
-The browser test needs Debian's chromium (README, Tests: `make test-deps`); it is skipped,
+The browser test needs Debian's chromium (README, Quick start: `make test-deps`); it is skipped,
 with that reason, where none is installed."""
 
 from __future__ import annotations
