@@ -158,6 +158,15 @@ def test_readme_links_into_docs_resolve():
         assert (REPO / "docs" / name).is_file(), f"README links to docs/{name}, which is missing"
 
 
+def test_docs_links_to_each_other_resolve():
+    """A docs file's links to another (``](measurements.md#status-rules)``) find their anchor."""
+    for path in sorted((REPO / "docs").glob("*.md")):
+        for name, anchor in re.findall(
+            r"\]\(([A-Za-z0-9_-]+\.md)#([A-Za-z0-9_-]+)\)", path.read_text()
+        ):
+            assert anchor in _doc_anchors(name), f"{path.name} links to {name}#{anchor}"
+
+
 def test_code_citations_find_their_records():
     """A comment or docstring citing ``docs/FILE.md#ANCHOR`` (what a measured default points
     its reader to) names a record that exists, in any docs file."""
