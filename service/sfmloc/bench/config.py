@@ -89,6 +89,10 @@ class BenchConf(StrictModel):
     # Frames per suite the peers run on, evenly strided over the replayed frames (our engine
     # is summarised on the same frames for the side-by-side); None: every frame.
     peer_frames: int | None = Field(500, ge=1)
+    # Replays of our engine and of global-every-frame per localization suite, interleaved
+    # (pycolmap-sift once): every timing number published is the median over them, with the
+    # min-max (bench/reps.py). One replay read 5.4 or 5.8 ms on the same code, back to back.
+    reps: int = Field(3, ge=1)
     seed: int = 0
     # Synthetic suites: frames of the video and mapping views.
     synth_frames: int = Field(300, ge=10)
@@ -147,6 +151,7 @@ def quick_conf(**changes) -> BenchConf:
     base = {
         "frames": 60,
         "peer_frames": 12,
+        "reps": 2,
         "synth_frames": 40,
         "synth_mapping_views": 40,
         "tune_frames": 6,
