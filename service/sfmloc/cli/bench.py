@@ -160,7 +160,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--quick",
         action="store_true",
-        help="smoke run: few frames, small scenes, short throughput runs",
+        help="smoke run (~1 min of CPU): the synthetic room only (synthetic-walk, two robust rows, "
+        "throughput and map on its map; --suites to choose others), few frames, small scenes, "
+        "short throughput runs, 2 reps",
     )
     p.set_defaults(func=run)
 
