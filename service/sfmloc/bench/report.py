@@ -410,7 +410,8 @@ def reps_sentence(name: str, reps: dict) -> str:
 
     rp = reps["repeatable"]
     return (
-        f"{name}: timings are the median of {reps['count']} replays of our engine and of "
+        f"{name}: every time and ratio here and in the targets is the median of "
+        f"{reps['count']} replays of our engine and of "
         "global-every-frame, interleaved (pycolmap-sift once), load average "
         f"{sp['load_average']['min']:.1f}-{sp['load_average']['max']:.1f} at their starts; "
         f"median (min-max): ours {mm('ours_T_ms_mean', '{:.2f}')} ms/frame, p99 "
