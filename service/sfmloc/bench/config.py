@@ -89,6 +89,10 @@ class BenchConf(StrictModel):
     # Frames per suite the peers run on, evenly strided over the replayed frames (our engine
     # is summarised on the same frames for the side-by-side); None: every frame.
     peer_frames: int | None = Field(500, ge=1)
+    # Replays of our engine and of global-every-frame per localization suite, interleaved
+    # (pycolmap-sift once): every timing number published is the median over them, with the
+    # min-max (bench/reps.py). One replay read 5.4 or 5.8 ms on the same code, back to back.
+    reps: int = Field(3, ge=1)
     seed: int = 0
     # Synthetic suites: frames of the video and mapping views.
     synth_frames: int = Field(300, ge=10)
@@ -108,6 +112,8 @@ class BenchConf(StrictModel):
     rate_hz: float = Field(30.0, gt=0)
     duration_s: float = Field(10.0, gt=0)
     workers: int = Field(0, ge=0)  # server workers (0: one per core)
+    # Resident memory of the server measured with these worker counts (one server each).
+    memory_workers: list[int] = Field(default_factory=lambda: [1, 2, 4])
     # When the clients send ("spread": client i of n i/n of a frame interval later, as
     # independent cameras; "aligned": all at the same instants after the warm-up barrier) and
     # how each loops over the loaded frames ("pingpong": forwards then backwards, no jump;
@@ -142,11 +148,25 @@ class BenchConf(StrictModel):
     quick: bool = False
 
 
+# --quick's suites: every kind of suite, on the synthetic room only (rendered by the run, no
+# data needed); the throughput and map suites then serve its map. With the redkitchen suites
+# (each builds its 100-image map whatever --frames is: 61 and 98 s) and every robust row (more
+# maps) a quick run was stopped after 9.5 min, in its robust suite (nice 19, load 9-14): too
+# slow for a smoke run or a test.
+QUICK_SUITES = ("synthetic-walk", "robust", "throughput", "map")
+# Robust rows of the same room: the one that reuses the suite's map, and a subsampled one.
+QUICK_ROBUST_ROWS = ("size-640x480", "walk-10hz")
+
+
 def quick_conf(**changes) -> BenchConf:
-    """A smoke run: few frames, small synthetic scenes, short throughput runs, small grid."""
+    """A smoke run: the synthetic suites (``QUICK_SUITES``), few frames, small synthetic scenes,
+    short throughput runs, small grid; ``changes`` (e.g. ``suites``) override any of it."""
     base = {
+        "suites": list(QUICK_SUITES),
+        "robust_rows": list(QUICK_ROBUST_ROWS),
         "frames": 60,
         "peer_frames": 12,
+        "reps": 2,
         "synth_frames": 40,
         "synth_mapping_views": 40,
         "tune_frames": 6,
@@ -155,6 +175,10 @@ def quick_conf(**changes) -> BenchConf:
         "tune_ef": [64],
         "clients": [1, 2],
         "stress_clients": 2,
+        # each count starts a server of its own: with 1, 2, 4 the memory part took 59 s of a
+        # 252 s quick run (nice 19, load 14)
+        "memory_workers": [1, 2],
+        "tune_descriptors": ["mean"],
         "duration_s": 3.0,
         "robust_frames": 30,
         "robust_large_frames": 4,

@@ -27,6 +27,7 @@ from .report import (
     map_line,
     markdown_table,
     ratio_lines,
+    reps_sentence,
     table2_rows,
     throughput_mode,
     throughput_rows,
@@ -79,7 +80,12 @@ def render_block(results: dict, source: str = "docs/results.json") -> str:
             markdown_table(COMPARE_HEADER, compare_rows(results)),
             "",
         ]
-        L += [f"- {line}" for line in ratio_lines(results)] + [""]
+        L += [f"- {line}" for line in ratio_lines(results)]
+        for name in localization_suites(results):
+            reps = results["suites"][name].get("reps")
+            if reps and reps["count"] > 1:
+                L.append(f"- {reps_sentence(name, reps)}.")
+        L += [""]
         L += [f"Wrong poses: frames with a pose under {wrong_pose_rule(results)}.", ""]
         if any(n.startswith("redkitchen") for n in localization_suites(results)):
             L += [

@@ -351,6 +351,114 @@ def ratio_lines(results: dict) -> list[str]:
     return out
 
 
+REPS_HEADER = [
+    "rep",
+    "load at start",
+    "order",
+    "ours T mean (ms)",
+    "ours p99 (ms)",
+    "ours CPU (ms)",
+    "global-every-frame T mean (ms)",
+    "ours faster than global-every-frame",
+    "ours faster than pycolmap-sift",
+    "relocalization p95 (ms)",
+]
+
+
+def reps_rows(reps: dict) -> list[list[str]]:
+    """One row per rep of a suite (``bench.reps``), then the median and the min-max."""
+
+    def row(n: dict) -> list[str]:
+        return [
+            f1(n["load_average"], 2),
+            f1(n["ours_T_ms_mean"], 2),
+            f1(n["ours_T_ms_p99"]),
+            f1(n["ours_cpu_ms_mean"], 2),
+            f1(n["gef_T_ms_mean"], 2),
+            ratio2(n["rate_ratio_gef"]),
+            ratio2(n["rate_ratio_sift"]),
+            f1(n["relocalization_p95_ms"]),
+        ]
+
+    short = {OURS: "ours", "global-every-frame": "gef", "pycolmap-sift": "sift"}
+    rows = []
+    for k, n in enumerate(reps["per_rep"]):
+        r = row(n)
+        order = ", ".join(short.get(m, m) for m in reps["order"][k])
+        rows.append([str(k + 1), r[0], order, *r[1:]])
+    sp = reps["spread"]
+    med = row({k: v["median"] for k, v in sp.items()})
+    rows.append(["median", med[0], "", *med[1:]])
+    lo, hi = row({k: v["min"] for k, v in sp.items()}), row({k: v["max"] for k, v in sp.items()})
+    rows.append(["min-max", f"{lo[0]}-{hi[0]}", "", *(f"{a}-{b}" for a, b in zip(lo[1:], hi[1:]))])
+    return rows
+
+
+def ratio2(x) -> str:
+    return f"{x:.2f}x" if _ok(x) else "n/a"
+
+
+def reps_sentence(name: str, reps: dict) -> str:
+    """What a suite's reps were and what the published numbers are (one line, for the README
+    and the printed summary)."""
+    sp = reps["spread"]
+
+    def mm(key: str, fmt: str) -> str:
+        return f"{fmt.format(sp[key]['median'])} ({fmt.format(sp[key]['min'])}-" + (
+            f"{fmt.format(sp[key]['max'])})"
+        )
+
+    rp = reps["repeatable"]
+    return (
+        f"{name}: every time and ratio here and in the targets is the median of "
+        f"{reps['count']} replays of our engine and of "
+        "global-every-frame, interleaved (pycolmap-sift once), load average "
+        f"{sp['load_average']['min']:.1f}-{sp['load_average']['max']:.1f} at their starts; "
+        f"median (min-max): ours {mm('ours_T_ms_mean', '{:.2f}')} ms/frame, p99 "
+        f"{mm('ours_T_ms_p99', '{:.1f}')} ms, {mm('rate_ratio_gef', '{:.2f}x')} "
+        f"global-every-frame (same-run, rep by rep), {mm('rate_ratio_sift', '{:.1f}x')} "
+        "pycolmap-sift; poses "
+        + ("identical in every rep" if rp["identical"] else "**differ between reps**")
+        + " (accuracy is rep 1's)"
+    )
+
+
+def repeat_text(reps: dict) -> str:
+    """The repeatability check of a suite's reps, in words."""
+    parts = []
+    for m, v in reps["repeatable"]["methods"].items():
+        d = v["frames_differing_per_rep"]
+        parts.append(
+            f"{m} {v['frames']} frames x {reps['count']}: "
+            + (
+                "identical"
+                if not any(d)
+                else f"{max(d)} frames differ (first {v['first_differing']})"
+            )
+        )
+    return "; ".join(parts)
+
+
+def reps_lines(s: dict) -> list[str]:
+    """The report's section on a suite's reps (none for a single rep or older results)."""
+    reps = s.get("reps")
+    if not reps or reps["count"] < 2:
+        return []
+    return [
+        "",
+        f"Repeats: our engine and global-every-frame ran {reps['count']} times on the same "
+        "frames, back to back, the order alternating from rep to rep (pycolmap-sift ran once, "
+        "after rep 1's two). The times, rates, ratios, stage table and relocalization times "
+        "above are the medians over the reps (the targets read them); accuracy, per-frame files "
+        "and figures are rep 1's. Ratios to pycolmap-sift: its one run against each rep of "
+        "ours. Repeatability (every rep's poses against rep 1's, bit for bit): "
+        f"{repeat_text(reps)}.",
+        "",
+        markdown_table(REPS_HEADER, reps_rows(reps)),
+        "",
+    ]
+
+
 def summary_text(results: dict) -> str:
     """What ``sfmloc bench`` prints at the end."""
     parts = []
@@ -364,6 +472,10 @@ def summary_text(results: dict) -> str:
             "",
         ]
         parts += ratio_lines(results) + [""]
+        for name in localization_suites(results):
+            reps = results["suites"][name].get("reps")
+            if reps and reps["count"] > 1:
+                parts += [reps_sentence(name, reps), text_table(REPS_HEADER, reps_rows(reps)), ""]
         for name in localization_suites(results):
             st = results["suites"][name].get("stages_ms", {})
             if st and all(isinstance(v, dict) for v in st.values()):
@@ -521,6 +633,7 @@ def _suite_section(name: str, s: dict) -> list[str]:
     ]
     lines += stage_lines(s.get("stages_ms", {}))
     lines += relocalization_lines(s)
+    lines += reps_lines(s)
     for m, st in s.get("peer_stages_ms", {}).items():
         if st:
             lines.append(

@@ -222,7 +222,7 @@ def run_throughput(
         "rate_hz": rate_hz,
         "duration_s": duration_s,
         "map": bundle.name,
-        "encoding": "jpeg",
+        "encoding": "png" if frames[0].suffix.lower() == ".png" else "jpeg",  # as the files
         "client_phases": phases,
         "frame_loop": frame_loop,
         "rows": rows,

@@ -21,6 +21,8 @@ In every localization suite three methods run on the same frames and machine:
                      map images (descriptor layout, ratio, RANSAC threshold, search recall)
 The peers run on every k-th frame when --peer-frames caps them (our engine is then also
 summarised on exactly those frames). Per-frame time is one call on a decoded frame, one thread.
+Our engine and global-every-frame run --reps times (default 3), interleaved, pycolmap-sift
+once: times, ratios and stage tables are the median over the reps, with the min-max.
 
 Outputs (OUT):
   results.json   summary numbers (Table 2 columns, errors, p99, wrong frames, ATE, ratios, tuning,
@@ -100,6 +102,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         type=int,
         help="frames per suite for the peers, strided (default 500; 0: all)",
     )
+    p.add_argument(
+        "--reps",
+        type=int,
+        help="replays of our engine and of global-every-frame per localization suite, "
+        "interleaved (pycolmap-sift once); every timing number published is their median, with "
+        "the min-max and the load beside it (default 3; --quick 2)",
+    )
     p.add_argument("--synth-frames", type=int, help="frames of each synthetic video (default 300)")
     p.add_argument(
         "--clients", help="throughput client counts, comma-separated (default 1,2,4,8,12,16)"
@@ -151,7 +160,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--quick",
         action="store_true",
-        help="smoke run: few frames, small scenes, short throughput runs",
+        help="smoke run (~1 min of CPU): the synthetic room only (synthetic-walk, two robust rows, "
+        "throughput and map on its map; --suites to choose others), few frames, small scenes, "
+        "short throughput runs, 2 reps",
     )
     p.set_defaults(func=run)
 
@@ -197,6 +208,8 @@ def run(args: argparse.Namespace) -> int:
         changes["frames"] = args.frames
     if args.peer_frames is not None:
         changes["peer_frames"] = args.peer_frames or None
+    if args.reps is not None:
+        changes["reps"] = args.reps
     if args.synth_frames is not None:
         changes["synth_frames"] = args.synth_frames
     if args.clients:
