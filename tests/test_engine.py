@@ -630,6 +630,13 @@ def test_relocalize_with_a_prior(world, bundle, cam):
     assert r.status is Status.RELOCALIZED
     dp, dr = pose_errors(r.cam_from_world, gt)
     assert dp < 0.05 and dr < 1.0
+    # found around the prior: reported as guided matching (it said "global"), and global only
+    # when global matching found it (no prior, or one nowhere near)
+    assert r.matching is Matching.GUIDED
+    assert relocalize(world.gray[45], cam, bundle).matching is Matching.GLOBAL
+    far = Rigid3d(gt.rotation, gt.translation + [100.0, 100.0, 100.0])
+    r = relocalize(world.gray[45], cam, bundle, prior=far)
+    assert r.status is Status.RELOCALIZED and r.matching is Matching.GLOBAL
 
 
 # ----------------------------------------------------------------------------- end to end
