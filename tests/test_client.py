@@ -604,6 +604,8 @@ def test_cli_relocalize_with_a_prior(world, server):
     assert d["status"] == "RELOCALIZED", d
     assert np.linalg.norm(np.array(d["world_from_cam"]["t"]) - gt) < 0.1
     assert d["inliers"] > without["inliers"], (d, without)
+    # how each was found, through the gRPC response into the JSON (the prior's said "global")
+    assert (d["matching"], without["matching"]) == ("guided", "global"), (d, without)
     r = reloc("--prior", "0 0 0 1 100 100 100")  # nowhere near: found by global matching, or LOST
     d = json.loads(r.stdout)
     assert r.returncode in (0, 1) and (r.returncode == 0) == (d["world_from_cam"] is not None)

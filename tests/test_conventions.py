@@ -75,6 +75,59 @@ def test_rigid3d_compose_inverse_apply_center():
         Rigid3d.from_matrix(np.eye(2))
 
 
+def test_rigid3d_takes_and_checks_its_arrays_as_numpy_converts_them():
+    """``Rigid3d``'s construction keeps float64 arrays of the right shape as they are and
+    converts anything else as ``np.asarray(x, float64).reshape`` did (issue 10: the fast path
+    skips that for the engine's own arrays): the same values, dtype, shape and memory (a view
+    of the caller's array either way), and the same errors, message for message, for a wrong
+    size or type; ``is_finite`` (on Python floats) answers as np.isfinite for a NaN, +inf or
+    -inf in each of the twelve numbers."""
+
+    def reference(x, shape):
+        return np.asarray(x, dtype=np.float64).reshape(shape)
+
+    R, t = random_rotation(), rng.standard_normal(3)
+    goods = [
+        (R, t),
+        (R.tolist(), t.tolist()),
+        (R.astype(np.float32), t.astype(np.float32)),
+        (R.reshape(9), t.reshape(3, 1)),
+        (np.asfortranarray(R), t[::-1].copy()[::-1]),  # non-contiguous / strided: viewed
+        (R.astype(">f8"), np.array([1, 2, 3])),  # big-endian, integers: converted
+    ]
+    for Rin, tin in goods:
+        p = Rigid3d(Rin, tin)
+        for got, x, shape in ((p.rotation, Rin, (3, 3)), (p.translation, tin, (3,))):
+            want = reference(x, shape)
+            assert type(got) is np.ndarray and got.dtype == np.float64 and got.shape == shape
+            assert got.tobytes() == want.tobytes() and got.strides == want.strides
+            if isinstance(x, np.ndarray) and x.dtype == np.float64 and type(x) is np.ndarray:
+                assert np.shares_memory(got, x)  # a view of the caller's array, as before
+    bads = [np.eye(2), np.zeros(10), "abc", None, [[1, 2], [3]], np.zeros(3, "U1")]
+    for bad in bads:
+        with pytest.raises(Exception) as want_err:
+            reference(bad, (3, 3))
+        with pytest.raises(type(want_err.value)) as got_err:
+            Rigid3d(bad, t)
+        assert str(got_err.value) == str(want_err.value)
+        with pytest.raises(Exception) as want_err:
+            reference(bad, (3,))
+        with pytest.raises(type(want_err.value)) as got_err:
+            Rigid3d(R, bad)
+        assert str(got_err.value) == str(want_err.value)
+    p = Rigid3d(R, t)
+    assert p.is_finite() is True
+    for i in range(12):
+        for bad in (np.nan, np.inf, -np.inf):
+            Rb, tb = R.copy(), t.copy()
+            if i < 9:
+                Rb.reshape(9)[i] = bad
+            else:
+                tb[i - 9] = bad
+            assert Rigid3d(Rb, tb).is_finite() is False
+    assert Rigid3d(np.full((3, 3), 1e308), np.full(3, -1e308)).is_finite() is True
+
+
 def test_pose_errors():
     gt = Rigid3d(random_rotation(), [1.0, 2.0, 3.0])
     R_off = rotmat_from_rotvec([0, 0, np.radians(2.0)])

@@ -630,6 +630,13 @@ def test_relocalize_with_a_prior(world, bundle, cam):
     assert r.status is Status.RELOCALIZED
     dp, dr = pose_errors(r.cam_from_world, gt)
     assert dp < 0.05 and dr < 1.0
+    # found around the prior: reported as guided matching (it said "global"), and global only
+    # when global matching found it (no prior, or one nowhere near)
+    assert r.matching is Matching.GUIDED
+    assert relocalize(world.gray[45], cam, bundle).matching is Matching.GLOBAL
+    far = Rigid3d(gt.rotation, gt.translation + [100.0, 100.0, 100.0])
+    r = relocalize(world.gray[45], cam, bundle, prior=far)
+    assert r.status is Status.RELOCALIZED and r.matching is Matching.GLOBAL
 
 
 # ----------------------------------------------------------------------------- end to end
@@ -1960,3 +1967,33 @@ def test_guided_batches_spread_only_while_a_short_batch_keeps_up_with_lost_match
 
     near, far = losses(1), losses(5)
     assert max(near) > 0 and np.mean(far) > np.mean(near), (np.mean(near), np.mean(far))
+
+
+def test_a_1hz_camera_tracks_whatever_the_noise_on_its_stamps(world, bundle, cam):
+    """Frames 1 s apart sat on ``max_frame_gap_s`` (1 s): stamps with float noise (every 30th
+    frame of a 30 Hz clock, index / 30: 62/30 - 32/30 = 1.0000000000000002 s) or a few ms of
+    jitter reset the tracker on some frames and not others. Now a gap resets only when over
+    the limit by more than ``frame_gap_tolerance`` (10%): every frame of a 1 Hz stream tracks
+    (consecutive video frames, so that tracking itself never fails), and a gap clearly over
+    the limit still resets."""
+    conf = EngineConf()
+    assert conf.frame_gap_limit_s == pytest.approx(1.1)
+    stamps = [32 / 30, 62 / 30, 92 / 30]  # the float noise of a 30 Hz clock's every 30th
+    for jitter in (0.004, -0.003, 0.02, 1e-9, -0.05, 0.0):
+        stamps.append(stamps[-1] + 1.0 + jitter)
+    over = [i for i in range(1, len(stamps)) if stamps[i] - stamps[i - 1] > 1.0]
+    assert 1 in over and len(over) >= 4, over  # (the old rule's resets: noise and jitter)
+    loc = Localizer(bundle, cam, conf)
+    res = [loc.localize(world.gray[k], t) for k, t in enumerate(stamps)]
+    assert res[0].matching is Matching.GLOBAL
+    assert [r.status for r in res[1:]] == [Status.TRACKING] * (len(stamps) - 1), [
+        (r.status, r.matching) for r in res
+    ]
+    k = len(stamps)
+    r = loc.localize(world.gray[k], stamps[-1] + 1.2)  # over 1.1 s: the tracker restarts
+    assert r.status is Status.RELOCALIZED and r.matching is Matching.GLOBAL
+    # without the tolerance (the old rule) exactly the gaps over 1 s by noise or jitter reset
+    exact = Localizer(bundle, cam, EngineConf(frame_gap_tolerance=0.0))
+    res = [exact.localize(world.gray[k], t) for k, t in enumerate(stamps)]
+    resets = [i for i, r in enumerate(res) if r.matching is Matching.GLOBAL]
+    assert resets == [0, *over], [(r.status, r.matching) for r in res]

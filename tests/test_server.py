@@ -405,6 +405,8 @@ def test_relocalize_single_images(world, grpc_client):
         world.png[30], "room", cam, encoding="png", prior=pose.cam_from_world
     )
     assert near.localized
+    # found around the prior: the response says guided matching (it said global)
+    assert (pose.matching, near.matching) == ("global", "guided")
 
 
 @pytest.mark.parametrize(

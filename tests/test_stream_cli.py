@@ -128,6 +128,62 @@ def test_stream_from_a_missing_camera_says_so_before_connecting(world):
     assert "no server" not in r.stderr  # checked before connecting
 
 
+def _source_args(source: str, timestamps: str | None = None):
+    import argparse
+
+    return argparse.Namespace(
+        source=source, timestamps=timestamps, fps=None, pattern="*", encoding="png"
+    )
+
+
+def test_a_number_is_a_camera_even_beside_a_folder_of_that_name(world, tmp_path, monkeypatch):
+    """`--source 93` with a folder named 93 in the working directory: the frames and their
+    clock both come from camera 93, the note on stderr names the folder and how to stream it
+    (./93), and ./93 streams the folder on its own clock. The CLI once took the folder's
+    timestamps (and accepted --timestamps for them) and camera 93's frames."""
+    from sfmloc.cli.stream import open_stamped_source
+    from sfmloc.errors import InputError
+
+    device = 93
+    if Path(f"/dev/video{device}").exists():
+        pytest.skip(f"/dev/video{device} exists here: this test needs a camera index with none")
+    folder = tmp_path / str(device)
+    folder.mkdir()
+    for k in range(3):  # named by their time in s: --timestamps stem-s reads them
+        shutil.copy(world.frames[k], folder / f"{1000 + k}.png")
+    monkeypatch.chdir(tmp_path)
+    for stamps in (None, "stem-s"):
+        with pytest.raises(InputError) as err:
+            frames, _ = open_stamped_source(_source_args(str(device), stamps))
+            next(frames)
+        if stamps is None:
+            assert f"cannot open camera {device}" in str(err.value)
+        else:  # a camera has its own clock: the folder's stamps are not taken for it
+            assert "--timestamps applies to an image folder" in str(err.value)
+    frames, clock = open_stamped_source(_source_args(f"./{device}", "stem-s"))
+    got = [(f.name, f.stamp_ns) for f in frames]
+    assert got == [(f"{1000 + k}.png", (1000 + k) * 10**9) for k in range(3)], got
+    assert "stem" in clock, clock
+
+
+def test_stream_cli_names_both_readings_of_a_number(world, tmp_path):
+    """The note, as the CLI prints it (exit 2: no camera 93 here, before any wait)."""
+    device = 93
+    if Path(f"/dev/video{device}").exists():
+        pytest.skip(f"/dev/video{device} exists here: this test needs a camera index with none")
+    (tmp_path / str(device)).mkdir()
+    shutil.copy(world.frames[0], tmp_path / str(device) / "a.png")
+    r = subprocess.run(
+        [sys.executable, "-m", "sfmloc", "stream", "--source", str(device), "--map", "room",
+         "--camera", world.camera_spec, "--zenoh-connect", zenoh_endpoint(), "--no-multicast"],
+        capture_output=True, text=True, timeout=180, cwd=tmp_path,
+    )  # fmt: skip
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    assert f"--source {device} is camera {device}" in r.stderr
+    assert f"a folder named {device} is here too: write --source ./{device}" in r.stderr
+    assert f"cannot open camera {device}" in r.stderr
+
+
 def test_grpc_stream_is_paced_and_takes_a_camera_string(world, server):
     """Frames 1 s apart. On an idle machine each is answered before the next comes; on a
     starved one it is not: at load ~10 on 2 cores a relocalization (0.13-0.36 s of CPU here)

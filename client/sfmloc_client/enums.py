@@ -34,7 +34,9 @@ class Matching(WireEnum):
     """How a frame's 2D-3D matches were found."""
 
     NONE = "none"  # only matches tracked from the previous frame
-    GUIDED = "guided"  # guided matching around a pose (the tracked one, or the prediction)
+    # guided matching around a pose: the tracked one, the prediction, or a client's prior (a
+    # relocalization found around it, in a stream or a single image's Relocalize)
+    GUIDED = "guided"
     GLOBAL = "global"  # global matching: relocalization from scratch
     # visual odometry beyond the map: the pose rests on session points the engine triangulated
     # from its own tracks in earlier map-posed frames (never map-verified; its covariance

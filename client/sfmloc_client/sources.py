@@ -121,19 +121,34 @@ def array_frames(frames: Iterable[np.ndarray]) -> Iterator[SourceFrame]:
         yield SourceFrame(image=np.asarray(img), name=f"{k:06d}")
 
 
+def camera_index(source: Any) -> int | None:
+    """The camera index ``source`` names, else None: an int, or a ``str`` of ASCII digits
+    (``"0"``), whatever the working directory holds. A folder or file named by digits is read
+    when written as a path (``"./0"``, ``Path("0")``): the choice never depends on what exists
+    (a folder ``0`` beside ``--source 0`` once gave the folder's timestamps to camera 0's
+    frames)."""
+    if isinstance(source, int):
+        return source
+    if isinstance(source, str) and source.isascii() and source.isdigit():
+        return int(source)
+    return None
+
+
 def open_source(
     source: Any, *, pattern: str = "*", passthrough: str | None = None, gray: bool = False
 ) -> Iterator[SourceFrame]:
     """Frames of ``source``: a numpy array stack (N, H, W[, 3]) or an iterable of arrays, an
-    image folder, a video file, or a camera index (an int or a string of digits)."""
+    image folder, a video file, or a camera index (an int or a string of digits: always a
+    camera, see ``camera_index``; write ``./0`` for a folder named ``0``)."""
     if isinstance(source, np.ndarray):
         if source.ndim not in (3, 4):
             raise InputError(
                 f"a numpy source must be a stack (N, H, W[, 3]), got shape {source.shape}"
             )
         return array_frames(source)
-    if isinstance(source, int) or (isinstance(source, str) and source.isdigit()):
-        return video_frames(int(source), gray=gray)
+    index = camera_index(source)
+    if index is not None:
+        return video_frames(index, gray=gray)
     if isinstance(source, (str, Path)):
         p = Path(source)
         if p.is_dir():

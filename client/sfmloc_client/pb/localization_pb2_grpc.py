@@ -80,7 +80,8 @@ class LocalizationServicer:
     """Missing associated documentation comment in .proto file."""
 
     def Relocalize(self, request, context):
-        """Localize one image from scratch (global matching), optionally near a pose prior.
+        """Localize one image from scratch (global matching), optionally near a pose prior (searched
+        first; a pose found there says matching "guided").
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')

@@ -20,9 +20,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
             """\
             Send IMAGE to the server's Relocalize call and print its pose: world_from_cam
             (the camera's position and orientation in the map) and cam_from_world, as
-            translation + quaternion (x, y, z, w). JPEG and PNG files are sent as they are;
-            other formats are re-encoded. Exits 0 when localized, 1 when not (LOST), 2 on
-            errors (unknown map, bad image or camera, server unreachable)."""
+            translation + quaternion (x, y, z, w), and how it was found: matching "global"
+            (global matching over the whole map) or "guided" (around --prior). JPEG and PNG
+            files are sent as they are; other formats are re-encoded. Exits 0 when
+            localized, 1 when not (LOST), 2 on errors (unknown map, bad image or camera,
+            server unreachable)."""
         ),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -85,6 +87,7 @@ def run(args: argparse.Namespace) -> int:
                 {
                     "status": pose.status,
                     "inliers": pose.inliers,
+                    "matching": pose.matching,
                     "latency_ms": round(pose.latency_ms, 2),
                     "world_from_cam": None
                     if pose.world_from_cam is None
@@ -97,7 +100,10 @@ def run(args: argparse.Namespace) -> int:
             )
         )
     else:
-        print(f"{path.name}: {pose.status}  inliers {pose.inliers}  {pose.latency_ms:.1f} ms")
+        print(
+            f"{path.name}: {pose.status}  inliers {pose.inliers}  matching {pose.matching}  "
+            f"{pose.latency_ms:.1f} ms"
+        )
         if pose.world_from_cam is not None and pose.cam_from_world is not None:
             w, c_ = pose.world_from_cam, pose.cam_from_world
             print(

@@ -18,6 +18,10 @@ DESCRIPTION = textwrap.dedent(
     FILE.frames (every answered frame, LOST ones too: seq, timestamp, status, inliers,
     matching, error code, covariance).
 
+    SOURCE is an image folder, a video file or a camera index. Digits are always a camera
+    (--source 0 is /dev/video0 on Linux), even where a folder or file of that name exists (a
+    note on stderr says so): write --source ./0 for the folder.
+
     Timestamps are the frames' own: an image folder's are frame index / --fps (30 without
     --fps) unless --timestamps reads them from the file names (stem-s, stem-ms, stem-us,
     stem-ns) or a 'timestamp filename' file (TUM rgb.txt); a video's are its container's
@@ -56,7 +60,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--source",
         required=True,
         metavar="PATH|DEVICE",
-        help="image folder, video file or camera index",
+        help="image folder, video file or camera index; digits are always a camera (0: "
+        "/dev/video0), even where a folder of that name exists: write ./0 for the folder",
     )
     p.add_argument(
         "--camera", required=True, metavar="CAMERA", help="camera.json or 'MODEL w h params...'"
@@ -134,33 +139,50 @@ def open_stamped_source(args: argparse.Namespace) -> Any:
     or empty source, or an unreadable clock, is an ``InputError`` (exit 2), not a traceback
     after a wait for the server."""
     import itertools
+    import sys
     from pathlib import Path
 
     from sfmloc_client import open_source
-    from sfmloc_client.sources import list_images
+    from sfmloc_client.sources import camera_index, list_images
 
     from ..errors import InputError
     from ..io.frames import folder_stamps
 
     src = args.source
     passthrough = args.encoding if args.encoding in ("jpeg", "png") else None
-    is_dir = Path(src).is_dir()
+    # Decided once, and the frames and their clock both follow it: digits are a camera, a
+    # folder or file of that name is read when written as a path (./0). They once came from
+    # both: a folder 0 beside --source 0 gave its timestamps to camera 0's frames.
+    index = camera_index(src)
+    path = None if index is not None else Path(src)
+    if index is not None and Path(src).exists():
+        kind = "folder" if Path(src).is_dir() else "file"
+        print(
+            f"sfmloc stream: --source {src} is camera {index}; a {kind} named {src} is here "
+            f"too: write --source ./{src} to stream it",
+            file=sys.stderr,
+        )
+    is_dir = path is not None and path.is_dir()
     if not is_dir and args.timestamps:
-        raise InputError("--timestamps applies to an image folder (a video has its own clock)")
-    if not is_dir and not src.isdigit() and not Path(src).exists():
+        raise InputError(
+            "--timestamps applies to an image folder (a video or a camera has its own clock)"
+        )
+    if path is not None and not path.exists():
         raise InputError(f"--source {src}: no such file or folder (or a camera index)")
     stamps_ns = None
     if is_dir:
         names = [p.name for p in list_images(src, args.pattern)]  # InputError when none
         stamps, clock = folder_stamps(names, args.timestamps, args.fps or 30.0)
         stamps_ns = [round(t * 1e9) for t in stamps]
-    frames = open_source(src, pattern=args.pattern, passthrough=passthrough)
+    frames = open_source(
+        index if path is None else path, pattern=args.pattern, passthrough=passthrough
+    )
     first = next(frames, None)
     if first is None:
         raise InputError(f"--source {src} gave no frames (an empty or unreadable video?)")
     frames = itertools.chain([first], frames)
     if stamps_ns is None:
-        return frames, "the video's clock" if Path(src).is_file() else "send time"
+        return frames, "send time" if path is None else "the video's clock"
 
     def stamped() -> Any:
         for fr, t in zip(frames, stamps_ns):

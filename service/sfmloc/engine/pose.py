@@ -778,7 +778,7 @@ def estimate_pose(
         return None
     from_prior = None
     # (the prior's finiteness tested once)
-    finite_prior = prior is not None and _finite_pose(prior)
+    finite_prior = prior is not None and prior.is_finite()
     if prior_is_estimate and not finite_prior:
         return None
     if prior is not None and finite_prior:
@@ -899,7 +899,7 @@ def _finish(
     """The estimate of ``pose`` on the matches in ``mask``; ``err``: every match's error at
     ``pose`` when already computed."""
     n_in = int(np.count_nonzero(mask))  # (a Python int: num_inliers goes into JSON)
-    if n_in < min_inliers or not _finite_pose(pose):
+    if n_in < min_inliers or not pose.is_finite():
         return None
     idx = mask.nonzero()[0]  # (the rows once, for the three ``_take_rows``)
     xy_in, X_in = _take_rows(xy, idx), _take_rows(X, idx)
@@ -907,16 +907,6 @@ def _finish(
     # (the mean as np.mean takes it, np.add.reduce over n_in, without its Python layer: 2 us)
     mean = float(np.add.reduce(err)) / n_in if n_in else float("inf")
     return PoseEstimate(pose, mask, n_in, mean, xy_in, X_in)
-
-
-def _finite_pose(pose: Rigid3d) -> bool:
-    """``pose.is_finite()`` on its twelve numbers as Python floats (the same test: a float64
-    is finite exactly when its Python float is). Issue 10: x0.25 of the four numpy calls'
-    4.8 us; two to three calls a tracked frame."""
-    isfinite = math.isfinite
-    return all(map(isfinite, pose.rotation.ravel().tolist())) and all(
-        map(isfinite, pose.translation.tolist())
-    )
 
 
 def _take_rows(a: np.ndarray, idx: np.ndarray) -> np.ndarray:

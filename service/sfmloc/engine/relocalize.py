@@ -354,7 +354,8 @@ def relocalize(
     """Localize a single image from scratch (stateless). With a ``prior`` (cam_from_world),
     the search is scoped to the database images that see the points the prior sees, and
     matches are verified against it, as in guided matching; without a pose from the scoped
-    search it falls back to global matching.
+    search it falls back to global matching. The result's ``matching`` says which found the
+    pose: ``guided`` (around the prior) or ``global``.
 
     ``deadline`` (``time.monotonic()``): checked between stages (image preparation, detection,
     description, search, RANSAC); past it the result is LOST, its message saying "time budget
@@ -461,6 +462,10 @@ def _relocalize(
     if prior is not None:
         near = match_near_prior(desc, xy_u, bundle, camera, conf, prior)
         est = None if near is None else near[0]
+        if est is not None:
+            # found by guided matching around the prior, not by global matching: reported so
+            # (the status stays RELOCALIZED / UNVERIFIED: a single image is judged as one)
+            result.matching = Matching.GUIDED
         check_deadline(deadline, "the search near the prior", cpu_deadline)
     why = "no pose: too few consistent 2D-3D matches"
     if est is None:
