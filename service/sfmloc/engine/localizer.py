@@ -660,7 +660,7 @@ class Localizer:
     def _stale(self, stamp: float) -> bool:
         """Whether the frame at ``stamp`` comes after too long a gap (or before the last)."""
         last = self.last_stamp
-        return last is not None and (stamp - last > self.conf.frame_gap_limit_s or stamp < last)
+        return last is not None and (stamp - last > self.conf.max_frame_gap_s or stamp < last)
 
     def _kalman_filter_predict(self, stamp: float) -> Prediction:
         """KALMAN-FILTER-PREDICT: the pose expected at ``stamp`` (the filter and the clock
@@ -1184,7 +1184,7 @@ class Localizer:
         prediction), or "" when it is."""
         c = self.conf
         last = self.last_posed_stamp
-        recent = last is not None and stamp - last <= c.frame_gap_limit_s
+        recent = last is not None and stamp - last <= c.max_frame_gap_s
         # A prediction extrapolated from a withheld pose (too uncertain, or unverified on few
         # inliers: ``contradiction_published_only``) is no evidence against a relocalization.
         trusted = self.motion_published or not c.contradiction_published_only
@@ -1232,7 +1232,7 @@ class Localizer:
         (or the first pose) restarts the filter at the pose."""
         c = self.conf
         if relocalized or not self.filter.initialized:
-            keep = c.frame_gap_limit_s if c.relocalize_keeps_motion else 0.0
+            keep = c.max_frame_gap_s if c.relocalize_keeps_motion else 0.0
             self.filter.reset(
                 pose,
                 stamp,

@@ -551,7 +551,7 @@ class SubmapLocalizer:
             return None
         if inner.last_posed_stamp != self._prev_stamp:
             return None
-        if not 0 <= stamp - inner.last_posed_stamp <= self.conf.frame_gap_limit_s:
+        if not 0 <= stamp - inner.last_posed_stamp <= self.conf.max_frame_gap_s:
             return None
         return inner.filter.current(), np.asarray(inner.filter.velocity, float)
 

@@ -111,7 +111,7 @@ class Server:
             worker_queue=conf.worker_queue,
             relocalize_share=conf.relocalize_share,
             frame_hang_ms=conf.frame_hang_ms,
-            track_gap_s=conf.engine.frame_gap_limit_s,
+            track_gap_s=conf.engine.max_frame_gap_s,
         )
         # All the front ends see of the server.
         self.facade = Localization(

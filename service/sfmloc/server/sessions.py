@@ -19,7 +19,7 @@ it, a frame starts at most N-1 frames after it was picked, and it is the newest 
 
 Whose turn it is (a full worker, sessions waiting): the earliest *deadline* first. A session
 whose next frame will track (its last frame was posed, within the engine's
-``frame_gap_limit_s`` of this one) is due ``live_gap_s`` (0.1 s) after its last frame's receipt;
+``max_frame_gap_s`` of this one) is due ``live_gap_s`` (0.1 s) after its last frame's receipt;
 one whose frame will relocalize (new, LOST, or past that gap: 5-20x a tracked frame's CPU) is
 due ``cold_gap_s`` (1 s) after it began to wait. Among tracked sessions that is round-robin;
 a relocalizing one waits behind them for up to about ``cold_gap_s``, then goes first. Plain
@@ -208,8 +208,8 @@ class SessionManager:
         self.worker_queue = worker_queue
         # Turns of a full worker's waiting sessions, earliest deadline first (module docstring):
         # a tracked session is due live_gap_s after its last frame, a relocalizing one
-        # cold_gap_s after it began to wait; track_gap_s is the engine's frame_gap_limit_s
-        # (max_frame_gap_s and its tolerance: a longer gap relocalizes).
+        # cold_gap_s after it began to wait; track_gap_s is the engine's max_frame_gap_s
+        # (a longer gap relocalizes).
         self.live_gap_s = live_gap_s
         self.cold_gap_s = cold_gap_s
         self.track_gap_s = track_gap_s
