@@ -304,11 +304,14 @@ def _match_blocks(
 
     def run_block(w: int) -> None:
         block = blocks[w]
-        for start in range(0, len(block), chunk):
+        # Calls of equal size (132 pairs: 66 + 66, not 64 + 64 + 4): every call builds the
+        # FAISS indices of its images anew.
+        size = math.ceil(len(block) / math.ceil(len(block) / chunk))
+        for start in range(0, len(block), size):
             if stop.is_set():
                 return
-            part = block[start : start + chunk]
-            _match_chunk(copies[w], workdir, str(w), start // chunk, part, conf, rep)
+            part = block[start : start + size]
+            _match_chunk(copies[w], workdir, str(w), start // size, part, conf, rep)
             done_pairs[w] += len(part)
 
     with ThreadPoolExecutor(max_workers=len(blocks), thread_name_prefix="match") as pool:
