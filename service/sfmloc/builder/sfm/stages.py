@@ -5,8 +5,11 @@ from __future__ import annotations
 
 import logging
 import math
+import sqlite3
+import threading
 from collections.abc import Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import FIRST_EXCEPTION, ThreadPoolExecutor, wait
+from contextlib import closing
 from pathlib import Path
 from typing import Any
 
@@ -220,6 +223,11 @@ def _extract_pycolmap(
     return ids
 
 
+# Pairs per concurrent matching block at least (not tuned): each block's calls load their
+# images' features and build their FAISS indices themselves, so a few pairs stay in one.
+MIN_PAIRS_PER_WORKER = 32
+
+
 def match_pairs(
     database_path: Path,
     workdir: Path,
@@ -228,34 +236,39 @@ def match_pairs(
     rep: Reporter,
 ) -> int:
     """Match and geometrically verify the given image pairs (by name); return the number of
-    verified pairs. Chunks of pairs go to ``pycolmap.match_image_pairs`` one after another."""
-    matching = pycolmap.FeatureMatchingOptions()
-    matching.num_threads = conf.num_threads
-    matching.sift.max_ratio = conf.max_ratio
-    verification = pycolmap.TwoViewGeometryOptions()
-    verification.min_num_inliers = conf.min_num_inliers
-    verification.ransac.random_seed = conf.seed
+    verified pairs.
+
+    Reproducible whatever the thread count: every ``pycolmap.match_image_pairs`` call runs
+    single-threaded (one matcher, one verifier, FAISS on one thread), so a pair's matches and
+    two-view geometry depend on its two images and the seed alone (RANSAC is seeded per pair:
+    the same pairs in reverse order give the same bytes). With ``num_threads`` > 1 the pairs
+    are cut into contiguous blocks, each matched by its own single-threaded call into its own
+    copy of the database, and the blocks' rows are copied back (``_merge_matches``): the same
+    rows as one call over all pairs, at the multi-threaded wall time. Why not COLMAP's own
+    threads: one of eleven ``make bench`` redkitchen builds (6c17bca, 15:16) verified 86,086
+    instead of 86,097 inlier matches in the same 374 pairs and gave another map (README,
+    Conventions, "Reproducible builds")."""
     n = len(pairs)
     if n == 0:
         raise BuildError("no image pairs to match (need at least two images)", stage="matching")
-    chunk = max(64, math.ceil(n / 10))
+    workers = max(1, min(num_threads(conf), n // MIN_PAIRS_PER_WORKER))
+    bounds = [round(w * n / workers) for w in range(workers + 1)]
+    blocks = [list(pairs[bounds[w] : bounds[w + 1]]) for w in range(workers)]
+    chunk = max(64, math.ceil(n / 10))  # pairs per call: progress and cancellation in between
     rep.report("matching", 0.0, f"matching {n} image pairs")
-    for k, start in enumerate(range(0, n, chunk)):
-        part = pairs[start : start + chunk]
-        pairs_file = workdir / f"pairs-{k:03d}.txt"
-        pairs_file.write_text("".join(f"{a} {b}\n" for a, b in part))
-        pairing = pycolmap.ImportedPairingOptions()
-        pairing.match_list_path = str(pairs_file)
-        rep.run(
-            "matching",
-            pycolmap.match_image_pairs,
-            database_path,
-            matching_options=matching,
-            pairing_options=pairing,
-            verification_options=verification,
-        )
-        done = min(n, start + chunk)
-        rep.report("matching", done / n, f"matched {done}/{n} pairs")
+    if workers == 1:
+        for start in range(0, n, chunk):
+            part = pairs[start : start + chunk]
+            _match_chunk(database_path, workdir, "0", start // chunk, part, conf, rep)
+            done = min(n, start + chunk)
+            rep.report("matching", done / n, f"matched {done}/{n} pairs")
+    else:
+        copies = [workdir / f"match-{w}.db" for w in range(workers)]
+        try:
+            _match_blocks(database_path, copies, blocks, workdir, chunk, conf, rep)
+        finally:
+            for path in copies:
+                path.unlink(missing_ok=True)
     db = pycolmap.Database.open(database_path)
     try:
         verified = db.num_verified_image_pairs()
@@ -270,3 +283,102 @@ def match_pairs(
             stage="matching",
         )
     return verified
+
+
+def _match_blocks(
+    database_path: Path,
+    copies: Sequence[Path],
+    blocks: Sequence[Sequence[tuple[str, str]]],
+    workdir: Path,
+    chunk: int,
+    conf: SfmConf,
+    rep: Reporter,
+) -> None:
+    """``blocks[w]`` matched into ``copies[w]`` (a copy of ``database_path``) by concurrent
+    single-threaded calls, then merged into ``database_path``."""
+    n = sum(len(b) for b in blocks)
+    for path in copies:
+        _copy_database(database_path, path)
+    done_pairs = [0] * len(blocks)
+    stop = threading.Event()  # a block failed or the caller left: the others stop too
+
+    def run_block(w: int) -> None:
+        block = blocks[w]
+        # Calls of equal size (132 pairs: 66 + 66, not 64 + 64 + 4): every call builds the
+        # FAISS indices of its images anew.
+        size = math.ceil(len(block) / math.ceil(len(block) / chunk))
+        for start in range(0, len(block), size):
+            if stop.is_set():
+                return
+            part = block[start : start + size]
+            _match_chunk(copies[w], workdir, str(w), start // size, part, conf, rep)
+            done_pairs[w] += len(part)
+
+    with ThreadPoolExecutor(max_workers=len(blocks), thread_name_prefix="match") as pool:
+        futures = [pool.submit(run_block, w) for w in range(len(blocks))]
+        try:
+            reported, pending = 0, set(futures)
+            while pending and not stop.is_set():
+                _, pending = wait(pending, timeout=0.2, return_when=FIRST_EXCEPTION)
+                if any(f.done() and f.exception() is not None for f in futures):
+                    stop.set()
+                elif sum(done_pairs) != reported:
+                    reported = sum(done_pairs)
+                    rep.report("matching", reported / n, f"matched {reported}/{n} pairs")
+        finally:
+            stop.set()  # also on Ctrl-C: no new chunk starts; the pool waits for the running
+    for f in futures:
+        exc = f.exception()
+        if exc is not None:
+            raise exc
+    _merge_matches(database_path, copies)
+
+
+def _match_chunk(
+    database_path: Path,
+    workdir: Path,
+    worker: str,
+    k: int,
+    part: Sequence[tuple[str, str]],
+    conf: SfmConf,
+    rep: Reporter,
+) -> None:
+    """One single-threaded ``pycolmap.match_image_pairs`` call over ``part``."""
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = 1  # see match_pairs: one thread per call, calls side by side
+    matching.sift.max_ratio = conf.max_ratio
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.min_num_inliers = conf.min_num_inliers
+    verification.ransac.random_seed = conf.seed
+    pairs_file = workdir / f"pairs-{worker}-{k:03d}.txt"
+    pairs_file.write_text("".join(f"{a} {b}\n" for a, b in part))
+    pairing = pycolmap.ImportedPairingOptions()
+    pairing.match_list_path = str(pairs_file)
+    rep.run(
+        "matching",
+        pycolmap.match_image_pairs,
+        database_path,
+        matching_options=matching,
+        pairing_options=pairing,
+        verification_options=verification,
+    )
+
+
+def _copy_database(src: Path, dst: Path) -> None:
+    """A consistent copy of a COLMAP database (WAL journal included: sqlite's backup)."""
+    dst.unlink(missing_ok=True)
+    with closing(sqlite3.connect(str(src))) as a, closing(sqlite3.connect(str(dst))) as b:
+        a.backup(b)
+
+
+def _merge_matches(database_path: Path, copies: Sequence[Path]) -> None:
+    """The matches and two-view geometries of ``copies`` into ``database_path``: rows it lacks
+    are added (pairs it had are in every copy, unchanged); both tables are keyed by pair id,
+    so the result does not depend on the order of the copies."""
+    with closing(sqlite3.connect(str(database_path))) as con:
+        for path in copies:
+            con.execute("ATTACH DATABASE ? AS part", (str(path),))
+            for table in ("matches", "two_view_geometries"):
+                con.execute(f"INSERT OR IGNORE INTO main.{table} SELECT * FROM part.{table}")
+            con.commit()
+            con.execute("DETACH DATABASE part")
