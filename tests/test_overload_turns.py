@@ -235,3 +235,31 @@ def test_new_sessions_on_one_worker_get_their_first_turns_as_promised_at_any_spe
             starved_caught.append(slow)
     assert counts_uneven == [2, 3, 4, 6]
     assert starved_caught == [1, 2, 3, 4, 6, 8]
+
+
+def test_a_wait_the_time_budget_cut_is_not_held_against_the_turns():
+    """A new session whose first frame the time budget answered before its turn (no "start"
+    nor "drop" row for it: DEADLINE_EXCEEDED, as promised on a starved machine) waits anew
+    from its next frame, behind sessions that came after it: not a breach of the first turns'
+    order (the real overload test at load 14-16 had such sessions). The same wait with that
+    frame superseded by its next one instead, uncut, is one."""
+    head = [
+        ("recv", 0.00, 1, 0, False, False),
+        ("start", 0.00, 1, 0, 0, 1, True),  # the worker had room: no wait
+        ("recv", 0.01, 2, 0, False, False),
+        ("recv", 0.02, 3, 0, False, False),
+        ("res", 0.50, 1, 0, 0, 1, "RELOCALIZED", "global", 500.0, 1.0, 499.0, True),
+        ("start", 0.50, 3, 0, 0, 2, True),  # session 3 before session 2, which came first
+        ("res", 0.90, 3, 0, 0, 2, "RELOCALIZED", "global", 400.0, 1.0, 399.0, True),
+    ]
+    tail = [
+        ("recv", 2.50, 2, 1, False, False),
+        ("start", 2.50, 2, 1, 0, 3, True),
+        ("res", 2.90, 2, 1, 0, 3, "RELOCALIZED", "global", 400.0, 1.0, 399.0, True),
+    ]
+    assert first_turn_breaches(head + tail) == []  # session 2's frame 0: the budget's
+    superseded = [("recv", 0.30, 2, 1, False, True), ("drop", 0.30, 2, 0, 1)]
+    late = [r for r in tail if r[0] != "recv"]
+    assert first_turn_breaches(head + superseded + late) == [
+        "first turns out of order: came [2, 3], served [3, 2]"
+    ]
