@@ -69,6 +69,50 @@ def test_choice_takes_only_ready_servers_hosting_the_map_and_least_loaded():
         choose(infos, "room", "cam", "random")
 
 
+def test_a_live_server_that_answers_late_is_still_in_the_rendezvous():
+    """A client keeps its server (rendezvous over the servers hosting its map): a live server
+    on a busy machine whose info answer comes after the query's timeout is waited for, not
+    left out. Two stand-in servers on real Zenoh, each with its liveliness token and info
+    queryable; "slow" answers 1 s late, past the client's 0.3 s query timeout. At load ~14
+    the suite's two real servers so gave a client the server rendezvous did not name."""
+    import threading
+
+    from sfmloc_client.keys import server_info_key, server_token_key
+    from sfmloc_client.placement import Placement
+    from sfmloc_client.wire import encode_server_info
+
+    client_id = next(
+        c for c in (f"cam-{i}" for i in range(100))
+        if rendezvous_owner("room", c, ["fast", "slow"]) == "slow"
+    )  # fmt: skip
+    ep = zenoh_endpoint()
+    timers: list[threading.Timer] = []
+    with (
+        zenoh.open(make_zenoh_config("peer", listen=[ep], multicast=False)) as zs,
+        zenoh.open(make_zenoh_config("peer", connect=[ep], multicast=False)) as zc,
+    ):
+        keep = []
+        for sid, delay in (("fast", 0.0), ("slow", 1.0)):
+            payload = encode_server_info(ServerInfo(sid, maps=[{"name": "room"}], ready=True))
+
+            def on_query(q, sid=sid, delay=delay, payload=payload) -> None:
+                t = threading.Timer(delay, lambda: q.reply(server_info_key(sid), payload))
+                timers.append(t)
+                t.start()
+
+            keep.append(zs.declare_queryable(server_info_key(sid), on_query))
+            keep.append(zs.liveliness().declare_token(server_token_key(sid)))
+        placement = Placement(zc, "room", client_id, query_timeout=0.3)
+        # the tokens (the subscriber's history) before the pick, as a streamer's first frame
+        assert wait_until(lambda: placement._alive == {"fast", "slow"}, 10)
+        assert placement.pick() == "slow"
+        placement.close()
+        for t in timers:
+            t.join()
+        for k in keep:
+            k.undeclare()
+
+
 # ------------------------------------------------------------------------------ live servers
 def _conf(world, sid, listen, connect=()):
     return server_config(

@@ -71,6 +71,7 @@ class Placement:
         client_id: str,
         policy: str = "rendezvous",
         query_timeout: float = 1.0,
+        late_timeout: float = 5.0,
     ) -> None:
         if policy not in POLICIES:
             raise ValueError(
@@ -78,6 +79,11 @@ class Placement:
             )
         self.session, self.map_name, self.client_id = session, map_name, client_id
         self.policy, self.query_timeout = policy, query_timeout
+        # How long ``pick`` waits for live servers (their liveliness token seen) that did not
+        # answer within ``query_timeout``: a server on a busy machine answers late, and
+        # picking without it would give this client another server than rendezvous names (a
+        # client must keep its server across restarts; tests/test_placement.py at load ~14).
+        self.late_timeout = late_timeout
         self.owner: str | None = None
         self.moves = 0  # times the owner changed after the first pick
         self._lock = threading.Lock()
@@ -105,9 +111,16 @@ class Placement:
     def pick(self) -> str | None:
         """Ask the servers (``query_timeout``) and choose; None when no ready server hosts the
         map yet."""
-        infos = [
-            i for i in query_servers(self.session, self.query_timeout) if hosts(i, self.map_name)
-        ]
+        infos = query_servers(self.session, self.query_timeout)
+        with self._lock:
+            late = self._alive - {i.server_id for i in infos}
+        if late and self.late_timeout > self.query_timeout:
+            # Ask again, longer: a Zenoh query ends when every server answered (or at the
+            # timeout), so only a server that is live and slow makes it wait.
+            again = query_servers(self.session, self.late_timeout)
+            answered = {i.server_id for i in infos}
+            infos += [i for i in again if i.server_id not in answered]
+        infos = [i for i in infos if hosts(i, self.map_name)]
         with self._lock:
             self._known = {i.server_id: i for i in infos}
             alive = [i for i in infos if i.server_id in self._alive or not self._alive]

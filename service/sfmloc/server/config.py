@@ -26,6 +26,16 @@ class ZenohConf(StrictModel):
     # (10 short-lived clients: +207 MB RSS, +20 /dev/shm files; off: +13 MB, +0;
     # docs/measurements.md#zenoh-shm).
     shared_memory: bool | None = None
+    # Batches Zenoh queues per link for REAL_TIME messages: the poses (express, one batch
+    # each, congestion control DROP). Zenoh's default is 2, and a put finding the queue full
+    # waits 1 ms for the link's tx thread, then the pose is dropped without a word: on a busy
+    # machine, poses leaving at once towards one peer (the time budget answering several
+    # sessions' late frames, clients sharing a Zenoh session or a router) were lost, and a
+    # client waiting for its last frame's answer waited forever (tests/test_overload.py at
+    # load 11-16, 3 of 10 runs). Six express puts at once, 200 times, two busy loops beside
+    # (nice 19): 2: 20 and 58 of 1200 lost; 16: 0 and 0. Not used when config_file sets
+    # Zenoh's queue itself.
+    pose_queue: int = Field(16, ge=1, le=16)
     # Reply NOT_FOUND to frames for maps this server does not host. Turn off when several
     # servers share a Zenoh network, each hosting different maps.
     reply_unknown_maps: bool = True

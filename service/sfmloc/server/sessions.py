@@ -48,6 +48,13 @@ next time (``_live``). On a simulated clock
 80 ms per relocalization) this keeps 125 poses/s, 2% relocalized, every client >= 6 Hz, where
 deadlines alone gave 42 poses/s, 56% relocalized.
 
+So what a new session is promised is an order and a share of its worker's time, not a wall-clock
+wait (``tests/turn_promise.py`` checks it on the timeline): new sessions get their first turns
+in the order their first frames came, and once due one waits only for the relocalizations ahead
+of it, each followed by at most as much tracked work (give or take a frame per session). On a
+loaded machine relocalizations take longer, so the last of several new sessions waits seconds
+while the first ones track: equal poses per client over a short window are not promised.
+
 Poses go back through the session's *sink* (a Zenoh publisher, or a gRPC stream's queue).
 Zenoh sessions end after ``idle_timeout_s`` without frames; gRPC sessions end with their stream.
 """

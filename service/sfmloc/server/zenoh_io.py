@@ -15,9 +15,11 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 from typing import Any
 
 import zenoh
@@ -44,18 +46,43 @@ from sfmloc_client.wire import (
 from sfmloc_client.zconfig import make_zenoh_config
 
 from ..errors import ConfigError, MapNotFoundError, OverloadError, UnavailableError, WireError
-from .config import ServerConfig
+from .config import ServerConfig, ZenohConf
 from .facade import Localization
 from .limits import LogLimiter, RateLimiter
 from .logfmt import event
 
 log = logging.getLogger(__name__)
 
+POSE_QUEUE_KEY = "transport/link/tx/queue/size/real_time"  # the poses' priority (POSE_QOS)
 POSE_QOS: dict[str, Any] = {
     "priority": zenoh.Priority.REAL_TIME,
     "express": True,
     "congestion_control": zenoh.CongestionControl.DROP,
 }
+
+
+# A Zenoh config file that sets the links' transmission queues decides them itself.
+_QUEUE_IN_FILE = re.compile(r"""["']?queue["']?\s*:""")
+
+
+def server_zenoh_config(zc: ZenohConf) -> Any:
+    """The server's ``zenoh.Config``: ``make_zenoh_config`` with the server's settings, and
+    room for ``pose_queue`` poses per link (config.py, ``ZenohConf.pose_queue``: with Zenoh's
+    default of 2, poses leaving at once towards one peer on a busy machine were dropped)."""
+    zconf = make_zenoh_config(
+        zc.mode,
+        zc.listen,
+        zc.connect,
+        # A config file decides scouting itself unless turned off here (--no-multicast):
+        # e.g. docker/zenoh-server-acl.json5 turns multicast and gossip off.
+        multicast=None if zc.config_file and zc.multicast else zc.multicast,
+        config_file=zc.config_file,
+        shared_memory=zc.shared_memory,
+    )
+    text = Path(zc.config_file).read_text("utf-8", "replace") if zc.config_file else ""
+    if not _QUEUE_IN_FILE.search(text):
+        zconf.insert_json5(POSE_QUEUE_KEY, json.dumps(zc.pose_queue))
+    return zconf
 
 
 class ZenohPoseSink:
@@ -107,16 +134,7 @@ class ZenohFrontend:
     def open(self) -> None:
         zc = self.conf.zenoh
         try:
-            zconf = make_zenoh_config(
-                zc.mode,
-                zc.listen,
-                zc.connect,
-                # A config file decides scouting itself unless turned off here (--no-multicast):
-                # e.g. docker/zenoh-server-acl.json5 turns multicast and gossip off.
-                multicast=None if zc.config_file and zc.multicast else zc.multicast,
-                config_file=zc.config_file,
-                shared_memory=zc.shared_memory,
-            )
+            zconf = server_zenoh_config(zc)
         except Exception as exc:  # noqa: BLE001 - zenoh raises ZError/ValueError on bad settings
             raise ConfigError(f"invalid Zenoh configuration: {exc}") from None
         try:
