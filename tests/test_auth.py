@@ -284,3 +284,19 @@ def test_the_readme_deployment_commands_end_to_end(world, pki, tmp_path):
         finally:
             server.terminate()
     assert server.returncode == 0
+
+
+def test_a_new_token_never_starts_with_a_dash(tmp_path, monkeypatch):
+    """A token is passed as ``--token TOKEN`` on the command line, where one starting with "-"
+    (1 in 64 of ``secrets.token_urlsafe``'s draws) reads as an option: the README deployment
+    test failed so once. The random source is forced to draw such a token first."""
+    from sfmloc.server import auth
+
+    draws = iter(["-dashed" + "a" * 36, "b" * 43])
+    monkeypatch.setattr(auth.secrets, "token_urlsafe", lambda n: next(draws))
+    token = auth.add_token(tmp_path / "tokens.json", "drone-7", ["localize"])
+    assert token == "b" * 43
+    table = auth.TokenTable.load(tmp_path / "tokens.json")
+    assert len(table) == 1  # the dashed draw was never stored
+    who = table.identify([("authorization", f"Bearer {token}")])
+    assert who is not None and who.name == "drone-7"

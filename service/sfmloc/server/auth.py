@@ -131,7 +131,11 @@ def add_token(path: str | Path, identity: str, roles: Sequence[str]) -> str:
     if p.exists():
         TokenTable.load(p)  # refuse to extend a broken file
         data = json.loads(p.read_text())
+    # Clients pass it as `--token TOKEN`: a token starting with "-" (1 in 64 of token_urlsafe's)
+    # reads as an option to argparse ("expected one argument"), so such a draw is drawn again.
     token = secrets.token_urlsafe(32)
+    while token.startswith("-"):
+        token = secrets.token_urlsafe(32)
     data["tokens"].append(
         {"identity": identity, "roles": sorted(set(roles)), "sha256": token_sha256(token)}
     )
