@@ -29,6 +29,7 @@ from sfmloc_client import (
     SourceFrame,
     make_zenoh_config,
 )
+from sfmloc_client.discovery import list_server_ids
 from sfmloc_client.placement import choose, rendezvous_owner
 from sfmloc_client.wire import (
     FRAME_KEYEXPR,
@@ -151,6 +152,12 @@ def test_one_server_answers_each_client_and_clients_spread(world):
         running_server(_conf(world, "beta", eb, [ea])) as b,
         zenoh.open(make_zenoh_config("peer", connect=[ea, eb], multicast=False)) as z,
     ):
+        # The premise: this client's session sees both servers' liveliness tokens (the pick
+        # is among the servers it sees; a clean clone once sent a beta client to alpha).
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline and set(list_server_ids(z, 1.0)) < {"alpha", "beta"}:
+            time.sleep(0.2)
+        assert set(list_server_ids(z, 1.0)) >= {"alpha", "beta"}
         clients = [f"cam-{i}" for i in range(6)]
         expected = {c: rendezvous_owner("room", c, ["alpha", "beta"]) for c in clients}
         assert set(expected.values()) == {"alpha", "beta"}  # these ids land on both
