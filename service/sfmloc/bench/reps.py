@@ -31,7 +31,7 @@ import numpy as np
 
 from ..eval.metrics import FrameRecord
 from .config import OURS, BenchConf
-from .suites import Prepared, peer_indices, run_suite
+from .suites import Prepared, peer_indices, replay_ours, run_suite
 
 log = logging.getLogger(__name__)
 
@@ -90,7 +90,6 @@ def run_repeated(
     ours and global-every-frame again on the same frames, in alternating order, in this process
     (a fresh ``Localizer`` per replay, as rep 1's)."""
     from ..engine import EngineConf
-    from ..eval.replay import replay
     from ..io.frames import FrameSource
     from ..map.bundle import MapBundle
     from .peers import global_every_frame, run_peer
@@ -113,17 +112,8 @@ def run_repeated(
         for method in order:
             log.info("%s: %s, %s", prep.name, method, label)
             if method == OURS:
-                recs, _decode = replay(
-                    bundle,
-                    source,
-                    prep.camera,
-                    EngineConf(),
-                    prep.groundtruth,
-                    start=prep.start,
-                    max_frames=prep.count,
-                    on_frame=_frame_progress(progress, f"{prep.name}:{OURS} {label}", prep),
-                )
-                runs.ours.append(recs)
+                stage = f"{prep.name}:{OURS} {label}"
+                runs.ours.append(replay_ours(prep, bundle, source, progress, stage))
             else:
                 runs.gef.append(
                     run_peer(
@@ -136,15 +126,6 @@ def run_repeated(
                     )
                 )
     return runs
-
-
-def _frame_progress(
-    progress: Progress, stage: str, prep: Prepared
-) -> Callable[[FrameRecord], None]:
-    def on_frame(r: FrameRecord) -> None:
-        progress(stage, (r.index - prep.start + 1) / prep.count, f"{r.name} {r.status}")
-
-    return on_frame
 
 
 def _peer_progress(progress: Progress, suite: str, label: str) -> Progress:

@@ -386,20 +386,15 @@ def peer_indices(prep: Prepared, peer_frames: int | None) -> tuple[list[int], in
     return idx[::stride], stride
 
 
-def run_suite(
-    prep: Prepared, conf: BenchConf, sift_conf, progress: Progress, index_cache: dict | None = None
-) -> dict[str, list[FrameRecord]]:
-    """Our engine on every frame (as a 30 Hz video), both peers on the strided frames."""
+def replay_ours(
+    prep: Prepared, bundle, source: FrameSource, progress: Progress, stage: str
+) -> list[FrameRecord]:
+    """Our engine (default config, a fresh ``Localizer``) on the suite's frames as a video,
+    each frame reported to ``progress`` under ``stage``."""
     from ..engine import EngineConf
     from ..eval.replay import replay
-    from ..map.bundle import MapBundle
-    from .peers import global_every_frame, run_peer, sift_peer
-    from .sift_peer import SiftLocalizer
 
-    bundle = MapBundle(prep.bundle_path)
-    source = FrameSource(prep.frames_dir, fps=prep.fps)
-    log.info("%s: our engine on %d frames", prep.name, prep.count)
-    ours, _decode = replay(
+    recs, _decode = replay(
         bundle,
         source,
         prep.camera,
@@ -408,9 +403,25 @@ def run_suite(
         start=prep.start,
         max_frames=prep.count,
         on_frame=lambda r: progress(
-            f"{prep.name}:{OURS}", (r.index - prep.start + 1) / prep.count, f"{r.name} {r.status}"
+            stage, (r.index - prep.start + 1) / prep.count, f"{r.name} {r.status}"
         ),
     )
+    return recs
+
+
+def run_suite(
+    prep: Prepared, conf: BenchConf, sift_conf, progress: Progress, index_cache: dict | None = None
+) -> dict[str, list[FrameRecord]]:
+    """Our engine on every frame (as a 30 Hz video), both peers on the strided frames."""
+    from ..engine import EngineConf
+    from ..map.bundle import MapBundle
+    from .peers import global_every_frame, run_peer, sift_peer
+    from .sift_peer import SiftLocalizer
+
+    bundle = MapBundle(prep.bundle_path)
+    source = FrameSource(prep.frames_dir, fps=prep.fps)
+    log.info("%s: our engine on %d frames", prep.name, prep.count)
+    ours = replay_ours(prep, bundle, source, progress, f"{prep.name}:{OURS}")
     idx, stride = peer_indices(prep, conf.peer_frames)
     log.info("%s: peers on %d frames (every %d)", prep.name, len(idx), stride)
     out = {OURS: ours}
