@@ -146,3 +146,68 @@ def test_one_rep_is_the_single_run_as_before():
     assert not [
         t for t in targets({"suites": {"synthetic-walk": s}}) if "same poses" in t["target"]
     ]
+
+
+def _split(recs: list[FrameRecord], detect: float, match: float) -> list[FrameRecord]:
+    """The same frames and poses, every frame's time split ``detect`` + ``match`` ms (its
+    latency is the timers' total, as the engine's)."""
+    return [
+        dataclasses.replace(
+            r,
+            latency_ms=detect + match,
+            cpu_ms=detect + match,
+            timings_ms={"detect": detect, "match": match, "total": detect + match},
+        )
+        for r in recs
+    ]
+
+
+def test_the_stage_table_is_the_median_reps_and_sums(tmp_path):
+    # three reps whose stage splits differ: per-cell medians would read detect 3, match 4,
+    # total 6 (rows summing to 7); the median rep (total 6) is rep 3's 1 + 5
+    ours, gef = fake_records(), fake_records(method="x", seed=1)[::5]
+    sift = _scaled(fake_records(method="x", seed=2)[::5], 20.0)
+    splits = [(4.0, 1.0), (3.0, 4.0), (1.0, 5.0)]  # totals 5, 7, 6
+    gef_splits = [(20.0, 10.0), (5.0, 20.0), (30.0, 2.0)]  # totals 30, 25, 32: rep 1 the median
+    runs = SuiteRuns(
+        [_split(ours, d, m) for d, m in splits],
+        [_split(gef, d, m) for d, m in gef_splits],
+        sift,
+        [0.5, 0.6, 0.7],
+        [[OURS, GEF, SIFT], [GEF, OURS], [OURS, GEF]],
+    )
+    s = _summary(runs)
+    st = s["stages_ms"]
+    assert st["detect"]["mean"] + st["match"]["mean"] == pytest.approx(st["total"]["mean"])
+    assert st["detect"]["share"] + st["match"]["share"] == pytest.approx(1.0)
+    assert st["detect"]["mean"] == 1.0 and st["match"]["mean"] == 5.0
+    assert st["total"]["mean"] == 6.0 == s["methods"][OURS]["T_ms_mean"]
+    assert s["reps"]["stage_table_rep"] == 3
+    # global-every-frame's stage line: its own median rep's (rep 1), summing to its mean
+    assert s["reps"]["peer_stage_rep"] == {GEF: 1}
+    assert s["peer_stages_ms"][GEF] == {"detect": 20.0, "match": 10.0}
+    assert sum(s["peer_stages_ms"][GEF].values()) == s["methods"][GEF]["T_ms_mean"] == 30.0
+    # the targets still read the median of the totals (6.0: rep 3's, the median of 5, 7, 6)
+    suite = {**s, "data": "synthetic", "frames_replayed": 50, "start": 0, "files": {}}
+    results = {"suites": {"redkitchen": suite}, "machine": {}}
+    tg = {t["target"]: t for t in targets(results)}
+    mean_t = tg["redkitchen: mean time per frame <= 33.3 ms (the paper's 'over 30 Hz')"]
+    assert mean_t["measured"].startswith("6.0 ms (167 Hz)")
+    # the report says which rep the table is, and its rows are that rep's
+    md = report.write_report(results, tmp_path).read_text()
+    assert "Where our time goes (rep 3 of 3, the one whose mean per frame is the median" in md
+    assert "| detect | 1.00 | 17% |" in md and "| match | 5.00 | 83% |" in md
+    assert "| total | 6.00 | 100% |" in md
+    assert "global-every-frame (rep 1, its median rep): detect 20.0, match 10.0" in md
+    assert "the stage table is one rep's, rep 3 " in md
+    printed = report.summary_text(results)
+    assert "Where our time goes, redkitchen (rep 3 of 3, the one whose" in printed
+
+
+def test_an_even_count_of_reps_takes_the_lower_middle_rep():
+    from sfmloc.bench.reps import median_rep
+
+    assert median_rep([7.0, 5.0, 6.0]) == 2
+    assert median_rep([7.0, 5.0]) == 1
+    assert median_rep([5.0, 5.0, 5.0]) == 0
+    assert median_rep([float("nan"), 5.0, 6.0]) == 2

@@ -448,8 +448,10 @@ def reps_lines(s: dict) -> list[str]:
         "",
         f"Repeats: our engine and global-every-frame ran {reps['count']} times on the same "
         "frames, back to back, the order alternating from rep to rep (pycolmap-sift ran once, "
-        "after rep 1's two). The times, rates, ratios, stage table and relocalization times "
-        "above are the medians over the reps (the targets read them); accuracy, per-frame files "
+        "after rep 1's two). The times, rates, ratios and relocalization times above are the "
+        "medians over the reps (the targets read them); the stage table is one rep's, rep "
+        f"{reps.get('stage_table_rep', '?')} (the one whose mean per frame is the median), so "
+        "its rows sum to its total; accuracy, per-frame files "
         "and figures are rep 1's. Ratios to pycolmap-sift: its one run against each rep of "
         "ours. Repeatability (every rep's poses against rep 1's, bit for bit): "
         f"{repeat_text(reps)}.",
@@ -480,8 +482,9 @@ def summary_text(results: dict) -> str:
             st = results["suites"][name].get("stages_ms", {})
             if st and all(isinstance(v, dict) for v in st.values()):
                 parts += [
-                    f"Where our time goes, {name} (ms; mean/frame over all frames, the other "
-                    "columns over the frames the stage ran in)",
+                    f"Where our time goes, {name} "
+                    f"({stage_rep_text(results['suites'][name].get('reps'))}ms; mean/frame over "
+                    "all frames, the other columns over the frames the stage ran in)",
                     text_table(list(STAGE_COLUMNS), stage_rows(st)),
                     "",
                 ]
@@ -631,13 +634,18 @@ def _suite_section(name: str, s: dict) -> list[str]:
         + ", ".join(f"{m} {f1(v, 0)}" for m, v in inl)
         + ".",
     ]
-    lines += stage_lines(s.get("stages_ms", {}))
+    lines += stage_lines(s.get("stages_ms", {}), s.get("reps"))
     lines += relocalization_lines(s)
     lines += reps_lines(s)
+    reps = s.get("reps") or {}
+    peer_rep = reps.get("peer_stage_rep", {}) if reps.get("count", 1) > 1 else {}
     for m, st in s.get("peer_stages_ms", {}).items():
         if st:
+            which = f" (rep {peer_rep[m]}, its median rep)" if m in peer_rep else ""
             lines.append(
-                f"{m}: " + ", ".join(f"{k} {v:.1f}" for k, v in st.items()) + " ms per frame."
+                f"{m}{which}: "
+                + ", ".join(f"{k} {v:.1f}" for k, v in st.items())
+                + " ms per frame."
             )
     f = s.get("files", {})
     lines += [""]
@@ -677,16 +685,27 @@ def relocalization_lines(s: dict) -> list[str]:
     ]
 
 
-def stage_lines(st: dict) -> list[str]:
-    """Where our time goes: the per-stage table (``eval.stages``); results before it kept only
-    the mean per stage."""
+def stage_rep_text(reps: dict | None) -> str:
+    """Which rep a repeated suite's stage table is (empty for one rep or older results, whose
+    table is the single run's, or the per-cell medians of results before ``stage_table_rep``)."""
+    if not reps or reps.get("count", 1) < 2 or "stage_table_rep" not in reps:
+        return ""
+    return (
+        f"rep {reps['stage_table_rep']} of {reps['count']}, the one whose mean per frame is the "
+        "median: its rows sum to its total; "
+    )
+
+
+def stage_lines(st: dict, reps: dict | None = None) -> list[str]:
+    """Where our time goes: the per-stage table (``eval.stages``), one rep's (``reps``: which
+    one); results before it kept only the mean per stage."""
     if not st:
         return []
     if all(isinstance(v, dict) for v in st.values()):
         return [
             "",
-            "Where our time goes (ms; mean/frame over all frames, the other columns over the "
-            "frames the stage ran in):",
+            f"Where our time goes ({stage_rep_text(reps)}ms; mean/frame over all frames, the "
+            "other columns over the frames the stage ran in):",
             "",
             markdown_table(list(STAGE_COLUMNS), stage_rows(st)),
         ]

@@ -1,6 +1,7 @@
 """A localization suite's speed, repeated: our engine and ``global-every-frame`` replayed
 ``BenchConf.reps`` times, interleaved, ``pycolmap-sift`` once; the timing numbers are the median
-over the reps, with their spread (min-max) and the load average at the start of each rep.
+over the reps, with their spread (min-max) and the load average at the start of each rep. The
+stage tables are one rep's, the median rep's (``median_rep``), so their rows sum to their total.
 
 Why: on a shared machine one replay is one sample. The same code read 5.4 and 5.8 ms per frame
 in two back-to-back quiet replays (x1.07), and the published redkitchen mean moved 5.78 -> 6.21
@@ -197,15 +198,17 @@ def _median_method(summaries: Sequence[dict]) -> dict:
     return m
 
 
-def _median_nested(dicts: Sequence[dict], skip: Sequence[str] = ("frames",)) -> dict:
-    """Per key of ``dicts[0]`` (a dict of dicts of numbers): each number's median over
-    ``dicts``, but the ``skip`` keys (counts, the same in every rep) from the first."""
-    out = copy.deepcopy(dicts[0])
-    for k, v in out.items():
-        for f in v:
-            if f not in skip:
-                v[f] = _median([d[k][f] for d in dicts if k in d])
-    return out
+def median_rep(values: Sequence[float]) -> int:
+    """The index of the rep whose value is the median of ``values`` (for an even count the
+    lower of the two middle ones; ties: the earliest rep; NaNs sort last).
+
+    Why one rep and not a median per cell: a stage table (or a peer's stage line) is read
+    down its rows, which add up to the frame's total only within one run; per-cell medians
+    mix reps, and their rows need not sum to their total."""
+    v = np.asarray(values, np.float64)
+    mid = v[np.argsort(v, kind="stable")[(len(v) - 1) // 2]]
+    same = np.flatnonzero(v == mid)  # ties: the earliest (rep 1's when it is among them)
+    return int(same[0]) if len(same) else 0
 
 
 def rep_numbers(s: dict, load: float) -> dict:
@@ -234,9 +237,10 @@ def summarize_repeated(
 ) -> dict:
     """``summarize`` (``main.summarize_suite`` on the suite's frames) of every rep, combined:
     accuracy and counts from rep 1, every timing number (our engine's and global-every-frame's
-    means, percentiles and CPU, the ratios, the stage table, the relocalization times) the
-    median over the reps; ``reps`` holds each rep's headline numbers, their min-max, the
-    loads and the repeatability check."""
+    means, percentiles and CPU, the ratios, the relocalization times) the median over the
+    reps, the stage tables those of the median rep (``median_rep``); ``reps`` holds each rep's
+    headline numbers, their min-max, the loads, which rep gave the stage tables and the
+    repeatability check."""
     per = [
         summarize({OURS: ours, GEF: gef, SIFT: runs.sift})
         for ours, gef in zip(runs.ours, runs.gef, strict=True)
@@ -249,10 +253,13 @@ def summarize_repeated(
         m: _median_fields([s["ratios"][m] for s in per], list(per[0]["ratios"][m]))
         for m in per[0]["ratios"]
     }
-    out["stages_ms"] = _median_nested([s["stages_ms"] for s in per])
-    out["peer_stages_ms"][GEF] = _median_fields(
-        [s["peer_stages_ms"][GEF] for s in per], list(per[0]["peer_stages_ms"][GEF])
-    )
+    # The stage tables are one rep's each: ours the rep whose mean per frame is the median
+    # (its total row is the published median for an odd count of reps; a frame's latency is
+    # its timers' "total"), global-every-frame's stage line likewise from its median rep.
+    stage_rep = median_rep([s["methods"][OURS]["T_ms_mean"] for s in per])
+    gef_stage_rep = median_rep([s["methods"][GEF]["T_ms_mean"] for s in per])
+    out["stages_ms"] = copy.deepcopy(per[stage_rep]["stages_ms"])
+    out["peer_stages_ms"][GEF] = copy.deepcopy(per[gef_stage_rep]["peer_stages_ms"][GEF])
     if "relocalization_ms" in out:
         rl = out["relocalization_ms"]
         for kind in ("wall", "cpu"):
@@ -265,6 +272,10 @@ def summarize_repeated(
         "once": [SIFT],
         "order": runs.order,
         "per_rep": numbers,
+        # 1-based: the rep whose stage table ("stages_ms") and global-every-frame stage line
+        # ("peer_stages_ms") are published
+        "stage_table_rep": stage_rep + 1,
+        "peer_stage_rep": {GEF: gef_stage_rep + 1},
         "spread": {
             k: {
                 "median": _median([n[k] for n in numbers]),
