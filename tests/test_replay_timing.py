@@ -178,6 +178,34 @@ def test_replay_cli_names_the_clock(world, tmp_path, capsys):
     assert [r["message"] for r in s["per_frame"]] == [""] * 8
 
 
+def test_replay_cli_counts_the_gaps_of_the_frames_it_replayed(world, tmp_path, capsys):
+    """The summary's clock gaps are those between the frames replayed (``--start``,
+    ``--max-frames``), as the engine saw them, not the whole source's."""
+    from sfmloc.cli.main import main
+
+    # 30 Hz stamps in ms, one 2 s gap between frames 2 and 3 (over max_frame_gap_s)
+    stamps_ms = [round(i * 1000 / 30) + (2000 if i >= 3 else 0) for i in range(9)]
+    folder = _folder(tmp_path / "gap", world, [f"{t}.png" for t in stamps_ms])
+    assert FrameSource(folder, timestamps="stem-ms").gaps_over(0.9) == 1
+    base = ["replay", str(world.maps_dir / "room"), str(folder), "--camera", world.camera_spec]
+    base += ["--timestamps", "stem-ms"]
+    for window, gaps in (
+        (["--start", "3"], 0),  # the gap is before the first frame replayed
+        (["--max-frames", "3"], 0),  # after the last
+        (["--start", "1", "--max-frames", "4"], 1),  # between frames 2 and 3, replayed
+    ):
+        out = tmp_path / "summary.json"
+        assert main([*base, *window, "--json", str(out)]) == 0
+        s = json.loads(out.read_text())
+        assert s["clock_gaps_over_max"] == gaps, window
+        printed = capsys.readouterr().out
+        assert ("1 gaps over max_frame_gap_s 0.9 s reset tracking" in printed) == bool(gaps)
+        if gaps:  # the engine relocalized there: the count is what it saw
+            frames = s["per_frame"]
+            assert [f["index"] for f in frames] == [1, 2, 3, 4]
+            assert frames[2]["matching"] == "global"
+
+
 def test_replay_cli_resets_the_session_every_n_frames(world, tmp_path):
     """``--reset-every N``: the tracker relocalizes on every N-th frame (its own
     relocalizations, measured as a reconnecting client sees them) and tracks the others."""
