@@ -204,3 +204,104 @@ def test_code_citations_of_readme_name_its_sections():
     assert cited, "no code cites a README section"
     missing = {n: p for n, p in cited.items() if not any(h.startswith(n) for h in names)}
     assert not missing, f"code cites README sections that do not exist: {missing}"
+
+
+# README's switch column gives each knob's default as `Conf.field` = value (a bare `field` after
+# it belongs to the same class); these are the classes it names.
+def _switch_classes() -> dict[str, object]:
+    from sfmloc.builder.descriptors import DescriptorConf
+    from sfmloc.builder.harris_points import HarrisPointsConf
+    from sfmloc.builder.refine import RefineConf
+    from sfmloc.builder.sfm.conf import SfmConf
+    from sfmloc.engine import EngineConf
+    from sfmloc.server.config import ZenohConf
+
+    return {
+        "EngineConf": EngineConf(),
+        "DescriptorConf": DescriptorConf(),
+        "RefineConf": RefineConf(),
+        "HarrisPointsConf": HarrisPointsConf(),
+        "SfmConf": SfmConf(),
+        "zenoh": ZenohConf(),
+    }
+
+
+# The build presets' section of BuildConf each builder class sits in.
+BUILD_SECTIONS = {
+    "DescriptorConf": "descriptors",
+    "RefineConf": "refine",
+    "HarrisPointsConf": "harris_points",
+}
+SWITCH = re.compile(r"`(?:(\w+)\.)?(\w+)`(?: = (`[^`]*`|[^\s,()]+))?")
+
+
+def _same(written: str, value: object) -> bool:
+    """Whether a table's written value (`name`, true, 0.02, 640) is the code's ``value``."""
+    if written.startswith("`"):
+        return written.strip("`") == value
+    if isinstance(value, bool):
+        return written in ("true", "false") and (written == "true") == value
+    try:
+        return float(written) == float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        return written == str(value)
+
+
+def _switch_cells() -> list[tuple[str, str]]:
+    """(the record's anchor, the switch cell) of each row of README's table."""
+    section = README.read_text().split("\n## Beyond the paper\n", 1)[1].split("\n## ", 1)[0]
+    rows = [line for line in section.splitlines() if line.startswith("| [")]
+    return [(_links(r, RECORDS_NAME)[0], r.rstrip(" |").rsplit(" | ", 1)[1]) for r in rows]
+
+
+def test_readme_switches_name_the_codes_knobs_and_defaults():
+    """Each `Conf.field` in README's switch column is a knob of that class, and its written
+    default (`Conf.field` = value) is the code's: a default changed in the code and not in the
+    table (or a knob renamed) would send a reader to the wrong setting."""
+    import inspect
+
+    from sfmloc.builder.build import PRESETS, preset
+    from sfmloc_client.placement import Placement
+
+    classes = _switch_classes()
+    checked = 0
+    wrong = []
+    for anchor, cell in _switch_cells():
+        owner = "EngineConf"  # a cell naming no class names EngineConf's knobs
+        # the knobs and their defaults; parentheses hold the off values and presets
+        # (a call such as `Placement(late_timeout=5.0)` is read below)
+        knobs = re.sub(r"\([^()]*\)", "", re.sub(r"`\w+\([^`]*\)`", "", cell))
+        for cls, field, written in SWITCH.findall(knobs):
+            if cls:
+                if cls not in classes:
+                    wrong.append(f"{anchor}: {cls}.{field}: no class this test knows")
+                    continue
+                owner = cls
+            conf = classes[owner]
+            if not hasattr(conf, field):
+                wrong.append(f"{anchor}: {owner}.{field} is no knob")
+                continue
+            if written and not _same(written, getattr(conf, field)):
+                wrong.append(
+                    f"{anchor}: {owner}.{field} = {written}, the code's is {getattr(conf, field)!r}"
+                )
+            checked += bool(written)
+        # "(presets `default`, `dense`: on; `paper`, `fast`: off)" of a builder knob
+        for names, state in re.findall(r"presets? ((?:`\w+`(?:, )?)+): (on|off)", cell):
+            for name in re.findall(r"`(\w+)`", names):
+                assert name in PRESETS, f"{anchor}: no build preset {name}"
+                field = re.match(r"`(\w+)\.(\w+)`", cell)
+                assert field and field.group(1) in BUILD_SECTIONS, anchor
+                value = getattr(
+                    getattr(preset(name), BUILD_SECTIONS[field.group(1)]), field.group(2)
+                )
+                if value != (state == "on"):
+                    wrong.append(f"{anchor}: preset {name} has {field.group(2)} {value}")
+        for cls, arg, written in re.findall(r"`(\w+)\((\w+)=([^)]+)\)`", cell):
+            assert cls == "Placement", f"{anchor}: {cls} is not a class this test knows"
+            default = inspect.signature(Placement).parameters[arg].default
+            if not _same(written, default):
+                wrong.append(f"{anchor}: {cls}({arg}={written}), the code's is {default!r}")
+            checked += 1
+    assert not wrong, wrong
+    assert checked >= 60, f"only {checked} defaults read: has the table's form changed?"
