@@ -744,7 +744,10 @@ class EngineConf(StrictModel):
     # An unverified relocalization farther than this from the motion prediction (fraction of
     # scene_scale, degrees: the wrong-pose limits) is rejected (LOST) while the last pose is
     # at most max_frame_gap_s old: redkitchen frame 461, 10 inliers, 1.49 m / 33 deg off, was
-    # 1.35 m from the prediction.
+    # 1.35 m from the prediction. The same limits at every interval: limits growing with it
+    # (0.3 x speed x interval, capped at 0.15; 60 deg/s x interval) were measured and not
+    # taken: on a thin map at 3 Hz, the only data where the check fires, they added wrong
+    # poses (flight) and lost frames (walk) (docs/beyond-the-paper.md#rejected-contradiction-gap).
     contradiction_position: float = 0.05
     contradiction_deg: float = 10.0
     # ... and only while the last posed frame's pose was published: a prediction extrapolated
