@@ -448,7 +448,7 @@ def reps_lines(s: dict) -> list[str]:
         "",
         f"Repeats: our engine and global-every-frame ran {reps['count']} times on the same "
         "frames, back to back, the order alternating from rep to rep (pycolmap-sift ran once, "
-        "after rep 1's two). The times, rates, ratios, stage table and relocalization times "
+        "after the last rep). The times, rates, ratios, stage table and relocalization times "
         "above are the medians over the reps (the targets read them); accuracy, per-frame files "
         "and figures are rep 1's. Ratios to pycolmap-sift: its one run against each rep of "
         "ours. Repeatability (every rep's poses against rep 1's, bit for bit): "
