@@ -30,7 +30,8 @@ from pathlib import Path
 from ..errors import InputError, SfmlocError
 from .config import BenchConf
 
-log = logging.getLogger(__name__)
+# By name: run as ``-m`` the module is ``__main__``; the child's log lines name this module.
+log = logging.getLogger("sfmloc.bench.prepare")
 
 CONF_FILE = "prepare-conf.json"
 # The child's user-facing error (``InputError``: e.g. no real data), raised again by the parent.
