@@ -32,7 +32,8 @@ from ..eval.metrics import WRONG_POSE_RULE, WRONG_POSITION_FRACTION, WRONG_ROTAT
 from ..io.frames import FrameSource
 from . import figures, report
 from .config import LOCALIZATION_SUITES, OURS, PEERS, SUITES, BenchConf
-from .reps import SuiteRuns, run_repeated, summarize_repeated
+from .prepare import prepare_in_child
+from .reps import SuiteRuns, run_reps, run_sift, summarize_repeated
 from .sift_peer import SiftMap
 from .stats import method_summary, ratios, relocalization_times, stage_times
 from .suites import Prepared, peer_indices, prepare, prepare_redkitchen
@@ -384,7 +385,7 @@ def _notes(results: dict, conf: BenchConf) -> list[str]:
         if reps and reps["count"] > 1:
             n.append(
                 f"{name}: our engine and global-every-frame ran {reps['count']} times each, "
-                "interleaved (pycolmap-sift once, after rep 1): every time, rate and ratio "
+                "interleaved (pycolmap-sift once, after the last rep): every time, rate and ratio "
                 "published is the median over the reps (the targets read it), with the min-max "
                 "beside it; accuracy, per-frame files and figures are rep 1's."
             )
@@ -427,10 +428,28 @@ def main(
         "suites": {},
     }
     loc = [s for s in SUITES if s in conf.suites and s in LOCALIZATION_SUITES]
+    need_real = [s for s in ("map", "throughput") if s in conf.suites]
+    # The maps are built in a child process, and this one then only reads them (``reuse`` on:
+    # the child has just made or checked them): the process that times our engine never builds
+    # a map, as a server worker never does (bench.prepare, docs/development.md#bench-isolation).
+    # The map and throughput suites' redkitchen map too, unless a smoke run serves its first
+    # suite's map.
+    to_prepare = list(loc)
+    if need_real and "redkitchen" not in loc and not (conf.quick and loc):
+        to_prepare.append("redkitchen")
+    results["prepare_child_s"] = prepare_in_child(to_prepare, conf, work)
+    built = conf.model_copy(update={"reuse": True})
     preps: dict[str, Prepared] = {}
     for name in loc:
-        log.info("== %s: preparing data and maps", name)
-        preps[name] = prepare(name, conf, work, progress)
+        preps[name] = prepare(name, built, work, progress)
+
+    # Every suite's reps of our engine and global-every-frame first; the SIFT peer's tuning and
+    # runs (SIFT extraction, HNSW indices: the heaviest allocations left in this process) after
+    # them all (bench.reps).
+    all_runs: dict[str, SuiteRuns] = {}
+    for name in loc:
+        log.info("== %s: sfmloc and global-every-frame, %d reps", name, conf.reps)
+        all_runs[name] = run_reps(preps[name], conf, progress)
 
     sift_conf = conf.sift
     if loc and conf.tune:
@@ -442,9 +461,9 @@ def main(
     results["sift_peer_conf"] = sift_conf.model_dump()
 
     for name in loc:
-        log.info("== %s: running sfmloc and the peers", name)
-        prep = preps[name]
-        runs = run_repeated(prep, conf, sift_conf, progress)
+        log.info("== %s: pycolmap-sift", name)
+        prep, runs = preps[name], all_runs[name]
+        run_sift(runs, prep, conf, sift_conf, progress)
         sm = SiftMap.load(prep.sift_map_path)
         results["suites"][name] = suite_results(
             prep,
@@ -478,7 +497,6 @@ def main(
         }
         log.info("builder done (%.0f s so far)", time.perf_counter() - t_start)
 
-    need_real = [s for s in ("map", "throughput") if s in conf.suites]
     if need_real:
         rk = preps.get("redkitchen")
         if rk is None and conf.quick and preps:
@@ -487,8 +505,7 @@ def main(
             rk = next(iter(preps.values()))
             log.info("== --quick: %s on the %s map", " and ".join(need_real), rk.name)
         if rk is None:
-            log.info("== preparing the redkitchen map for %s", " and ".join(need_real))
-            rk = prepare_redkitchen(conf, work, False, progress)
+            rk = prepare_redkitchen(built, work, False, progress)  # the child built it
         camera = conf.camera if rk.kind == "real" else rk.camera.to_string()
         if "map" in conf.suites:
             from .mapstats import map_stats, sift_map_stats

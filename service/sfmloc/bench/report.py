@@ -448,7 +448,7 @@ def reps_lines(s: dict) -> list[str]:
         "",
         f"Repeats: our engine and global-every-frame ran {reps['count']} times on the same "
         "frames, back to back, the order alternating from rep to rep (pycolmap-sift ran once, "
-        "after rep 1's two). The times, rates, ratios and relocalization times above are the "
+        "after the last rep). The times, rates, ratios and relocalization times above are the "
         "medians over the reps (the targets read them); the stage table is one rep's, rep "
         f"{reps.get('stage_table_rep', '?')} (the one whose mean per frame is the median), so "
         "its rows sum to its total; accuracy, per-frame files "

@@ -1,5 +1,5 @@
-"""The localization suites: their data and maps (prepared under ``OUT/work``), and one run of
-our engine and both peers on the same frames.
+"""The localization suites: their data and maps (prepared under ``OUT/work``), and the runs of
+our engine and the SIFT peer on the suite's frames (``bench.reps`` repeats and orders them).
 
 Maps:
 
@@ -33,7 +33,7 @@ from ..eval.groundtruth import load_groundtruth
 from ..eval.metrics import FrameRecord
 from ..io.frames import FrameSource
 from ..transforms import Rigid3d
-from .config import OURS, BenchConf
+from .config import BenchConf
 from .sift_peer import SiftMap
 
 log = logging.getLogger(__name__)
@@ -409,33 +409,22 @@ def replay_ours(
     return recs
 
 
-def run_suite(
+def run_sift_peer(
     prep: Prepared, conf: BenchConf, sift_conf, progress: Progress, index_cache: dict | None = None
-) -> dict[str, list[FrameRecord]]:
-    """Our engine on every frame (as a 30 Hz video), both peers on the strided frames."""
-    from ..engine import EngineConf
-    from ..map.bundle import MapBundle
-    from .peers import global_every_frame, run_peer, sift_peer
+) -> list[FrameRecord]:
+    """The pycolmap-sift peer on the suite's peer frames (``peer_indices``). The bench runs it
+    after every rep of our engine and global-every-frame (``bench.reps``), so that they run in
+    a process that has done nothing but load maps, as a server worker
+    (docs/development.md#bench-isolation)."""
+    from .peers import run_peer, sift_peer
     from .sift_peer import SiftLocalizer
 
-    bundle = MapBundle(prep.bundle_path)
     source = FrameSource(prep.frames_dir, fps=prep.fps)
-    log.info("%s: our engine on %d frames", prep.name, prep.count)
-    ours = replay_ours(prep, bundle, source, progress, f"{prep.name}:{OURS}")
     idx, stride = peer_indices(prep, conf.peer_frames)
-    log.info("%s: peers on %d frames (every %d)", prep.name, len(idx), stride)
-    out = {OURS: ours}
-    out["global-every-frame"] = run_peer(
-        "global-every-frame",
-        global_every_frame(bundle, prep.camera, EngineConf()),
-        source,
-        idx,
-        prep.groundtruth,
-        progress=lambda s, f, m: progress(f"{prep.name}:{s}", f, m),
-    )
+    log.info("%s: pycolmap-sift on %d frames (every %d)", prep.name, len(idx), stride)
     sift_map = SiftMap.load(prep.sift_map_path)
     loc = SiftLocalizer(sift_map, prep.camera, sift_conf, index_cache)
-    out["pycolmap-sift"] = run_peer(
+    return run_peer(
         "pycolmap-sift",
         sift_peer(loc),
         source,
@@ -443,4 +432,3 @@ def run_suite(
         prep.groundtruth,
         progress=lambda s, f, m: progress(f"{prep.name}:{s}", f, m),
     )
-    return out
