@@ -228,6 +228,10 @@ class SessionPoints:
             self.obs_frame = np.concatenate([self.obs_frame, np.full(n, fno, np.int64)])
             order = np.argsort(self.obs_id, kind="stable")
             self._keep_obs(order)
+            # (the known tracks' first observations moved: new ids sort among them, e.g. a
+            # track that was matched to the map and is unmatched again keeps its old id; the
+            # positions found before would pair a track's ray with another track's first ray)
+            pos_c = np.searchsorted(self.obs_id, ids)
         if odometry and len(self.pt_id):
             known &= ~np.isin(ids, self.pt_id, assume_unique=True)
         self._triangulate(ids[known], rays[known], c, fno, pos_c[known])
