@@ -28,7 +28,8 @@ def redkitchen() -> Path:
 
 
 # The synthetic world with exact ground truth (server_helpers.build_world: rendered once per
-# session folder) and its map, for the modules that test the engine on it.
+# test session, each xdist worker on its own copy) and its map, for the modules that test the
+# engine on it.
 @pytest.fixture(scope="module")
 def world(tmp_path_factory):
     from server_helpers import build_world

@@ -3,8 +3,9 @@
 servers on background threads. Everything is real: Zenoh sessions in peer mode on loopback
 with multicast scouting off, gRPC on loopback, worker processes.
 
-The world is built once per test session (cached by pytest's base temp folder), since both
-test_server*.py and test_client*.py use it.
+The world is built once per test session (cached by pytest's base temp folder; under xdist
+one worker builds it and the others copy it), since both test_server*.py and test_client*.py
+use it.
 """
 
 from __future__ import annotations
@@ -49,39 +50,19 @@ class World:
 
 
 def build_world(base: Path) -> World:
-    """Render the scene, build the bundles (cached per base folder)."""
+    """Render the scene, build the bundles (cached per base folder; under pytest-xdist the
+    workers share one build, each working on its own copy: see ``_world_files``)."""
     with _lock:
         if base in _worlds:
             return _worlds[base]
         import cv2
 
-        from sfmloc.builder.build import BuildConf, assemble
         from sfmloc.cameras import Camera
-        from sfmloc.io.colmap import read_model
         from sfmloc.io.poses import read_poses
-        from sfmloc.map.bundle import write_bundle
-        from sfmloc.synth import preset
-        from sfmloc.synth.main import run
 
         root = base / "sfmloc-world"
-        conf = preset(
-            "small",
-            width=WIDTH,
-            height=HEIGHT,
-            mapping_views=N_MAPPING,
-            trajectory={"n_frames": N_FRAMES},
-        )
-        run(conf, root / "synth", overwrite=True, scene=room_scene(conf.seed, conf.scene))
-        rec = read_model(root / "synth" / "sparse")
-        data, timings, info = assemble(rec, root / "synth" / "images", BuildConf())
         maps_dir, spare = root / "maps", root / "spare"
-        for name in ("room", "room2"):
-            write_bundle(data, maps_dir, name, timings_s=timings, index_info=info)
-        write_bundle(data, spare / "rebuilt", "room", timings_s=timings, index_info=info)
-        corrupt = write_bundle(data, spare / "corrupt", "room", timings_s=timings, index_info=info)
-        with open(corrupt / "points_xyz.npy", "r+b") as f:  # flip bytes: checksum mismatch
-            f.seek(200)
-            f.write(b"\x00\xff" * 16)
+        _world_files(root)
         cam = Camera.from_json(root / "synth" / "camera.json")
         frames = sorted((root / "synth" / "video").glob("frame-*.png"))
         gt = read_poses(root / "synth" / "video_poses.txt").by_stem()
@@ -98,6 +79,65 @@ def build_world(base: Path) -> World:
         )
         _worlds[base] = world
         return world
+
+
+def _render_and_build(root: Path) -> None:
+    """The world's files under ``root``: the rendered room (``synth``), its bundle as "room" and
+    "room2" (``maps``), and a rebuilt and a corrupt copy (``spare``)."""
+    from sfmloc.builder.build import BuildConf, assemble
+    from sfmloc.io.colmap import read_model
+    from sfmloc.map.bundle import write_bundle
+    from sfmloc.synth import preset
+    from sfmloc.synth.main import run
+
+    conf = preset(
+        "small",
+        width=WIDTH,
+        height=HEIGHT,
+        mapping_views=N_MAPPING,
+        trajectory={"n_frames": N_FRAMES},
+    )
+    run(conf, root / "synth", overwrite=True, scene=room_scene(conf.seed, conf.scene))
+    rec = read_model(root / "synth" / "sparse")
+    data, timings, info = assemble(rec, root / "synth" / "images", BuildConf())
+    maps_dir, spare = root / "maps", root / "spare"
+    for name in ("room", "room2"):
+        write_bundle(data, maps_dir, name, timings_s=timings, index_info=info)
+    write_bundle(data, spare / "rebuilt", "room", timings_s=timings, index_info=info)
+    corrupt = write_bundle(data, spare / "corrupt", "room", timings_s=timings, index_info=info)
+    with open(corrupt / "points_xyz.npy", "r+b") as f:  # flip bytes: checksum mismatch
+        f.seek(200)
+        f.write(b"\x00\xff" * 16)
+
+
+def _world_files(root: Path) -> None:
+    """Make the world's files under ``root``. Under pytest-xdist (``make test``: 2 workers) the
+    first worker to need the world renders and builds it (~17 s of CPU at load 6; each worker
+    built its own before) and leaves a copy beside the workers' folders, in the session's base
+    folder; the others wait for it (a file lock) and copy it into their own folder (70 MB). A
+    worker's tests keep their own files, as before: some add to them (a map folder symlink, a
+    served share), and a copy keeps those to the worker. Without xdist the folder is the
+    session's alone: built in place. The files hold no absolute path (checked: a copy serves)."""
+    import fcntl
+    import os
+    import shutil
+
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        _render_and_build(root)
+        return
+    # root is in the worker's base folder, pytest-N/popen-gwK; pytest-N is this session's alone
+    session = root.parent.parent
+    shared = session / "sfmloc-world-shared"
+    with open(session / "sfmloc-world.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
+        if not shared.is_dir():
+            _render_and_build(root)
+            # copied whole, then renamed: a worker killed mid-copy leaves no half world
+            tmp = session / f"sfmloc-world-shared.{os.getpid()}"
+            shutil.copytree(root, tmp, symlinks=True)
+            tmp.rename(shared)
+            return
+    shutil.copytree(shared, root, symlinks=True)
 
 
 def room_scene(seed: int = 0, conf: Any = None) -> Any:
