@@ -41,7 +41,10 @@ def test_readme_results_block_matches_the_committed_results():
 
 def test_committed_results_are_summary_numbers_only():
     results = json.loads(RESULTS.read_text())
-    assert RESULTS.stat().st_size < 200_000
+    # A size bound as a second guard (the list check below is the first): 188 kB at 7deee34;
+    # the reps' medians, spreads and loads per localization suite (~2.8 kB each, benchrep)
+    # took 584e48f's to 202 kB, all summary numbers.
+    assert RESULTS.stat().st_size < 250_000
     assert results["format"] == "sfmloc-bench-results"
 
     def no_long_lists(x, path="results"):
