@@ -302,9 +302,17 @@ def test_page_shows_the_map_and_a_streamed_client_moving(world, tmp_path):
                 time.sleep(0.15)  # slow enough to be seen mid-way
 
     def shot_and_state(b: Browser) -> tuple[bytes, dict, list[float]]:
-        png = b.screenshot()
-        c, xy = b.evaluate("[window.sfmlocView.clients.walker, window.sfmlocView.screen('walker')]")
-        return png, c, xy
+        # The screenshot shows the pose read before and after it only when no pose came in
+        # between (one comes every 0.15 s): a dot drawn for the next pose sat a few pixels off
+        # the position read after the shot (a clean clone read 12 status pixels near it, not 20).
+        expr = "[window.sfmlocView.clients.walker, window.sfmlocView.screen('walker')]"
+        for _ in range(50):
+            before, _xy = b.evaluate(expr)
+            png = b.screenshot()
+            c, xy = b.evaluate(expr)
+            if c["seq"] == before["seq"]:
+                return png, c, xy
+        raise AssertionError("a new pose arrived during each of 50 screenshots")
 
     with (
         running_server(server_config(world, ep)),
