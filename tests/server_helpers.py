@@ -87,16 +87,9 @@ def _render_and_build(root: Path) -> None:
     from sfmloc.builder.build import BuildConf, assemble
     from sfmloc.io.colmap import read_model
     from sfmloc.map.bundle import write_bundle
-    from sfmloc.synth import preset
     from sfmloc.synth.main import run
 
-    conf = preset(
-        "small",
-        width=WIDTH,
-        height=HEIGHT,
-        mapping_views=N_MAPPING,
-        trajectory={"n_frames": N_FRAMES},
-    )
+    conf = world_synth_conf()
     run(conf, root / "synth", overwrite=True, scene=room_scene(conf.seed, conf.scene))
     rec = read_model(root / "synth" / "sparse")
     data, timings, info = assemble(rec, root / "synth" / "images", BuildConf())
@@ -138,6 +131,20 @@ def _world_files(root: Path) -> None:
             tmp.rename(shared)
             return
     shutil.copytree(shared, root, symlinks=True)
+
+
+def world_synth_conf() -> Any:
+    """The synthetic world's render settings: the small room at WIDTH x HEIGHT, N_MAPPING
+    mapping views, an N_FRAMES walk."""
+    from sfmloc.synth import preset
+
+    return preset(
+        "small",
+        width=WIDTH,
+        height=HEIGHT,
+        mapping_views=N_MAPPING,
+        trajectory={"n_frames": N_FRAMES},
+    )
 
 
 def room_scene(seed: int = 0, conf: Any = None) -> Any:

@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 import pytest
 
-from server_helpers import HEIGHT, N_FRAMES, N_MAPPING, WIDTH
+from server_helpers import WIDTH
 from sfmloc.cameras import Camera
 from sfmloc.engine import EngineConf, Localizer, Status, relocalize
 from sfmloc.engine.frame import to_working, working_scale
@@ -26,17 +26,10 @@ F640 = 525.0  # the world's focal length at 640x480
 
 @pytest.fixture(scope="module")
 def scene(world):
-    from server_helpers import room_scene
-    from sfmloc.synth import preset
+    from server_helpers import room_scene, world_synth_conf
     from sfmloc.synth.renderer import prepare
 
-    conf = preset(
-        "small",
-        width=WIDTH,
-        height=HEIGHT,
-        mapping_views=N_MAPPING,
-        trajectory={"n_frames": N_FRAMES},
-    )
+    conf = world_synth_conf()
     sc = room_scene(conf.seed, conf.scene)
     prepare(sc)
     return sc, conf
