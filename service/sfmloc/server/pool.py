@@ -364,6 +364,10 @@ class WorkerPool:
         if self.kind == "process":
             h.runner.join(5)  # reap it now: no zombie, and its exit code is known
         code = getattr(h.runner, "exitcode", None)
+        # Its stderr read to the end first: the pump may still be behind when the exit is seen
+        # (a clean clone once reported a traceback's 'File "<string>"' line, not its ImportError).
+        if code is not None and hasattr(h.runner, "drain_stderr"):
+            h.runner.drain_stderr(1.0)
         pid = (
             h.pid
             or getattr(h.runner, "pid", 0)
@@ -707,10 +711,18 @@ class _Process:
     def __init__(self, popen: subprocess.Popen) -> None:
         self.popen = popen
         self.last_line = ""
+        self._stderr_pump: threading.Thread | None = None
         if popen.stderr is not None:
-            threading.Thread(
+            self._stderr_pump = threading.Thread(
                 target=self._pump, name=f"sfmloc-worker-stderr-{popen.pid}", daemon=True
-            ).start()
+            )
+            self._stderr_pump.start()
+
+    def drain_stderr(self, timeout: float) -> None:
+        """Wait (at most ``timeout`` s) until the exited child's stderr is read to its end, so
+        ``last_line`` is its last line, not one the pump had not reached yet."""
+        if self._stderr_pump is not None:
+            self._stderr_pump.join(timeout)
 
     def _pump(self) -> None:
         assert self.popen.stderr is not None

@@ -85,12 +85,18 @@ class ForkedWorker:
         self._code: int | None = None
         self._exited = threading.Event()
         self.orphaned = False  # the zygote died: nobody reports our exit, poll the pid
-        threading.Thread(target=self._pump, args=(stderr_fd,), daemon=True).start()
+        self._stderr_pump = threading.Thread(target=self._pump, args=(stderr_fd,), daemon=True)
+        self._stderr_pump.start()
 
     def _pump(self, fd: int) -> None:
         """Passes the worker's stderr through to ours and keeps its last line (why it died)."""
         with os.fdopen(fd, "rb") as f:
             relay_stderr(f, self)
+
+    def drain_stderr(self, timeout: float) -> None:
+        """Wait (at most ``timeout`` s) until the exited worker's stderr is read to its end, so
+        ``last_line`` is its last line, not one the pump had not reached yet."""
+        self._stderr_pump.join(timeout)
 
     def _set_exit(self, code: int) -> None:
         self._code = code
