@@ -143,15 +143,6 @@ def run_sift(
     runs.order[-1].append(SIFT)
 
 
-def run_repeated(
-    prep: Prepared, conf: BenchConf, sift_conf, progress: Progress, reps: int | None = None
-) -> SuiteRuns:
-    """One suite alone: ``run_reps``, then ``run_sift``."""
-    runs = run_reps(prep, conf, progress, reps)
-    run_sift(runs, prep, conf, sift_conf, progress)
-    return runs
-
-
 def _peer_progress(progress: Progress, suite: str, label: str) -> Progress:
     def on_peer(stage: str, fraction: float, message: str) -> None:
         progress(f"{suite}:{stage}{label}", fraction, message)
