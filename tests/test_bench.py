@@ -613,6 +613,26 @@ def test_robust_cache_keys_hold_in_a_copied_work_folder(tmp_path):
     assert outside == str((tmp_path / "elsewhere").resolve())
 
 
+def test_the_map_and_throughput_suites_serve_one_decided_map():
+    """One decision names the map the map and throughput suites serve (the child prepares it,
+    they read it): redkitchen's, except a smoke run's with a localization suite other than
+    redkitchen, which serves its first suite's map rather than build redkitchen's."""
+    from sfmloc.bench.config import BenchConf, quick_conf
+    from sfmloc.bench.main import real_suites_map
+
+    assert real_suites_map(BenchConf(), ["redkitchen", "synthetic-walk"]) == "redkitchen"
+    assert real_suites_map(BenchConf(suites=["synthetic-walk", "map"]), ["synthetic-walk"]) == (
+        "redkitchen"
+    )
+    assert real_suites_map(BenchConf(suites=["throughput"]), []) == "redkitchen"
+    assert real_suites_map(BenchConf(suites=["redkitchen", "robust"]), ["redkitchen"]) is None
+    quick = quick_conf()  # synthetic-walk, robust, throughput, map
+    assert real_suites_map(quick, ["synthetic-walk"]) == "synthetic-walk"
+    both = quick_conf(suites=["synthetic-walk", "redkitchen", "map"])
+    assert real_suites_map(both, ["redkitchen", "synthetic-walk"]) == "redkitchen"
+    assert real_suites_map(quick_conf(suites=["throughput"]), []) == "redkitchen"
+
+
 def test_reuse_rebuilds_a_map_made_by_another_builder(tmp_path, caplog):
     """--reuse takes a cached map only when its input and the builder that made it are today's:
     a stamp from another builder (as every map cached before a builder change has) is rebuilt,

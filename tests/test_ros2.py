@@ -231,6 +231,8 @@ def test_server_publishes_ros2_poses(world, ros_server):
 def test_frames_as_ros2_images_are_localized(world, ros_server):
     """CompressedImage (PNG) and Image (mono8) samples serialized by rosbags, on rmw_zenoh
     keys, come back as poses (msgpack and ROS) at the ground truth."""
+    import zenoh
+
     from sfmloc_client import PoseSubscriber
 
     _, ep = ros_server
@@ -247,7 +249,13 @@ def test_frames_as_ros2_images_are_localized(world, ros_server):
             )
             topic = f"/sfmloc/room/{client}/image" + ("/compressed" if kind == "compressed" else "")
             ros_type = "sensor_msgs/msg/" + ("CompressedImage" if kind == "compressed" else "Image")
-            pub = z.declare_publisher(rmw_key(topic, ros_type))
+            # BLOCK, as FrameStreamer's frames: a frame of 300-560 kB is 5-9 of Zenoh's 64 kB
+            # batches through a queue of 2, and with the default (DROP) Zenoh discards the whole
+            # frame when its tx thread falls 50 ms behind. Under load the server then never got
+            # a frame, and the test waited 20 s for its pose (2 of 45 runs; 0 of 30 with BLOCK).
+            pub = z.declare_publisher(
+                rmw_key(topic, ros_type), congestion_control=zenoh.CongestionControl.BLOCK
+            )
             deadline = time.monotonic() + 20
             while not pub.matching_status.matching and time.monotonic() < deadline:
                 time.sleep(0.01)

@@ -36,7 +36,7 @@ from .prepare import prepare_in_child
 from .reps import SuiteRuns, run_reps, run_sift, summarize_repeated
 from .sift_peer import SiftMap
 from .stats import method_summary, ratios, relocalization_times, stage_times
-from .suites import Prepared, peer_indices, prepare, prepare_redkitchen
+from .suites import Prepared, peer_indices, prepare
 
 RELOC_PEER = "global-every-frame"
 RELOC_P95_MS = 40.0  # issue 10: relocalization p95 at most 40 ms (redkitchen, quiet machine)
@@ -397,6 +397,19 @@ def _notes(results: dict, conf: BenchConf) -> list[str]:
     return n
 
 
+def real_suites_map(conf: BenchConf, loc: list[str]) -> str | None:
+    """The localization suite whose map the map and throughput suites serve (None: neither
+    runs). ``loc``: the localization suites of the run. Redkitchen's, except in a smoke run
+    (``--quick``) with a localization suite but not redkitchen: its first suite's map (the
+    synthetic room's) rather than building redkitchen's; the results name the map. The one
+    place this is decided: the child prepares this map and the suites then read it."""
+    if not any(s in conf.suites for s in ("map", "throughput")):
+        return None
+    if conf.quick and loc and "redkitchen" not in loc:
+        return loc[0]
+    return "redkitchen"
+
+
 def main(
     conf: BenchConf,
     out: str | Path,
@@ -429,14 +442,12 @@ def main(
     }
     loc = [s for s in SUITES if s in conf.suites and s in LOCALIZATION_SUITES]
     need_real = [s for s in ("map", "throughput") if s in conf.suites]
+    real_map = real_suites_map(conf, loc)
     # The maps are built in a child process, and this one then only reads them (``reuse`` on:
     # the child has just made or checked them): the process that times our engine never builds
     # a map, as a server worker never does (bench.prepare, docs/development.md#bench-isolation).
-    # The map and throughput suites' redkitchen map too, unless a smoke run serves its first
-    # suite's map.
-    to_prepare = list(loc)
-    if need_real and "redkitchen" not in loc and not (conf.quick and loc):
-        to_prepare.append("redkitchen")
+    # The map and throughput suites' map too.
+    to_prepare = loc + ([real_map] if real_map is not None and real_map not in loc else [])
     results["prepare_child_s"] = prepare_in_child(to_prepare, conf, work)
     built = conf.model_copy(update={"reuse": True})
     preps: dict[str, Prepared] = {}
@@ -497,15 +508,11 @@ def main(
         }
         log.info("builder done (%.0f s so far)", time.perf_counter() - t_start)
 
-    if need_real:
-        rk = preps.get("redkitchen")
-        if rk is None and conf.quick and preps:
-            # A smoke run serves the map it already has (the synthetic room's) instead of
-            # building redkitchen's; the results name the map.
-            rk = next(iter(preps.values()))
+    if real_map is not None:
+        # The child built it (to_prepare above).
+        rk = preps[real_map] if real_map in preps else prepare(real_map, built, work, progress)
+        if real_map != "redkitchen":
             log.info("== --quick: %s on the %s map", " and ".join(need_real), rk.name)
-        if rk is None:
-            rk = prepare_redkitchen(built, work, False, progress)  # the child built it
         camera = conf.camera if rk.kind == "real" else rk.camera.to_string()
         if "map" in conf.suites:
             from .mapstats import map_stats, sift_map_stats

@@ -41,7 +41,14 @@ from . import protocol as P
 from .logfmt import event
 from .sched import set_slice
 from .worker import worker_main
-from .zygote import Zygote, relay_stderr, set_process_name, take_prestarted, worker_env
+from .zygote import (
+    RelayedStderr,
+    Zygote,
+    relay_stderr,
+    set_process_name,
+    take_prestarted,
+    worker_env,
+)
 
 log = logging.getLogger(__name__)
 
@@ -366,7 +373,7 @@ class WorkerPool:
         code = getattr(h.runner, "exitcode", None)
         # Its stderr read to the end first: the pump may still be behind when the exit is seen
         # (a clean clone once reported a traceback's 'File "<string>"' line, not its ImportError).
-        if code is not None and hasattr(h.runner, "drain_stderr"):
+        if code is not None and isinstance(h.runner, RelayedStderr):
             h.runner.drain_stderr(1.0)
         pid = (
             h.pid
@@ -704,25 +711,17 @@ _BOOTSTRAP = (
 MAX_START_FAILURES = 3
 
 
-class _Process:
+class _Process(RelayedStderr):
     """``subprocess.Popen`` with the few ``Process``/``Thread`` methods the pool uses. The
     child's stderr is passed through to ours, and its last line kept (why it died)."""
 
     def __init__(self, popen: subprocess.Popen) -> None:
         self.popen = popen
-        self.last_line = ""
-        self._stderr_pump: threading.Thread | None = None
         if popen.stderr is not None:
             self._stderr_pump = threading.Thread(
                 target=self._pump, name=f"sfmloc-worker-stderr-{popen.pid}", daemon=True
             )
             self._stderr_pump.start()
-
-    def drain_stderr(self, timeout: float) -> None:
-        """Wait (at most ``timeout`` s) until the exited child's stderr is read to its end, so
-        ``last_line`` is its last line, not one the pump had not reached yet."""
-        if self._stderr_pump is not None:
-            self._stderr_pump.join(timeout)
 
     def _pump(self) -> None:
         assert self.popen.stderr is not None

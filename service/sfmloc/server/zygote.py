@@ -75,13 +75,26 @@ def relay_stderr(stream: Any, holder: Any) -> None:
             pass
 
 
-class ForkedWorker:
+class RelayedStderr:
+    """A worker runner whose child's stderr a pump thread (``_stderr_pump``, running
+    ``relay_stderr``) passes through to ours: ``pool._Process`` and ``ForkedWorker``."""
+
+    last_line = ""
+    _stderr_pump: threading.Thread | None = None
+
+    def drain_stderr(self, timeout: float) -> None:
+        """Wait (at most ``timeout`` s) until the exited child's stderr is read to its end, so
+        ``last_line`` is its last line, not one the pump had not reached yet."""
+        if self._stderr_pump is not None:
+            self._stderr_pump.join(timeout)
+
+
+class ForkedWorker(RelayedStderr):
     """A worker forked by the zygote, with the ``Popen``-like methods the pool uses. Its exit
     status comes from the zygote (it is the zygote's child, not ours)."""
 
     def __init__(self, pid: int, stderr_fd: int) -> None:
         self.pid = pid
-        self.last_line = ""
         self._code: int | None = None
         self._exited = threading.Event()
         self.orphaned = False  # the zygote died: nobody reports our exit, poll the pid
@@ -92,11 +105,6 @@ class ForkedWorker:
         """Passes the worker's stderr through to ours and keeps its last line (why it died)."""
         with os.fdopen(fd, "rb") as f:
             relay_stderr(f, self)
-
-    def drain_stderr(self, timeout: float) -> None:
-        """Wait (at most ``timeout`` s) until the exited worker's stderr is read to its end, so
-        ``last_line`` is its last line, not one the pump had not reached yet."""
-        self._stderr_pump.join(timeout)
 
     def _set_exit(self, code: int) -> None:
         self._code = code
