@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import dataclasses
 import fnmatch
+import json
 import logging
 import math
 import time
@@ -220,7 +221,10 @@ def peer_row_frames(conf: BenchConf, pixels: int) -> int:
 class RobustData:
     """Builds each row's inputs once (maps, videos, derived frame folders) under ``work/robust``,
     reusing the other suites' data and maps when they ran in the same bench run; a failure is
-    remembered and raised again for every row that needs the same input."""
+    remembered and raised again for every row that needs the same input. ``read_only``: the
+    inputs were built by ``sfmloc bench``'s prepare child (``prepare_robust``): a cached input
+    missing raises instead of being built in this process, which times our engine
+    (docs/development.md#bench-isolation)."""
 
     def __init__(
         self,
@@ -228,8 +232,10 @@ class RobustData:
         work: Path,
         progress: Progress,
         preps: dict[str, Prepared] | None = None,
+        read_only: bool = False,
     ):
         self.conf, self.work, self.progress = conf, Path(work), progress
+        self.read_only = read_only
         self.preps = dict(preps or {})
         self.root = self.work / "robust"
         self.root.mkdir(parents=True, exist_ok=True)
@@ -252,6 +258,10 @@ class RobustData:
         stamp = folder / "robust-source.json"
         if cached(stamp, key, self.conf.reuse, f"robust's {folder.name}"):
             return folder
+        if self.read_only:
+            from .prepare import PrepareError
+
+            raise PrepareError(f"robust's {folder.name} was not prepared by the child process")
         folder.mkdir(parents=True, exist_ok=True)
         stamp.unlink(missing_ok=True)
         make()
@@ -908,6 +918,32 @@ def _run_key(p: Prepared) -> tuple:
     )
 
 
+PREPARE_ERRORS = "prepare-errors.json"  # under work/robust: rows the child could not prepare
+
+
+def prepare_robust(
+    conf: BenchConf, work: Path, progress: Progress, preps: dict[str, Prepared] | None = None
+) -> dict[str, str]:
+    """Build every selected row's inputs (maps, renders, frame folders; ``--reuse`` as in
+    ``conf``) without running a row: ``sfmloc bench``'s prepare child does this, so that the
+    process that times our engine builds nothing (bench.prepare). A row that cannot be prepared
+    is not fatal: {row: reason}, also written to work/robust/prepare-errors.json, for
+    ``run_robust(prepared=True)`` to record as the row's crash."""
+    data = RobustData(conf, work, progress, preps)
+    errors: dict[str, str] = {}
+    for spec in select_rows(conf.robust_rows):
+        if spec.real and not data.has_redkitchen():
+            continue  # run_robust skips it, saying why
+        log.info("robust/%s: preparing its data and maps", spec.name)
+        try:
+            prepare_row(spec, data)
+        except Exception as exc:  # noqa: BLE001 - recorded in the row, the suite goes on
+            errors[spec.name] = f"preparing the row: {_error_text(exc)}"
+            log.warning("robust/%s: %s", spec.name, errors[spec.name])
+    (data.root / PREPARE_ERRORS).write_text(json.dumps(errors, indent=1))
+    return errors
+
+
 def run_robust(
     conf: BenchConf,
     work: Path,
@@ -915,10 +951,13 @@ def run_robust(
     preps: dict[str, Prepared] | None = None,
     sift_conf=None,
     out: Path | None = None,
+    prepared: bool = False,
 ) -> dict:
     """Every selected row; a row whose data are missing is skipped with the reason, a row whose
     preparation fails is recorded as a crash; the suite always goes on. With ``out``, per-frame
-    records of each row go to ``out/robust/ROW/``."""
+    records of each row go to ``out/robust/ROW/``. ``prepared``: ``prepare_robust`` ran (in
+    the bench's prepare child) with this ``conf`` and ``work``: read its inputs, build none,
+    and record the rows it could not prepare as their crash."""
     from .config import SiftPeerConf
 
     sift_conf = sift_conf or SiftPeerConf()
@@ -927,7 +966,10 @@ def run_robust(
     # under this config.
     engine_conf = load_engine_conf(conf.robust_engine_config)
     engine_doc = _engine_config_doc(conf.robust_engine_config)
-    data = RobustData(conf, work, progress, preps)
+    data = RobustData(conf, work, progress, preps, read_only=prepared)
+    prepare_errors: dict[str, str] = {}
+    if prepared:
+        prepare_errors = json.loads((data.root / PREPARE_ERRORS).read_text())
     t_start = time.perf_counter()
     rows: list[dict[str, Any]] = []
     done: dict[tuple[Any, ...], dict[str, Any]] = {}  # run key -> the row that ran it
@@ -967,6 +1009,12 @@ def run_robust(
             save_partial()
             continue
         log.info("== robust/%s: %s", spec.name, spec.text)
+        if spec.name in prepare_errors:  # the child's failure: not tried again here
+            row.update(status="crash", reason=prepare_errors[spec.name])
+            log.warning("robust/%s: %s", spec.name, row["reason"])
+            rows.append(row)
+            save_partial()
+            continue
         try:
             prep = prepare_row(spec, data)
         except Exception as exc:  # noqa: BLE001 - recorded in the row, the suite goes on
