@@ -96,6 +96,9 @@ def test_quick_robust_throughput_and_map_suites(quick_run):
     rows = res["suites"]["robust"]["rows"]
     assert [r["name"] for r in rows] == list(QUICK_ROBUST_ROWS)
     assert all(r.get("status") != "crash" for r in rows), rows
+    # walk-10hz pools 2 of its 3 offsets in a quick run (every one in a full run), and says so
+    assert rows[1]["offsets"] == {"step": 3, "run": [0, 1], "of": 3}
+    assert rows[1]["frames"] == rows[1]["ours"]["F"] == 20
     t = res["suites"]["throughput"]
     assert t["map"] == "synthetic-walk" and t["encoding"] == "png"
     assert [r["clients"] for r in t["rows"]] == [1, 2]

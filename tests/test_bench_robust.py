@@ -412,3 +412,90 @@ def test_localized_not_wrong_leaves_the_wrong_poses_out():
     assert right_pct({"F": 20, "F_loc": 16, "wrong_poses": 0}) == 80.0
     assert math.isnan(right_pct({"F": 0, "F_loc": 0, "wrong_poses": 0}))
     assert ROBUST_HEADER.index("localized, not wrong") == ROBUST_HEADER.index("localized") + 1
+
+
+# ----------------------------------------------------------------------------- low-rate offsets
+def test_low_rate_rows_run_every_offset_or_an_even_few():
+    assert robust.row_offsets(10, None) == list(range(10))
+    assert robust.row_offsets(3, None) == [0, 1, 2]
+    assert robust.row_offsets(10, 2) == [0, 5]
+    assert robust.row_offsets(3, 2) == [0, 1]
+    assert robust.row_offsets(3, 7) == [0, 1, 2] and robust.row_offsets(10, 1) == [0]
+    # The thin map at 3 Hz, walk and flight, in the map density group (``density-*`` runs it).
+    thin = [r.name for r in robust.select_rows(["density-*"]) if r.name.endswith("hz")]
+    assert thin == ["density-6x-walk-3hz", "density-6x-flight-3hz"]
+
+
+def _offset_row(base: Prepared, tiny: Path, tmp_path: Path, run: list[int]) -> Prepared:
+    """The tiny video at 10 Hz (every 3rd frame), one stream per offset in ``run``, as
+    ``robust._low_rate_row`` makes it: the row's frames are the 30 Hz video's (``base``'s)."""
+    files = FrameSource(tiny / "video").files
+    streams = [
+        str(robust_data.subsample_frames(files[o:], 3, tmp_path / f"10hz-o{o}")) for o in run
+    ]
+    info = {"offsets": {"hz": 10, "step": 3, "run": run, "streams": streams}}
+    return Prepared(
+        "robust/tiny-10hz",
+        "synthetic",
+        base.frames_dir,
+        base.camera,
+        base.groundtruth,
+        0,
+        30,
+        base.bundle_path,
+        base.sift_map_path,
+        info,
+    )
+
+
+def test_a_low_rate_row_pools_its_offsets_frame_by_frame(tiny, tmp_path):
+    """Every offset's stream replayed by a fresh engine at 10 Hz and pooled: each 30 Hz frame
+    once, under its own index, name and ground truth, in frame order. A row of fewer offsets
+    (--quick) runs theirs only, draws the peer's frames from them and says so."""
+    import json
+
+    from sfmloc.bench.config import SiftPeerConf
+    from sfmloc.bench.robust_report import robust_rows
+
+    full = read_poses(tiny / "video_poses.txt").by_key()
+    base = _tiny_row(tiny, tmp_path, 30)
+    prep = _offset_row(base, tiny, tmp_path, [0, 1, 2])
+    recs, err, stopped = robust.run_ours(prep, _bundle(prep), 600.0, lambda *a: None)
+    assert err is None and not stopped
+    assert [r.index for r in recs] == list(range(30))
+    for r in recs:
+        assert r.name == f"frame-{r.index:06d}.png"
+        np.testing.assert_allclose(
+            r.gt_cam_from_world.translation, full[r.name].translation, atol=1e-12
+        )
+    # Each stream's clock is 10 Hz from its own first frame (the engine sees 0.1 s gaps).
+    assert [round(r.stamp, 6) for r in recs if r.index % 3 == 1] == [
+        round(k / 10, 6) for k in range(10)
+    ]
+    summary = robust.summarize_row(recs, [], 1.0)
+    assert summary["ours"]["F"] == 30
+    row = {"offsets": {"step": 3, "run": [0, 1, 2], "of": 3}, "status": "ran"}
+    row.update(summary, ours_error=None, ours_stopped=False, peer_error=None, met=True)
+    assert robust.row_line(row).startswith("offsets 0-2 of every 3rd frame, pooled: ")
+
+    # Two of the three offsets: their 20 frames only, the peer's among them, said in the row.
+    few_prep = _offset_row(base, tiny, tmp_path / "few", [0, 1])
+    few = robust.run_row(few_prep, 6, SiftPeerConf(), 600.0, lambda *a: None, tmp_path / "f")
+    assert few["ours_error"] is None and few["peer_error"] is None
+    assert few["frames"] == 20 and few["ours"]["F"] == 20 and few["fps"] == 10
+    assert few["offsets"] == {"step": 3, "run": [0, 1], "of": 3}
+    ours = json.loads((tmp_path / "f" / "frames-sfmloc.json").read_text())
+    assert [f["index"] for f in ours] == [i for i in range(30) if i % 3 != 2]
+    peer = json.loads((tmp_path / "f" / "frames-pycolmap-sift.json").read_text())
+    assert {f["index"] % 3 for f in peer} == {0, 1} and few["same_frames"] == 6
+    few.update(name="tiny-10hz", group="motion", text="", status="ran")
+    assert "offsets 0, 1 of every 3rd frame (2 of its 3 offsets only)" in robust.row_line(few)
+    suite = {"rows": [few], "frames": {"budget_s": 600.0}}
+    (cells,) = robust_rows({"suites": {"robust": suite}})
+    assert cells[3] == "10 (2 of 3 offsets)"
+
+
+def _bundle(prep: Prepared):
+    from sfmloc.map.bundle import MapBundle
+
+    return MapBundle(prep.bundle_path, verify=False)

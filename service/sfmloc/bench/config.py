@@ -42,8 +42,10 @@ SUITE_HELP = {
     "against the 640x480 map; redkitchen upsampled to 1920x1440), map density (synthetic "
     "mapping views at 1x, 3x, 6x the spacing; redkitchen maps from every 10th, 30th, 60th "
     "frame), scene scale (the room x0.01, x1, x100) and motion (walk, flight, orbit around the "
-    "table at 30, 10, 3 Hz). Targets per row: localized >= the peer's, median error <= 1.5x the "
-    "peer's, 0 wrong poses, no crash (--robust-rows to choose rows)",
+    "table at 30, 10, 3 Hz; the 10 and 3 Hz rows replay every offset of their step, every "
+    "3rd / 10th frame from frame 0, 1, 2, ..., and pool them), and the density-6x map at 3 Hz "
+    "(walk, flight; all offsets). Targets per row: localized >= the peer's, median error <= "
+    "1.5x the peer's, 0 wrong poses, no crash (--robust-rows to choose rows)",
     "throughput": "1, 2, 4, 8, 12, 16 clients streaming redkitchen JPEGs over Zenoh (loopback, "
     "no multicast) at 30 Hz each to one `sfmloc serve` process: delivered rate, dropped "
     "fraction (all and worst client), latency p50/p99, CPU per pose of the server and its "
@@ -136,6 +138,11 @@ class BenchConf(StrictModel):
     robust_peer_frames: int = Field(20, ge=1)
     robust_rows: list[str] | None = None
     robust_budget_s: float = Field(150.0, gt=0)
+    # The low-rate rows (10 and 3 Hz: every 3rd / 10th frame) replay every offset (the streams
+    # starting at frame 0, 1, ..., step - 1) and pool them: one offset saw none of the wrong
+    # poses that all 10 showed at 3 Hz (robust.py, ``offsets``). At most this many offsets,
+    # evenly spread (None: all of them; --quick runs 2).
+    robust_offsets: int | None = Field(None, ge=1)
     # An engine config file (JSON/TOML, EngineConf fields) for our engine in the robust suite
     # (not the peers, not the other suites); None: the defaults.
     robust_engine_config: Path | None = None
@@ -183,6 +190,7 @@ def quick_conf(**changes) -> BenchConf:
         "robust_frames": 30,
         "robust_large_frames": 4,
         "robust_peer_frames": 4,
+        "robust_offsets": 2,
         "quick": True,
     }
     base.update(changes)

@@ -448,6 +448,8 @@ def main(
     # a map, as a server worker never does (bench.prepare, docs/development.md#bench-isolation).
     # The map and throughput suites' map too.
     to_prepare = loc + ([real_map] if real_map is not None and real_map not in loc else [])
+    if "robust" in conf.suites:  # its rows' maps and frames, reusing the suites' above
+        to_prepare.append("robust")
     results["prepare_child_s"] = prepare_in_child(to_prepare, conf, work)
     built = conf.model_copy(update={"reuse": True})
     preps: dict[str, Prepared] = {}
@@ -489,24 +491,12 @@ def main(
         from .robust import run_robust
 
         log.info("== robust: %s", ", ".join(conf.robust_rows) if conf.robust_rows else "every row")
-        results["suites"]["robust"] = run_robust(conf, work, progress, preps, sift_conf, out)
+        # ``built``: the child prepared every row's inputs (its failures are the rows' crashes)
+        results["suites"]["robust"] = run_robust(
+            built, work, progress, preps, sift_conf, out, prepared=True
+        )
         results["suites"]["robust"]["sift_peer_tuned"] = "sift_tuning" in results
         log.info("robust done (%.0f s so far)", time.perf_counter() - t_start)
-
-    if "builder" in conf.suites:
-        from .builder import run_builder
-
-        log.info("== builder: %s", ", ".join(conf.builder_parts))
-        results["suites"]["builder"] = {
-            "kind": "builder",
-            **run_builder(
-                work / "builder",
-                Path(conf.data),
-                conf.builder_parts,
-                views=conf.builder_views,
-            ),
-        }
-        log.info("builder done (%.0f s so far)", time.perf_counter() - t_start)
 
     if real_map is not None:
         # The child built it (to_prepare above).
@@ -552,6 +542,24 @@ def main(
                 out,
             )
             results["suites"]["throughput"] = {"kind": "throughput", **th}
+
+    # The builder suite times builds, so it builds in this process, and last: after every timed
+    # replay of our engine (localization suites, robust rows) and the throughput and map suites,
+    # none of which then runs in a heap a build has left fragmented (bench.prepare).
+    if "builder" in conf.suites:
+        from .builder import run_builder
+
+        log.info("== builder: %s", ", ".join(conf.builder_parts))
+        results["suites"]["builder"] = {
+            "kind": "builder",
+            **run_builder(
+                work / "builder",
+                Path(conf.data),
+                conf.builder_parts,
+                views=conf.builder_views,
+            ),
+        }
+        log.info("builder done (%.0f s so far)", time.perf_counter() - t_start)
 
     results["targets"] = targets(results)
     results["notes"] = _notes(results, conf)

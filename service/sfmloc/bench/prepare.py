@@ -16,7 +16,9 @@ exits; the parent then ``prepare``s the same suites with ``reuse`` on, which onl
 stamped files. Nothing crosses but files (no pickle).
 
 ``python -m sfmloc.bench.prepare CONF_JSON WORK LOG_LEVEL SUITE...`` (SUITE: a localization
-suite's name; ``redkitchen`` is also the map and throughput suites' map).
+suite's name; ``redkitchen`` is also the map and throughput suites' map; ``robust``: every
+selected robust row's maps and frames, ``robust.prepare_robust``, after the localization suites
+named before it, whose data it reuses).
 """
 
 from __future__ import annotations
@@ -85,17 +87,23 @@ def _child(argv: list[str]) -> int:
     pin_threads_runtime()
     from ..cli.main import configure_logging
     from .main import LogProgress
-    from .suites import prepare
+    from .suites import Prepared, prepare
 
     level = int(argv[2])  # the parent's: -v / -q carry over
     configure_logging(2 if level <= logging.DEBUG else 0, level >= logging.WARNING)
     conf = BenchConf.model_validate_json(Path(argv[0]).read_text())
     work = Path(argv[1])
     progress = LogProgress()
+    preps: dict[str, Prepared] = {}  # the suites' data, which the robust rows reuse
     try:
         for name in argv[3:]:
             log.info("== %s: preparing data and maps (child process)", name)
-            prepare(name, conf, work, progress)
+            if name == "robust":
+                from .robust import prepare_robust
+
+                prepare_robust(conf, work, progress, preps)
+            else:
+                preps[name] = prepare(name, conf, work, progress)
     except InputError as exc:
         (work / ERROR_FILE).write_text(str(exc))
         return INPUT_ERROR_EXIT

@@ -11,7 +11,15 @@ motions and frame rates. One row per case, four groups:
   and camera centres; the images are the same files); the peer's map is its 1x map scaled
   (triangulation at scaled poses gives scaled points: its thresholds are in pixels and angles);
 - motion: walk, flight and an orbit around the table (with a crate on it) at 30 Hz, and the
-  same frames subsampled to 10 and 3 Hz (every 3rd / 10th frame, stamps kept).
+  same frames subsampled to 10 and 3 Hz (every 3rd / 10th frame, stamps kept); and the thin
+  density-6x map at 3 Hz (walk, flight; in the map density group).
+
+A low-rate row replays every offset of its step (every 10th frame starting at frame 0, 1, ...,
+9: ten 3 Hz streams that together cover each 30 Hz frame once) and pools them: localized
+share, wrong poses and median error are over all its streams' frames, and the peer's frames are
+drawn from all of them. One offset hid the wrong poses: replaying all 10 offsets found 4 on the
+density-6x walk at 3 Hz and 1 on its flight that the bench's offset 0 never showed (note-s5,
+wrongpose; BenchConf.robust_offsets caps it, --quick runs 2 and the row says so).
 
 Rows that are the same run (640x480 = 1x density = scale 1 = walk at 30 Hz) run once. Our
 engine replays every frame of a row as a video; the peer runs on evenly strided frames (on
@@ -24,7 +32,9 @@ on; a method over the row's time budget stops and the row says so.
 
 from __future__ import annotations
 
+import dataclasses
 import fnmatch
+import json
 import logging
 import math
 import time
@@ -70,6 +80,8 @@ SCALES = (0.01, 100.0)
 MOTIONS = ("walk", "flight", "orbit")
 RATES_HZ = (30, 10, 3)
 VIDEO_HZ = 30
+# The thin map's low-rate rows (density-6x at 3 Hz): where the wrong poses at 3 Hz were found.
+THIN_LOW_RATE = (6, 3, ("walk", "flight"))
 
 
 @dataclass(frozen=True)
@@ -141,7 +153,24 @@ def row_specs() -> list[RowSpec]:
         for kind in MOTIONS
         for hz in RATES_HZ
     ]
+    k, hz, kinds = THIN_LOW_RATE
+    rows += [
+        RowSpec(
+            f"density-{k}x-{kind}-{hz}hz",
+            "map density",
+            f"synthetic {kind} at {hz} Hz (every {VIDEO_HZ // hz}th frame of the 30 Hz video) "
+            f"on the map from every {k} of the 120 mapping views",
+        )
+        for kind in kinds
+    ]
     return rows
+
+
+def row_offsets(step: int, cap: int | None) -> list[int]:
+    """The offsets a row of every ``step``-th frame replays: all ``step`` of them, or ``cap``
+    evenly spread (always offset 0, the stream the bench ran before)."""
+    n = step if cap is None else max(1, min(cap, step))
+    return sorted({j * step // n for j in range(n)})
 
 
 ROWS: tuple[RowSpec, ...] = tuple(row_specs())
@@ -192,7 +221,10 @@ def peer_row_frames(conf: BenchConf, pixels: int) -> int:
 class RobustData:
     """Builds each row's inputs once (maps, videos, derived frame folders) under ``work/robust``,
     reusing the other suites' data and maps when they ran in the same bench run; a failure is
-    remembered and raised again for every row that needs the same input."""
+    remembered and raised again for every row that needs the same input. ``read_only``: the
+    inputs were built by ``sfmloc bench``'s prepare child (``prepare_robust``): a cached input
+    missing raises instead of being built in this process, which times our engine
+    (docs/development.md#bench-isolation)."""
 
     def __init__(
         self,
@@ -200,8 +232,10 @@ class RobustData:
         work: Path,
         progress: Progress,
         preps: dict[str, Prepared] | None = None,
+        read_only: bool = False,
     ):
         self.conf, self.work, self.progress = conf, Path(work), progress
+        self.read_only = read_only
         self.preps = dict(preps or {})
         self.root = self.work / "robust"
         self.root.mkdir(parents=True, exist_ok=True)
@@ -224,6 +258,10 @@ class RobustData:
         stamp = folder / "robust-source.json"
         if cached(stamp, key, self.conf.reuse, f"robust's {folder.name}"):
             return folder
+        if self.read_only:
+            from .prepare import PrepareError
+
+            raise PrepareError(f"robust's {folder.name} was not prepared by the child process")
         folder.mkdir(parents=True, exist_ok=True)
         stamp.unlink(missing_ok=True)
         make()
@@ -365,13 +403,18 @@ class RobustData:
 
         return self._once(("scale", s), make)
 
-    def subsampled(self, kind: str, hz: int) -> Path:
+    def subsampled(self, kind: str, hz: int, offset: int = 0) -> Path:
+        """Every (30 / ``hz``)-th frame of the row's 30 Hz span from frame ``offset`` (links)."""
+
         def make():
             frames, _cam = self.video(kind)
             files = FrameSource(frames).files[: self.conf.robust_frames]
-            return robust_data.subsample_frames(files, VIDEO_HZ // hz, self.root / f"{kind}-{hz}hz")
+            tag = f"-o{offset}" if offset else ""  # offset 0 keeps the folder it always had
+            return robust_data.subsample_frames(
+                files[offset:], VIDEO_HZ // hz, self.root / f"{kind}-{hz}hz{tag}"
+            )
 
-        return self._once(("sub", kind, hz), make)
+        return self._once(("sub", kind, hz, offset), make)
 
     # ----------------------------------------------------------------- redkitchen
     def has_redkitchen(self) -> bool:
@@ -493,6 +536,10 @@ def prepare_row(spec: RowSpec, data: RobustData) -> Prepared:
             base.sift_map_path,
             {},
         )
+    if spec.name.startswith("density-") and spec.name.endswith("hz"):
+        k, kind, rate = spec.name[8:].split("-")
+        bundle, sift = data.density_map(int(k[:-1]))
+        return _low_rate_row(name, data, kind, int(rate[:-2]), bundle, sift)
     if spec.name.startswith("density-"):
         bundle, sift = data.density_map(int(spec.name[8:-1]))
         failed = sift.parent / "sift-map-error.txt"
@@ -526,11 +573,10 @@ def prepare_row(spec: RowSpec, data: RobustData) -> Prepared:
     if spec.group == "motion":
         kind, rate = spec.name.split("-")
         hz = int(rate[:-2])
+        if hz != VIDEO_HZ:
+            return _low_rate_row(name, data, kind, hz, base.bundle_path, base.sift_map_path)
         frames, cam = data.video(kind)
         n = min(conf.robust_frames, len(FrameSource(frames)))
-        if hz != VIDEO_HZ:  # every 3rd / 10th of the same 30 Hz frames, stamps kept
-            frames = data.subsampled(kind, hz)
-            n = len(FrameSource(frames))
         gt = _groundtruth(_pose_file_of(data, kind), frames, hz)
         return Prepared(
             name,
@@ -560,6 +606,43 @@ def prepare_row(spec: RowSpec, data: RobustData) -> Prepared:
     )
 
 
+def _low_rate_row(
+    name: str, data: RobustData, kind: str, hz: int, bundle: Path, sift: Path
+) -> Prepared:
+    """A row of every (30 / ``hz``)-th frame of trajectory ``kind``, one stream per offset
+    (``row_offsets``). The row's frames are the 30 Hz video's (the peer's frames and the
+    per-frame records index them); ``info["offsets"]`` holds the step, the offsets run and
+    each stream's folder, which ``run_ours`` replays at ``hz`` (stamps kept: frame k of a
+    stream is 30 Hz frame offset + k * step)."""
+    frames, cam = data.video(kind)
+    n30 = min(data.conf.robust_frames, len(FrameSource(frames)))
+    step = VIDEO_HZ // hz
+    offsets = row_offsets(step, data.conf.robust_offsets)
+    streams = [str(data.subsampled(kind, hz, o)) for o in offsets]
+    return Prepared(
+        name,
+        "synthetic",
+        frames,
+        cam,
+        _groundtruth(_pose_file_of(data, kind), frames, VIDEO_HZ),
+        0,
+        n30,
+        bundle,
+        sift,
+        {"offsets": {"hz": hz, "step": step, "run": offsets, "streams": streams}},
+    )
+
+
+def pooled_indices(prep: Prepared) -> list[int]:
+    """The row's frames our engine replays: all of ``prep.indices``, or for a low-rate row
+    those of the offsets it runs."""
+    off = prep.info.get("offsets")
+    if not off:
+        return prep.indices
+    run = set(off["run"])
+    return [i for i in prep.indices if i % off["step"] in run]
+
+
 def _pose_file_of(data: RobustData, kind: str) -> Path:
     """The exact video poses of trajectory ``kind`` (COLMAP list, matched by name)."""
     frames, _ = data.video(kind)
@@ -573,7 +656,7 @@ def _pose_file_of(data: RobustData, kind: str) -> Path:
 def peer_frames(prep: Prepared, n: int) -> list[int]:
     """``n`` frames evenly strided over the row (skipping excluded map images), centred."""
     every = prep.info.get("exclude_every")
-    cand = [i for i in prep.indices if not (every and i % every == 0)]
+    cand = [i for i in pooled_indices(prep) if not (every and i % every == 0)]
     if n >= len(cand):
         return cand
     stride = len(cand) / n
@@ -620,36 +703,73 @@ def run_ours(
     engine_conf: EngineConf | None = None,
 ) -> tuple[list[FrameRecord], str | None, bool]:
     """Our engine on every frame of the row as a video: (records, error or None, stopped).
-    ``engine_conf``: an EngineConf (--engine-config), else the defaults."""
+    A low-rate row's streams (one per offset) are replayed one after the other, each by a fresh
+    engine, and pooled: each record's index is its frame's in the 30 Hz video. The time budget
+    is the row's, over all streams. ``engine_conf``: an EngineConf (--engine-config), else the
+    defaults."""
     from ..engine import EngineConf
     from ..eval.replay import replay
 
     recs: list[FrameRecord] = []
+    total = len(pooled_indices(prep))
     t0 = time.perf_counter()
 
-    def on_frame(r: FrameRecord) -> None:
-        recs.append(r)
-        progress(f"{prep.name}:{OURS}", len(recs) / prep.count, f"{r.name} {r.status}")
-        if time.perf_counter() - t0 > budget_s and len(recs) < prep.count:
-            raise _OverBudget
-
     try:
-        replay(
-            bundle,
-            FrameSource(prep.frames_dir, fps=prep.fps),
-            prep.camera,
-            engine_conf if engine_conf is not None else EngineConf(),
-            prep.groundtruth,
-            start=prep.start,
-            max_frames=prep.count,
-            on_frame=on_frame,
-        )
+        for offset, step, source, gt, start, count in _streams(prep):
+
+            def on_frame(r: FrameRecord, offset: int = offset, step: int = step) -> None:
+                recs.append(dataclasses.replace(r, index=offset + r.index * step))
+                progress(f"{prep.name}:{OURS}", len(recs) / total, f"{r.name} {r.status}")
+                if time.perf_counter() - t0 > budget_s and len(recs) < total:
+                    raise _OverBudget
+
+            replay(
+                bundle,
+                source,
+                prep.camera,
+                engine_conf if engine_conf is not None else EngineConf(),
+                gt,
+                start=start,
+                max_frames=count,
+                on_frame=on_frame,
+            )
     except _OverBudget:
-        return recs, None, True
+        return _by_frame(recs), None, True
     except Exception as exc:  # noqa: BLE001 - a crash is a result of the row
         log.warning("%s: our engine failed: %s", prep.name, _error_text(exc))
-        return recs, _error_text(exc), False
-    return recs, None, False
+        return _by_frame(recs), _error_text(exc), False
+    return _by_frame(recs), None, False
+
+
+def _by_frame(recs: list[FrameRecord]) -> list[FrameRecord]:
+    """Pooled streams' records in the 30 Hz video's frame order (one stream: as replayed)."""
+    return sorted(recs, key=lambda r: r.index)
+
+
+def _streams(prep: Prepared) -> list[tuple[int, int, FrameSource, list, int, int]]:
+    """What our engine replays for a row: (offset, step, frames, ground truth, start, count)
+    per stream; one stream of the row's own frames unless it is a low-rate row."""
+    off = prep.info.get("offsets")
+    if not off:
+        return [
+            (
+                0,
+                1,
+                FrameSource(prep.frames_dir, fps=prep.fps),
+                prep.groundtruth,
+                prep.start,
+                prep.count,
+            )
+        ]
+    step = off["step"]
+    if prep.start != 0:
+        raise ValueError(f"{prep.name}: a low-rate row starts at frame 0")
+    gt30 = prep.groundtruth[prep.start : prep.start + prep.count]
+    out = []
+    for o, folder in zip(off["run"], off["streams"]):
+        source = FrameSource(Path(folder), fps=off["hz"])
+        out.append((o, step, source, gt30[o::step], 0, len(source)))
+    return out
 
 
 def run_sift(
@@ -712,6 +832,14 @@ def summarize_row(ours: list[FrameRecord], peer: list[FrameRecord], scene_scale:
     }
 
 
+def _offsets_doc(prep: Prepared) -> dict:
+    """A low-rate row's streams in its results: {"offsets": {step, run, of}} (else nothing)."""
+    off = prep.info.get("offsets")
+    if not off:
+        return {}
+    return {"offsets": {"step": off["step"], "run": list(off["run"]), "of": off["step"]}}
+
+
 def _map_info(bundle) -> dict:
     return {
         "images": bundle.n_images,
@@ -740,14 +868,20 @@ def run_row(
     idx = peer_frames(prep, n_peer)
     bundle = MapBundle(prep.bundle_path, verify=False)  # built by this run (or --reuse)
     mp = _map_info(bundle)
-    log.info("%s: our engine on %d frames, the peer on %d", prep.name, prep.count, len(idx))
+    log.info(
+        "%s: our engine on %d frames, the peer on %d",
+        prep.name,
+        len(pooled_indices(prep)),
+        len(idx),
+    )
     ours, ours_err, ours_stop = run_ours(prep, bundle, budget_s, progress, engine_conf)
     peer, peer_err, peer_stop = run_sift(prep, idx, sift_conf, budget_s, progress)
     out = summarize_row(ours, peer, mp["scene_scale"])
     out.update(
         {
-            "frames": prep.count,
-            "fps": prep.fps,
+            "frames": len(pooled_indices(prep)),
+            "fps": prep.info["offsets"]["hz"] if prep.info.get("offsets") else prep.fps,
+            **_offsets_doc(prep),
             "peer_frames": len(idx),
             "image_size": f"{prep.camera.width}x{prep.camera.height}",
             "map": mp,
@@ -777,10 +911,37 @@ def _run_key(p: Prepared) -> tuple:
         p.start,
         p.count,
         p.fps,
+        str(p.info.get("offsets")),
         str(p.bundle_path),
         str(p.sift_map_path),
         p.camera.to_string(),
     )
+
+
+PREPARE_ERRORS = "prepare-errors.json"  # under work/robust: rows the child could not prepare
+
+
+def prepare_robust(
+    conf: BenchConf, work: Path, progress: Progress, preps: dict[str, Prepared] | None = None
+) -> dict[str, str]:
+    """Build every selected row's inputs (maps, renders, frame folders; ``--reuse`` as in
+    ``conf``) without running a row: ``sfmloc bench``'s prepare child does this, so that the
+    process that times our engine builds nothing (bench.prepare). A row that cannot be prepared
+    is not fatal: {row: reason}, also written to work/robust/prepare-errors.json, for
+    ``run_robust(prepared=True)`` to record as the row's crash."""
+    data = RobustData(conf, work, progress, preps)
+    errors: dict[str, str] = {}
+    for spec in select_rows(conf.robust_rows):
+        if spec.real and not data.has_redkitchen():
+            continue  # run_robust skips it, saying why
+        log.info("robust/%s: preparing its data and maps", spec.name)
+        try:
+            prepare_row(spec, data)
+        except Exception as exc:  # noqa: BLE001 - recorded in the row, the suite goes on
+            errors[spec.name] = f"preparing the row: {_error_text(exc)}"
+            log.warning("robust/%s: %s", spec.name, errors[spec.name])
+    (data.root / PREPARE_ERRORS).write_text(json.dumps(errors, indent=1))
+    return errors
 
 
 def run_robust(
@@ -790,10 +951,13 @@ def run_robust(
     preps: dict[str, Prepared] | None = None,
     sift_conf=None,
     out: Path | None = None,
+    prepared: bool = False,
 ) -> dict:
     """Every selected row; a row whose data are missing is skipped with the reason, a row whose
     preparation fails is recorded as a crash; the suite always goes on. With ``out``, per-frame
-    records of each row go to ``out/robust/ROW/``."""
+    records of each row go to ``out/robust/ROW/``. ``prepared``: ``prepare_robust`` ran (in
+    the bench's prepare child) with this ``conf`` and ``work``: read its inputs, build none,
+    and record the rows it could not prepare as their crash."""
     from .config import SiftPeerConf
 
     sift_conf = sift_conf or SiftPeerConf()
@@ -802,7 +966,10 @@ def run_robust(
     # under this config.
     engine_conf = load_engine_conf(conf.robust_engine_config)
     engine_doc = _engine_config_doc(conf.robust_engine_config)
-    data = RobustData(conf, work, progress, preps)
+    data = RobustData(conf, work, progress, preps, read_only=prepared)
+    prepare_errors: dict[str, str] = {}
+    if prepared:
+        prepare_errors = json.loads((data.root / PREPARE_ERRORS).read_text())
     t_start = time.perf_counter()
     rows: list[dict[str, Any]] = []
     done: dict[tuple[Any, ...], dict[str, Any]] = {}  # run key -> the row that ran it
@@ -842,6 +1009,12 @@ def run_robust(
             save_partial()
             continue
         log.info("== robust/%s: %s", spec.name, spec.text)
+        if spec.name in prepare_errors:  # the child's failure: not tried again here
+            row.update(status="crash", reason=prepare_errors[spec.name])
+            log.warning("robust/%s: %s", spec.name, row["reason"])
+            rows.append(row)
+            save_partial()
+            continue
         try:
             prep = prepare_row(spec, data)
         except Exception as exc:  # noqa: BLE001 - recorded in the row, the suite goes on
@@ -890,7 +1063,8 @@ def row_line(row: dict, verdict: bool = True) -> str:
         return f"{row['status']}: {row['reason']}"
     o, p = row["ours_same"], row["peer_same"]
     text = (
-        f"localized {o['F_loc_pct']:.0f}% vs {p['F_loc_pct']:.0f}%, median "
+        (f"{offsets_text(row['offsets'])}: " if row.get("offsets") else "")
+        + f"localized {o['F_loc_pct']:.0f}% vs {p['F_loc_pct']:.0f}%, median "
         f"{o['median_position_error_m']:.3g} vs {p['median_position_error_m']:.3g} units, "
         f"wrong poses {row['ours']['wrong_poses']}"
     )
@@ -901,6 +1075,19 @@ def row_line(row: dict, verdict: bool = True) -> str:
     if row["peer_error"]:
         text += f"; the peer failed: {row['peer_error']}"
     return text + (f", targets {'met' if row['met'] else 'MISSED'}" if verdict else "")
+
+
+def offsets_text(off: dict) -> str:
+    """A low-rate row's streams in words: 'offsets 0-9 of every 10th frame, pooled', or with
+    fewer offsets than the step (--quick) which of how many."""
+    run, step = off["run"], off["step"]
+    every = f"every {step}th frame" if step != 3 else "every 3rd frame"
+    if len(run) == off["of"] and run == list(range(step)):
+        return f"offsets 0-{step - 1} of {every}, pooled"
+    return (
+        f"offsets {', '.join(map(str, run))} of {every} ({len(run)} of its {off['of']} "
+        "offsets only), pooled"
+    )
 
 
 def targets(suite: dict) -> list[dict]:

@@ -29,6 +29,19 @@ def right_pct(summary: dict) -> float:
     return float("nan") if not n else 100.0 * (summary["F_loc"] - summary["wrong_poses"]) / n
 
 
+def _hz(row: dict) -> str:
+    """The row's frame rate; a low-rate row's offsets pooled (how many of how many)."""
+    off = row.get("offsets")
+    if not off:
+        return f"{row['fps']:g}"
+    n = len(off["run"])
+    return (
+        f"{row['fps']:g} ({n} offsets)"
+        if n == off["of"]
+        else f"{row['fps']:g} ({n} of {off['of']} offsets)"
+    )
+
+
 def robust_rows(results: dict) -> list[list[str]]:
     """The robust suite: one line per row, ours / the peer on the same frames."""
     rb = results.get("suites", {}).get("robust")
@@ -59,7 +72,7 @@ def robust_rows(results: dict) -> list[list[str]]:
                 r["group"],
                 r["name"],
                 r["image_size"],
-                f"{r['fps']:g}",
+                _hz(r),
                 _pair(str(oa["F"]), str(r["same_frames"])),
                 _pair(pct(o["F_loc_pct"]), pct(p["F_loc_pct"])),
                 _pair(pct(right_pct(o)), pct(right_pct(p))),
@@ -127,7 +140,27 @@ def robust_note(results: dict) -> str:
         "settings were "
         + tuned
         + " Per-frame records: robust/ROW/frames-METHOD.json."
+        + _offsets_note(rb)
         + _engine_config_text(rb)
+    )
+
+
+def _offsets_note(rb: dict) -> str:
+    """How the low-rate rows pool their offsets (nothing for a run from before they did)."""
+    offs = [r["offsets"] for r in rb["rows"] if r.get("offsets")]
+    if not offs:
+        return ""
+    fewer = any(len(o["run"]) < o["of"] for o in offs)
+    return (
+        " The 10 and 3 Hz rows (Hz: 'N offsets') replay every offset of their step, the streams "
+        "of every 3rd / 10th frame starting at frame 0, 1, 2, ... (a fresh engine each), and pool "
+        "them: together each 30 Hz frame once, localized, errors and wrong poses over all of "
+        "them, the peer's frames drawn from all."
+        + (
+            " Rows reading 'N of M offsets' ran only N (BenchConf.robust_offsets; --quick runs 2)."
+            if fewer
+            else ""
+        )
     )
 
 
