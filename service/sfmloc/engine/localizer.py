@@ -496,8 +496,11 @@ class Localizer:
                 if dense is not None and (uncertain or dense[2].verified):
                     table, est, cert = dense
                     matching = Matching.GUIDED
-                    publishable = withheld(cert.position_sd, est.num_inliers, c) is None
-                    if unchecked_rule and publishable and not cert.verified:
+                    if (
+                        unchecked_rule
+                        and not cert.verified
+                        and withheld(cert.position_sd, est.num_inliers, c) is None
+                    ):
                         # The re-match of a pose too uncertain to publish, itself resting on
                         # its most influential match: nothing checked that one either (robust
                         # density-6x walk at 3 Hz, frame 191: 48 tracked inliers, sd 3.05%;
