@@ -1125,6 +1125,86 @@ def test_a_suspect_pose_its_re_match_cannot_check_is_judged_without_its_one_matc
     assert bad_on == [] and posed >= len(seqs) - 4, (bad_on, posed)
 
 
+def test_a_suspect_pose_whose_re_match_finds_no_more_certain_pose_is_judged_without_its_one_match(
+    world, bundle, cam, monkeypatch
+):
+    """Robust density-6x walk at 3 Hz, frame 213: 45 right tracked matches on a far patch and
+    one wrong guided match (15 px off at the true pose) that fixed the pose 13.4% of the scene
+    scale off at sd 1.61% (13.5% without it). Its whole-frame re-match found no more certain
+    pose (11.7% off at sd 13.8%), so ``_densify`` returned none and ``suspect_leave_out``
+    (which judged only a pose whose re-match agreed) let it through: TRACKING, and two
+    odometry frames on points triangulated from it. Here the gap test's frames (frame 967:
+    TRACKING 5.1% off with sd 0.6%, 8.6% without its one wrong match), with the re-match a
+    thin map gives a suspect pose (none more certain): without ``suspect_leave_out_unchecked``
+    a wrong TRACKING pose; with it, judged at its sd without that match, withheld."""
+    from sfmloc.engine import localizer as L
+
+    seqs = _GAP_SEQS
+    judged = []
+    densify = L.Localizer._densify
+
+    def thin_rematch(self, kps, image, est, cert, wider=None):
+        if wider is not None:  # (a pose about to be withheld: re-matched as it is)
+            return densify(self, kps, image, est, cert, wider)
+        judged.append(cert.position_sd_loo / cert.position_sd)
+        return None
+
+    monkeypatch.setattr(L.Localizer, "_densify", thin_rematch)
+
+    def replay(conf: EngineConf) -> tuple[list[int], int]:
+        return _replay_gap_frames(world, bundle, cam, conf)
+
+    # (at rho, as the gap test's wrong frames)
+    conf = EngineConf(batch_max=100, wide_window_gap_s=0)
+    bad_off, _ = replay(conf.model_copy(update={"suspect_leave_out_unchecked": False}))
+    assert 967 in bad_off
+    assert max(judged) > 10  # (its sd without the one match: an order of magnitude wider)
+    bad_on, posed = replay(conf)
+    assert bad_on == [] and posed >= len(seqs) - 4, (bad_on, posed)
+
+
+def test_the_re_match_replacing_an_uncertain_pose_is_judged_without_its_one_match(
+    world, bundle, cam, monkeypatch
+):
+    """Robust density-6x walk at 3 Hz, frame 191: its tracked pose was too uncertain to publish
+    (sd 3.05% of the scene scale), and its whole-frame re-match replaced it: 13.1% off on 63
+    inliers at sd 2.36%, resting on one wrong match (7 px off at the true pose; 19.3% without
+    it), published TRACKING. Here the gap test's frames (frame 967: one wrong near match fixes
+    the pose 5.1% off, 8.6% without it) with a withholding limit under that pose's sd (0.5% of
+    the scene scale), so it is about to be withheld, and the re-match a thin map gives: the
+    same pose, more certain, not verified. Without ``suspect_leave_out_unchecked`` the
+    re-match is published, wrong; with it, judged at its sd without that match, withheld."""
+    from sfmloc.engine import localizer as L
+    from sfmloc.engine.certainty import Certainty
+
+    tables = []
+    estimate = L.Localizer._estimate_pose
+
+    def estimate_pose(self, table, *args, **kwargs):
+        out = estimate(self, table, *args, **kwargs)
+        tables[:] = [out[0]]  # (the frame's table the re-match replaces)
+        return out
+
+    def thin_rematch(self, kps, image, est, cert, wider=None):
+        if wider is None:
+            return None
+        # (the same pose, more certain: the tracked matches' own, not verified)
+        sd = 0.2 * cert.position_sd  # (publishable under the lowered limit)
+        return tables[0], est, Certainty(0.04 * cert.covariance, sd, False, cert.position_sd_loo)
+
+    monkeypatch.setattr(L.Localizer, "_estimate_pose", estimate_pose)
+    monkeypatch.setattr(L.Localizer, "_densify", thin_rematch)
+
+    def replay(conf: EngineConf) -> tuple[list[int], int]:
+        return _replay_gap_frames(world, bundle, cam, conf)
+
+    conf = EngineConf(batch_max=100, wide_window_gap_s=0, max_position_sd=0.005)
+    bad_off, _ = replay(conf.model_copy(update={"suspect_leave_out_unchecked": False}))
+    assert 967 in bad_off
+    bad_on, _ = replay(conf)
+    assert bad_on == [], bad_on
+
+
 def test_leave_one_out_covariance_is_the_covariance_without_the_worst_match():
     """``pose_covariances``' second matrix is the covariance of the matches without the one
     whose removal widens the centre's sd most (checked by removing each in turn, at a noise

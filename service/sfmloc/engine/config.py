@@ -809,6 +809,15 @@ class EngineConf(StrictModel):
     # 12.7-13.1% off. Now 216 TRACKING 0.67% off (odometry, then back on the map), 219-234
     # withheld: wrong 7 -> 0. False: the pose's own covariance (widened by the re-match).
     suspect_leave_out: bool = True
+    # ... and (with suspect_leave_out) a tracked pose that no re-match checked judged the same
+    # way: a suspect one whose re-match found no more certain pose (or none), and the
+    # publishable re-match that replaced a pose too uncertain to publish, when it fails the
+    # strict test (its own most influential match is as unchecked). Robust density-6x walk at
+    # 3 Hz (every 10th frame, all 10 offsets): frames 213 (13.4% of the scene scale off, sd
+    # 1.61%, 13.5% without its one wrong match) and 191 (13.1% off, sd 2.36%, 19.3% without
+    # it) were published TRACKING, and 223 and 233 were odometry on points triangulated from
+    # 213: 252 localized / 4 wrong -> 256 / 0. False: only the agreeing re-match's case.
+    suspect_leave_out_unchecked: bool = True
     # ---- visual odometry beyond the map (engine/session_points.py)
     # A frame whose map matches give no publishable pose, after a published one, is posed on
     # session points (the tracker's unmatched tracks triangulated from two map-posed frames)
