@@ -696,7 +696,7 @@ def test_the_trackers_relocalization_verified_on_one_point_meets_the_motion_pred
     for _k, _gt, _xy, _idx, est in _pinned_by_one_point(bundle, cam, conf, rng):
         cert = certainty(est, cam.K, bundle, conf)
         if cert.verified and not relocalization_certainty(est, cam.K, bundle, conf).verified:
-            if rests_on_few(est, cam.K, bundle, conf, False) is None:
+            if rests_on_few(est, cam.K, bundle, conf, True) is None:
                 wrong = est
                 break
     assert wrong is not None

@@ -658,7 +658,8 @@ class EngineConf(StrictModel):
     # checked its matches), only when its centre sd without its most influential map point (a
     # point matched by two keypoints counts once) would not be withheld (``max_position_sd``
     # at ``withhold_noise_z``): else it is judged as an unverified one (UNVERIFIED, and
-    # rejected when it contradicts a recent motion prediction: ``contradiction_position``).
+    # rejected when it contradicts a recent motion prediction: ``contradiction_position``;
+    # the leave-out rule still takes ``relocalize_leave_out_verified`` points for it).
     # Robust density-6x, the synthetic flight every 10th frame at 3 Hz, frame 286: RELOCALIZED
     # 17.9% of the scene scale off with sd 0.63% on 70 inliers, 68 of them on a far wall
     # (2.2-2.7 scene scales deep, a two-fold planar ambiguity) and 2 keypoints on one map

@@ -52,6 +52,7 @@ from ..transforms import Rigid3d, rotation_angle_deg
 from .certainty import (
     Certainty,
     certainty,
+    is_verified,
     position_sd,
     relocalization_certainty,
     rests_on_few,
@@ -1235,7 +1236,9 @@ class Localizer:
             return None
         if withheld(cert.position_sd, est.num_inliers, c) is not None:
             return None  # withheld anyway (LOST); followed as any withheld pose
-        return rests_on_few(est, self.K, self.bundle, c, cert.verified)
+        # (its count by the strict test itself: a pose not verified for resting on one map
+        # point, ``verified_without_one``, is left out as many points as a verified one)
+        return rests_on_few(est, self.K, self.bundle, c, is_verified(est, cert.position_sd, c))
 
     def _kalman_filter_update(self, pose: Rigid3d, relocalized: bool, stamp: float) -> Rigid3d:
         """KALMAN-FILTER-UPDATE with the frame's pose: the filtered pose. A relocalization

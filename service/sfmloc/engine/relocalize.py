@@ -15,7 +15,7 @@ from ..features.daisy import DaisyExtractor
 from ..features.harris import detect_corners
 from ..map.bundle import MapBundle
 from ..transforms import Rigid3d
-from .certainty import relocalization_certainty, rests_on_few, withheld
+from .certainty import is_verified, relocalization_certainty, rests_on_few, withheld
 from .config import EngineConf
 from .distinct import inlier_spread, occupied_cells, place_points, second_place
 from .frame import to_gray, to_working, working_scale
@@ -488,7 +488,10 @@ def _relocalize(
         held = withheld(cert.position_sd, est.num_inliers, conf)
         if held is None:
             # a single image has no next frame to check the matches its certainty rests on
-            held = rests_on_few(est, camera.K, bundle, conf, cert.verified)
+            # (its count by the strict test itself: one not verified for resting on one map
+            # point, ``verified_without_one``, is left out as many points as a verified one)
+            strict = is_verified(est, cert.position_sd, conf)
+            held = rests_on_few(est, camera.K, bundle, conf, strict)
         if held is not None:
             result.message = held
         else:
