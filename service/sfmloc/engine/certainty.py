@@ -5,7 +5,7 @@ Algorithm 1 (``localizer``) and single-image relocalization (``relocalize``)."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -150,6 +150,32 @@ def rests_on_few(
         f"scale without them, limit {conf.relocalize_leave_out_sd * 100:.1f}%), "
         f"{est.num_inliers} inliers"
     )
+
+
+def relocalization_certainty(
+    est: PoseEstimate, K: np.ndarray, bundle: MapBundle, conf: EngineConf
+) -> Certainty:
+    """``certainty`` of a relocalization (a pose with no tracks behind it: global matching, a
+    prior's recovery), with ``verified_without_one`` applied."""
+    return verified_without_one(certainty(est, K, bundle, conf), est, K, bundle, conf)
+
+
+def verified_without_one(
+    cert: Certainty, est: PoseEstimate, K: np.ndarray, bundle: MapBundle, conf: EngineConf
+) -> Certainty:
+    """``cert`` not verified when it passes the strict test on one map point: its centre sd
+    without its most influential map point (``position_sd_without``: a point matched by two
+    keypoints counts once) would be withheld (``withheld``). A relocalization has no earlier
+    frame to check that point's match, so its strictly tested certainty cannot rest on it
+    (``EngineConf.verified_without_one``)."""
+    if not (cert.verified and conf.verified_without_one):
+        return cert
+    # (an upper bound may answer where it is within the limit: the same decision)
+    limit = conf.max_position_sd / small_sample_factor(est.num_inliers, conf.withhold_noise_z)
+    sd = position_sd_without(est, K, bundle, conf, 1, sd_over=limit)
+    if withheld(sd, est.num_inliers, conf) is None:
+        return cert
+    return replace(cert, verified=False)
 
 
 def is_verified(est: PoseEstimate, sd: float, conf: EngineConf) -> bool:

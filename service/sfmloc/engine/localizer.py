@@ -52,8 +52,11 @@ from ..transforms import Rigid3d, rotation_angle_deg
 from .certainty import (
     Certainty,
     certainty,
+    is_verified,
     position_sd,
+    relocalization_certainty,
     rests_on_few,
+    verified_without_one,
     with_disagreement,
     withheld,
 )
@@ -475,6 +478,10 @@ class Localizer:
 
         # A pose is a promise: judge it by its covariance before anyone relies on it.
         cert = odo_cert if odo else None if est is None else certainty(est, self.K, self.bundle, c)
+        if relocalized and est is not None and cert is not None:
+            # (no earlier frame checked a relocalization's matches: its strict test must not
+            # rest on one map point, ``verified_without_one``)
+            cert = verified_without_one(cert, est, self.K, self.bundle, c)
         timer.lap("pose")
         tracked = not (relocalized or odo)  # tracked on the map this frame
         if est is not None and cert is not None and tracked and c.densify_uncertain:
@@ -1195,7 +1202,11 @@ class Localizer:
         ``rivals``: when given, the poses it found and did not keep are appended to it (one
         that fails the strict test, or an ambiguous answer's two)."""
         table_g, est_g, _ = self._global_matching(kps, image, rivals)
-        cert_g = None if est_g is None else certainty(est_g, self.K, self.bundle, self.conf)
+        cert_g = (
+            None
+            if est_g is None
+            else relocalization_certainty(est_g, self.K, self.bundle, self.conf)
+        )
         if est_g is None or cert_g is None or not cert_g.verified:
             if est_g is not None and rivals is not None:
                 rivals.append(est_g)
@@ -1250,7 +1261,9 @@ class Localizer:
             return None
         if withheld(cert.position_sd, est.num_inliers, c) is not None:
             return None  # withheld anyway (LOST); followed as any withheld pose
-        return rests_on_few(est, self.K, self.bundle, c, cert.verified)
+        # (its count by the strict test itself: a pose not verified for resting on one map
+        # point, ``verified_without_one``, is left out as many points as a verified one)
+        return rests_on_few(est, self.K, self.bundle, c, is_verified(est, cert.position_sd, c))
 
     def _kalman_filter_update(self, pose: Rigid3d, relocalized: bool, stamp: float) -> Rigid3d:
         """KALMAN-FILTER-UPDATE with the frame's pose: the filtered pose. A relocalization

@@ -15,7 +15,7 @@ from ..features.daisy import DaisyExtractor
 from ..features.harris import detect_corners
 from ..map.bundle import MapBundle
 from ..transforms import Rigid3d
-from .certainty import certainty, rests_on_few, withheld
+from .certainty import is_verified, relocalization_certainty, rests_on_few, withheld
 from .config import EngineConf
 from .distinct import inlier_spread, occupied_cells, place_points, second_place
 from .frame import to_gray, to_working, working_scale
@@ -209,7 +209,7 @@ def global_pose(
         # A weak first-stage pose is the answer only when it would be published as
         # RELOCALIZED: one that the other corners would make certain (a thin map's) is left
         # to them, before the distinctness tests' cost.
-        cert = certainty(out[0], K, bundle, conf)
+        cert = relocalization_certainty(out[0], K, bundle, conf)
         if not cert.verified or withheld(cert.position_sd, out[0].num_inliers, conf):
             return None, "no strong pose from the first keypoints"
     # Distinct: inliers over the image, and no other place nearly as good (``distinct``).
@@ -482,13 +482,16 @@ def _relocalize(
         est = None if res is None else res[0]
     timer.lap("reloc")
     if est is not None:
-        cert = certainty(est, camera.K, bundle, conf)
+        cert = relocalization_certainty(est, camera.K, bundle, conf)
         timer.lap("pose")
         result.inliers = est.num_inliers
         held = withheld(cert.position_sd, est.num_inliers, conf)
         if held is None:
             # a single image has no next frame to check the matches its certainty rests on
-            held = rests_on_few(est, camera.K, bundle, conf, cert.verified)
+            # (its count by the strict test itself: one not verified for resting on one map
+            # point, ``verified_without_one``, is left out as many points as a verified one)
+            strict = is_verified(est, cert.position_sd, conf)
+            held = rests_on_few(est, camera.K, bundle, conf, strict)
         if held is not None:
             result.message = held
         else:
