@@ -75,6 +75,12 @@ def test_every_record_is_in_the_contents():
     contents = text.split("## Contents", 1)[1].split('<a id="', 1)[0]
     listed = re.findall(r"\]\(#([A-Za-z0-9_-]+)\)", contents)
     assert sorted(set(listed) - {BEHAVIOUR, SAME_RESULTS, NOT_TAKEN}) == sorted(_records())
+    # "[Behaviour changes with a switch](#behaviour-changes) (44):": each group's count is its own
+    # (two branches that each add a record both write the same count; a merge keeps it stale).
+    for group in (BEHAVIOUR, SAME_RESULTS, NOT_TAKEN):
+        said = re.findall(rf"\]\(#{group}\) \((\d+)\):", contents)
+        count = sum(1 for g, _ in _records().values() if g == group)
+        assert said == [str(count)], f"contents: {said} records of {group}, not {count}"
 
 
 def test_readme_links_find_their_records():
