@@ -1084,6 +1084,41 @@ def test_no_wrong_tracked_pose_after_a_gap_on_one_influential_wrong_match(world,
     assert replay(EngineConf()) == ([], len(seqs))
 
 
+def _thin_rematch(monkeypatch, agreeing: bool) -> list[float]:
+    """``Localizer._densify`` patched to the re-match a thin map gives a suspect pose: from the
+    pose, agreeing with it, more certain and not verified (``agreeing``), or no pose more
+    certain (None). A pose about to be withheld is re-matched as it is. Returns the list that
+    collects each suspect pose's sd without its most influential match over its sd."""
+    from sfmloc.engine import localizer as L
+    from sfmloc.engine.certainty import Certainty
+
+    judged: list[float] = []
+    densify = L.Localizer._densify
+
+    def thin_rematch(self, kps, image, est, cert, wider=None):
+        if wider is not None:  # (a pose about to be withheld: re-matched as it is)
+            return densify(self, kps, image, est, cert, wider)
+        judged.append(cert.position_sd_loo / cert.position_sd)
+        if not agreeing:
+            return None
+        return (
+            self.table,
+            est,
+            Certainty(0.81 * cert.covariance, 0.9 * cert.position_sd, False, 0.0),
+        )
+
+    monkeypatch.setattr(L.Localizer, "_densify", thin_rematch)
+    return judged
+
+
+def _wrong_only_without(world, bundle, cam, conf: EngineConf, switch: str) -> tuple[list[int], int]:
+    """The gap frames replayed with ``switch`` off (frame 967 published wrong), then with
+    ``conf`` as it is: its wrong frames and posed count."""
+    bad_off, _ = _replay_gap_frames(world, bundle, cam, conf.model_copy(update={switch: False}))
+    assert 967 in bad_off
+    return _replay_gap_frames(world, bundle, cam, conf)
+
+
 def test_a_suspect_pose_its_re_match_cannot_check_is_judged_without_its_one_match(
     world, bundle, cam, monkeypatch
 ):
@@ -1096,33 +1131,13 @@ def test_a_suspect_pose_its_re_match_cannot_check_is_judged_without_its_one_matc
     gives (from the pose, agreeing with it, more certain but not verified): without
     ``suspect_leave_out`` a wrong TRACKING pose; with it, judged at its sd without that match,
     the pose is withheld and no frame is wrong."""
-    from sfmloc.engine import localizer as L
-    from sfmloc.engine.certainty import Certainty
-
-    seqs = _GAP_SEQS
-    judged = []
-    densify = L.Localizer._densify
-
-    def thin_rematch(self, kps, image, est, cert, wider=None):
-        if wider is not None:  # (a pose about to be withheld: re-matched as it is)
-            return densify(self, kps, image, est, cert, wider)
-        judged.append(cert.position_sd_loo / cert.position_sd)
-        agreeing = Certainty(0.81 * cert.covariance, 0.9 * cert.position_sd, False, 0.0)
-        return self.table, est, agreeing
-
-    monkeypatch.setattr(L.Localizer, "_densify", thin_rematch)
-
-    def replay(conf: EngineConf) -> tuple[list[int], int]:
-        return _replay_gap_frames(world, bundle, cam, conf)
-
+    judged = _thin_rematch(monkeypatch, agreeing=True)
     # (at rho, as the gap test's wrong frames: the window widened after the gaps tracks
     # other corners)
     conf = EngineConf(batch_max=100, wide_window_gap_s=0)
-    bad_off, _ = replay(conf.model_copy(update={"suspect_leave_out": False}))
-    assert 967 in bad_off
+    bad_on, posed = _wrong_only_without(world, bundle, cam, conf, "suspect_leave_out")
     assert max(judged) > 10  # (its sd without the one match: an order of magnitude wider)
-    bad_on, posed = replay(conf)
-    assert bad_on == [] and posed >= len(seqs) - 4, (bad_on, posed)
+    assert bad_on == [] and posed >= len(_GAP_SEQS) - 4, (bad_on, posed)
 
 
 def test_a_suspect_pose_whose_re_match_finds_no_more_certain_pose_is_judged_without_its_one_match(
@@ -1137,30 +1152,12 @@ def test_a_suspect_pose_whose_re_match_finds_no_more_certain_pose_is_judged_with
     TRACKING 5.1% off with sd 0.6%, 8.6% without its one wrong match), with the re-match a
     thin map gives a suspect pose (none more certain): without ``suspect_leave_out_unchecked``
     a wrong TRACKING pose; with it, judged at its sd without that match, withheld."""
-    from sfmloc.engine import localizer as L
-
-    seqs = _GAP_SEQS
-    judged = []
-    densify = L.Localizer._densify
-
-    def thin_rematch(self, kps, image, est, cert, wider=None):
-        if wider is not None:  # (a pose about to be withheld: re-matched as it is)
-            return densify(self, kps, image, est, cert, wider)
-        judged.append(cert.position_sd_loo / cert.position_sd)
-        return None
-
-    monkeypatch.setattr(L.Localizer, "_densify", thin_rematch)
-
-    def replay(conf: EngineConf) -> tuple[list[int], int]:
-        return _replay_gap_frames(world, bundle, cam, conf)
-
+    judged = _thin_rematch(monkeypatch, agreeing=False)
     # (at rho, as the gap test's wrong frames)
     conf = EngineConf(batch_max=100, wide_window_gap_s=0)
-    bad_off, _ = replay(conf.model_copy(update={"suspect_leave_out_unchecked": False}))
-    assert 967 in bad_off
+    bad_on, posed = _wrong_only_without(world, bundle, cam, conf, "suspect_leave_out_unchecked")
     assert max(judged) > 10  # (its sd without the one match: an order of magnitude wider)
-    bad_on, posed = replay(conf)
-    assert bad_on == [] and posed >= len(seqs) - 4, (bad_on, posed)
+    assert bad_on == [] and posed >= len(_GAP_SEQS) - 4, (bad_on, posed)
 
 
 def test_the_re_match_replacing_an_uncertain_pose_is_judged_without_its_one_match(
@@ -1195,13 +1192,8 @@ def test_the_re_match_replacing_an_uncertain_pose_is_judged_without_its_one_matc
     monkeypatch.setattr(L.Localizer, "_estimate_pose", estimate_pose)
     monkeypatch.setattr(L.Localizer, "_densify", thin_rematch)
 
-    def replay(conf: EngineConf) -> tuple[list[int], int]:
-        return _replay_gap_frames(world, bundle, cam, conf)
-
     conf = EngineConf(batch_max=100, wide_window_gap_s=0, max_position_sd=0.005)
-    bad_off, _ = replay(conf.model_copy(update={"suspect_leave_out_unchecked": False}))
-    assert 967 in bad_off
-    bad_on, _ = replay(conf)
+    bad_on, _ = _wrong_only_without(world, bundle, cam, conf, "suspect_leave_out_unchecked")
     assert bad_on == [], bad_on
 
 
