@@ -499,3 +499,16 @@ def _bundle(prep: Prepared):
     from sfmloc.map.bundle import MapBundle
 
     return MapBundle(prep.bundle_path, verify=False)
+
+
+def test_a_rows_step_reads_as_an_ordinal():
+    # (the 10 Hz rows read "every 3th frame" before)
+    from sfmloc.bench.robust import ordinal, row_specs
+
+    assert [ordinal(n) for n in (1, 2, 3, 4, 10, 11, 12, 13, 21, 22, 23, 30, 111)] == [
+        "1st", "2nd", "3rd", "4th", "10th", "11th", "12th", "13th", "21st", "22nd", "23rd",
+        "30th", "111th",
+    ]  # fmt: skip
+    texts = [spec.text for spec in row_specs()]
+    assert any("every 3rd frame" in t for t in texts)
+    assert not any("3th" in t for t in texts)

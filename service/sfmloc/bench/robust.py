@@ -92,6 +92,12 @@ class RowSpec:
     real: bool = False  # needs the redkitchen data
 
 
+def ordinal(n: int) -> str:
+    """'3rd', '10th', '21st': a row's step in words."""
+    teen = n % 100 in (11, 12, 13)
+    return f"{n}{'th' if teen else {1: 'st', 2: 'nd', 3: 'rd'}.get(n % 10, 'th')}"
+
+
 def _scale_tag(s: float) -> str:
     return f"{s:g}".replace(".", "p")
 
@@ -145,7 +151,7 @@ def row_specs() -> list[RowSpec]:
             f"synthetic {kind}"
             + (" around the table" if kind == "orbit" else "")
             + (
-                f", every {VIDEO_HZ // hz}th frame of the 30 Hz video"
+                f", every {ordinal(VIDEO_HZ // hz)} frame of the 30 Hz video"
                 if hz != VIDEO_HZ
                 else " at 30 Hz"
             ),
@@ -158,8 +164,8 @@ def row_specs() -> list[RowSpec]:
         RowSpec(
             f"density-{k}x-{kind}-{hz}hz",
             "map density",
-            f"synthetic {kind} at {hz} Hz (every {VIDEO_HZ // hz}th frame of the 30 Hz video) "
-            f"on the map from every {k} of the 120 mapping views",
+            f"synthetic {kind} at {hz} Hz (every {ordinal(VIDEO_HZ // hz)} frame of the 30 Hz "
+            f"video) on the map from every {k} of the 120 mapping views",
         )
         for kind in kinds
     ]
@@ -1081,7 +1087,7 @@ def offsets_text(off: dict) -> str:
     """A low-rate row's streams in words: 'offsets 0-9 of every 10th frame, pooled', or with
     fewer offsets than the step (--quick) which of how many."""
     run, step = off["run"], off["step"]
-    every = f"every {step}th frame" if step != 3 else "every 3rd frame"
+    every = f"every {ordinal(step)} frame"
     if len(run) == off["of"] and run == list(range(step)):
         return f"offsets 0-{step - 1} of {every}, pooled"
     return (
