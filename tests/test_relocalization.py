@@ -414,6 +414,23 @@ def _far_patch_and_near(bundle, cam, k, n_far=40):
     return gt, xy, z, idx, far, near
 
 
+def _wrong_pose_on(gt, K, obs, X, sel, conf, scene_scale):
+    """The pose the Cauchy refinement settles on from ``gt`` with matches ``obs`` <-> ``X``
+    (``sel`` their point ids), as a ``PoseEstimate`` on all of them, when every residual is
+    within the refinement's threshold (one pose's inliers) and the pose is over the wrong-pose
+    limit (5% of the scene scale from ``gt``); else None."""
+    from sfmloc.engine.pose import PoseEstimate, reprojection_errors, robust_refine
+
+    pose = gt
+    for _ in range(6):
+        pose = robust_refine(pose, K, obs, X, 0.0)
+    if reprojection_errors(pose, K, obs, X).max() > conf.refine_threshold_px:
+        return None  # not one pose's inliers
+    if np.linalg.norm(pose.center - gt.center) <= 0.05 * scene_scale:
+        return None  # not a wrong pose
+    return PoseEstimate(pose, np.ones(len(sel), bool), len(sel), 0.0, obs, X, sel)
+
+
 def _resting_on_few(bundle, cam, conf, rng):
     """Per mapping view whose far patch alone leaves the pose free (its own sd over 10% of the
     scene scale): the view, its ground truth and its wrong pose(s) resting on a few matches,
@@ -422,12 +439,7 @@ def _resting_on_few(bundle, cam, conf, rng):
     apart), every residual within the refinement's threshold and the pose over the wrong-pose
     limit. Yields (k, gt, xy, idx, [(twice, est), ...])."""
     from sfmloc.engine.certainty import position_sd
-    from sfmloc.engine.pose import (
-        PoseEstimate,
-        pose_covariances,
-        reprojection_errors,
-        robust_refine,
-    )
+    from sfmloc.engine.pose import pose_covariances
 
     K, S = cam.K, bundle.scene_scale
     X = bundle.points_xyz
@@ -444,15 +456,9 @@ def _resting_on_few(bundle, cam, conf, rng):
             obs = np.r_[noisy, xy[sel[len(far) :]] + [40.0, 0.0]]
             if twice:
                 obs[-1] += [1.0, 0.0]
-            pose = gt
-            for _ in range(6):
-                pose = robust_refine(pose, K, obs, X[sel], 0.0)
-            if reprojection_errors(pose, K, obs, X[sel]).max() > conf.refine_threshold_px:
-                continue  # not one pose's inliers
-            if np.linalg.norm(pose.center - gt.center) <= 0.05 * S:
-                continue  # not a wrong pose
-            est = PoseEstimate(pose, np.ones(len(sel), bool), len(sel), 0.0, obs, X[sel], sel)
-            wrong.append((twice, est))
+            est = _wrong_pose_on(gt, K, obs, X[sel], sel, conf, S)
+            if est is not None:
+                wrong.append((twice, est))
         yield k, gt, xy, idx, wrong
 
 
@@ -606,7 +612,7 @@ def _pinned_by_one_point(bundle, cam, conf, rng, n_far=40):
     nearest their median, and its nearest point matched by two keypoints a pixel apart, seen
     40 px off; every residual within the refinement's threshold, the pose over the wrong-pose
     limit. Yields (k, gt, xy, idx, est)."""
-    from sfmloc.engine.pose import PoseEstimate, project, reprojection_errors, robust_refine
+    from sfmloc.engine.pose import project
 
     K, S, X = cam.K, bundle.scene_scale, bundle.points_xyz
     for k in range(bundle.n_images):
@@ -624,20 +630,9 @@ def _pinned_by_one_point(bundle, cam, conf, rng, n_far=40):
         sel = np.r_[far, near, near]
         seen = xy[[near, near]] + [[40.0, 0.0], [41.0, 0.0]]
         obs = np.r_[xy[far] + rng.normal(0, 0.5, (n_far, 2)), seen]
-        pose = gt
-        for _ in range(6):
-            pose = robust_refine(pose, K, obs, X[sel], 0.0)
-        if reprojection_errors(pose, K, obs, X[sel]).max() > conf.refine_threshold_px:
-            continue  # not one pose's inliers
-        if np.linalg.norm(pose.center - gt.center) <= 0.05 * S:
-            continue  # not a wrong pose
-        yield (
-            k,
-            gt,
-            xy,
-            idx,
-            PoseEstimate(pose, np.ones(len(sel), bool), len(sel), 0.0, obs, X[sel], sel),
-        )
+        est = _wrong_pose_on(gt, K, obs, X[sel], sel, conf, S)
+        if est is not None:
+            yield k, gt, xy, idx, est
 
 
 def test_a_relocalization_verified_on_one_map_point_is_not_verified(bundle, cam):
