@@ -503,20 +503,17 @@ class Localizer:
                 if dense is not None and (uncertain or dense[2].verified):
                     table, est, cert = dense
                     matching = Matching.GUIDED
-                    if (
+                    # The re-match of a pose too uncertain to publish, itself resting on its
+                    # most influential match: nothing checked that one either (robust
+                    # density-6x walk at 3 Hz, frame 191: 48 tracked inliers, sd 3.05%; its
+                    # re-match 13.1% of the scene scale off on 63 with sd 2.36%, one wrong
+                    # match 7 px off at the true pose; 19.3% without it). (One withheld
+                    # anyway keeps its own sd and message.)
+                    without_one = (
                         unchecked_rule
                         and not cert.verified
                         and withheld(cert.position_sd, est.num_inliers, c) is None
-                    ):
-                        # The re-match of a pose too uncertain to publish, itself resting on
-                        # its most influential match: nothing checked that one either (robust
-                        # density-6x walk at 3 Hz, frame 191: 48 tracked inliers, sd 3.05%;
-                        # its re-match 13.1% of the scene scale off on 63 with sd 2.36%, one
-                        # wrong match 7 px off at the true pose; 19.3% without it). (One
-                        # withheld anyway keeps its own sd and message.)
-                        judged = self._judged_without_one(cert)
-                        if judged is not cert:
-                            cert = loo_cert = judged
+                    )
                 elif dense is not None:
                     if c.rematch_disagreement:
                         # Not replaced, but the frame's own matches also place it elsewhere:
@@ -524,19 +521,18 @@ class Localizer:
                         # map, frame 466: TRACKING 17 cm off with sd 4.4 cm; its re-match
                         # 9.4 cm from it).
                         cert = with_disagreement(cert, est, dense[1], self.bundle, c)
-                    if c.suspect_leave_out:
-                        # (suspect, not replaced: the re-match started from this pose and
-                        # cannot check the match it rests on)
-                        judged = self._judged_without_one(cert)
-                        if judged is not cert:
-                            cert = loo_cert = judged
-                elif suspect and not uncertain and unchecked_rule:
+                    # (suspect, not replaced: the re-match started from this pose and cannot
+                    # check the match it rests on)
+                    without_one = c.suspect_leave_out
+                else:
                     # Suspect, and its re-match found no pose more certain than its own sd
                     # (the one in doubt) or none at all: that match is unchecked as when the
                     # re-match agrees (robust density-6x walk at 3 Hz, frame 213: 45 right
                     # tracked matches on a far patch put it 10% off; guided matching added one
                     # wrong match, 15 px off at the true pose, that fixed it 13.4% off at sd
                     # 1.61%, 13.5% without it; its re-match 11.7% off at sd 13.8%).
+                    without_one = suspect and not uncertain and unchecked_rule
+                if without_one:  # judged at its sd without its most influential match
                     judged = self._judged_without_one(cert)
                     if judged is not cert:
                         cert = loo_cert = judged
